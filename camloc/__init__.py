@@ -1,0 +1,26 @@
+"""camloc: localize a robot in a known landmark map from g2o odometry and camera observations.
+
+    >>> import camloc
+    >>> dataset = camloc.load("data/grid-small.g2o")
+    >>> result = camloc.localize(dataset)
+
+Heavy modules are imported on first use so that ``camloc --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+__all__ = ["__version__", "load", "localize", "LocalizerConfig"]
+
+
+def __getattr__(name: str):
+    if name == "load":
+        from camloc.g2o import read_g2o
+
+        return read_g2o
+    if name in ("localize", "LocalizerConfig"):
+        from camloc import localize as _localize_module
+
+        return getattr(_localize_module, name)
+    raise AttributeError(f"module 'camloc' has no attribute {name!r}")

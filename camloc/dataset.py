@@ -1,0 +1,123 @@
+"""The in-memory dataset: plain frozen dataclasses of numpy arrays, no parsing and no I/O.
+
+Frames: ``world`` (the map), ``robot`` (the pose vertices), ``camera`` (x right, y down, z along
+the optical axis). Odometry covariances are in (translation, rotation vector) of the increment's
+right perturbation, already converted from g2o's quaternion-vector parametrization by
+``camloc.g2o.odometry_cov_from_info``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from camloc import geometry
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A camera rigidly mounted on the robot.
+
+    Attributes
+    ----------
+    id : the camera id used by observations.
+    translation : (3,) camera origin in the robot frame, metres.
+    quat_xyzw : (4,) unit quaternion of the camera orientation in the robot frame.
+    fx, fy, cx, cy : intrinsics; ``u = fx x/z + cx``, ``v = fy y/z + cy``.
+    """
+
+    id: int
+    translation: np.ndarray
+    quat_xyzw: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def T_robot_camera(self) -> np.ndarray:
+        """(4, 4) pose of the camera in the robot frame."""
+        return geometry.pose_from_quat(self.translation, self.quat_xyzw)
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """Everything a g2o camera-localization file holds.
+
+    N poses form a chain linked by N-1 odometry increments; K observations; L map landmarks.
+
+    Attributes
+    ----------
+    source : the file the dataset came from (or a description for simulated data).
+    cameras : cameras by id.
+    landmark_ids : (L,) int64 ids of the known map.
+    landmark_xyz : (L, 3) landmark positions in the world frame, metres.
+    pose_ids : (N,) int64 pose ids in chain order.
+    start_xyz, start_quat_xyzw : (3,), (4,) the known first pose, world frame.
+    truth_xyz, truth_quat_xyzw : (N, 3), (N, 4) ground-truth poses, or None when the file does
+        not give a vertex for every pose.
+    odom_translation, odom_quat_xyzw : (N-1, 3), (N-1, 4) increment k is the pose k+1 in the
+        frame of pose k.
+    odom_info : (N-1, 6, 6) information exactly as in the file (g2o parametrization).
+    odom_cov : (N-1, 6, 6) covariance of (translation, rotation vector).
+    obs_pose_index : (K,) int64 index into ``pose_ids`` of the observing pose.
+    obs_camera : (K,) int64 camera id.
+    obs_uvd : (K, 3) measured u, v, depth.
+    obs_info : (K, 3, 3) information as in the file; obs_cov its inverse.
+    obs_true_landmark : (K,) int64 landmark id written in the file. Localizers must not read it;
+        evaluators may, to score the association. Ids absent from the map are clutter.
+    tag_counts : number of records per tag, unknown tags included.
+    warnings : messages about the input that did not stop the reading.
+    """
+
+    source: str
+    cameras: dict[int, Camera]
+    landmark_ids: np.ndarray
+    landmark_xyz: np.ndarray
+    pose_ids: np.ndarray
+    start_xyz: np.ndarray
+    start_quat_xyzw: np.ndarray
+    truth_xyz: np.ndarray | None
+    truth_quat_xyzw: np.ndarray | None
+    odom_translation: np.ndarray
+    odom_quat_xyzw: np.ndarray
+    odom_info: np.ndarray
+    odom_cov: np.ndarray
+    obs_pose_index: np.ndarray
+    obs_camera: np.ndarray
+    obs_uvd: np.ndarray
+    obs_info: np.ndarray
+    obs_cov: np.ndarray
+    obs_true_landmark: np.ndarray
+    tag_counts: dict[str, int] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def num_poses(self) -> int:
+        return int(self.pose_ids.shape[0])
+
+    @property
+    def num_observations(self) -> int:
+        return int(self.obs_uvd.shape[0])
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.truth_xyz is not None
+
+    @property
+    def T_world_start(self) -> np.ndarray:
+        """(4, 4) the known first pose."""
+        return geometry.pose_from_quat(self.start_xyz, self.start_quat_xyzw)
+
+    @property
+    def T_world_truth(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth poses, or None."""
+        if self.truth_xyz is None:
+            return None
+        return geometry.pose_from_quat(self.truth_xyz, self.truth_quat_xyzw)
+
+    @property
+    def T_odometry(self) -> np.ndarray:
+        """(N-1, 4, 4) odometry increments ``T_k_k+1``."""
+        return geometry.pose_from_quat(self.odom_translation, self.odom_quat_xyzw)

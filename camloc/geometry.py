@@ -1,0 +1,175 @@
+"""Pure SO(3)/SE(3) and Euler-angle geometry: the one place where rotations are built and read.
+
+Conventions used everywhere in camloc
+-------------------------------------
+- Quaternions are ``quat_xyzw`` (scalar last), as in g2o and ``scipy.spatial.transform.Rotation``.
+- Euler angles are ``rpy = (roll, pitch, yaw)`` with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``
+  (intrinsic z-y'-x'', scipy's ``"ZYX"`` with the angles given as yaw, pitch, roll).
+- A pose ``T_a_b`` (4, 4) maps points of frame b into frame a: ``p_a = R_a_b p_b + t_a_b``.
+- Rotation perturbations are on the right (body frame): ``R(rpy + d) ~= R(rpy) Exp(E(rpy) d)``.
+
+Every function accepts a single item or a leading batch dimension, and never does I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+EULER_SEQUENCE = "ZYX"
+
+
+def hat(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix: ``hat(a) @ b == cross(a, b)``. (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def quat_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s) (..., 4) scalar last -> rotation matrices (..., 3, 3)."""
+    quat_xyzw = np.asarray(quat_xyzw, dtype=float)
+    flat = Rotation.from_quat(quat_xyzw.reshape(-1, 4)).as_matrix()
+    return flat.reshape(quat_xyzw.shape[:-1] + (3, 3))
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4), scalar last, with qw >= 0."""
+    R = np.asarray(R, dtype=float)
+    quat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    quat *= np.where(quat[:, 3:4] < 0.0, -1.0, 1.0)
+    return quat.reshape(R.shape[:-2] + (4,))
+
+
+def euler_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (..., 3) in radians -> ``Rz(yaw) Ry(pitch) Rx(roll)`` (..., 3, 3)."""
+    rpy = np.asarray(rpy, dtype=float)
+    ypr = rpy.reshape(-1, 3)[:, ::-1]
+    flat = Rotation.from_euler(EULER_SEQUENCE, ypr).as_matrix()
+    return flat.reshape(rpy.shape[:-1] + (3, 3))
+
+
+def matrix_to_euler(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> roll, pitch, yaw (..., 3), pitch in [-pi/2, pi/2].
+
+    At pitch = +-pi/2 (gimbal lock) roll and yaw are not separable; scipy then sets one of them
+    to zero and warns, which the Euler filter reports as its singularity.
+    """
+    R = np.asarray(R, dtype=float)
+    ypr = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler(EULER_SEQUENCE)
+    return ypr[:, ::-1].reshape(R.shape[:-2] + (3,))
+
+
+def quat_to_euler(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4) -> roll, pitch, yaw (..., 3)."""
+    return matrix_to_euler(quat_to_matrix(quat_xyzw))
+
+
+def euler_to_quat(rpy: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (..., 3) -> quaternions (..., 4) with qw >= 0."""
+    return matrix_to_quat(euler_to_matrix(rpy))
+
+
+def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
+    """E(rpy) (..., 3, 3) such that the body-frame rotation for an Euler step d is ``E @ d``.
+
+    ``R(rpy + d) = R(rpy) Exp(E(rpy) d) + O(|d|^2)``; E is singular at pitch = +-pi/2.
+    """
+    rpy = np.asarray(rpy, dtype=float)
+    roll, pitch = rpy[..., 0], rpy[..., 1]
+    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+    E = np.zeros(rpy.shape[:-1] + (3, 3))
+    E[..., 0, 0] = 1.0
+    E[..., 0, 2] = -sp
+    E[..., 1, 1], E[..., 1, 2] = cr, sr * cp
+    E[..., 2, 1], E[..., 2, 2] = -sr, cr * cp
+    return E
+
+
+def so3_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation vector(s) (..., 3) -> rotation matrices (..., 3, 3)."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    flat = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix()
+    return flat.reshape(rotvec.shape[:-1] + (3, 3))
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3), angle in [0, pi]."""
+    R = np.asarray(R, dtype=float)
+    flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
+    return flat.reshape(R.shape[:-2] + (3,))
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Geodesic angle (...,) in radians of rotation matrices (..., 3, 3)."""
+    return np.linalg.norm(so3_log(R), axis=-1)
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rotation (..., 3, 3) and translation (..., 3) -> homogeneous pose (..., 4, 4)."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    T = np.zeros(np.broadcast_shapes(R.shape[:-2], t.shape[:-1]) + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def pose_from_quat(t: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """Translation (..., 3) and quaternion (..., 4) -> pose (..., 4, 4)."""
+    return make_pose(quat_to_matrix(quat_xyzw), t)
+
+
+def pose_to_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pose (..., 4, 4) -> translation (..., 3) and quaternion (..., 4) with qw >= 0."""
+    T = np.asarray(T, dtype=float)
+    return T[..., :3, 3].copy(), matrix_to_quat(T[..., :3, :3])
+
+
+def pose_from_euler(state: np.ndarray) -> np.ndarray:
+    """Euler state ``(x, y, z, roll, pitch, yaw)`` (..., 6) -> pose (..., 4, 4)."""
+    state = np.asarray(state, dtype=float)
+    return make_pose(euler_to_matrix(state[..., 3:6]), state[..., 0:3])
+
+
+def pose_to_euler(T: np.ndarray) -> np.ndarray:
+    """Pose (..., 4, 4) -> Euler state ``(x, y, z, roll, pitch, yaw)`` (..., 6)."""
+    T = np.asarray(T, dtype=float)
+    return np.concatenate([T[..., :3, 3], matrix_to_euler(T[..., :3, :3])], axis=-1)
+
+
+def se3_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of pose(s) (..., 4, 4) without a general matrix inverse."""
+    T = np.asarray(T, dtype=float)
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    return make_pose(R_t, -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3]))
+
+
+def relative_se3(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
+    """``T_a_b = T_w_a^-1 T_w_b``: the pose of b in the frame of a."""
+    return se3_inverse(T_w_a) @ T_w_b
+
+
+def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
+    """Apply pose (4, 4) to points (..., 3) expressed in frame b; returns points in frame a."""
+    return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Angles wrapped into [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def pose_error_vector(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """Error (..., 6) of an estimate against the truth: ``(t_true - t_est, Log(R_true R_est^T))``.
+
+    The rotation part is a world-frame (left) rotation vector; this is the parametrization in which
+    camloc stores pose covariances (``cov_pose``) so that NEES is filter-agnostic.
+    """
+    dt = T_true[..., :3, 3] - T_est[..., :3, 3]
+    dR = T_true[..., :3, :3] @ np.swapaxes(T_est[..., :3, :3], -1, -2)
+    return np.concatenate([dt, so3_log(dR)], axis=-1)

@@ -1,0 +1,127 @@
+"""Motion and camera models of the Euler-angle EKF, with their analytic Jacobians.
+
+Model card
+----------
+State      x = (x, y, z, roll, pitch, yaw): the robot pose in the world frame, metres and radians,
+           ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (see ``camloc.geometry``).
+Control    u = dT = (dt, dR): the odometry increment, the next pose in the frame of the current one.
+Motion     T_{k+1} = T_k dT Exp(w), with w = (w_t, w_theta) ~ N(0, Q) the increment's noise as a
+           right perturbation (translation, rotation vector); Q comes from the edge's information in
+           g2o's parametrization (``camloc.g2o.odometry_cov_from_info``).
+Measure    z = (u, v, depth) of a landmark l through camera (R_c, t_c) on the robot:
+              p_robot  = R^T (l - t)
+              p_camera = R_c^T (p_robot - t_c)
+              z = (fx p.x / p.z + cx, fy p.y / p.z + cy, p.z) + n,  n ~ N(0, R_obs)
+Jacobians  F = dx'/dx and G = dx'/dw of the motion, H = dz/dx of the measurement, derived through
+           the body-frame perturbation ``R(rpy + d) = R Exp(E(rpy) d)`` (``geometry.euler_rate_matrix``).
+           Every one is checked against central finite differences in tests/test_models.py.
+Singularity  E(rpy) is singular at pitch = +-90 deg; the Euler filter is not usable there.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from camloc import geometry
+
+
+def motion(state: np.ndarray, T_increment: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Compose an Euler state with an odometry increment.
+
+    Parameters
+    ----------
+    state : (6,) x, y, z, roll, pitch, yaw of T_world_robot.
+    T_increment : (4, 4) T_k_k+1, the next pose in the frame of the current one.
+
+    Returns
+    -------
+    next_state : (6,) the state of T_world_robot @ T_increment.
+    F : (6, 6) d next_state / d state.
+    G : (6, 6) d next_state / d w, w = (translation, rotation vector) right perturbation of the
+        increment.
+    """
+    R = geometry.euler_to_matrix(state[3:6])
+    dR, dt = T_increment[:3, :3], T_increment[:3, 3]
+    R_next = R @ dR
+    rpy_next = geometry.matrix_to_euler(R_next)
+    next_state = np.concatenate([state[0:3] + R @ dt, rpy_next])
+
+    E = geometry.euler_rate_matrix(state[3:6])
+    E_next = geometry.euler_rate_matrix(rpy_next)
+    F = np.eye(6)
+    # t' = t + R dt; perturbing R on the right by E d moves t' by -R [dt]x E d.
+    F[0:3, 3:6] = -R @ geometry.hat(dt) @ E
+    # R' = R Exp(E d) dR = R' Exp(dR^T E d); the new Euler step solves E' d' = dR^T E d.
+    F[3:6, 3:6] = np.linalg.solve(E_next, dR.T @ E)
+
+    G = np.zeros((6, 6))
+    G[0:3, 0:3] = R_next  # t' = t + R dT_t + R dR w_t
+    G[3:6, 3:6] = np.linalg.solve(E_next, np.eye(3))  # R' Exp(w_theta): E' d' = w_theta
+    return next_state, F, G
+
+
+def camera_points(
+    T_world_robot: np.ndarray, T_robot_camera: np.ndarray, landmark_xyz: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks (M, 3) in the robot frame and in the camera frame, both (M, 3)."""
+    R, t = T_world_robot[:3, :3], T_world_robot[:3, 3]
+    R_c, t_c = T_robot_camera[:3, :3], T_robot_camera[:3, 3]
+    p_robot = (landmark_xyz - t) @ R          # rows of R^T (l - t)
+    p_camera = (p_robot - t_c) @ R_c
+    return p_robot, p_camera
+
+
+def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float]) -> np.ndarray:
+    """Camera-frame points (M, 3) -> measurements (M, 3) of u, v, depth. Depth must be non-zero."""
+    fx, fy, cx, cy = intrinsics
+    z = p_camera[:, 2]
+    return np.column_stack([fx * p_camera[:, 0] / z + cx, fy * p_camera[:, 1] / z + cy, z])
+
+
+def observe(
+    state: np.ndarray,
+    T_robot_camera: np.ndarray,
+    intrinsics: tuple[float, float, float, float],
+    landmark_xyz: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted measurements of landmarks and their Jacobians with respect to the state.
+
+    Parameters
+    ----------
+    state : (6,) Euler state of T_world_robot.
+    T_robot_camera : (4, 4) camera mount.
+    intrinsics : fx, fy, cx, cy.
+    landmark_xyz : (M, 3) landmarks in the world frame, in front of the camera.
+
+    Returns
+    -------
+    z_hat : (M, 3) predicted u, v, depth.
+    H : (M, 3, 6) d z_hat / d state.
+    """
+    T_world_robot = geometry.pose_from_euler(state)
+    p_robot, p_camera = camera_points(T_world_robot, T_robot_camera, landmark_xyz)
+    z_hat = project_points(p_camera, intrinsics)
+
+    R = T_world_robot[:3, :3]
+    R_c_T = T_robot_camera[:3, :3].T
+    E = geometry.euler_rate_matrix(state[3:6])
+    # p_robot = R^T (l - t): d/dt = -R^T; a body rotation E d moves it by [p_robot]x E d.
+    dprobot_dstate = np.empty((landmark_xyz.shape[0], 3, 6))
+    dprobot_dstate[:, :, 0:3] = -R.T
+    dprobot_dstate[:, :, 3:6] = geometry.hat(p_robot) @ E
+    dpcam_dstate = R_c_T @ dprobot_dstate
+    H = projection_jacobian(p_camera, intrinsics) @ dpcam_dstate
+    return z_hat, H
+
+
+def projection_jacobian(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float]) -> np.ndarray:
+    """d(u, v, depth) / d p_camera, (M, 3, 3)."""
+    fx, fy, _, _ = intrinsics
+    x, y, z = p_camera[:, 0], p_camera[:, 1], p_camera[:, 2]
+    J = np.zeros((p_camera.shape[0], 3, 3))
+    J[:, 0, 0] = fx / z
+    J[:, 0, 2] = -fx * x / z**2
+    J[:, 1, 1] = fy / z
+    J[:, 1, 2] = -fy * y / z**2
+    J[:, 2, 2] = 1.0
+    return J

@@ -1,0 +1,1 @@
+"""The camloc command line: thin typer commands that wire options to library calls."""

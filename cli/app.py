@@ -1,0 +1,50 @@
+"""The ``camloc`` typer application. Each command lives in its own module and imports the library
+lazily, so ``camloc --help`` does not pay for scipy or matplotlib."""
+
+from __future__ import annotations
+
+import typer
+
+from camloc import __version__
+
+app = typer.Typer(
+    name="camloc",
+    help="Localize a robot in a known landmark map from g2o odometry and camera observations.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"camloc {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
+    """camloc: an Euler-angle EKF localizer with unknown data association."""
+
+
+def _register_commands() -> None:
+    from camloc.cli import commands
+
+    for name, function in commands.COMMANDS:
+        app.command(name)(function)
+
+
+_register_commands()
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,5 @@
+"""The list of commands. Each lives in its own module; add one line here per command."""
+
+from __future__ import annotations
+
+COMMANDS: list = []
