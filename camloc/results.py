@@ -56,6 +56,7 @@ class RunResult:
         Euler filter: x, y, z, roll, pitch, yaw).
     odometry_xyz, odometry_quat_xyzw : (N, 3), (N, 4) odometry alone from the same start.
     truth_xyz, truth_quat_xyzw : (N, 3), (N, 4) ground truth, or None.
+    map_landmark_ids, map_landmark_xyz : (L,), (L, 3) the known map the run localized against.
     associations : one row per observation.
     update_pose_ids : (U,) int64 the pose of each filter update (one per pose with accepted pairs).
     nis : (U,) normalized innovation squared of each update; nis_dof : (U,) its degrees of freedom.
@@ -73,6 +74,8 @@ class RunResult:
     odometry_quat_xyzw: np.ndarray
     truth_xyz: np.ndarray | None
     truth_quat_xyzw: np.ndarray | None
+    map_landmark_ids: np.ndarray
+    map_landmark_xyz: np.ndarray
     associations: Associations
     update_pose_ids: np.ndarray
     nis: np.ndarray
