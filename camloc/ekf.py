@@ -1,0 +1,104 @@
+"""Extended Kalman filter steps: prediction, and the (iterated) update in Joseph form.
+
+The filter is generic in its models: ``predict`` takes the motion Jacobians, ``update`` takes a
+measurement function returning ``(z_hat, H)``. Angles in the state are handled by the caller through
+``state_difference`` (so the iterated update can re-linearize around wrapped Euler angles).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from camloc.errors import CamlocError
+
+MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+StateDifference = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+class FilterDivergedError(CamlocError):
+    """The innovation covariance is not positive definite: the filter's covariance broke down."""
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """The outcome of one (stacked) update.
+
+    Attributes
+    ----------
+    state : (n,) posterior state; cov : (n, n) posterior covariance.
+    innovation : (m,) ``z - h(x_prior)``; S : (m, m) its covariance at the prior.
+    nis : normalized innovation squared ``y^T S^-1 y`` at the prior (m degrees of freedom).
+    """
+
+    state: np.ndarray
+    cov: np.ndarray
+    innovation: np.ndarray
+    S: np.ndarray
+    nis: float
+
+
+def symmetrize(P: np.ndarray) -> np.ndarray:
+    return 0.5 * (P + P.T)
+
+
+def predict(P: np.ndarray, F: np.ndarray, G: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Propagated covariance ``P' = F P F' + G Q G'`` (the state itself comes from the model)."""
+    return symmetrize(F @ P @ F.T + G @ Q @ G.T)
+
+
+def joseph_update(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``P+ = (I - K H) P (I - K H)' + K R K'``: stays symmetric positive semi-definite for any K,
+    unlike ``(I - K H) P``, which loses symmetry and definiteness to rounding."""
+    I_KH = np.eye(P.shape[0]) - K @ H
+    return symmetrize(I_KH @ P @ I_KH.T + K @ R @ K.T)
+
+
+def kalman_gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """``S = H P H' + R`` and ``K = P H' S^-1`` through a Cholesky solve; returns (K, S, chol(S))."""
+    S = symmetrize(H @ P @ H.T + R)
+    try:
+        S_chol = cho_factor(S, lower=True, check_finite=False)
+    except np.linalg.LinAlgError as error:
+        raise FilterDivergedError("innovation covariance is not positive definite") from error
+    K = cho_solve(S_chol, H @ P, check_finite=False).T  # K = P H' S^-1, S symmetric
+    return K, S, S_chol
+
+
+def update(
+    x: np.ndarray,
+    P: np.ndarray,
+    z: np.ndarray,
+    R: np.ndarray,
+    measure: MeasurementFunction,
+    *,
+    difference: StateDifference,
+    iterations: int = 1,
+) -> UpdateResult:
+    """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
+
+    Parameters
+    ----------
+    x, P : prior state (n,) and covariance (n, n).
+    z : (m,) stacked measurements; R : (m, m) their covariance.
+    measure : x -> (z_hat (m,), H (m, n)).
+    difference : (a, b) -> a - b for states (angles wrapped).
+    iterations : number of linearizations (>= 1).
+
+    Each iteration ``x_{i+1} = x + K_i (z - h(x_i) - H_i (x - x_i))`` with ``K_i`` at ``x_i``
+    (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
+    """
+    z_hat, H = measure(x)
+    y_prior = z - z_hat
+    K, S, S_chol = kalman_gain(P, H, R)
+    nis = float(y_prior @ cho_solve(S_chol, y_prior, check_finite=False))  # NIS = y' S^-1 y
+    x_i = x + K @ y_prior  # x+ = x + K y
+    for _ in range(iterations - 1):
+        z_hat_i, H_i = measure(x_i)
+        K, _, _ = kalman_gain(P, H_i, R)
+        H = H_i
+        x_i = x + K @ (z - z_hat_i - H_i @ difference(x, x_i))
+    return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis)

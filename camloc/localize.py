@@ -1,0 +1,348 @@
+"""The localizer: an Euler-angle EKF over the odometry chain, corrected by camera observations whose
+landmark is unknown and found by data association.
+
+    result = localize(dataset, LocalizerConfig(association="best-friends"))
+
+One pose at a time (``_Localizer.step``): predict with the odometry increment, associate the pose's
+observations with the map, update with every accepted pair stacked, record.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable, Optional
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.stats import chi2
+
+from camloc import association, ekf, geometry, models
+from camloc.dataset import Dataset
+from camloc.errors import ConfigError
+from camloc.results import UNASSOCIATED, Associations, RunResult
+
+ASSOCIATION_METHODS = ("best-friends", "oracle")
+COSTS = ("nll", "mahalanobis", "euclidean")
+SINGULARITY_WARNING_DEG = 80.0
+
+ProgressCallback = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Every option of the localizer; ``summary.json`` records it so a run can be repeated.
+
+    Attributes
+    ----------
+    association : "best-friends" (mutual best match + gates, never reads the file's ids) or
+        "oracle" (the file's landmark ids, ungated: what perfect association gives).
+    iterations : linearizations per update (1 = EKF, more = iterated EKF).
+    gate_probability : chi^2 gate on each pair's innovation, 3 degrees of freedom.
+    cost : pair cost for best friends: "nll" (d^2 + ln det S), "mahalanobis" (d^2), "euclidean"
+        (|z - z_hat| in measurement units).
+    margin : lonely-best-friends margin, in cost units: a pair is rejected when a rival in its row
+        or column is less than ``margin`` more expensive.
+    min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
+        1.25 x the largest measured depth + 0.5 m).
+    max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
+        widest observed ray + 10 deg, at most 89 deg).
+    initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose.
+    """
+
+    association: str = "best-friends"
+    iterations: int = 3
+    gate_probability: float = 0.99
+    cost: str = "nll"
+    margin: float = 1.0
+    min_depth: Optional[float] = None
+    max_depth: Optional[float] = None
+    max_angle_deg: Optional[float] = None
+    initial_sigma_xyz: float = 0.01
+    initial_sigma_deg: float = 0.5
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first option that is out of range."""
+        checks = [
+            (self.association in ASSOCIATION_METHODS, f"association must be one of {ASSOCIATION_METHODS}, got {self.association!r}"),
+            (self.cost in COSTS, f"cost must be one of {COSTS}, got {self.cost!r}"),
+            (int(self.iterations) == self.iterations and 1 <= self.iterations <= 50, f"iterations must be an integer in 1..50, got {self.iterations}"),
+            (0.0 < self.gate_probability < 1.0, f"gate_probability must be in (0, 1), got {self.gate_probability}"),
+            (self.margin >= 0.0, f"margin must be >= 0, got {self.margin}"),
+            (self.initial_sigma_xyz > 0.0 and self.initial_sigma_deg > 0.0, "initial sigmas must be > 0"),
+            (self.min_depth is None or self.min_depth >= 0.0, f"min_depth must be >= 0, got {self.min_depth}"),
+            (self.max_depth is None or self.max_depth > (self.min_depth or 0.0), f"max_depth must be > min_depth, got {self.max_depth}"),
+            (self.max_angle_deg is None or 0.0 < self.max_angle_deg < 90.0, f"max_angle_deg must be in (0, 90), got {self.max_angle_deg}"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(message)
+
+
+@dataclass(frozen=True)
+class _CameraModel:
+    T_robot_camera: np.ndarray
+    intrinsics: tuple[float, float, float, float]
+
+
+def localize(
+    dataset: Dataset,
+    config: Optional[LocalizerConfig] = None,
+    *,
+    on_progress: Optional[ProgressCallback] = None,
+) -> RunResult:
+    """Localize every pose of ``dataset`` against its landmark map.
+
+    Parameters
+    ----------
+    dataset : the dataset; its ``obs_true_landmark`` is read only with ``association="oracle"``.
+    config : options (defaults when None).
+    on_progress : called as ``on_progress(poses_done, poses_total)`` about 200 times per run.
+    """
+    config = config or LocalizerConfig()
+    config.validate()
+    localizer = _Localizer(dataset, config)
+    started = time.perf_counter()
+    stride = max(1, dataset.num_poses // 200)
+    for k in range(dataset.num_poses):
+        localizer.step(k)
+        if on_progress is not None and (k % stride == 0 or k == dataset.num_poses - 1):
+            on_progress(k + 1, dataset.num_poses)
+    return localizer.result(time.perf_counter() - started)
+
+
+class _Localizer:
+    """The filter's state over one run; ``step(k)`` processes pose k."""
+
+    def __init__(self, dataset: Dataset, config: LocalizerConfig):
+        self.dataset = dataset
+        self.config = config
+        self.cameras = {
+            cid: _CameraModel(cam.T_robot_camera, (cam.fx, cam.fy, cam.cx, cam.cy))
+            for cid, cam in dataset.cameras.items()
+        }
+        self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
+        self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
+        self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
+        self.gate = float(chi2.ppf(config.gate_probability, 3))
+
+        order = np.argsort(dataset.obs_pose_index, kind="stable")
+        bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
+        self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
+        self.T_increments = dataset.T_odometry
+
+        n, k_obs = dataset.num_poses, dataset.num_observations
+        self.states = np.zeros((n, 6))
+        self.covs = np.zeros((n, 6, 6))
+        self.odometry_poses = np.zeros((n, 4, 4))
+        self.chosen_landmark = np.full(k_obs, UNASSOCIATED, dtype=np.int64)
+        self.mahalanobis = np.full(k_obs, np.nan)
+        self.update_pose_ids: list[int] = []
+        self.nis: list[float] = []
+        self.nis_dof: list[int] = []
+        self.warnings: list[str] = []
+
+        sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
+        self.x = geometry.pose_to_euler(dataset.T_world_start)
+        self.P = np.diag(sigma**2)
+        self.T_odometry = dataset.T_world_start
+
+    def step(self, k: int) -> None:
+        if k > 0:
+            self._predict(k - 1)                  # x <- x (+) odometry increment
+        self._warn_near_singularity(k)
+        obs, landmarks = self._associate(self.obs_of_pose[k])  # which observation is which landmark
+        if obs.size:
+            self._update(k, obs, landmarks)       # stacked (iterated) EKF update
+        self.states[k], self.covs[k] = self.x, self.P
+        self.odometry_poses[k] = self.T_odometry
+
+    def _predict(self, edge: int) -> None:
+        T_increment = self.T_increments[edge]
+        self.x, F, G = models.motion(self.x, T_increment)
+        self.P = ekf.predict(self.P, F, G, self.dataset.odom_cov[edge])  # P = F P F' + G Q G'
+        self.T_odometry = self.T_odometry @ T_increment
+
+    def _associate(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Accepted pairs of this pose: observation indices and landmark indices, both (p,)."""
+        if obs.size == 0 or self.tree is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if self.config.association == "oracle":
+            return self._associate_oracle(obs)
+        accepted_obs, accepted_lm = [], []
+        for camera_id in np.unique(self.dataset.obs_camera[obs]):
+            obs_c = obs[self.dataset.obs_camera[obs] == camera_id]
+            o, l = self._associate_camera(obs_c, self.cameras[int(camera_id)])
+            accepted_obs.append(o)
+            accepted_lm.append(l)
+        return np.concatenate(accepted_obs), np.concatenate(accepted_lm)
+
+    def _associate_camera(self, obs: np.ndarray, camera: _CameraModel) -> tuple[np.ndarray, np.ndarray]:
+        T_world_camera = geometry.pose_from_euler(self.x) @ camera.T_robot_camera
+        candidates = association.candidate_indices(
+            self.tree, self.dataset.landmark_xyz, T_world_camera,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
+        )
+        if candidates.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        z_hat, H = models.observe(self.x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
+        HPH = H @ self.P @ np.swapaxes(H, 1, 2)
+        z = self.dataset.obs_uvd[obs]
+        d2, nll = association.pair_statistics(z, self.dataset.obs_cov[obs], z_hat, HPH)
+        cost = {"nll": nll, "mahalanobis": d2}.get(self.config.cost)
+        if cost is None:
+            cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
+        rows, cols = association.best_friends(cost, d2, gate=self.gate, margin=self.config.margin)
+        return obs[rows], candidates[cols]
+
+    def _associate_oracle(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        index = np.array([self.landmark_index_of_id.get(int(i), -1) for i in self.dataset.obs_true_landmark[obs]], dtype=np.int64)
+        in_map = index >= 0
+        return obs[in_map], index[in_map]
+
+    def _update(self, k: int, obs: np.ndarray, landmarks: np.ndarray) -> None:
+        z = self.dataset.obs_uvd[obs].reshape(-1)
+        R = _block_diagonal(self.dataset.obs_cov[obs])
+        groups = [(self.cameras[int(c)], self.dataset.obs_camera[obs] == c) for c in np.unique(self.dataset.obs_camera[obs])]
+        landmark_xyz = self.dataset.landmark_xyz[landmarks]
+
+        def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            z_hat = np.empty((obs.size, 3))
+            H = np.empty((obs.size, 3, 6))
+            for camera, mask in groups:
+                z_hat[mask], H[mask] = models.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask])
+            return z_hat.reshape(-1), H.reshape(-1, 6)
+
+        result = ekf.update(self.x, self.P, z, R, measure, difference=state_difference, iterations=self.config.iterations)
+        self._record_pairs(obs, landmarks, result)
+        self.x, self.P = normalize_state(result.state), result.cov
+
+    def _record_pairs(self, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
+        y = result.innovation.reshape(-1, 3)
+        S_blocks = np.array([result.S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(obs.size)])
+        d2 = np.einsum("ni,ni->n", y, np.linalg.solve(S_blocks, y[..., None])[..., 0])
+        self.chosen_landmark[obs] = self.dataset.landmark_ids[landmarks]
+        self.mahalanobis[obs] = np.sqrt(d2)
+        self.update_pose_ids.append(int(self.dataset.pose_ids[self._current_pose(obs)]))
+        self.nis.append(result.nis)
+        self.nis_dof.append(3 * obs.size)
+
+    def _current_pose(self, obs: np.ndarray) -> int:
+        return int(self.dataset.obs_pose_index[obs[0]])
+
+    def _warn_near_singularity(self, k: int) -> None:
+        if abs(np.degrees(self.x[4])) > SINGULARITY_WARNING_DEG and not self.warnings:
+            self.warnings.append(
+                f"pose {int(self.dataset.pose_ids[k])}: pitch {np.degrees(self.x[4]):.1f} deg is close to the "
+                "Euler filter's singularity at +-90 deg; its estimate may degrade from here"
+            )
+
+    def result(self, filter_seconds: float) -> RunResult:
+        ds = self.dataset
+        T_estimate = geometry.pose_from_euler(self.states)
+        estimate_xyz, estimate_quat = geometry.pose_to_quat(T_estimate)
+        odometry_xyz, odometry_quat = geometry.pose_to_quat(self.odometry_poses)
+        associations = Associations(
+            pose_id=ds.pose_ids[ds.obs_pose_index],
+            camera=ds.obs_camera.copy(),
+            uvd=ds.obs_uvd.copy(),
+            landmark=self.chosen_landmark,
+            true_landmark=ds.obs_true_landmark.copy(),
+            mahalanobis=self.mahalanobis,
+        )
+        accepted = int(np.count_nonzero(self.chosen_landmark != UNASSOCIATED))
+        summary = {
+            "dataset": ds.source,
+            "config": asdict(self.config),
+            "candidate_range": {"min_depth": self.min_depth, "max_depth": self.max_depth, "max_angle_deg": float(np.degrees(self.max_angle))},
+            "counts": {
+                "poses": ds.num_poses,
+                "observations": ds.num_observations,
+                "accepted": accepted,
+                "rejected": ds.num_observations - accepted,
+                "updates": len(self.nis),
+                "landmarks": int(ds.landmark_ids.size),
+            },
+            "timing": {
+                "filter_seconds": filter_seconds,
+                "poses_per_second": ds.num_poses / filter_seconds if filter_seconds > 0 else float("inf"),
+            },
+            "warnings": list(ds.warnings) + self.warnings,
+        }
+        return RunResult(
+            dataset=ds.source,
+            pose_ids=ds.pose_ids.copy(),
+            estimate_xyz=estimate_xyz,
+            estimate_quat_xyzw=estimate_quat,
+            estimate_cov=euler_cov_to_pose_cov(self.states, self.covs),
+            filter_state=self.states,
+            filter_cov=self.covs,
+            odometry_xyz=odometry_xyz,
+            odometry_quat_xyzw=odometry_quat,
+            truth_xyz=ds.truth_xyz,
+            truth_quat_xyzw=ds.truth_quat_xyzw,
+            map_landmark_ids=ds.landmark_ids,
+            map_landmark_xyz=ds.landmark_xyz,
+            associations=associations,
+            update_pose_ids=np.asarray(self.update_pose_ids, dtype=np.int64),
+            nis=np.asarray(self.nis, dtype=float),
+            nis_dof=np.asarray(self.nis_dof, dtype=np.int64),
+            summary=summary,
+        )
+
+
+def state_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a - b`` for Euler states, with the angle differences wrapped into [-pi, pi)."""
+    d = a - b
+    d[3:6] = geometry.wrap_angle(d[3:6])
+    return d
+
+
+def normalize_state(x: np.ndarray) -> np.ndarray:
+    """Wrap roll and yaw into [-pi, pi); pitch is left as is (the filter warns near +-90 deg)."""
+    out = x.copy()
+    out[3] = geometry.wrap_angle(out[3])
+    out[5] = geometry.wrap_angle(out[5])
+    return out
+
+
+def euler_cov_to_pose_cov(states: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """Covariances (N, 6, 6) of Euler states -> of the pose error ``geometry.pose_error_vector``.
+
+    An Euler error d moves the rotation by ``R Exp(E d) = Exp(R E d) R``: the world-frame rotation
+    vector is ``R E d``, so ``J = blockdiag(I, R E)`` and ``cov_pose = J P J'``.
+    """
+    J = np.zeros_like(covs)
+    J[:, 0:3, 0:3] = np.eye(3)
+    J[:, 3:6, 3:6] = geometry.euler_to_matrix(states[:, 3:6]) @ geometry.euler_rate_matrix(states[:, 3:6])
+    cov = J @ covs @ np.swapaxes(J, 1, 2)
+    return 0.5 * (cov + np.swapaxes(cov, 1, 2))
+
+
+def _block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    """(p, 3, 3) -> (3p, 3p) block-diagonal matrix."""
+    p = blocks.shape[0]
+    out = np.zeros((3 * p, 3 * p))
+    for i in range(p):
+        out[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = blocks[i]
+    return out
+
+
+def _candidate_range(dataset: Dataset, config: LocalizerConfig) -> tuple[float, float, float]:
+    """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset."""
+    depth = dataset.obs_uvd[:, 2]
+    min_depth = config.min_depth if config.min_depth is not None else 0.0
+    max_depth = config.max_depth
+    if max_depth is None:
+        max_depth = 1.25 * float(depth.max()) + 0.5 if depth.size else 10.0
+    if config.max_angle_deg is not None:
+        return min_depth, max_depth, float(np.radians(config.max_angle_deg))
+    if depth.size == 0:
+        return min_depth, max_depth, float(np.radians(60.0))
+    tan = np.zeros((depth.size, 2))
+    for camera_id, camera in dataset.cameras.items():
+        mine = dataset.obs_camera == camera_id
+        tan[mine, 0] = (dataset.obs_uvd[mine, 0] - camera.cx) / camera.fx
+        tan[mine, 1] = (dataset.obs_uvd[mine, 1] - camera.cy) / camera.fy
+    widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))
+    return min_depth, max_depth, float(np.radians(min(widest + 10.0, 89.0)))
