@@ -20,7 +20,7 @@ def __getattr__(name: str):
 
         return read_g2o
     if name in ("localize", "LocalizerConfig"):
-        from camloc import localize as _localize_module
+        from camloc import localizer
 
-        return getattr(_localize_module, name)
+        return getattr(localizer, name)
     raise AttributeError(f"module 'camloc' has no attribute {name!r}")
