@@ -75,7 +75,7 @@ def pair_statistics(
 
 def best_friends(
     cost: np.ndarray, d2: np.ndarray, *, gate: float, margin: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mutual-best pairs that pass the gate and have no close rival.
 
     Parameters
@@ -86,23 +86,23 @@ def best_friends(
 
     Returns
     -------
-    (obs_index, cand_index) : two (p,) int arrays of accepted pairs.
+    obs_index, cand_index : (p,) int arrays of accepted pairs.
+    gap : (p,) how much more the closest rival of each pair costs (inf when there is none): the
+        pair's confidence.
     """
     n, m = cost.shape
     if n == 0 or m == 0:
         empty = np.zeros(0, dtype=np.int64)
-        return empty, empty
+        return empty, empty, np.zeros(0)
     rows = np.arange(n)
     best_cand = np.argmin(cost, axis=1)
     best_obs = np.argmin(cost, axis=0)
     best_cost = cost[rows, best_cand]
     mutual = best_obs[best_cand] == rows
     gated = d2[rows, best_cand] <= gate
-    lonely = (_runner_up(cost, axis=1) - best_cost >= margin) & (
-        _runner_up(cost, axis=0)[best_cand] - best_cost >= margin
-    )
-    keep = mutual & gated & lonely
-    return rows[keep], best_cand[keep]
+    gap = np.minimum(_runner_up(cost, axis=1), _runner_up(cost, axis=0)[best_cand]) - best_cost
+    keep = mutual & gated & (gap >= margin)
+    return rows[keep], best_cand[keep], gap[keep]
 
 
 def _runner_up(cost: np.ndarray, *, axis: int) -> np.ndarray:

@@ -43,6 +43,9 @@ class LocalizerConfig:
         (|z - z_hat| in measurement units).
     margin : lonely-best-friends margin, in cost units: a pair is rejected when a rival in its row
         or column is less than ``margin`` more expensive.
+    sequential : accept best-friends pairs one at a time, most unambiguous first, conditioning the
+        filter on each before looking at the rest (the final update is still one stacked update
+        from the prior); False pairs all observations at once (the original method).
     min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
         1.25 x the largest measured depth + 0.5 m).
     max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
@@ -55,6 +58,7 @@ class LocalizerConfig:
     gate_probability: float = 0.99
     cost: str = "nll"
     margin: float = 1.0
+    sequential: bool = True
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
     max_angle_deg: Optional[float] = None
@@ -149,11 +153,13 @@ class _Localizer:
 
     def step(self, k: int) -> None:
         if k > 0:
-            self._predict(k - 1)                  # x <- x (+) odometry increment
+            self._predict(k - 1)                       # x <- x (+) odometry increment
         self._warn_near_singularity(k)
         obs, landmarks = self._associate(self.obs_of_pose[k])  # which observation is which landmark
         if obs.size:
-            self._update(k, obs, landmarks)       # stacked (iterated) EKF update
+            result = self._updated(self.x, self.P, obs, landmarks)  # one stacked (iterated) update
+            self._record_pairs(k, obs, landmarks, result)
+            self.x, self.P = normalize_state(result.state), result.cov
         self.states[k], self.covs[k] = self.x, self.P
         self.odometry_poses[k] = self.T_odometry
 
@@ -165,45 +171,79 @@ class _Localizer:
 
     def _associate(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Accepted pairs of this pose: observation indices and landmark indices, both (p,)."""
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         if obs.size == 0 or self.tree is None:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+            return none
         if self.config.association == "oracle":
             return self._associate_oracle(obs)
-        accepted_obs, accepted_lm = [], []
-        for camera_id in np.unique(self.dataset.obs_camera[obs]):
-            obs_c = obs[self.dataset.obs_camera[obs] == camera_id]
-            o, l = self._associate_camera(obs_c, self.cameras[int(camera_id)])
-            accepted_obs.append(o)
-            accepted_lm.append(l)
-        return np.concatenate(accepted_obs), np.concatenate(accepted_lm)
+        if not self.config.sequential:
+            rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
+            return obs[rows], landmarks
+        return self._associate_sequentially(obs)
 
-    def _associate_camera(self, obs: np.ndarray, camera: _CameraModel) -> tuple[np.ndarray, np.ndarray]:
-        T_world_camera = geometry.pose_from_euler(self.x) @ camera.T_robot_camera
-        candidates = association.candidate_indices(
-            self.tree, self.dataset.landmark_xyz, T_world_camera,
-            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
-        )
-        if candidates.size == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        z_hat, H = models.observe(self.x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
-        HPH = H @ self.P @ np.swapaxes(H, 1, 2)
-        z = self.dataset.obs_uvd[obs]
-        d2, nll = association.pair_statistics(z, self.dataset.obs_cov[obs], z_hat, HPH)
-        cost = {"nll": nll, "mahalanobis": d2}.get(self.config.cost)
-        if cost is None:
-            cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
-        rows, cols = association.best_friends(cost, d2, gate=self.gate, margin=self.config.margin)
-        return obs[rows], candidates[cols]
+    def _associate_sequentially(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Best friends one pair at a time: accept the most unambiguous pair, condition a scratch
+        copy of the filter on it, and look again at the rest. Each accepted pair shrinks the
+        uncertainty that made the others ambiguous, so a pose's pairs support each other."""
+        x, P = self.x, self.P
+        remaining = obs
+        chosen_obs: list[int] = []
+        chosen_landmarks: list[int] = []
+        while remaining.size:
+            rows, landmarks, gap = self._best_friends(x, P, remaining, taken=np.asarray(chosen_landmarks, np.int64))
+            if rows.size == 0:
+                break
+            best = int(np.argmax(gap))
+            chosen_obs.append(int(remaining[rows[best]]))
+            chosen_landmarks.append(int(landmarks[best]))
+            remaining = np.delete(remaining, rows[best])
+            if remaining.size:
+                result = self._updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
+                x, P = normalize_state(result.state), result.cov
+        return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
+
+    def _best_friends(
+        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, *, taken: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Best-friends pairs at (x, P) over all cameras: (rows into obs, landmark indices, gaps)."""
+        rows_all, landmarks_all, gaps_all = [], [], []
+        T_world_robot = geometry.pose_from_euler(x)
+        for camera_id in np.unique(self.dataset.obs_camera[obs]):
+            rows_c = np.flatnonzero(self.dataset.obs_camera[obs] == camera_id)
+            camera = self.cameras[int(camera_id)]
+            candidates = association.candidate_indices(
+                self.tree, self.dataset.landmark_xyz, T_world_robot @ camera.T_robot_camera,
+                min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
+            )
+            candidates = candidates[~np.isin(candidates, taken)]
+            if candidates.size == 0:
+                continue
+            z_hat, H = models.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
+            HPH = H @ P @ np.swapaxes(H, 1, 2)
+            z = self.dataset.obs_uvd[obs[rows_c]]
+            d2, nll = association.pair_statistics(z, self.dataset.obs_cov[obs[rows_c]], z_hat, HPH)
+            cost = {"nll": nll, "mahalanobis": d2}.get(self.config.cost)
+            if cost is None:
+                cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
+            r, c, gap = association.best_friends(cost, d2, gate=self.gate, margin=self.config.margin)
+            rows_all.append(rows_c[r])
+            landmarks_all.append(candidates[c])
+            gaps_all.append(gap)
+        if not rows_all:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        return np.concatenate(rows_all), np.concatenate(landmarks_all), np.concatenate(gaps_all)
 
     def _associate_oracle(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         index = np.array([self.landmark_index_of_id.get(int(i), -1) for i in self.dataset.obs_true_landmark[obs]], dtype=np.int64)
         in_map = index >= 0
         return obs[in_map], index[in_map]
 
-    def _update(self, k: int, obs: np.ndarray, landmarks: np.ndarray) -> None:
+    def _updated(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> ekf.UpdateResult:
+        """The stacked (iterated) EKF update of (x, P) with the given pairs."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
         R = _block_diagonal(self.dataset.obs_cov[obs])
-        groups = [(self.cameras[int(c)], self.dataset.obs_camera[obs] == c) for c in np.unique(self.dataset.obs_camera[obs])]
+        cameras = self.dataset.obs_camera[obs]
+        groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]
 
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -213,22 +253,17 @@ class _Localizer:
                 z_hat[mask], H[mask] = models.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask])
             return z_hat.reshape(-1), H.reshape(-1, 6)
 
-        result = ekf.update(self.x, self.P, z, R, measure, difference=state_difference, iterations=self.config.iterations)
-        self._record_pairs(obs, landmarks, result)
-        self.x, self.P = normalize_state(result.state), result.cov
+        return ekf.update(x, P, z, R, measure, difference=state_difference, iterations=self.config.iterations)
 
-    def _record_pairs(self, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
+    def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
         y = result.innovation.reshape(-1, 3)
         S_blocks = np.array([result.S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(obs.size)])
         d2 = np.einsum("ni,ni->n", y, np.linalg.solve(S_blocks, y[..., None])[..., 0])
         self.chosen_landmark[obs] = self.dataset.landmark_ids[landmarks]
         self.mahalanobis[obs] = np.sqrt(d2)
-        self.update_pose_ids.append(int(self.dataset.pose_ids[self._current_pose(obs)]))
+        self.update_pose_ids.append(int(self.dataset.pose_ids[k]))
         self.nis.append(result.nis)
         self.nis_dof.append(3 * obs.size)
-
-    def _current_pose(self, obs: np.ndarray) -> int:
-        return int(self.dataset.obs_pose_index[obs[0]])
 
     def _warn_near_singularity(self, k: int) -> None:
         if abs(np.degrees(self.x[4])) > SINGULARITY_WARNING_DEG and not self.warnings:
