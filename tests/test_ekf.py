@@ -1,0 +1,86 @@
+"""The EKF steps: textbook equations on linear systems, Joseph form, the iterated update's MAP."""
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from camloc import ekf
+
+
+def plain_difference(a, b):
+    return a - b
+
+
+def random_spd(rng, n, scale=1.0):
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T + n * np.eye(n))
+
+
+def test_linear_update_matches_information_form(rng):
+    n, m = 4, 3
+    x, P, R = rng.normal(size=n), random_spd(rng, n), random_spd(rng, m, 0.1)
+    H, z = rng.normal(size=(m, n)), rng.normal(size=m)
+    result = ekf.update(x, P, z, R, lambda s: (H @ s, H), difference=plain_difference)
+    # Information form: P+ = (P^-1 + H' R^-1 H)^-1, x+ = P+ (P^-1 x + H' R^-1 z)
+    info = np.linalg.inv(P) + H.T @ np.linalg.solve(R, H)
+    P_post = np.linalg.inv(info)
+    x_post = P_post @ (np.linalg.solve(P, x) + H.T @ np.linalg.solve(R, z))
+    np.testing.assert_allclose(result.cov, P_post, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(result.state, x_post, rtol=1e-9, atol=1e-12)
+    y = z - H @ x
+    assert result.nis == pytest.approx(y @ np.linalg.solve(H @ P @ H.T + R, y))
+
+
+def test_iterations_change_nothing_on_a_linear_model(rng):
+    x, P, R = rng.normal(size=3), random_spd(rng, 3), random_spd(rng, 2, 0.1)
+    H, z = rng.normal(size=(2, 3)), rng.normal(size=2)
+    one = ekf.update(x, P, z, R, lambda s: (H @ s, H), difference=plain_difference)
+    five = ekf.update(x, P, z, R, lambda s: (H @ s, H), difference=plain_difference, iterations=5)
+    np.testing.assert_allclose(one.state, five.state, atol=1e-12)
+    np.testing.assert_allclose(one.cov, five.cov, atol=1e-12)
+
+
+def test_iterated_update_reaches_the_map_estimate(rng):
+    # A range-bearing-like measurement, strongly nonlinear for a wide prior.
+    def h(s):
+        return np.array([np.hypot(s[0], s[1]), np.arctan2(s[1], s[0])])
+
+    def H_of(s):
+        r2 = s[0] ** 2 + s[1] ** 2
+        r = np.sqrt(r2)
+        return np.array([[s[0] / r, s[1] / r], [-s[1] / r2, s[0] / r2]])
+
+    x, P, R = np.array([2.0, 0.5]), np.diag([1.0, 1.0]), np.diag([0.01, 0.001])
+    z = h(np.array([1.5, 1.5]))
+    result = ekf.update(x, P, z, R, lambda s: (h(s), H_of(s)), difference=plain_difference, iterations=20)
+
+    def map_cost(s):
+        e, r = s - x, z - h(s)
+        return e @ np.linalg.solve(P, e) + r @ np.linalg.solve(R, r)
+
+    optimum = minimize(map_cost, result.state + 0.05, method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-14}).x
+    np.testing.assert_allclose(result.state, optimum, atol=1e-5)
+    plain = ekf.update(x, P, z, R, lambda s: (h(s), H_of(s)), difference=plain_difference)
+    assert map_cost(result.state) < map_cost(plain.state)
+
+
+def test_joseph_form_keeps_covariance_symmetric_positive_definite(rng):
+    P = random_spd(rng, 6, 1e3)
+    H = rng.normal(size=(9, 6))
+    R = np.eye(9) * 1e-6
+    for _ in range(50):
+        result = ekf.update(np.zeros(6), P, np.zeros(9), R, lambda s: (H @ s, H), difference=plain_difference)
+        P = result.cov
+    assert np.array_equal(P, P.T)
+    assert np.all(np.linalg.eigvalsh(P) > 0)
+
+
+def test_predict_propagates_covariance(rng):
+    P, Q = random_spd(rng, 3), random_spd(rng, 2)
+    F, G = rng.normal(size=(3, 3)), rng.normal(size=(3, 2))
+    np.testing.assert_allclose(ekf.predict(P, F, G, Q), F @ P @ F.T + G @ Q @ G.T, atol=1e-10)
+
+
+def test_non_positive_definite_innovation_is_reported():
+    with pytest.raises(ekf.FilterDivergedError):
+        ekf.kalman_gain(np.eye(2), np.eye(2), -2.0 * np.eye(2))

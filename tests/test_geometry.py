@@ -1,0 +1,66 @@
+"""Geometry: conventions, round trips and the Euler rate matrix against finite differences."""
+
+import numpy as np
+import pytest
+
+from camloc import geometry
+
+
+def random_rpy(rng, n, max_pitch_deg=85.0):
+    return np.column_stack([
+        rng.uniform(-np.pi, np.pi, n),
+        rng.uniform(-np.radians(max_pitch_deg), np.radians(max_pitch_deg), n),
+        rng.uniform(-np.pi, np.pi, n),
+    ])
+
+
+def test_euler_convention_is_z_y_x():
+    roll, pitch, yaw = 0.3, -0.4, 1.2
+    Rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
+    Ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+    Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    np.testing.assert_allclose(geometry.euler_to_matrix(np.array([roll, pitch, yaw])), Rz @ Ry @ Rx, atol=1e-12)
+
+
+def test_euler_and_quaternion_round_trips(rng):
+    rpy = random_rpy(rng, 200)
+    np.testing.assert_allclose(geometry.matrix_to_euler(geometry.euler_to_matrix(rpy)), rpy, atol=1e-9)
+    quat = geometry.euler_to_quat(rpy)
+    assert np.all(quat[:, 3] >= 0)
+    np.testing.assert_allclose(geometry.quat_to_euler(quat), rpy, atol=1e-9)
+
+
+def test_euler_rate_matrix_matches_finite_differences(rng):
+    for rpy in random_rpy(rng, 20, max_pitch_deg=80):
+        R = geometry.euler_to_matrix(rpy)
+        E = geometry.euler_rate_matrix(rpy)
+        numeric = np.zeros((3, 3))
+        h = 1e-6
+        for i in range(3):
+            d = np.zeros(3)
+            d[i] = h
+            plus = geometry.so3_log(R.T @ geometry.euler_to_matrix(rpy + d))
+            minus = geometry.so3_log(R.T @ geometry.euler_to_matrix(rpy - d))
+            numeric[:, i] = (plus - minus) / (2 * h)
+        np.testing.assert_allclose(E, numeric, atol=1e-7)
+
+
+def test_pose_inverse_and_relative(rng):
+    T = geometry.pose_from_euler(np.column_stack([rng.normal(size=(10, 3)), random_rpy(rng, 10)]))
+    np.testing.assert_allclose(geometry.se3_inverse(T) @ T, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)
+    T_a_b = geometry.relative_se3(T[0], T[1])
+    np.testing.assert_allclose(T[0] @ T_a_b, T[1], atol=1e-12)
+
+
+def test_pose_error_vector_recovers_a_known_perturbation():
+    T_est = geometry.pose_from_euler(np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3]))
+    delta = np.array([0.01, -0.02, 0.03, 0.004, -0.005, 0.006])
+    T_true = geometry.make_pose(geometry.so3_exp(delta[3:]) @ T_est[:3, :3], T_est[:3, 3] + delta[:3])
+    np.testing.assert_allclose(geometry.pose_error_vector(T_est, T_true), delta, atol=1e-12)
+
+
+@pytest.mark.parametrize("angle", [-3.5, -np.pi, 0.0, np.pi - 1e-9, 7.0])
+def test_wrap_angle_stays_in_range(angle):
+    wrapped = geometry.wrap_angle(angle)
+    assert -np.pi <= wrapped < np.pi
+    assert np.isclose(np.cos(wrapped), np.cos(angle)) and np.isclose(np.sin(wrapped), np.sin(angle))

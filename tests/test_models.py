@@ -1,0 +1,84 @@
+"""Every Jacobian of the motion and camera models against central finite differences, at random
+states including large roll and pitch."""
+
+import numpy as np
+import pytest
+
+from camloc import geometry, models
+
+STEP = 1e-6
+
+
+def numeric_jacobian(function, x0, size):
+    columns = []
+    for i in range(size):
+        d = np.zeros(size)
+        d[i] = STEP
+        columns.append((function(x0 + d) - function(x0 - d)) / (2 * STEP))
+    return np.stack(columns, axis=-1)
+
+
+def random_state(rng, max_pitch_deg=75.0):
+    return np.r_[rng.normal(scale=5.0, size=3), rng.uniform(-3.0, 3.0),
+                 np.radians(rng.uniform(-max_pitch_deg, max_pitch_deg)), rng.uniform(-3.0, 3.0)]
+
+
+def random_increment(rng):
+    return geometry.pose_from_euler(np.r_[rng.normal(scale=0.7, size=3), rng.normal(scale=0.5, size=3)])
+
+
+@pytest.mark.parametrize("trial", range(10))
+def test_motion_state_jacobian(rng, trial):
+    state, increment = random_state(rng), random_increment(rng)
+    _, F, _ = models.motion(state, increment)
+    numeric = numeric_jacobian(lambda s: models.motion(s, increment)[0], state, 6)
+    np.testing.assert_allclose(F, numeric, atol=1e-6)
+
+
+@pytest.mark.parametrize("trial", range(10))
+def test_motion_noise_jacobian(rng, trial):
+    state, increment = random_state(rng), random_increment(rng)
+    _, _, G = models.motion(state, increment)
+
+    def with_noise(w):
+        noise = geometry.make_pose(geometry.so3_exp(w[3:6]), w[0:3])
+        return models.motion(state, increment @ noise)[0]
+
+    np.testing.assert_allclose(G, numeric_jacobian(with_noise, np.zeros(6), 6), atol=1e-6)
+
+
+def test_motion_composes_poses(rng):
+    state, increment = random_state(rng), random_increment(rng)
+    next_state, _, _ = models.motion(state, increment)
+    np.testing.assert_allclose(geometry.pose_from_euler(next_state), geometry.pose_from_euler(state) @ increment, atol=1e-12)
+
+
+CAMERAS = {
+    "real-file mount, normalized": (geometry.pose_from_quat(np.array([0, 0, 0.3]), np.array([0.5, -0.5, 0.5, -0.5])), (1.0, 1.0, 0.5, 0.5)),
+    "tilted mount, pixels": (geometry.pose_from_euler(np.array([0.1, -0.2, 0.4, -1.2, 0.3, -1.4])), (525.0, 525.0, 319.5, 239.5)),
+}
+
+
+@pytest.mark.parametrize("camera", CAMERAS)
+@pytest.mark.parametrize("trial", range(5))
+def test_observation_jacobian(rng, camera, trial):
+    T_robot_camera, intrinsics = CAMERAS[camera]
+    state = random_state(rng)
+    T_world_camera = geometry.pose_from_euler(state) @ T_robot_camera
+    p_camera = np.column_stack([rng.uniform(-1, 1, 8), rng.uniform(-1, 1, 8), rng.uniform(0.5, 4.0, 8)])
+    landmarks = geometry.transform_points(T_world_camera, p_camera)
+    z_hat, H = models.observe(state, T_robot_camera, intrinsics, landmarks)
+    numeric = numeric_jacobian(lambda s: models.observe(s, T_robot_camera, intrinsics, landmarks)[0], state, 6)
+    scale = max(intrinsics[0], 1.0)
+    np.testing.assert_allclose(H, numeric, atol=1e-6 * scale)
+    np.testing.assert_allclose(z_hat[:, 2], p_camera[:, 2], atol=1e-12)
+
+
+def test_observation_matches_format_model():
+    # FORMAT.md: a landmark 1 m straight ahead of the real file's camera lands at the image centre.
+    T_robot_camera, intrinsics = CAMERAS["real-file mount, normalized"]
+    z_hat, _ = models.observe(np.zeros(6), T_robot_camera, intrinsics, np.array([[1.0, 0.0, 0.3]]))
+    np.testing.assert_allclose(z_hat[0], [0.5, 0.5, 1.0], atol=1e-12)
+    # image x runs along robot -y: a landmark to the robot's right (-y) has u > cx.
+    z_right, _ = models.observe(np.zeros(6), T_robot_camera, intrinsics, np.array([[1.0, -0.2, 0.3]]))
+    assert z_right[0, 0] > 0.5
