@@ -2,4 +2,8 @@
 
 from __future__ import annotations
 
-COMMANDS: list = []
+from camloc.cli.run import run
+
+COMMANDS: list = [
+    ("run", run),
+]

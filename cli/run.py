@@ -1,0 +1,118 @@
+"""``camloc run``: localize a dataset and write the run folder."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from camloc.cli.common import console, err_console, handles_errors
+
+
+class AssociationChoice(str, Enum):
+    best_friends = "best-friends"
+    oracle = "oracle"
+
+
+class CostChoice(str, Enum):
+    nll = "nll"
+    mahalanobis = "mahalanobis"
+    euclidean = "euclidean"
+
+
+@handles_errors
+def run(
+    dataset: Optional[Path] = typer.Argument(
+        None, help="g2o dataset to localize. Default: the bundled data/grid-small.g2o.", show_default=False
+    ),
+    output: Optional[Path] = typer.Option(
+        None, "--output", "-o", help="Run folder to write. Default: runs/<dataset name>.", show_default=False
+    ),
+    config_file: Optional[Path] = typer.Option(
+        None, "--config", help="TOML file with localizer options (names as below, with underscores); "
+        "options given on the command line win.", show_default=False
+    ),
+    association: Optional[AssociationChoice] = typer.Option(
+        None, help="Data association: best-friends (never reads the file's landmark ids) or oracle "
+        "(the file's ids, ungated). Default: best-friends.", show_default=False
+    ),
+    iterations: Optional[int] = typer.Option(
+        None, help="Linearizations per update: 1 = EKF, more = iterated EKF. Default: 3.", show_default=False
+    ),
+    gate_probability: Optional[float] = typer.Option(
+        None, "--gate", help="Chi-square gate probability on each pair's innovation (3 dof). Default: 0.99.",
+        show_default=False
+    ),
+    cost: Optional[CostChoice] = typer.Option(
+        None, help="Best-friends pair cost: nll (Mahalanobis + log det S), mahalanobis, euclidean. Default: nll.",
+        show_default=False
+    ),
+    margin: Optional[float] = typer.Option(
+        None, help="Lonely-best-friends margin in cost units: reject a pair whose closest rival is "
+        "within it. Default: 1.0.", show_default=False
+    ),
+    sequential: Optional[bool] = typer.Option(
+        None, "--sequential/--batch", help="Accept best-friends pairs one at a time, conditioning on "
+        "each (sequential), or all at once (batch, the original method). Default: sequential.", show_default=False
+    ),
+    min_depth: Optional[float] = typer.Option(
+        None, help="Nearest candidate landmark depth, metres. Default: 0.", show_default=False
+    ),
+    max_depth: Optional[float] = typer.Option(
+        None, help="Farthest candidate landmark depth, metres. Default: from the data "
+        "(1.25 x the largest measured depth + 0.5).", show_default=False
+    ),
+    max_angle: Optional[float] = typer.Option(
+        None, help="Candidates within this angle of the optical axis, degrees. Default: from the data "
+        "(widest observed ray + 10).", show_default=False
+    ),
+    initial_sigma_xyz: Optional[float] = typer.Option(
+        None, help="Standard deviation of the start position, metres. Default: 0.01.", show_default=False
+    ),
+    initial_sigma_deg: Optional[float] = typer.Option(
+        None, help="Standard deviation of the start orientation, degrees. Default: 0.5.", show_default=False
+    ),
+    json_output: bool = typer.Option(False, "--json", help="Print the run summary as JSON instead of tables."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
+) -> None:
+    """Localize the robot of DATASET in its landmark map and write the run folder.
+
+    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all.
+    """
+    from camloc.config import make_config, read_config_file
+    from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
+
+    overrides = {
+        "association": association.value if association else None,
+        "iterations": iterations,
+        "gate_probability": gate_probability,
+        "cost": cost.value if cost else None,
+        "margin": margin,
+        "sequential": sequential,
+        "min_depth": min_depth,
+        "max_depth": max_depth,
+        "max_angle_deg": max_angle,
+        "initial_sigma_xyz": initial_sigma_xyz,
+        "initial_sigma_deg": initial_sigma_deg,
+    }
+    config = make_config(read_config_file(config_file) if config_file else None, overrides)
+    dataset_path = dataset if dataset is not None else DEFAULT_DATASET
+    output_dir = output if output is not None else default_output_dir(dataset_path)
+
+    from camloc.cli.progress import pose_progress
+
+    with pose_progress(enabled=not (quiet or json_output), description=f"localizing {dataset_path.name}") as on_progress:
+        result, written = run_dataset(dataset_path, config, output_dir, on_progress=on_progress)
+
+    if json_output:
+        import json
+
+        typer.echo(json.dumps(result.summary, indent=2, default=float))
+    elif not quiet:
+        from camloc.cli.run_render import render_run_summary
+
+        console.print(render_run_summary(result.summary, written))
+        for warning in result.summary.get("warnings", []):
+            err_console.print(f"[yellow]warning:[/] {warning}", highlight=False)

@@ -1,0 +1,56 @@
+"""Rich rendering of a run's summary."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from rich.console import Group
+from rich.table import Table
+from rich.text import Text
+
+
+def _get(tree: Mapping[str, Any], dotted: str, default: Any = None) -> Any:
+    node: Any = tree
+    for key in dotted.split("."):
+        if not isinstance(node, Mapping) or key not in node:
+            return default
+        node = node[key]
+    return node
+
+
+def _fmt(value: Any, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Group:
+    """The end-of-run table: trajectory error of the EKF and of odometry alone, rotation error,
+    associations and speed."""
+    metrics = summary.get("metrics", {})
+    counts = summary["counts"]
+    timing = summary["timing"]
+    table = Table(title=f"camloc run: {Path(str(summary['dataset'])).name}", title_justify="left")
+    table.add_column("", style="bold")
+    table.add_column("EKF", justify="right")
+    table.add_column("odometry only", justify="right")
+    if metrics:
+        table.add_row("position RMSE [m]", _fmt(_get(metrics, "estimate.ate.rmse"), ".4f"), _fmt(_get(metrics, "odometry.ate.rmse"), ".4f"))
+        table.add_row("position max [m]", _fmt(_get(metrics, "estimate.ate.max"), ".4f"), _fmt(_get(metrics, "odometry.ate.max"), ".4f"))
+        table.add_row("rotation RMSE [deg]", _fmt(_get(metrics, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(metrics, "odometry.rotation.rmse_deg"), ".2f"))
+        table.add_row("NEES mean (6 dof)", _fmt(_get(metrics, "nees.mean"), ".2f"), "")
+    else:
+        table.add_row("trajectory error", "no ground truth", "")
+    association = Table(title="associations", title_justify="left")
+    for name in ("observations", "accepted", "correct", "wrong", "rejected", "precision", "recall"):
+        association.add_column(name, justify="right")
+    correct = _get(metrics, "association.correct")
+    wrong = _get(metrics, "association.wrong")
+    association.add_row(
+        str(counts["observations"]), str(counts["accepted"]), _fmt(correct, "d"), _fmt(wrong, "d"), str(counts["rejected"]),
+        _fmt(_get(metrics, "association.precision"), ".3f"), _fmt(_get(metrics, "association.recall"), ".3f"),
+    )
+    footer = Text(
+        f"{counts['poses']} poses in {timing['filter_seconds']:.2f} s ({timing['poses_per_second']:.0f} poses/s)"
+        + (f"; run folder: {written}" if written else "")
+    )
+    return Group(table, association, footer)
