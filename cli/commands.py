@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from camloc.cli.run import run
+from camloc.cli.simulate import simulate
 
 COMMANDS: list = [
     ("run", run),
+    ("simulate", simulate),
 ]
