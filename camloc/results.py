@@ -7,15 +7,49 @@ A run folder holds:
   observation, ``landmark`` and ``mahalanobis`` empty when the observation was rejected;
 - ``states.npz``: per-pose filter state and covariance, pose covariance, NIS per update;
 - ``summary.json``: dataset, configuration, counts, timings and headline metrics.
+
+``states.npz`` holds every array of ``RunResult`` except the associations (``associations.csv`` is
+their one home, written with round-trip precision), plus ``dataset`` and ``format_version``; the
+TUM files repeat the poses for other tools (evo) and are not read back. ``save_run`` builds the
+folder in a hidden temporary sibling and renames it into place, so a failure leaves nothing
+behind and an existing run of the same name is replaced only by a complete one. The single-file
+helpers (``write_text_atomic``, ``write_bytes_atomic``, ``write_json_atomic``, ``atomic_write``)
+give the same whole-or-nothing guarantee to any other output.
 """
 
 from __future__ import annotations
 
+import contextlib
+import csv
+import io
+import json
+import math
+import os
+import shutil
+import tempfile
+import zipfile
+import zlib
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, Iterator
 
 import numpy as np
 
+from camloc.errors import CamlocError, DatasetError
+
 UNASSOCIATED = -1
+
+ESTIMATE_TUM = "estimate.tum"
+ODOMETRY_TUM = "odometry.tum"
+GROUNDTRUTH_TUM = "groundtruth.tum"
+ASSOCIATIONS_CSV = "associations.csv"
+STATES_NPZ = "states.npz"
+SUMMARY_JSON = "summary.json"
+ASSOCIATIONS_HEADER = ("pose", "camera", "u", "v", "depth", "landmark", "true_landmark", "mahalanobis")
+TUM_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
+RUN_FORMAT_VERSION = 1
+# What makes a folder a run folder: enough to load it back.
+_REQUIRED_FILES = (STATES_NPZ, SUMMARY_JSON, ASSOCIATIONS_CSV)
 
 
 @dataclass(frozen=True)
@@ -81,3 +115,481 @@ class RunResult:
     nis: np.ndarray
     nis_dof: np.ndarray
     summary: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------
+# Single files, whole or not at all
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
+    """Open a temporary sibling of ``path`` for writing; it replaces ``path`` only on success.
+
+    The temporary file lives in the same directory so that ``os.replace`` is a rename on one
+    file system; on any exception it is removed and ``path`` keeps its old content (or stays
+    absent).
+
+    Parameters
+    ----------
+    path : the file to (re)write; its directory must exist.
+    binary : open in ``"wb"`` instead of ``"w"`` (UTF-8 text, ``"\n"`` newlines).
+    """
+    path = Path(path)
+    try:
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:
+        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
+    tmp = Path(tmp_name)
+    try:
+        # mkstemp creates 0600 files; an output is meant to be read like any other file.
+        os.chmod(tmp, 0o644)
+        mode = "wb" if binary else "w"
+        encoding = None if binary else "utf-8"
+        with os.fdopen(fd, mode, encoding=encoding, newline=None if binary else "") as handle:
+            yield handle
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` whole or not at all (temporary file + ``os.replace``)."""
+    with atomic_write(path) as handle:
+        handle.write(text)
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` whole or not at all (temporary file + ``os.replace``)."""
+    with atomic_write(path, binary=True) as handle:
+        handle.write(data)
+
+
+def write_json_atomic(path: str | Path, obj: Any) -> None:
+    """Write ``obj`` as pretty, strict JSON (see ``to_jsonable``) whole or not at all."""
+    write_text_atomic(path, dumps_json(obj))
+
+
+def to_jsonable(obj: Any) -> Any:
+    """A copy of ``obj`` that strict JSON accepts.
+
+    numpy scalars and arrays become Python numbers and lists, paths become strings, tuples
+    become lists, and non-finite floats (NaN, inf) become ``None`` (JSON has no NaN).
+
+    Raises
+    ------
+    TypeError : for an object JSON has no form for (a bug in the caller).
+    """
+    if isinstance(obj, dict):
+        return {str(key): to_jsonable(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(value) for value in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, (str, bool, int)):
+        return obj
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot convert {type(obj).__name__} to JSON: {obj!r}")
+
+
+def dumps_json(obj: Any) -> str:
+    """``obj`` as pretty, strict JSON text ending with a newline."""
+    return json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n"
+
+
+# --------------------------------------------------------------------------------------------
+# TUM trajectories
+
+
+def _num(value: float) -> str:
+    # repr is the shortest text that reads back to the same double: full precision, no noise.
+    return repr(float(value))
+
+
+def tum_text(stamps: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> str:
+    """TUM text, one line ``timestamp x y z qx qy qz qw`` per pose, after a ``#`` header.
+
+    Parameters
+    ----------
+    stamps : (N,) timestamps (camloc writes pose ids).
+    xyz : (N, 3) positions, metres.
+    quat_xyzw : (N, 4) orientations, scalar last.
+    """
+    rows = np.column_stack([np.asarray(stamps, dtype=float), xyz, quat_xyzw])
+    lines = ["# " + " ".join(TUM_FIELDS)]
+    lines += [" ".join(_num(value) for value in row) for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def write_tum(path: str | Path, stamps: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> None:
+    """Write a TUM trajectory file whole or not at all; see ``tum_text`` for the arguments."""
+    write_text_atomic(path, tum_text(stamps, xyz, quat_xyzw))
+
+
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DatasetError(path, None, "no such file") from None
+    except IsADirectoryError:
+        raise DatasetError(path, None, "expected a file, found a directory") from None
+    except UnicodeDecodeError as error:
+        raise DatasetError(path, None, f"expected UTF-8 text, found byte 0x{error.object[error.start]:02x}") from None
+    except OSError as error:
+        raise DatasetError(path, None, f"cannot read: {error.strerror or error}") from None
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file (``timestamp x y z qx qy qz qw`` a line, ``#`` comments).
+
+    Quaternions are normalized (files written by other tools are not always exactly unit).
+
+    Returns
+    -------
+    stamps : (N,) timestamps.
+    xyz : (N, 3) positions.
+    quat_xyzw : (N, 4) unit quaternions, scalar last.
+
+    Raises
+    ------
+    DatasetError : ``path:line`` of the first bad line (wrong field count, a field that is not a
+        finite number, a zero quaternion, a repeated timestamp), or when there is no pose.
+    """
+    path = Path(path)
+    rows: list[list[float]] = []
+    line_of_stamp: dict[float, int] = {}
+    for number, line in enumerate(_read_text(path).splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) != len(TUM_FIELDS):
+            raise DatasetError(
+                path, number, f"expected 8 fields '{' '.join(TUM_FIELDS)}', found {len(fields)}"
+            )
+        values = []
+        for name, text in zip(TUM_FIELDS, fields):
+            try:
+                value = float(text)
+            except ValueError:
+                raise DatasetError(path, number, f"expected a number for {name}, found {text!r}") from None
+            if not math.isfinite(value):
+                raise DatasetError(path, number, f"expected a finite number for {name}, found {text!r}")
+            values.append(value)
+        if math.hypot(*values[4:8]) < 1e-12:
+            raise DatasetError(path, number, "expected a unit quaternion qx qy qz qw, found all zeros")
+        if values[0] in line_of_stamp:
+            raise DatasetError(
+                path, number, f"expected unique timestamps, found {fields[0]} again (first on line {line_of_stamp[values[0]]})"
+            )
+        line_of_stamp[values[0]] = number
+        rows.append(values)
+    if not rows:
+        raise DatasetError(path, None, f"expected TUM lines '{' '.join(TUM_FIELDS)}', found none")
+    table = np.array(rows)
+    quat = table[:, 4:8] / np.linalg.norm(table[:, 4:8], axis=1, keepdims=True)
+    return table[:, 0], table[:, 1:4], quat
+
+
+# --------------------------------------------------------------------------------------------
+# associations.csv
+
+
+def associations_text(associations: Associations) -> str:
+    """The CSV text of ``associations`` (header ``ASSOCIATIONS_HEADER``, one row per observation).
+
+    ``landmark`` and ``mahalanobis`` are empty cells for a rejected observation.
+    """
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(ASSOCIATIONS_HEADER)
+    a = associations
+    for k in range(a.pose_id.shape[0]):
+        accepted = int(a.landmark[k]) != UNASSOCIATED
+        distance = float(a.mahalanobis[k])
+        writer.writerow(
+            [
+                int(a.pose_id[k]),
+                int(a.camera[k]),
+                *(_num(value) for value in a.uvd[k]),
+                int(a.landmark[k]) if accepted else "",
+                int(a.true_landmark[k]),
+                _num(distance) if accepted and math.isfinite(distance) else "",
+            ]
+        )
+    return buffer.getvalue()
+
+
+def read_associations(path: str | Path) -> Associations:
+    """Read an ``associations.csv`` written by ``associations_text``.
+
+    Raises
+    ------
+    DatasetError : ``path:line`` of a wrong header, a wrong field count or a bad number.
+    """
+    path = Path(path)
+    lines = _read_text(path).splitlines()
+    expected_header = ",".join(ASSOCIATIONS_HEADER)
+    if not lines or lines[0].strip() != expected_header:
+        found = lines[0].strip() if lines else "an empty file"
+        raise DatasetError(path, 1, f"expected the header '{expected_header}', found '{found}'")
+    columns: dict[str, list] = {name: [] for name in ASSOCIATIONS_HEADER}
+    for number, fields in enumerate(csv.reader(lines[1:]), start=2):
+        if not fields:
+            continue
+        if len(fields) != len(ASSOCIATIONS_HEADER):
+            raise DatasetError(path, number, f"expected {len(ASSOCIATIONS_HEADER)} comma-separated fields, found {len(fields)}")
+        for name, text in zip(ASSOCIATIONS_HEADER, fields):
+            columns[name].append(_parse_cell(path, number, name, text.strip()))
+    landmark = [UNASSOCIATED if value is None else value for value in columns["landmark"]]
+    mahalanobis = [math.nan if value is None else value for value in columns["mahalanobis"]]
+    return Associations(
+        pose_id=np.array(columns["pose"], dtype=np.int64),
+        camera=np.array(columns["camera"], dtype=np.int64),
+        uvd=np.array([columns["u"], columns["v"], columns["depth"]], dtype=float).T.reshape(-1, 3),
+        landmark=np.array(landmark, dtype=np.int64),
+        true_landmark=np.array(columns["true_landmark"], dtype=np.int64),
+        mahalanobis=np.array(mahalanobis, dtype=float),
+    )
+
+
+_INT_COLUMNS = ("pose", "camera", "landmark", "true_landmark")
+_OPTIONAL_COLUMNS = ("landmark", "mahalanobis")
+
+
+def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | None:
+    if not text:
+        if name in _OPTIONAL_COLUMNS:
+            return None
+        raise DatasetError(path, line, f"expected a value for {name}, found an empty cell")
+    try:
+        return int(text) if name in _INT_COLUMNS else float(text)
+    except ValueError:
+        kind = "an integer" if name in _INT_COLUMNS else "a number"
+        raise DatasetError(path, line, f"expected {kind} for {name}, found {text!r}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Run folders
+
+_POSE_ARRAYS = (
+    "pose_ids",
+    "estimate_xyz",
+    "estimate_quat_xyzw",
+    "estimate_cov",
+    "filter_state",
+    "filter_cov",
+    "odometry_xyz",
+    "odometry_quat_xyzw",
+)
+_OTHER_ARRAYS = ("map_landmark_ids", "map_landmark_xyz", "update_pose_ids", "nis", "nis_dof")
+_TRUTH_ARRAYS = ("truth_xyz", "truth_quat_xyzw")
+_INT_ARRAYS = ("pose_ids", "map_landmark_ids", "update_pose_ids", "nis_dof")
+
+
+def run_problems(result: RunResult) -> list[str]:
+    """Shape inconsistencies of ``result`` (empty when it is a well-formed run).
+
+    Checks every array against N poses, L landmarks, K observations and U updates, and that
+    ground truth is given whole (both arrays) or not at all.
+    """
+    n = np.shape(result.pose_ids)[0] if np.ndim(result.pose_ids) == 1 else -1
+    state_dim = np.shape(result.filter_state)[-1] if np.ndim(result.filter_state) == 2 else -1
+    expected: dict[str, tuple] = {
+        "pose_ids": (n,),
+        "estimate_xyz": (n, 3),
+        "estimate_quat_xyzw": (n, 4),
+        "estimate_cov": (n, 6, 6),
+        "filter_state": (n, state_dim),
+        "filter_cov": (n, state_dim, state_dim),
+        "odometry_xyz": (n, 3),
+        "odometry_quat_xyzw": (n, 4),
+    }
+    if (result.truth_xyz is None) != (result.truth_quat_xyzw is None):
+        return ["ground truth needs both truth_xyz and truth_quat_xyzw, or neither"]
+    if result.truth_xyz is not None:
+        expected.update(truth_xyz=(n, 3), truth_quat_xyzw=(n, 4))
+    num_landmarks = np.shape(result.map_landmark_ids)[0] if np.ndim(result.map_landmark_ids) == 1 else -1
+    expected.update(map_landmark_ids=(num_landmarks,), map_landmark_xyz=(num_landmarks, 3))
+    num_updates = np.shape(result.update_pose_ids)[0] if np.ndim(result.update_pose_ids) == 1 else -1
+    expected.update(update_pose_ids=(num_updates,), nis=(num_updates,), nis_dof=(num_updates,))
+    problems = [
+        f"{name} has shape {np.shape(getattr(result, name))}, expected {shape}"
+        for name, shape in expected.items()
+        if np.shape(getattr(result, name)) != shape or -1 in shape
+    ]
+    a = result.associations
+    k = np.shape(a.pose_id)[0] if np.ndim(a.pose_id) == 1 else -1
+    for name, shape in dict(
+        pose_id=(k,), camera=(k,), uvd=(k, 3), landmark=(k,), true_landmark=(k,), mahalanobis=(k,)
+    ).items():
+        if np.shape(getattr(a, name)) != shape or k < 0:
+            problems.append(f"associations.{name} has shape {np.shape(getattr(a, name))}, expected {shape}")
+    return problems
+
+
+def is_run_folder(path: str | Path) -> bool:
+    """True when ``path`` is a directory holding the files ``load_run`` needs."""
+    path = Path(path)
+    return path.is_dir() and all((path / name).is_file() for name in _REQUIRED_FILES)
+
+
+def save_run(run_dir: str | Path, result: RunResult) -> Path:
+    """Write ``result`` as a run folder (see the module docstring), whole or not at all.
+
+    The folder is built in a hidden temporary sibling (``.NAME.tmp-*``) and renamed into place;
+    an existing run folder of the same name is moved aside only once the new one is complete,
+    then deleted. Missing parent directories are created.
+
+    Parameters
+    ----------
+    run_dir : the run folder to create or replace.
+    result : the run.
+
+    Returns
+    -------
+    The run folder's path.
+
+    Raises
+    ------
+    CamlocError : ``run_dir`` exists and is not a run folder (a file, or a directory with other
+        content: it is never replaced), or it cannot be written.
+    ValueError : ``result`` is malformed (see ``run_problems``): a bug in its producer.
+    """
+    run_dir = Path(run_dir)
+    problems = run_problems(result)
+    if problems:
+        raise ValueError("malformed RunResult: " + "; ".join(problems))
+    if run_dir.exists() and not (is_run_folder(run_dir) or _is_empty_dir(run_dir)):
+        raise CamlocError(
+            f"{run_dir}: expected a camloc run folder (or a new name) to write the run into, "
+            "found other content; refusing to replace it"
+        )
+    try:
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=run_dir.parent, prefix=f".{run_dir.name}.tmp-"))
+    except OSError as error:
+        raise CamlocError(f"cannot create the run folder {run_dir}: {error.strerror or error}") from None
+    try:
+        os.chmod(tmp, 0o755)
+        _write_run_files(tmp, result)
+        _move_into_place(tmp, run_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return run_dir
+
+
+def _is_empty_dir(path: Path) -> bool:
+    return path.is_dir() and not any(path.iterdir())
+
+
+def _write_run_files(folder: Path, result: RunResult) -> None:
+    # The folder is private until renamed, so plain writes suffice inside it.
+    (folder / ESTIMATE_TUM).write_text(
+        tum_text(result.pose_ids, result.estimate_xyz, result.estimate_quat_xyzw), encoding="utf-8"
+    )
+    (folder / ODOMETRY_TUM).write_text(
+        tum_text(result.pose_ids, result.odometry_xyz, result.odometry_quat_xyzw), encoding="utf-8"
+    )
+    if result.truth_xyz is not None:
+        (folder / GROUNDTRUTH_TUM).write_text(
+            tum_text(result.pose_ids, result.truth_xyz, result.truth_quat_xyzw), encoding="utf-8"
+        )
+    (folder / ASSOCIATIONS_CSV).write_text(associations_text(result.associations), encoding="utf-8")
+    arrays = {name: np.asarray(getattr(result, name)) for name in _POSE_ARRAYS + _OTHER_ARRAYS}
+    if result.truth_xyz is not None:
+        arrays.update({name: np.asarray(getattr(result, name)) for name in _TRUTH_ARRAYS})
+    with open(folder / STATES_NPZ, "wb") as handle:
+        np.savez_compressed(
+            handle, format_version=np.int64(RUN_FORMAT_VERSION), dataset=np.str_(result.dataset), **arrays
+        )
+    (folder / SUMMARY_JSON).write_text(dumps_json(result.summary), encoding="utf-8")
+
+
+def _move_into_place(tmp: Path, run_dir: Path) -> None:
+    if not run_dir.exists():
+        os.rename(tmp, run_dir)
+        return
+    old = Path(tempfile.mkdtemp(dir=run_dir.parent, prefix=f".{run_dir.name}.old-"))
+    os.rename(run_dir, old / run_dir.name)
+    try:
+        os.rename(tmp, run_dir)
+    except BaseException:
+        os.rename(old / run_dir.name, run_dir)
+        shutil.rmtree(old, ignore_errors=True)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_run(run_dir: str | Path) -> RunResult:
+    """Read a run folder written by ``save_run`` back into a ``RunResult``.
+
+    Arrays come from ``states.npz``, the associations from ``associations.csv``, the summary
+    from ``summary.json``.
+
+    Raises
+    ------
+    CamlocError : ``run_dir`` is not a run folder, or a file is missing, corrupt or inconsistent
+        (``DatasetError`` with the file, and the line where there is one).
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run', found no such directory")
+    missing = [name for name in _REQUIRED_FILES if not (run_dir / name).is_file()]
+    if missing:
+        raise CamlocError(
+            f"{run_dir}: expected a run folder written by 'camloc run', missing {', '.join(missing)}"
+        )
+    arrays = _read_states(run_dir / STATES_NPZ)
+    summary = _read_summary(run_dir / SUMMARY_JSON)
+    associations = read_associations(run_dir / ASSOCIATIONS_CSV)
+    result = RunResult(
+        dataset=str(arrays.pop("dataset").item()),
+        truth_xyz=arrays.pop("truth_xyz", None),
+        truth_quat_xyzw=arrays.pop("truth_quat_xyzw", None),
+        associations=associations,
+        summary=summary,
+        **arrays,
+    )
+    problems = run_problems(result)
+    if problems:
+        raise CamlocError(f"{run_dir}: inconsistent run folder: {'; '.join(problems)}")
+    return result
+
+
+def _read_states(path: Path) -> dict[str, Any]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            stored = {name: npz[name] for name in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+        raise DatasetError(path, None, f"expected a numpy .npz archive, found an unreadable file ({error})") from None
+    if not isinstance(stored, dict) or "format_version" not in stored:
+        raise DatasetError(path, None, "expected a camloc states archive, found no format_version")
+    version = int(stored["format_version"])
+    if version != RUN_FORMAT_VERSION:
+        raise DatasetError(path, None, f"expected format_version {RUN_FORMAT_VERSION}, found {version}")
+    names = ("dataset",) + _POSE_ARRAYS + _OTHER_ARRAYS
+    missing = [name for name in names if name not in stored]
+    if missing:
+        raise DatasetError(path, None, f"expected arrays {', '.join(missing)}, found none of that name")
+    arrays: dict[str, Any] = {name: stored[name] for name in names}
+    arrays.update({name: stored[name] for name in _TRUTH_ARRAYS if name in stored})
+    for name in _INT_ARRAYS:
+        arrays[name] = arrays[name].astype(np.int64)
+    return arrays
+
+
+def _read_summary(path: Path) -> dict:
+    try:
+        summary = json.loads(_read_text(path))
+    except json.JSONDecodeError as error:
+        raise DatasetError(path, error.lineno, f"expected JSON, found an error: {error.msg}") from None
+    if not isinstance(summary, dict):
+        raise DatasetError(path, 1, f"expected a JSON object, found {type(summary).__name__}")
+    return summary

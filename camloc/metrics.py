@@ -1,0 +1,579 @@
+"""Metrics of a localization run: trajectory error, association scores and filter consistency.
+
+Pure numpy and scipy: no I/O, no printing; every function returns plain numbers or arrays, and
+``evaluate`` a JSON-serializable dict (undefined values are ``None``).
+
+Trajectory metrics follow evo's definitions, so the numbers agree with ``evo_ape`` / ``evo_rpe``
+run on the TUM files of a run folder:
+
+- ATE, ``evo_ape -r trans_part``: ``e_i = |p_est,i - p_ref,i|`` (metres), after the alignment.
+- Rotation error, ``evo_ape -r angle_deg``: geodesic angle of ``R_ref,i^T R_est,i`` (degrees).
+- RPE, ``evo_rpe --delta d --delta_unit f``: ``E_ij = (ref_i^-1 ref_j)^-1 (est_i^-1 est_j)`` over the
+  consecutive, non-overlapping index pairs (0, d), (d, 2d), ...; its translation norm and angle.
+- Statistics: rmse, mean, median, std (population, ddof=0, as evo), min, max and sse.
+- Alignment ``none`` (default), ``se3`` or ``sim3`` (Umeyama) moves the estimate onto the reference,
+  ``p -> s R p + t`` and ``R_est -> R R_est``, like ``evo_ape -a`` / ``-as``.
+
+Consistency uses the chi-square tests of Bar-Shalom, Li and Kirubarajan, "Estimation with
+Applications to Tracking and Navigation" (2001), sec. 5.4: a consistent filter's NEES per pose is
+chi2(6); the time-averaged NEES of M poses lies, with 95% probability, in chi2(6M) bounds / M.
+NEES is always computed on the unaligned estimate: an alignment fitted to the truth would remove
+error the covariance is meant to describe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.stats import chi2
+
+from camloc import geometry
+from camloc.errors import CamlocError, ConfigError
+
+if TYPE_CHECKING:
+    from camloc.results import Associations, RunResult
+
+ALIGN_METHODS = ("none", "se3", "sim3")
+CONFIDENCE = 0.95
+POSE_DOF = 6
+UNASSOCIATED = -1  # the same sentinel as camloc.results.UNASSOCIATED
+
+
+# --------------------------------------------------------------------------------------------
+# Statistics and matching
+
+
+def _number(value: float) -> float | None:
+    """A Python float, or None for NaN/inf (JSON has no NaN)."""
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def _ratio(numerator: float, denominator: float) -> float | None:
+    return _number(numerator / denominator) if denominator > 0 else None
+
+
+def error_statistics(errors: np.ndarray, *, suffix: str = "") -> dict[str, float]:
+    """evo's statistics of non-negative errors (P,): rmse, mean, median, std, min, max, sse.
+
+    ``std`` is the population standard deviation (ddof=0), as evo computes it. ``suffix`` is
+    appended to every key (``"_deg"`` for angles); ``sse`` is left out of suffixed (angle) sets.
+    """
+    errors = np.asarray(errors, dtype=float)
+    stats = {
+        "rmse": np.sqrt(np.mean(errors**2)),
+        "mean": np.mean(errors),
+        "median": np.median(errors),
+        "std": np.std(errors),
+        "min": np.min(errors),
+        "max": np.max(errors),
+    }
+    if not suffix:
+        stats["sse"] = np.sum(errors**2)
+    return {f"{name}{suffix}": float(value) for name, value in stats.items()}
+
+
+def match_by_timestamp(
+    stamps_est: np.ndarray, stamps_ref: np.ndarray, *, max_diff: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pair poses of two trajectories by nearest timestamp, as evo's ``associate_trajectories``.
+
+    Each estimate stamp is paired with the nearest reference stamp when they differ by at most
+    ``max_diff``; a reference stamp claimed twice keeps its closest estimate.
+
+    Parameters
+    ----------
+    stamps_est : (N,) timestamps of the estimate.
+    stamps_ref : (M,) timestamps of the reference.
+    max_diff : largest accepted difference, in the timestamps' unit (camloc uses pose ids).
+
+    Returns
+    -------
+    index_est, index_ref : (P,) int indices of the pairs, in the estimate's order.
+
+    Raises
+    ------
+    CamlocError : when no pair is found.
+    """
+    stamps_est = np.asarray(stamps_est, dtype=float)
+    stamps_ref = np.asarray(stamps_ref, dtype=float)
+    if stamps_est.size == 0 or stamps_ref.size == 0:
+        raise CamlocError("no matching timestamps: a trajectory has no pose")
+    order = np.argsort(stamps_ref, kind="stable")
+    sorted_ref = stamps_ref[order]
+    right = np.clip(np.searchsorted(sorted_ref, stamps_est), 0, max(len(sorted_ref) - 1, 0))
+    left = np.maximum(right - 1, 0)
+    take_left = np.abs(stamps_est - sorted_ref[left]) <= np.abs(stamps_est - sorted_ref[right])
+    nearest = np.where(take_left, left, right)
+    diff = np.abs(stamps_est - sorted_ref[nearest])
+    candidates = np.flatnonzero(diff <= max_diff)
+    # Closest first, so that a reference pose claimed twice goes to its nearest estimate.
+    candidates = candidates[np.argsort(diff[candidates], kind="stable")]
+    _, first = np.unique(nearest[candidates], return_index=True)
+    index_est = np.sort(candidates[first])
+    if index_est.size == 0:
+        raise CamlocError(
+            f"no matching timestamps within {max_diff:g} between the estimate "
+            f"({_stamp_range(stamps_est)}) and the reference ({_stamp_range(stamps_ref)})"
+        )
+    return index_est, order[nearest[index_est]]
+
+
+def _stamp_range(stamps: np.ndarray) -> str:
+    return f"{len(stamps)} poses, {stamps.min():g}..{stamps.max():g}" if len(stamps) else "no poses"
+
+
+# --------------------------------------------------------------------------------------------
+# Alignment
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A similarity transform ``p -> scale * rotation @ p + translation`` (world frame).
+
+    Attributes
+    ----------
+    method : ``"none"``, ``"se3"`` or ``"sim3"``.
+    rotation : (3, 3).
+    translation : (3,) metres.
+    scale : 1.0 unless ``method == "sim3"``.
+    """
+
+    method: str
+    rotation: np.ndarray
+    translation: np.ndarray
+    scale: float
+
+    def apply(self, xyz: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Transform poses (N, 3), (N, 4): ``p -> s R p + t`` and ``R_pose -> R R_pose``."""
+        aligned_xyz = self.scale * xyz @ self.rotation.T + self.translation
+        aligned_R = self.rotation @ geometry.quat_to_matrix(quat_xyzw)
+        return aligned_xyz, geometry.matrix_to_quat(aligned_R)
+
+    def as_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "rotation": self.rotation.tolist(),
+            "rotation_angle_deg": float(np.degrees(geometry.rotation_angle(self.rotation))),
+            "translation": self.translation.tolist(),
+            "scale": float(self.scale),
+        }
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, *, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares similarity (or rigid) transform taking ``source`` points onto ``target``.
+
+    S. Umeyama, "Least-squares estimation of transformation parameters between two point
+    patterns", IEEE TPAMI 13(4), 1991; the equation numbers below are the paper's.
+
+    Parameters
+    ----------
+    source, target : (n, 3) corresponding points (x_i and y_i in the paper).
+    with_scale : estimate the scale c (Sim(3)); otherwise c = 1 (SE(3)).
+
+    Returns
+    -------
+    R : (3, 3), t : (3,), c : float minimizing ``sum |y_i - (c R x_i + t)|^2``.
+
+    Raises
+    ------
+    CamlocError : when the points do not span at least a plane's worth of directions
+        (rank(Sigma_xy) < 2, e.g. fewer than 3 poses or all on one line).
+    """
+    x = np.asarray(source, dtype=float)
+    y = np.asarray(target, dtype=float)
+    n = x.shape[0]
+    mu_x = x.mean(axis=0)  # eq. (34)
+    mu_y = y.mean(axis=0)  # eq. (35)
+    sigma2_x = np.sum((x - mu_x) ** 2) / n  # eq. (36)
+    Sigma_xy = (y - mu_y).T @ (x - mu_x) / n  # eq. (38)
+    U, D, Vt = np.linalg.svd(Sigma_xy)  # Sigma_xy = U D V^T, the SVD after eq. (38)
+    if n < 3 or np.count_nonzero(D > 1e-12 * max(D[0], 1e-300)) < 2:
+        raise CamlocError(
+            f"alignment needs at least 3 positions that are not all on one line, found {n} "
+            "that are degenerate; use --align none"
+        )
+    # eq. (39), in the form of eq. (43) that also holds when rank(Sigma_xy) = 2: keep det(R) = +1.
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt  # eq. (40)
+    c = float(np.trace(np.diag(D) @ S) / sigma2_x) if with_scale else 1.0  # eq. (42)
+    t = mu_y - c * R @ mu_x  # eq. (41)
+    return R, t, c
+
+
+def align_trajectory(xyz_est: np.ndarray, xyz_ref: np.ndarray, *, method: str = "none") -> Alignment:
+    """The alignment of an estimate's positions (N, 3) onto the reference's (N, 3).
+
+    ``method`` is one of ``ALIGN_METHODS``; ``none`` is the identity.
+    """
+    if method not in ALIGN_METHODS:
+        raise ConfigError(f"alignment must be one of {', '.join(ALIGN_METHODS)}, found {method!r}")
+    if method == "none":
+        return Alignment("none", np.eye(3), np.zeros(3), 1.0)
+    R, t, c = umeyama(xyz_est, xyz_ref, with_scale=method == "sim3")
+    return Alignment(method, R, t, c)
+
+
+# --------------------------------------------------------------------------------------------
+# Trajectory errors
+
+
+def position_errors(xyz_est: np.ndarray, xyz_ref: np.ndarray) -> np.ndarray:
+    """Position error norms (N,) in metres of matched positions (N, 3)."""
+    return np.linalg.norm(np.asarray(xyz_est) - np.asarray(xyz_ref), axis=-1)
+
+
+def rotation_errors_deg(quat_est: np.ndarray, quat_ref: np.ndarray) -> np.ndarray:
+    """Geodesic angle (N,) in degrees of ``R_ref^T R_est`` for matched quaternions (N, 4)."""
+    R_est = geometry.quat_to_matrix(quat_est)
+    R_ref = geometry.quat_to_matrix(quat_ref)
+    return np.degrees(geometry.rotation_angle(np.swapaxes(R_ref, -1, -2) @ R_est))
+
+
+def relative_pose_errors(
+    T_est: np.ndarray, T_ref: np.ndarray, *, delta: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """evo's RPE over pose pairs ``delta`` frames apart.
+
+    Parameters
+    ----------
+    T_est, T_ref : (N, 4, 4) matched poses, world frame.
+    delta : frame distance of the pairs (0, delta), (delta, 2 delta), ... (no overlap, as evo
+        without ``--all_pairs``).
+
+    Returns
+    -------
+    translation : (P,) metres, ``|t(E_ij)|``.
+    angle_deg : (P,) degrees, geodesic angle of ``R(E_ij)``.
+    pairs : (P, 2) the index pairs (i, j).
+
+    Raises
+    ------
+    ConfigError : when there is no pair (``delta`` >= N or delta < 1).
+    """
+    n = T_est.shape[0]
+    if delta < 1 or delta >= n:
+        raise ConfigError(f"RPE delta must be between 1 and the number of poses - 1 ({n - 1}), found {delta}")
+    ids = np.arange(0, n, delta)
+    i, j = ids[:-1], ids[1:]
+    E = geometry.relative_se3(geometry.relative_se3(T_ref[i], T_ref[j]), geometry.relative_se3(T_est[i], T_est[j]))
+    translation = np.linalg.norm(E[:, :3, 3], axis=-1)
+    angle_deg = np.degrees(geometry.rotation_angle(E[:, :3, :3]))
+    return translation, angle_deg, np.column_stack([i, j])
+
+
+def trajectory_metrics(
+    xyz_est: np.ndarray,
+    quat_est: np.ndarray,
+    xyz_ref: np.ndarray,
+    quat_ref: np.ndarray,
+    *,
+    align: str = "none",
+    delta: int = 1,
+) -> dict:
+    """ATE, rotation error and RPE of matched poses, after the chosen alignment.
+
+    Parameters
+    ----------
+    xyz_est, quat_est : (N, 3), (N, 4) the estimate, world frame.
+    xyz_ref, quat_ref : (N, 3), (N, 4) the reference (ground truth), matched pose by pose.
+    align : ``"none"``, ``"se3"`` or ``"sim3"``.
+    delta : RPE frame distance.
+
+    Returns
+    -------
+    ``{"poses", "alignment": {method, rotation, translation, scale}, "ate": {rmse, mean, median,
+    std, min, max, sse} (m), "rotation": {rmse_deg, ...}, "rpe": {"delta", "delta_unit", "pairs",
+    "translation": {...} (m), "rotation": {..._deg}}}``.
+    """
+    alignment = align_trajectory(xyz_est, xyz_ref, method=align)
+    xyz_a, quat_a = alignment.apply(np.asarray(xyz_est, dtype=float), np.asarray(quat_est, dtype=float))
+    rpe_translation, rpe_angle, pairs = relative_pose_errors(
+        geometry.pose_from_quat(xyz_a, quat_a), geometry.pose_from_quat(xyz_ref, quat_ref), delta=delta
+    )
+    return {
+        "poses": int(len(xyz_a)),
+        "alignment": alignment.as_dict(),
+        "ate": error_statistics(position_errors(xyz_a, xyz_ref)),
+        "rotation": error_statistics(rotation_errors_deg(quat_a, quat_ref), suffix="_deg"),
+        "rpe": {
+            "delta": int(delta),
+            "delta_unit": "frames",
+            "pairs": int(len(pairs)),
+            "translation": error_statistics(rpe_translation),
+            "rotation": error_statistics(rpe_angle, suffix="_deg"),
+        },
+    }
+
+
+def compare_trajectories(
+    stamps_est: np.ndarray,
+    xyz_est: np.ndarray,
+    quat_est: np.ndarray,
+    stamps_ref: np.ndarray,
+    xyz_ref: np.ndarray,
+    quat_ref: np.ndarray,
+    *,
+    align: str = "none",
+    delta: int = 1,
+    max_diff: float = 0.01,
+) -> dict:
+    """``trajectory_metrics`` of two trajectories paired by timestamp (``match_by_timestamp``).
+
+    Returns the dict of ``trajectory_metrics`` plus ``"matched"``, ``"estimate_poses"`` and
+    ``"reference_poses"``.
+    """
+    index_est, index_ref = match_by_timestamp(stamps_est, stamps_ref, max_diff=max_diff)
+    metrics = trajectory_metrics(
+        xyz_est[index_est], quat_est[index_est], xyz_ref[index_ref], quat_ref[index_ref], align=align, delta=delta
+    )
+    return {"matched": int(len(index_est)), "estimate_poses": int(len(stamps_est)), "reference_poses": int(len(stamps_ref)), **metrics}
+
+
+# --------------------------------------------------------------------------------------------
+# Associations
+
+
+def association_outcomes(associations: Associations, map_landmark_ids: np.ndarray) -> dict[str, np.ndarray]:
+    """Boolean masks (K,) classifying every observation.
+
+    ``made`` (a landmark was chosen), ``correct`` (it is the true one), ``wrong`` (another one),
+    ``rejected`` (none chosen), ``in_map`` (the true landmark is in the map), ``missed`` (in the
+    map but rejected), ``clutter_accepted`` (not in the map but associated anyway).
+    """
+    chosen = np.asarray(associations.landmark)
+    true = np.asarray(associations.true_landmark)
+    made = chosen != UNASSOCIATED
+    in_map = np.isin(true, map_landmark_ids)
+    return {
+        "made": made,
+        "correct": made & (chosen == true),
+        "wrong": made & (chosen != true),
+        "rejected": ~made,
+        "in_map": in_map,
+        "missed": in_map & ~made,
+        "clutter_accepted": ~in_map & made,
+    }
+
+
+def association_scores(associations: Associations, map_landmark_ids: np.ndarray) -> dict:
+    """Counts and scores of the data association against the file's true landmark ids.
+
+    precision = correct / made; recall = correct / observations whose true landmark is in the
+    map; F1 their harmonic mean (None when undefined, e.g. nothing was associated).
+    """
+    masks = association_outcomes(associations, map_landmark_ids)
+    counts = {name: int(np.count_nonzero(mask)) for name, mask in masks.items()}
+    precision = _ratio(counts["correct"], counts["made"])
+    recall = _ratio(counts["correct"], counts["in_map"])
+    f1 = None
+    if precision is not None and recall is not None and precision + recall > 0:
+        f1 = 2.0 * precision * recall / (precision + recall)
+    return {
+        "observations": int(len(masks["made"])),
+        "made": counts["made"],
+        "correct": counts["correct"],
+        "wrong": counts["wrong"],
+        "rejected": counts["rejected"],
+        "missed": counts["missed"],
+        "in_map": counts["in_map"],
+        "clutter": int(len(masks["made"])) - counts["in_map"],
+        "clutter_accepted": counts["clutter_accepted"],
+        "precision": precision,
+        "recall": recall,
+        "f1": f1,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Consistency
+
+
+def chi2_bounds(dof: np.ndarray | int, *, confidence: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
+    """Two-sided chi-square bounds: P(lower <= X <= upper) = confidence for X ~ chi2(dof)."""
+    tail = (1.0 - confidence) / 2.0
+    return chi2.ppf(tail, dof), chi2.ppf(1.0 - tail, dof)
+
+
+def mean_chi2_bounds(dof: int, count: int, *, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Bounds of the mean of ``count`` independent chi2(dof) samples: chi2(dof*count) bounds / count."""
+    lower, upper = chi2_bounds(dof * count, confidence=confidence)
+    return float(lower / count), float(upper / count)
+
+
+def _positive_definite(cov: np.ndarray) -> np.ndarray:
+    eigenvalues = np.linalg.eigvalsh(cov)
+    return eigenvalues[..., 0] > 1e-12 * np.maximum(eigenvalues[..., -1], 1e-300)
+
+
+def nees_per_pose(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Normalized estimation error squared of each pose, ``e^T P^-1 e`` (by a solve).
+
+    Parameters
+    ----------
+    T_est, T_true : (N, 4, 4) estimated and true poses, world frame.
+    cov : (N, 6, 6) covariance P of ``geometry.pose_error_vector(T_est, T_true)``
+        (world position in metres, then world rotation vector in radians).
+
+    Returns
+    -------
+    (N,) NEES; NaN where P is not positive definite (e.g. an exactly known first pose).
+    """
+    e = geometry.pose_error_vector(T_est, T_true)
+    nees = np.full(e.shape[0], np.nan)
+    valid = _positive_definite(cov)
+    if np.any(valid):
+        solved = np.linalg.solve(cov[valid], e[valid][..., None])[..., 0]  # P^-1 e
+        nees[valid] = np.einsum("ni,ni->n", e[valid], solved)
+    return nees
+
+
+def run_nees(result: RunResult) -> np.ndarray:
+    """(N,) NEES of every pose of a run with ground truth, NaN for the poses left out.
+
+    Left out: the first pose, which the dataset gives (it is the filter's known start, so its
+    error is zero whatever its covariance says), and poses whose covariance is singular.
+    """
+    T_est = geometry.pose_from_quat(result.estimate_xyz, result.estimate_quat_xyzw)
+    T_true = geometry.pose_from_quat(result.truth_xyz, result.truth_quat_xyzw)
+    nees = nees_per_pose(T_est, T_true, result.estimate_cov)
+    nees[0] = np.nan
+    return nees
+
+
+def _verdict(mean: float, lower: float, upper: float) -> str:
+    if mean > upper:
+        return "overconfident"
+    if mean < lower:
+        return "underconfident"
+    return "consistent"
+
+
+def nees_summary(nees: np.ndarray, *, dof: int = POSE_DOF) -> dict:
+    """Mean, median and bound shares of per-pose NEES (N,), NaN entries skipped.
+
+    Returns
+    -------
+    ``{"dof", "poses", "skipped_poses", "mean", "median", "bounds" (per pose), "within_bounds_share",
+    "mean_bounds" (of the mean over the poses used), "verdict", "verdict_line"}``; the verdict is
+    ``overconfident`` when the mean is above its interval, ``underconfident`` below, else
+    ``consistent`` (``undetermined`` without a usable pose).
+    """
+    nees = np.asarray(nees, dtype=float)
+    used = nees[np.isfinite(nees)]
+    lower, upper = chi2_bounds(dof)
+    out = {
+        "dof": int(dof),
+        "poses": int(used.size),
+        "skipped_poses": int(nees.size - used.size),
+        "bounds": [float(lower), float(upper)],
+        "confidence": CONFIDENCE,
+    }
+    if used.size == 0:
+        return out | {"mean": None, "median": None, "within_bounds_share": None, "mean_bounds": None,
+                      "verdict": "undetermined", "verdict_line": "undetermined: no pose has a usable covariance"}
+    mean = float(np.mean(used))
+    mean_lower, mean_upper = mean_chi2_bounds(dof, used.size)
+    verdict = _verdict(mean, mean_lower, mean_upper)
+    where = {"consistent": "inside", "overconfident": "above", "underconfident": "below"}[verdict]
+    return out | {
+        "mean": mean,
+        "median": float(np.median(used)),
+        "within_bounds_share": float(np.mean((used >= lower) & (used <= upper))),
+        "mean_bounds": [mean_lower, mean_upper],
+        "verdict": verdict,
+        "verdict_line": (
+            f"{verdict}: mean NEES {mean:.2f} is {where} its {CONFIDENCE:.0%} interval "
+            f"[{mean_lower:.2f}, {mean_upper:.2f}] for {used.size} poses ({dof} dof)"
+        ),
+    }
+
+
+def nis_summary(nis: np.ndarray, nis_dof: np.ndarray) -> dict:
+    """NIS of the filter updates, per degree of freedom.
+
+    Parameters
+    ----------
+    nis : (U,) normalized innovation squared of each update.
+    nis_dof : (U,) its degrees of freedom (3 per accepted observation).
+
+    Returns
+    -------
+    ``{"updates", "mean_per_dof", "mean_bounds", "within_bounds_share", "verdict"}``:
+    ``mean_per_dof = sum(NIS) / sum(dof)`` (the dof-weighted mean of NIS/dof, exactly
+    chi2(sum dof) / sum dof for a consistent filter, which gives ``mean_bounds``);
+    ``within_bounds_share`` is the share of updates inside their own chi2(dof) 95% bounds.
+    Gating rejects large innovations, so a gated filter's NIS is biased low.
+    """
+    nis = np.asarray(nis, dtype=float)
+    nis_dof = np.asarray(nis_dof)
+    if nis.size == 0:
+        return {"updates": 0, "mean_per_dof": None, "mean_bounds": None, "within_bounds_share": None,
+                "verdict": "undetermined"}
+    total_dof = int(np.sum(nis_dof))
+    mean_per_dof = float(np.sum(nis) / total_dof)
+    lower, upper = chi2_bounds(nis_dof)
+    mean_lower, mean_upper = mean_chi2_bounds(1, total_dof)
+    return {
+        "updates": int(nis.size),
+        "mean_per_dof": mean_per_dof,
+        "mean_bounds": [mean_lower, mean_upper],
+        "within_bounds_share": float(np.mean((nis >= lower) & (nis <= upper))),
+        "verdict": _verdict(mean_per_dof, mean_lower, mean_upper),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Everything about one run
+
+
+def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
+    """All metrics of a run, for the filter's estimate and for odometry alone side by side.
+
+    Parameters
+    ----------
+    result : the run (``camloc.results.RunResult``).
+    align : trajectory alignment before ATE/RPE, one of ``ALIGN_METHODS``; each path gets its own.
+    delta : RPE frame distance.
+
+    Returns
+    -------
+    A JSON-serializable dict: ``dataset``, ``poses``, ``align``, ``delta``, ``notes`` (list);
+    with ground truth ``estimate`` and ``odometry`` (each as ``trajectory_metrics``),
+    ``improvement`` (odometry / estimate ATE and rotation RMSE) and ``nees`` (``nees_summary`` of
+    ``run_nees``: the given start pose is left out);
+    always ``association`` (``association_scores``) and ``nis`` (``nis_summary``).
+    """
+    if align not in ALIGN_METHODS:
+        raise ConfigError(f"alignment must be one of {', '.join(ALIGN_METHODS)}, found {align!r}")
+    out: dict = {
+        "dataset": result.dataset,
+        "poses": int(len(result.pose_ids)),
+        "align": align,
+        "delta": int(delta),
+        "notes": [],
+    }
+    if result.truth_xyz is not None:
+        estimate = trajectory_metrics(
+            result.estimate_xyz, result.estimate_quat_xyzw, result.truth_xyz, result.truth_quat_xyzw,
+            align=align, delta=delta,
+        )
+        odometry = trajectory_metrics(
+            result.odometry_xyz, result.odometry_quat_xyzw, result.truth_xyz, result.truth_quat_xyzw,
+            align=align, delta=delta,
+        )
+        out["estimate"], out["odometry"] = estimate, odometry
+        out["improvement"] = {
+            "ate_rmse": _ratio(odometry["ate"]["rmse"], estimate["ate"]["rmse"]),
+            "rotation_rmse": _ratio(odometry["rotation"]["rmse_deg"], estimate["rotation"]["rmse_deg"]),
+        }
+        out["nees"] = nees_summary(run_nees(result))
+    else:
+        out["notes"].append("no ground truth in the run: trajectory errors, improvement and NEES are not computed")
+    out["association"] = association_scores(result.associations, result.map_landmark_ids)
+    out["nis"] = nis_summary(result.nis, result.nis_dof)
+    return out
