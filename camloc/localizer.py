@@ -22,7 +22,7 @@ from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.results import UNASSOCIATED, Associations, RunResult
 
-ASSOCIATION_METHODS = ("best-friends", "oracle")
+ASSOCIATION_METHODS = ("beam", "best-friends", "oracle")
 COSTS = ("nll", "mahalanobis", "euclidean")
 SINGULARITY_WARNING_DEG = 80.0
 
@@ -59,6 +59,9 @@ class LocalizerConfig:
     cost: str = "nll"
     margin: float = 1.0
     sequential: bool = True
+    beam_width: int = 16
+    beam_delta: float = 30.0
+    null_cost: float = 18.0
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
     max_angle_deg: Optional[float] = None
@@ -150,12 +153,18 @@ class _Localizer:
         self.x = geometry.pose_to_euler(dataset.T_world_start)
         self.P = np.diag(sigma**2)
         self.T_odometry = dataset.T_world_start
+        self.beam_pairs = None
+        if config.association == "beam":
+            from camloc.beam import BeamSearch, BeamSettings
+
+            settings = BeamSettings(config.beam_width, config.beam_delta, config.null_cost, self.gate)
+            self.beam_pairs = BeamSearch(self, settings).run(self.x, self.P)
 
     def step(self, k: int) -> None:
         if k > 0:
             self._predict(k - 1)                       # x <- x (+) odometry increment
         self._warn_near_singularity(k)
-        obs, landmarks = self._associate(self.obs_of_pose[k])  # which observation is which landmark
+        obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
         if obs.size:
             result = self._updated(self.x, self.P, obs, landmarks)  # one stacked (iterated) update
             self._record_pairs(k, obs, landmarks, result)
@@ -169,11 +178,15 @@ class _Localizer:
         self.P = ekf.predict(self.P, F, G, self.dataset.odom_cov[edge])  # P = F P F' + G Q G'
         self.T_odometry = self.T_odometry @ T_increment
 
-    def _associate(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Accepted pairs of this pose: observation indices and landmark indices, both (p,)."""
+    def _associate(self, k: int, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Accepted pairs of pose k: observation indices and landmark indices, both (p,)."""
         none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         if obs.size == 0 or self.tree is None:
             return none
+        if self.beam_pairs is not None:
+            pairs = self.beam_pairs[k]
+            order = np.argsort(pairs[:, 0], kind="stable")
+            return pairs[order, 0], pairs[order, 1]
         if self.config.association == "oracle":
             return self._associate_oracle(obs)
         if not self.config.sequential:
