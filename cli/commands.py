@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from camloc.cli.info import info
 from camloc.cli.run import run
 from camloc.cli.simulate import simulate
 
 COMMANDS: list = [
+    ("info", info),
     ("run", run),
     ("simulate", simulate),
 ]
