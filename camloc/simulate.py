@@ -14,11 +14,13 @@ Trajectory  ``grid``: the real file's style, flat ground (z = 0), each step eith
             flying vehicle looking around, its velocity independent of its attitude, roll and pitch
             oscillating up to ``max_tilt_deg`` (default 60 deg; up to 90 to approach the Euler
             singularity).
-Map         landmarks placed uniformly in the visible volume of a random camera at a random pose,
-            so every landmark is seen from somewhere and the density follows the path (the real
-            file: 144 landmarks for ~100 poses, every one observed). For ``grid`` landmarks stay
-            within +-0.5 m of the floor, as in the real file.
-Visibility  from the real file (all 362 detections explained, none missed but at the first pose):
+Map         landmarks uniform in a ball of radius ``max_range`` around random poses (``grid``: a disk,
+            within +-0.5 m of the floor like the real room), kept if some camera sees them from some
+            pose: every landmark of the real file is observed. By default as many as give the real
+            file's 3.62 visible landmarks per camera and pose (144 landmarks for its 100 poses), so
+            the detection rate does not depend on how compact the path is.
+Visibility  measured on the real file, where it explains all 362 detections and misses only those of
+            the first pose and one landmark at 2.00 m:
             distance from the camera centre in [0.5, 2.0] m and the ray within 45 deg of the optical
             axis (``hypot(x/z, y/z) <= 1``); the normalized image is not clipped. The first pose sees
             nothing unless ``observe_first_pose``. Pixel cameras also need the measured (u, v) inside
@@ -39,6 +41,7 @@ Randomness  one ``np.random.default_rng(seed)``, split into independent streams 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 
@@ -228,44 +231,29 @@ def simulate(config: SimulationConfig, *, seed: int) -> Dataset:
 
 def simulate_labelled(config: SimulationConfig, *, seed: int) -> Simulation:
     """``simulate``, also returning which observations are outliers and clutter."""
-    rng_path, rng_map, rng_odom, rng_detect, rng_obs_noise, rng_spurious = np.random.default_rng(seed).spawn(6)
+    rng_path, rng_map, rng_odom, rng_detect, rng_noise, rng_spurious = np.random.default_rng(seed).spawn(6)
+    # The world: a true path, the cameras on the robot, a map around the path.
     T_world_robot = TRAJECTORY_GENERATORS[config.trajectory](config, rng_path)
     specs = make_cameras(config)
     landmark_xyz = place_landmarks(T_world_robot, specs, config, rng_map)
-    odom_T, odom_info = noisy_odometry(T_world_robot, config, rng_odom)
-    obs_info = observation_info(config)
-
-    pose_index, camera_id, landmark_index, uvd_true = detect(T_world_robot, specs, landmark_xyz, config, rng_detect)
-    uvd = add_observation_noise(uvd_true, obs_info, config, rng_obs_noise)
-    keep = inside_images(uvd, camera_id, specs)
-    pose_index, camera_id, landmark_index, uvd = pose_index[keep], camera_id[keep], landmark_index[keep], uvd[keep]
-    keep = cap_per_pose(pose_index, config.max_observations_per_pose, rng_detect)
-    pose_index, camera_id, landmark_index, uvd = pose_index[keep], camera_id[keep], landmark_index[keep], uvd[keep]
-
     ids = _Ids(landmark_xyz.shape[0], T_world_robot.shape[0])
-    true_id = landmark_index.astype(np.int64)
-    is_outlier = np.zeros(len(uvd), dtype=bool)
-    outliers = rng_spurious.choice(len(uvd), size=round(config.outlier_fraction * len(uvd)), replace=False)
-    is_outlier[outliers] = True
-    uvd[outliers] = random_measurements(specs, camera_id[outliers], config, rng_spurious)
-
-    clutter = make_clutter(len(uvd), T_world_robot.shape[0], specs, config, rng_spurious)
-    c_pose, c_camera, c_uvd = clutter
-    c_ids = ids.clutter_base + np.arange(len(c_uvd), dtype=np.int64)
-
-    pose_index = np.concatenate([pose_index, c_pose])
-    camera_id = np.concatenate([camera_id, c_camera])
-    true_id = np.concatenate([true_id, c_ids])
-    uvd = np.concatenate([uvd, c_uvd])
-    is_outlier = np.concatenate([is_outlier, np.zeros(len(c_uvd), dtype=bool)])
-    is_clutter = np.concatenate([np.zeros(len(true_id) - len(c_uvd), dtype=bool), np.ones(len(c_uvd), dtype=bool)])
+    # Odometry: the true increments with noise drawn from the information written.
+    odom_T, odom_info = noisy_odometry(T_world_robot, config, rng_odom)
+    # Detections: visible landmarks, measured with noise, kept inside the image, capped per pose.
+    obs_info = observation_info(config)
+    obs = detect(T_world_robot, specs, landmark_xyz, config, rng_detect)
+    obs = dataclasses.replace(obs, uvd=add_observation_noise(obs.uvd, obs_info, config, rng_noise))
+    obs = obs.select(inside_images(obs.uvd, obs.camera, specs))
+    obs = obs.select(cap_per_pose(obs.pose_index, config.max_observations_per_pose, rng_detect))
+    # Spurious data: outliers replace some measurements, clutter adds detections of nothing.
+    obs = replace_outliers(obs, specs, config, rng_spurious)
+    obs = obs.concat(make_clutter(obs.count, T_world_robot.shape[0], specs, ids.clutter_base, config, rng_spurious))
     # Order by pose and camera, randomly within: neither clutter nor ids may be guessed from order.
-    order = np.lexsort((rng_spurious.random(len(uvd)), camera_id, pose_index))
+    obs = obs.select(np.lexsort((rng_spurious.random(obs.count), obs.camera, obs.pose_index)))
 
     truth_xyz, truth_quat = geometry.pose_to_quat(T_world_robot)
     odom_xyz, odom_quat = geometry.pose_to_quat(odom_T)
-    K = len(order)
-    obs_info_all = np.broadcast_to(obs_info, (K, 3, 3)).copy()
+    obs_info_all = np.broadcast_to(obs_info, (obs.count, 3, 3)).copy()
     dataset = Dataset(
         source=describe(config, seed),
         cameras={spec.camera.id: spec.camera for spec in specs},
@@ -280,21 +268,52 @@ def simulate_labelled(config: SimulationConfig, *, seed: int) -> Simulation:
         odom_quat_xyzw=odom_quat,
         odom_info=odom_info,
         odom_cov=odometry_cov_from_info(odom_info),
-        obs_pose_index=pose_index[order].astype(np.int64),
-        obs_camera=camera_id[order].astype(np.int64),
-        obs_uvd=uvd[order],
+        obs_pose_index=obs.pose_index,
+        obs_camera=obs.camera,
+        obs_uvd=obs.uvd,
         obs_info=obs_info_all,
         obs_cov=observation_cov_from_info(obs_info_all),
-        obs_true_landmark=true_id[order],
+        obs_true_landmark=obs.landmark,
         tag_counts={
             "PARAMS_CAMERACALIB": len(specs),
             "VERTEX_TRACKXYZ": landmark_xyz.shape[0],
             "VERTEX_SE3:QUAT": T_world_robot.shape[0],
             "EDGE_SE3:QUAT": T_world_robot.shape[0] - 1,
-            "EDGE_PROJECT_DEPTH": K,
+            "EDGE_PROJECT_DEPTH": obs.count,
         },
     )
-    return Simulation(dataset=dataset, is_outlier=is_outlier[order], is_clutter=is_clutter[order])
+    return Simulation(dataset=dataset, is_outlier=obs.is_outlier, is_clutter=obs.is_clutter)
+
+
+@dataclass(frozen=True)
+class _Observations:
+    """Observations being built, K rows: pose index, camera id, landmark id (int64, (K,)),
+    measurement (K, 3), and the outlier / clutter labels (K,) bool."""
+
+    pose_index: np.ndarray
+    camera: np.ndarray
+    landmark: np.ndarray
+    uvd: np.ndarray
+    is_outlier: np.ndarray
+    is_clutter: np.ndarray
+
+    @classmethod
+    def of(cls, pose_index, camera, landmark, uvd, *, clutter: bool) -> "_Observations":
+        count = len(pose_index)
+        return cls(np.asarray(pose_index, dtype=np.int64), np.asarray(camera, dtype=np.int64),
+                   np.asarray(landmark, dtype=np.int64), np.asarray(uvd, dtype=float).reshape(count, 3),
+                   np.zeros(count, dtype=bool), np.full(count, clutter))
+
+    @property
+    def count(self) -> int:
+        return int(self.pose_index.shape[0])
+
+    def select(self, rows: np.ndarray) -> "_Observations":
+        """The rows given by a boolean mask or an index array."""
+        return _Observations(*(getattr(self, f.name)[rows] for f in fields(self)))
+
+    def concat(self, other: "_Observations") -> "_Observations":
+        return _Observations(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
 
 
 def describe(config: SimulationConfig, seed: int) -> str:
@@ -434,9 +453,11 @@ def make_cameras(config: SimulationConfig) -> list[CameraSpec]:
     specs = [CameraSpec(Camera(0, REAL_MOUNT_TRANSLATION.copy(), REAL_MOUNT_QUAT_XYZW.copy(), fx, fy, cx, cy), image)]
     R_forward = geometry.quat_to_matrix(REAL_MOUNT_QUAT_XYZW)
     for camera_id, yaw in enumerate(EXTRA_CAMERA_YAWS[: config.cameras - 1], start=1):
-        R_robot_camera = geometry.euler_to_matrix(np.array([0.0, 0.0, yaw])) @ R_forward
-        offset = EXTRA_CAMERA_OFFSET_M * np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        camera = Camera(camera_id, REAL_MOUNT_TRANSLATION + offset, geometry.matrix_to_quat(R_robot_camera), fx, fy, cx, cy)
+        # The mounts are quarter turns: rounding drops cos(pi/2) = 6e-17 so they are exact.
+        R_robot_camera = np.round(geometry.euler_to_matrix(np.array([0.0, 0.0, yaw])) @ R_forward, 12)
+        offset = np.round(EXTRA_CAMERA_OFFSET_M * np.array([math.cos(yaw), math.sin(yaw), 0.0]), 12)
+        quat = geometry.matrix_to_quat(R_robot_camera) + 0.0  # + 0.0 turns -0.0 into 0.0 for the file
+        camera = Camera(camera_id, REAL_MOUNT_TRANSLATION + offset + 0.0, quat, fx, fy, cx, cy)
         specs.append(CameraSpec(camera, image))
     return specs
 
@@ -639,10 +660,9 @@ def detect(
     landmark_xyz: np.ndarray,
     config: SimulationConfig,
     rng: np.random.Generator,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> _Observations:
     """Every visible landmark of every camera at every observing pose, each kept with
-    ``detection_probability``. Returns pose index (K,), camera id (K,), landmark index (K,) and
-    the exact measurement (K, 3)."""
+    ``detection_probability``, with its exact measurement."""
     first = 0 if config.observe_first_pose else 1
     parts = []
     for spec in specs:
@@ -652,8 +672,9 @@ def detect(
         uvd = models.project_points(p_camera, (c.fx, c.fy, c.cx, c.cy)).reshape(-1, 3)
         parts.append((pose_index + first, np.full(len(pose_index), c.id), landmark_index, uvd))
     pose_index, camera_id, landmark_index, uvd = (np.concatenate(columns) for columns in zip(*parts))
-    detected = rng.random(len(pose_index)) < config.detection_probability
-    return pose_index[detected], camera_id[detected], landmark_index[detected], uvd[detected]
+    # Landmark ids are their indices (see _Ids).
+    detections = _Observations.of(pose_index, camera_id, landmark_index, uvd, clutter=False)
+    return detections.select(rng.random(detections.count) < config.detection_probability)
 
 
 def inside_images(uvd: np.ndarray, camera_id: np.ndarray, specs: list[CameraSpec]) -> np.ndarray:
@@ -691,14 +712,28 @@ def random_measurements(
     return out
 
 
+def replace_outliers(
+    obs: _Observations, specs: list[CameraSpec], config: SimulationConfig, rng: np.random.Generator
+) -> _Observations:
+    """Replace ``outlier_fraction`` of the measurements by random ones; the true ids stay."""
+    rows = rng.choice(obs.count, size=round(config.outlier_fraction * obs.count), replace=False)
+    uvd, is_outlier = obs.uvd.copy(), obs.is_outlier.copy()
+    uvd[rows] = random_measurements(specs, obs.camera[rows], config, rng)
+    is_outlier[rows] = True
+    return dataclasses.replace(obs, uvd=uvd, is_outlier=is_outlier)
+
+
 def make_clutter(
-    real_count: int, num_poses: int, specs: list[CameraSpec], config: SimulationConfig, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Clutter so that it is ``clutter_fraction`` of all observations: pose index, camera id and
-    measurement, at random observing poses and cameras."""
+    real_count: int, num_poses: int, specs: list[CameraSpec], first_id: int, config: SimulationConfig,
+    rng: np.random.Generator,
+) -> _Observations:
+    """Clutter, ``clutter_fraction`` of all observations once added to ``real_count`` detections:
+    random observing poses and cameras, measurements uniform in the visible volume, each with its
+    own id from ``first_id`` on (absent from the map)."""
     f = config.clutter_fraction
     count = round(real_count * f / (1.0 - f))
     first = 0 if config.observe_first_pose else 1
     pose_index = rng.integers(first, num_poses, size=count)
-    camera_id = np.array([specs[i].camera.id for i in rng.integers(len(specs), size=count)], dtype=int)
-    return pose_index, camera_id, random_measurements(specs, camera_id, config, rng)
+    camera_id = np.array([specs[i].camera.id for i in rng.integers(len(specs), size=count)], dtype=np.int64)
+    uvd = random_measurements(specs, camera_id, config, rng)
+    return _Observations.of(pose_index, camera_id, first_id + np.arange(count), uvd, clutter=True)

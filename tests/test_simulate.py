@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -315,6 +316,26 @@ def test_bad_options_raise_a_config_error(options):
 
 
 # ------------------------------------------------------------------------------------------- CLI
+
+BUNDLED = {  # data/README.md gives the same commands
+    "grid-small.g2o": (SimulationConfig(), 3),
+    "smooth3d-clutter.g2o": (SimulationConfig(trajectory="smooth3d", poses=200, clutter_fraction=0.1,
+                                              outlier_fraction=0.02), 1),
+    "pixel-2cam.g2o": (SimulationConfig(trajectory="aerial", poses=200, intrinsics="pixel", cameras=2), 2),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BUNDLED))
+def test_bundled_datasets_are_what_their_commands_generate(name):
+    from camloc.g2o import read_g2o
+
+    path = Path(__file__).resolve().parents[1] / "data" / name
+    config, seed = BUNDLED[name]
+    expected = simulate(config, seed=seed)
+    read = read_g2o(path)
+    for field_name, array in _arrays(expected).items():
+        np.testing.assert_allclose(getattr(read, field_name), array, rtol=1e-12, atol=1e-12, err_msg=field_name)
+    assert path.stat().st_size < 300_000
 
 
 def test_cli_writes_a_file_that_reads_back_to_the_simulated_dataset(tmp_path):
