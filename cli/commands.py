@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from camloc.cli.eval import evaluate_command
 from camloc.cli.info import info
+from camloc.cli.plot import plot
 from camloc.cli.run import run
 from camloc.cli.simulate import simulate
 
 COMMANDS: list = [
     ("info", info),
     ("run", run),
+    ("eval", evaluate_command),
+    ("plot", plot),
     ("simulate", simulate),
 ]

@@ -1,0 +1,332 @@
+"""Figures of a localization run.
+
+Every ``plot_*`` function draws into a matplotlib axis given as its first argument and returns
+it; the caller owns the figure (its size, layout, saving). The ``draw_*`` functions lay several
+plots out on a figure they are given. This is the only module of the library that imports
+matplotlib, and nothing in the core imports it, so ``camloc run`` never pays for it.
+
+Colours are fixed across figures: EKF blue, odometry green, ground truth red, map grey. Errors are
+computed against the ground truth without alignment (``camloc.metrics``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter
+
+from camloc import metrics
+from camloc.results import RunResult
+
+ESTIMATE_COLOR = "tab:blue"
+ODOMETRY_COLOR = "tab:green"
+TRUTH_COLOR = "tab:red"
+MAP_COLOR = "0.55"
+CORRECT_COLOR = "#2ca25f"
+WRONG_COLOR = "#de2d26"
+REJECTED_COLOR = "0.72"
+SIGMA = 3.0
+
+_STYLE = {"linewidth": 1.4}
+
+
+def dataset_name(result: RunResult) -> str:
+    """The dataset's file name (or description) for titles."""
+    return Path(result.dataset).name or result.dataset
+
+
+def _no_truth(ax: Axes, what: str) -> Axes:
+    ax.text(0.5, 0.5, f"no ground truth in this run:\n{what} cannot be computed", ha="center", va="center",
+            transform=ax.transAxes, color="0.35")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    return ax
+
+
+def _position_rmse(result: RunResult, xyz: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(metrics.position_errors(xyz, result.truth_xyz) ** 2)))
+
+
+def _path_labels(result: RunResult) -> dict[str, str]:
+    """Legend labels, with each path's position RMSE when there is ground truth."""
+    if result.truth_xyz is None:
+        return {"estimate": "EKF", "odometry": "odometry"}
+    return {
+        "estimate": f"EKF (RMSE {_position_rmse(result, result.estimate_xyz):.3f} m)",
+        "odometry": f"odometry (RMSE {_position_rmse(result, result.odometry_xyz):.3f} m)",
+    }
+
+
+def _trajectory_title(result: RunResult, view: str) -> str:
+    title = f"{dataset_name(result)}: {view}"
+    if result.truth_xyz is not None:
+        title += (
+            f"\nposition RMSE: EKF {_position_rmse(result, result.estimate_xyz):.3f} m, "
+            f"odometry {_position_rmse(result, result.odometry_xyz):.3f} m"
+        )
+    return title
+
+
+def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
+    """Top-down (x-y) view of the EKF, odometry and true paths over the landmark map, metres."""
+    labels = _path_labels(result)
+    if show_map and len(result.map_landmark_xyz):
+        xyz = result.map_landmark_xyz
+        ax.scatter(xyz[:, 0], xyz[:, 1], s=9, marker="s", color=MAP_COLOR, linewidths=0,
+                   label=f"map ({len(xyz)} landmarks)", zorder=1)
+    if result.truth_xyz is not None:
+        ax.plot(result.truth_xyz[:, 0], result.truth_xyz[:, 1], color=TRUTH_COLOR, label="ground truth",
+                zorder=2, **_STYLE)
+    ax.plot(result.odometry_xyz[:, 0], result.odometry_xyz[:, 1], color=ODOMETRY_COLOR,
+            label=labels["odometry"], zorder=3, **_STYLE)
+    ax.plot(result.estimate_xyz[:, 0], result.estimate_xyz[:, 1], color=ESTIMATE_COLOR,
+            label=labels["estimate"], zorder=4, **_STYLE)
+    start = result.estimate_xyz[0]
+    ax.plot(start[0], start[1], marker="o", color="black", markersize=6, linestyle="none", label="start", zorder=5)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(_trajectory_title(result, "top-down view"))
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize="small", framealpha=0.85)
+    return ax
+
+
+def plot_3d(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
+    """3D view of the same paths and map; ``ax`` must be a 3D axis (``projection="3d"``)."""
+    labels = _path_labels(result)
+    clouds = [result.estimate_xyz, result.odometry_xyz]
+    if show_map and len(result.map_landmark_xyz):
+        xyz = result.map_landmark_xyz
+        ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], s=6, marker="s", color=MAP_COLOR, depthshade=False,
+                   label=f"map ({len(xyz)} landmarks)")
+        clouds.append(xyz)
+    if result.truth_xyz is not None:
+        ax.plot(*result.truth_xyz.T, color=TRUTH_COLOR, label="ground truth", **_STYLE)
+        clouds.append(result.truth_xyz)
+    ax.plot(*result.odometry_xyz.T, color=ODOMETRY_COLOR, label=labels["odometry"], **_STYLE)
+    ax.plot(*result.estimate_xyz.T, color=ESTIMATE_COLOR, label=labels["estimate"], **_STYLE)
+    # Equal scale on all axes, so that heights are not exaggerated.
+    points = np.vstack(clouds)
+    ax.set_box_aspect(np.maximum(np.ptp(points, axis=0), 1e-3 * np.ptp(points, axis=0).max() + 1e-9))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title(_trajectory_title(result, "3D view"))
+    ax.legend(loc="upper left", fontsize="small", framealpha=0.85)
+    return ax
+
+
+def _finish_time_axis(ax: Axes, result: RunResult, ylabel: str, title: str) -> None:
+    ax.set_xlim(result.pose_ids[0] - 0.5, result.pose_ids[-1] + 0.5)
+    ax.set_xlabel("pose id")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.legend(loc="upper left", fontsize="small", framealpha=0.85)
+
+
+def _plain_log_scale(ax: Axes) -> None:
+    """Log y axis labelled 0.5, 1, 2, 5, 10 rather than 5x10^-1 ...; minor labels only over few decades."""
+    ax.set_yscale("log")
+    plain = FuncFormatter(lambda value, _: f"{value:g}")
+    ax.yaxis.set_major_formatter(plain)
+    low, high = ax.get_ylim()
+    if np.log10(high / low) <= 2.5:
+        leading = FuncFormatter(lambda value, _: f"{value:g}" if f"{value:.0e}"[0] in "25" else "")
+        ax.yaxis.set_minor_formatter(leading)
+    else:
+        ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def position_sigma_bound(result: RunResult, *, sigma: float = SIGMA) -> np.ndarray:
+    """(N,) ``sigma * sqrt(trace(P_position))`` in metres: the error norm's RMS scaled by sigma.
+
+    ``E|e|^2 = trace(P)``, so ``sqrt(trace)`` is the one-number size of a 3D position error that
+    the filter expects; per-axis bounds would need three panels for the same message.
+    """
+    return sigma * np.sqrt(np.trace(result.estimate_cov[:, 0:3, 0:3], axis1=1, axis2=2))
+
+
+def rotation_sigma_bound_deg(result: RunResult, *, sigma: float = SIGMA) -> np.ndarray:
+    """(N,) ``sigma * sqrt(trace(P_rotation))`` in degrees, as ``position_sigma_bound``."""
+    return np.degrees(sigma * np.sqrt(np.trace(result.estimate_cov[:, 3:6, 3:6], axis1=1, axis2=2)))
+
+
+def plot_position_error(ax: Axes, result: RunResult, *, sigma: float = SIGMA) -> Axes:
+    """Position error norm over time, EKF and odometry, with the EKF's ``sigma`` band (metres)."""
+    if result.truth_xyz is None:
+        return _no_truth(ax, "position error")
+    x = result.pose_ids
+    ax.fill_between(x, 0.0, position_sigma_bound(result, sigma=sigma), color=ESTIMATE_COLOR, alpha=0.15,
+                    linewidth=0, label=rf"EKF ${sigma:g}\sigma$ ($ {sigma:g}\sqrt{{\mathrm{{tr}}\,P_{{xyz}}}}$)")
+    ax.plot(x, metrics.position_errors(result.odometry_xyz, result.truth_xyz), color=ODOMETRY_COLOR,
+            label="odometry", **_STYLE)
+    ax.plot(x, metrics.position_errors(result.estimate_xyz, result.truth_xyz), color=ESTIMATE_COLOR,
+            label="EKF", **_STYLE)
+    ax.set_ylim(bottom=0.0)
+    _finish_time_axis(ax, result, "position error [m]", "position error against ground truth")
+    return ax
+
+
+def plot_rotation_error(ax: Axes, result: RunResult, *, sigma: float = SIGMA) -> Axes:
+    """Rotation error angle over time, EKF and odometry, with the EKF's ``sigma`` band (degrees)."""
+    if result.truth_xyz is None:
+        return _no_truth(ax, "rotation error")
+    x = result.pose_ids
+    ax.fill_between(x, 0.0, rotation_sigma_bound_deg(result, sigma=sigma), color=ESTIMATE_COLOR, alpha=0.15,
+                    linewidth=0, label=rf"EKF ${sigma:g}\sigma$ ($ {sigma:g}\sqrt{{\mathrm{{tr}}\,P_{{rot}}}}$)")
+    ax.plot(x, metrics.rotation_errors_deg(result.odometry_quat_xyzw, result.truth_quat_xyzw),
+            color=ODOMETRY_COLOR, label="odometry", **_STYLE)
+    ax.plot(x, metrics.rotation_errors_deg(result.estimate_quat_xyzw, result.truth_quat_xyzw),
+            color=ESTIMATE_COLOR, label="EKF", **_STYLE)
+    ax.set_ylim(bottom=0.0)
+    _finish_time_axis(ax, result, "rotation error [deg]", "rotation error against ground truth")
+    return ax
+
+
+def plot_nees(ax: Axes, result: RunResult) -> Axes:
+    """NEES per pose (6 dof, log scale) with its per-pose chi2 95% bounds and the mean's interval.
+
+    The given start pose is left out (``metrics.run_nees``).
+    """
+    if result.truth_xyz is None:
+        return _no_truth(ax, "NEES")
+    nees = metrics.run_nees(result)
+    summary = metrics.nees_summary(nees)
+    lower, upper = summary["bounds"]
+    x = result.pose_ids
+    ax.axhspan(lower, upper, color="0.5", alpha=0.12, linewidth=0,
+               label=f"per-pose 95% bounds [{lower:.2f}, {upper:.2f}]")
+    ax.axhline(metrics.POSE_DOF, color="0.3", linestyle=":", linewidth=1.0, label=f"expected ({metrics.POSE_DOF})")
+    ax.plot(x, nees, color=ESTIMATE_COLOR, marker=".", markersize=4, label="EKF NEES", **_STYLE)
+    if summary["mean"] is not None:
+        mean_lower, mean_upper = summary["mean_bounds"]
+        ax.axhline(summary["mean"], color=ESTIMATE_COLOR, linestyle="--", linewidth=1.2,
+                   label=f"mean {summary['mean']:.2f} (95% interval [{mean_lower:.2f}, {mean_upper:.2f}])")
+    _plain_log_scale(ax)
+    _finish_time_axis(ax, result, "NEES (6 dof)", f"pose NEES: {summary['verdict']}")
+    return ax
+
+
+def plot_nis(ax: Axes, result: RunResult) -> Axes:
+    """NIS per degree of freedom of each update (log scale) with its per-update chi2 95% bounds."""
+    x = result.update_pose_ids
+    if x.size == 0:
+        ax.text(0.5, 0.5, "no filter update in this run", ha="center", va="center", transform=ax.transAxes)
+        return ax
+    dof = result.nis_dof
+    lower, upper = metrics.chi2_bounds(dof)
+    summary = metrics.nis_summary(result.nis, dof)
+    ax.fill_between(x, lower / dof, upper / dof, step="mid", color="0.5", alpha=0.12, linewidth=0,
+                    label="per-update 95% bounds")
+    ax.axhline(1.0, color="0.3", linestyle=":", linewidth=1.0, label="expected (1)")
+    ax.plot(x, result.nis / dof, color=ESTIMATE_COLOR, marker=".", markersize=5, linestyle="none",
+            label="NIS / dof")
+    mean_lower, mean_upper = summary["mean_bounds"]
+    ax.axhline(summary["mean_per_dof"], color=ESTIMATE_COLOR, linestyle="--", linewidth=1.2,
+               label=f"mean {summary['mean_per_dof']:.2f} (95% interval [{mean_lower:.2f}, {mean_upper:.2f}])")
+    _plain_log_scale(ax)
+    _finish_time_axis(ax, result, "NIS / dof", f"innovation NIS per dof ({x.size} updates): {summary['verdict']}")
+    return ax
+
+
+def plot_associations(ax: Axes, result: RunResult) -> Axes:
+    """Per pose, stacked bars of correct, wrong and rejected associations (against the file's ids).
+
+    Wrong includes clutter that was accepted; rejected includes clutter rightly rejected.
+    """
+    outcomes = metrics.association_outcomes(result.associations, result.map_landmark_ids)
+    scores = metrics.association_scores(result.associations, result.map_landmark_ids)
+    index = np.searchsorted(result.pose_ids, result.associations.pose_id)
+    counts = {
+        name: np.bincount(index[outcomes[name]], minlength=len(result.pose_ids))
+        for name in ("correct", "wrong", "rejected")
+    }
+    labels = {
+        "correct": f"correct ({scores['correct']})",
+        "wrong": f"wrong ({scores['wrong']}, {scores['clutter_accepted']} of them clutter)",
+        "rejected": f"rejected ({scores['rejected']}, {scores['missed']} of them in the map)",
+    }
+    colors = {"correct": CORRECT_COLOR, "wrong": WRONG_COLOR, "rejected": REJECTED_COLOR}
+    bottom = np.zeros(len(result.pose_ids))
+    for name, color in colors.items():
+        ax.bar(result.pose_ids, counts[name], bottom=bottom, width=0.85, color=color, linewidth=0, label=labels[name])
+        bottom += counts[name]
+    # Head room for the legend above the tallest bar.
+    ax.set_ylim(0.0, max(float(bottom.max()), 1.0) * 1.3 + 0.3)
+    precision = "-" if scores["precision"] is None else f"{scores['precision']:.3f}"
+    recall = "-" if scores["recall"] is None else f"{scores['recall']:.3f}"
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    _finish_time_axis(ax, result, "observations", f"data association per pose: precision {precision}, recall {recall}")
+    ax.legend(loc="upper center", fontsize="small", framealpha=0.9, ncol=3)
+    return ax
+
+
+# --------------------------------------------------------------------------------------------
+# Figures: layouts on a figure the caller created
+
+
+def draw_topdown(fig: Figure, result: RunResult) -> Figure:
+    plot_topdown(fig.add_subplot(1, 1, 1), result)
+    return fig
+
+
+def draw_3d(fig: Figure, result: RunResult) -> Figure:
+    plot_3d(fig.add_subplot(1, 1, 1, projection="3d"), result)
+    return fig
+
+
+def draw_errors(fig: Figure, result: RunResult) -> Figure:
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    plot_position_error(top, result)
+    plot_rotation_error(bottom, result)
+    if result.truth_xyz is not None:
+        top.set_xlabel("")
+    fig.suptitle(f"{dataset_name(result)}: pose errors")
+    return fig
+
+
+def draw_consistency(fig: Figure, result: RunResult) -> Figure:
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    plot_nees(top, result)
+    plot_nis(bottom, result)
+    if result.truth_xyz is not None:
+        top.set_xlabel("")
+    fig.suptitle(f"{dataset_name(result)}: filter consistency")
+    return fig
+
+
+def draw_associations(fig: Figure, result: RunResult) -> Figure:
+    ax = plot_associations(fig.add_subplot(1, 1, 1), result)
+    ax.set_title(f"{dataset_name(result)}: {ax.get_title()}")
+    return fig
+
+
+def draw_report(fig: Figure, result: RunResult) -> Figure:
+    """Every plot on one figure: paths (top-down, 3D), errors, NEES and NIS, associations."""
+    grid = fig.add_gridspec(4, 2, height_ratios=[2.2, 1.0, 1.0, 1.0])
+    plot_topdown(fig.add_subplot(grid[0, 0]), result)
+    plot_3d(fig.add_subplot(grid[0, 1], projection="3d"), result)
+    plot_position_error(fig.add_subplot(grid[1, 0]), result)
+    plot_rotation_error(fig.add_subplot(grid[1, 1]), result)
+    plot_nees(fig.add_subplot(grid[2, 0]), result)
+    plot_nis(fig.add_subplot(grid[2, 1]), result)
+    plot_associations(fig.add_subplot(grid[3, :]), result)
+    return fig
+
+
+# name -> (figure size in inches, layout); file names are ``fig-<name>.<format>``.
+FIGURES: dict[str, tuple[tuple[float, float], Callable[[Figure, RunResult], Figure]]] = {
+    "topdown": ((8.0, 7.0), draw_topdown),
+    "3d": ((8.0, 7.0), draw_3d),
+    "errors": ((10.0, 7.0), draw_errors),
+    "consistency": ((10.0, 7.0), draw_consistency),
+    "associations": ((12.0, 4.0), draw_associations),
+}
+REPORT_SIZE = (15.0, 19.0)

@@ -1,0 +1,164 @@
+"""Rich rendering of ``camloc eval`` reports (the dicts of ``camloc.metrics``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+from rich.console import Group, RenderableType
+from rich.markup import escape
+from rich.table import Table
+from rich.text import Text
+
+_VERDICT_STYLE = {"consistent": "bold green", "overconfident": "bold red", "underconfident": "bold yellow"}
+
+# (label, path inside a trajectory block, format)
+_TRAJECTORY_ROWS = (
+    ("ATE rmse [m]", ("ate", "rmse"), ".4f"),
+    ("ATE mean [m]", ("ate", "mean"), ".4f"),
+    ("ATE median [m]", ("ate", "median"), ".4f"),
+    ("ATE std [m]", ("ate", "std"), ".4f"),
+    ("ATE max [m]", ("ate", "max"), ".4f"),
+    ("rotation rmse [deg]", ("rotation", "rmse_deg"), ".3f"),
+    ("rotation mean [deg]", ("rotation", "mean_deg"), ".3f"),
+    ("rotation max [deg]", ("rotation", "max_deg"), ".3f"),
+    ("RPE translation rmse [m]", ("rpe", "translation", "rmse"), ".4f"),
+    ("RPE translation max [m]", ("rpe", "translation", "max"), ".4f"),
+    ("RPE rotation rmse [deg]", ("rpe", "rotation", "rmse_deg"), ".3f"),
+    ("RPE rotation max [deg]", ("rpe", "rotation", "max_deg"), ".3f"),
+)
+
+
+def _get(tree: Any, *keys: str) -> Any:
+    for key in keys:
+        if not isinstance(tree, Mapping) or key not in tree:
+            return None
+        tree = tree[key]
+    return tree
+
+
+def _fmt(value: Optional[float], spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def _share(value: Optional[float]) -> str:
+    return "-" if value is None else f"{value:.0%}"
+
+
+def _interval(bounds: Optional[list]) -> str:
+    return "-" if bounds is None else f"[{bounds[0]:.3f}, {bounds[1]:.3f}]"
+
+
+def _trajectory_table(blocks: Mapping[str, Mapping], title: str) -> Table:
+    """Rows of trajectory metrics, one column per block (e.g. EKF, odometry), plus their ratio."""
+    table = Table(title=title, title_justify="left", min_width=len(title))
+    table.add_column("metric")
+    for name in blocks:
+        table.add_column(name, justify="right")
+    with_ratio = len(blocks) == 2
+    if with_ratio:
+        names = list(blocks)
+        table.add_column(f"{names[1]} / {names[0]}", justify="right", style="bold")
+    for label, keys, spec in _TRAJECTORY_ROWS:
+        values = [_get(block, *keys) for block in blocks.values()]
+        cells = [_fmt(value, spec) for value in values]
+        if with_ratio:
+            first, second = values
+            cells.append(f"{second / first:.2f}x" if first and second is not None else "-")
+        table.add_row(escape(label), *cells)
+    return table
+
+
+def _alignment_table(blocks: Mapping[str, Mapping]) -> Table:
+    table = Table(title="alignment onto the reference (p -> s R p + t)", title_justify="left")
+    for column in ("path", "method", "R angle [deg]", "t [m]", "s"):
+        table.add_column(escape(column), justify="left" if column in ("path", "method") else "right")
+    for name, block in blocks.items():
+        alignment = block["alignment"]
+        t = ", ".join(f"{value:.4f}" for value in alignment["translation"])
+        table.add_row(name, alignment["method"], f"{alignment['rotation_angle_deg']:.4f}", f"({t})",
+                      f"{alignment['scale']:.6f}")
+    return table
+
+
+def _association_table(scores: Mapping[str, Any]) -> Table:
+    table = Table(title="data association (against the file's landmark ids)", title_justify="left")
+    table.add_column("outcome")
+    table.add_column("count", justify="right")
+    table.add_column("of which", justify="left")
+    table.add_row("observations", str(scores["observations"]),
+                  f"{scores['in_map']} of a map landmark, {scores['clutter']} clutter")
+    table.add_row("correct", str(scores["correct"]), "")
+    table.add_row("wrong", str(scores["wrong"]), f"{scores['clutter_accepted']} clutter accepted")
+    table.add_row("rejected", str(scores["rejected"]), f"{scores['missed']} missed (landmark in the map)")
+    table.add_row("precision", _fmt(scores["precision"], ".3f"), "correct / associated")
+    table.add_row("recall", _fmt(scores["recall"], ".3f"), "correct / observations of map landmarks")
+    table.add_row("F1", _fmt(scores["f1"], ".3f"), "")
+    return table
+
+
+def _consistency_table(nees: Optional[Mapping[str, Any]], nis: Mapping[str, Any]) -> Table:
+    table = Table(title="consistency (95% chi-square bounds)", title_justify="left")
+    for column in ("test", "count", "mean", "interval of mean", "in bounds", "verdict"):
+        table.add_column(column, justify="left" if column in ("test", "verdict") else "right")
+    if nees is not None:
+        table.add_row(
+            f"NEES, {nees['dof']} dof",
+            f"{nees['poses']} poses",
+            _fmt(nees["mean"], ".3f"),
+            _interval(nees["mean_bounds"]),
+            _share(nees["within_bounds_share"]),
+            Text(nees["verdict"], style=_VERDICT_STYLE.get(nees["verdict"], "")),
+        )
+    table.add_row(
+        "NIS per dof",
+        f"{nis['updates']} updates",
+        _fmt(nis["mean_per_dof"], ".3f"),
+        _interval(nis["mean_bounds"]),
+        _share(nis["within_bounds_share"]),
+        Text(nis["verdict"], style=_VERDICT_STYLE.get(nis["verdict"], "")),
+    )
+    return table
+
+
+def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
+    """Tables of ``camloc.metrics.evaluate``: trajectories side by side, alignment (when used),
+    association, consistency, then the NEES verdict line and any notes."""
+    parts: list[RenderableType] = [
+        Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['poses']} poses)", style="bold")
+    ]
+    if "estimate" in report:
+        blocks = {"EKF": report["estimate"], "odometry": report["odometry"]}
+        parts.append(_trajectory_table(
+            blocks, f"trajectory error vs ground truth (align {report['align']}, RPE delta {report['delta']})"
+        ))
+        if report["align"] != "none":
+            parts.append(_alignment_table(blocks))
+    parts.append(_association_table(report["association"]))
+    parts.append(_consistency_table(report.get("nees"), report["nis"]))
+    if "nees" in report:
+        if report["nees"]["skipped_poses"]:
+            parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "
+                              "and any whose covariance is singular", style="dim"))
+        verdict = report["nees"]["verdict"]
+        parts.append(Text(f"verdict: {report['nees']['verdict_line']}", style=_VERDICT_STYLE.get(verdict, "")))
+    for note in report.get("notes", []):
+        parts.append(Text(f"note: {note}", style="yellow"))
+    return Group(*parts)
+
+
+def render_trajectory_comparison(report: Mapping[str, Any]) -> RenderableType:
+    """Tables of ``camloc.metrics.compare_trajectories`` for ``camloc eval --est --ref``."""
+    header = Text(
+        f"camloc eval: {report['estimate_file']} against {report['reference_file']}: {report['matched']} "
+        f"poses matched of {report['estimate_poses']} and {report['reference_poses']}",
+        style="bold",
+    )
+    parts: list[RenderableType] = [header]
+    blocks = {"estimate": report}
+    parts.append(_trajectory_table(
+        blocks, f"trajectory error (align {report['alignment']['method']}, RPE delta {report['rpe']['delta']})"
+    ))
+    if report["alignment"]["method"] != "none":
+        parts.append(_alignment_table(blocks))
+    return Group(*parts)

@@ -1,0 +1,81 @@
+"""``camloc plot``: draw the figures of a run folder."""
+
+from __future__ import annotations
+
+import io
+from enum import Enum
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from camloc.cli.common import console, handles_errors
+from camloc.errors import ConfigError
+
+FIGURE_FORMATS = ("png", "pdf", "svg")
+
+
+class FigureFormat(str, Enum):
+    png = "png"
+    pdf = "pdf"
+    svg = "svg"
+
+
+@handles_errors
+def plot(
+    run_dir: Path = typer.Argument(..., help="Run folder written by 'camloc run'.", show_default=False),
+    *,
+    output: Optional[Path] = typer.Option(
+        None, "--output", "-o", help="Write one multi-panel report figure to this file instead "
+        "(.png, .pdf or .svg, by its suffix). Default: separate figures in the run folder.", show_default=False
+    ),
+    figure_format: FigureFormat = typer.Option(
+        FigureFormat.png, "--format", help="File format of the separate figures in the run folder "
+        "(ignored with --output). Default: png.", show_default=False
+    ),
+    dpi: int = typer.Option(150, min=50, max=1200, help="Resolution of raster (.png) figures, dots per inch. "
+                            "Default: 150.", show_default=False),
+    show: bool = typer.Option(False, "--show", help="Also open the figures in a window (needs a display). "
+                              "Default: headless, files only.", show_default=False),
+) -> None:
+    """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
+
+    By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder; with --output a single report figure holding every panel. Each file is written whole or not at all.
+    """
+    from camloc.results import load_run, write_bytes_atomic
+
+    if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
+        raise ConfigError(
+            f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
+        )
+    result = load_run(run_dir)
+
+    import matplotlib
+
+    if not show:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from camloc import plotting
+
+    if output is not None:
+        jobs = [(output, plotting.REPORT_SIZE, plotting.draw_report)]
+    else:
+        jobs = [
+            (run_dir / f"fig-{name}.{figure_format.value}", size, draw)
+            for name, (size, draw) in plotting.FIGURES.items()
+        ]
+    written = []
+    for path, size, draw in jobs:
+        fig = plt.figure(figsize=size, layout="constrained")
+        draw(fig, result)
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format=path.suffix.lower().lstrip("."), dpi=dpi)
+        write_bytes_atomic(path, buffer.getvalue())
+        written.append(path)
+        if not show:
+            plt.close(fig)
+    for path in written:
+        console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+    if show:
+        plt.show()
