@@ -1,0 +1,183 @@
+"""``camloc eval`` and ``camloc plot`` end to end through the typer app (CliRunner)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from camloc import metrics
+from camloc.cli.app import app
+from camloc.results import load_run, save_run
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+GRID_SMALL = REPO_ROOT / "data" / "grid-small.g2o"
+FIGURES = ("fig-topdown", "fig-3d", "fig-errors", "fig-consistency", "fig-associations")
+MAGIC = {"png": b"\x89PNG", "pdf": b"%PDF", "svg": b"<?xml"}
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def assert_bad_input(outcome, fragment: str) -> None:
+    """Exit status 2, one error line naming the problem, no traceback."""
+    assert outcome.exit_code == 2, outcome.output
+    assert isinstance(outcome.exception, SystemExit)
+    assert fragment in outcome.stderr
+    assert "Traceback" not in outcome.output
+
+
+@pytest.fixture
+def run_dir(tmp_path, synthetic_run) -> Path:
+    return save_run(tmp_path / "run", synthetic_run(seed=4, num_poses=30))
+
+
+# --------------------------------------------------------------------------------------------
+# eval
+
+
+def test_eval_prints_tables_with_both_paths_and_the_verdict(run_dir):
+    outcome = invoke("eval", run_dir)
+    assert outcome.exit_code == 0, outcome.output
+    report = metrics.evaluate(load_run(run_dir))
+    for text in ("ATE rmse [m]", "EKF", "odometry", "precision", "NEES, 6 dof", "verdict:",
+                 f"{report['estimate']['ate']['rmse']:.4f}", f"{report['odometry']['ate']['rmse']:.4f}",
+                 f"{report['association']['precision']:.3f}", report["nees"]["verdict"]):
+        assert text in outcome.stdout, text
+
+
+def test_eval_json_is_the_library_report(run_dir):
+    outcome = invoke("eval", run_dir, "--json", "--align", "sim3", "--delta", "2")
+    assert outcome.exit_code == 0, outcome.output
+    printed = json.loads(outcome.stdout)
+    expected = json.loads(json.dumps(metrics.evaluate(load_run(run_dir), align="sim3", delta=2)))
+    assert printed == expected
+    assert printed["estimate"]["alignment"]["method"] == "sim3"
+    assert printed["estimate"]["rpe"]["delta"] == 2
+    assert printed["estimate"]["rpe"]["pairs"] == 14  # pairs (0,2), (2,4), ..., (26,28)
+
+
+def test_eval_prints_the_alignment(run_dir):
+    outcome = invoke("eval", run_dir, "--align", "se3")
+    assert outcome.exit_code == 0, outcome.output
+    assert "alignment onto the reference" in outcome.stdout and "se3" in outcome.stdout
+
+
+def test_eval_without_truth_notes_it(tmp_path, synthetic_run):
+    run = save_run(tmp_path / "run", synthetic_run(with_truth=False))
+    outcome = invoke("eval", run, "--json")
+    assert outcome.exit_code == 0, outcome.output
+    report = json.loads(outcome.stdout)
+    assert "estimate" not in report and "no ground truth" in report["notes"][0]
+    assert "no ground truth" in invoke("eval", run).stdout
+
+
+def test_eval_of_two_tum_files(run_dir):
+    outcome = invoke("eval", "--est", run_dir / "estimate.tum", "--ref", run_dir / "groundtruth.tum", "--json")
+    assert outcome.exit_code == 0, outcome.output
+    report = json.loads(outcome.stdout)
+    expected = metrics.evaluate(load_run(run_dir))["estimate"]
+    assert report["matched"] == 30
+    assert report["ate"]["rmse"] == pytest.approx(expected["ate"]["rmse"], abs=1e-12)
+    assert report["rpe"]["rotation"]["rmse_deg"] == pytest.approx(expected["rpe"]["rotation"]["rmse_deg"], abs=1e-9)
+    assert "nees" not in report and "association" not in report
+    tables = invoke("eval", "--est", run_dir / "estimate.tum", "--ref", run_dir / "groundtruth.tum", "--align", "sim3")
+    assert tables.exit_code == 0 and "30 poses matched" in tables.stdout and "sim3" in tables.stdout
+
+
+def test_eval_bad_inputs_exit_2_with_one_line(tmp_path, run_dir):
+    assert_bad_input(invoke("eval", tmp_path / "nothing"), "no such directory")
+    assert_bad_input(invoke("eval", tmp_path), "missing states.npz")
+    assert_bad_input(invoke("eval"), "expected RUN_DIR, or --est")
+    assert_bad_input(invoke("eval", run_dir, "--est", run_dir / "estimate.tum"), "found both")
+    assert_bad_input(invoke("eval", "--est", run_dir / "estimate.tum"), "together with --ref")
+    assert_bad_input(invoke("eval", run_dir, "--delta", "0"), "--delta")
+    assert_bad_input(invoke("eval", run_dir, "--delta", "30"), "RPE delta must be between 1 and")
+    assert_bad_input(invoke("eval", run_dir, "--align", "affine"), "--align")
+
+    bad = tmp_path / "bad.tum"
+    bad.write_text("# t x y z qx qy qz qw\n1000 0 0 0 0 0 0 1\n1001 0 0 0 0 0 1\n")
+    outcome = invoke("eval", "--est", bad, "--ref", run_dir / "groundtruth.tum")
+    assert_bad_input(outcome, f"{bad}:3: expected 8 fields")
+    assert len(outcome.stderr.strip().splitlines()) == 1
+
+    far = tmp_path / "far.tum"
+    far.write_text("5 0 0 0 0 0 0 1\n6 1 0 0 0 0 0 1\n")
+    assert_bad_input(invoke("eval", "--est", far, "--ref", run_dir / "groundtruth.tum"), "no matching timestamps")
+
+
+# --------------------------------------------------------------------------------------------
+# plot
+
+
+def test_plot_writes_each_figure_into_the_run_folder(run_dir):
+    outcome = invoke("plot", run_dir)
+    assert outcome.exit_code == 0, outcome.output
+    for name in FIGURES:
+        path = run_dir / f"{name}.png"
+        assert path.stat().st_size > 10_000, name
+        assert path.read_bytes()[:4] == MAGIC["png"]
+        assert str(path) in outcome.stdout
+    assert not [p for p in run_dir.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("suffix", ["pdf", "svg", "png"])
+def test_plot_output_writes_one_report_figure(tmp_path, run_dir, suffix):
+    target = tmp_path / f"report.{suffix}"
+    outcome = invoke("plot", run_dir, "-o", target)
+    assert outcome.exit_code == 0, outcome.output
+    assert target.read_bytes()[: len(MAGIC[suffix])] == MAGIC[suffix]
+    assert not list(run_dir.glob("fig-*"))
+
+
+def test_plot_format_option(run_dir):
+    outcome = invoke("plot", run_dir, "--format", "svg")
+    assert outcome.exit_code == 0, outcome.output
+    assert sorted(p.stem for p in run_dir.glob("fig-*.svg")) == sorted(FIGURES)
+
+
+def test_plot_without_truth_still_draws(tmp_path, synthetic_run):
+    run = save_run(tmp_path / "run", synthetic_run(with_truth=False))
+    outcome = invoke("plot", run)
+    assert outcome.exit_code == 0, outcome.output
+    assert all((run / f"{name}.png").stat().st_size > 0 for name in FIGURES)
+
+
+def test_plot_bad_inputs_exit_2(tmp_path, run_dir):
+    assert_bad_input(invoke("plot", tmp_path / "nothing"), "no such directory")
+    assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "report.jpg"), "expected a file name ending in .png")
+    assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "missing" / "report.png"), "cannot write")
+
+
+# --------------------------------------------------------------------------------------------
+# The real localizer, end to end
+
+
+def test_localizer_run_evaluates_and_plots(tmp_path):
+    if not GRID_SMALL.is_file():
+        pytest.skip("data/grid-small.g2o is not generated yet")
+    import camloc
+
+    dataset = camloc.load(GRID_SMALL)
+    result = camloc.localize(dataset)
+    run = save_run(tmp_path / "grid-small", result)
+
+    report = json.loads(invoke("eval", run, "--json").stdout)
+    # Landmarks against odometry alone: the filter must beat dead reckoning by a wide margin.
+    assert report["estimate"]["ate"]["rmse"] < 0.5 * report["odometry"]["ate"]["rmse"]
+    assert report["association"]["observations"] == dataset.num_observations
+    assert report["association"]["precision"] > 0.9
+    assert report["nees"]["poses"] == dataset.num_poses - 1
+    assert report["nis"]["updates"] == len(result.nis) > 0
+
+    outcome = invoke("plot", run)
+    assert outcome.exit_code == 0, outcome.output
+    for name in FIGURES:
+        assert (run / f"{name}.png").stat().st_size > 10_000, name
+    assert invoke("plot", run, "-o", tmp_path / "report.pdf").exit_code == 0
+    assert (tmp_path / "report.pdf").read_bytes()[:4] == MAGIC["pdf"]
+    np.testing.assert_array_equal(load_run(run).estimate_xyz, result.estimate_xyz)
