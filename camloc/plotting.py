@@ -112,10 +112,12 @@ def plot_3d(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
     ax.plot(*result.estimate_xyz.T, color=ESTIMATE_COLOR, label=labels["estimate"], **_STYLE)
     # Equal scale on all axes, so that heights are not exaggerated.
     points = np.vstack(clouds)
-    ax.set_box_aspect(np.maximum(np.ptp(points, axis=0), 1e-3 * np.ptp(points, axis=0).max() + 1e-9))
+    # zoom < 1 leaves room for the z label, which constrained layout does not reserve for 3D axes.
+    ax.set_box_aspect(np.maximum(np.ptp(points, axis=0), 1e-3 * np.ptp(points, axis=0).max() + 1e-9), zoom=0.82)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
+    ax.zaxis.set_major_locator(MaxNLocator(nbins=3))  # a flat box has little room for z labels
     ax.set_title(_trajectory_title(result, "3D view"))
     ax.legend(loc="upper left", fontsize="small", framealpha=0.85)
     return ax

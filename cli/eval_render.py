@@ -98,13 +98,13 @@ def _association_table(scores: Mapping[str, Any]) -> Table:
 
 
 def _consistency_table(nees: Optional[Mapping[str, Any]], nis: Mapping[str, Any]) -> Table:
-    table = Table(title="consistency (95% chi-square bounds)", title_justify="left")
-    for column in ("test", "count", "mean", "interval of mean", "in bounds", "verdict"):
-        table.add_column(column, justify="left" if column in ("test", "verdict") else "right")
+    table = Table(title="consistency (95% chi-square bounds; n: poses / updates)", title_justify="left")
+    for column in ("test", "n", "mean", "interval of mean", "in bounds", "verdict"):
+        table.add_column(column, justify="left" if column in ("test", "verdict") else "right", no_wrap=True)
     if nees is not None:
         table.add_row(
             f"NEES, {nees['dof']} dof",
-            f"{nees['poses']} poses",
+            str(nees["poses"]),
             _fmt(nees["mean"], ".3f"),
             _interval(nees["mean_bounds"]),
             _share(nees["within_bounds_share"]),
@@ -112,7 +112,7 @@ def _consistency_table(nees: Optional[Mapping[str, Any]], nis: Mapping[str, Any]
         )
     table.add_row(
         "NIS per dof",
-        f"{nis['updates']} updates",
+        str(nis["updates"]),
         _fmt(nis["mean_per_dof"], ".3f"),
         _interval(nis["mean_bounds"]),
         _share(nis["within_bounds_share"]),
