@@ -110,3 +110,24 @@ def _runner_up(cost: np.ndarray, *, axis: int) -> np.ndarray:
     if cost.shape[axis] < 2:
         return np.full(cost.shape[1 - axis], np.inf)
     return np.partition(cost, 1, axis=axis).take(1, axis=axis)
+
+
+def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """Cost (K,) of explaining each observation as clutter rather than as a landmark.
+
+    Clutter is taken as uniform over the box the camera's measurements span, of volume V, so in
+    the units of a pair's cost ``d^2 + ln det S - ln det R`` (twice the negative log-likelihood,
+    less ``ln det 2 pi R``) an unassigned observation costs ``2 ln V - ln det(2 pi R)``.
+
+    Parameters
+    ----------
+    uvd : (K, 3) measurements; cov : (K, 3, 3) their covariances; camera : (K,) camera ids.
+    """
+    cost = np.zeros(uvd.shape[0])
+    for camera_id in np.unique(camera):
+        mine = camera == camera_id
+        span = np.ptp(uvd[mine], axis=0)
+        sigma = np.sqrt(np.median(np.diagonal(cov[mine], axis1=1, axis2=2), axis=0))
+        log_volume = np.log(np.maximum(span, 6.0 * sigma)).sum()  # a few sigmas at least
+        cost[mine] = 2.0 * log_volume - np.linalg.slogdet(2.0 * np.pi * cov[mine])[1]
+    return cost

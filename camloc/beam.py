@@ -1,31 +1,41 @@
 """Beam search over association hypotheses: the association that does not lock onto a wrong
 alignment when the filter's uncertainty is larger than the spacing of landmarks.
 
-A hypothesis is a filter (x, P) plus the assignments that produced it and their cost, the
-negative log-likelihood (times two) of everything it has explained. At each pose every hypothesis
-is predicted with the odometry, then the pose's observations are explained one at a time: each
-observation either stays unassigned (a fixed ``null_cost``) or pairs with a landmark whose
-prediction gates it, and the hypothesis is conditioned on that pair before the next observation
-is looked at. Explaining observations one by one with conditioning sums, by the chain rule,
-to the joint likelihood of the stacked innovation:
+A hypothesis is a filter (x, P) plus the assignments that produced it and their cost, twice the
+negative log-likelihood of everything it has explained. At each pose every hypothesis is
+predicted with the odometry; then each of the pose's observations either stays unassigned (a
+fixed ``null_cost``, what a clutter detection costs) or pairs with a landmark whose prediction
+gates it. Explaining observations one at a time, conditioning on each pair before looking at the
+next, sums by the chain rule to the joint likelihood of the stacked innovation:
 
     cost += d^2 + ln det S - ln det R        for a pair (d^2 = y' S^-1 y)
     cost += null_cost                        for an unassigned observation
 
-``ln det S - ln det R`` charges a pair for the uncertainty of its prediction, so that a vague
-hypothesis does not win by gating everything. After every observation the children are pruned to
-the ``beam_width`` cheapest within ``beam_delta`` of the best; hypotheses whose states coincide
-are merged. Where the data are unambiguous the beam collapses to one hypothesis and costs little
-more than a single filter.
+``ln det S - ln det R`` charges a pair for the spread of its prediction, so that a vague
+hypothesis does not win by gating everything.
 
-The beam returns only the association of the best final hypothesis; the localizer then runs its
+Keeping it fast (most poses are not ambiguous):
+- a hypothesis branches on an observation only into the options within ``branch_delta`` of that
+  observation's best option; when every observation of a pose has a single such option and no
+  landmark is claimed twice, the hypothesis takes them all in one stacked update (the same cost,
+  computed jointly) instead of one by one;
+- after each pose the beam keeps the ``beam_width`` cheapest hypotheses within ``beam_delta`` of
+  the best, and merges hypotheses whose states coincide (within ``merge_sigma`` standard
+  deviations on every axis), so in unambiguous stretches it collapses to one filter.
+
+Robustness to odometry slips: when the best hypothesis leaves most of a pose's observations
+unassigned (at least three observations, more than half of them), the pose is explained again from
+that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
+``slip_cost``; if the odometry really slipped, that hypothesis explains the observations and wins.
+
+The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
 NIS are computed exactly as for any other association method.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
@@ -33,48 +43,77 @@ import numpy as np
 from camloc import association, ekf, geometry, models
 
 
+@dataclass(frozen=True)
+class BeamSettings:
+    """Parameters of the beam (costs are 2 x negative log-likelihoods).
+
+    beam_width : hypotheses kept after each pose.
+    beam_delta : drop hypotheses this much costlier than the best.
+    branch_delta : options of an observation this much costlier than its best are not explored.
+    null_cost : cost of leaving an observation unassigned; None: per observation, from the data
+        (``association.clutter_null_cost``: clutter uniform over the measured volume).
+    gate : chi^2 gate on a pair's d^2.
+    merge_sigma : hypotheses whose states differ by less than this many standard deviations on
+        every axis are merged (the cheaper kept).
+    slip_inflation, slip_cost : covariance factor and cost of the odometry-slip hypothesis.
+    """
+
+    beam_width: int = 16
+    beam_delta: float = 20.0
+    branch_delta: float = 10.0
+    null_cost: Optional[float] = None
+    gate: float = 11.34
+    merge_sigma: float = 0.3
+    slip_inflation: float = 25.0
+    slip_cost: float = 10.0
+
+
 @dataclass
 class _Hypothesis:
     x: np.ndarray
     P: np.ndarray
     cost: float
-    parent: int                                   # index of the hypothesis it grew from, previous pose
-    pairs: list[tuple[int, int]] = field(default_factory=list)   # (observation, landmark index)
+    parent: int                       # index of the hypothesis it grew from, at the previous pose
+    pairs: tuple = ()                 # ((observation, landmark index), ...) at this pose
+    unassigned: int = 0
 
 
-@dataclass(frozen=True)
-class BeamSettings:
-    """beam_width: hypotheses kept; beam_delta: drop hypotheses this much costlier than the best
-    (2 x log-likelihood ratio); null_cost: cost of leaving an observation unassigned; gate: chi^2
-    gate on a pair's d^2; merge_distance: hypotheses whose states differ by less than this
-    Mahalanobis distance are merged."""
+@dataclass
+class _Options:
+    """What one observation may be under one hypothesis: gated landmarks with their pair costs."""
 
-    beam_width: int
-    beam_delta: float
-    null_cost: float
-    gate: float
-    merge_distance: float = 0.05
+    landmarks: np.ndarray   # (g,) landmark indices
+    costs: np.ndarray       # (g,) d^2 + ln det S - ln det R
+    z_hat: np.ndarray       # (g, 3)
+    H: np.ndarray           # (g, 3, 6)
 
 
 class BeamSearch:
-    """Runs the beam over a whole dataset; ``pairs_of_pose(k)`` exposes the chosen association."""
+    """Runs the beam over a whole dataset.
+
+    ``context`` provides: dataset, cameras (id -> T_robot_camera, intrinsics), tree, min_depth,
+    max_depth, max_angle, obs_of_pose, T_increments (the localizer).
+    """
 
     def __init__(self, context, settings: BeamSettings):
-        # context: the localizer (dataset, cameras, tree, candidate range, obs_of_pose, increments)
         self.ctx = context
         self.settings = settings
+        ds = context.dataset
+        self.log_det_R = np.linalg.slogdet(ds.obs_cov)[1] if ds.num_observations else np.zeros(0)
+        if settings.null_cost is None:
+            self.null_cost = association.clutter_null_cost(ds.obs_uvd, ds.obs_cov, ds.obs_camera)
+        else:
+            self.null_cost = np.full(ds.num_observations, float(settings.null_cost))
         self.history: list[list[_Hypothesis]] = []
+        self.slips: list[int] = []
 
-    def run(self, x0: np.ndarray, P0: np.ndarray, on_pose: Optional[Callable[[int], None]] = None) -> list[np.ndarray]:
-        """Process every pose; returns, per pose, the (p, 2) array of chosen (obs, landmark)."""
+    def run(self, x0: np.ndarray, P0: np.ndarray, *, on_pose: Optional[Callable[[int], None]] = None) -> list[np.ndarray]:
+        """Process every pose; returns, per pose, a (p, 2) int array of chosen (obs, landmark)."""
         beam = [_Hypothesis(x0, P0, 0.0, -1)]
-        n = self.ctx.dataset.num_poses
-        for k in range(n):
+        for k in range(self.ctx.dataset.num_poses):
             if k > 0:
                 beam = [self._predicted(h, k - 1, parent) for parent, h in enumerate(beam)]
-            else:
-                beam[0].parent = -1
-            beam = self._explain_pose(beam, self.ctx.obs_of_pose[k])
+            beam = self._explain_pose(k, beam, self.ctx.obs_of_pose[k])
             self.history.append(beam)
             if on_pose is not None:
                 on_pose(k)
@@ -85,101 +124,140 @@ class BeamSearch:
         P = ekf.predict(h.P, F, G, self.ctx.dataset.odom_cov[edge])  # P = F P F' + G Q G'
         return _Hypothesis(x, P, h.cost, parent)
 
-    def _explain_pose(self, beam: list[_Hypothesis], obs: np.ndarray) -> list[_Hypothesis]:
+    def _explain_pose(self, k: int, beam: list[_Hypothesis], obs: np.ndarray) -> list[_Hypothesis]:
         if obs.size == 0 or self.ctx.tree is None:
             return beam
-        candidates = [self._candidates(h, obs) for h in beam]
-        roots = list(range(len(beam)))
-        for o in self._order(obs, beam[0], candidates[0]):
-            children, child_roots = [], []
-            for h, root in zip(beam, roots):
-                for child in self._branches(h, int(o), candidates[root]):
-                    children.append(child)
-                    child_roots.append(root)
-            beam, roots = self._prune(children, child_roots)
-        return beam
+        children = [child for h in beam for child in self._explain(h, obs)]
+        best = min(children, key=lambda c: c.cost)
+        if obs.size >= 3 and 2 * best.unassigned > obs.size:
+            self.slips.append(k)
+            origin = beam[0]
+            slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
+                                  origin.cost + self.settings.slip_cost, origin.parent)
+            children += self._explain(slipped, obs)
+        return self._prune(children)
 
-    def _candidates(self, h: _Hypothesis, obs: np.ndarray) -> dict[int, np.ndarray]:
-        """Candidate landmark indices per camera at the hypothesis' predicted pose."""
+    def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
+        """Children of h that explain all of obs, pruned to the beam."""
+        options = self._options(h, obs)
+        single = self._single_choice(obs, options)
+        if single is not None:
+            return [self._stacked_child(h, obs, options, single)]
+        partial = [h]
+        for i in np.argsort([o.landmarks.size for o in options], kind="stable"):
+            grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is h.x else None)]
+            partial = self._prune(grown)
+        return partial
+
+    def _options(self, h: _Hypothesis, obs: np.ndarray) -> list[_Options]:
+        """Gated landmarks of every observation under h, computed in one batch per camera."""
+        ds = self.ctx.dataset
+        out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
         T_world_robot = geometry.pose_from_euler(h.x)
-        out = {}
-        for camera_id in np.unique(self.ctx.dataset.obs_camera[obs]):
+        cameras = ds.obs_camera[obs]
+        for camera_id in np.unique(cameras):
+            rows = np.flatnonzero(cameras == camera_id)
             camera = self.ctx.cameras[int(camera_id)]
-            out[int(camera_id)] = association.candidate_indices(
-                self.ctx.tree, self.ctx.dataset.landmark_xyz, T_world_robot @ camera.T_robot_camera,
+            candidates = association.candidate_indices(
+                self.ctx.tree, ds.landmark_xyz, T_world_robot @ camera.T_robot_camera,
                 min_depth=self.ctx.min_depth, max_depth=self.ctx.max_depth, max_angle_rad=self.ctx.max_angle,
             )
-        return out
-
-    def _order(self, obs: np.ndarray, h: _Hypothesis, candidates: dict[int, np.ndarray]) -> np.ndarray:
-        """Least ambiguous observations first: conditioning on them sharpens the others."""
-        counts = np.array([self._gated(h, int(o), candidates)[0].size for o in obs])
-        return obs[np.argsort(counts, kind="stable")]
-
-    def _gated(self, h: _Hypothesis, o: int, candidates: dict[int, np.ndarray]):
-        """Candidates gating observation o under h: (landmarks, d2, ln det S, z_hat, H)."""
-        ds = self.ctx.dataset
-        camera_id = int(ds.obs_camera[o])
-        cands = candidates.get(camera_id, np.zeros(0, np.int64))
-        if h.pairs:
-            cands = cands[~np.isin(cands, [lm for _, lm in h.pairs])]
-        if cands.size == 0:
-            return cands, np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6))
-        camera = self.ctx.cameras[camera_id]
-        z_hat, H = models.observe(h.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[cands])
-        S = H @ h.P @ np.swapaxes(H, 1, 2) + ds.obs_cov[o]
-        y = ds.obs_uvd[o] - z_hat
-        L = np.linalg.cholesky(S)
-        w = np.linalg.solve(L, y[..., None])[..., 0]
-        d2 = np.einsum("ni,ni->n", w, w)
-        log_det = 2.0 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
-        keep = d2 <= self.settings.gate
-        return cands[keep], d2[keep], log_det[keep], z_hat[keep], H[keep]
-
-    def _branches(self, h: _Hypothesis, o: int, candidates: dict[int, np.ndarray]) -> list[_Hypothesis]:
-        ds = self.ctx.dataset
-        landmarks, d2, log_det, z_hat, H = self._gated(h, o, candidates)
-        log_det_R = float(np.linalg.slogdet(ds.obs_cov[o])[1])
-        out = [_Hypothesis(h.x, h.P, h.cost + self.settings.null_cost, h.parent, h.pairs)]
-        for j in range(landmarks.size):
-            cost = h.cost + float(d2[j] + log_det[j] - log_det_R)
-            if cost > h.cost + self.settings.null_cost + self.settings.beam_delta:
+            if candidates.size == 0:
+                for r in rows:
+                    out[r] = _empty_options()
                 continue
-            K, _, _ = ekf.kalman_gain(h.P, H[j], ds.obs_cov[o])
-            x = h.x + K @ (ds.obs_uvd[o] - z_hat[j])  # x+ = x + K y
-            P = ekf.joseph_update(h.P, K, H[j], ds.obs_cov[o])
-            out.append(_Hypothesis(_wrap(x), P, cost, h.parent, h.pairs + [(o, int(landmarks[j]))]))
+            z_hat, H = models.observe(h.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[candidates])
+            HPH = H @ h.P @ np.swapaxes(H, 1, 2)
+            o = obs[rows]
+            d2, nll = association.pair_statistics(ds.obs_uvd[o], ds.obs_cov[o], z_hat, HPH)
+            costs = nll - self.log_det_R[o][:, None]
+            for r, gated_row, cost_row in zip(rows, d2 <= self.settings.gate, costs):
+                g = np.flatnonzero(gated_row)
+                out[r] = _Options(candidates[g], cost_row[g], z_hat[g], H[g])
         return out
 
-    def _prune(self, children: list[_Hypothesis], roots: list[int]) -> tuple[list[_Hypothesis], list[int]]:
-        order = np.argsort([c.cost for c in children], kind="stable")
-        best = children[order[0]].cost
+    def _viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
+        """Which pair options (inf: excluded) and whether the null option lie within branch_delta
+        of the best."""
+        best = min(null_cost, float(costs.min()) if costs.size else np.inf)
+        limit = best + self.settings.branch_delta
+        return costs <= limit, null_cost <= limit
+
+    def _single_choice(self, obs: np.ndarray, options: list[_Options]) -> Optional[list[int]]:
+        """Per observation the index of its only viable landmark option (-1: unassigned), or None
+        when some observation has several viable options or two claim one landmark."""
+        choice = []
+        for o, null_cost in zip(options, self.null_cost[obs]):
+            pairs, null = self._viable(o.costs, float(null_cost))
+            if int(pairs.sum()) + int(null) != 1:
+                return None
+            choice.append(int(np.flatnonzero(pairs)[0]) if pairs.any() else -1)
+        claimed = [int(options[i].landmarks[j]) for i, j in enumerate(choice) if j >= 0]
+        return choice if len(claimed) == len(set(claimed)) else None
+
+    def _stacked_child(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options], choice: list[int]) -> _Hypothesis:
+        """h updated with all chosen pairs at once; the cost of the stacked innovation is the same
+        chain-rule sum the one-by-one path computes."""
+        taken = [i for i, j in enumerate(choice) if j >= 0]
+        unassigned = len(choice) - len(taken)
+        cost = h.cost + float(sum(self.null_cost[obs[i]] for i, j in enumerate(choice) if j < 0))
+        if not taken:
+            return _Hypothesis(h.x, h.P, cost, h.parent, (), unassigned)
+        o = obs[taken]
+        landmarks = np.array([options[i].landmarks[choice[i]] for i in taken])
+        result = self.ctx.updated(h.x, h.P, o, landmarks)       # stacked, iterated as configured
+        log_det_S = float(np.linalg.slogdet(result.S)[1])
+        cost += result.nis + log_det_S - float(self.log_det_R[o].sum())
+        x, P = _wrap(result.state), result.cov
+        pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
+        return _Hypothesis(x, P, cost, h.parent, pairs, unassigned)
+
+    def _branches(self, h: _Hypothesis, o: int, options: Optional[_Options]) -> list[_Hypothesis]:
+        """Children of h for one observation: unassigned, or paired with a viable landmark."""
+        if options is None:  # h was conditioned on earlier pairs of this pose: look again
+            options = self._options(h, np.array([o]))[0]
+        free = ~np.isin(options.landmarks, [lm for _, lm in h.pairs])
+        null_cost = float(self.null_cost[o])
+        pairs, null = self._viable(np.where(free, options.costs, np.inf), null_cost)
+        out = []
+        if null:
+            out.append(_Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))
+        for j in np.flatnonzero(pairs):
+            result = self.ctx.updated(h.x, h.P, np.array([o]), options.landmarks[j : j + 1])
+            out.append(_Hypothesis(_wrap(result.state), result.cov, h.cost + float(options.costs[j]), h.parent,
+                                   h.pairs + ((o, int(options.landmarks[j])),), h.unassigned))
+        return out
+
+    def _prune(self, children: list[_Hypothesis]) -> list[_Hypothesis]:
+        """The cheapest children within beam_delta of the best, merged, at most beam_width."""
+        children = sorted(children, key=lambda c: c.cost)
+        limit = children[0].cost + self.settings.beam_delta
         kept: list[_Hypothesis] = []
-        kept_roots: list[int] = []
-        for i in order:
-            c = children[i]
-            if c.cost > best + self.settings.beam_delta or len(kept) >= self.settings.beam_width:
+        for c in children:
+            if c.cost > limit or len(kept) >= self.settings.beam_width:
                 break
-            if any(self._same_state(c, other) for other in kept):
-                continue
-            kept.append(c)
-            kept_roots.append(roots[i])
-        return kept, kept_roots
+            if not any(self._same_state(c, k) for k in kept):
+                kept.append(c)
+        return kept
 
     def _same_state(self, a: _Hypothesis, b: _Hypothesis) -> bool:
         d = a.x - b.x
         d[3:6] = geometry.wrap_angle(d[3:6])
-        return float(d @ np.linalg.solve(b.P, d)) < self.settings.merge_distance**2
+        return bool(np.all(d * d <= self.settings.merge_sigma**2 * np.diagonal(b.P)))
 
     def _backtrack(self) -> list[np.ndarray]:
         n = len(self.history)
         chosen: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * n
-        index = 0  # beams are kept sorted by cost: the first is the best
+        index = 0  # each pose's beam is sorted by cost: the first is the best
         for k in range(n - 1, -1, -1):
             h = self.history[k][index]
             chosen[k] = np.asarray(h.pairs, dtype=np.int64).reshape(-1, 2)
             index = h.parent
         return chosen
+
+
+def _empty_options() -> _Options:
+    return _Options(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6)))
 
 
 def _wrap(x: np.ndarray) -> np.ndarray:

@@ -45,6 +45,15 @@ def symmetrize(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
+def block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    """(p, b, b) blocks -> (p b, p b) block-diagonal matrix (stacked independent measurements)."""
+    p, b, _ = blocks.shape
+    out = np.zeros((p * b, p * b))
+    for i in range(p):
+        out[b * i : b * i + b, b * i : b * i + b] = blocks[i]
+    return out
+
+
 def predict(P: np.ndarray, F: np.ndarray, G: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Propagated covariance ``P' = F P F' + G Q G'`` (the state itself comes from the model)."""
     return symmetrize(F @ P @ F.T + G @ Q @ G.T)

@@ -35,8 +35,9 @@ class LocalizerConfig:
 
     Attributes
     ----------
-    association : "best-friends" (mutual best match + gates, never reads the file's ids) or
-        "oracle" (the file's landmark ids, ungated: what perfect association gives).
+    association : "beam" (a beam of association hypotheses, see ``camloc.beam``), "best-friends"
+        (mutual best match + gates) or "oracle" (the file's landmark ids, gated like any pair:
+        what perfect association gives). Only "oracle" reads the file's landmark ids.
     iterations : linearizations per update (1 = EKF, more = iterated EKF).
     gate_probability : chi^2 gate on each pair's innovation, 3 degrees of freedom.
     cost : pair cost for best friends: "nll" (d^2 + ln det S), "mahalanobis" (d^2), "euclidean"
@@ -46,6 +47,8 @@ class LocalizerConfig:
     sequential : accept best-friends pairs one at a time, most unambiguous first, conditioning the
         filter on each before looking at the rest (the final update is still one stacked update
         from the prior); False pairs all observations at once (the original method).
+    beam_width, beam_delta, branch_delta, null_cost, slip_inflation, slip_cost : the beam's
+        parameters, see ``camloc.beam.BeamSettings`` (costs are 2 x negative log-likelihoods).
     min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
         1.25 x the largest measured depth + 0.5 m).
     max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
@@ -53,15 +56,18 @@ class LocalizerConfig:
     initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose.
     """
 
-    association: str = "best-friends"
+    association: str = "beam"
     iterations: int = 3
     gate_probability: float = 0.99
     cost: str = "nll"
     margin: float = 1.0
     sequential: bool = True
     beam_width: int = 16
-    beam_delta: float = 30.0
-    null_cost: float = 18.0
+    beam_delta: float = 20.0
+    branch_delta: float = 10.0
+    null_cost: Optional[float] = None
+    slip_inflation: float = 25.0
+    slip_cost: float = 10.0
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
     max_angle_deg: Optional[float] = None
@@ -80,6 +86,11 @@ class LocalizerConfig:
             (self.min_depth is None or self.min_depth >= 0.0, f"min_depth must be >= 0, got {self.min_depth}"),
             (self.max_depth is None or self.max_depth > (self.min_depth or 0.0), f"max_depth must be > min_depth, got {self.max_depth}"),
             (self.max_angle_deg is None or 0.0 < self.max_angle_deg < 90.0, f"max_angle_deg must be in (0, 90), got {self.max_angle_deg}"),
+            (int(self.beam_width) == self.beam_width and self.beam_width >= 1, f"beam_width must be an integer >= 1, got {self.beam_width}"),
+            (self.beam_delta > 0.0 and self.branch_delta > 0.0, "beam_delta and branch_delta must be > 0"),
+            (self.null_cost is None or self.null_cost > 0.0, f"null_cost must be > 0, got {self.null_cost}"),
+            (self.slip_cost >= 0.0, f"slip_cost must be >= 0, got {self.slip_cost}"),
+            (self.slip_inflation >= 1.0, f"slip_inflation must be >= 1, got {self.slip_inflation}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -110,11 +121,15 @@ def localize(
     config.validate()
     localizer = _Localizer(dataset, config)
     started = time.perf_counter()
-    stride = max(1, dataset.num_poses // 200)
-    for k in range(dataset.num_poses):
+    n = dataset.num_poses
+    stride = max(1, n // 200)
+    if config.association == "beam":
+        # The beam decides the association (most of the work), then the filter replays it.
+        localizer.search_beam(lambda k: on_progress(k + 1, n) if on_progress and k % stride == 0 else None)
+    for k in range(n):
         localizer.step(k)
-        if on_progress is not None and (k % stride == 0 or k == dataset.num_poses - 1):
-            on_progress(k + 1, dataset.num_poses)
+        if on_progress is not None and ((k % stride == 0 and config.association != "beam") or k == n - 1):
+            on_progress(k + 1, n)
     return localizer.result(time.perf_counter() - started)
 
 
@@ -153,12 +168,25 @@ class _Localizer:
         self.x = geometry.pose_to_euler(dataset.T_world_start)
         self.P = np.diag(sigma**2)
         self.T_odometry = dataset.T_world_start
-        self.beam_pairs = None
-        if config.association == "beam":
-            from camloc.beam import BeamSearch, BeamSettings
+        self.beam_pairs: list[np.ndarray] | None = None
 
-            settings = BeamSettings(config.beam_width, config.beam_delta, config.null_cost, self.gate)
-            self.beam_pairs = BeamSearch(self, settings).run(self.x, self.P)
+    def search_beam(self, on_pose: Optional[Callable[[int], None]] = None) -> None:
+        """Decide every pose's association with the beam (``camloc.beam``) before filtering."""
+        from camloc.beam import BeamSearch, BeamSettings
+
+        c = self.config
+        settings = BeamSettings(
+            beam_width=c.beam_width, beam_delta=c.beam_delta, branch_delta=c.branch_delta, null_cost=c.null_cost,
+            gate=self.gate, slip_inflation=c.slip_inflation, slip_cost=c.slip_cost,
+        )
+        search = BeamSearch(self, settings)
+        self.beam_pairs = search.run(self.x, self.P, on_pose=on_pose)
+        if search.slips:
+            self.warnings.append(
+                f"{len(search.slips)} pose(s) looked like odometry slips and were re-explained with a wider prior: "
+                + ", ".join(str(int(self.dataset.pose_ids[k])) for k in search.slips[:10])
+                + (" ..." if len(search.slips) > 10 else "")
+            )
 
     def step(self, k: int) -> None:
         if k > 0:
@@ -166,7 +194,7 @@ class _Localizer:
         self._warn_near_singularity(k)
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
         if obs.size:
-            result = self._updated(self.x, self.P, obs, landmarks)  # one stacked (iterated) update
+            result = self.updated(self.x, self.P, obs, landmarks)  # one stacked (iterated) update
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = normalize_state(result.state), result.cov
         self.states[k], self.covs[k] = self.x, self.P
@@ -211,7 +239,7 @@ class _Localizer:
             chosen_landmarks.append(int(landmarks[best]))
             remaining = np.delete(remaining, rows[best])
             if remaining.size:
-                result = self._updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
+                result = self.updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
                 x, P = normalize_state(result.state), result.cov
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
 
@@ -247,14 +275,25 @@ class _Localizer:
         return np.concatenate(rows_all), np.concatenate(landmarks_all), np.concatenate(gaps_all)
 
     def _associate_oracle(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The file's landmark ids, kept where the id is in the map and the pair passes the gate
+        (a gross outlier keeps its true id but is no evidence any filter should take)."""
         index = np.array([self.landmark_index_of_id.get(int(i), -1) for i in self.dataset.obs_true_landmark[obs]], dtype=np.int64)
-        in_map = index >= 0
-        return obs[in_map], index[in_map]
+        obs, index = obs[index >= 0], index[index >= 0]
+        keep = np.zeros(obs.size, dtype=bool)
+        for camera_id in np.unique(self.dataset.obs_camera[obs]):
+            mine = self.dataset.obs_camera[obs] == camera_id
+            camera = self.cameras[int(camera_id)]
+            z_hat, H = models.observe(self.x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[index[mine]])
+            S = H @ self.P @ np.swapaxes(H, 1, 2) + self.dataset.obs_cov[obs[mine]]
+            y = self.dataset.obs_uvd[obs[mine]] - z_hat
+            d2 = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
+            keep[mine] = d2 <= self.gate
+        return obs[keep], index[keep]
 
-    def _updated(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> ekf.UpdateResult:
+    def updated(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> ekf.UpdateResult:
         """The stacked (iterated) EKF update of (x, P) with the given pairs."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
-        R = _block_diagonal(self.dataset.obs_cov[obs])
+        R = ekf.block_diagonal(self.dataset.obs_cov[obs])
         cameras = self.dataset.obs_camera[obs]
         groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]
@@ -365,15 +404,6 @@ def euler_cov_to_pose_cov(states: np.ndarray, covs: np.ndarray) -> np.ndarray:
     J[:, 3:6, 3:6] = geometry.euler_to_matrix(states[:, 3:6]) @ geometry.euler_rate_matrix(states[:, 3:6])
     cov = J @ covs @ np.swapaxes(J, 1, 2)
     return 0.5 * (cov + np.swapaxes(cov, 1, 2))
-
-
-def _block_diagonal(blocks: np.ndarray) -> np.ndarray:
-    """(p, 3, 3) -> (3p, 3p) block-diagonal matrix."""
-    p = blocks.shape[0]
-    out = np.zeros((3 * p, 3 * p))
-    for i in range(p):
-        out[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = blocks[i]
-    return out
 
 
 def _candidate_range(dataset: Dataset, config: LocalizerConfig) -> tuple[float, float, float]:

@@ -12,6 +12,7 @@ from camloc.cli.common import console, err_console, handles_errors
 
 
 class AssociationChoice(str, Enum):
+    beam = "beam"
     best_friends = "best-friends"
     oracle = "oracle"
 
@@ -35,8 +36,9 @@ def run(
         "options given on the command line win.", show_default=False
     ),
     association: Optional[AssociationChoice] = typer.Option(
-        None, help="Data association: best-friends (never reads the file's landmark ids) or oracle "
-        "(the file's ids, ungated). Default: best-friends.", show_default=False
+        None, help="Data association: beam (a beam of association hypotheses), best-friends (mutual "
+        "best match with gates) or oracle (the file's landmark ids, gated; for comparison). Only oracle "
+        "reads the file's ids. Default: beam.", show_default=False
     ),
     iterations: Optional[int] = typer.Option(
         None, help="Linearizations per update: 1 = EKF, more = iterated EKF. Default: 3.", show_default=False
@@ -103,13 +105,21 @@ def run(
 
     from camloc.cli.progress import pose_progress
 
-    with pose_progress(enabled=not (quiet or json_output), description=f"localizing {dataset_path.name}") as on_progress:
+    import warnings
+
+    from camloc.g2o import G2oWarning
+
+    with warnings.catch_warnings(), pose_progress(
+        enabled=not (quiet or json_output), description=f"localizing {dataset_path.name}"
+    ) as on_progress:
+        # The reader's warnings are part of the summary, printed once below.
+        warnings.simplefilter("ignore", G2oWarning)
         result, written = run_dataset(dataset_path, config, output_dir, on_progress=on_progress)
 
     if json_output:
-        import json
+        from camloc.results import dumps_json
 
-        typer.echo(json.dumps(result.summary, indent=2, default=float))
+        typer.echo(dumps_json(result.summary), nl=False)
     elif not quiet:
         from camloc.cli.run_render import render_run_summary
 

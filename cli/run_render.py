@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from rich.console import Group
+from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
@@ -31,12 +32,13 @@ def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Grou
     timing = summary["timing"]
     table = Table(title=f"camloc run: {Path(str(summary['dataset'])).name}", title_justify="left")
     table.add_column("", style="bold")
+    label = escape
     table.add_column("EKF", justify="right")
     table.add_column("odometry only", justify="right")
     if metrics:
-        table.add_row("position RMSE [m]", _fmt(_get(metrics, "estimate.ate.rmse"), ".4f"), _fmt(_get(metrics, "odometry.ate.rmse"), ".4f"))
-        table.add_row("position max [m]", _fmt(_get(metrics, "estimate.ate.max"), ".4f"), _fmt(_get(metrics, "odometry.ate.max"), ".4f"))
-        table.add_row("rotation RMSE [deg]", _fmt(_get(metrics, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(metrics, "odometry.rotation.rmse_deg"), ".2f"))
+        table.add_row(label("position RMSE [m]"), _fmt(_get(metrics, "estimate.ate.rmse"), ".4f"), _fmt(_get(metrics, "odometry.ate.rmse"), ".4f"))
+        table.add_row(label("position max [m]"), _fmt(_get(metrics, "estimate.ate.max"), ".4f"), _fmt(_get(metrics, "odometry.ate.max"), ".4f"))
+        table.add_row(label("rotation RMSE [deg]"), _fmt(_get(metrics, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(metrics, "odometry.rotation.rmse_deg"), ".2f"))
         table.add_row("NEES mean (6 dof)", _fmt(_get(metrics, "nees.mean"), ".2f"), "")
     else:
         table.add_row("trajectory error", "no ground truth", "")
