@@ -59,6 +59,27 @@ def run(
         None, "--sequential/--batch", help="Accept best-friends pairs one at a time, conditioning on "
         "each (sequential), or all at once (batch, the original method). Default: sequential.", show_default=False
     ),
+    beam_width: Optional[int] = typer.Option(
+        None, help="Beam: association hypotheses kept after each pose. Default: 16.", show_default=False
+    ),
+    beam_delta: Optional[float] = typer.Option(
+        None, help="Beam: drop hypotheses this much costlier than the best (2 x log-likelihood ratio). "
+        "Default: 20.", show_default=False
+    ),
+    branch_delta: Optional[float] = typer.Option(
+        None, help="Beam: explore only an observation's options within this cost of its best. Default: 10.",
+        show_default=False
+    ),
+    null_cost: Optional[float] = typer.Option(
+        None, help="Beam: cost of leaving an observation unassigned. Default: from the data (clutter "
+        "uniform over the measured volume; about 18 for the real file's camera).", show_default=False
+    ),
+    slip_inflation: Optional[float] = typer.Option(
+        None, help="Beam: covariance factor of the odometry-slip hypothesis. Default: 25.", show_default=False
+    ),
+    slip_cost: Optional[float] = typer.Option(
+        None, help="Beam: extra cost of the odometry-slip hypothesis. Default: 10.", show_default=False
+    ),
     min_depth: Optional[float] = typer.Option(
         None, help="Nearest candidate landmark depth, metres. Default: 0.", show_default=False
     ),
@@ -93,6 +114,12 @@ def run(
         "cost": cost.value if cost else None,
         "margin": margin,
         "sequential": sequential,
+        "beam_width": beam_width,
+        "beam_delta": beam_delta,
+        "branch_delta": branch_delta,
+        "null_cost": null_cost,
+        "slip_inflation": slip_inflation,
+        "slip_cost": slip_cost,
         "min_depth": min_depth,
         "max_depth": max_depth,
         "max_angle_deg": max_angle,

@@ -1,0 +1,140 @@
+"""The localizer end to end on data with known truth: accuracy, association quality, consistency,
+and that the default never reads the file's landmark ids."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from camloc import geometry
+from camloc.errors import ConfigError
+from camloc.g2o import read_g2o
+from camloc.localizer import LocalizerConfig, localize
+from camloc.metrics import evaluate
+from camloc.simulate import SimulationConfig, simulate
+
+
+def position_rmse(result, dataset):
+    return float(np.sqrt(np.mean(np.sum((result.estimate_xyz - dataset.truth_xyz) ** 2, axis=1))))
+
+
+def precision_recall(result, dataset):
+    a = result.associations
+    made = a.landmark != -1
+    correct = made & (a.landmark == a.true_landmark)
+    in_map = np.isin(a.true_landmark, dataset.landmark_ids)
+    return correct.sum() / max(made.sum(), 1), correct.sum() / max(in_map.sum(), 1)
+
+
+def test_real_dataset_meets_the_accuracy_bounds(real_dataset_path):
+    dataset = read_g2o(real_dataset_path)
+    result = localize(dataset)
+    metrics = evaluate(result)
+    assert metrics["estimate"]["ate"]["rmse"] <= 0.10
+    assert metrics["estimate"]["rotation"]["rmse_deg"] <= 3.5
+    assert metrics["association"]["precision"] >= 0.97
+    assert metrics["association"]["recall"] >= 0.90
+    assert result.associations.landmark.shape == (362,)
+    assert metrics["odometry"]["ate"]["rmse"] > 1.5  # the filter improves a lot on odometry alone
+
+
+SIMULATED = {
+    "grid like the real file": SimulationConfig(trajectory="grid", poses=150),
+    "smooth3d with clutter and outliers": SimulationConfig(trajectory="smooth3d", poses=150, clutter_fraction=0.15, outlier_fraction=0.03),
+    "aerial, pixel camera, two cameras": SimulationConfig(trajectory="aerial", poses=120, intrinsics="pixel", cameras=2),
+}
+
+
+@pytest.mark.parametrize("name", SIMULATED)
+@pytest.mark.parametrize("seed", [11, 12])
+def test_simulated_accuracy_close_to_the_oracle(name, seed):
+    dataset = simulate(SIMULATED[name], seed=seed)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    result = localize(dataset)
+    precision, recall = precision_recall(result, dataset)
+    assert position_rmse(result, dataset) <= 1.25 * position_rmse(oracle, dataset) + 0.01
+    assert position_rmse(result, dataset) <= 0.15
+    assert precision >= 0.98
+    assert recall >= 0.85
+    odometry_rmse = float(np.sqrt(np.mean(np.sum((result.odometry_xyz - dataset.truth_xyz) ** 2, axis=1))))
+    assert position_rmse(result, dataset) < 0.5 * odometry_rmse
+
+
+def test_clutter_is_rejected():
+    dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=150, clutter_fraction=0.2), seed=5)
+    result = localize(dataset)
+    clutter = ~np.isin(result.associations.true_landmark, dataset.landmark_ids)
+    assert clutter.sum() > 50
+    assert np.count_nonzero(result.associations.landmark[clutter] != -1) <= clutter.sum() / 100
+
+
+@pytest.mark.parametrize("association", ["beam", "best-friends"])
+def test_default_association_never_reads_the_file_ids(association):
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=60), seed=2)
+    scrambled = dataclasses.replace(dataset, obs_true_landmark=np.full_like(dataset.obs_true_landmark, -7))
+    config = LocalizerConfig(association=association)
+    a, b = localize(dataset, config), localize(scrambled, config)
+    np.testing.assert_array_equal(a.estimate_xyz, b.estimate_xyz)
+    np.testing.assert_array_equal(a.associations.landmark, b.associations.landmark)
+
+
+def test_iterated_update_is_more_consistent_than_a_single_linearization():
+    nees = {}
+    for iterations in (1, 3):
+        values = []
+        for seed in range(3):
+            dataset = simulate(SimulationConfig(trajectory="grid", poses=150), seed=seed)
+            result = localize(dataset, LocalizerConfig(association="oracle", iterations=iterations))
+            values.append(evaluate(result)["nees"]["mean"])
+        nees[iterations] = np.mean(values)
+    assert nees[3] < nees[1]
+    assert nees[3] < 8.0  # 6 degrees of freedom
+
+
+def test_covariances_stay_symmetric_positive_definite():
+    dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=100), seed=4)
+    result = localize(dataset)
+    assert np.array_equal(result.filter_cov, np.swapaxes(result.filter_cov, 1, 2))
+    assert np.all(np.linalg.eigvalsh(result.filter_cov) > 0)
+    assert np.all(np.linalg.eigvalsh(result.estimate_cov) > 0)
+
+
+def test_outputs_have_one_row_per_pose_and_observation():
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=40), seed=1)
+    result = localize(dataset)
+    assert result.estimate_xyz.shape == (40, 3)
+    assert result.associations.landmark.shape == (dataset.num_observations,)
+    np.testing.assert_allclose(result.estimate_xyz[0], dataset.start_xyz, atol=1e-12)
+    odometry = dataset.T_world_start
+    for increment in dataset.T_odometry:
+        odometry = odometry @ increment
+    np.testing.assert_allclose(result.odometry_xyz[-1], odometry[:3, 3], atol=1e-9)
+    assert result.nis.shape == result.nis_dof.shape == result.update_pose_ids.shape
+    assert np.all(result.nis_dof % 3 == 0)
+
+
+def test_warns_near_the_euler_singularity():
+    dataset = simulate(SimulationConfig(trajectory="aerial", poses=80, max_tilt_deg=88), seed=0)
+    result = localize(dataset, LocalizerConfig(association="oracle"))
+    assert sum("singularity" in w for w in result.summary["warnings"]) == 1
+
+
+def test_pose_covariance_matches_euler_covariance_by_sampling(rng):
+    from camloc.localizer import euler_cov_to_pose_cov
+
+    state = np.array([1.0, -2.0, 0.5, 0.4, -0.7, 2.0])
+    A = rng.normal(size=(6, 6)) * 0.02
+    cov = A @ A.T + 1e-4 * np.eye(6)
+    samples = rng.multivariate_normal(state, cov, size=20000)
+    errors = geometry.pose_error_vector(geometry.pose_from_euler(state)[None], geometry.pose_from_euler(samples))
+    predicted = euler_cov_to_pose_cov(state[None], cov[None])[0]
+    np.testing.assert_allclose(np.cov(errors.T), predicted, atol=0.05 * np.abs(predicted).max())
+
+
+@pytest.mark.parametrize("bad", [
+    {"association": "magic"}, {"iterations": 0}, {"gate_probability": 1.5}, {"margin": -1.0},
+    {"max_angle_deg": 95.0}, {"beam_width": 0}, {"slip_inflation": 0.5}, {"min_depth": 2.0, "max_depth": 1.0},
+])
+def test_bad_configuration_is_a_config_error(bad):
+    with pytest.raises(ConfigError):
+        LocalizerConfig(**bad).validate()
