@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-EULER_SEQUENCE = "ZYX"
 
 
 def hat(v: np.ndarray) -> np.ndarray:
@@ -45,22 +44,33 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def euler_to_matrix(rpy: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (..., 3) in radians -> ``Rz(yaw) Ry(pitch) Rx(roll)`` (..., 3, 3)."""
+    """Roll, pitch, yaw (..., 3) in radians -> ``Rz(yaw) Ry(pitch) Rx(roll)`` (..., 3, 3).
+
+    Written out rather than through scipy: the filter calls it for one state at a time, where
+    scipy's per-call overhead dominates (tests compare it with scipy's ``"ZYX"``).
+    """
     rpy = np.asarray(rpy, dtype=float)
-    ypr = rpy.reshape(-1, 3)[:, ::-1]
-    flat = Rotation.from_euler(EULER_SEQUENCE, ypr).as_matrix()
-    return flat.reshape(rpy.shape[:-1] + (3, 3))
+    sr, sp, sy = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
+    cr, cp, cy = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
+    R = np.empty(rpy.shape[:-1] + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sp, cp * sr, cp * cr
+    return R
 
 
 def matrix_to_euler(R: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) -> roll, pitch, yaw (..., 3), pitch in [-pi/2, pi/2].
 
-    At pitch = +-pi/2 (gimbal lock) roll and yaw are not separable; scipy then sets one of them
-    to zero and warns, which the Euler filter reports as its singularity.
+    At pitch = +-pi/2 (gimbal lock) roll and yaw are not separable and the split between them is
+    arbitrary; the Euler filter warns before it gets there.
     """
     R = np.asarray(R, dtype=float)
-    ypr = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler(EULER_SEQUENCE)
-    return ypr[:, ::-1].reshape(R.shape[:-2] + (3,))
+    rpy = np.empty(R.shape[:-2] + (3,))
+    rpy[..., 0] = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    rpy[..., 1] = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    rpy[..., 2] = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return rpy
 
 
 def quat_to_euler(quat_xyzw: np.ndarray) -> np.ndarray:
@@ -101,6 +111,54 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
     return flat.reshape(R.shape[:-2] + (3,))
+
+
+# Below this angle the closed forms of the SO(3) Jacobians lose digits to cancellation; their
+# Taylor series (two terms) are exact to double precision there.
+_SMALL_ANGLE = 1e-4
+
+
+def so3_right_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """Right Jacobian Jr (..., 3, 3) of SO(3) at rotation vector(s) (..., 3).
+
+    ``Exp(phi + d) ~= Exp(phi) Exp(Jr(phi) d)``:
+    ``Jr = I - (1 - cos a)/a^2 [phi]x + (a - sin a)/a^3 [phi]x^2`` with ``a = |phi|``.
+    """
+    phi = np.asarray(rotvec, dtype=float)
+    a = np.linalg.norm(phi, axis=-1)[..., None, None]
+    small = a < _SMALL_ANGLE
+    safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5 - a**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    c2 = np.where(small, 1.0 / 6.0 - a**2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    K = hat(phi)
+    return np.eye(3) - c1 * K + c2 * (K @ K)
+
+
+def so3_right_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
+    """Inverse of the right Jacobian, (..., 3, 3), in closed form (angle below pi).
+
+    ``Log(Exp(phi) Exp(d)) ~= phi + Jr^-1(phi) d``:
+    ``Jr^-1 = I + [phi]x / 2 + (1/a^2 - (1 + cos a)/(2 a sin a)) [phi]x^2``.
+    """
+    phi = np.asarray(rotvec, dtype=float)
+    a = np.linalg.norm(phi, axis=-1)[..., None, None]
+    small = a < _SMALL_ANGLE
+    safe = np.where(small, 1.0, a)
+    c2 = np.where(small, 1.0 / 12.0 + a**2 / 720.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    K = hat(phi)
+    return np.eye(3) + 0.5 * K + c2 * (K @ K)
+
+
+def retract_right(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Pose(s) (..., 4, 4) moved by a right perturbation delta (..., 6) = (dt, dtheta).
+
+    ``R -> R Exp(dtheta)``, ``t -> t + R dt``: ``T @ make_pose(so3_exp(dtheta), dt)``, the noise
+    convention of ``camloc.models`` (SO(3) x R^3, not the SE(3) exponential).
+    """
+    T = np.asarray(T, dtype=float)
+    delta = np.asarray(delta, dtype=float)
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    return make_pose(R @ so3_exp(delta[..., 3:6]), t + np.einsum("...ij,...j->...i", R, delta[..., 0:3]))
 
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:

@@ -22,6 +22,16 @@ def test_euler_convention_is_z_y_x():
     np.testing.assert_allclose(geometry.euler_to_matrix(np.array([roll, pitch, yaw])), Rz @ Ry @ Rx, atol=1e-12)
 
 
+def test_euler_formulas_match_scipy(rng):
+    from scipy.spatial.transform import Rotation
+
+    rpy = random_rpy(rng, 500, max_pitch_deg=89.0)
+    expected = Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix()
+    np.testing.assert_allclose(geometry.euler_to_matrix(rpy), expected, atol=1e-12)
+    np.testing.assert_allclose(geometry.matrix_to_euler(expected), rpy, atol=1e-7)
+    np.testing.assert_allclose(geometry.euler_to_matrix(rpy[0]), expected[0], atol=1e-12)
+
+
 def test_euler_and_quaternion_round_trips(rng):
     rpy = random_rpy(rng, 200)
     np.testing.assert_allclose(geometry.matrix_to_euler(geometry.euler_to_matrix(rpy)), rpy, atol=1e-9)
