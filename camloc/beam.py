@@ -16,9 +16,9 @@ hypothesis does not win by gating everything.
 
 Keeping it fast (most poses are not ambiguous):
 - a hypothesis branches on an observation only into the options within ``branch_delta`` of that
-  observation's best option; when every observation of a pose has a single such option and no
-  landmark is claimed twice, the hypothesis takes them all in one stacked update (the same cost,
-  computed jointly) instead of one by one;
+  observation's best option; the observations with a single such option, whose landmark no other
+  observation could take, are taken in one stacked update (the same cost, computed jointly), and
+  only the ambiguous rest are explained one by one;
 - after each pose the beam keeps the ``beam_width`` cheapest hypotheses within ``beam_delta`` of
   the best, and merges hypotheses whose states coincide (within ``merge_sigma`` standard
   deviations on every axis), so in unambiguous stretches it collapses to one filter.
@@ -35,6 +35,7 @@ NIS are computed exactly as for any other association method.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -138,13 +139,16 @@ class BeamSearch:
         return self._prune(children)
 
     def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
-        """Children of h that explain all of obs, pruned to the beam."""
+        """Children of h that explain all of obs, pruned to the beam: the clear observations in
+        one stacked update, then a branch per option of each ambiguous one."""
         options = self._options(h, obs)
-        single = self._single_choice(obs, options)
-        if single is not None:
-            return [self._stacked_child(h, obs, options, single)]
-        partial = [h]
-        for i in np.argsort([o.landmarks.size for o in options], kind="stable"):
+        choice = self._clear_choices(obs, options)
+        clear = [i for i, c in enumerate(choice) if c is not None]
+        child = self._stacked_child(h, obs[clear], [options[i] for i in clear], [choice[i] for i in clear])
+        ambiguous = sorted((i for i, c in enumerate(choice) if c is None), key=lambda i: options[i].landmarks.size)
+        partial = [child]
+        for i in ambiguous:
+            # options computed under h still hold for a child that took no pair yet
             grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is h.x else None)]
             partial = self._prune(grown)
         return partial
@@ -183,17 +187,23 @@ class BeamSearch:
         limit = best + self.settings.branch_delta
         return costs <= limit, null_cost <= limit
 
-    def _single_choice(self, obs: np.ndarray, options: list[_Options]) -> Optional[list[int]]:
-        """Per observation the index of its only viable landmark option (-1: unassigned), or None
-        when some observation has several viable options or two claim one landmark."""
-        choice = []
-        for o, null_cost in zip(options, self.null_cost[obs]):
-            pairs, null = self._viable(o.costs, float(null_cost))
+    def _clear_choices(self, obs: np.ndarray, options: list[_Options]) -> list[Optional[int]]:
+        """Per observation: the index of its only viable landmark option, -1 when leaving it
+        unassigned is its only viable option, None when it is ambiguous (several viable options,
+        or its landmark is viable for another observation too)."""
+        viable = [self._viable(o.costs, float(c)) for o, c in zip(options, self.null_cost[obs])]
+        claims = Counter(int(lm) for o, (pairs, _) in zip(options, viable) for lm in o.landmarks[pairs])
+        shared = {lm for lm, count in claims.items() if count > 1}
+        choice: list[Optional[int]] = []
+        for o, (pairs, null) in zip(options, viable):
             if int(pairs.sum()) + int(null) != 1:
-                return None
-            choice.append(int(np.flatnonzero(pairs)[0]) if pairs.any() else -1)
-        claimed = [int(options[i].landmarks[j]) for i, j in enumerate(choice) if j >= 0]
-        return choice if len(claimed) == len(set(claimed)) else None
+                choice.append(None)
+            elif null:
+                choice.append(-1)
+            else:
+                j = int(np.flatnonzero(pairs)[0])
+                choice.append(None if int(o.landmarks[j]) in shared else j)
+        return choice
 
     def _stacked_child(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options], choice: list[int]) -> _Hypothesis:
         """h updated with all chosen pairs at once; the cost of the stacked innovation is the same
@@ -202,7 +212,7 @@ class BeamSearch:
         unassigned = len(choice) - len(taken)
         cost = h.cost + float(sum(self.null_cost[obs[i]] for i, j in enumerate(choice) if j < 0))
         if not taken:
-            return _Hypothesis(h.x, h.P, cost, h.parent, (), unassigned)
+            return _Hypothesis(h.x, h.P, cost, h.parent, h.pairs, h.unassigned + unassigned)
         o = obs[taken]
         landmarks = np.array([options[i].landmarks[choice[i]] for i in taken])
         result = self.ctx.updated(h.x, h.P, o, landmarks)       # stacked, iterated as configured
@@ -210,7 +220,7 @@ class BeamSearch:
         cost += result.nis + log_det_S - float(self.log_det_R[o].sum())
         x, P = _wrap(result.state), result.cov
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
-        return _Hypothesis(x, P, cost, h.parent, pairs, unassigned)
+        return _Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
 
     def _branches(self, h: _Hypothesis, o: int, options: Optional[_Options]) -> list[_Hypothesis]:
         """Children of h for one observation: unassigned, or paired with a viable landmark."""
