@@ -6,7 +6,8 @@ A run folder holds:
 - ``associations.csv``: ``pose,camera,u,v,depth,landmark,true_landmark,mahalanobis``, one row per
   observation, ``landmark`` and ``mahalanobis`` empty when the observation was rejected;
 - ``states.npz``: per-pose filter state and covariance, pose covariance, NIS per update;
-- ``summary.json``: dataset, configuration, counts, timings and headline metrics.
+- ``summary.json``: dataset, configuration, counts, timings and headline metrics;
+- ``smoothed.tum`` (only after ``camloc smooth``): the smoother's poses, TUM like the others.
 
 ``states.npz`` holds every array of ``RunResult`` except the associations (``associations.csv`` is
 their one home, written with round-trip precision), plus ``dataset`` and ``format_version``; the
@@ -14,13 +15,16 @@ TUM files repeat the poses for other tools (evo) and are not read back. ``save_r
 folder in a hidden temporary sibling and renames it into place, so a failure leaves nothing
 behind and an existing run of the same name is replaced only by a complete one. The single-file
 helpers (``write_text_atomic``, ``write_bytes_atomic``, ``write_json_atomic``, ``atomic_write``)
-give the same whole-or-nothing guarantee to any other output.
+give the same whole-or-nothing guarantee to any other output; ``write_smoothed`` adds
+``smoothed.tum`` to an existing run folder that way, and ``load_run`` reads it back into
+``RunResult.smoothed_xyz`` / ``smoothed_quat_xyzw`` when it is there.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -45,6 +49,7 @@ GROUNDTRUTH_TUM = "groundtruth.tum"
 ASSOCIATIONS_CSV = "associations.csv"
 STATES_NPZ = "states.npz"
 SUMMARY_JSON = "summary.json"
+SMOOTHED_TUM = "smoothed.tum"
 ASSOCIATIONS_HEADER = ("pose", "camera", "u", "v", "depth", "landmark", "true_landmark", "mahalanobis")
 TUM_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
 RUN_FORMAT_VERSION = 1
@@ -95,6 +100,8 @@ class RunResult:
     update_pose_ids : (U,) int64 the pose of each filter update (one per pose with accepted pairs).
     nis : (U,) normalized innovation squared of each update; nis_dof : (U,) its degrees of freedom.
     summary : JSON-serializable dict (dataset, configuration, counts, timings, metrics, warnings).
+    smoothed_xyz, smoothed_quat_xyzw : (N, 3), (N, 4) the smoother's poses (``smoothed.tum``),
+        or None when the run was not smoothed.
     """
 
     dataset: str
@@ -115,6 +122,8 @@ class RunResult:
     nis: np.ndarray
     nis_dof: np.ndarray
     summary: dict = field(default_factory=dict)
+    smoothed_xyz: np.ndarray | None = None
+    smoothed_quat_xyzw: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -414,6 +423,10 @@ def run_problems(result: RunResult) -> list[str]:
         return ["ground truth needs both truth_xyz and truth_quat_xyzw, or neither"]
     if result.truth_xyz is not None:
         expected.update(truth_xyz=(n, 3), truth_quat_xyzw=(n, 4))
+    if (result.smoothed_xyz is None) != (result.smoothed_quat_xyzw is None):
+        return ["a smoothed path needs both smoothed_xyz and smoothed_quat_xyzw, or neither"]
+    if result.smoothed_xyz is not None:
+        expected.update(smoothed_xyz=(n, 3), smoothed_quat_xyzw=(n, 4))
     num_landmarks = np.shape(result.map_landmark_ids)[0] if np.ndim(result.map_landmark_ids) == 1 else -1
     expected.update(map_landmark_ids=(num_landmarks,), map_landmark_xyz=(num_landmarks, 3))
     num_updates = np.shape(result.update_pose_ids)[0] if np.ndim(result.update_pose_ids) == 1 else -1
@@ -501,6 +514,10 @@ def _write_run_files(folder: Path, result: RunResult) -> None:
         (folder / GROUNDTRUTH_TUM).write_text(
             tum_text(result.pose_ids, result.truth_xyz, result.truth_quat_xyzw), encoding="utf-8"
         )
+    if result.smoothed_xyz is not None:
+        (folder / SMOOTHED_TUM).write_text(
+            tum_text(result.pose_ids, result.smoothed_xyz, result.smoothed_quat_xyzw), encoding="utf-8"
+        )
     (folder / ASSOCIATIONS_CSV).write_text(associations_text(result.associations), encoding="utf-8")
     arrays = {name: np.asarray(getattr(result, name)) for name in _POSE_ARRAYS + _OTHER_ARRAYS}
     if result.truth_xyz is not None:
@@ -531,7 +548,7 @@ def load_run(run_dir: str | Path) -> RunResult:
     """Read a run folder written by ``save_run`` back into a ``RunResult``.
 
     Arrays come from ``states.npz``, the associations from ``associations.csv``, the summary
-    from ``summary.json``.
+    from ``summary.json``, the smoothed path from ``smoothed.tum`` when there is one.
 
     Raises
     ------
@@ -557,10 +574,67 @@ def load_run(run_dir: str | Path) -> RunResult:
         summary=summary,
         **arrays,
     )
+    smoothed = load_smoothed(run_dir, result.pose_ids)
+    if smoothed is not None:
+        result = dataclasses.replace(result, smoothed_xyz=smoothed[0], smoothed_quat_xyzw=smoothed[1])
     problems = run_problems(result)
     if problems:
         raise CamlocError(f"{run_dir}: inconsistent run folder: {'; '.join(problems)}")
     return result
+
+
+def write_smoothed(run_dir: str | Path, pose_ids: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> Path:
+    """Write the smoother's poses as ``smoothed.tum`` into an existing run folder, atomically.
+
+    Only that file is (re)written, whole or not at all; the rest of the folder is untouched.
+
+    Parameters
+    ----------
+    run_dir : a run folder (``is_run_folder``).
+    pose_ids : (N,) the run's pose ids (the TUM timestamps).
+    xyz, quat_xyzw : (N, 3), (N, 4) the smoothed poses, world frame.
+
+    Returns
+    -------
+    The path of ``smoothed.tum``.
+
+    Raises
+    ------
+    CamlocError : ``run_dir`` is not a run folder, or the file cannot be written.
+    """
+    run_dir = Path(run_dir)
+    if not is_run_folder(run_dir):
+        raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run' to add {SMOOTHED_TUM} to")
+    path = run_dir / SMOOTHED_TUM
+    write_tum(path, pose_ids, xyz, quat_xyzw)
+    return path
+
+
+def load_smoothed(run_dir: str | Path, pose_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The smoothed poses ``(xyz (N, 3), quat_xyzw (N, 4))`` of a run folder, None without ``smoothed.tum``.
+
+    Parameters
+    ----------
+    run_dir : the run folder.
+    pose_ids : (N,) the run's pose ids; when given, the file's timestamps must be exactly these.
+
+    Raises
+    ------
+    DatasetError : a malformed file, or one whose timestamps are not the run's pose ids (a
+        smoothed path of another run).
+    """
+    path = Path(run_dir) / SMOOTHED_TUM
+    if not path.exists():
+        return None
+    stamps, xyz, quat = read_tum(path)
+    if pose_ids is not None:
+        expected = np.asarray(pose_ids, dtype=float)
+        if stamps.shape != expected.shape or not np.array_equal(stamps, expected):
+            raise DatasetError(
+                path, None, f"expected the run's {len(expected)} pose ids as timestamps, found {len(stamps)} "
+                f"timestamps ({stamps[0]:g}..{stamps[-1]:g}) that differ; smooth the run again"
+            )
+    return xyz, quat
 
 
 def _read_states(path: Path) -> dict[str, Any]:
