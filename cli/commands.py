@@ -7,6 +7,7 @@ from camloc.cli.info import info
 from camloc.cli.plot import plot
 from camloc.cli.run import run
 from camloc.cli.simulate import simulate
+from camloc.cli.smooth import smooth
 
 COMMANDS: list = [
     ("info", info),
@@ -14,4 +15,5 @@ COMMANDS: list = [
     ("eval", evaluate_command),
     ("plot", plot),
     ("simulate", simulate),
+    ("smooth", smooth),
 ]

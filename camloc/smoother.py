@@ -1,0 +1,780 @@
+"""The smoother: the maximum a posteriori trajectory over all poses, using all the data at once.
+
+The filter (``camloc.localizer``) estimates each pose from the past only. Given the associations a
+run accepted, the smoother solves for every pose jointly, by Gauss-Newton / Levenberg-Marquardt
+on an analytic sparse Jacobian.
+
+    problem = problem_from_run(dataset, run)          # checks that the two belong together
+    result = smooth(problem, initial_poses(dataset, run), SmootherConfig())
+
+Model card
+----------
+Variables   T_k = (R_k, t_k), k = 0..N-1, robot poses in the world frame. T_0 is FIXED at the
+            dataset's start pose; the unknowns are the other N-1 poses, 6 (N-1) numbers.
+Update      right perturbation delta_k = (dt, dtheta), body frame, metres and radians:
+            ``R_k <- R_k Exp(dtheta)``, ``t_k <- t_k + R_k dt`` (``geometry.retract_right``): the
+            noise convention of ``camloc.models`` (SO(3) x R^3).
+Odometry    one factor per edge (a, b) with measured increment dT = T_a^-1 T_b Exp(w):
+              E = dT^-1 T_a^-1 T_b,    r = (t(E), Log(R(E)))                          (6,)
+            whitened by the edge's covariance ``dataset.odom_cov`` (already in (translation,
+            rotation vector)): ``r_w = L^-1 r`` with ``cov = L L^T`` (Cholesky).
+Observation one factor per observation the run ACCEPTED (``associations.csv`` landmark set):
+              r = z - h(T_k, l),   h = project(camera_points(T_k, T_robot_camera, l))   (3,)
+            whitened by ``dataset.obs_cov`` the same way. Rejected observations are not used.
+Loss        ``cost = 1/2 sum_odometry |r_w|^2 + 1/2 sum_observations rho(|r_w|^2)`` (scipy's
+            ``least_squares`` convention, 1/2 in front), with Huber's
+            ``rho(s) = s`` for ``s <= f^2`` and ``2 f sqrt(s) - f^2`` beyond: an observation
+            whose Mahalanobis distance exceeds ``f`` (``SmootherConfig.huber``) pulls with a
+            constant force instead of a growing one. The loss acts on each observation's
+            whitened 3-vector (its Mahalanobis distance, as g2o's robust kernels), not on each
+            component, so that it does not depend on the image axes. Odometry is not robustified:
+            it is the chain that holds the problem together, and a wrong association shows up
+            as an observation residual, not as an odometry one.
+Jacobians   with ``p = R_a^T (t_b - t_a)``, ``R_ab = R_a^T R_b``, ``Jr`` the right Jacobian of SO(3):
+              dr/d(dt_a, dth_a) = [[-R_dT^T, R_dT^T [p]x], [0, -Jr^-1(r_th) R_ab^T]]
+              dr/d(dt_b, dth_b) = [[R_dT^T R_ab, 0],     [0,  Jr^-1(r_th)]]
+              dr_obs/d(dt, dth) = -P(p_cam) R_c^T [-I, [p_robot]x]
+            (P the projection Jacobian); all checked against central finite differences on the
+            manifold in tests/test_smoother.py.
+Solver      re-linearize until the largest step component is below ``step_tolerance``. The first
+            step is iteratively reweighted Gauss-Newton (IRLS, weights rho'(s)): its model lies
+            above the robust cost, safe far from the solution. Later steps use the Gauss-Newton
+            Hessian of the robust cost itself (``normal_equations(newton=True)``), which converges
+            quadratically where IRLS creeps (50 iterations were not enough on 20,000 poses, 8
+            are now). A step that does not lower the cost is retried as IRLS, then with
+            Levenberg-Marquardt damping. The normal matrix is scaled to unit diagonal (Jacobi)
+            and factored with SuperLU; before the first step the graph is checked for poses tied
+            to nothing and the matrix's 1-norm condition number is estimated, and a problem that
+            does not determine every pose is refused with a ``CamlocError`` instead of solved.
+
+Pure: no I/O, no printing.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Callable, Optional
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import LinearOperator, onenormest, splu
+
+from camloc import geometry
+from camloc.dataset import Dataset
+from camloc.errors import CamlocError, ConfigError
+from camloc.results import UNASSOCIATED, RunResult
+
+POSE_DOF = 6
+OBS_DIM = 3
+# Predicted depths below this (metres) put a landmark behind the camera: no projection exists.
+MIN_DEPTH = 1e-6
+# Largest Levenberg-Marquardt damping (on a unit-diagonal normal matrix) before giving up on
+# lowering the cost: the current poses are then a minimum to working precision.
+_MAX_DAMPING = 1e8
+
+
+@dataclass(frozen=True)
+class SmootherConfig:
+    """Options of the smoother.
+
+    Attributes
+    ----------
+    huber : Huber threshold ``f`` on each observation's Mahalanobis distance (whitened units,
+        scipy's ``f_scale``); ``inf`` gives plain least squares. Default 2.0, chosen on simulated
+        worlds (``benchmarks/smooth_huber.py``: 3 trajectory types x 3 noise settings x 5
+        seeds; 2.0 and 2.5 tie best, 1.0 and inf are worse by 2%). A correct association lies
+        beyond 2 with probability 0.26 (chi2, 3 dof) and is then only mildly down-weighted; a
+        wrong one, 10 or more away, loses most of its pull.
+    max_iterations : linearizations at most.
+    step_tolerance : converged when the largest component of a step is below it (metres or
+        radians).
+    max_condition : largest accepted 1-norm condition estimate of the Jacobi-scaled normal
+        matrix; beyond it the data do not determine every pose (machine epsilon is 2.2e-16, so
+        1e14 leaves about two significant digits in the worst direction).
+    """
+
+    huber: float = 2.0
+    max_iterations: int = 50
+    step_tolerance: float = 1e-7
+    max_condition: float = 1e14
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first option out of range."""
+        if not self.huber > 0.0:
+            raise ConfigError(f"huber must be > 0 (or inf for plain least squares), got {self.huber}")
+        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
+            raise ConfigError(f"max_iterations must be an integer >= 1, got {self.max_iterations}")
+        if not self.step_tolerance > 0.0:
+            raise ConfigError(f"step_tolerance must be > 0, got {self.step_tolerance}")
+        if not self.max_condition > 1.0:
+            raise ConfigError(f"max_condition must be > 1, got {self.max_condition}")
+
+
+@dataclass(frozen=True)
+class SmoothingProblem:
+    """The factor graph: N poses (the first fixed), E odometry factors, M observation factors.
+
+    Attributes
+    ----------
+    pose_ids : (N,) int64 ids, for messages.
+    T_start : (4, 4) the fixed first pose, world frame.
+    odom_from, odom_to : (E,) int64 pose indices of each odometry factor.
+    T_odometry : (E, 4, 4) measured increments ``T_from^-1 T_to``.
+    odom_whiten : (E, 6, 6) ``L^-1`` with ``L L^T`` the covariance of (translation, rotation
+        vector) of the increment.
+    obs_pose : (M,) int64 index of the observing pose.
+    obs_T_robot_camera : (M, 4, 4) camera mount of each observation.
+    obs_intrinsics : (M, 4) fx, fy, cx, cy.
+    obs_landmark_xyz : (M, 3) the associated landmark, world frame, metres.
+    obs_uvd : (M, 3) measured u, v, depth.
+    obs_whiten : (M, 3, 3) ``L^-1`` of the observation covariance.
+    obs_row : (M,) int64 index of each observation in the dataset (for messages and reports).
+    """
+
+    pose_ids: np.ndarray
+    T_start: np.ndarray
+    odom_from: np.ndarray
+    odom_to: np.ndarray
+    T_odometry: np.ndarray
+    odom_whiten: np.ndarray
+    obs_pose: np.ndarray
+    obs_T_robot_camera: np.ndarray
+    obs_intrinsics: np.ndarray
+    obs_landmark_xyz: np.ndarray
+    obs_uvd: np.ndarray
+    obs_whiten: np.ndarray
+    obs_row: np.ndarray
+
+    @property
+    def num_poses(self) -> int:
+        return int(self.pose_ids.shape[0])
+
+    @property
+    def num_unknowns(self) -> int:
+        return POSE_DOF * (self.num_poses - 1)
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One linearization, for progress reports: its number, the cost after it, the largest
+    step component (m or rad, NaN for a rejected step), the damping and whether it was taken."""
+
+    number: int
+    cost: float
+    max_step: float
+    damping: float
+    accepted: bool
+
+
+IterationCallback = Callable[[Iteration], None]
+
+
+@dataclass(frozen=True)
+class SmoothingResult:
+    """The smoothed trajectory and how it was found.
+
+    Attributes
+    ----------
+    T_world_robot : (N, 4, 4) the MAP poses, world frame; the first is the fixed start pose.
+    iterations : linearizations done (accepted and rejected steps).
+    converged : the last step was below ``step_tolerance`` (or no step could lower the cost).
+    initial_cost, final_cost : the robust cost (see the model card) before and after.
+    condition : 1-norm condition estimate of the Jacobi-scaled normal matrix at the start.
+    odometry_factors, observation_factors : factors used.
+    dropped_observations : accepted observations left out because their landmark is behind the
+        camera at the initial poses (no projection exists there).
+    downweighted_observations : observations beyond the Huber threshold at the solution.
+    seconds : wall time of the optimization.
+    """
+
+    T_world_robot: np.ndarray
+    iterations: int
+    converged: bool
+    initial_cost: float
+    final_cost: float
+    condition: float
+    odometry_factors: int
+    observation_factors: int
+    dropped_observations: int
+    downweighted_observations: int
+    seconds: float
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(N, 3) positions, world frame, metres."""
+        return self.T_world_robot[:, :3, 3].copy()
+
+    @property
+    def quat_xyzw(self) -> np.ndarray:
+        """(N, 4) orientations, scalar last, qw >= 0."""
+        return geometry.matrix_to_quat(self.T_world_robot[:, :3, :3])
+
+
+# --------------------------------------------------------------------------------------------
+# Residuals and their Jacobians (unwhitened, batched)
+
+
+def odometry_residuals(
+    T_from: np.ndarray, T_to: np.ndarray, T_meas: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Odometry residuals ``(t(E), Log(R(E)))`` of ``E = dT^-1 T_a^-1 T_b`` and their Jacobians.
+
+    Parameters
+    ----------
+    T_from, T_to : (E, 4, 4) poses a and b, world frame.
+    T_meas : (E, 4, 4) the measured increments dT (b in the frame of a).
+
+    Returns
+    -------
+    r : (E, 6) translation (metres) then rotation vector (radians).
+    J_from, J_to : (E, 6, 6) dr / d(dt, dtheta) of the right perturbation of a and of b.
+    """
+    R_a, t_a = T_from[:, :3, :3], T_from[:, :3, 3]
+    R_b, t_b = T_to[:, :3, :3], T_to[:, :3, 3]
+    R_d_T = np.swapaxes(T_meas[:, :3, :3], 1, 2)
+    R_a_T = np.swapaxes(R_a, 1, 2)
+    R_ab = R_a_T @ R_b
+    p = np.einsum("nij,nj->ni", R_a_T, t_b - t_a)  # b's origin in a's frame
+    r_t = np.einsum("nij,nj->ni", R_d_T, p - T_meas[:, :3, 3])
+    r_theta = geometry.so3_log(R_d_T @ R_ab)
+    Jr_inv = geometry.so3_right_jacobian_inverse(r_theta)
+
+    J_from = np.zeros((len(r_t), 6, 6))
+    J_from[:, 0:3, 0:3] = -R_d_T
+    J_from[:, 0:3, 3:6] = R_d_T @ geometry.hat(p)  # Exp(-dth) p ~= p + [p]x dth
+    # R_E Exp(-R_ab^T dth): the rotation of a reaches E's right side through R_ab.
+    J_from[:, 3:6, 3:6] = -Jr_inv @ np.swapaxes(R_ab, 1, 2)
+    J_to = np.zeros_like(J_from)
+    J_to[:, 0:3, 0:3] = R_d_T @ R_ab
+    J_to[:, 3:6, 3:6] = Jr_inv
+    return np.concatenate([r_t, r_theta], axis=1), J_from, J_to
+
+
+def observation_residuals(
+    T_pose: np.ndarray,
+    T_robot_camera: np.ndarray,
+    intrinsics: np.ndarray,
+    landmark_xyz: np.ndarray,
+    z_uvd: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observation residuals ``z - h(T, l)`` and their Jacobians, one observation a row.
+
+    Parameters
+    ----------
+    T_pose : (M, 4, 4) observing robot poses, world frame.
+    T_robot_camera : (M, 4, 4) camera mounts.
+    intrinsics : (M, 4) fx, fy, cx, cy.
+    landmark_xyz : (M, 3) landmarks, world frame.
+    z_uvd : (M, 3) measured u, v, depth.
+
+    Returns
+    -------
+    r : (M, 3) residuals of u, v, depth.
+    J : (M, 3, 6) dr / d(dt, dtheta) of the right perturbation of the pose.
+    depth : (M,) predicted depth (the model has no projection where it is not positive).
+    """
+    R, t = T_pose[:, :3, :3], T_pose[:, :3, 3]
+    R_c_T = np.swapaxes(T_robot_camera[:, :3, :3], 1, 2)
+    # The same arithmetic as models.camera_points, one pose and camera per row.
+    p_robot = np.einsum("nji,nj->ni", R, landmark_xyz - t)
+    p_camera = np.einsum("nij,nj->ni", R_c_T, p_robot - T_robot_camera[:, :3, 3])
+    fx, fy, cx, cy = intrinsics.T
+    x, y, depth = p_camera.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_hat = np.column_stack([fx * x / depth + cx, fy * y / depth + cy, depth])
+        P = np.zeros((len(depth), 3, 3))
+        P[:, 0, 0], P[:, 0, 2] = fx / depth, -fx * x / depth**2
+        P[:, 1, 1], P[:, 1, 2] = fy / depth, -fy * y / depth**2
+        P[:, 2, 2] = 1.0
+    dp_robot = np.empty((len(depth), 3, 6))
+    dp_robot[:, :, 0:3] = -np.eye(3)  # R^T (l - t - R dt) = p_robot - dt
+    dp_robot[:, :, 3:6] = geometry.hat(p_robot)  # Exp(-dth) p_robot ~= p_robot + [p_robot]x dth
+    J = -(P @ R_c_T @ dp_robot)
+    return z_uvd - z_hat, J, depth
+
+
+# --------------------------------------------------------------------------------------------
+# The whitened, sparse system
+
+
+def whitening(cov: np.ndarray) -> np.ndarray:
+    """``L^-1`` (..., d, d) for covariances (..., d, d) = ``L L^T``: ``|L^-1 r|^2 = r^T cov^-1 r``.
+
+    Raises
+    ------
+    CamlocError : a covariance that is not symmetric positive definite.
+    """
+    try:
+        L = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise CamlocError("a factor's covariance is not positive definite: it cannot weigh its residual") from None
+    return np.linalg.solve(L, np.broadcast_to(np.eye(cov.shape[-1]), cov.shape))
+
+
+@dataclass(frozen=True)
+class Linearization:
+    """Whitened residuals and their sparse Jacobian at one set of poses.
+
+    ``residual`` (6E + 3M,) is the odometry factors' residuals then the observations', 6 and 3
+    rows each; ``jacobian`` (6E + 3M, 6(N-1)) CSR; ``obs_sq`` (M,) each observation's squared
+    Mahalanobis distance; ``odom_sq`` (E,) each odometry factor's.
+    """
+
+    residual: np.ndarray
+    jacobian: sp.csr_matrix
+    odom_sq: np.ndarray
+    obs_sq: np.ndarray
+
+
+def _block_coo(first_row: np.ndarray, pose: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
+    """COO triplets of dense blocks (F, d, 6) at rows ``first_row + 0..d-1`` and the columns of
+    ``pose`` (index >= 1; pose 0 is fixed and has no columns, so its blocks are dropped)."""
+    keep = pose > 0
+    first_row, pose, blocks = first_row[keep], pose[keep], blocks[keep]
+    d = blocks.shape[1]
+    rows = np.broadcast_to(first_row[:, None, None] + np.arange(d)[None, :, None], blocks.shape)
+    cols = np.broadcast_to(POSE_DOF * (pose[:, None, None] - 1) + np.arange(POSE_DOF)[None, None, :], blocks.shape)
+    return rows.ravel(), cols.ravel(), blocks.ravel()
+
+
+def linearize(problem: SmoothingProblem, T: np.ndarray) -> Linearization:
+    """Whitened residuals and the analytic sparse Jacobian of every factor at poses T (N, 4, 4)."""
+    p = problem
+    r_odom, J_from, J_to = odometry_residuals(T[p.odom_from], T[p.odom_to], p.T_odometry)
+    r_obs, J_obs, _ = observation_residuals(T[p.obs_pose], p.obs_T_robot_camera, p.obs_intrinsics,
+                                            p.obs_landmark_xyz, p.obs_uvd)
+    # Whitening: r_w = L^-1 r and J_w = L^-1 J.
+    r_odom = np.einsum("nij,nj->ni", p.odom_whiten, r_odom)
+    r_obs = np.einsum("nij,nj->ni", p.obs_whiten, r_obs)
+    J_from, J_to, J_obs = p.odom_whiten @ J_from, p.odom_whiten @ J_to, p.obs_whiten @ J_obs
+
+    num_odom = len(p.odom_from)
+    odom_rows = POSE_DOF * np.arange(num_odom)
+    obs_rows = POSE_DOF * num_odom + OBS_DIM * np.arange(len(p.obs_pose))
+    parts = [_block_coo(odom_rows, p.odom_from, J_from), _block_coo(odom_rows, p.odom_to, J_to),
+             _block_coo(obs_rows, p.obs_pose, J_obs)]
+    rows, cols, values = (np.concatenate(column) for column in zip(*parts))
+    shape = (POSE_DOF * num_odom + OBS_DIM * len(p.obs_pose), p.num_unknowns)
+    jacobian = sp.csr_matrix((values, (rows, cols)), shape=shape)
+    return Linearization(
+        residual=np.concatenate([r_odom.ravel(), r_obs.ravel()]),
+        jacobian=jacobian,
+        odom_sq=np.einsum("ni,ni->n", r_odom, r_odom),
+        obs_sq=np.einsum("ni,ni->n", r_obs, r_obs),
+    )
+
+
+def huber_rho(s: np.ndarray, f: float) -> np.ndarray:
+    """Huber's rho of squared distances s (scipy's form): s within f^2, ``2 f sqrt(s) - f^2`` beyond."""
+    s = np.asarray(s, dtype=float)
+    beyond = s > f * f  # never true for f = inf
+    rho = s.copy()
+    rho[beyond] = 2.0 * f * np.sqrt(s[beyond]) - f * f
+    return rho
+
+
+def huber_weight(s: np.ndarray, f: float) -> np.ndarray:
+    """rho'(s): 1 within the threshold, ``f / sqrt(s)`` beyond (the IRLS weight)."""
+    s = np.asarray(s, dtype=float)
+    beyond = s > f * f
+    weight = np.ones_like(s)
+    weight[beyond] = f / np.sqrt(s[beyond])
+    return weight
+
+
+def robust_cost(lin: Linearization, huber: float) -> float:
+    """``1/2 (sum odom_sq + sum rho(obs_sq))``; inf when a residual is not finite."""
+    cost = 0.5 * (float(np.sum(lin.odom_sq)) + float(np.sum(huber_rho(lin.obs_sq, huber))))
+    return cost if math.isfinite(cost) else math.inf
+
+
+def _row_weights(lin: Linearization, huber: float) -> np.ndarray:
+    return np.concatenate([np.ones(POSE_DOF * len(lin.odom_sq)), np.repeat(huber_weight(lin.obs_sq, huber), OBS_DIM)])
+
+
+def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple[sp.csc_matrix, np.ndarray]:
+    """Normal equations ``H delta = -g`` of the robust cost at a linearization.
+
+    ``g = J^T W r`` with ``W = rho'`` per row (the exact gradient). For H, ``newton=False`` gives
+    IRLS's ``J^T W J``: a quadratic that lies above the linearized robust cost (Huber's rho is
+    majorized by its tangent parabola), so its minimum always lowers the linearized cost.
+    ``newton=True`` gives the Gauss-Newton Hessian of the robust cost itself (Triggs et al.,
+    "Bundle adjustment - a modern synthesis", 2000, sec. 4.3): beyond the threshold rho is
+    linear in the distance |r|, so an observation has no curvature along its own residual and
+    contributes ``rho' J^T (I - u u^T) J`` with ``u = r / |r|``. Near the solution it converges
+    quadratically where IRLS creeps (linear convergence, rate set by the share downweighted).
+    """
+    weights = _row_weights(lin, huber)
+    g = lin.jacobian.T @ (weights * lin.residual)
+    sqrt_w = np.sqrt(weights)
+    rows = sp.diags(sqrt_w)
+    beyond = np.flatnonzero(lin.obs_sq > huber * huber)
+    if newton and beyond.size:
+        # Project the whitened rows of each downweighted observation off its residual direction:
+        # (sqrt(rho') P J)^T (sqrt(rho') P J) = rho' J^T P J since P = I - u u^T is a projector.
+        first = POSE_DOF * len(lin.odom_sq) + OBS_DIM * beyond
+        u = lin.residual.reshape(-1)[first[:, None] + np.arange(OBS_DIM)] / np.sqrt(lin.obs_sq[beyond])[:, None]
+        P = np.eye(OBS_DIM) - u[:, :, None] * u[:, None, :]
+        P *= sqrt_w[first][:, None, None]
+        index = first[:, None] + np.arange(OBS_DIM)
+        plain = np.ones(len(sqrt_w), dtype=bool)
+        plain[index.ravel()] = False
+        r_idx = np.broadcast_to(index[:, :, None], P.shape).ravel()
+        c_idx = np.broadcast_to(index[:, None, :], P.shape).ravel()
+        projector = sp.coo_matrix((P.ravel(), (r_idx, c_idx)), shape=(len(sqrt_w),) * 2)
+        rows = (projector + sp.diags(np.where(plain, sqrt_w, 0.0))).tocsr()
+    J_w = rows @ lin.jacobian
+    return (J_w.T @ J_w).tocsc(), g
+
+
+# --------------------------------------------------------------------------------------------
+# Is the problem determined?
+
+
+def check_determined(problem: SmoothingProblem) -> None:
+    """Refuse a graph in which some poses are tied neither to the start pose nor to the map.
+
+    Poses are connected by odometry factors; every connected group that does not hold the fixed
+    first pose needs observations of its own.
+
+    Raises
+    ------
+    CamlocError : naming the poses of the first such group.
+    """
+    n = problem.num_poses
+    graph = sp.coo_matrix((np.ones(len(problem.odom_from)), (problem.odom_from, problem.odom_to)), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    observed = np.bincount(label[problem.obs_pose], minlength=label.max() + 1)
+    for group in np.unique(label):
+        if group == label[0] or observed[group] > 0:
+            continue
+        members = problem.pose_ids[label == group]
+        listed = ", ".join(str(i) for i in members[:5]) + (", ..." if len(members) > 5 else "")
+        if len(members) == 1:
+            what = f"pose {members[0]} has no odometry edge to the other poses and no accepted observation"
+        else:
+            what = (f"{len(members)} poses ({listed}) are linked to each other but to neither the start pose "
+                    "nor any landmark (no odometry edge reaches them, no accepted observation)")
+        raise CamlocError(f"cannot smooth: {what}, so nothing determines where they are")
+
+
+def _scaled(H: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``D H D`` with unit diagonal (``D = diag(H)^-1/2``) and the scale d."""
+    diag = H.diagonal()
+    d = 1.0 / np.sqrt(diag)
+    D = sp.diags(d)
+    return (D @ H @ D).tocsc(), d
+
+
+def _factor(Hs: sp.csc_matrix):
+    # SuperLU in symmetric mode: a fill-reducing ordering of H + H^T and diagonal pivots, which
+    # suit a symmetric positive definite matrix (a banded one for an odometry chain).
+    return splu(Hs, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+
+def condition_estimate(Hs: sp.csc_matrix, lu) -> tuple[float, int]:
+    """1-norm condition estimate ``|Hs|_1 |Hs^-1|_1`` (Higham's estimator) and the column of
+    ``Hs^-1`` with the largest norm: the worst-determined unknown."""
+    inverse = LinearOperator(Hs.shape, matvec=lu.solve, rmatvec=lambda v: lu.solve(v, trans="T"), dtype=float)
+    estimate, column = onenormest(inverse, compute_v=True)
+    norm = float(abs(Hs).sum(axis=0).max())
+    return norm * float(estimate), int(np.argmax(np.abs(column)))
+
+
+def _check_conditioning(problem: SmoothingProblem, H: sp.csc_matrix, config: SmootherConfig) -> float:
+    unknowns = problem.num_unknowns
+    diag = H.diagonal()
+    empty = np.flatnonzero(~(diag > 0.0))
+    if empty.size:
+        pose = problem.pose_ids[empty[0] // POSE_DOF + 1]
+        raise CamlocError(f"cannot smooth: no factor constrains pose {pose} (its normal-matrix block is zero)")
+    Hs, _ = _scaled(H)
+    try:
+        lu = _factor(Hs)
+    except RuntimeError:
+        raise CamlocError(
+            f"cannot smooth: the normal matrix ({unknowns} unknowns) is singular: the odometry and the accepted "
+            "observations do not determine every pose"
+        ) from None
+    condition, worst = condition_estimate(Hs, lu)
+    if not condition <= config.max_condition:
+        pose = problem.pose_ids[worst // POSE_DOF + 1]
+        raise CamlocError(
+            f"cannot smooth: the normal matrix is rank deficient or nearly so (condition estimate {condition:.2g}, "
+            f"largest accepted {config.max_condition:.2g}): the data do not determine every pose; worst determined: "
+            f"pose {pose}"
+        )
+    return condition
+
+
+# --------------------------------------------------------------------------------------------
+# Gauss-Newton / Levenberg-Marquardt
+
+
+def _solve_step(H: sp.csc_matrix, g: np.ndarray, damping: float) -> np.ndarray:
+    """The step (6(N-1),) of ``(H + damping diag(H)) delta = -g``, in the Jacobi-scaled form."""
+    Hs, d = _scaled(H)
+    if damping > 0.0:
+        Hs = (Hs + damping * sp.identity(Hs.shape[0], format="csc")).tocsc()
+    try:
+        lu = _factor(Hs)
+    except RuntimeError:
+        raise CamlocError("cannot smooth: the normal matrix became singular during the iterations") from None
+    return d * lu.solve(-d * g)
+
+
+def _retract_all(T: np.ndarray, step: np.ndarray) -> np.ndarray:
+    moved = T.copy()
+    moved[1:] = geometry.retract_right(T[1:], step.reshape(-1, POSE_DOF))
+    return moved
+
+
+def smooth(
+    problem: SmoothingProblem,
+    T_initial: np.ndarray,
+    config: Optional[SmootherConfig] = None,
+    *,
+    on_iteration: Optional[IterationCallback] = None,
+) -> SmoothingResult:
+    """The MAP poses of ``problem``, starting from ``T_initial``.
+
+    Parameters
+    ----------
+    problem : the factor graph (``problem_from_run`` builds it from a dataset and a run).
+    T_initial : (N, 4, 4) initial poses, world frame (the filter's estimate); the first is
+        replaced by the fixed start pose.
+    config : options; None = ``SmootherConfig()``.
+    on_iteration : called after every linearization with an ``Iteration``.
+
+    Raises
+    ------
+    CamlocError : a pose group that nothing determines, or an ill-conditioned normal matrix.
+    ConfigError : an option out of range.
+    """
+    config = config or SmootherConfig()
+    config.validate()
+    started = time.perf_counter()
+    T = np.array(T_initial, dtype=float)
+    T[0] = problem.T_start
+    problem, dropped = _without_unprojectable(problem, T)
+    check_determined(problem)
+
+    lin = linearize(problem, T)
+    cost = initial_cost = robust_cost(lin, config.huber)
+    condition = math.nan
+    damping, majorize, iterations, converged = 0.0, True, 0, problem.num_unknowns == 0
+    while not converged and iterations < config.max_iterations:
+        H, g = normal_equations(lin, config.huber, newton=not majorize)
+        if iterations == 0:
+            condition = _check_conditioning(problem, H, config)
+        step = _solve_step(H, g, damping)
+        candidate = _retract_all(T, step)
+        candidate_lin = linearize(problem, candidate)
+        candidate_cost = robust_cost(candidate_lin, config.huber)
+        iterations += 1
+        accepted = candidate_cost <= cost
+        max_step = float(np.max(np.abs(step))) if step.size else 0.0
+        if accepted:
+            T, lin, cost = candidate, candidate_lin, candidate_cost
+            damping, majorize = (damping / 10.0 if damping > 1e-9 else 0.0), False
+            converged = max_step < config.step_tolerance
+        elif not majorize:
+            # The Newton step overshot (factors crossing the Huber threshold change the model):
+            # take the IRLS step, whose model lies above the cost, from the same poses.
+            majorize = True
+        else:
+            # Even that failed (the linearization is poor, or a landmark went behind a camera):
+            # damp towards gradient descent (Levenberg-Marquardt) and try again.
+            damping = max(10.0 * damping, 1e-4)
+            converged = damping > _MAX_DAMPING
+        if on_iteration is not None:
+            on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
+
+    return SmoothingResult(
+        T_world_robot=T,
+        iterations=iterations,
+        converged=bool(converged),
+        initial_cost=initial_cost,
+        final_cost=cost,
+        condition=condition,
+        odometry_factors=int(len(problem.odom_from)),
+        observation_factors=int(len(problem.obs_pose)),
+        dropped_observations=dropped,
+        downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber**2)),
+        seconds=time.perf_counter() - started,
+    )
+
+
+def _without_unprojectable(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, int]:
+    """The problem without observations whose landmark is behind the camera at poses T."""
+    _, _, depth = observation_residuals(T[problem.obs_pose], problem.obs_T_robot_camera, problem.obs_intrinsics,
+                                        problem.obs_landmark_xyz, problem.obs_uvd)
+    keep = depth > MIN_DEPTH
+    if np.all(keep):
+        return problem, 0
+    return _select_observations(problem, keep), int(np.count_nonzero(~keep))
+
+
+def _select_observations(problem: SmoothingProblem, keep: np.ndarray) -> SmoothingProblem:
+    return replace(
+        problem,
+        obs_pose=problem.obs_pose[keep],
+        obs_T_robot_camera=problem.obs_T_robot_camera[keep],
+        obs_intrinsics=problem.obs_intrinsics[keep],
+        obs_landmark_xyz=problem.obs_landmark_xyz[keep],
+        obs_uvd=problem.obs_uvd[keep],
+        obs_whiten=problem.obs_whiten[keep],
+        obs_row=problem.obs_row[keep],
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# From a dataset and a run folder
+
+
+def problem_from_run(dataset: Dataset, run: RunResult) -> SmoothingProblem:
+    """The factor graph of a dataset's odometry chain and the observations a run accepted.
+
+    Raises
+    ------
+    CamlocError : the run was not made from this dataset (other poses, other observations), or
+        it associates an observation with a landmark the dataset's map does not have.
+    """
+    check_run_matches(dataset, run)
+    chosen = np.asarray(run.associations.landmark)
+    rows = np.flatnonzero(chosen != UNASSOCIATED)
+    order = np.argsort(dataset.landmark_ids, kind="stable")
+    position = np.searchsorted(dataset.landmark_ids[order], chosen[rows])
+    position = np.clip(position, 0, max(len(order) - 1, 0))
+    found = dataset.landmark_ids[order][position] == chosen[rows] if len(order) else np.zeros(len(rows), bool)
+    if not np.all(found):
+        first = int(np.flatnonzero(~found)[0])
+        missing = np.unique(chosen[rows][~found])
+        raise CamlocError(
+            f"the run associates observation {rows[first] + 1} (associations.csv line {rows[first] + 2}) with "
+            f"landmark {chosen[rows][first]}, which the dataset's map ({len(dataset.landmark_ids)} landmarks) does "
+            f"not have ({len(missing)} such landmark id(s)): expected the dataset the run was made from"
+        )
+    cameras = dataset.obs_camera[rows]
+    mounts = {cid: cam.T_robot_camera for cid, cam in dataset.cameras.items()}
+    intrinsics = {cid: (cam.fx, cam.fy, cam.cx, cam.cy) for cid, cam in dataset.cameras.items()}
+    num_poses = dataset.num_poses
+    return SmoothingProblem(
+        pose_ids=np.asarray(dataset.pose_ids, dtype=np.int64),
+        T_start=dataset.T_world_start,
+        odom_from=np.arange(num_poses - 1, dtype=np.int64),
+        odom_to=np.arange(1, num_poses, dtype=np.int64),
+        T_odometry=dataset.T_odometry,
+        odom_whiten=whitening(dataset.odom_cov),
+        obs_pose=np.asarray(dataset.obs_pose_index[rows], dtype=np.int64),
+        obs_T_robot_camera=np.array([mounts[int(c)] for c in cameras]).reshape(-1, 4, 4),
+        obs_intrinsics=np.array([intrinsics[int(c)] for c in cameras], dtype=float).reshape(-1, 4),
+        obs_landmark_xyz=dataset.landmark_xyz[order][position].reshape(-1, 3),
+        obs_uvd=dataset.obs_uvd[rows],
+        obs_whiten=whitening(dataset.obs_cov[rows]),
+        obs_row=rows.astype(np.int64),
+    )
+
+
+def check_run_matches(dataset: Dataset, run: RunResult) -> None:
+    """Refuse a run folder that was not made from ``dataset``.
+
+    The poses must be the same ids in the same order, and the associations one row per
+    observation of the dataset, with the same observing pose, camera and measurement.
+
+    Raises
+    ------
+    CamlocError : naming the first difference.
+    """
+    hint = "expected the dataset the run was made from (pass it with --dataset)"
+    ours, theirs = np.asarray(run.pose_ids), np.asarray(dataset.pose_ids)
+    if ours.shape != theirs.shape or not np.array_equal(ours, theirs):
+        if ours.shape != theirs.shape:
+            found = f"the run has {len(ours)} poses ({_id_range(ours)}), the dataset {len(theirs)} ({_id_range(theirs)})"
+        else:
+            k = int(np.flatnonzero(ours != theirs)[0])
+            found = f"pose {k} is {ours[k]} in the run but {theirs[k]} in the dataset"
+        raise CamlocError(f"run and dataset {dataset.source} do not match: {found}; {hint}")
+    a = run.associations
+    if len(a.pose_id) != dataset.num_observations:
+        raise CamlocError(
+            f"run and dataset {dataset.source} do not match: the run has {len(a.pose_id)} observations in "
+            f"associations.csv, the dataset {dataset.num_observations}; {hint}"
+        )
+    same = (
+        (a.pose_id == dataset.pose_ids[dataset.obs_pose_index])
+        & (a.camera == dataset.obs_camera)
+        & np.all(np.isclose(a.uvd, dataset.obs_uvd, rtol=1e-9, atol=1e-12), axis=1)
+    )
+    if not np.all(same):
+        k = int(np.flatnonzero(~same)[0])
+        raise CamlocError(
+            f"run and dataset {dataset.source} do not match: observation {k + 1} (associations.csv line {k + 2}) is "
+            f"pose {a.pose_id[k]}, camera {a.camera[k]}, uvd {_triple(a.uvd[k])} in the run but pose "
+            f"{dataset.pose_ids[dataset.obs_pose_index[k]]}, camera {dataset.obs_camera[k]}, uvd "
+            f"{_triple(dataset.obs_uvd[k])} in the dataset; {hint}"
+        )
+
+
+def _id_range(ids: np.ndarray) -> str:
+    return f"{ids[0]}..{ids[-1]}" if len(ids) else "none"
+
+
+def _triple(values: np.ndarray) -> str:
+    return "(" + ", ".join(f"{v:.6g}" for v in values) + ")"
+
+
+def initial_poses(dataset: Dataset, run: RunResult) -> np.ndarray:
+    """(N, 4, 4) the run's filter estimate, the first pose replaced by the dataset's start pose."""
+    T = geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw)
+    T[0] = dataset.T_world_start
+    return T
+
+
+def smooth_run(
+    dataset: Dataset,
+    run: RunResult,
+    config: Optional[SmootherConfig] = None,
+    *,
+    on_iteration: Optional[IterationCallback] = None,
+) -> SmoothingResult:
+    """``smooth`` the run's accepted associations over the dataset, from the filter's estimate."""
+    return smooth(problem_from_run(dataset, run), initial_poses(dataset, run), config, on_iteration=on_iteration)
+
+
+def smoothing_report(run: RunResult, result: SmoothingResult, config: SmootherConfig) -> dict:
+    """A JSON-serializable summary: the optimization, and with ground truth the filter's and the
+    smoothed path's position RMSE (m) and rotation RMSE (deg) against it (no alignment)."""
+    from camloc import metrics
+
+    report: dict = {
+        "dataset": run.dataset,
+        "poses": int(len(run.pose_ids)),
+        "huber": config.huber if math.isfinite(config.huber) else None,
+        "odometry_factors": result.odometry_factors,
+        "observation_factors": result.observation_factors,
+        "dropped_observations": result.dropped_observations,
+        "downweighted_observations": result.downweighted_observations,
+        "iterations": result.iterations,
+        "converged": result.converged,
+        "initial_cost": result.initial_cost,
+        "final_cost": result.final_cost,
+        "condition_estimate": result.condition if math.isfinite(result.condition) else None,
+        "seconds": result.seconds,
+    }
+    if run.truth_xyz is not None:
+        def rmse(errors: np.ndarray) -> float:
+            return float(np.sqrt(np.mean(np.square(errors))))
+
+        paths = {"filter": (run.estimate_xyz, run.estimate_quat_xyzw), "smoothed": (result.xyz, result.quat_xyzw)}
+        report["errors"] = {
+            name: {
+                "position_rmse_m": rmse(metrics.position_errors(xyz, run.truth_xyz)),
+                "rotation_rmse_deg": rmse(metrics.rotation_errors_deg(quat, run.truth_quat_xyzw)),
+            }
+            for name, (xyz, quat) in paths.items()
+        }
+    return report

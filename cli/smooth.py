@@ -1,0 +1,147 @@
+"""``camloc smooth``: the maximum a posteriori trajectory of a run folder, written as smoothed.tum."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping, Optional
+
+import typer
+
+from camloc.cli.common import console, err_console, handles_errors
+from camloc.errors import CamlocError
+
+DEFAULT_HUBER = 2.0
+DEFAULT_MAX_ITERATIONS = 50
+
+
+@handles_errors
+def smooth(
+    run_dir: Path = typer.Argument(..., help="Run folder written by 'camloc run'.", show_default=False),
+    *,
+    dataset: Optional[Path] = typer.Option(
+        None, "--dataset", help="The g2o file the run was made from. Default: the path recorded in the run's "
+        "summary.json (relative to where 'camloc run' was started).", show_default=False
+    ),
+    huber: float = typer.Option(
+        DEFAULT_HUBER, "--huber", help="Huber threshold on each observation's Mahalanobis distance (whitened "
+        "units): farther observations pull with a constant force; 'inf' gives plain least squares. "
+        f"Default: {DEFAULT_HUBER}.", show_default=False
+    ),
+    max_iterations: int = typer.Option(
+        DEFAULT_MAX_ITERATIONS, "--max-iterations", min=1, help="Most linearizations (Gauss-Newton / "
+        "Levenberg-Marquardt steps) before stopping; a run that stops there is reported as not converged. "
+        f"Default: {DEFAULT_MAX_ITERATIONS}.", show_default=False
+    ),
+    json_output: bool = typer.Option(
+        False, "--json", help="Print the report as JSON instead of tables. Default: tables.", show_default=False
+    ),
+) -> None:
+    """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
+
+    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the EKF and odometry. Prints position and rotation RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
+    """
+    import warnings
+
+    from camloc import smoother
+    from camloc.g2o import G2oWarning, read_g2o
+    from camloc.results import dumps_json, load_run, write_smoothed
+
+    config = smoother.SmootherConfig(huber=huber, max_iterations=max_iterations)
+    config.validate()
+    started = time.perf_counter()
+    run = load_run(run_dir)
+    dataset_path = dataset if dataset is not None else _recorded_dataset(run_dir, run.summary, run.dataset)
+    with warnings.catch_warnings():
+        # 'camloc run' already reported the reader's warnings about this file.
+        warnings.simplefilter("ignore", G2oWarning)
+        data = read_g2o(dataset_path)
+    read_seconds = time.perf_counter() - started
+
+    with _iteration_status(enabled=not json_output) as on_iteration:
+        result = smoother.smooth_run(data, run, config, on_iteration=on_iteration)
+    written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
+
+    report = smoother.smoothing_report(run, result, config)
+    report["dataset"] = str(dataset_path)
+    report["read_seconds"] = read_seconds
+    report["output"] = str(written)
+    if json_output:
+        typer.echo(dumps_json(report), nl=False)
+        return
+    console.print(render_smoothing(report))
+
+
+def _recorded_dataset(run_dir: Path, summary: Mapping[str, Any], fallback: str) -> Path:
+    recorded = summary.get("dataset") or fallback
+    path = Path(str(recorded))
+    if not path.is_file():
+        raise CamlocError(
+            f"{run_dir}: the run's dataset {recorded} is not there (a relative path is relative to where "
+            "'camloc run' was started); pass the g2o file with --dataset FILE"
+        )
+    return path
+
+
+@contextlib.contextmanager
+def _iteration_status(*, enabled: bool) -> Iterator[Optional[Callable]]:
+    """A transient status line on stderr with the iteration and cost, or None."""
+    if not enabled:
+        yield None
+        return
+    with err_console.status("smoothing: linearizing") as status:
+
+        def on_iteration(iteration) -> None:
+            status.update(f"smoothing: iteration {iteration.number}, cost {iteration.cost:.6g}")
+
+        yield on_iteration
+
+
+def render_smoothing(report: Mapping[str, Any]):
+    """Tables of a ``camloc.smoother.smoothing_report`` (with ``output`` and ``read_seconds``)."""
+    from rich.console import Group
+    from rich.markup import escape
+    from rich.table import Table
+    from rich.text import Text
+
+    parts: list = [Text(f"camloc smooth: {Path(str(report['dataset'])).name} ({report['poses']} poses)", style="bold")]
+    errors = report.get("errors")
+    if errors is not None:
+        table = Table(title="error vs ground truth (no alignment)", title_justify="left")
+        for column in ("", "EKF", "smoothed", "smoothed / EKF"):
+            table.add_column(column, justify="right" if column else "left")
+        for label, key, spec in (("position RMSE [m]", "position_rmse_m", ".4f"),
+                                 ("rotation RMSE [deg]", "rotation_rmse_deg", ".3f")):
+            before, after = errors["filter"][key], errors["smoothed"][key]
+            ratio = f"{after / before:.2f}x" if before else "-"
+            table.add_row(escape(label), format(before, spec), format(after, spec), Text(ratio, style="bold"))
+        parts.append(table)
+    else:
+        parts.append(Text("no ground truth in the run: errors are not computed", style="yellow"))
+
+    table = Table(title="optimization", title_justify="left", show_header=False)
+    table.add_column("what")
+    table.add_column("value", justify="right")
+    huber = "off (least squares)" if report["huber"] is None else f"{report['huber']:g}"
+    iterations = f"{report['iterations']}" + ("" if report["converged"] else " (not converged)")
+    condition = "-" if report["condition_estimate"] is None else f"{report['condition_estimate']:.3g}"
+    rows = (
+        ("factors", f"{report['odometry_factors']} odometry, {report['observation_factors']} observations"),
+        ("Huber threshold", huber),
+        ("down-weighted observations", str(report["downweighted_observations"])),
+        ("iterations", iterations),
+        ("cost, initial -> final", f"{report['initial_cost']:.6g} -> {report['final_cost']:.6g}"),
+        ("condition estimate", condition),
+        ("time", f"{report['seconds']:.2f} s smoothing, {report['read_seconds']:.2f} s reading"),
+    )
+    for label, value in rows:
+        table.add_row(escape(label), escape(value))
+    parts.append(table)
+    if report["dropped_observations"]:
+        parts.append(Text(f"note: {report['dropped_observations']} accepted observation(s) left out: their landmark "
+                          "is behind the camera at the filter's poses", style="yellow"))
+    if not report["converged"]:
+        parts.append(Text("warning: stopped at --max-iterations before the steps became tiny", style="yellow"))
+    parts.append(Text(f"wrote {report['output']}"))
+    return Group(*parts)
