@@ -532,7 +532,7 @@ def nis_summary(nis: np.ndarray, nis_dof: np.ndarray) -> dict:
 
 
 def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
-    """All metrics of a run, for the filter's estimate and for odometry alone side by side.
+    """All metrics of a run, for the filter's estimate, odometry alone (and the smoother) side by side.
 
     Parameters
     ----------
@@ -545,7 +545,8 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
     A JSON-serializable dict: ``dataset``, ``poses``, ``align``, ``delta``, ``notes`` (list);
     with ground truth ``estimate`` and ``odometry`` (each as ``trajectory_metrics``),
     ``improvement`` (odometry / estimate ATE and rotation RMSE) and ``nees`` (``nees_summary`` of
-    ``run_nees``: the given start pose is left out);
+    ``run_nees``: the given start pose is left out); ``smoothed`` (``trajectory_metrics``) too when
+    the run was smoothed (``RunResult.smoothed_xyz``, from ``camloc smooth``);
     always ``association`` (``association_scores``) and ``nis`` (``nis_summary``).
     """
     if align not in ALIGN_METHODS:
@@ -572,6 +573,11 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
             "rotation_rmse": _ratio(odometry["rotation"]["rmse_deg"], estimate["rotation"]["rmse_deg"]),
         }
         out["nees"] = nees_summary(run_nees(result))
+        if result.smoothed_xyz is not None:
+            out["smoothed"] = trajectory_metrics(
+                result.smoothed_xyz, result.smoothed_quat_xyzw, result.truth_xyz, result.truth_quat_xyzw,
+                align=align, delta=delta,
+            )
     else:
         out["notes"].append("no ground truth in the run: trajectory errors, improvement and NEES are not computed")
     out["association"] = association_scores(result.associations, result.map_landmark_ids)

@@ -5,8 +5,9 @@ it; the caller owns the figure (its size, layout, saving). The ``draw_*`` functi
 plots out on a figure they are given. This is the only module of the library that imports
 matplotlib, and nothing in the core imports it, so ``camloc run`` never pays for it.
 
-Colours are fixed across figures: EKF blue, odometry green, ground truth red, map grey. Errors are
-computed against the ground truth without alignment (``camloc.metrics``).
+Colours are fixed across figures: EKF blue, odometry green, ground truth red, smoothed purple (when
+the run was smoothed, ``camloc smooth``), map grey. Errors are computed against the ground truth
+without alignment (``camloc.metrics``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from camloc.results import RunResult
 ESTIMATE_COLOR = "tab:blue"
 ODOMETRY_COLOR = "tab:green"
 TRUTH_COLOR = "tab:red"
+SMOOTHED_COLOR = "tab:purple"
 MAP_COLOR = "0.55"
 CORRECT_COLOR = "#2ca25f"
 WRONG_COLOR = "#de2d26"
@@ -51,28 +53,35 @@ def _position_rmse(result: RunResult, xyz: np.ndarray) -> float:
     return float(np.sqrt(np.mean(metrics.position_errors(xyz, result.truth_xyz) ** 2)))
 
 
+def _paths(result: RunResult) -> dict[str, np.ndarray]:
+    """Positions (N, 3) of the estimated paths by key: estimate, odometry, and smoothed if any."""
+    paths = {"estimate": result.estimate_xyz, "odometry": result.odometry_xyz}
+    if result.smoothed_xyz is not None:
+        paths["smoothed"] = result.smoothed_xyz
+    return paths
+
+
+_PATH_NAMES = {"estimate": "EKF", "odometry": "odometry", "smoothed": "smoothed"}
+
+
 def _path_labels(result: RunResult) -> dict[str, str]:
     """Legend labels, with each path's position RMSE when there is ground truth."""
     if result.truth_xyz is None:
-        return {"estimate": "EKF", "odometry": "odometry"}
-    return {
-        "estimate": f"EKF (RMSE {_position_rmse(result, result.estimate_xyz):.3f} m)",
-        "odometry": f"odometry (RMSE {_position_rmse(result, result.odometry_xyz):.3f} m)",
-    }
+        return {key: _PATH_NAMES[key] for key in _paths(result)}
+    return {key: f"{_PATH_NAMES[key]} (RMSE {_position_rmse(result, xyz):.3f} m)" for key, xyz in _paths(result).items()}
 
 
 def _trajectory_title(result: RunResult, view: str) -> str:
     title = f"{dataset_name(result)}: {view}"
     if result.truth_xyz is not None:
-        title += (
-            f"\nposition RMSE: EKF {_position_rmse(result, result.estimate_xyz):.3f} m, "
-            f"odometry {_position_rmse(result, result.odometry_xyz):.3f} m"
+        title += "\nposition RMSE: " + ", ".join(
+            f"{_PATH_NAMES[key]} {_position_rmse(result, xyz):.3f} m" for key, xyz in _paths(result).items()
         )
     return title
 
 
 def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
-    """Top-down (x-y) view of the EKF, odometry and true paths over the landmark map, metres."""
+    """Top-down (x-y) view of the EKF, odometry, true (and smoothed) paths over the map, metres."""
     labels = _path_labels(result)
     if show_map and len(result.map_landmark_xyz):
         xyz = result.map_landmark_xyz
@@ -85,6 +94,9 @@ def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
             label=labels["odometry"], zorder=3, **_STYLE)
     ax.plot(result.estimate_xyz[:, 0], result.estimate_xyz[:, 1], color=ESTIMATE_COLOR,
             label=labels["estimate"], zorder=4, **_STYLE)
+    if result.smoothed_xyz is not None:
+        ax.plot(result.smoothed_xyz[:, 0], result.smoothed_xyz[:, 1], color=SMOOTHED_COLOR,
+                label=labels["smoothed"], zorder=4, **_STYLE)
     start = result.estimate_xyz[0]
     ax.plot(start[0], start[1], marker="o", color="black", markersize=6, linestyle="none", label="start", zorder=5)
     ax.set_aspect("equal", adjustable="datalim")
@@ -99,7 +111,7 @@ def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
 def plot_3d(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
     """3D view of the same paths and map; ``ax`` must be a 3D axis (``projection="3d"``)."""
     labels = _path_labels(result)
-    clouds = [result.estimate_xyz, result.odometry_xyz]
+    clouds = list(_paths(result).values())
     if show_map and len(result.map_landmark_xyz):
         xyz = result.map_landmark_xyz
         ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], s=6, marker="s", color=MAP_COLOR, depthshade=False,
@@ -110,6 +122,8 @@ def plot_3d(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
         clouds.append(result.truth_xyz)
     ax.plot(*result.odometry_xyz.T, color=ODOMETRY_COLOR, label=labels["odometry"], **_STYLE)
     ax.plot(*result.estimate_xyz.T, color=ESTIMATE_COLOR, label=labels["estimate"], **_STYLE)
+    if result.smoothed_xyz is not None:
+        ax.plot(*result.smoothed_xyz.T, color=SMOOTHED_COLOR, label=labels["smoothed"], **_STYLE)
     # Equal scale on all axes, so that heights are not exaggerated.
     points = np.vstack(clouds)
     # zoom < 1 leaves room for the z label, which constrained layout does not reserve for 3D axes.
@@ -161,7 +175,7 @@ def rotation_sigma_bound_deg(result: RunResult, *, sigma: float = SIGMA) -> np.n
 
 
 def plot_position_error(ax: Axes, result: RunResult, *, sigma: float = SIGMA) -> Axes:
-    """Position error norm over time, EKF and odometry, with the EKF's ``sigma`` band (metres)."""
+    """Position error norm over time, EKF, odometry (and smoothed), with the EKF's ``sigma`` band (metres)."""
     if result.truth_xyz is None:
         return _no_truth(ax, "position error")
     x = result.pose_ids
@@ -171,13 +185,16 @@ def plot_position_error(ax: Axes, result: RunResult, *, sigma: float = SIGMA) ->
             label="odometry", **_STYLE)
     ax.plot(x, metrics.position_errors(result.estimate_xyz, result.truth_xyz), color=ESTIMATE_COLOR,
             label="EKF", **_STYLE)
+    if result.smoothed_xyz is not None:
+        ax.plot(x, metrics.position_errors(result.smoothed_xyz, result.truth_xyz), color=SMOOTHED_COLOR,
+                label="smoothed", **_STYLE)
     ax.set_ylim(bottom=0.0)
     _finish_time_axis(ax, result, "position error [m]", "position error against ground truth")
     return ax
 
 
 def plot_rotation_error(ax: Axes, result: RunResult, *, sigma: float = SIGMA) -> Axes:
-    """Rotation error angle over time, EKF and odometry, with the EKF's ``sigma`` band (degrees)."""
+    """Rotation error angle over time, EKF, odometry (and smoothed), with the EKF's ``sigma`` band (degrees)."""
     if result.truth_xyz is None:
         return _no_truth(ax, "rotation error")
     x = result.pose_ids
@@ -187,6 +204,9 @@ def plot_rotation_error(ax: Axes, result: RunResult, *, sigma: float = SIGMA) ->
             color=ODOMETRY_COLOR, label="odometry", **_STYLE)
     ax.plot(x, metrics.rotation_errors_deg(result.estimate_quat_xyzw, result.truth_quat_xyzw),
             color=ESTIMATE_COLOR, label="EKF", **_STYLE)
+    if result.smoothed_xyz is not None:
+        ax.plot(x, metrics.rotation_errors_deg(result.smoothed_quat_xyzw, result.truth_quat_xyzw),
+                color=SMOOTHED_COLOR, label="smoothed", **_STYLE)
     ax.set_ylim(bottom=0.0)
     _finish_time_axis(ax, result, "rotation error [deg]", "rotation error against ground truth")
     return ax

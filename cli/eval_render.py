@@ -49,22 +49,27 @@ def _interval(bounds: Optional[list]) -> str:
     return "-" if bounds is None else f"[{bounds[0]:.3f}, {bounds[1]:.3f}]"
 
 
-def _trajectory_table(blocks: Mapping[str, Mapping], title: str) -> Table:
-    """Rows of trajectory metrics, one column per block (e.g. EKF, odometry), plus their ratio."""
+def _trajectory_table(blocks: Mapping[str, Mapping], title: str, *, ratio: Optional[tuple[str, str]] = None) -> Table:
+    """Rows of trajectory metrics, one column per block (e.g. EKF, odometry), plus a ratio column.
+
+    ``ratio = (numerator, denominator)`` names two blocks; by default, with exactly two blocks,
+    the second over the first.
+    """
     table = Table(title=title, title_justify="left", min_width=len(title))
     table.add_column("metric")
     for name in blocks:
         table.add_column(name, justify="right")
-    with_ratio = len(blocks) == 2
-    if with_ratio:
-        names = list(blocks)
-        table.add_column(f"{names[1]} / {names[0]}", justify="right", style="bold")
+    if ratio is None and len(blocks) == 2:
+        first_name, second_name = blocks
+        ratio = (second_name, first_name)
+    if ratio is not None:
+        table.add_column(f"{ratio[0]} / {ratio[1]}", justify="right", style="bold")
     for label, keys, spec in _TRAJECTORY_ROWS:
-        values = [_get(block, *keys) for block in blocks.values()]
-        cells = [_fmt(value, spec) for value in values]
-        if with_ratio:
-            first, second = values
-            cells.append(f"{second / first:.2f}x" if first and second is not None else "-")
+        values = {name: _get(block, *keys) for name, block in blocks.items()}
+        cells = [_fmt(value, spec) for value in values.values()]
+        if ratio is not None:
+            numerator, denominator = values[ratio[0]], values[ratio[1]]
+            cells.append(f"{numerator / denominator:.2f}x" if denominator and numerator is not None else "-")
         table.add_row(escape(label), *cells)
     return table
 
@@ -129,8 +134,14 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
     ]
     if "estimate" in report:
         blocks = {"EKF": report["estimate"], "odometry": report["odometry"]}
+        ratio = None
+        if "smoothed" in report:
+            # Three paths: the ratio worth a column is what smoothing gained over the filter.
+            blocks["smoothed"] = report["smoothed"]
+            ratio = ("smoothed", "EKF")
         parts.append(_trajectory_table(
-            blocks, f"trajectory error vs ground truth (align {report['align']}, RPE delta {report['delta']})"
+            blocks, f"trajectory error vs ground truth (align {report['align']}, RPE delta {report['delta']})",
+            ratio=ratio,
         ))
         if report["align"] != "none":
             parts.append(_alignment_table(blocks))
