@@ -41,7 +41,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, ekf, geometry, models
+from camloc import association, ekf
 
 
 @dataclass(frozen=True)
@@ -121,7 +121,7 @@ class BeamSearch:
         return self._backtrack()
 
     def _predicted(self, h: _Hypothesis, edge: int, parent: int) -> _Hypothesis:
-        x, F, G = models.motion(h.x, self.ctx.T_increments[edge])
+        x, F, G = self.ctx.filter.predict(h.x, self.ctx.T_increments[edge])
         P = ekf.predict(h.P, F, G, self.ctx.dataset.odom_cov[edge])  # P = F P F' + G Q G'
         return _Hypothesis(x, P, h.cost, parent)
 
@@ -157,7 +157,7 @@ class BeamSearch:
         """Gated landmarks of every observation under h, computed in one batch per camera."""
         ds = self.ctx.dataset
         out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
-        T_world_robot = geometry.pose_from_euler(h.x)
+        T_world_robot = self.ctx.filter.pose(h.x)
         cameras = ds.obs_camera[obs]
         for camera_id in np.unique(cameras):
             rows = np.flatnonzero(cameras == camera_id)
@@ -170,7 +170,7 @@ class BeamSearch:
                 for r in rows:
                     out[r] = _empty_options()
                 continue
-            z_hat, H = models.observe(h.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[candidates])
+            z_hat, H = self.ctx.filter.observe(h.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[candidates])
             HPH = H @ h.P @ np.swapaxes(H, 1, 2)
             o = obs[rows]
             d2, nll = association.pair_statistics(ds.obs_uvd[o], ds.obs_cov[o], z_hat, HPH)
@@ -218,7 +218,7 @@ class BeamSearch:
         result = self.ctx.updated(h.x, h.P, o, landmarks)       # stacked, iterated as configured
         log_det_S = float(np.linalg.slogdet(result.S)[1])
         cost += result.nis + log_det_S - float(self.log_det_R[o].sum())
-        x, P = _wrap(result.state), result.cov
+        x, P = result.state, result.cov
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
         return _Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
 
@@ -234,7 +234,7 @@ class BeamSearch:
             out.append(_Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))
         for j in np.flatnonzero(pairs):
             result = self.ctx.updated(h.x, h.P, np.array([o]), options.landmarks[j : j + 1])
-            out.append(_Hypothesis(_wrap(result.state), result.cov, h.cost + float(options.costs[j]), h.parent,
+            out.append(_Hypothesis(result.state, result.cov, h.cost + float(options.costs[j]), h.parent,
                                    h.pairs + ((o, int(options.landmarks[j])),), h.unassigned))
         return out
 
@@ -251,8 +251,7 @@ class BeamSearch:
         return kept
 
     def _same_state(self, a: _Hypothesis, b: _Hypothesis) -> bool:
-        d = a.x - b.x
-        d[3:6] = geometry.wrap_angle(d[3:6])
+        d = self.ctx.filter.difference(a.x, b.x)
         return bool(np.all(d * d <= self.settings.merge_sigma**2 * np.diagonal(b.P)))
 
     def _backtrack(self) -> list[np.ndarray]:
@@ -268,10 +267,3 @@ class BeamSearch:
 
 def _empty_options() -> _Options:
     return _Options(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6)))
-
-
-def _wrap(x: np.ndarray) -> np.ndarray:
-    out = x.copy()
-    out[3] = geometry.wrap_angle(out[3])
-    out[5] = geometry.wrap_angle(out[5])
-    return out

@@ -1,8 +1,8 @@
 """Extended Kalman filter steps: prediction, and the (iterated) update in Joseph form.
 
 The filter is generic in its models: ``predict`` takes the motion Jacobians, ``update`` takes a
-measurement function returning ``(z_hat, H)``. Angles in the state are handled by the caller through
-``state_difference`` (so the iterated update can re-linearize around wrapped Euler angles).
+measurement function returning ``(z_hat, H)`` and, for states that are not plain vectors (wrapped
+angles, a pose on SE(3)), the retraction and difference that move a state by an error.
 """
 
 from __future__ import annotations
@@ -17,6 +17,15 @@ from camloc.errors import CamlocError
 
 MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 StateDifference = Callable[[np.ndarray, np.ndarray], np.ndarray]
+Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _add(x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    return x + delta
+
+
+def _subtract(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a - b
 
 
 class FilterDivergedError(CamlocError):
@@ -100,30 +109,32 @@ def update(
     R: np.ndarray,
     measure: MeasurementFunction,
     *,
-    difference: StateDifference,
+    retract: Retraction = _add,
+    difference: StateDifference = _subtract,
     iterations: int = 1,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
     Parameters
     ----------
-    x, P : prior state (n,) and covariance (n, n).
+    x, P : prior state and covariance (n, n) of its error.
     z : (m,) stacked measurements; R : (m, m) their covariance.
-    measure : x -> (z_hat (m,), H (m, n)).
-    difference : (a, b) -> a - b for states (angles wrapped).
+    measure : x -> (z_hat (m,), H (m, n)), H with respect to the error at x.
+    retract : (x, delta) -> x moved by the error delta (n,); plain addition for vector states.
+    difference : (a, b) -> the error delta with retract(b, delta) == a; plain subtraction.
     iterations : number of linearizations (>= 1).
 
-    Each iteration ``x_{i+1} = x + K_i (z - h(x_i) - H_i (x - x_i))`` with ``K_i`` at ``x_i``
+    Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
     z_hat, H = measure(x)
     y_prior = z - z_hat
     K, S, L = kalman_gain(P, H, R)
     nis = float(y_prior @ cho_solve(L, y_prior))  # NIS = y' S^-1 y
-    x_i = x + K @ y_prior  # x+ = x + K y
+    x_i = retract(x, K @ y_prior)  # x+ = x [+] K y
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
         K, _, _ = kalman_gain(P, H_i, R)
         H = H_i
-        x_i = x + K @ (z - z_hat_i - H_i @ difference(x, x_i))
+        x_i = retract(x, K @ (z - z_hat_i + H_i @ difference(x_i, x)))
     return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis)

@@ -161,6 +161,14 @@ def retract_right(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return make_pose(R @ so3_exp(delta[..., 3:6]), t + np.einsum("...ij,...j->...i", R, delta[..., 0:3]))
 
 
+def difference_right(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """The right perturbation (..., 6) = (dt, dtheta) that moves ``T_ref`` to ``T``: the inverse
+    of ``retract_right``, ``retract_right(T_ref, difference_right(T, T_ref)) == T``."""
+    R_ref_T = np.swapaxes(np.asarray(T_ref, dtype=float)[..., :3, :3], -1, -2)
+    dt = np.einsum("...ij,...j->...i", R_ref_T, T[..., :3, 3] - T_ref[..., :3, 3])
+    return np.concatenate([dt, so3_log(R_ref_T @ T[..., :3, :3])], axis=-1)
+
+
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Geodesic angle (...,) in radians of rotation matrices (..., 3, 3)."""
     return np.linalg.norm(so3_log(R), axis=-1)

@@ -17,14 +17,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from camloc import association, ekf, geometry, models
+from camloc import association, ekf, geometry
+from camloc.filters import FILTERS, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.results import UNASSOCIATED, Associations, RunResult
 
 ASSOCIATION_METHODS = ("beam", "best-friends", "oracle")
 COSTS = ("nll", "mahalanobis", "euclidean")
-SINGULARITY_WARNING_DEG = 80.0
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -35,6 +35,8 @@ class LocalizerConfig:
 
     Attributes
     ----------
+    filter : "euler" (state x, y, z, roll, pitch, yaw; singular at pitch +-90 deg) or "se3" (an
+        error-state filter on SE(3), no singularity), see ``camloc.filters``.
     association : "beam" (a beam of association hypotheses, see ``camloc.beam``), "best-friends"
         (mutual best match + gates) or "oracle" (the file's landmark ids, gated like any pair:
         what perfect association gives). Only "oracle" reads the file's landmark ids.
@@ -56,6 +58,7 @@ class LocalizerConfig:
     initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose.
     """
 
+    filter: str = "euler"
     association: str = "beam"
     iterations: int = 3
     gate_probability: float = 0.99
@@ -77,6 +80,7 @@ class LocalizerConfig:
     def validate(self) -> None:
         """Raise ConfigError naming the first option that is out of range."""
         checks = [
+            (self.filter in FILTERS, f"filter must be one of {tuple(FILTERS)}, got {self.filter!r}"),
             (self.association in ASSOCIATION_METHODS, f"association must be one of {ASSOCIATION_METHODS}, got {self.association!r}"),
             (self.cost in COSTS, f"cost must be one of {COSTS}, got {self.cost!r}"),
             (int(self.iterations) == self.iterations and 1 <= self.iterations <= 50, f"iterations must be an integer in 1..50, got {self.iterations}"),
@@ -139,6 +143,7 @@ class _Localizer:
     def __init__(self, dataset: Dataset, config: LocalizerConfig):
         self.dataset = dataset
         self.config = config
+        self.filter = make_filter(config.filter)
         self.cameras = {
             cid: _CameraModel(cam.T_robot_camera, (cam.fx, cam.fy, cam.cx, cam.cy))
             for cid, cam in dataset.cameras.items()
@@ -154,7 +159,8 @@ class _Localizer:
         self.T_increments = dataset.T_odometry
 
         n, k_obs = dataset.num_poses, dataset.num_observations
-        self.states = np.zeros((n, 6))
+        self.states = np.zeros((n, self.filter.stored_size))
+        self.poses = np.zeros((n, 4, 4))
         self.covs = np.zeros((n, 6, 6))
         self.odometry_poses = np.zeros((n, 4, 4))
         self.chosen_landmark = np.full(k_obs, UNASSOCIATED, dtype=np.int64)
@@ -163,9 +169,10 @@ class _Localizer:
         self.nis: list[float] = []
         self.nis_dof: list[int] = []
         self.warnings: list[str] = []
+        self.warned_singularity = False
 
         sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
-        self.x = geometry.pose_to_euler(dataset.T_world_start)
+        self.x = self.filter.initial(dataset.T_world_start)
         self.P = np.diag(sigma**2)
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
@@ -196,13 +203,14 @@ class _Localizer:
         if obs.size:
             result = self.updated(self.x, self.P, obs, landmarks)  # one stacked (iterated) update
             self._record_pairs(k, obs, landmarks, result)
-            self.x, self.P = normalize_state(result.state), result.cov
-        self.states[k], self.covs[k] = self.x, self.P
+            self.x, self.P = result.state, result.cov
+        self.states[k], self.covs[k] = self.filter.stored(self.x), self.P
+        self.poses[k] = self.filter.pose(self.x)
         self.odometry_poses[k] = self.T_odometry
 
     def _predict(self, edge: int) -> None:
         T_increment = self.T_increments[edge]
-        self.x, F, G = models.motion(self.x, T_increment)
+        self.x, F, G = self.filter.predict(self.x, T_increment)
         self.P = ekf.predict(self.P, F, G, self.dataset.odom_cov[edge])  # P = F P F' + G Q G'
         self.T_odometry = self.T_odometry @ T_increment
 
@@ -240,7 +248,7 @@ class _Localizer:
             remaining = np.delete(remaining, rows[best])
             if remaining.size:
                 result = self.updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
-                x, P = normalize_state(result.state), result.cov
+                x, P = result.state, result.cov
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
 
     def _best_friends(
@@ -248,7 +256,7 @@ class _Localizer:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Best-friends pairs at (x, P) over all cameras: (rows into obs, landmark indices, gaps)."""
         rows_all, landmarks_all, gaps_all = [], [], []
-        T_world_robot = geometry.pose_from_euler(x)
+        T_world_robot = self.filter.pose(x)
         for camera_id in np.unique(self.dataset.obs_camera[obs]):
             rows_c = np.flatnonzero(self.dataset.obs_camera[obs] == camera_id)
             camera = self.cameras[int(camera_id)]
@@ -259,7 +267,7 @@ class _Localizer:
             candidates = candidates[~np.isin(candidates, taken)]
             if candidates.size == 0:
                 continue
-            z_hat, H = models.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
+            z_hat, H = self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
             HPH = H @ P @ np.swapaxes(H, 1, 2)
             z = self.dataset.obs_uvd[obs[rows_c]]
             d2, nll = association.pair_statistics(z, self.dataset.obs_cov[obs[rows_c]], z_hat, HPH)
@@ -283,7 +291,7 @@ class _Localizer:
         for camera_id in np.unique(self.dataset.obs_camera[obs]):
             mine = self.dataset.obs_camera[obs] == camera_id
             camera = self.cameras[int(camera_id)]
-            z_hat, H = models.observe(self.x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[index[mine]])
+            z_hat, H = self.filter.observe(self.x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[index[mine]])
             S = H @ self.P @ np.swapaxes(H, 1, 2) + self.dataset.obs_cov[obs[mine]]
             y = self.dataset.obs_uvd[obs[mine]] - z_hat
             d2 = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
@@ -302,10 +310,13 @@ class _Localizer:
             z_hat = np.empty((obs.size, 3))
             H = np.empty((obs.size, 3, 6))
             for camera, mask in groups:
-                z_hat[mask], H[mask] = models.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask])
+                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask])
             return z_hat.reshape(-1), H.reshape(-1, 6)
 
-        return ekf.update(x, P, z, R, measure, difference=state_difference, iterations=self.config.iterations)
+        return ekf.update(
+            x, P, z, R, measure,
+            retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
+        )
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
         y = result.innovation.reshape(-1, 3)
@@ -318,16 +329,17 @@ class _Localizer:
         self.nis_dof.append(3 * obs.size)
 
     def _warn_near_singularity(self, k: int) -> None:
-        if abs(np.degrees(self.x[4])) > SINGULARITY_WARNING_DEG and not self.warnings:
+        pitch = self.filter.near_singularity(self.x)
+        if pitch is not None and not self.warned_singularity:
+            self.warned_singularity = True
             self.warnings.append(
-                f"pose {int(self.dataset.pose_ids[k])}: pitch {np.degrees(self.x[4]):.1f} deg is close to the "
-                "Euler filter's singularity at +-90 deg; its estimate may degrade from here"
+                f"pose {int(self.dataset.pose_ids[k])}: pitch {pitch:.1f} deg is close to the Euler filter's "
+                "singularity at +-90 deg; its estimate may degrade from here (--filter se3 has no singularity)"
             )
 
     def result(self, filter_seconds: float) -> RunResult:
         ds = self.dataset
-        T_estimate = geometry.pose_from_euler(self.states)
-        estimate_xyz, estimate_quat = geometry.pose_to_quat(T_estimate)
+        estimate_xyz, estimate_quat = geometry.pose_to_quat(self.poses)
         odometry_xyz, odometry_quat = geometry.pose_to_quat(self.odometry_poses)
         associations = Associations(
             pose_id=ds.pose_ids[ds.obs_pose_index],
@@ -361,7 +373,7 @@ class _Localizer:
             pose_ids=ds.pose_ids.copy(),
             estimate_xyz=estimate_xyz,
             estimate_quat_xyzw=estimate_quat,
-            estimate_cov=euler_cov_to_pose_cov(self.states, self.covs),
+            estimate_cov=self.filter.pose_cov(self.states, self.covs),
             filter_state=self.states,
             filter_cov=self.covs,
             odometry_xyz=odometry_xyz,
@@ -376,34 +388,6 @@ class _Localizer:
             nis_dof=np.asarray(self.nis_dof, dtype=np.int64),
             summary=summary,
         )
-
-
-def state_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a - b`` for Euler states, with the angle differences wrapped into [-pi, pi)."""
-    d = a - b
-    d[3:6] = geometry.wrap_angle(d[3:6])
-    return d
-
-
-def normalize_state(x: np.ndarray) -> np.ndarray:
-    """Wrap roll and yaw into [-pi, pi); pitch is left as is (the filter warns near +-90 deg)."""
-    out = x.copy()
-    out[3] = geometry.wrap_angle(out[3])
-    out[5] = geometry.wrap_angle(out[5])
-    return out
-
-
-def euler_cov_to_pose_cov(states: np.ndarray, covs: np.ndarray) -> np.ndarray:
-    """Covariances (N, 6, 6) of Euler states -> of the pose error ``geometry.pose_error_vector``.
-
-    An Euler error d moves the rotation by ``R Exp(E d) = Exp(R E d) R``: the world-frame rotation
-    vector is ``R E d``, so ``J = blockdiag(I, R E)`` and ``cov_pose = J P J'``.
-    """
-    J = np.zeros_like(covs)
-    J[:, 0:3, 0:3] = np.eye(3)
-    J[:, 3:6, 3:6] = geometry.euler_to_matrix(states[:, 3:6]) @ geometry.euler_rate_matrix(states[:, 3:6])
-    cov = J @ covs @ np.swapaxes(J, 1, 2)
-    return 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
 
 def _candidate_range(dataset: Dataset, config: LocalizerConfig) -> tuple[float, float, float]:

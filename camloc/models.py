@@ -16,6 +16,16 @@ Jacobians  F = dx'/dx and G = dx'/dw of the motion, H = dz/dx of the measurement
            the body-frame perturbation ``R(rpy + d) = R Exp(E(rpy) d)`` (``geometry.euler_rate_matrix``).
            Every one is checked against central finite differences in tests/test_models.py.
 Singularity  E(rpy) is singular at pitch = +-90 deg; the Euler filter is not usable there.
+
+SE(3) error-state variant (``motion_se3``, ``observe_se3``)
+-----------------------------------------------------------
+State      the pose T = (R, t) itself; the filter's 6-dimensional error is a right perturbation
+           delta = (dt, dtheta): T_true = retract_right(T, delta), i.e. R_true = R Exp(dtheta),
+           t_true = t + R dt (``geometry.retract_right``). No singularity anywhere.
+Motion     T' = T dT Exp(w) as above; the error propagates as
+              dtheta' = dR^T dtheta + w_theta,  dt' = dR^T (dt - [dt_inc]x dtheta) + w_t,
+           so F = [[dR^T, -dR^T [dt_inc]x], [0, dR^T]] and G = I.
+Measure    the same camera model; d p_robot / d dt = -I, d p_robot / d dtheta = [p_robot]x.
 """
 
 from __future__ import annotations
@@ -125,3 +135,43 @@ def projection_jacobian(p_camera: np.ndarray, intrinsics: tuple[float, float, fl
     J[:, 1, 2] = -fy * y / z**2
     J[:, 2, 2] = 1.0
     return J
+
+
+def motion_se3(T: np.ndarray, T_increment: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Compose a pose with an odometry increment, with the error-state Jacobians.
+
+    Parameters
+    ----------
+    T : (4, 4) T_world_robot.
+    T_increment : (4, 4) T_k_k+1.
+
+    Returns
+    -------
+    T_next : (4, 4) T @ T_increment.
+    F : (6, 6) d delta' / d delta for right perturbations (dt, dtheta) of T and of T_next.
+    G : (6, 6) d delta' / d w, w = (translation, rotation vector) right perturbation of the
+        increment: the identity, the increment's noise being itself a right perturbation.
+    """
+    dR_T = T_increment[:3, :3].T
+    F = np.zeros((6, 6))
+    F[0:3, 0:3] = dR_T
+    F[0:3, 3:6] = -dR_T @ geometry.hat(T_increment[:3, 3])
+    F[3:6, 3:6] = dR_T
+    return T @ T_increment, F, np.eye(6)
+
+
+def observe_se3(
+    T_world_robot: np.ndarray,
+    T_robot_camera: np.ndarray,
+    intrinsics: tuple[float, float, float, float],
+    landmark_xyz: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted measurements (M, 3) and their Jacobians (M, 3, 6) with respect to the right
+    perturbation (dt, dtheta) of T_world_robot."""
+    p_robot, p_camera = camera_points(T_world_robot, T_robot_camera, landmark_xyz)
+    z_hat = project_points(p_camera, intrinsics)
+    dprobot = np.empty((landmark_xyz.shape[0], 3, 6))
+    dprobot[:, :, 0:3] = -np.eye(3)
+    dprobot[:, :, 3:6] = geometry.hat(p_robot)
+    H = projection_jacobian(p_camera, intrinsics) @ (T_robot_camera[:3, :3].T @ dprobot)
+    return z_hat, H

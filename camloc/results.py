@@ -91,8 +91,9 @@ class RunResult:
     estimate_cov : (N, 6, 6) covariance of the pose error ``(t_true - t_est, Log(R_true R_est^T))``
         (world-frame position and rotation vector, see ``geometry.pose_error_vector``), whatever
         the filter's own parametrization, so that NEES is comparable across filters.
-    filter_state, filter_cov : (N, S), (N, S, S) the filter's own state and covariance (for the
-        Euler filter: x, y, z, roll, pitch, yaw).
+    filter_state, filter_cov : (N, S), (N, D, D) the filter's own state and the covariance of its
+        error: the Euler filter stores x, y, z, roll, pitch, yaw (D = S = 6); the SE(3) filter
+        stores x, y, z, qx, qy, qz, qw and a 6-dimensional right-perturbation error.
     odometry_xyz, odometry_quat_xyzw : (N, 3), (N, 4) odometry alone from the same start.
     truth_xyz, truth_quat_xyzw : (N, 3), (N, 4) ground truth, or None.
     map_landmark_ids, map_landmark_xyz : (L,), (L, 3) the known map the run localized against.
@@ -409,13 +410,16 @@ def run_problems(result: RunResult) -> list[str]:
     """
     n = np.shape(result.pose_ids)[0] if np.ndim(result.pose_ids) == 1 else -1
     state_dim = np.shape(result.filter_state)[-1] if np.ndim(result.filter_state) == 2 else -1
+    # The covariance is over the filter's error, which need not have the state's size (SE(3):
+    # the state is stored as x, y, z + quaternion, the error has 6 dimensions).
+    error_dim = np.shape(result.filter_cov)[-1] if np.ndim(result.filter_cov) == 3 else -1
     expected: dict[str, tuple] = {
         "pose_ids": (n,),
         "estimate_xyz": (n, 3),
         "estimate_quat_xyzw": (n, 4),
         "estimate_cov": (n, 6, 6),
         "filter_state": (n, state_dim),
-        "filter_cov": (n, state_dim, state_dim),
+        "filter_cov": (n, error_dim, error_dim),
         "odometry_xyz": (n, 3),
         "odometry_quat_xyzw": (n, 4),
     }

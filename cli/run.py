@@ -11,6 +11,11 @@ import typer
 from camloc.cli.common import console, err_console, handles_errors
 
 
+class FilterChoice(str, Enum):
+    euler = "euler"
+    se3 = "se3"
+
+
 class AssociationChoice(str, Enum):
     beam = "beam"
     best_friends = "best-friends"
@@ -34,6 +39,10 @@ def run(
     config_file: Optional[Path] = typer.Option(
         None, "--config", help="TOML file with localizer options (names as below, with underscores); "
         "options given on the command line win.", show_default=False
+    ),
+    filter_kind: Optional[FilterChoice] = typer.Option(
+        None, "--filter", help="State parametrization: euler (x, y, z, roll, pitch, yaw; singular at pitch "
+        "+-90 deg) or se3 (error-state filter on SE(3), no singularity). Default: euler.", show_default=False
     ),
     association: Optional[AssociationChoice] = typer.Option(
         None, help="Data association: beam (a beam of association hypotheses), best-friends (mutual "
@@ -108,6 +117,7 @@ def run(
     from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
 
     overrides = {
+        "filter": filter_kind.value if filter_kind else None,
         "association": association.value if association else None,
         "iterations": iterations,
         "gate_probability": gate_probability,

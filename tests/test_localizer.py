@@ -120,14 +120,14 @@ def test_warns_near_the_euler_singularity():
 
 
 def test_pose_covariance_matches_euler_covariance_by_sampling(rng):
-    from camloc.localizer import euler_cov_to_pose_cov
+    from camloc.filters import EulerFilter
 
     state = np.array([1.0, -2.0, 0.5, 0.4, -0.7, 2.0])
     A = rng.normal(size=(6, 6)) * 0.02
     cov = A @ A.T + 1e-4 * np.eye(6)
     samples = rng.multivariate_normal(state, cov, size=20000)
     errors = geometry.pose_error_vector(geometry.pose_from_euler(state)[None], geometry.pose_from_euler(samples))
-    predicted = euler_cov_to_pose_cov(state[None], cov[None])[0]
+    predicted = EulerFilter().pose_cov(state[None], cov[None])[0]
     np.testing.assert_allclose(np.cov(errors.T), predicted, atol=0.05 * np.abs(predicted).max())
 
 
@@ -138,3 +138,23 @@ def test_pose_covariance_matches_euler_covariance_by_sampling(rng):
 def test_bad_configuration_is_a_config_error(bad):
     with pytest.raises(ConfigError):
         LocalizerConfig(**bad).validate()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_se3_filter_matches_euler_on_flat_ground(seed):
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=120), seed=seed)
+    euler = localize(dataset, LocalizerConfig(filter="euler"))
+    se3 = localize(dataset, LocalizerConfig(filter="se3"))
+    assert position_rmse(se3, dataset) <= 1.05 * position_rmse(euler, dataset)
+    assert se3.filter_state.shape == (120, 7) and se3.filter_cov.shape == (120, 6, 6)
+
+
+def test_se3_filter_stays_consistent_through_pitch_90_where_euler_does_not():
+    dataset = simulate(SimulationConfig(trajectory="aerial", poses=200, max_tilt_deg=90), seed=4)
+    nees = {}
+    for kind in ("euler", "se3"):
+        result = localize(dataset, LocalizerConfig(filter=kind, association="oracle"))
+        nees[kind] = evaluate(result)["nees"]["mean"]
+        assert position_rmse(result, dataset) < 0.2
+    assert nees["se3"] < 7.5           # 6 degrees of freedom
+    assert nees["euler"] > 2 * nees["se3"]

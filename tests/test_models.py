@@ -82,3 +82,47 @@ def test_observation_matches_format_model():
     # image x runs along robot -y: a landmark to the robot's right (-y) has u > cx.
     z_right, _ = models.observe(np.zeros(6), T_robot_camera, intrinsics, np.array([[1.0, -0.2, 0.3]]))
     assert z_right[0, 0] > 0.5
+
+
+# --- the SE(3) error-state variant: Jacobians against perturbations through the retraction ---
+
+
+def numeric_manifold_jacobian(function, T, size=6):
+    """d function(T [+] delta) / d delta at 0, perturbing through ``geometry.retract_right``."""
+    return numeric_jacobian(lambda delta: function(geometry.retract_right(T, delta)), np.zeros(size), size)
+
+
+@pytest.mark.parametrize("trial", range(8))
+def test_se3_motion_jacobians(rng, trial):
+    T = geometry.pose_from_euler(random_state(rng, max_pitch_deg=89.9))
+    increment = random_increment(rng)
+    T_next, F, G = models.motion_se3(T, increment)
+    np.testing.assert_allclose(T_next, T @ increment, atol=1e-12)
+    numeric_F = numeric_manifold_jacobian(lambda Tp: geometry.difference_right(models.motion_se3(Tp, increment)[0], T_next), T)
+    np.testing.assert_allclose(F, numeric_F, atol=1e-6)
+
+    def with_noise(w):
+        noisy = increment @ geometry.make_pose(geometry.so3_exp(w[3:6]), w[0:3])
+        return geometry.difference_right(models.motion_se3(T, noisy)[0], T_next)
+
+    np.testing.assert_allclose(G, numeric_jacobian(with_noise, np.zeros(6), 6), atol=1e-6)
+
+
+@pytest.mark.parametrize("camera", CAMERAS)
+@pytest.mark.parametrize("trial", range(4))
+def test_se3_observation_jacobian(rng, camera, trial):
+    T_robot_camera, intrinsics = CAMERAS[camera]
+    # pitch exactly at 90 deg: where the Euler parametrization breaks, the SE(3) one does not
+    T = geometry.pose_from_euler(np.r_[rng.normal(size=3), rng.uniform(-3, 3), np.pi / 2, rng.uniform(-3, 3)])
+    p_camera = np.column_stack([rng.uniform(-1, 1, 6), rng.uniform(-1, 1, 6), rng.uniform(0.5, 4.0, 6)])
+    landmarks = geometry.transform_points(T @ T_robot_camera, p_camera)
+    z_hat, H = models.observe_se3(T, T_robot_camera, intrinsics, landmarks)
+    numeric = numeric_manifold_jacobian(lambda Tp: models.observe_se3(Tp, T_robot_camera, intrinsics, landmarks)[0], T)
+    np.testing.assert_allclose(H, numeric, atol=1e-6 * max(intrinsics[0], 1.0))
+    np.testing.assert_allclose(z_hat[:, 2], p_camera[:, 2], atol=1e-12)
+
+
+def test_retract_and_difference_are_inverse(rng):
+    T = geometry.pose_from_euler(random_state(rng))
+    delta = rng.normal(scale=0.3, size=6)
+    np.testing.assert_allclose(geometry.difference_right(geometry.retract_right(T, delta), T), delta, atol=1e-10)

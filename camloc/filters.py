@@ -1,0 +1,126 @@
+"""The two state parametrizations the localizer can filter in, behind one small interface.
+
+- ``EulerFilter`` (``--filter euler``, the default): the state is the 6-vector (x, y, z, roll,
+  pitch, yaw) and the update is additive; singular at pitch +-90 deg.
+- ``SE3Filter`` (``--filter se3``): an error-state EKF on SE(3). The state is the pose matrix T; the
+  covariance is over the right perturbation delta = (dt, dtheta) with T_true = T Exp(delta) in the
+  sense of ``geometry.retract_right``; the update is applied through that retraction. No
+  singularity.
+
+Both give the filter the same things: the initial state, prediction with its Jacobians, the
+measurement model with its Jacobian, retraction and difference (for the iterated update), the pose,
+and the pose covariance in camloc's common parametrization (``geometry.pose_error_vector``) so that
+NEES is comparable across filters.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from camloc import geometry, models
+
+SINGULARITY_WARNING_DEG = 80.0
+
+
+class EulerFilter:
+    """State (x, y, z, roll, pitch, yaw), ``R = Rz(yaw) Ry(pitch) Rx(roll)``; additive updates."""
+
+    name = "euler"
+    stored_size = 6
+
+    def initial(self, T_world_robot: np.ndarray) -> np.ndarray:
+        return geometry.pose_to_euler(T_world_robot)
+
+    def predict(self, x: np.ndarray, T_increment: np.ndarray):
+        return models.motion(x, T_increment)
+
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz):
+        return models.observe(x, T_robot_camera, intrinsics, landmark_xyz)
+
+    def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        """``x + delta`` with roll and yaw wrapped into [-pi, pi)."""
+        out = x + delta
+        out[3] = geometry.wrap_angle(out[3])
+        out[5] = geometry.wrap_angle(out[5])
+        return out
+
+    def difference(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``a - b`` with the angle differences wrapped."""
+        d = a - b
+        d[3:6] = geometry.wrap_angle(d[3:6])
+        return d
+
+    def pose(self, x: np.ndarray) -> np.ndarray:
+        return geometry.pose_from_euler(x)
+
+    def stored(self, x: np.ndarray) -> np.ndarray:
+        return x
+
+    def pose_cov(self, stored_states: np.ndarray, covs: np.ndarray) -> np.ndarray:
+        """Covariances (N, 6, 6) of Euler states -> of the pose error ``geometry.pose_error_vector``.
+
+        An Euler error d moves the rotation by ``R Exp(E d) = Exp(R E d) R``: the world-frame
+        rotation vector is ``R E d``, so ``J = blockdiag(I, R E)`` and ``cov_pose = J P J'``.
+        """
+        J = np.zeros_like(covs)
+        J[:, 0:3, 0:3] = np.eye(3)
+        rpy = stored_states[:, 3:6]
+        J[:, 3:6, 3:6] = geometry.euler_to_matrix(rpy) @ geometry.euler_rate_matrix(rpy)
+        return _symmetric(J @ covs @ np.swapaxes(J, 1, 2))
+
+    def near_singularity(self, x: np.ndarray) -> float | None:
+        """The pitch in degrees when it is close to +-90 deg, else None."""
+        pitch = float(np.degrees(x[4]))
+        return pitch if abs(pitch) > SINGULARITY_WARNING_DEG else None
+
+
+class SE3Filter:
+    """State the pose T (4, 4); error the right perturbation (dt, dtheta) of ``retract_right``."""
+
+    name = "se3"
+    stored_size = 7  # x, y, z, qx, qy, qz, qw
+
+    def initial(self, T_world_robot: np.ndarray) -> np.ndarray:
+        return np.array(T_world_robot, dtype=float)
+
+    def predict(self, x: np.ndarray, T_increment: np.ndarray):
+        return models.motion_se3(x, T_increment)
+
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz):
+        return models.observe_se3(x, T_robot_camera, intrinsics, landmark_xyz)
+
+    def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        return geometry.retract_right(x, delta)
+
+    def difference(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return geometry.difference_right(a, b)
+
+    def pose(self, x: np.ndarray) -> np.ndarray:
+        return x
+
+    def stored(self, x: np.ndarray) -> np.ndarray:
+        t, q = geometry.pose_to_quat(x)
+        return np.concatenate([t, q])
+
+    def pose_cov(self, stored_states: np.ndarray, covs: np.ndarray) -> np.ndarray:
+        """A right perturbation (dt, dtheta) is the world-frame error (R dt, R dtheta):
+        ``J = blockdiag(R, R)``."""
+        R = geometry.quat_to_matrix(stored_states[:, 3:7])
+        J = np.zeros_like(covs)
+        J[:, 0:3, 0:3] = R
+        J[:, 3:6, 3:6] = R
+        return _symmetric(J @ covs @ np.swapaxes(J, 1, 2))
+
+    def near_singularity(self, x: np.ndarray) -> float | None:
+        return None
+
+
+FILTERS = {"euler": EulerFilter, "se3": SE3Filter}
+
+
+def make_filter(name: str):
+    return FILTERS[name]()
+
+
+def _symmetric(P: np.ndarray) -> np.ndarray:
+    return 0.5 * (P + np.swapaxes(P, -1, -2))
