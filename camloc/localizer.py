@@ -368,6 +368,15 @@ class _Localizer:
             },
             "warnings": list(ds.warnings) + self.warnings,
         }
+        guard = divergence_guard(ds.pose_ids, np.asarray(self.update_pose_ids, dtype=np.int64), np.asarray(self.nis), np.asarray(self.nis_dof))
+        summary["divergence_guard"] = guard
+        if guard["runs"]:
+            summary["warnings"].append(
+                f"the filter may have diverged: NIS stayed above its {100 * GUARD_PROBABILITY:g}% bound for "
+                f"{GUARD_RUN_LENGTH} or more consecutive updates at poses "
+                + ", ".join(f"{a}-{b}" for a, b in guard["runs"][:5])
+                + (" ..." if len(guard["runs"]) > 5 else "")
+            )
         return RunResult(
             dataset=ds.source,
             pose_ids=ds.pose_ids.copy(),
@@ -388,6 +397,35 @@ class _Localizer:
             nis_dof=np.asarray(self.nis_dof, dtype=np.int64),
             summary=summary,
         )
+
+
+GUARD_PROBABILITY = 0.999
+GUARD_RUN_LENGTH = 3
+
+
+def divergence_guard(pose_ids: np.ndarray, update_pose_ids: np.ndarray, nis: np.ndarray, nis_dof: np.ndarray) -> dict:
+    """Updates whose accepted pairs are jointly inconsistent, and runs of them.
+
+    An update is inconsistent when its NIS (the stacked innovation's chi^2 statistic, 3 per pair)
+    is above the ``GUARD_PROBABILITY`` quantile; ``GUARD_RUN_LENGTH`` or more consecutive
+    inconsistent updates (poses without observations do not break a run) are reported as a possible
+    divergence, as (first pose id, last pose id) pairs.
+    """
+    if nis.size == 0:
+        return {"inconsistent_poses": [], "runs": []}
+    bad = nis > chi2.ppf(GUARD_PROBABILITY, nis_dof)
+    runs, start, length = [], None, 0
+    for pose_id, is_bad in zip(update_pose_ids.tolist(), bad.tolist()):
+        if is_bad:
+            start, length = (pose_id if length == 0 else start), length + 1
+            last = pose_id
+        else:
+            if length >= GUARD_RUN_LENGTH:
+                runs.append([start, last])
+            length = 0
+    if length >= GUARD_RUN_LENGTH:
+        runs.append([start, last])
+    return {"inconsistent_poses": update_pose_ids[bad].tolist(), "runs": runs}
 
 
 def _candidate_range(dataset: Dataset, config: LocalizerConfig) -> tuple[float, float, float]:

@@ -158,3 +158,26 @@ def test_se3_filter_stays_consistent_through_pitch_90_where_euler_does_not():
         assert position_rmse(result, dataset) < 0.2
     assert nees["se3"] < 7.5           # 6 degrees of freedom
     assert nees["euler"] > 2 * nees["se3"]
+
+
+def test_divergence_guard_reports_runs_of_inconsistent_updates():
+    from camloc.localizer import divergence_guard
+
+    pose_ids = np.arange(100, 110)
+    updates = np.array([100, 101, 102, 103, 105, 106, 108, 109])
+    dof = np.full(8, 9)
+    nis = np.array([5.0, 60.0, 70.0, 5.0, 80.0, 90.0, 95.0, 4.0])  # 27.9 is the 99.9% bound for 9 dof
+    guard = divergence_guard(pose_ids, updates, nis, dof)
+    assert guard["inconsistent_poses"] == [101, 102, 105, 106, 108]
+    assert guard["runs"] == [[105, 108]]
+
+
+def test_a_filter_fed_wrong_pairs_reports_divergence():
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=120), seed=1)
+    # best friends, batch, no margin: the fragile original method, on data where it breaks
+    broken = localize(dataset, LocalizerConfig(association="best-friends", sequential=False, margin=0.0))
+    healthy = localize(dataset, LocalizerConfig(association="oracle"))
+    assert position_rmse(broken, dataset) > 0.5
+    assert len(broken.summary["divergence_guard"]["runs"]) >= 1
+    assert any("diverged" in w for w in broken.summary["warnings"])
+    assert healthy.summary["divergence_guard"]["runs"] == []
