@@ -20,6 +20,10 @@ StateDifference = Callable[[np.ndarray, np.ndarray], np.ndarray]
 Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
+# Iterated updates stop when the correction changes by less than this (metres / radians).
+CONVERGED = 1e-6
+
+
 def _add(x: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return x + delta
 
@@ -131,10 +135,15 @@ def update(
     y_prior = z - z_hat
     K, S, L = kalman_gain(P, H, R)
     nis = float(y_prior @ cho_solve(L, y_prior))  # NIS = y' S^-1 y
-    x_i = retract(x, K @ y_prior)  # x+ = x [+] K y
+    delta = K @ y_prior
+    x_i = retract(x, delta)  # x+ = x [+] K y
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
         K, _, _ = kalman_gain(P, H_i, R)
         H = H_i
-        x_i = retract(x, K @ (z - z_hat_i + H_i @ difference(x_i, x)))
+        step = K @ (z - z_hat_i + H_i @ difference(x_i, x))
+        x_i = retract(x, step)
+        if np.max(np.abs(step - delta)) < CONVERGED:
+            break  # the linearization no longer moves: further iterations would repeat this one
+        delta = step
     return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis)

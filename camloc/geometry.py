@@ -100,17 +100,36 @@ def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation vector(s) (..., 3) -> rotation matrices (..., 3, 3)."""
-    rotvec = np.asarray(rotvec, dtype=float)
-    flat = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix()
-    return flat.reshape(rotvec.shape[:-1] + (3, 3))
+    """Rotation vector(s) (..., 3) -> rotation matrices (..., 3, 3), by Rodrigues' formula
+    ``I + sin(a)/a K + (1 - cos a)/a^2 K^2`` (Taylor series below 1e-4 rad)."""
+    phi = np.asarray(rotvec, dtype=float)
+    a = np.linalg.norm(phi, axis=-1)[..., None, None]
+    small = a < _SMALL_ANGLE
+    safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 1.0 - a**2 / 6.0, np.sin(safe) / safe)
+    c2 = np.where(small, 0.5 - a**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    K = hat(phi)
+    return np.eye(3) + c1 * K + c2 * (K @ K)
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3), angle in [0, pi]."""
+    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3), angle in [0, pi].
+
+    ``a = arccos((tr R - 1)/2)``, ``phi = a / (2 sin a) vee(R - R^T)``; within 1e-3 rad of pi,
+    where that division loses precision, scipy's quaternion route is used instead.
+    """
     R = np.asarray(R, dtype=float)
-    flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
-    return flat.reshape(R.shape[:-2] + (3,))
+    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    cos_a = np.clip(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)
+    a = np.arccos(cos_a)
+    small = a < _SMALL_ANGLE
+    safe = np.where(small, 1.0, a)
+    factor = np.where(small, 0.5 + a**2 / 12.0, safe / (2.0 * np.sin(safe)))
+    phi = factor[..., None] * vee
+    near_pi = a > np.pi - 1e-3
+    if np.any(near_pi):
+        phi[near_pi] = Rotation.from_matrix(R[near_pi].reshape(-1, 3, 3)).as_rotvec()
+    return phi
 
 
 # Below this angle the closed forms of the SO(3) Jacobians lose digits to cancellation; their

@@ -74,3 +74,22 @@ def test_wrap_angle_stays_in_range(angle):
     wrapped = geometry.wrap_angle(angle)
     assert -np.pi <= wrapped < np.pi
     assert np.isclose(np.cos(wrapped), np.cos(angle)) and np.isclose(np.sin(wrapped), np.sin(angle))
+
+
+@pytest.mark.parametrize("scale", [1e-7, 1e-3, 0.5, 3.0])
+def test_so3_exp_and_log_match_scipy(rng, scale):
+    from scipy.spatial.transform import Rotation
+
+    rotvec = rng.normal(size=(200, 3))
+    rotvec *= scale / np.linalg.norm(rotvec, axis=1, keepdims=True) * rng.uniform(0.2, 1.0, (200, 1))
+    rotvec = rotvec[np.linalg.norm(rotvec, axis=1) < np.pi]
+    np.testing.assert_allclose(geometry.so3_exp(rotvec), Rotation.from_rotvec(rotvec).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(geometry.so3_log(Rotation.from_rotvec(rotvec).as_matrix()), rotvec, atol=1e-9)
+
+
+def test_so3_log_near_pi():
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    for angle in (np.pi - 1e-6, np.pi - 1e-2, np.pi):
+        phi = geometry.so3_log(geometry.so3_exp(angle * axis))
+        assert np.linalg.norm(phi) == pytest.approx(angle, abs=1e-8)
+        assert abs(abs(phi @ axis) - angle) < 1e-7
