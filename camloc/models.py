@@ -85,7 +85,11 @@ def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, 
     """Camera-frame points (M, 3) -> measurements (M, 3) of u, v, depth. Depth must be non-zero."""
     fx, fy, cx, cy = intrinsics
     z = p_camera[:, 2]
-    return np.column_stack([fx * p_camera[:, 0] / z + cx, fy * p_camera[:, 1] / z + cy, z])
+    uvd = np.empty_like(p_camera)
+    uvd[:, 0] = fx * p_camera[:, 0] / z + cx
+    uvd[:, 1] = fy * p_camera[:, 1] / z + cy
+    uvd[:, 2] = z
+    return uvd
 
 
 def observe(
@@ -108,11 +112,11 @@ def observe(
     z_hat : (M, 3) predicted u, v, depth.
     H : (M, 3, 6) d z_hat / d state.
     """
-    T_world_robot = geometry.pose_from_euler(state)
-    p_robot, p_camera = camera_points(T_world_robot, T_robot_camera, landmark_xyz)
+    R = geometry.euler_to_matrix(state[3:6])
+    p_robot = (landmark_xyz - state[0:3]) @ R               # rows of R^T (l - t)
+    p_camera = (p_robot - T_robot_camera[:3, 3]) @ T_robot_camera[:3, :3]
     z_hat = project_points(p_camera, intrinsics)
 
-    R = T_world_robot[:3, :3]
     R_c_T = T_robot_camera[:3, :3].T
     E = geometry.euler_rate_matrix(state[3:6])
     # p_robot = R^T (l - t): d/dt = -R^T; a body rotation E d moves it by [p_robot]x E d.
