@@ -60,8 +60,8 @@ class BeamSettings:
     """
 
     beam_width: int = 16
-    beam_delta: float = 20.0
-    branch_delta: float = 10.0
+    beam_delta: float = 14.0
+    branch_delta: float = 8.0
     null_cost: Optional[float] = None
     gate: float = 11.34
     merge_sigma: float = 0.3

@@ -66,8 +66,8 @@ class LocalizerConfig:
     margin: float = 1.0
     sequential: bool = True
     beam_width: int = 16
-    beam_delta: float = 20.0
-    branch_delta: float = 10.0
+    beam_delta: float = 14.0
+    branch_delta: float = 8.0
     null_cost: Optional[float] = None
     slip_inflation: float = 25.0
     slip_cost: float = 10.0

@@ -73,10 +73,10 @@ def run(
     ),
     beam_delta: Optional[float] = typer.Option(
         None, help="Beam: drop hypotheses this much costlier than the best (2 x log-likelihood ratio). "
-        "Default: 20.", show_default=False
+        "Default: 14.", show_default=False
     ),
     branch_delta: Optional[float] = typer.Option(
-        None, help="Beam: explore only an observation's options within this cost of its best. Default: 10.",
+        None, help="Beam: explore only an observation's options within this cost of its best. Default: 8.",
         show_default=False
     ),
     null_cost: Optional[float] = typer.Option(
