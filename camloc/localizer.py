@@ -23,7 +23,7 @@ from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.results import UNASSOCIATED, Associations, RunResult
 
-ASSOCIATION_METHODS = ("beam", "best-friends", "oracle")
+ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
 COSTS = ("nll", "mahalanobis", "euclidean")
 
 ProgressCallback = Callable[[int, int], None]
@@ -51,6 +51,7 @@ class LocalizerConfig:
         from the prior); False pairs all observations at once (the original method).
     beam_width, beam_delta, branch_delta, null_cost, slip_inflation, slip_cost : the beam's
         parameters, see ``camloc.beam.BeamSettings`` (costs are 2 x negative log-likelihoods).
+    jcbb_max_nodes : bound on the joint compatibility tests per pose of "jcbb" (``camloc.jcbb``).
     min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
         1.25 x the largest measured depth + 0.5 m).
     max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
@@ -71,6 +72,7 @@ class LocalizerConfig:
     null_cost: Optional[float] = None
     slip_inflation: float = 25.0
     slip_cost: float = 10.0
+    jcbb_max_nodes: int = 2000
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
     max_angle_deg: Optional[float] = None
@@ -95,6 +97,7 @@ class LocalizerConfig:
             (self.null_cost is None or self.null_cost > 0.0, f"null_cost must be > 0, got {self.null_cost}"),
             (self.slip_cost >= 0.0, f"slip_cost must be >= 0, got {self.slip_cost}"),
             (self.slip_inflation >= 1.0, f"slip_inflation must be >= 1, got {self.slip_inflation}"),
+            (int(self.jcbb_max_nodes) == self.jcbb_max_nodes and self.jcbb_max_nodes >= 1, f"jcbb_max_nodes must be an integer >= 1, got {self.jcbb_max_nodes}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -170,6 +173,7 @@ class _Localizer:
         self.nis_dof: list[int] = []
         self.warnings: list[str] = []
         self.warned_singularity = False
+        self.jcbb_cut_short = 0
 
         sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
         self.x = self.filter.initial(dataset.T_world_start)
@@ -225,6 +229,8 @@ class _Localizer:
             return pairs[order, 0], pairs[order, 1]
         if self.config.association == "oracle":
             return self._associate_oracle(obs)
+        if self.config.association == "jcbb":
+            return self._associate_jcbb(obs)
         if not self.config.sequential:
             rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
             return obs[rows], landmarks
@@ -281,6 +287,45 @@ class _Localizer:
         if not rows_all:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         return np.concatenate(rows_all), np.concatenate(landmarks_all), np.concatenate(gaps_all)
+
+    def _associate_jcbb(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint compatibility branch and bound over every camera of the pose at once (the pairs
+        share the pose's error), seeded by best friends."""
+        from camloc.jcbb import jcbb
+
+        ds = self.dataset
+        T_world_robot = self.filter.pose(self.x)
+        cands, z_hats, Hs, blocks = [], [], [], []
+        for camera_id in np.unique(ds.obs_camera[obs]):
+            camera = self.cameras[int(camera_id)]
+            c = association.candidate_indices(
+                self.tree, ds.landmark_xyz, T_world_robot @ camera.T_robot_camera,
+                min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
+            )
+            z_hat, H = self.filter.observe(self.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[c])
+            cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((ds.obs_camera[obs] == camera_id, c.size))
+        candidates = np.concatenate(cands)
+        if candidates.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
+        y_all = ds.obs_uvd[obs][:, None, :] - z_hat[None, :, :]
+        HPH = H @ self.P @ np.swapaxes(H, 1, 2)
+        d2, _ = association.pair_statistics(ds.obs_uvd[obs], ds.obs_cov[obs], z_hat, HPH)
+        same_camera = np.zeros(d2.shape, dtype=bool)
+        start = 0
+        for mine, size in blocks:
+            same_camera[mine, start : start + size] = True
+            start += size
+        compatible = (d2 <= self.gate) & same_camera
+        rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
+        column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
+        seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
+        result = jcbb(y_all, H, self.P, ds.obs_cov[obs], compatible,
+                      probability=self.config.gate_probability, max_nodes=self.config.jcbb_max_nodes, seed=seed)
+        if not result.exhaustive:
+            self.jcbb_cut_short += 1
+        paired = result.assignment >= 0
+        return obs[paired], candidates[result.assignment[paired]]
 
     def _associate_oracle(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The file's landmark ids, kept where the id is in the map and the pair passes the gate
@@ -368,6 +413,8 @@ class _Localizer:
             },
             "warnings": list(ds.warnings) + self.warnings,
         }
+        if self.jcbb_cut_short:
+            summary["warnings"].append(f"JCBB hit its bound of {self.config.jcbb_max_nodes} joint tests at {self.jcbb_cut_short} pose(s) and kept the best set found")
         guard = divergence_guard(ds.pose_ids, np.asarray(self.update_pose_ids, dtype=np.int64), np.asarray(self.nis), np.asarray(self.nis_dof))
         summary["divergence_guard"] = guard
         if guard["runs"]:

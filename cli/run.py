@@ -18,6 +18,7 @@ class FilterChoice(str, Enum):
 
 class AssociationChoice(str, Enum):
     beam = "beam"
+    jcbb = "jcbb"
     best_friends = "best-friends"
     oracle = "oracle"
 
@@ -45,9 +46,10 @@ def run(
         "+-90 deg) or se3 (error-state filter on SE(3), no singularity). Default: euler.", show_default=False
     ),
     association: Optional[AssociationChoice] = typer.Option(
-        None, help="Data association: beam (a beam of association hypotheses), best-friends (mutual "
-        "best match with gates) or oracle (the file's landmark ids, gated; for comparison). Only oracle "
-        "reads the file's ids. Default: beam.", show_default=False
+        None, help="Data association: beam (a beam of association hypotheses), jcbb (joint compatibility "
+        "branch and bound, seeded by best friends), best-friends (mutual best match with gates) or oracle "
+        "(the file's landmark ids, gated; for comparison). Only oracle reads the file's ids. Default: beam.",
+        show_default=False
     ),
     iterations: Optional[int] = typer.Option(
         None, help="Linearizations per update: 1 = EKF, more = iterated EKF. Default: 3.", show_default=False
@@ -88,6 +90,10 @@ def run(
     ),
     slip_cost: Optional[float] = typer.Option(
         None, help="Beam: extra cost of the odometry-slip hypothesis. Default: 10.", show_default=False
+    ),
+    jcbb_max_nodes: Optional[int] = typer.Option(
+        None, help="JCBB: most joint compatibility tests per pose; past it the best set found is kept. "
+        "Default: 2000.", show_default=False
     ),
     min_depth: Optional[float] = typer.Option(
         None, help="Nearest candidate landmark depth, metres. Default: 0.", show_default=False
@@ -130,6 +136,7 @@ def run(
         "null_cost": null_cost,
         "slip_inflation": slip_inflation,
         "slip_cost": slip_cost,
+        "jcbb_max_nodes": jcbb_max_nodes,
         "min_depth": min_depth,
         "max_depth": max_depth,
         "max_angle_deg": max_angle,

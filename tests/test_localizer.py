@@ -68,7 +68,7 @@ def test_clutter_is_rejected():
     assert np.count_nonzero(result.associations.landmark[clutter] != -1) <= clutter.sum() / 100
 
 
-@pytest.mark.parametrize("association", ["beam", "best-friends"])
+@pytest.mark.parametrize("association", ["beam", "jcbb", "best-friends"])
 def test_default_association_never_reads_the_file_ids(association):
     dataset = simulate(SimulationConfig(trajectory="grid", poses=60), seed=2)
     scrambled = dataclasses.replace(dataset, obs_true_landmark=np.full_like(dataset.obs_true_landmark, -7))
@@ -181,3 +181,12 @@ def test_a_filter_fed_wrong_pairs_reports_divergence():
     assert len(broken.summary["divergence_guard"]["runs"]) >= 1
     assert any("diverged" in w for w in broken.summary["warnings"])
     assert healthy.summary["divergence_guard"]["runs"] == []
+
+
+def test_jcbb_on_the_real_style_data():
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=100), seed=3)
+    result = localize(dataset, LocalizerConfig(association="jcbb"))
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    precision, recall = precision_recall(result, dataset)
+    assert precision >= 0.98 and recall >= 0.9
+    assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
