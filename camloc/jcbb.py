@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 
 @dataclass(frozen=True)
@@ -79,7 +79,7 @@ def jcbb(
         every observation, nothing can beat it and the search is skipped.
     """
     n = compatible.shape[0]
-    bounds = chi2.ppf(probability, 3 * np.arange(1, n + 1))
+    bounds = chdtri(3 * np.arange(1, n + 1), 1.0 - probability)  # chi^2 quantiles, 3k dof
     if seed and len(seed) == n:
         nis = joint_nis(seed, y_all, H, P, R_obs)
         if nis <= bounds[n - 1]:

@@ -15,7 +15,7 @@ from typing import Callable, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from camloc import association, ekf, geometry
 from camloc.filters import FILTERS, make_filter
@@ -154,7 +154,7 @@ class _Localizer:
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
-        self.gate = float(chi2.ppf(config.gate_probability, 3))
+        self.gate = float(chdtri(3, 1.0 - config.gate_probability))  # chi^2 quantile, 3 dof
 
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
@@ -460,7 +460,7 @@ def divergence_guard(pose_ids: np.ndarray, update_pose_ids: np.ndarray, nis: np.
     """
     if nis.size == 0:
         return {"inconsistent_poses": [], "runs": []}
-    bad = nis > chi2.ppf(GUARD_PROBABILITY, nis_dof)
+    bad = nis > chdtri(nis_dof, 1.0 - GUARD_PROBABILITY)
     runs, start, length = [], None, 0
     for pose_id, is_bad in zip(update_pose_ids.tolist(), bad.tolist()):
         if is_bad:

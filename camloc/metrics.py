@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from camloc import geometry
 from camloc.errors import CamlocError, ConfigError
@@ -396,7 +396,7 @@ def association_scores(associations: Associations, map_landmark_ids: np.ndarray)
 def chi2_bounds(dof: np.ndarray | int, *, confidence: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
     """Two-sided chi-square bounds: P(lower <= X <= upper) = confidence for X ~ chi2(dof)."""
     tail = (1.0 - confidence) / 2.0
-    return chi2.ppf(tail, dof), chi2.ppf(1.0 - tail, dof)
+    return chdtri(dof, 1.0 - tail), chdtri(dof, tail)  # chi^2 quantiles at tail and 1 - tail
 
 
 def mean_chi2_bounds(dof: int, count: int, *, confidence: float = CONFIDENCE) -> tuple[float, float]:
