@@ -45,6 +45,10 @@ class UpdateResult:
     state : (n,) posterior state; cov : (n, n) posterior covariance.
     innovation : (m,) ``z - h(x_prior)``; S : (m, m) its covariance at the prior.
     nis : normalized innovation squared ``y^T S^-1 y`` at the prior (m degrees of freedom).
+    map_cost : the MAP cost at the posterior, ``d' P^-1 d + r' R^-1 r`` with d the correction and
+        r the posterior residual; equal to ``nis`` for a linear model, and the better consistency
+        statistic (also chi^2 with m dof) when the update was iterated, since NIS at the prior
+        carries the linearization error the iterations removed.
     """
 
     state: np.ndarray
@@ -52,6 +56,7 @@ class UpdateResult:
     innovation: np.ndarray
     S: np.ndarray
     nis: float
+    map_cost: float
 
 
 def symmetrize(P: np.ndarray) -> np.ndarray:
@@ -146,4 +151,9 @@ def update(
         if np.max(np.abs(step - delta)) < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
-    return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis)
+    map_cost = nis
+    if iterations > 1:
+        correction = difference(x_i, x)
+        residual = z - measure(x_i)[0]
+        map_cost = float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual))
+    return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis, map_cost=map_cost)

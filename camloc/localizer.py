@@ -170,6 +170,7 @@ class _Localizer:
         self.mahalanobis = np.full(k_obs, np.nan)
         self.update_pose_ids: list[int] = []
         self.nis: list[float] = []
+        self.map_costs: list[float] = []
         self.nis_dof: list[int] = []
         self.warnings: list[str] = []
         self.warned_singularity = False
@@ -371,6 +372,7 @@ class _Localizer:
         self.mahalanobis[obs] = np.sqrt(d2)
         self.update_pose_ids.append(int(self.dataset.pose_ids[k]))
         self.nis.append(result.nis)
+        self.map_costs.append(result.map_cost)
         self.nis_dof.append(3 * obs.size)
 
     def _warn_near_singularity(self, k: int) -> None:
@@ -415,11 +417,11 @@ class _Localizer:
         }
         if self.jcbb_cut_short:
             summary["warnings"].append(f"JCBB hit its bound of {self.config.jcbb_max_nodes} joint tests at {self.jcbb_cut_short} pose(s) and kept the best set found")
-        guard = divergence_guard(ds.pose_ids, np.asarray(self.update_pose_ids, dtype=np.int64), np.asarray(self.nis), np.asarray(self.nis_dof))
+        guard = divergence_guard(np.asarray(self.update_pose_ids, dtype=np.int64), np.asarray(self.map_costs), np.asarray(self.nis_dof))
         summary["divergence_guard"] = guard
         if guard["runs"]:
             summary["warnings"].append(
-                f"the filter may have diverged: NIS stayed above its {100 * GUARD_PROBABILITY:g}% bound for "
+                f"the filter may have diverged: its updates' chi-square statistic stayed above the {100 * GUARD_PROBABILITY:g}% bound for "
                 f"{GUARD_RUN_LENGTH} or more consecutive updates at poses "
                 + ", ".join(f"{a}-{b}" for a, b in guard["runs"][:5])
                 + (" ..." if len(guard["runs"]) > 5 else "")
@@ -450,17 +452,18 @@ GUARD_PROBABILITY = 0.999
 GUARD_RUN_LENGTH = 3
 
 
-def divergence_guard(pose_ids: np.ndarray, update_pose_ids: np.ndarray, nis: np.ndarray, nis_dof: np.ndarray) -> dict:
+def divergence_guard(update_pose_ids: np.ndarray, statistic: np.ndarray, dof: np.ndarray) -> dict:
     """Updates whose accepted pairs are jointly inconsistent, and runs of them.
 
-    An update is inconsistent when its NIS (the stacked innovation's chi^2 statistic, 3 per pair)
-    is above the ``GUARD_PROBABILITY`` quantile; ``GUARD_RUN_LENGTH`` or more consecutive
-    inconsistent updates (poses without observations do not break a run) are reported as a possible
-    divergence, as (first pose id, last pose id) pairs.
+    ``statistic`` is each update's chi^2 statistic with ``dof`` degrees of freedom (3 per pair):
+    the MAP cost at the posterior (``ekf.UpdateResult.map_cost``; NIS for a single linearization).
+    An update is inconsistent when it is above the ``GUARD_PROBABILITY`` quantile;
+    ``GUARD_RUN_LENGTH`` or more consecutive inconsistent updates (poses without observations do
+    not break a run) are reported as a possible divergence, as (first pose id, last pose id) pairs.
     """
-    if nis.size == 0:
+    if statistic.size == 0:
         return {"inconsistent_poses": [], "runs": []}
-    bad = nis > chdtri(nis_dof, 1.0 - GUARD_PROBABILITY)
+    bad = statistic > chdtri(dof, 1.0 - GUARD_PROBABILITY)
     runs, start, length = [], None, 0
     for pose_id, is_bad in zip(update_pose_ids.tolist(), bad.tolist()):
         if is_bad:

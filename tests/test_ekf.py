@@ -29,6 +29,8 @@ def test_linear_update_matches_information_form(rng):
     np.testing.assert_allclose(result.state, x_post, rtol=1e-9, atol=1e-12)
     y = z - H @ x
     assert result.nis == pytest.approx(y @ np.linalg.solve(H @ P @ H.T + R, y))
+    iterated = ekf.update(x, P, z, R, lambda s: (H @ s, H), difference=plain_difference, iterations=2)
+    assert iterated.map_cost == pytest.approx(result.nis)  # linear model: the MAP cost is the NIS
 
 
 def test_iterations_change_nothing_on_a_linear_model(rng):
@@ -62,6 +64,7 @@ def test_iterated_update_reaches_the_map_estimate(rng):
     np.testing.assert_allclose(result.state, optimum, atol=1e-5)
     plain = ekf.update(x, P, z, R, lambda s: (h(s), H_of(s)), difference=plain_difference)
     assert map_cost(result.state) < map_cost(plain.state)
+    assert result.map_cost == pytest.approx(map_cost(result.state))
 
 
 def test_joseph_form_keeps_covariance_symmetric_positive_definite(rng):

@@ -163,11 +163,10 @@ def test_se3_filter_stays_consistent_through_pitch_90_where_euler_does_not():
 def test_divergence_guard_reports_runs_of_inconsistent_updates():
     from camloc.localizer import divergence_guard
 
-    pose_ids = np.arange(100, 110)
     updates = np.array([100, 101, 102, 103, 105, 106, 108, 109])
     dof = np.full(8, 9)
-    nis = np.array([5.0, 60.0, 70.0, 5.0, 80.0, 90.0, 95.0, 4.0])  # 27.9 is the 99.9% bound for 9 dof
-    guard = divergence_guard(pose_ids, updates, nis, dof)
+    statistic = np.array([5.0, 60.0, 70.0, 5.0, 80.0, 90.0, 95.0, 4.0])  # 27.9 is the 99.9% bound for 9 dof
+    guard = divergence_guard(updates, statistic, dof)
     assert guard["inconsistent_poses"] == [101, 102, 105, 106, 108]
     assert guard["runs"] == [[105, 108]]
 
