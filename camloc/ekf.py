@@ -46,9 +46,9 @@ class UpdateResult:
     innovation : (m,) ``z - h(x_prior)``; S : (m, m) its covariance at the prior.
     nis : normalized innovation squared ``y^T S^-1 y`` at the prior (m degrees of freedom).
     map_cost : the MAP cost at the posterior, ``d' P^-1 d + r' R^-1 r`` with d the correction and
-        r the posterior residual; equal to ``nis`` for a linear model, and the better consistency
-        statistic (also chi^2 with m dof) when the update was iterated, since NIS at the prior
-        carries the linearization error the iterations removed.
+        r the posterior residual (NaN unless asked for); equal to ``nis`` for a linear model, and
+        the better consistency statistic (also chi^2 with m dof) when the update was iterated,
+        since NIS at the prior carries the linearization error the iterations removed.
     """
 
     state: np.ndarray
@@ -121,6 +121,7 @@ def update(
     retract: Retraction = _add,
     difference: StateDifference = _subtract,
     iterations: int = 1,
+    map_cost: bool = False,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -132,6 +133,8 @@ def update(
     retract : (x, delta) -> x moved by the error delta (n,); plain addition for vector states.
     difference : (a, b) -> the error delta with retract(b, delta) == a; plain subtraction.
     iterations : number of linearizations (>= 1).
+    map_cost : compute ``UpdateResult.map_cost`` at the posterior (one more evaluation of the
+        measurement function); otherwise it is NaN.
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
@@ -151,9 +154,9 @@ def update(
         if np.max(np.abs(step - delta)) < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
-    map_cost = nis
-    if iterations > 1:
+    cost = float("nan")
+    if map_cost:
         correction = difference(x_i, x)
         residual = z - measure(x_i)[0]
-        map_cost = float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual))
-    return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis, map_cost=map_cost)
+        cost = float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual))
+    return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis, map_cost=cost)

@@ -206,7 +206,7 @@ class _Localizer:
         self._warn_near_singularity(k)
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
         if obs.size:
-            result = self.updated(self.x, self.P, obs, landmarks)  # one stacked (iterated) update
+            result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)  # one stacked (iterated) update
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = result.state, result.cov
         self.states[k], self.covs[k] = self.filter.stored(self.x), self.P
@@ -344,7 +344,9 @@ class _Localizer:
             keep[mine] = d2 <= self.gate
         return obs[keep], index[keep]
 
-    def updated(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> ekf.UpdateResult:
+    def updated(
+        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False
+    ) -> ekf.UpdateResult:
         """The stacked (iterated) EKF update of (x, P) with the given pairs."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
         R = ekf.block_diagonal(self.dataset.obs_cov[obs])
@@ -362,6 +364,7 @@ class _Localizer:
         return ekf.update(
             x, P, z, R, measure,
             retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
+            map_cost=map_cost,
         )
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
