@@ -157,21 +157,14 @@ class BeamSearch:
         """Gated landmarks of every observation under h, computed in one batch per camera."""
         ds = self.ctx.dataset
         out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
-        T_world_robot = self.ctx.filter.pose(h.x)
         cameras = ds.obs_camera[obs]
         for camera_id in np.unique(cameras):
             rows = np.flatnonzero(cameras == camera_id)
-            camera = self.ctx.cameras[int(camera_id)]
-            candidates = association.candidate_indices(
-                self.ctx.tree, ds.landmark_xyz, T_world_robot @ camera.T_robot_camera,
-                min_depth=self.ctx.min_depth, max_depth=self.ctx.max_depth, max_angle_rad=self.ctx.max_angle,
-            )
+            candidates, z_hat, H, HPH = self.ctx.predictions(h.x, h.P, camera_id)
             if candidates.size == 0:
                 for r in rows:
                     out[r] = _empty_options()
                 continue
-            z_hat, H = self.ctx.filter.observe(h.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[candidates])
-            HPH = H @ h.P @ np.swapaxes(H, 1, 2)
             o = obs[rows]
             d2, nll = association.pair_statistics(ds.obs_uvd[o], ds.obs_cov[o], z_hat, HPH)
             costs = nll - self.log_det_R[o][:, None]

@@ -258,24 +258,34 @@ class _Localizer:
                 x, P = result.state, result.cov
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
 
+    def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The landmarks camera ``camera_id`` may see from state x: (candidates (m,), z_hat (m, 3),
+        H (m, 3, n), HPH (m, 3, 3)).
+
+        Candidates are the landmarks in the camera's depth range and field of view, found through the
+        k-d tree of the map.
+        """
+        camera = self.cameras[int(camera_id)]
+        candidates = association.candidate_indices(
+            self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
+        )
+        z_hat, H = self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
+        HPH = H @ P @ np.swapaxes(H, 1, 2)
+        return candidates, z_hat, H, HPH
+
     def _best_friends(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, *, taken: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Best-friends pairs at (x, P) over all cameras: (rows into obs, landmark indices, gaps)."""
         rows_all, landmarks_all, gaps_all = [], [], []
-        T_world_robot = self.filter.pose(x)
         for camera_id in np.unique(self.dataset.obs_camera[obs]):
             rows_c = np.flatnonzero(self.dataset.obs_camera[obs] == camera_id)
-            camera = self.cameras[int(camera_id)]
-            candidates = association.candidate_indices(
-                self.tree, self.dataset.landmark_xyz, T_world_robot @ camera.T_robot_camera,
-                min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
-            )
-            candidates = candidates[~np.isin(candidates, taken)]
+            candidates, z_hat, H, HPH = self.predictions(x, P, camera_id)
+            free = ~np.isin(candidates, taken)
+            candidates, z_hat, HPH = candidates[free], z_hat[free], HPH[free]
             if candidates.size == 0:
                 continue
-            z_hat, H = self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
-            HPH = H @ P @ np.swapaxes(H, 1, 2)
             z = self.dataset.obs_uvd[obs[rows_c]]
             d2, nll = association.pair_statistics(z, self.dataset.obs_cov[obs[rows_c]], z_hat, HPH)
             cost = {"nll": nll, "mahalanobis": d2}.get(self.config.cost)
@@ -295,15 +305,9 @@ class _Localizer:
         from camloc.jcbb import jcbb
 
         ds = self.dataset
-        T_world_robot = self.filter.pose(self.x)
         cands, z_hats, Hs, blocks = [], [], [], []
         for camera_id in np.unique(ds.obs_camera[obs]):
-            camera = self.cameras[int(camera_id)]
-            c = association.candidate_indices(
-                self.tree, ds.landmark_xyz, T_world_robot @ camera.T_robot_camera,
-                min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
-            )
-            z_hat, H = self.filter.observe(self.x, camera.T_robot_camera, camera.intrinsics, ds.landmark_xyz[c])
+            c, z_hat, H, _ = self.predictions(self.x, self.P, camera_id)
             cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((ds.obs_camera[obs] == camera_id, c.size))
         candidates = np.concatenate(cands)
         if candidates.size == 0:
