@@ -26,7 +26,8 @@ Keeping it fast (most poses are not ambiguous):
 Robustness to odometry slips: when the best hypothesis leaves most of a pose's observations
 unassigned (at least three observations, more than half of them), the pose is explained again from
 that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
-``slip_cost``; if the odometry really slipped, that hypothesis explains the observations and wins.
+``slip_cost``, grown from each of its best few pairs in turn (one right pair pins the pose, and the
+rest follow); if the odometry really slipped, that hypothesis explains the observations and wins.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
@@ -57,6 +58,7 @@ class BeamSettings:
     merge_sigma : hypotheses whose states differ by less than this many standard deviations on
         every axis are merged (the cheaper kept).
     slip_inflation, slip_cost : covariance factor and cost of the odometry-slip hypothesis.
+    slip_seeds : how many of its individually best pairs the slip hypothesis tries as the first.
     """
 
     beam_width: int = 16
@@ -67,6 +69,7 @@ class BeamSettings:
     merge_sigma: float = 0.3
     slip_inflation: float = 25.0
     slip_cost: float = 10.0
+    slip_seeds: int = 24
 
 
 @dataclass
@@ -135,8 +138,26 @@ class BeamSearch:
             origin = beam[0]
             slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                   origin.cost + self.settings.slip_cost, origin.parent)
-            children += self._explain(slipped, obs)
+            children += self._explain_from_seeds(slipped, obs)
         return self._prune(children)
+
+    def _explain_from_seeds(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
+        """Explanations of obs under a widened prior, each grown from one seed pair.
+
+        Under the wide prior every observation gates many landmarks and explaining them one by
+        one from the prior goes astray. One right pair pins the pose's position, after which the
+        others fall into place; so each of the ``slip_seeds`` individually best pairs is tried as
+        the first, the hypothesis conditioned on it, and the rest explained as usual.
+        """
+        options = self._options(h, obs)
+        pairs = [(float(o.costs[j]), i, j) for i, o in enumerate(options) for j in range(o.landmarks.size)]
+        children: list[_Hypothesis] = []
+        for cost, i, j in sorted(pairs)[: self.settings.slip_seeds]:
+            landmark = int(options[i].landmarks[j])
+            result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]))
+            seeded = _Hypothesis(result.state, result.cov, h.cost + cost, h.parent, ((int(obs[i]), landmark),))
+            children += self._explain(seeded, np.delete(obs, i))[:1]
+        return self._prune(children) if children else self._explain(h, obs)
 
     def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
         """Children of h that explain all of obs, pruned to the beam: the clear observations in
