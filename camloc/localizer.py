@@ -181,6 +181,7 @@ class _Localizer:
         self.P = np.diag(sigma**2)
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
+        self.slip_pose_ids: list[int] = []
 
     def search_beam(self, on_pose: Optional[Callable[[int], None]] = None) -> None:
         """Decide every pose's association with the beam (``camloc.beam``) before filtering."""
@@ -193,6 +194,7 @@ class _Localizer:
         )
         search = BeamSearch(self, settings)
         self.beam_pairs = search.run(self.x, self.P, on_pose=on_pose)
+        self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in search.slips]
         if search.slips:
             self.warnings.append(
                 f"{len(search.slips)} pose(s) looked like odometry slips and were re-explained with a wider prior: "
@@ -426,6 +428,7 @@ class _Localizer:
             summary["warnings"].append(f"JCBB hit its bound of {self.config.jcbb_max_nodes} joint tests at {self.jcbb_cut_short} pose(s) and kept the best set found")
         guard = divergence_guard(np.asarray(self.update_pose_ids, dtype=np.int64), np.asarray(self.map_costs), np.asarray(self.nis_dof))
         summary["divergence_guard"] = guard
+        summary["slip_poses"] = self.slip_pose_ids
         if guard["runs"]:
             summary["warnings"].append(
                 f"the filter may have diverged: its updates' chi-square statistic stayed above the {100 * GUARD_PROBABILITY:g}% bound for "
