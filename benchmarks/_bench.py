@@ -22,10 +22,10 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping, Optional
@@ -149,18 +149,22 @@ def code_version() -> str:
 
 
 class ResultStore:
-    """Results saved per (library source, dataset file, options), so ``--resume`` can skip them."""
+    """Results saved per (library source, measuring code, dataset file, options), so ``--resume``
+    can skip them; a changed worker (this file) measures anew like a changed library."""
 
     def __init__(self, folder: Path, *, enabled: bool):
         self.folder, self.enabled, self.version = folder, enabled, code_version()
+        self.key_version = self.version + _digest(Path(__file__).read_bytes())
 
     def _path(self, dataset: Path, overrides: dict) -> Path:
-        key = json.dumps([self.version, dataset.name, overrides], sort_keys=True).encode()
+        key = json.dumps([self.key_version, dataset.name, overrides], sort_keys=True).encode()
         return self.folder / f"{_digest(key)}.json"
 
     def get(self, dataset: Path, overrides: dict) -> Optional[dict]:
         path = self._path(dataset, overrides)
-        return json.loads(path.read_text()) if self.enabled and path.is_file() else None
+        if not (self.enabled and path.is_file()):
+            return None
+        return {**json.loads(path.read_text()), "saved": True}
 
     def put(self, dataset: Path, overrides: dict, result: dict) -> None:
         if "error" not in result:
@@ -226,30 +230,59 @@ def run_case(path: Path, config: Mapping[str, Any], *, timeout: float) -> dict:
     return {**result, "wall_seconds": time.perf_counter() - started}
 
 
-def timed_command(command: list[str], *, timeout: float) -> tuple[float, float, int]:
-    """Run ``command`` (output discarded); return wall seconds (interpreter start included), the
-    child's peak resident memory in MB, and its exit status (-9 when killed at the timeout).
+# A tiny launcher between the benchmark and a timed command. Linux carries a process's peak memory
+# across exec (ru_maxrss is the larger of the pre-exec and post-exec peaks), and a child forked from
+# this benchmark starts with the benchmark's own peak, often larger than the child's: spawned from
+# an interpreter that imported nothing, the command's ru_maxrss is its own.
+_LAUNCHER = """
+import os, sys, time
+null = [(os.POSIX_SPAWN_OPEN, fd, os.devnull, os.O_WRONLY, 0) for fd in (1, 2)]
+started = time.perf_counter()
+pid = os.posix_spawnp(sys.argv[1], sys.argv[1:], os.environ, file_actions=null)
+_, status, usage = os.wait4(pid, 0)
+print(time.perf_counter() - started, usage.ru_maxrss, os.waitstatus_to_exitcode(status))
+"""
 
-    ``os.wait4`` gives the rusage of this one child, where ``RUSAGE_CHILDREN`` would give the
-    largest of every child so far.
+
+def timed_command(command: list[str], *, timeout: float) -> tuple[float, float, int]:
+    """Run ``command`` (output discarded); return wall seconds (interpreter start included), its
+    peak resident memory in MB, and its exit status (-9 when killed at the timeout).
+
+    A minimal launcher spawns and reaps the command (see ``_LAUNCHER``): ``os.wait4`` gives the
+    rusage of that one child, and the child does not inherit this process's peak.
     """
-    started = time.perf_counter()
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    killer = threading.Timer(timeout, process.kill)
-    killer.start()
+    launcher = subprocess.Popen([sys.executable, "-I", "-S", "-c", _LAUNCHER, *command], stdout=subprocess.PIPE,
+                                text=True, start_new_session=True)
     try:
-        _, status, usage = os.wait4(process.pid, 0)
-    finally:
-        killer.cancel()
-    seconds = time.perf_counter() - started
-    process.returncode = os.waitstatus_to_exitcode(status)  # reaped here, so Popen must not wait
-    return seconds, usage.ru_maxrss / 1024.0, process.returncode
+        out, _ = launcher.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(launcher.pid, signal.SIGKILL)  # the launcher's own session: the command and nothing else
+        launcher.communicate()
+        return float(timeout), float("nan"), -9
+    if launcher.returncode != 0 or not out.strip():
+        return float("nan"), float("nan"), launcher.returncode or -1
+    seconds, maxrss_kib, status = out.split()
+    return float(seconds), int(maxrss_kib) / 1024.0, int(status)
+
+
+def peak_memory_mb() -> float:
+    """This process's peak resident memory since its exec, MB: ``VmHWM`` of /proc/self/status,
+    which belongs to the current address space only (``ru_maxrss`` would include the parent's peak
+    carried across exec); ``ru_maxrss`` where /proc is absent."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
 def _worker(request: dict) -> dict:
     """The measured case, in this (child) process."""
-    import resource
-
     import camloc
     from camloc.metrics import evaluate
 
@@ -261,8 +294,7 @@ def _worker(request: dict) -> dict:
     result = camloc.localize(dataset, config)
     filter_seconds = time.perf_counter() - started
     metrics = evaluate(result)
-    # ru_maxrss is in KiB on Linux.
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = peak_memory_mb()
     estimate = metrics.get("estimate") or {}
     return {
         "poses": dataset.num_poses,
@@ -339,6 +371,19 @@ def _has_rival(rows, T_world_camera, intrinsics, dataset, tree, true_index, sigm
         d2 = np.einsum("ni,ni->n", y, np.linalg.solve(dataset.obs_cov[rows[n]], y.T).T)
         out[n] = bool(np.any(d2 <= sigmas**2))
     return out
+
+
+def source_note() -> str:
+    """Which library was measured: the source hash, and the git commit when there is one."""
+    try:
+        commit = subprocess.run(["git", "-C", str(REPO), "log", "-1", "--format=%h"], capture_output=True,
+                                text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--", "camloc"], capture_output=True,
+                               text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.TimeoutExpired):
+        commit, dirty = "", ""
+    git = f", git {commit}{' + uncommitted edits' if dirty else ''}" if commit else ""
+    return f"camloc source {code_version()}{git}"
 
 
 # ------------------------------------------------------------------------------------ formatting

@@ -96,7 +96,7 @@ def main() -> None:
     store = _bench.ResultStore(cache / "results" / "association", enabled=args.resume)
     say = (lambda text: print(text, file=sys.stderr, flush=True))
     methods = ["oracle"] + [m for m in args.methods if m != "oracle"]  # the oracle first: ratios need it
-    say(f"camloc association benchmark ({'quick' if args.quick else 'full'}); {TARGET_TEXT}; cache: {cache}; {_bench.machine_load()}")
+    say(f"camloc association benchmark ({'quick' if args.quick else 'full'}); {TARGET_TEXT}; {_bench.source_note()}; cache: {cache}; {_bench.machine_load()}")
     if args.settings:
         say(f"every method also gets: {args.settings}")
 
@@ -136,7 +136,7 @@ def main() -> None:
         say("warning: the library's source (camloc/*.py) changed during this run: the rows mix versions")
     if args.json:
         print(json.dumps({"targets": TARGETS, "settings": args.settings, "machine": _bench.machine_load(),
-                          "cases": report}, indent=2))
+                          "source": _bench.source_note(), "cases": report}, indent=2))
     else:
         print_summary(report, methods)
 
@@ -219,7 +219,7 @@ def run_of(seed: Optional[int], path: Path, result: dict, oracle_rmse: Optional[
     reference = rmse if oracle else oracle_rmse
     ratio = rmse / reference if rmse is not None and reference else None
     return {"seed": seed, "dataset": path.name, "rmse_m": rmse, "ratio": ratio,
-            "seconds": result["filter_seconds"], "scores": scores}
+            "seconds": result["filter_seconds"], "scores": scores, "saved": bool(result.get("saved"))}
 
 
 def describe_run(run: dict) -> str:
@@ -229,7 +229,7 @@ def describe_run(run: dict) -> str:
     clutter = f", clutter accepted {s['clutter_accepted']}/{s['clutter']}" if s["clutter"] else ""
     return (f"RMSE {_bench.fmt(run['rmse_m'])} m (x{_bench.fmt(run['ratio'], 2)}), precision "
             f"{_bench.fmt(s['precision'], 2, percent=True)}, recall {_bench.fmt(s['recall'], 2, percent=True)}"
-            f"{clutter}, {run['seconds']:.1f} s")
+            f"{clutter}, {run['seconds']:.1f} s{' (saved result, --resume)' if run['saved'] else ''}")
 
 
 def aggregate(runs: list[dict]) -> dict:

@@ -83,7 +83,7 @@ def main() -> None:
     cache = args.cache.expanduser()
     say = (lambda text: print(text, file=sys.stderr, flush=True))
     say(f"camloc scale benchmark ({'quick' if args.quick else 'full'}); localizer: {describe_config(overrides)}; "
-        f"cache: {cache}; {_bench.machine_load()}")
+        f"{_bench.source_note()}; cache: {cache}; {_bench.machine_load()}")
 
     rows: list[dict] = []
     store = _bench.ResultStore(cache / "results" / "scale", enabled=args.resume)
@@ -116,7 +116,7 @@ def main() -> None:
         say("warning: the library's source (camloc/*.py) changed during this run: the rows mix versions")
     if args.json:
         print(json.dumps({"localizer": overrides, "plan": dataclasses.asdict(plan), "machine": _bench.machine_load(),
-                          "rows": rows}, indent=2))
+                          "source": _bench.source_note(), "rows": rows}, indent=2))
     else:
         print_table(rows, overrides, quick=args.quick)
 
@@ -264,6 +264,7 @@ def row_of(name: str, result: dict, path: Path) -> dict:
         "rmse_m": result["rmse_m"],
         "precision": scores["precision"],
         "association": result["association"],
+        "saved": bool(result.get("saved")),
     }
 
 
@@ -288,7 +289,7 @@ def announce(say, row: dict) -> dict:
     else:
         say(f"{row['case']}: {row['poses']} poses, {row['landmarks']} landmarks, {row['obs_per_pose']:.2f} obs/pose, "
             f"filter {row['filter_seconds']:.2f} s ({row['us_per_pose']:.0f} µs/pose), peak {row['peak_mb']:.0f} MB, "
-            f"RMSE {_bench.fmt(row['rmse_m'])} m")
+            f"RMSE {_bench.fmt(row['rmse_m'])} m{' (saved result, --resume)' if row.get('saved') else ''}")
     return row
 
 
