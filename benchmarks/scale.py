@@ -16,9 +16,10 @@ Cases (full mode; ``--quick`` runs the same cases on small worlds in a minute or
   camera can see (farther than 3 m from every pose, at the world's density): a robot in one part of
   a large mapped site. Only the map grows, so any change of cost is the map's.
 
-Every simulated case runs in its own interpreter (peak memory is that process's ``ru_maxrss``):
-read with ``camloc.load``, localize with ``camloc.localize`` (default ``LocalizerConfig`` unless
-``--association`` / ``--set`` say otherwise), score with ``camloc.metrics.evaluate``. Read and filter
+Every simulated case runs in its own interpreter, whose own peak memory is reported (see
+``_bench.peak_memory_mb``): read with ``camloc.load``, localize with ``camloc.localize`` (default
+``LocalizerConfig`` unless ``--association`` / ``--set`` say otherwise), score with
+``camloc.metrics.evaluate``. Read and filter
 times are wall-clock around those calls. µs/pose = filter time / poses, flat when the cost is
 linear in poses and independent of the map; µs/obs divides by observations instead.
 
@@ -94,7 +95,8 @@ def main() -> None:
     elif real is None:
         say(f"real file: skipped, {_bench.REAL_DATASET} is absent")
     else:
-        rows.append(announce(say, real_file_case(real, overrides, repeats=args.repeats, timeout=args.timeout)))
+        row = real_file_case(real, overrides, repeats=args.repeats, timeout=args.timeout)
+        rows.append(announce(say, with_oracle(row, real, overrides, store, args, say)))
 
     say("generating / finding the simulated worlds ...")
     world = _bench.simulated(cache, plan.world, seed=plan.seed)
@@ -104,12 +106,8 @@ def main() -> None:
     cases += [(f"map {_k(size)}", padded_map(cache, room, size)) for size in plan.map_sizes]
 
     for name, path in cases:
-        result = store.get(path, overrides)
-        if result is None:
-            say(f"{name}: localizing {path.name} ...")
-            result = _bench.run_case(path, overrides, timeout=args.timeout)
-            store.put(path, overrides, result)
-        rows.append(announce(say, row_of(name, result, path)))
+        row = row_of(name, measured(store, path, overrides, timeout=args.timeout, say=say), path)
+        rows.append(announce(say, with_oracle(row, path, overrides, store, args, say)))
 
     say(f"done; {_bench.machine_load()}")
     if store.version != _bench.code_version():
@@ -135,6 +133,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=3, help="real-file runs, the fastest is reported (default 3)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds allowed per case (default 3600)")
     parser.add_argument("--skip-real", action="store_true", help="leave out the real file (default: run it when present)")
+    parser.add_argument("--no-oracle", action="store_true",
+                        help="do not run the oracle for the reference RMSE column (default: run it, untimed in the table)")
     parser.add_argument("--resume", action="store_true",
                         help="reuse results saved by an earlier run with the same library source (default: measure anew)")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON instead of a table (default: table)")
@@ -246,6 +246,26 @@ def padded_map(cache: Path, room: Path, size: int) -> Path:
 # ------------------------------------------------------------------------------------ results
 
 
+def measured(store: _bench.ResultStore, path: Path, config: dict, *, timeout: float, say) -> dict:
+    """The worker's result for ``path`` with ``config``: saved (``--resume``) or measured now."""
+    result = store.get(path, config)
+    if result is None:
+        say(f"   localizing {path.name} ({describe_config(config)}) ...")
+        result = _bench.run_case(path, config, timeout=timeout)
+        store.put(path, config, result)
+    return result
+
+
+def with_oracle(row: dict, path: Path, overrides: dict, store: _bench.ResultStore, args: argparse.Namespace, say) -> dict:
+    """The row plus the oracle's RMSE on the same file (the file's true ids, same options): the
+    accuracy the association could reach, so that an RMSE can be judged. Not for --no-oracle or
+    when the oracle is what is being timed."""
+    if args.no_oracle or overrides.get("association") == "oracle" or "error" in row:
+        return row
+    oracle = measured(store, path, {**overrides, "association": "oracle"}, timeout=args.timeout, say=say)
+    return {**row, "oracle_rmse_m": oracle.get("rmse_m")}
+
+
 def row_of(name: str, result: dict, path: Path) -> dict:
     """A table row from a worker's result."""
     if "error" in result:
@@ -286,10 +306,12 @@ def announce(say, row: dict) -> dict:
     row = {**row, **derived(row)}
     if "error" in row:
         say(f"{row['case']}: FAILED {row['error']}")
-    else:
-        say(f"{row['case']}: {row['poses']} poses, {row['landmarks']} landmarks, {row['obs_per_pose']:.2f} obs/pose, "
-            f"filter {row['filter_seconds']:.2f} s ({row['us_per_pose']:.0f} µs/pose), peak {row['peak_mb']:.0f} MB, "
-            f"RMSE {_bench.fmt(row['rmse_m'])} m{' (saved result, --resume)' if row.get('saved') else ''}")
+        return row
+    oracle = "" if row.get("oracle_rmse_m") is None else f" (oracle {row['oracle_rmse_m']:.3f} m)"
+    saved = " (saved result, --resume)" if row.get("saved") else ""
+    say(f"{row['case']}: {row['poses']} poses, {row['landmarks']} landmarks, {row['obs_per_pose']:.2f} obs/pose, "
+        f"filter {row['filter_seconds']:.2f} s ({row['us_per_pose']:.0f} µs/pose), peak {row['peak_mb']:.0f} MB, "
+        f"RMSE {_bench.fmt(row['rmse_m'])} m{oracle}{saved}")
     return row
 
 
@@ -300,7 +322,7 @@ def print_table(rows: list[dict], overrides: dict, *, quick: bool) -> None:
     table = Table(title=f"camloc scale ({'quick' if quick else 'full'}), localizer: {describe_config(overrides)}",
                   caption=f"at the end: {_bench.machine_load()}")
     columns = ["case", "poses", "landmarks", "obs/pose", "read (s)", "filter (s)", "wall (s)", "poses/s", "µs/pose",
-               "µs/obs", "peak MB", "RMSE (m)", "precision"]
+               "µs/obs", "peak MB", "RMSE (m)", "oracle RMSE", "precision"]
     for column in columns:
         table.add_column(column, justify="left" if column == "case" else "right")
     for row in rows:
@@ -312,9 +334,10 @@ def print_table(rows: list[dict], overrides: dict, *, quick: bool) -> None:
             _bench.fmt(row["read_seconds"], 3), _bench.fmt(row["filter_seconds"], 2), _bench.fmt(row["wall_seconds"], 2),
             _bench.fmt(row["poses_per_second"], 0), _bench.fmt(row["us_per_pose"], 0),
             _bench.fmt(row["us_per_observation"], 0), _bench.fmt(row["peak_mb"], 0), _bench.fmt(row["rmse_m"]),
+            _bench.fmt(row.get("oracle_rmse_m")),
             _bench.fmt(row["precision"], 2, percent=True),
         )
-    console = Console(width=max(Console().width, 140))
+    console = Console(width=max(Console().width, 170))
     console.print(table)
     console.print("wall: the whole child process, interpreter start included (real file: `camloc run` as a user "
                   "types it, best of --repeats; simulated: read + localize + evaluate, no run folder written).")
