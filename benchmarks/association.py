@@ -83,7 +83,7 @@ CASES = [
     Case("real-style", "real-file style, normalized camera",
          dict(trajectory="grid", poses=300), 10,
          dict(trajectory="grid", poses=300), 3),
-    Case("real", "the real file (1b-3D-Camera-Localization.g2o)", {}, 1, {}, 1, real=True),
+    Case("real", "the real file", {}, 1, {}, 1, real=True),
     Case("aerial", "steep 3D motion (tilt up to 60 deg), pixel intrinsics, two cameras",
          dict(trajectory="aerial", poses=500, intrinsics="pixel", cameras=2), 3,
          dict(trajectory="aerial", poses=200, intrinsics="pixel", cameras=2), 1),
