@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
 from camloc import association, ekf, geometry
+from camloc.beam import BeamSearch, BeamSettings
 from camloc.filters import FILTERS, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
@@ -66,12 +67,12 @@ class LocalizerConfig:
     cost: str = "nll"
     margin: float = 1.0
     sequential: bool = True
-    beam_width: int = 16
-    beam_delta: float = 14.0
-    branch_delta: float = 8.0
-    null_cost: Optional[float] = None
-    slip_inflation: float = 25.0
-    slip_cost: float = 10.0
+    beam_width: int = BeamSettings.beam_width
+    beam_delta: float = BeamSettings.beam_delta
+    branch_delta: float = BeamSettings.branch_delta
+    null_cost: Optional[float] = BeamSettings.null_cost
+    slip_inflation: float = BeamSettings.slip_inflation
+    slip_cost: float = BeamSettings.slip_cost
     jcbb_max_nodes: int = 2000
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
@@ -185,8 +186,6 @@ class _Localizer:
 
     def search_beam(self, on_pose: Optional[Callable[[int], None]] = None) -> None:
         """Decide every pose's association with the beam (``camloc.beam``) before filtering."""
-        from camloc.beam import BeamSearch, BeamSettings
-
         c = self.config
         settings = BeamSettings(
             beam_width=c.beam_width, beam_delta=c.beam_delta, branch_delta=c.branch_delta, null_cost=c.null_cost,
