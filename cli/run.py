@@ -39,7 +39,7 @@ def run(
     ),
     config_file: Optional[Path] = typer.Option(
         None, "--config", help="TOML file with localizer options (names as below, with underscores); "
-        "options given on the command line win.", show_default=False
+        "options given on the command line win. Default: none.", show_default=False
     ),
     filter_kind: Optional[FilterChoice] = typer.Option(
         None, "--filter", help="State parametrization: euler (x, y, z, roll, pitch, yaw; singular at pitch "
@@ -112,8 +112,8 @@ def run(
     initial_sigma_deg: Optional[float] = typer.Option(
         None, help="Standard deviation of the start orientation, degrees. Default: 0.5.", show_default=False
     ),
-    json_output: bool = typer.Option(False, "--json", help="Print the run summary as JSON instead of tables."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
+    json_output: bool = typer.Option(False, "--json", help="Print the run summary as JSON instead of tables. Default: tables."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors. Default: off."),
 ) -> None:
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
