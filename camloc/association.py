@@ -131,3 +131,96 @@ def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, camera: np.ndarray) -> n
         log_volume = np.log(np.maximum(span, 6.0 * sigma)).sum()  # a few sigmas at least
         cost[mine] = 2.0 * log_volume - np.linalg.slogdet(2.0 * np.pi * cov[mine])[1]
     return cost
+
+
+def assignment_margins(cost: np.ndarray, null_cost: np.ndarray, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How much costlier the nearest alternatives to each chosen pair are: its confidence.
+
+    For a pair (i, c) the alternatives are the single changes of the pose's assignment that undo
+    it. ``row``: observation i takes another landmark or none. ``steal``: another observation i2
+    takes landmark c (leaving what it has now) while i takes its next best; its margin is the row
+    margin plus ``cost[i2, c] - current[i2]``. A margin of ``delta`` means the chosen pair is
+    ``exp(delta / 2)`` times likelier than that alternative.
+
+    Parameters
+    ----------
+    cost : (n, m) pair costs of the pose's observations against the candidates (2 x negative
+        log-likelihood, inf where a pair fails the gate).
+    null_cost : (n,) cost of leaving each observation unassigned.
+    chosen : (n,) chosen candidate column of each observation, -1 when unassigned.
+
+    Returns
+    -------
+    row, steal : (n,) margins; inf for unassigned observations and where no alternative exists.
+    """
+    n = cost.shape[0]
+    paired = chosen >= 0
+    current = null_cost.astype(float).copy()
+    current[paired] = cost[np.flatnonzero(paired), chosen[paired]]
+    row = np.full(n, np.inf)
+    steal = np.full(n, np.inf)
+    for i in np.flatnonzero(paired):
+        c = chosen[i]
+        others = np.delete(cost[i], c)
+        row[i] = min(float(null_cost[i]), float(others.min()) if others.size else np.inf) - current[i]
+        rivals = np.delete(cost[:, c], i)
+        able = np.isfinite(rivals)
+        if able.any():
+            # what the rival holds now, or less: any observation may go unassigned
+            held = np.minimum(np.delete(current, i), np.delete(null_cost, i))[able]
+            steal[i] = row[i] + float((rivals[able] - held).min())
+    return row, steal
+
+
+def leave_one_out_costs(
+    z: np.ndarray, R_obs: np.ndarray, z_hat: np.ndarray, H: np.ndarray, chosen: np.ndarray,
+    *, information: np.ndarray, gate: float,
+) -> np.ndarray:
+    """Pair costs of every observation against every candidate, each observation judged by the
+    posterior of all the other pairs (its own pair left out).
+
+    After an update that used pair (i, c), the posterior has partly fitted observation i, so its
+    costs there flatter the chosen landmark. Linearized at the posterior (the MAP, where the
+    cost's gradient vanishes), leaving pair i out gives the information and correction
+
+        L_i = information + sum_{j != i} H_j' R_j^-1 H_j,   L_i delta_i = -H_c' R_i^-1 (z_i - z_hat_c)
+
+    and the candidates' predictions move to ``z_hat_j + H_j delta_i`` with
+    ``S = H_j L_i^-1 H_j' + R_i``. Unpaired observations are judged against the full posterior.
+    Information is summed from the prior, never subtracted from the posterior, so every L_i
+    stays positive definite.
+
+    Parameters
+    ----------
+    z : (n, 3) measurements; R_obs : (n, 3, 3) their covariances.
+    z_hat : (m, 3), H : (m, 3, 6) candidates' predictions and Jacobians at the posterior.
+    chosen : (n,) candidate column paired with each observation in the update, -1 for none.
+    information : (6, 6) prior information (P_prior^-1) plus that of the update's pairs outside
+        these observations (another camera's).
+    gate : chi^2 gate on d^2; pairs beyond it cost inf.
+
+    Returns
+    -------
+    (n, m) costs ``d^2 + ln det S - ln det R`` (the beam's units), inf beyond the gate.
+    """
+    n = z.shape[0]
+    paired = np.flatnonzero(chosen >= 0)
+    Hc = H[chosen[paired]]                                            # (p, 3, 6)
+    HtRinv = np.swapaxes(np.linalg.solve(R_obs[paired], Hc), 1, 2)   # (p, 6, 3) H' R^-1
+    J = HtRinv @ Hc                                                   # (p, 6, 6) each pair's information
+    L_rows = np.broadcast_to(information + J.sum(axis=0), (n, 6, 6)).copy()
+    rhs = np.zeros((n, 6))
+    if paired.size:
+        others = J.sum(axis=0)[None] - J if paired.size > 1 else np.zeros_like(J)
+        L_rows[paired] = information[None] + others
+        rhs[paired] = -(HtRinv @ (z[paired] - z_hat[chosen[paired]])[..., None])[..., 0]
+    P_rows = np.linalg.solve(L_rows, np.broadcast_to(np.eye(6), (n, 6, 6)))
+    P_rows = 0.5 * (P_rows + np.swapaxes(P_rows, 1, 2))
+    delta = np.einsum("nij,nj->ni", P_rows, rhs)
+    z_pred = z_hat[None, :, :] + np.einsum("mij,nj->nmi", H, delta)   # (n, m, 3)
+    S = np.einsum("mij,njk,mlk->nmil", H, P_rows, H) + R_obs[:, None, :, :]
+    L = np.linalg.cholesky(S)
+    w = np.linalg.solve(L, (z[:, None, :] - z_pred)[..., None])[..., 0]
+    d2 = np.einsum("...i,...i->...", w, w)
+    log_det_ratio = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1) - np.linalg.slogdet(R_obs)[1][:, None]
+    return np.where(d2 <= gate, d2 + log_det_ratio, np.inf)

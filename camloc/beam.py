@@ -52,8 +52,6 @@ class BeamSettings:
     beam_width : hypotheses kept after each pose.
     beam_delta : drop hypotheses this much costlier than the best.
     branch_delta : options of an observation this much costlier than its best are not explored.
-    null_cost : cost of leaving an observation unassigned; None: per observation, from the data
-        (``association.clutter_null_cost``: clutter uniform over the measured volume).
     gate : chi^2 gate on a pair's d^2.
     merge_sigma : hypotheses whose states differ by less than this many standard deviations on
         every axis are merged (the cheaper kept).
@@ -64,7 +62,6 @@ class BeamSettings:
     beam_width: int = 16
     beam_delta: float = 14.0
     branch_delta: float = 8.0
-    null_cost: Optional[float] = None
     gate: float = 11.34
     merge_sigma: float = 0.3
     slip_inflation: float = 25.0
@@ -80,6 +77,7 @@ class _Hypothesis:
     parent: int                       # index of the hypothesis it grew from, at the previous pose
     pairs: tuple = ()                 # ((observation, landmark index), ...) at this pose
     unassigned: int = 0
+    slipped: bool = False             # explained from the widened (odometry-slip) prior
 
 
 @dataclass
@@ -95,24 +93,23 @@ class _Options:
 class BeamSearch:
     """Runs the beam over a whole dataset.
 
-    ``context`` provides: dataset, cameras (id -> T_robot_camera, intrinsics), tree, min_depth,
-    max_depth, max_angle, obs_of_pose, T_increments (the localizer).
+    ``context`` (the localizer) provides: dataset, filter, tree, obs_of_pose, T_increments,
+    null_cost (K,) (leaving each observation unassigned), log_det_R (K,), ``predictions`` and
+    ``updated``.
     """
 
     def __init__(self, context, settings: BeamSettings):
         self.ctx = context
         self.settings = settings
-        ds = context.dataset
-        self.log_det_R = np.linalg.slogdet(ds.obs_cov)[1] if ds.num_observations else np.zeros(0)
-        if settings.null_cost is None:
-            self.null_cost = association.clutter_null_cost(ds.obs_uvd, ds.obs_cov, ds.obs_camera)
-        else:
-            self.null_cost = np.full(ds.num_observations, float(settings.null_cost))
+        self.log_det_R = context.log_det_R      # ln det R of every observation
+        self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         self.history: list[list[_Hypothesis]] = []
         self.slips: list[int] = []
 
-    def run(self, x0: np.ndarray, P0: np.ndarray, *, on_pose: Optional[Callable[[int], None]] = None) -> list[np.ndarray]:
-        """Process every pose; returns, per pose, a (p, 2) int array of chosen (obs, landmark)."""
+    def run(self, x0: np.ndarray, P0: np.ndarray, *, on_pose: Optional[Callable[[int], None]] = None) -> tuple[list[np.ndarray], np.ndarray]:
+        """Process every pose; returns, per pose, a (p, 2) int array of chosen (obs, landmark), and
+        (n,) bool: the pose was explained from the widened prior of an odometry slip (the filter
+        that replays the pairs must widen its prior there too)."""
         beam = [_Hypothesis(x0, P0, 0.0, -1)]
         for k in range(self.ctx.dataset.num_poses):
             if k > 0:
@@ -157,7 +154,10 @@ class BeamSearch:
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]))
             seeded = _Hypothesis(result.state, result.cov, h.cost + cost, h.parent, ((int(obs[i]), landmark),))
             children += self._explain(seeded, np.delete(obs, i))[:1]
-        return self._prune(children) if children else self._explain(h, obs)
+        children = self._prune(children) if children else self._explain(h, obs)
+        for child in children:
+            child.slipped = True
+        return children
 
     def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
         """Children of h that explain all of obs, pruned to the beam: the clear observations in
@@ -268,15 +268,17 @@ class BeamSearch:
         d = self.ctx.filter.difference(a.x, b.x)
         return bool(np.all(d * d <= self.settings.merge_sigma**2 * np.diagonal(b.P)))
 
-    def _backtrack(self) -> list[np.ndarray]:
+    def _backtrack(self) -> tuple[list[np.ndarray], np.ndarray]:
         n = len(self.history)
         chosen: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * n
+        slipped = np.zeros(n, dtype=bool)
         index = 0  # each pose's beam is sorted by cost: the first is the best
         for k in range(n - 1, -1, -1):
             h = self.history[k][index]
             chosen[k] = np.asarray(h.pairs, dtype=np.int64).reshape(-1, 2)
+            slipped[k] = h.slipped
             index = h.parent
-        return chosen
+        return chosen, slipped
 
 
 def _empty_options() -> _Options:

@@ -50,8 +50,18 @@ class LocalizerConfig:
     sequential : accept best-friends pairs one at a time, most unambiguous first, conditioning the
         filter on each before looking at the rest (the final update is still one stacked update
         from the prior); False pairs all observations at once (the original method).
-    beam_width, beam_delta, branch_delta, null_cost, slip_inflation, slip_cost : the beam's
-        parameters, see ``camloc.beam.BeamSettings`` (costs are 2 x negative log-likelihoods).
+    beam_width, beam_delta, branch_delta, slip_inflation, slip_cost : the beam's parameters, see
+        ``camloc.beam.BeamSettings`` (costs are 2 x negative log-likelihoods).
+    null_cost : cost of leaving an observation unassigned (the beam, and the re-check); None: per
+        observation, from the data (``association.clutter_null_cost``: clutter uniform over the
+        measured volume).
+    recheck : after each update, judge every accepted pair again by the posterior of the pose's
+        other pairs (its own left out, ``association.leave_one_out_costs``) and update again
+        without the pairs that do not hold (not for "oracle"). A pair holds when leaving its
+        observation unassigned or pairing it with another landmark costs more than
+        ``recheck_margin``, and handing its landmark to another of the pose's observations costs
+        more than ``recheck_steal_margin`` (two detections that fit one landmark about equally
+        well: one of them is clutter, and which is not known).
     jcbb_max_nodes : bound on the joint compatibility tests per pose of "jcbb" (``camloc.jcbb``).
     min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
         1.25 x the largest measured depth + 0.5 m).
@@ -70,9 +80,12 @@ class LocalizerConfig:
     beam_width: int = BeamSettings.beam_width
     beam_delta: float = BeamSettings.beam_delta
     branch_delta: float = BeamSettings.branch_delta
-    null_cost: Optional[float] = BeamSettings.null_cost
+    null_cost: Optional[float] = None
     slip_inflation: float = BeamSettings.slip_inflation
     slip_cost: float = BeamSettings.slip_cost
+    recheck: bool = True
+    recheck_margin: float = 0.0
+    recheck_steal_margin: float = 6.0
     jcbb_max_nodes: int = 2000
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
@@ -97,6 +110,7 @@ class LocalizerConfig:
             (self.beam_delta > 0.0 and self.branch_delta > 0.0, "beam_delta and branch_delta must be > 0"),
             (self.null_cost is None or self.null_cost > 0.0, f"null_cost must be > 0, got {self.null_cost}"),
             (self.slip_cost >= 0.0, f"slip_cost must be >= 0, got {self.slip_cost}"),
+            (self.recheck_margin >= 0.0 and self.recheck_steal_margin >= 0.0, "recheck_margin and recheck_steal_margin must be >= 0"),
             (self.slip_inflation >= 1.0, f"slip_inflation must be >= 1, got {self.slip_inflation}"),
             (int(self.jcbb_max_nodes) == self.jcbb_max_nodes and self.jcbb_max_nodes >= 1, f"jcbb_max_nodes must be an integer >= 1, got {self.jcbb_max_nodes}"),
         ]
@@ -156,6 +170,11 @@ class _Localizer:
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate_probability))  # chi^2 quantile, 3 dof
+        self.log_det_R = np.linalg.slogdet(dataset.obs_cov)[1] if dataset.num_observations else np.zeros(0)
+        if config.null_cost is None:
+            self.null_cost = association.clutter_null_cost(dataset.obs_uvd, dataset.obs_cov, dataset.obs_camera)
+        else:
+            self.null_cost = np.full(dataset.num_observations, float(config.null_cost))
 
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
@@ -182,23 +201,25 @@ class _Localizer:
         self.P = np.diag(sigma**2)
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
+        self.beam_slipped: np.ndarray | None = None
         self.slip_pose_ids: list[int] = []
 
     def search_beam(self, on_pose: Optional[Callable[[int], None]] = None) -> None:
         """Decide every pose's association with the beam (``camloc.beam``) before filtering."""
         c = self.config
         settings = BeamSettings(
-            beam_width=c.beam_width, beam_delta=c.beam_delta, branch_delta=c.branch_delta, null_cost=c.null_cost,
+            beam_width=c.beam_width, beam_delta=c.beam_delta, branch_delta=c.branch_delta,
             gate=self.gate, slip_inflation=c.slip_inflation, slip_cost=c.slip_cost,
         )
         search = BeamSearch(self, settings)
-        self.beam_pairs = search.run(self.x, self.P, on_pose=on_pose)
-        self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in search.slips]
-        if search.slips:
+        self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose)
+        slips = np.flatnonzero(self.beam_slipped)
+        self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in slips]
+        if slips.size:
             self.warnings.append(
-                f"{len(search.slips)} pose(s) looked like odometry slips and were re-explained with a wider prior: "
-                + ", ".join(str(int(self.dataset.pose_ids[k])) for k in search.slips[:10])
-                + (" ..." if len(search.slips) > 10 else "")
+                f"{slips.size} pose(s) were explained as odometry slips (prior covariance widened "
+                f"{self.config.slip_inflation:g}x): " + ", ".join(str(i) for i in self.slip_pose_ids[:10])
+                + (" ..." if slips.size > 10 else "")
             )
 
     def step(self, k: int) -> None:
@@ -206,8 +227,18 @@ class _Localizer:
             self._predict(k - 1)                       # x <- x (+) odometry increment
         self._warn_near_singularity(k)
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
+        if self.beam_slipped is not None and self.beam_slipped[k]:
+            self.P = self.P * self.config.slip_inflation  # as the beam did when it chose these pairs
         if obs.size:
             result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)  # one stacked (iterated) update
+            # A lone pair left out leaves the prior its association was already judged by.
+            if self.config.recheck and self.config.association != "oracle" and obs.size >= 2:
+                keep = self._recheck(self.obs_of_pose[k], obs, landmarks, self.P, result.state)
+                if not keep.all():
+                    obs, landmarks = obs[keep], landmarks[keep]
+                    if obs.size:
+                        result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)
+        if obs.size:
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = result.state, result.cov
         self.states[k], self.covs[k] = self.filter.stored(self.x), self.P
@@ -258,6 +289,36 @@ class _Localizer:
                 result = self.updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
                 x, P = result.state, result.cov
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
+
+    def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
+        """Which of a pose's pairs keep at least ``recheck_margin`` over their nearest alternative
+        (``association.assignment_margins``) when each observation is judged by the posterior of
+        the other pairs (``association.leave_one_out_costs``): (p,) bool."""
+        ds = self.dataset
+        keep = np.ones(pair_obs.size, dtype=bool)
+        position = {int(o): n for n, o in enumerate(pair_obs.tolist())}
+        chosen_landmark = dict(zip(pair_obs.tolist(), pair_landmarks.tolist()))
+        groups = []
+        pair_information = {}
+        for camera_id in np.unique(ds.obs_camera[obs]):
+            mine = obs[ds.obs_camera[obs] == camera_id]
+            candidates, z_hat, H, _ = self.predictions(x_post, P_prior, camera_id)
+            column_of = {int(c): j for j, c in enumerate(candidates.tolist())}
+            chosen = np.array([column_of.get(chosen_landmark.get(int(o), -2), -1) for o in mine], dtype=np.int64)
+            Hc = H[chosen[chosen >= 0]]
+            pair_information[int(camera_id)] = np.einsum("pji,pjk,pkl->il", Hc, np.linalg.inv(ds.obs_cov[mine[chosen >= 0]]), Hc) if Hc.size else np.zeros((6, 6))
+            groups.append((int(camera_id), mine, z_hat, H, chosen))
+        prior_information = np.linalg.solve(P_prior, np.eye(6))
+        for camera_id, mine, z_hat, H, chosen in groups:
+            if z_hat.shape[0] == 0:
+                continue
+            information = prior_information + sum(v for c, v in pair_information.items() if c != camera_id)
+            cost = association.leave_one_out_costs(ds.obs_uvd[mine], ds.obs_cov[mine], z_hat, H, chosen, information=information, gate=self.gate)
+            row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
+            for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
+                if o in position and not (r > self.config.recheck_margin and st > self.config.recheck_steal_margin):
+                    keep[position[o]] = False
+        return keep
 
     def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The landmarks camera ``camera_id`` may see from state x: (candidates (m,), z_hat (m, 3),

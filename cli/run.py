@@ -91,6 +91,19 @@ def run(
     slip_cost: Optional[float] = typer.Option(
         None, help="Beam: extra cost of the odometry-slip hypothesis. Default: 10.", show_default=False
     ),
+    recheck: Optional[bool] = typer.Option(
+        None, "--recheck/--no-recheck", help="After each update, judge every pair again by the posterior "
+        "of the pose's other pairs and drop the ones that do not hold (not for oracle). Default: --recheck.",
+        show_default=False
+    ),
+    recheck_margin: Optional[float] = typer.Option(
+        None, help="Re-check: drop a pair when leaving its observation unassigned or pairing it with "
+        "another landmark costs no more than this. Default: 0.", show_default=False
+    ),
+    recheck_steal_margin: Optional[float] = typer.Option(
+        None, help="Re-check: drop a pair when another observation of the pose could take its landmark "
+        "for no more than this extra cost (two detections fit one landmark). Default: 6.", show_default=False
+    ),
     jcbb_max_nodes: Optional[int] = typer.Option(
         None, help="JCBB: most joint compatibility tests per pose; past it the best set found is kept. "
         "Default: 2000.", show_default=False
@@ -136,6 +149,9 @@ def run(
         "null_cost": null_cost,
         "slip_inflation": slip_inflation,
         "slip_cost": slip_cost,
+        "recheck": recheck,
+        "recheck_margin": recheck_margin,
+        "recheck_steal_margin": recheck_steal_margin,
         "jcbb_max_nodes": jcbb_max_nodes,
         "min_depth": min_depth,
         "max_depth": max_depth,

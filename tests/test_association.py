@@ -54,3 +54,70 @@ def test_best_friends_requires_mutual_best_gate_and_margin():
 def test_best_friends_on_empty_inputs():
     rows, cols, gap = association.best_friends(np.zeros((0, 3)), np.zeros((0, 3)), gate=1.0, margin=0.0)
     assert rows.size == cols.size == gap.size == 0
+
+
+def test_assignment_margins_count_every_single_change():
+    inf = np.inf
+    # observation 0 chose column 0 (cost 1); its next best is column 1 (cost 4), null costs 10.
+    # observation 1 chose column 1 (cost 2) but could take column 0 for 2.5 (0.5 more).
+    # observation 2 is unassigned (null 10) and could take column 0 for 6 (4 less than now).
+    cost = np.array([[1.0, 4.0, inf], [2.5, 2.0, inf], [6.0, inf, inf]])
+    null = np.full(3, 10.0)
+    row, steal = association.assignment_margins(cost, null, np.array([0, 1, -1]))
+    assert row[0] == pytest.approx(3.0)             # column 1 instead
+    assert steal[0] == pytest.approx(3.0 - 4.0)     # observation 2 takes column 0: 6 - 10
+    assert row[1] == pytest.approx(0.5)             # column 0 instead
+    assert steal[1] == pytest.approx(0.5 + (4.0 - 1.0))  # observation 0 takes column 1
+    assert row[2] == inf and steal[2] == inf        # unassigned: nothing to judge
+
+
+def test_assignment_margins_drop_a_pair_that_fails_its_gate():
+    cost = np.array([[np.inf, 3.0]])
+    row, _ = association.assignment_margins(cost, np.array([10.0]), np.array([0]))
+    assert row[0] == -np.inf
+
+
+def test_leave_one_out_costs_match_an_update_without_the_pair(rng):
+    """For a linear measurement model the formula is exact: compare with the posterior of the
+    other pairs computed from scratch, for every observation and candidate."""
+    n_obs, n_cand = 4, 6
+    H = rng.normal(size=(n_cand, 3, 6))
+    offset = rng.normal(size=(n_cand, 3))
+    P0 = np.diag(rng.uniform(0.05, 0.3, 6) ** 2)
+    x0 = rng.normal(scale=0.2, size=6)
+    R = np.array([np.diag(rng.uniform(0.02, 0.06, 3) ** 2) for _ in range(n_obs)])
+    chosen = np.array([2, 0, -1, 5])
+    x_true = x0 + rng.normal(scale=0.1, size=6)
+    z = np.array([H[c] @ x_true + offset[c] if c >= 0 else rng.normal(size=3) for c in chosen])
+    z += rng.normal(scale=0.03, size=z.shape)
+
+    def posterior(rows):
+        information = np.linalg.inv(P0)
+        vector = information @ x0
+        for i in rows:
+            Hc, Rinv = H[chosen[i]], np.linalg.inv(R[i])
+            information = information + Hc.T @ Rinv @ Hc
+            vector = vector + Hc.T @ Rinv @ (z[i] - offset[chosen[i]])
+        P = np.linalg.inv(information)
+        return P @ vector, P
+
+    paired = [i for i in range(n_obs) if chosen[i] >= 0]
+    x_post, _ = posterior(paired)
+    z_hat = np.einsum("mij,j->mi", H, x_post) + offset
+    got = association.leave_one_out_costs(z, R, z_hat, H, chosen, information=np.linalg.inv(P0), gate=np.inf)
+    for i in range(n_obs):
+        x_i, P_i = posterior([j for j in paired if j != i])
+        for j in range(n_cand):
+            y = z[i] - (H[j] @ x_i + offset[j])
+            S = H[j] @ P_i @ H[j].T + R[i]
+            expected = y @ np.linalg.solve(S, y) + np.linalg.slogdet(S)[1] - np.linalg.slogdet(R[i])[1]
+            assert got[i, j] == pytest.approx(expected, rel=1e-8, abs=1e-8)
+
+
+def test_leave_one_out_costs_apply_the_gate(rng):
+    H = rng.normal(size=(2, 3, 6))
+    z_hat = np.zeros((2, 3))
+    R = np.array([np.eye(3) * 1e-4])
+    z = np.array([[5.0, 0.0, 0.0]])  # far from both predictions
+    cost = association.leave_one_out_costs(z, R, z_hat, H, np.array([-1]), information=np.eye(6) * 1e4, gate=11.34)
+    assert np.all(np.isinf(cost))

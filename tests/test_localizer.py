@@ -68,6 +68,24 @@ def test_clutter_is_rejected():
     assert np.count_nonzero(result.associations.landmark[clutter] != -1) <= clutter.sum() / 100
 
 
+def test_recheck_rejects_clutter_the_beam_accepted():
+    """15% clutter and 3% gross outliers: judged by the posterior of the pose's other pairs, the
+    clutter pairs the beam took are dropped, and precision reaches the association issue's 99.5%."""
+    dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=300, clutter_fraction=0.15, outlier_fraction=0.03), seed=200)
+    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    scores = {}
+    for recheck in (False, True):
+        result = localize(dataset, LocalizerConfig(recheck=recheck))
+        made = result.associations.landmark != -1
+        correct = made & (result.associations.landmark == result.associations.true_landmark)
+        scores[recheck] = (np.count_nonzero(made & clutter), correct.sum() / made.sum(), position_rmse(result, dataset))
+    assert clutter.sum() > 150
+    assert scores[True][0] < scores[False][0] and scores[True][0] <= clutter.sum() / 150
+    assert scores[True][1] >= 0.995 > scores[False][1]
+    assert scores[True][2] <= 1.25 * position_rmse(oracle, dataset)
+
+
 @pytest.mark.parametrize("association", ["beam", "jcbb", "best-friends"])
 def test_default_association_never_reads_the_file_ids(association):
     dataset = simulate(SimulationConfig(trajectory="grid", poses=60), seed=2)
@@ -174,7 +192,7 @@ def test_divergence_guard_reports_runs_of_inconsistent_updates():
 def test_a_filter_fed_wrong_pairs_reports_divergence():
     dataset = simulate(SimulationConfig(trajectory="grid", poses=120), seed=1)
     # best friends, batch, no margin: the fragile original method, on data where it breaks
-    broken = localize(dataset, LocalizerConfig(association="best-friends", sequential=False, margin=0.0))
+    broken = localize(dataset, LocalizerConfig(association="best-friends", sequential=False, margin=0.0, recheck=False))
     healthy = localize(dataset, LocalizerConfig(association="oracle"))
     assert position_rmse(broken, dataset) > 0.5
     assert len(broken.summary["divergence_guard"]["runs"]) >= 1
