@@ -306,7 +306,8 @@ class _Localizer:
             column_of = {int(c): j for j, c in enumerate(candidates.tolist())}
             chosen = np.array([column_of.get(chosen_landmark.get(int(o), -2), -1) for o in mine], dtype=np.int64)
             Hc = H[chosen[chosen >= 0]]
-            pair_information[int(camera_id)] = np.einsum("pji,pjk,pkl->il", Hc, np.linalg.inv(ds.obs_cov[mine[chosen >= 0]]), Hc) if Hc.size else np.zeros((6, 6))
+            R_paired = ds.obs_cov[mine[chosen >= 0]]
+            pair_information[int(camera_id)] = (np.swapaxes(Hc, 1, 2) @ np.linalg.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((6, 6))
             groups.append((int(camera_id), mine, z_hat, H, chosen))
         prior_information = np.linalg.solve(P_prior, np.eye(6))
         for camera_id, mine, z_hat, H, chosen in groups:
