@@ -211,8 +211,7 @@ def leave_one_out_costs(
     L_rows = np.broadcast_to(information + J.sum(axis=0), (n, 6, 6)).copy()
     rhs = np.zeros((n, 6))
     if paired.size:
-        others = J.sum(axis=0)[None] - J if paired.size > 1 else np.zeros_like(J)
-        L_rows[paired] = information[None] + others
+        L_rows[paired] = information[None] + (J.sum(axis=0)[None] - J)   # the other pairs' information
         rhs[paired] = -(HtRinv @ (z[paired] - z_hat[chosen[paired]])[..., None])[..., 0]
     P_rows = np.linalg.solve(L_rows, np.broadcast_to(np.eye(6), (n, 6, 6)))
     P_rows = 0.5 * (P_rows + np.swapaxes(P_rows, 1, 2))
