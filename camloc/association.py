@@ -223,3 +223,69 @@ def leave_one_out_costs(
     d2 = np.einsum("...i,...i->...", w, w)
     log_det_ratio = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1) - np.linalg.slogdet(R_obs)[1][:, None]
     return np.where(d2 <= gate, d2 + log_det_ratio, np.inf)
+
+
+def seeded_explanation_costs(
+    y: np.ndarray,
+    H: np.ndarray,
+    R: np.ndarray,
+    P: np.ndarray,
+    pair_obs: np.ndarray,
+    pair_landmark: np.ndarray,
+    null_cost: np.ndarray,
+    log_det_R: np.ndarray,
+    seeds: np.ndarray,
+    *,
+    gate: float,
+) -> np.ndarray:
+    """What a pose's whole explanation costs if each seed pair is taken first: for ranking seeds.
+
+    Under a wide prior most observations gate many landmarks, and a pair's own cost says little
+    about whether it is right. A right pair pins the pose, after which the other observations'
+    right pairs fit well; a wrong pair leaves most of them unexplained. So each seed s is scored
+    by the cost of explaining everything given s, linearized at the prior:
+
+        cost_s + sum over the other observations i of min(null_i, min_q c_q|s)
+
+    where q runs over i's pairs (not sharing s's landmark) and ``c_q|s = d^2 + ln det S - ln det R``
+    of q's innovation conditioned on s (the Schur complement of the two pairs' joint innovation
+    covariance, so ``d^2_s + d^2_q|s`` is their joint compatibility statistic). Observations do not
+    compete for landmarks here: this ranks seeds, the beam then explains the best ones exactly.
+
+    Parameters
+    ----------
+    y : (N, 3) innovation of every candidate pair; H : (N, 3, n) its Jacobian; R : (N, 3, 3) the
+        observation's covariance; P : (n, n) the prior covariance.
+    pair_obs, pair_landmark : (N,) the pair's observation (0..m-1) and landmark.
+    null_cost, log_det_R : (m,) per observation.
+    seeds : (M,) indices of the pairs to score.
+    gate : chi^2 gate on a conditioned pair's d^2.
+
+    Returns
+    -------
+    (M,) the approximate cost of each seed's explanation (lower is better).
+    """
+    seeds = np.asarray(seeds, dtype=np.int64)
+    HP = H @ P                                                  # (N, 3, n)
+    S = HP @ np.swapaxes(H, 1, 2) + R                           # (N, 3, 3) each pair's own S
+    C = np.einsum("qin,pjn->pqij", HP, H[seeds])                # (M, N, 3, 3): H_q P H_s'
+    S_seed = S[seeds]                                           # (M, 3, 3)
+    # W = C S_s^-1, from the solve S_s W' = C' (S_s symmetric)
+    W = np.swapaxes(np.linalg.solve(S_seed[:, None], np.swapaxes(C, -1, -2)), -1, -2)
+    y_cond = y[None] - (W @ y[seeds][:, None, :, None])[..., 0]  # (M, N, 3)
+    S_cond = S[None] - W @ np.swapaxes(C, -1, -2)               # (M, N, 3, 3)
+    S_cond = 0.5 * (S_cond + np.swapaxes(S_cond, -1, -2))
+    L = np.linalg.cholesky(S_cond)
+    w = np.linalg.solve(L, y_cond[..., None])[..., 0]
+    d2 = np.einsum("...i,...i->...", w, w)
+    cost = d2 + 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1) - log_det_R[pair_obs][None]
+    excluded = (d2 > gate) | (pair_landmark[None] == pair_landmark[seeds][:, None]) | (pair_obs[None] == pair_obs[seeds][:, None])
+    cost = np.where(excluded, np.inf, cost)
+    m = null_cost.size
+    best = np.full((seeds.size, m), np.inf)
+    np.minimum.at(best, (np.arange(seeds.size)[:, None], pair_obs[None]), cost)  # per observation
+    best = np.minimum(best, null_cost[None])
+    best[np.arange(seeds.size), pair_obs[seeds]] = 0.0          # the seed's own observation
+    d2_seed = np.einsum("pi,pi->p", y[seeds], np.linalg.solve(S_seed, y[seeds][..., None])[..., 0])
+    own = d2_seed + np.linalg.slogdet(S_seed)[1] - log_det_R[pair_obs[seeds]]
+    return own + best.sum(axis=1)

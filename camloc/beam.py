@@ -26,8 +26,11 @@ Keeping it fast (most poses are not ambiguous):
 Robustness to odometry slips: when the best hypothesis leaves most of a pose's observations
 unassigned (at least three observations, more than half of them), the pose is explained again from
 that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
-``slip_cost``, grown from each of its best few pairs in turn (one right pair pins the pose, and the
+``slip_cost``, grown from each of a few seed pairs in turn (one right pair pins the pose, and the
 rest follow); if the odometry really slipped, that hypothesis explains the observations and wins.
+Seeds are ranked by the cost of the whole explanation each implies
+(``association.seeded_explanation_costs``), not by their own cost, which under the wide prior
+barely separates right pairs from wrong ones in a dense map.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
@@ -56,7 +59,9 @@ class BeamSettings:
     merge_sigma : hypotheses whose states differ by less than this many standard deviations on
         every axis are merged (the cheaper kept).
     slip_inflation, slip_cost : covariance factor and cost of the odometry-slip hypothesis.
-    slip_seeds : how many of its individually best pairs the slip hypothesis tries as the first.
+    slip_candidates : how many of its individually cheapest pairs the slip hypothesis ranks as
+        first pairs (by the cost of the explanation each implies).
+    slip_seeds : how many of the best ranked it explains in full.
     """
 
     beam_width: int = 16
@@ -66,7 +71,8 @@ class BeamSettings:
     merge_sigma: float = 0.3
     slip_inflation: float = 25.0
     slip_cost: float = 10.0
-    slip_seeds: int = 24
+    slip_candidates: int = 256
+    slip_seeds: int = 8
 
 
 @dataclass
@@ -143,16 +149,28 @@ class BeamSearch:
 
         Under the wide prior every observation gates many landmarks and explaining them one by
         one from the prior goes astray. One right pair pins the pose's position, after which the
-        others fall into place; so each of the ``slip_seeds`` individually best pairs is tried as
-        the first, the hypothesis conditioned on it, and the rest explained as usual.
+        others fall into place; so the ``slip_seeds`` pairs whose conditioned explanation of the
+        pose looks cheapest (``association.seeded_explanation_costs``, among the
+        ``slip_candidates`` individually cheapest pairs) are each tried as the first, the
+        hypothesis conditioned on it, and the rest explained as usual.
         """
         options = self._options(h, obs)
-        pairs = [(float(o.costs[j]), i, j) for i, o in enumerate(options) for j in range(o.landmarks.size)]
+        pair_obs = np.concatenate([np.full(o.landmarks.size, i) for i, o in enumerate(options)]).astype(np.int64)
+        if pair_obs.size == 0:
+            return self._explain(h, obs)
+        pair_landmark = np.concatenate([o.landmarks for o in options])
+        pair_cost = np.concatenate([o.costs for o in options])
+        candidates = np.argsort(pair_cost, kind="stable")[: self.settings.slip_candidates]
+        y = self.ctx.dataset.obs_uvd[obs][pair_obs] - np.concatenate([o.z_hat for o in options])
+        ranked = association.seeded_explanation_costs(
+            y, np.concatenate([o.H for o in options]), self.ctx.dataset.obs_cov[obs][pair_obs], h.P,
+            pair_obs, pair_landmark, self.null_cost[obs], self.log_det_R[obs], candidates, gate=self.settings.gate,
+        )
         children: list[_Hypothesis] = []
-        for cost, i, j in sorted(pairs)[: self.settings.slip_seeds]:
-            landmark = int(options[i].landmarks[j])
+        for seed in candidates[np.argsort(ranked, kind="stable")[: self.settings.slip_seeds]]:
+            i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]))
-            seeded = _Hypothesis(result.state, result.cov, h.cost + cost, h.parent, ((int(obs[i]), landmark),))
+            seeded = _Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
             children += self._explain(seeded, np.delete(obs, i))[:1]
         children = self._prune(children) if children else self._explain(h, obs)
         for child in children:

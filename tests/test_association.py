@@ -121,3 +121,60 @@ def test_leave_one_out_costs_apply_the_gate(rng):
     z = np.array([[5.0, 0.0, 0.0]])  # far from both predictions
     cost = association.leave_one_out_costs(z, R, z_hat, H, np.array([-1]), information=np.eye(6) * 1e4, gate=11.34)
     assert np.all(np.isinf(cost))
+
+
+def _linear_pose_problem(rng, n_obs=4, n_landmarks=5):
+    """A linear measurement model z = H_l x + offset_l + noise with every observation gating every
+    landmark: the pairs (observation, landmark) of a pose under a wide prior."""
+    H_of = rng.normal(size=(n_landmarks, 3, 6))
+    offset = rng.normal(size=(n_landmarks, 3))
+    P = np.diag(rng.uniform(0.3, 0.6, 6) ** 2)
+    x_true = rng.normal(scale=0.4, size=6)
+    R_obs = np.array([np.diag(rng.uniform(0.05, 0.1, 3) ** 2) for _ in range(n_obs)])
+    z = np.array([H_of[i] @ x_true + offset[i] for i in range(n_obs)]) + rng.normal(scale=0.05, size=(n_obs, 3))
+    pair_obs, pair_landmark = np.divmod(np.arange(n_obs * n_landmarks), n_landmarks)
+    y = z[pair_obs] - offset[pair_landmark]          # innovation at the prior mean x = 0
+    return y, H_of[pair_landmark], R_obs[pair_obs], P, pair_obs, pair_landmark, R_obs
+
+
+def test_seeded_explanation_costs_match_a_kalman_update_on_the_seed(rng):
+    """Linear model: each seed's score equals its own pair cost plus, for every other observation,
+    the cheaper of leaving it unassigned and its best gated pair after a Kalman update on the seed."""
+    y, H, R, P, pair_obs, pair_landmark, R_obs = _linear_pose_problem(rng)
+    null_cost = np.array([9.0, 12.0, 15.0, 30.0])
+    log_det_R = np.linalg.slogdet(R_obs)[1]
+    gate = 16.0
+    seeds = np.array([0, 6, 7, 13, 19])
+    got = association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, seeds, gate=gate)
+
+    def pair_cost(q, x, P_q):
+        r = y[q] - H[q] @ x
+        S = H[q] @ P_q @ H[q].T + R[q]
+        return r @ np.linalg.solve(S, r), r @ np.linalg.solve(S, r) + np.linalg.slogdet(S)[1] - log_det_R[pair_obs[q]]
+
+    for s, score in zip(seeds, got):
+        _, expected = pair_cost(s, np.zeros(6), P)
+        S = H[s] @ P @ H[s].T + R[s]
+        K = np.linalg.solve(S, H[s] @ P).T
+        x_s, P_s = K @ y[s], (np.eye(6) - K @ H[s]) @ P
+        for i in range(null_cost.size):
+            if i == pair_obs[s]:
+                continue
+            options = [null_cost[i]]
+            for q in np.flatnonzero((pair_obs == i) & (pair_landmark != pair_landmark[s])):
+                d2, c = pair_cost(q, x_s, P_s)
+                if d2 <= gate:
+                    options.append(c)
+            expected += min(options)
+        assert score == pytest.approx(expected, rel=1e-9)
+
+
+def test_seeded_explanation_costs_rank_a_right_seed_first(rng):
+    """The seed that is a right pair explains the others; a wrong one leaves them to the null cost."""
+    y, H, R, P, pair_obs, pair_landmark, R_obs = _linear_pose_problem(rng, n_obs=5, n_landmarks=6)
+    right = np.flatnonzero(pair_obs == pair_landmark)          # observation i saw landmark i
+    wrong = np.flatnonzero(pair_obs != pair_landmark)
+    scores = association.seeded_explanation_costs(
+        y, H, R, P, pair_obs, pair_landmark, np.full(5, 20.0), np.linalg.slogdet(R_obs)[1],
+        np.arange(pair_obs.size), gate=11.34)
+    assert scores[right].max() < scores[wrong].min()
