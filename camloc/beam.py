@@ -88,19 +88,27 @@ class _Hypothesis:
 
 @dataclass
 class _Options:
-    """What one observation may be under one hypothesis: gated landmarks with their pair costs."""
+    """What one observation may be under one hypothesis: its pool of nearby landmarks (d^2 within
+    ``POOL_GATE_FACTOR`` gates) with their pair costs, infinite where the pair fails the gate."""
 
     landmarks: np.ndarray   # (g,) landmark indices
-    costs: np.ndarray       # (g,) d^2 + ln det S - ln det R
+    costs: np.ndarray       # (g,) d^2 + ln det S - ln det R, inf outside the gate
     z_hat: np.ndarray       # (g, 3)
     H: np.ndarray           # (g, 3, 6)
+
+
+# A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
+# landmarks that were within this many gates before: its predictions moved by about H dx, with dx
+# drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
+# the same probability; twice the gate (about 99.996% for the default) makes a miss negligible.
+POOL_GATE_FACTOR = 2.0
 
 
 class BeamSearch:
     """Runs the beam over a whole dataset.
 
     ``context`` (the localizer) provides: dataset, filter, tree, obs_of_pose, T_increments,
-    null_cost (K,) (leaving each observation unassigned), log_det_R (K,), ``predictions`` and
+    null_cost (K,) (leaving each observation unassigned), log_det_R (K,), ``predictions``, ``observe`` and
     ``updated``.
     """
 
@@ -156,14 +164,16 @@ class BeamSearch:
         """
         options = self._options(h, obs)
         pair_obs = np.concatenate([np.full(o.landmarks.size, i) for i, o in enumerate(options)]).astype(np.int64)
-        if pair_obs.size == 0:
-            return self._explain(h, obs)
         pair_landmark = np.concatenate([o.landmarks for o in options])
         pair_cost = np.concatenate([o.costs for o in options])
+        gated = np.isfinite(pair_cost)
+        if not gated.any():
+            return self._explain(h, obs)
+        pair_obs, pair_landmark, pair_cost = pair_obs[gated], pair_landmark[gated], pair_cost[gated]
         candidates = np.argsort(pair_cost, kind="stable")[: self.settings.slip_candidates]
-        y = self.ctx.dataset.obs_uvd[obs][pair_obs] - np.concatenate([o.z_hat for o in options])
+        y = self.ctx.dataset.obs_uvd[obs][pair_obs] - np.concatenate([o.z_hat for o in options])[gated]
         ranked = association.seeded_explanation_costs(
-            y, np.concatenate([o.H for o in options]), self.ctx.dataset.obs_cov[obs][pair_obs], h.P,
+            y, np.concatenate([o.H for o in options])[gated], self.ctx.dataset.obs_cov[obs][pair_obs], h.P,
             pair_obs, pair_landmark, self.null_cost[obs], self.log_det_R[obs], candidates, gate=self.settings.gate,
         )
         children: list[_Hypothesis] = []
@@ -184,11 +194,10 @@ class BeamSearch:
         choice = self._clear_choices(obs, options)
         clear = [i for i, c in enumerate(choice) if c is not None]
         child = self._stacked_child(h, obs[clear], [options[i] for i in clear], [choice[i] for i in clear])
-        ambiguous = sorted((i for i, c in enumerate(choice) if c is None), key=lambda i: options[i].landmarks.size)
+        ambiguous = sorted((i for i, c in enumerate(choice) if c is None), key=lambda i: int(np.isfinite(options[i].costs).sum()))
         partial = [child]
         for i in ambiguous:
-            # options computed under h still hold for a child that took no pair yet
-            grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is h.x else None)]
+            grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is h.x else self._conditioned(options[i], p, int(obs[i])))]
             partial = self._prune(grown)
         return partial
 
@@ -206,11 +215,25 @@ class BeamSearch:
                 continue
             o = obs[rows]
             d2, nll = association.pair_statistics(ds.obs_uvd[o], ds.obs_cov[o], z_hat, HPH)
-            costs = nll - self.log_det_R[o][:, None]
-            for r, gated_row, cost_row in zip(rows, d2 <= self.settings.gate, costs):
-                g = np.flatnonzero(gated_row)
+            costs = np.where(d2 <= self.settings.gate, nll - self.log_det_R[o][:, None], np.inf)
+            for r, pool_row, cost_row in zip(rows, d2 <= POOL_GATE_FACTOR * self.settings.gate, costs):
+                g = np.flatnonzero(pool_row)
                 out[r] = _Options(candidates[g], cost_row[g], z_hat[g], H[g])
         return out
+
+    def _conditioned(self, options: _Options, h: _Hypothesis, o: int) -> _Options:
+        """Options of observation o under h, a hypothesis conditioned on some of the pose's pairs,
+        from its options before: the same pool of landmarks predicted again from h. (Moving the
+        old predictions to first order is not enough: with landmarks a metre away, a pair's
+        correction moves the predictions by pixels more than the linear term says.)"""
+        if options.landmarks.size == 0:
+            return options
+        ds = self.ctx.dataset
+        z_hat, H = self.ctx.observe(h.x, int(ds.obs_camera[o]), options.landmarks)
+        HPH = H @ h.P @ np.swapaxes(H, 1, 2)
+        d2, nll = association.pair_statistics(ds.obs_uvd[o][None], ds.obs_cov[o][None], z_hat, HPH)
+        costs = np.where(d2[0] <= self.settings.gate, nll[0] - self.log_det_R[o], np.inf)
+        return _Options(options.landmarks, costs, z_hat, H)
 
     def _viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
         """Which pair options (inf: excluded) and whether the null option lie within branch_delta
@@ -254,11 +277,11 @@ class BeamSearch:
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
         return _Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
 
-    def _branches(self, h: _Hypothesis, o: int, options: Optional[_Options]) -> list[_Hypothesis]:
-        """Children of h for one observation: unassigned, or paired with a viable landmark."""
-        if options is None:  # h was conditioned on earlier pairs of this pose: look again
-            options = self._options(h, np.array([o]))[0]
-        free = ~np.isin(options.landmarks, [lm for _, lm in h.pairs])
+    def _branches(self, h: _Hypothesis, o: int, options: _Options) -> list[_Hypothesis]:
+        """Children of h for one observation (``options`` under h): unassigned, or paired with a
+        viable landmark."""
+        taken = {lm for _, lm in h.pairs}
+        free = np.array([int(lm) not in taken for lm in options.landmarks], dtype=bool)
         null_cost = float(self.null_cost[o])
         pairs, null = self._viable(np.where(free, options.costs, np.inf), null_cost)
         out = []

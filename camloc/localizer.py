@@ -333,9 +333,15 @@ class _Localizer:
             self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
         )
-        z_hat, H = self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[candidates])
+        z_hat, H = self.observe(x, camera_id, candidates)
         HPH = H @ P @ np.swapaxes(H, 1, 2)
         return candidates, z_hat, H, HPH
+
+    def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
+        state x, and their Jacobians (m, 3, n)."""
+        camera = self.cameras[int(camera_id)]
+        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks])
 
     def _best_friends(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, *, taken: np.ndarray

@@ -105,13 +105,25 @@ def test_leave_one_out_costs_match_an_update_without_the_pair(rng):
     x_post, _ = posterior(paired)
     z_hat = np.einsum("mij,j->mi", H, x_post) + offset
     got = association.leave_one_out_costs(z, R, z_hat, H, chosen, information=np.linalg.inv(P0), gate=np.inf)
+    # a finite gate screens pairs by a bound before factoring them: it must drop exactly the
+    # pairs beyond the gate and leave the others' costs unchanged
+    gate = 20.0
+    gated = association.leave_one_out_costs(z, R, z_hat, H, chosen, information=np.linalg.inv(P0), gate=gate)
+    inside = 0
     for i in range(n_obs):
         x_i, P_i = posterior([j for j in paired if j != i])
         for j in range(n_cand):
             y = z[i] - (H[j] @ x_i + offset[j])
             S = H[j] @ P_i @ H[j].T + R[i]
-            expected = y @ np.linalg.solve(S, y) + np.linalg.slogdet(S)[1] - np.linalg.slogdet(R[i])[1]
+            d2 = y @ np.linalg.solve(S, y)
+            expected = d2 + np.linalg.slogdet(S)[1] - np.linalg.slogdet(R[i])[1]
             assert got[i, j] == pytest.approx(expected, rel=1e-8, abs=1e-8)
+            if d2 <= gate:
+                inside += 1
+                assert gated[i, j] == pytest.approx(expected, rel=1e-8, abs=1e-8)
+            else:
+                assert gated[i, j] == np.inf
+    assert 0 < inside < n_obs * n_cand  # the gate did separate the pairs
 
 
 def test_leave_one_out_costs_apply_the_gate(rng):
@@ -178,3 +190,16 @@ def test_seeded_explanation_costs_rank_a_right_seed_first(rng):
         y, H, R, P, pair_obs, pair_landmark, np.full(5, 20.0), np.linalg.slogdet(R_obs)[1],
         np.arange(pair_obs.size), gate=11.34)
     assert scores[right].max() < scores[wrong].min()
+
+
+@pytest.mark.parametrize("scales", [(1.0, 1.0, 1.0), (1e-3, 1e-3, 0.1), (2.0, 2.0, 0.05)])
+def test_mahalanobis_3x3_matches_a_solve(rng, scales):
+    """The closed form against LAPACK, on covariances shaped like the filter's (normalized image
+    coordinates beside depth in metres, or pixels)."""
+    D = np.diag(scales)
+    B = rng.normal(size=(200, 3, 3))
+    S = D @ (B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(3)) @ D
+    y = (D @ rng.normal(size=(200, 3, 1)))[..., 0]
+    d2, log_det = association.mahalanobis_3x3(S, y)
+    np.testing.assert_allclose(d2, np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0]), rtol=1e-9)
+    np.testing.assert_allclose(log_det, np.linalg.slogdet(S)[1], rtol=1e-9, atol=1e-9)
