@@ -270,7 +270,8 @@ class BeamSearch:
             return _Hypothesis(h.x, h.P, cost, h.parent, h.pairs, h.unassigned + unassigned)
         o = obs[taken]
         landmarks = np.array([options[i].landmarks[choice[i]] for i in taken])
-        result = self.ctx.updated(h.x, h.P, o, landmarks)       # stacked, iterated as configured
+        at_prior = (np.array([options[i].z_hat[choice[i]] for i in taken]), np.array([options[i].H[choice[i]] for i in taken]))
+        result = self.ctx.updated(h.x, h.P, o, landmarks, at_prior=at_prior)  # stacked, iterated as configured
         log_det_S = float(np.linalg.slogdet(result.S)[1])
         cost += result.nis + log_det_S - float(self.log_det_R[o].sum())
         x, P = result.state, result.cov
@@ -288,7 +289,8 @@ class BeamSearch:
         if null:
             out.append(_Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))
         for j in np.flatnonzero(pairs):
-            result = self.ctx.updated(h.x, h.P, np.array([o]), options.landmarks[j : j + 1])
+            result = self.ctx.updated(h.x, h.P, np.array([o]), options.landmarks[j : j + 1],
+                                      at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]))
             out.append(_Hypothesis(result.state, result.cov, h.cost + float(options.costs[j]), h.parent,
                                    h.pairs + ((o, int(options.landmarks[j])),), h.unassigned))
         return out

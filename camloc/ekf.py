@@ -122,6 +122,7 @@ def update(
     difference: StateDifference = _subtract,
     iterations: int = 1,
     map_cost: bool = False,
+    at_prior: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -135,11 +136,12 @@ def update(
     iterations : number of linearizations (>= 1).
     map_cost : compute ``UpdateResult.map_cost`` at the posterior (one more evaluation of the
         measurement function); otherwise it is NaN.
+    at_prior : ``measure(x)``, when the caller already has it (saves one evaluation).
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
-    z_hat, H = measure(x)
+    z_hat, H = measure(x) if at_prior is None else at_prior
     y_prior = z - z_hat
     K, S, L = kalman_gain(P, H, R)
     nis = float(y_prior @ cho_solve(L, y_prior))  # NIS = y' S^-1 y

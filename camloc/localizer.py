@@ -418,9 +418,11 @@ class _Localizer:
         return obs[keep], index[keep]
 
     def updated(
-        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False
+        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
+        at_prior: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> ekf.UpdateResult:
-        """The stacked (iterated) EKF update of (x, P) with the given pairs."""
+        """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
+        predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
         R = ekf.block_diagonal(self.dataset.obs_cov[obs])
         cameras = self.dataset.obs_camera[obs]
@@ -438,6 +440,7 @@ class _Localizer:
             x, P, z, R, measure,
             retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
             map_cost=map_cost,
+            at_prior=None if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1])),
         )
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
