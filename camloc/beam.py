@@ -18,7 +18,8 @@ Keeping it fast (most poses are not ambiguous):
 - a hypothesis branches on an observation only into the options within ``branch_delta`` of that
   observation's best option; the observations with a single such option, whose landmark no other
   observation could take, are taken in one stacked update (the same cost, computed jointly), and
-  only the ambiguous rest are explained one by one;
+  only the ambiguous rest are explained one by one, each re-gated under the hypothesis conditioned
+  on the pairs before it among its pool of nearby landmarks (no new search of the map);
 - after each pose the beam keeps the ``beam_width`` cheapest hypotheses within ``beam_delta`` of
   the best, and merges hypotheses whose states coincide (within ``merge_sigma`` standard
   deviations on every axis), so in unambiguous stretches it collapses to one filter.
@@ -108,8 +109,8 @@ class BeamSearch:
     """Runs the beam over a whole dataset.
 
     ``context`` (the localizer) provides: dataset, filter, tree, obs_of_pose, T_increments,
-    null_cost (K,) (leaving each observation unassigned), log_det_R (K,), ``predictions``, ``observe`` and
-    ``updated``.
+    null_cost (K,) (leaving each observation unassigned), log_det_R (K,), ``predictions``,
+    ``observe`` and ``updated``.
     """
 
     def __init__(self, context, settings: BeamSettings):
@@ -188,16 +189,29 @@ class BeamSearch:
         return children
 
     def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
-        """Children of h that explain all of obs, pruned to the beam: the clear observations in
-        one stacked update, then a branch per option of each ambiguous one."""
+        """Children of h that explain all of obs, pruned to the beam.
+
+        The clear observations are taken in one stacked update; conditioned on them, the others
+        are gated again, and those that became clear are taken in the next stacked update, until
+        none does (an observation is often ambiguous only until a neighbour's pair pins the pose).
+        Then a branch per option of each observation still ambiguous."""
         options = self._options(h, obs)
-        choice = self._clear_choices(obs, options)
-        clear = [i for i, c in enumerate(choice) if c is not None]
-        child = self._stacked_child(h, obs[clear], [options[i] for i in clear], [choice[i] for i in clear])
-        ambiguous = sorted((i for i, c in enumerate(choice) if c is None), key=lambda i: int(np.isfinite(options[i].costs).sum()))
+        child, pending = h, np.arange(obs.size)
+        while pending.size:
+            choice = self._clear_choices(obs[pending], [options[i] for i in pending])
+            clear = [k for k, c in enumerate(choice) if c is not None]
+            if not clear:
+                break
+            child = self._stacked_child(child, obs[pending[clear]], [options[pending[k]] for k in clear], [choice[k] for k in clear])
+            pending = pending[[k for k, c in enumerate(choice) if c is None]]
+            if pending.size:
+                conditioned = self._conditioned(child, obs[pending], [options[i] for i in pending])
+                for i, o in zip(pending, conditioned):
+                    options[i] = o
+        base = child  # the options of the pending observations are under base
         partial = [child]
-        for i in ambiguous:
-            grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is h.x else self._conditioned(options[i], p, int(obs[i])))]
+        for i in sorted(pending, key=lambda i: int(np.isfinite(options[i].costs).sum())):
+            grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is base.x else self._conditioned(p, obs[i : i + 1], [options[i]])[0])]
             partial = self._prune(grown)
         return partial
 
@@ -221,19 +235,30 @@ class BeamSearch:
                 out[r] = _Options(candidates[g], cost_row[g], z_hat[g], H[g])
         return out
 
-    def _conditioned(self, options: _Options, h: _Hypothesis, o: int) -> _Options:
-        """Options of observation o under h, a hypothesis conditioned on some of the pose's pairs,
-        from its options before: the same pool of landmarks predicted again from h. (Moving the
-        old predictions to first order is not enough: with landmarks a metre away, a pair's
-        correction moves the predictions by pixels more than the linear term says.)"""
-        if options.landmarks.size == 0:
-            return options
+    def _conditioned(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options]) -> list[_Options]:
+        """Options of observations obs under h, a hypothesis conditioned on some of the pose's
+        pairs, from their options before: the same pools of landmarks predicted again from h, one
+        batch per camera, less the landmarks h has taken. (Moving the old predictions to first
+        order is not enough: with landmarks a metre away, a pair's correction moves the
+        predictions by pixels more than the linear term says.)"""
         ds = self.ctx.dataset
-        z_hat, H = self.ctx.observe(h.x, int(ds.obs_camera[o]), options.landmarks)
-        HPH = H @ h.P @ np.swapaxes(H, 1, 2)
-        d2, nll = association.pair_statistics(ds.obs_uvd[o][None], ds.obs_cov[o][None], z_hat, HPH)
-        costs = np.where(d2[0] <= self.settings.gate, nll[0] - self.log_det_R[o], np.inf)
-        return _Options(options.landmarks, costs, z_hat, H)
+        taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
+        out = list(options)
+        cameras = ds.obs_camera[obs]
+        for camera_id in np.unique(cameras):
+            rows = [r for r in np.flatnonzero(cameras == camera_id) if options[r].landmarks.size]
+            if not rows:
+                continue
+            sizes = [options[r].landmarks.size for r in rows]
+            landmarks = np.concatenate([options[r].landmarks for r in rows])
+            z_hat, H = self.ctx.observe(h.x, int(camera_id), landmarks)
+            HPH = H @ h.P @ np.swapaxes(H, 1, 2)
+            owner = np.repeat(obs[rows], sizes)
+            d2, log_det = association.mahalanobis_3x3(HPH + ds.obs_cov[owner], ds.obs_uvd[owner] - z_hat)
+            costs = np.where((d2 <= self.settings.gate) & ~np.isin(landmarks, taken), d2 + log_det - self.log_det_R[owner], np.inf)
+            for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
+                out[r] = _Options(landmarks[start:stop], costs[start:stop], z_hat[start:stop], H[start:stop])
+        return out
 
     def _viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
         """Which pair options (inf: excluded) and whether the null option lie within branch_delta
