@@ -278,6 +278,20 @@ def seeded_explanation_costs(
     (M,) the approximate cost of each seed's explanation (lower is better).
     """
     seeds = np.asarray(seeds, dtype=np.int64)
+    # in chunks of seeds: the work is (seeds x pairs) 3x3 blocks, which a dense pose with a few
+    # thousand pairs would otherwise hold in memory all at once
+    chunks = [seeds[i : i + SEED_CHUNK] for i in range(0, seeds.size, SEED_CHUNK)] or [seeds]
+    return np.concatenate([
+        _seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, chunk, gate=gate)
+        for chunk in chunks
+    ])
+
+
+SEED_CHUNK = 64
+
+
+def _seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, seeds, *, gate):
+    """``seeded_explanation_costs`` for one chunk of seeds."""
     N, M, n = y.shape[0], seeds.size, P.shape[0]
     HP = H @ P                                                    # (N, 3, n)
     S = HP @ np.swapaxes(H, 1, 2) + R                             # (N, 3, 3) each pair's own S

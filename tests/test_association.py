@@ -203,3 +203,14 @@ def test_mahalanobis_3x3_matches_a_solve(rng, scales):
     d2, log_det = association.mahalanobis_3x3(S, y)
     np.testing.assert_allclose(d2, np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0]), rtol=1e-9)
     np.testing.assert_allclose(log_det, np.linalg.slogdet(S)[1], rtol=1e-9, atol=1e-9)
+
+
+def test_seeded_explanation_costs_do_not_depend_on_how_seeds_are_batched(rng):
+    """More seeds than one chunk: each seed's score is the one it gets alone."""
+    y, H, R, P, pair_obs, pair_landmark, R_obs = _linear_pose_problem(rng, n_obs=12, n_landmarks=8)
+    null_cost, log_det_R = np.full(12, 18.0), np.linalg.slogdet(R_obs)[1]
+    seeds = np.arange(pair_obs.size)
+    assert seeds.size > association.SEED_CHUNK
+    together = association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, seeds, gate=11.34)
+    alone = [association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, np.array([s]), gate=11.34)[0] for s in seeds]
+    np.testing.assert_allclose(together, alone, rtol=1e-12)
