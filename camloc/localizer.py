@@ -302,7 +302,8 @@ class _Localizer:
         pair_information = {}
         for camera_id in np.unique(ds.obs_camera[obs]):
             mine = obs[ds.obs_camera[obs] == camera_id]
-            candidates, z_hat, H, _ = self.predictions(x_post, P_prior, camera_id)
+            candidates = self.visible(x_post, camera_id)
+            z_hat, H = self.observe(x_post, camera_id, candidates)
             column_of = {int(c): j for j, c in enumerate(candidates.tolist())}
             chosen = np.array([column_of.get(chosen_landmark.get(int(o), -2), -1) for o in mine], dtype=np.int64)
             Hc = H[chosen[chosen >= 0]]
@@ -325,17 +326,21 @@ class _Localizer:
         """The landmarks camera ``camera_id`` may see from state x: (candidates (m,), z_hat (m, 3),
         H (m, 3, n), HPH (m, 3, 3)).
 
-        Candidates are the landmarks in the camera's depth range and field of view, found through the
-        k-d tree of the map.
+        Candidates: ``visible``.
         """
-        camera = self.cameras[int(camera_id)]
-        candidates = association.candidate_indices(
-            self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
-            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
-        )
+        candidates = self.visible(x, camera_id)
         z_hat, H = self.observe(x, camera_id, candidates)
         HPH = H @ P @ np.swapaxes(H, 1, 2)
         return candidates, z_hat, H, HPH
+
+    def visible(self, x: np.ndarray, camera_id: int) -> np.ndarray:
+        """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
+        state x, found through the k-d tree of the map."""
+        camera = self.cameras[int(camera_id)]
+        return association.candidate_indices(
+            self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
+        )
 
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
@@ -376,7 +381,8 @@ class _Localizer:
         ds = self.dataset
         cands, z_hats, Hs, blocks = [], [], [], []
         for camera_id in np.unique(ds.obs_camera[obs]):
-            c, z_hat, H, _ = self.predictions(self.x, self.P, camera_id)
+            c = self.visible(self.x, camera_id)
+            z_hat, H = self.observe(self.x, camera_id, c)
             cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((ds.obs_camera[obs] == camera_id, c.size))
         candidates = np.concatenate(cands)
         if candidates.size == 0:
