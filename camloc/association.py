@@ -281,8 +281,10 @@ def seeded_explanation_costs(
     # in chunks of seeds: the work is (seeds x pairs) 3x3 blocks, which a dense pose with a few
     # thousand pairs would otherwise hold in memory all at once
     chunks = [seeds[i : i + SEED_CHUNK] for i in range(0, seeds.size, SEED_CHUNK)] or [seeds]
+    HP = H @ P                                                    # (N, 3, n)
+    S = HP @ np.swapaxes(H, 1, 2) + R                             # (N, 3, 3) each pair's own S
     return np.concatenate([
-        _seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, chunk, gate=gate)
+        _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, log_det_R, chunk, gate=gate)
         for chunk in chunks
     ])
 
@@ -290,11 +292,9 @@ def seeded_explanation_costs(
 SEED_CHUNK = 64
 
 
-def _seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, seeds, *, gate):
-    """``seeded_explanation_costs`` for one chunk of seeds."""
-    N, M, n = y.shape[0], seeds.size, P.shape[0]
-    HP = H @ P                                                    # (N, 3, n)
-    S = HP @ np.swapaxes(H, 1, 2) + R                             # (N, 3, 3) each pair's own S
+def _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, log_det_R, seeds, *, gate):
+    """``seeded_explanation_costs`` for one chunk of seeds, given every pair's ``H P`` and S."""
+    N, M, n = y.shape[0], seeds.size, H.shape[-1]
     S_seed, y_seed = S[seeds], y[seeds]
     L_seed = np.linalg.cholesky(S_seed)
     # Conditioning on seed s: P_s = P - U_s U_s' with U_s = P H_s' L_s^-T (rank 3), and the
