@@ -38,8 +38,8 @@ def candidate_indices(
     max_angle_rad : largest angle between the optical axis and a visible landmark's direction.
     """
     centre = T_world_camera[:3, 3]
-    radius = max_depth / max(np.cos(max_angle_rad), 1e-3)
-    near = np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64)
+    ball_centre, radius = view_cone_ball(centre, T_world_camera[:3, 2], max_depth, max_angle_rad)
+    near = np.asarray(tree.query_ball_point(ball_centre, radius), dtype=np.int64)
     if near.size == 0:
         return near
     p_camera = (landmark_xyz[near] - centre) @ T_world_camera[:3, :3]
@@ -47,6 +47,26 @@ def candidate_indices(
     off_axis = np.hypot(p_camera[:, 0], p_camera[:, 1])
     visible = (depth > min_depth) & (depth < max_depth) & (off_axis <= depth * np.tan(max_angle_rad))
     return near[visible]
+
+
+def view_cone_ball(apex: np.ndarray, axis: np.ndarray, depth: float, half_angle_rad: float) -> tuple[np.ndarray, float]:
+    """The smallest ball holding the cone of a camera's view, (centre (3,), radius): the cone's
+    apex at ``apex``, unit ``axis``, points up to ``depth`` along the axis and within
+    ``half_angle_rad`` of it. The k-d tree's cost grows with the points the ball returns, and the
+    ball around the apex that holds the cone holds 1.7x (57 deg) to 5x (30 deg) more.
+
+    Up to 45 deg the ball passes through the apex and the base's rim (centre ``depth / (2
+    cos^2)`` along the axis); wider, it is the base's rim ball, centred on the base.
+    """
+    half_angle_rad = min(half_angle_rad, np.radians(89.9))
+    cos = np.cos(half_angle_rad)
+    if cos * cos >= 0.5:
+        along = depth / (2.0 * cos * cos)
+        radius = along
+    else:
+        along = depth
+        radius = depth * np.tan(half_angle_rad)
+    return apex + along * axis, radius * (1.0 + 1e-9) + 1e-9  # a hair larger: points on the rim stay in
 
 
 def pair_statistics(

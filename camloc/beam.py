@@ -121,19 +121,65 @@ class BeamSearch:
         self.history: list[list[_Hypothesis]] = []
         self.slips: list[int] = []
 
-    def run(self, x0: np.ndarray, P0: np.ndarray, *, on_pose: Optional[Callable[[int], None]] = None) -> tuple[list[np.ndarray], np.ndarray]:
+    def run(
+        self, x0: np.ndarray, P0: np.ndarray, *,
+        on_pose: Optional[Callable[[int], None]] = None,
+        on_decided: Optional[Callable[[int, list[np.ndarray], np.ndarray], None]] = None,
+        decided_stride: int = 64,
+    ) -> tuple[list[np.ndarray], np.ndarray]:
         """Process every pose; returns, per pose, a (p, 2) int array of chosen (obs, landmark), and
         (n,) bool: the pose was explained from the widened prior of an odometry slip (the filter
-        that replays the pairs must widen its prior there too)."""
+        that replays the pairs must widen its prior there too).
+
+        ``on_decided(first, pairs, slipped)``, when given, is called every ``decided_stride`` poses
+        with the association of the poses from ``first`` on that no later pose can change any more
+        (every hypothesis in the beam descends from the same one there), in order and each pose
+        once, so that a consumer can filter them while the beam goes on; the last call comes
+        before ``run`` returns and covers every pose.
+        """
         beam = [_Hypothesis(x0, P0, 0.0, -1)]
-        for k in range(self.ctx.dataset.num_poses):
+        decided = 0  # poses before this one have been passed to on_decided
+        n = self.ctx.dataset.num_poses
+        for k in range(n):
             if k > 0:
                 beam = [self._predicted(h, k - 1, parent) for parent, h in enumerate(beam)]
             beam = self._explain_pose(k, beam, self.ctx.obs_of_pose[k])
             self.history.append(beam)
             if on_pose is not None:
                 on_pose(k)
-        return self._backtrack()
+            if on_decided is not None and (k + 1) % decided_stride == 0:
+                decided = self._pass_decided(decided, on_decided)
+        chosen, slipped = self._backtrack()
+        if on_decided is not None and decided < n:
+            on_decided(decided, chosen[decided:], slipped[decided:])
+        return chosen, slipped
+
+    def _pass_decided(self, first: int, on_decided: Callable[[int, list[np.ndarray], np.ndarray], None]) -> int:
+        """Hand the newly decided poses (from ``first`` on) to on_decided; returns the first pose
+        still undecided. Pose k is decided once all the current hypotheses share their ancestor
+        there."""
+        last = len(self.history) - 1
+        indices = set(range(len(self.history[last])))
+        k = last
+        while len(indices) > 1 and k > first:
+            indices = {self.history[k][i].parent for i in indices}
+            k -= 1
+        if len(indices) > 1:
+            return first
+        chosen, slipped = self._chain(k, indices.pop(), first)
+        on_decided(first, chosen, slipped)
+        return k + 1
+
+    def _chain(self, k: int, index: int, first: int) -> tuple[list[np.ndarray], np.ndarray]:
+        """The association of poses first..k along the ancestors of hypothesis ``index`` at pose k."""
+        chosen: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * (k + 1 - first)
+        slipped = np.zeros(k + 1 - first, dtype=bool)
+        for j in range(k, first - 1, -1):
+            h = self.history[j][index]
+            chosen[j - first] = np.asarray(h.pairs, dtype=np.int64).reshape(-1, 2)
+            slipped[j - first] = h.slipped
+            index = h.parent
+        return chosen, slipped
 
     def _predicted(self, h: _Hypothesis, edge: int, parent: int) -> _Hypothesis:
         x, F, G = self.ctx.filter.predict(h.x, self.ctx.T_increments[edge])
@@ -337,16 +383,8 @@ class BeamSearch:
         return bool(np.all(d * d <= self.settings.merge_sigma**2 * np.diagonal(b.P)))
 
     def _backtrack(self) -> tuple[list[np.ndarray], np.ndarray]:
-        n = len(self.history)
-        chosen: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * n
-        slipped = np.zeros(n, dtype=bool)
-        index = 0  # each pose's beam is sorted by cost: the first is the best
-        for k in range(n - 1, -1, -1):
-            h = self.history[k][index]
-            chosen[k] = np.asarray(h.pairs, dtype=np.int64).reshape(-1, 2)
-            slipped[k] = h.slipped
-            index = h.parent
-        return chosen, slipped
+        # each pose's beam is sorted by cost: the first is the best
+        return self._chain(len(self.history) - 1, 0, 0)
 
 
 def _empty_options() -> _Options:

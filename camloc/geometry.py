@@ -13,6 +13,8 @@ Every function accepts a single item or a leading batch dimension, and never doe
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -21,6 +23,9 @@ from scipy.spatial.transform import Rotation
 def hat(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix: ``hat(a) @ b == cross(a, b)``. (..., 3) -> (..., 3, 3)."""
     v = np.asarray(v, dtype=float)
+    if v.shape == (3,):
+        a, b, c = v.tolist()
+        return np.array([[0.0, -c, b], [c, 0.0, -a], [-b, a, 0.0]])
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
@@ -50,6 +55,15 @@ def euler_to_matrix(rpy: np.ndarray) -> np.ndarray:
     scipy's per-call overhead dominates (tests compare it with scipy's ``"ZYX"``).
     """
     rpy = np.asarray(rpy, dtype=float)
+    if rpy.shape == (3,):  # one state: scalar arithmetic, a tenth of the array version's overhead
+        roll, pitch, yaw = rpy.tolist()
+        sr, sp, sy = math.sin(roll), math.sin(pitch), math.sin(yaw)
+        cr, cp, cy = math.cos(roll), math.cos(pitch), math.cos(yaw)
+        return np.array([
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ])
     sr, sp, sy = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
     cr, cp, cy = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
     R = np.empty(rpy.shape[:-1] + (3, 3))
@@ -66,6 +80,9 @@ def matrix_to_euler(R: np.ndarray) -> np.ndarray:
     arbitrary; the Euler filter warns before it gets there.
     """
     R = np.asarray(R, dtype=float)
+    if R.shape == (3, 3):
+        (r00, _, _), (r10, _, _), (r20, r21, r22) = R.tolist()
+        return np.array([math.atan2(r21, r22), math.asin(min(1.0, max(-1.0, -r20))), math.atan2(r10, r00)])
     rpy = np.empty(R.shape[:-2] + (3,))
     rpy[..., 0] = np.arctan2(R[..., 2, 1], R[..., 2, 2])
     rpy[..., 1] = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
@@ -89,6 +106,10 @@ def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
     ``R(rpy + d) = R(rpy) Exp(E(rpy) d) + O(|d|^2)``; E is singular at pitch = +-pi/2.
     """
     rpy = np.asarray(rpy, dtype=float)
+    if rpy.shape == (3,):
+        roll, pitch, _ = rpy.tolist()
+        sr, cr, sp, cp = math.sin(roll), math.cos(roll), math.sin(pitch), math.cos(pitch)
+        return np.array([[1.0, 0.0, -sp], [0.0, cr, sr * cp], [0.0, -sr, cr * cp]])
     roll, pitch = rpy[..., 0], rpy[..., 1]
     sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
     E = np.zeros(rpy.shape[:-1] + (3, 3))
@@ -97,6 +118,16 @@ def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
     E[..., 1, 1], E[..., 1, 2] = cr, sr * cp
     E[..., 2, 1], E[..., 2, 2] = -sr, cr * cp
     return E
+
+
+def euler_rate_matrix_inverse(rpy: np.ndarray) -> np.ndarray:
+    """E(rpy)^-1 (3, 3) for one rpy (3,), in closed form: the Euler step of a body rotation w is
+    ``E^-1 w``. det E = cos(pitch), so it is singular at pitch = +-pi/2 like E itself.
+    """
+    roll, pitch = float(rpy[0]), float(rpy[1])
+    sr, cr = math.sin(roll), math.cos(roll)
+    tp, sec = math.tan(pitch), 1.0 / math.cos(pitch)
+    return np.array([[1.0, sr * tp, cr * tp], [0.0, cr, -sr], [0.0, sr * sec, cr * sec]])
 
 
 def so3_exp(rotvec: np.ndarray) -> np.ndarray:

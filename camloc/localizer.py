@@ -9,6 +9,7 @@ observations with the map, update with every accepted pair stacked, record.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass
 from typing import Callable, Optional
@@ -130,6 +131,7 @@ def localize(
     config: Optional[LocalizerConfig] = None,
     *,
     on_progress: Optional[ProgressCallback] = None,
+    parallel: Optional[bool] = None,
 ) -> RunResult:
     """Localize every pose of ``dataset`` against its landmark map.
 
@@ -138,6 +140,9 @@ def localize(
     dataset : the dataset; its ``obs_true_landmark`` is read only with ``association="oracle"``.
     config : options (defaults when None).
     on_progress : called as ``on_progress(poses_done, poses_total)`` about 200 times per run.
+    parallel : with the beam, run the filter that replays its association in a second process
+        while the beam goes on (``camloc.replay``); the result is the same either way. None: when
+        there are at least ``PARALLEL_MIN_POSES`` poses and two CPUs.
     """
     config = config or LocalizerConfig()
     config.validate()
@@ -145,14 +150,35 @@ def localize(
     started = time.perf_counter()
     n = dataset.num_poses
     stride = max(1, n // 200)
+    beam_progress = lambda k: on_progress(k + 1, n) if on_progress and k % stride == 0 else None  # noqa: E731
+    if config.association == "beam" and (parallel if parallel is not None else _parallel_worthwhile(n)):
+        from camloc.replay import search_and_replay
+
+        search_and_replay(localizer, beam_progress)
+        if on_progress is not None:
+            on_progress(n, n)
+        return localizer.result(time.perf_counter() - started)
     if config.association == "beam":
         # The beam decides the association (most of the work), then the filter replays it.
-        localizer.search_beam(lambda k: on_progress(k + 1, n) if on_progress and k % stride == 0 else None)
+        localizer.search_beam(beam_progress)
     for k in range(n):
         localizer.step(k)
         if on_progress is not None and ((k % stride == 0 and config.association != "beam") or k == n - 1):
             on_progress(k + 1, n)
     return localizer.result(time.perf_counter() - started)
+
+
+# Below this many poses a second process costs more to start (an interpreter and its imports,
+# about half a second) than it saves.
+PARALLEL_MIN_POSES = 2000
+
+
+def _parallel_worthwhile(num_poses: int) -> bool:
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return num_poses >= PARALLEL_MIN_POSES and cpus >= 2
 
 
 class _Localizer:
@@ -204,15 +230,19 @@ class _Localizer:
         self.beam_slipped: np.ndarray | None = None
         self.slip_pose_ids: list[int] = []
 
-    def search_beam(self, on_pose: Optional[Callable[[int], None]] = None) -> None:
-        """Decide every pose's association with the beam (``camloc.beam``) before filtering."""
+    def search_beam(
+        self, on_pose: Optional[Callable[[int], None]] = None,
+        on_decided: Optional[Callable[[int, list[np.ndarray], np.ndarray], None]] = None,
+    ) -> None:
+        """Decide every pose's association with the beam (``camloc.beam``) before filtering;
+        ``on_decided`` receives the decided poses as the beam goes (``BeamSearch.run``)."""
         c = self.config
         settings = BeamSettings(
             beam_width=c.beam_width, beam_delta=c.beam_delta, branch_delta=c.branch_delta,
             gate=self.gate, slip_inflation=c.slip_inflation, slip_cost=c.slip_cost,
         )
         search = BeamSearch(self, settings)
-        self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose)
+        self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose, on_decided=on_decided)
         slips = np.flatnonzero(self.beam_slipped)
         self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in slips]
         if slips.size:

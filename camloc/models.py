@@ -57,16 +57,16 @@ def motion(state: np.ndarray, T_increment: np.ndarray) -> tuple[np.ndarray, np.n
     next_state = np.concatenate([state[0:3] + R @ dt, rpy_next])
 
     E = geometry.euler_rate_matrix(state[3:6])
-    E_next = geometry.euler_rate_matrix(rpy_next)
+    E_next_inverse = geometry.euler_rate_matrix_inverse(rpy_next)
     F = np.eye(6)
     # t' = t + R dt; perturbing R on the right by E d moves t' by -R [dt]x E d.
     F[0:3, 3:6] = -R @ geometry.hat(dt) @ E
     # R' = R Exp(E d) dR = R' Exp(dR^T E d); the new Euler step solves E' d' = dR^T E d.
-    F[3:6, 3:6] = np.linalg.solve(E_next, dR.T @ E)
+    F[3:6, 3:6] = E_next_inverse @ (dR.T @ E)
 
     G = np.zeros((6, 6))
     G[0:3, 0:3] = R_next  # t' = t + R dT_t + R dR w_t
-    G[3:6, 3:6] = np.linalg.solve(E_next, np.eye(3))  # R' Exp(w_theta): E' d' = w_theta
+    G[3:6, 3:6] = E_next_inverse  # R' Exp(w_theta): E' d' = w_theta
     return next_state, F, G
 
 

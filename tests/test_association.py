@@ -214,3 +214,21 @@ def test_seeded_explanation_costs_do_not_depend_on_how_seeds_are_batched(rng):
     together = association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, seeds, gate=11.34)
     alone = [association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, log_det_R, np.array([s]), gate=11.34)[0] for s in seeds]
     np.testing.assert_allclose(together, alone, rtol=1e-12)
+
+
+def test_view_cone_ball_holds_the_whole_cone_and_is_smaller_than_the_apex_ball(rng):
+    from camloc.geometry import euler_to_matrix
+
+    for half_angle_deg in (10.0, 30.0, 45.0, 57.0, 80.0):
+        half_angle = np.radians(half_angle_deg)
+        R = euler_to_matrix(rng.uniform(-np.pi, np.pi, 3) * [1, 0.4, 1])
+        apex, depth = rng.normal(size=3), 3.0
+        centre, radius = association.view_cone_ball(apex, R[:, 2], depth, half_angle)
+        # the cone's extreme points: its apex and its base rim, plus random points inside it
+        phi = np.linspace(0.0, 2.0 * np.pi, 64)
+        rim = np.c_[depth * np.tan(half_angle) * np.cos(phi), depth * np.tan(half_angle) * np.sin(phi), np.full(64, depth)]
+        s = rng.uniform(0.0, 1.0, (500, 3))
+        inside = np.c_[(s[:, 0] - 0.5) * 2 * s[:, 2] * depth * np.tan(half_angle) / np.sqrt(2), (s[:, 1] - 0.5) * 2 * s[:, 2] * depth * np.tan(half_angle) / np.sqrt(2), s[:, 2] * depth]
+        points = apex + np.r_[np.zeros((1, 3)), rim, inside] @ R.T
+        assert np.all(np.linalg.norm(points - centre, axis=1) <= radius)
+        assert radius < depth / np.cos(half_angle) - 1e-6

@@ -93,3 +93,19 @@ def test_so3_log_near_pi():
         phi = geometry.so3_log(geometry.so3_exp(angle * axis))
         assert np.linalg.norm(phi) == pytest.approx(angle, abs=1e-8)
         assert abs(abs(phi @ axis) - angle) < 1e-7
+
+
+def test_euler_rate_matrix_inverse_is_the_inverse(rng):
+    for _ in range(20):
+        rpy = rng.uniform([-np.pi, -1.4, -np.pi], [np.pi, 1.4, np.pi])
+        np.testing.assert_allclose(geometry.euler_rate_matrix_inverse(rpy) @ geometry.euler_rate_matrix(rpy), np.eye(3), atol=1e-12)
+
+
+def test_single_item_fast_paths_match_the_batched_forms(rng):
+    rpy = rng.uniform([-np.pi, -1.4, -np.pi], [np.pi, 1.4, np.pi], size=(5, 3))
+    R = geometry.euler_to_matrix(rpy)
+    for k in range(5):
+        np.testing.assert_allclose(geometry.euler_to_matrix(rpy[k]), R[k], atol=1e-15)
+        np.testing.assert_allclose(geometry.matrix_to_euler(R[k]), geometry.matrix_to_euler(R[k : k + 1])[0], atol=1e-14)
+        np.testing.assert_allclose(geometry.euler_rate_matrix(rpy[k]), geometry.euler_rate_matrix(rpy[k : k + 1])[0], atol=1e-15)
+        np.testing.assert_allclose(geometry.hat(rpy[k]), geometry.hat(rpy[k : k + 1])[0], atol=0)

@@ -1,0 +1,125 @@
+"""The beam and the filter that replays its association, side by side in two processes.
+
+With the beam, a run is two sequential passes: the beam decides every pose's association
+(``camloc.beam``), then the filter replays those pairs (``_Localizer.step``: stacked update,
+re-check). A pose's pairs are final as soon as every hypothesis in the beam descends from the same
+one there, usually within a pose or two, so the replay need not wait for the end: here it runs in a
+second process and filters each batch of decided poses while the beam works on the next. The
+result is the same as the sequential run's, computed by the same code; the run takes about as long
+as the beam alone (a second CPU does the replay).
+
+The second process is a fresh interpreter running this module (``python -m camloc.replay``), fed
+pickled batches on its stdin and answering on its stdout: not a fork (safe beside BLAS threads, on
+every platform) and not ``multiprocessing``'s spawn, which would run the caller's own script again
+in the child. It builds its own ``_Localizer`` from the dataset and config, so it holds the same
+models, map index and initial state, and returns the replay's state at the end; an error in it is
+raised in the caller.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from camloc.errors import CamlocError
+
+# What ``_Localizer.step`` changes, copied back from the replay process.
+REPLAYED_ATTRIBUTES = (
+    "x", "P", "T_odometry", "states", "covs", "poses", "odometry_poses", "chosen_landmark",
+    "mahalanobis", "update_pose_ids", "nis", "map_costs", "nis_dof", "warned_singularity",
+)
+
+
+def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None) -> None:
+    """Run the beam on ``localizer`` (a ``camloc.localizer._Localizer``) here and its replay in a
+    second process; on return the localizer holds both results, as after ``search_beam`` and
+    ``step`` for every pose."""
+    environment = dict(os.environ)
+    package_parent = str(Path(__file__).resolve().parents[1])  # camloc importable however it was found
+    environment["PYTHONPATH"] = os.pathsep.join(filter(None, [package_parent, environment.get("PYTHONPATH")]))
+    with tempfile.TemporaryFile() as errors:
+        worker = subprocess.Popen(
+            [sys.executable, "-m", "camloc.replay"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stderr=errors, env=environment,
+        )
+        replay_gone = False
+
+        def send(message) -> None:
+            nonlocal replay_gone
+            if replay_gone:
+                return
+            try:
+                pickle.dump(message, worker.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                worker.stdin.flush()
+            except (BrokenPipeError, ConnectionResetError, OSError):  # it failed: its report is read below
+                replay_gone = True
+
+        try:
+            send((localizer.dataset, localizer.config))
+            localizer.search_beam(on_pose, on_decided=lambda first, chosen, slipped: send((first, chosen, slipped)))
+            send(None)  # no more poses
+            try:
+                worker.stdin.close()
+            except OSError:
+                pass
+            try:
+                status, payload = pickle.load(worker.stdout)
+            except (EOFError, pickle.UnpicklingError):
+                worker.wait(timeout=10.0)
+                errors.seek(0)
+                detail = errors.read().decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
+                raise CamlocError(f"the filter's replay process ended without a result ({detail[0]})") from None
+        finally:
+            if worker.poll() is None:
+                try:
+                    worker.wait(timeout=10.0)
+                except subprocess.TimeoutExpired:
+                    worker.kill()
+                    worker.wait()
+            worker.stdout.close()
+    if status == "error":
+        raise payload
+    for name in REPLAYED_ATTRIBUTES:
+        setattr(localizer, name, payload[name])
+    localizer.warnings.extend(payload["warnings"])  # after the beam's own, as in the sequential run
+
+
+def _replay(incoming, outgoing) -> None:
+    """The second process: filter each batch of decided poses as it arrives; send back the state."""
+    from camloc.localizer import _Localizer
+
+    try:
+        dataset, config = pickle.load(incoming)
+        localizer = _Localizer(dataset, config)
+        n = dataset.num_poses
+        localizer.beam_pairs = [np.zeros((0, 2), np.int64)] * n
+        localizer.beam_slipped = np.zeros(n, dtype=bool)
+        while (message := pickle.load(incoming)) is not None:
+            first, chosen, slipped = message
+            for offset, pairs in enumerate(chosen):
+                k = first + offset
+                localizer.beam_pairs[k] = pairs
+                localizer.beam_slipped[k] = slipped[offset]
+                localizer.step(k)
+        payload = {name: getattr(localizer, name) for name in REPLAYED_ATTRIBUTES}
+        payload["warnings"] = localizer.warnings
+        answer = ("ok", payload)
+    except BaseException as error:  # reported to the caller, which raises it
+        answer = ("error", error)
+        try:
+            pickle.dumps(error)
+        except Exception:
+            answer = ("error", CamlocError(f"the filter's replay failed: {type(error).__name__}: {error}"))
+    pickle.dump(answer, outgoing, protocol=pickle.HIGHEST_PROTOCOL)
+    outgoing.flush()
+
+
+if __name__ == "__main__":
+    _replay(sys.stdin.buffer, sys.stdout.buffer)
