@@ -301,7 +301,7 @@ class BeamSearch:
             HPH = H @ h.P @ np.swapaxes(H, 1, 2)
             owner = np.repeat(obs[rows], sizes)
             d2, log_det = association.mahalanobis_3x3(HPH + ds.obs_cov[owner], ds.obs_uvd[owner] - z_hat)
-            costs = np.where((d2 <= self.settings.gate) & ~np.isin(landmarks, taken), d2 + log_det - self.log_det_R[owner], np.inf)
+            costs = np.where((d2 <= self.settings.gate) & ~_member(landmarks, taken), d2 + log_det - self.log_det_R[owner], np.inf)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
                 out[r] = _Options(landmarks[start:stop], costs[start:stop], z_hat[start:stop], H[start:stop])
         return out
@@ -385,6 +385,14 @@ class BeamSearch:
     def _backtrack(self) -> tuple[list[np.ndarray], np.ndarray]:
         # each pose's beam is sorted by cost: the first is the best
         return self._chain(len(self.history) - 1, 0, 0)
+
+
+def _member(values: np.ndarray, few: np.ndarray) -> np.ndarray:
+    """``np.isin(values, few)`` for the handful of landmarks a hypothesis has taken at a pose,
+    by direct comparison (isin sorts, which costs more than comparing with a few)."""
+    if few.size == 0:
+        return np.zeros(values.shape, dtype=bool)
+    return (values[:, None] == few[None, :]).any(axis=1)
 
 
 def _empty_options() -> _Options:

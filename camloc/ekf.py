@@ -66,10 +66,9 @@ def symmetrize(P: np.ndarray) -> np.ndarray:
 def block_diagonal(blocks: np.ndarray) -> np.ndarray:
     """(p, b, b) blocks -> (p b, p b) block-diagonal matrix (stacked independent measurements)."""
     p, b, _ = blocks.shape
-    out = np.zeros((p * b, p * b))
-    for i in range(p):
-        out[b * i : b * i + b, b * i : b * i + b] = blocks[i]
-    return out
+    out = np.zeros((p, b, p, b))
+    out[np.arange(p), :, np.arange(p), :] = blocks
+    return out.reshape(p * b, p * b)
 
 
 def predict(P: np.ndarray, F: np.ndarray, G: np.ndarray, Q: np.ndarray) -> np.ndarray:

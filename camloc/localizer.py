@@ -192,6 +192,7 @@ class _Localizer:
             cid: _CameraModel(cam.T_robot_camera, (cam.fx, cam.fy, cam.cx, cam.cy))
             for cid, cam in dataset.cameras.items()
         }
+        self.single_camera = int(next(iter(dataset.cameras))) if len(dataset.cameras) == 1 else None
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
@@ -462,10 +463,17 @@ class _Localizer:
         z = self.dataset.obs_uvd[obs].reshape(-1)
         R = ekf.block_diagonal(self.dataset.obs_cov[obs])
         cameras = self.dataset.obs_camera[obs]
-        groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
+        if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
+            groups = [(self.cameras[self.single_camera], slice(None))]
+        else:
+            groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]
 
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if len(groups) == 1:
+                camera = groups[0][0]
+                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz)
+                return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
             z_hat = np.empty((obs.size, 3))
             H = np.empty((obs.size, 3, 6))
             for camera, mask in groups:
