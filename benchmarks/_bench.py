@@ -294,7 +294,8 @@ def _worker(request: dict) -> dict:
     result = camloc.localize(dataset, config)
     filter_seconds = time.perf_counter() - started
     metrics = evaluate(result)
-    peak_mb = peak_memory_mb()
+    # with the beam's replay in a second process (camloc.replay) both hold memory at once
+    peak_mb = peak_memory_mb() + (result.summary["timing"].get("replay_process_peak_mb") or 0.0)
     estimate = metrics.get("estimate") or {}
     return {
         "poses": dataset.num_poses,

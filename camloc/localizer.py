@@ -230,6 +230,8 @@ class _Localizer:
         self.beam_pairs: list[np.ndarray] | None = None
         self.beam_slipped: np.ndarray | None = None
         self.slip_pose_ids: list[int] = []
+        self.replayed_in_parallel = False  # the replay ran in a second process (camloc.replay)
+        self.replay_peak_mb: Optional[float] = None  # that process's peak memory, where known
 
     def search_beam(
         self, on_pose: Optional[Callable[[int], None]] = None,
@@ -535,6 +537,8 @@ class _Localizer:
             "timing": {
                 "filter_seconds": filter_seconds,
                 "poses_per_second": ds.num_poses / filter_seconds if filter_seconds > 0 else float("inf"),
+                "replay_process": self.replayed_in_parallel,
+                "replay_process_peak_mb": self.replay_peak_mb,
             },
             "warnings": list(ds.warnings) + self.warnings,
         }

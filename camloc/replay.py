@@ -88,6 +88,8 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
         raise payload
     for name in REPLAYED_ATTRIBUTES:
         setattr(localizer, name, payload[name])
+    localizer.replayed_in_parallel = True
+    localizer.replay_peak_mb = payload["peak_mb"]
     localizer.warnings.extend(payload["warnings"])  # after the beam's own, as in the sequential run
 
 
@@ -110,6 +112,7 @@ def _replay(incoming, outgoing) -> None:
                 localizer.step(k)
         payload = {name: getattr(localizer, name) for name in REPLAYED_ATTRIBUTES}
         payload["warnings"] = localizer.warnings
+        payload["peak_mb"] = _peak_memory_mb()
         answer = ("ok", payload)
     except BaseException as error:  # reported to the caller, which raises it
         answer = ("error", error)
@@ -119,6 +122,19 @@ def _replay(incoming, outgoing) -> None:
             answer = ("error", CamlocError(f"the filter's replay failed: {type(error).__name__}: {error}"))
     pickle.dump(answer, outgoing, protocol=pickle.HIGHEST_PROTOCOL)
     outgoing.flush()
+
+
+def _peak_memory_mb() -> Optional[float]:
+    """This process's peak resident memory in MB (``VmHWM``), None where /proc is absent: the
+    caller reports it, since the two processes' peaks add up."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ def test_parallel_replay_gives_the_sequential_result_exactly(config):
     np.testing.assert_array_equal(parallel.associations.mahalanobis, sequential.associations.mahalanobis)
     assert parallel.summary["warnings"] == sequential.summary["warnings"]
     assert parallel.summary["slip_poses"] == sequential.summary["slip_poses"]
+    assert parallel.summary["timing"]["replay_process"] and not sequential.summary["timing"]["replay_process"]
 
 
 def test_beam_hands_over_every_pose_once_in_order_as_it_is_decided():
