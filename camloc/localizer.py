@@ -170,7 +170,7 @@ def localize(
 
 # Below this many poses a second process costs more to start (an interpreter and its imports,
 # about half a second) than it saves.
-PARALLEL_MIN_POSES = 2000
+PARALLEL_MIN_POSES = 500
 
 
 def _parallel_worthwhile(num_poses: int) -> bool:
