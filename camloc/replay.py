@@ -13,7 +13,8 @@ pickled batches on its stdin and answering on its stdout: not a fork (safe besid
 every platform) and not ``multiprocessing``'s spawn, which would run the caller's own script again
 in the child. It builds its own ``_Localizer`` from the dataset and config, so it holds the same
 models, map index and initial state, and returns the replay's state at the end; an error in it is
-raised in the caller.
+raised in the caller. If the process cannot start or dies (no Python at ``sys.executable``, killed),
+the replay runs in the calling process after the beam, with a warning.
 """
 
 from __future__ import annotations
@@ -71,11 +72,11 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
                 pass
             try:
                 status, payload = pickle.load(worker.stdout)
-            except (EOFError, pickle.UnpicklingError):
+            except (EOFError, pickle.UnpicklingError):  # it could not start or was killed
                 worker.wait(timeout=10.0)
                 errors.seek(0)
                 detail = errors.read().decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
-                raise CamlocError(f"the filter's replay process ended without a result ({detail[0]})") from None
+                status, payload = "lost", detail[0]
         finally:
             if worker.poll() is None:
                 try:
@@ -86,6 +87,12 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
             worker.stdout.close()
     if status == "error":
         raise payload
+    if status == "lost":
+        # the beam's decisions are all here: replay them in this process, as a one-process run does
+        for k in range(localizer.dataset.num_poses):
+            localizer.step(k)
+        localizer.warnings.append(f"the replay process ended without a result ({payload}); the filter ran in this process instead")
+        return
     for name in REPLAYED_ATTRIBUTES:
         setattr(localizer, name, payload[name])
     localizer.replayed_in_parallel = True

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from camloc.beam import BeamSearch, BeamSettings
-from camloc.errors import CamlocError
 from camloc.localizer import LocalizerConfig, _Localizer, localize
 from camloc.replay import _replay
 from camloc.simulate import SimulationConfig, simulate
@@ -87,11 +86,32 @@ def test_replay_process_reports_an_error_instead_of_dying_silently():
     assert status == "error" and isinstance(error, IndexError)
 
 
-def test_an_error_in_the_replay_process_is_raised_in_the_caller(monkeypatch):
+def test_a_replay_process_that_cannot_start_falls_back_to_this_process(monkeypatch):
     import camloc.replay
 
     dataset = simulate(SimulationConfig(trajectory="grid", poses=30), seed=3)
-    # a replay process that cannot start: the caller gets a clear CamlocError, not a hang
-    monkeypatch.setattr(camloc.replay.sys, "executable", "/bin/false")
-    with pytest.raises(CamlocError, match="replay process ended without a result"):
-        localize(dataset, parallel=True)
+    sequential = localize(dataset, parallel=False)
+    monkeypatch.setattr(camloc.replay.sys, "executable", "/bin/false")  # exits at once, says nothing
+    result = localize(dataset, parallel=True)
+    np.testing.assert_array_equal(result.filter_state, sequential.filter_state)
+    np.testing.assert_array_equal(result.associations.landmark, sequential.associations.landmark)
+    assert any("replay process ended without a result" in w for w in result.summary["warnings"])
+    assert not result.summary["timing"]["replay_process"]
+
+
+def test_a_filter_error_in_the_replay_process_is_raised_in_the_caller(monkeypatch):
+    import camloc.replay
+
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=30), seed=3)
+    localizer = _Localizer(dataset, LocalizerConfig())
+    # the beam decides a pair with a landmark beyond the map: the replay's IndexError comes back
+    original = localizer.search_beam
+
+    def corrupt_search(on_pose=None, on_decided=None):
+        def corrupted(first, chosen, slipped):
+            on_decided(first, [np.array([[0, 10**9]])] * len(chosen), slipped)
+        original(on_pose, on_decided=corrupted)
+
+    monkeypatch.setattr(localizer, "search_beam", corrupt_search)
+    with pytest.raises(IndexError):
+        camloc.replay.search_and_replay(localizer)
