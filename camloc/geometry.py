@@ -55,15 +55,18 @@ def euler_to_matrix(rpy: np.ndarray) -> np.ndarray:
     scipy's per-call overhead dominates (tests compare it with scipy's ``"ZYX"``).
     """
     rpy = np.asarray(rpy, dtype=float)
-    if rpy.shape == (3,):  # one state: scalar arithmetic, a tenth of the array version's overhead
-        roll, pitch, yaw = rpy.tolist()
-        sr, sp, sy = math.sin(roll), math.sin(pitch), math.sin(yaw)
-        cr, cp, cy = math.cos(roll), math.cos(pitch), math.cos(yaw)
-        return np.array([
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ])
+    if rpy.shape == (3,):  # one state: scalar math, a tenth of the array version's overhead
+        try:
+            roll, pitch, yaw = rpy.tolist()
+            sr, sp, sy = math.sin(roll), math.sin(pitch), math.sin(yaw)
+            cr, cp, cy = math.cos(roll), math.cos(pitch), math.cos(yaw)
+            return np.array([
+                [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                [-sp, cp * sr, cp * cr],
+            ])
+        except ValueError:  # an infinite angle: NaN as numpy gives it, below
+            pass
     sr, sp, sy = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
     cr, cp, cy = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
     R = np.empty(rpy.shape[:-1] + (3, 3))
@@ -82,7 +85,12 @@ def matrix_to_euler(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     if R.shape == (3, 3):
         (r00, _, _), (r10, _, _), (r20, r21, r22) = R.tolist()
-        return np.array([math.atan2(r21, r22), math.asin(min(1.0, max(-1.0, -r20))), math.atan2(r10, r00)])
+        sin_pitch = -r20
+        if sin_pitch > 1.0:  # rounding; a NaN passes both tests and stays NaN
+            sin_pitch = 1.0
+        elif sin_pitch < -1.0:
+            sin_pitch = -1.0
+        return np.array([math.atan2(r21, r22), math.asin(sin_pitch), math.atan2(r10, r00)])
     rpy = np.empty(R.shape[:-2] + (3,))
     rpy[..., 0] = np.arctan2(R[..., 2, 1], R[..., 2, 2])
     rpy[..., 1] = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
@@ -107,9 +115,12 @@ def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
     """
     rpy = np.asarray(rpy, dtype=float)
     if rpy.shape == (3,):
-        roll, pitch, _ = rpy.tolist()
-        sr, cr, sp, cp = math.sin(roll), math.cos(roll), math.sin(pitch), math.cos(pitch)
-        return np.array([[1.0, 0.0, -sp], [0.0, cr, sr * cp], [0.0, -sr, cr * cp]])
+        try:
+            roll, pitch, _ = rpy.tolist()
+            sr, cr, sp, cp = math.sin(roll), math.cos(roll), math.sin(pitch), math.cos(pitch)
+            return np.array([[1.0, 0.0, -sp], [0.0, cr, sr * cp], [0.0, -sr, cr * cp]])
+        except ValueError:  # an infinite angle
+            pass
     roll, pitch = rpy[..., 0], rpy[..., 1]
     sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
     E = np.zeros(rpy.shape[:-1] + (3, 3))
@@ -125,6 +136,8 @@ def euler_rate_matrix_inverse(rpy: np.ndarray) -> np.ndarray:
     ``E^-1 w``. det E = cos(pitch), so it is singular at pitch = +-pi/2 like E itself.
     """
     roll, pitch = float(rpy[0]), float(rpy[1])
+    if not (math.isfinite(roll) and math.isfinite(pitch)):
+        return np.full((3, 3), np.nan)
     sr, cr = math.sin(roll), math.cos(roll)
     tp, sec = math.tan(pitch), 1.0 / math.cos(pitch)
     return np.array([[1.0, sr * tp, cr * tp], [0.0, cr, -sr], [0.0, sr * sec, cr * sec]])

@@ -109,3 +109,15 @@ def test_single_item_fast_paths_match_the_batched_forms(rng):
         np.testing.assert_allclose(geometry.matrix_to_euler(R[k]), geometry.matrix_to_euler(R[k : k + 1])[0], atol=1e-14)
         np.testing.assert_allclose(geometry.euler_rate_matrix(rpy[k]), geometry.euler_rate_matrix(rpy[k : k + 1])[0], atol=1e-15)
         np.testing.assert_allclose(geometry.hat(rpy[k]), geometry.hat(rpy[k : k + 1])[0], atol=0)
+
+
+def test_single_item_fast_paths_give_nan_for_non_finite_input_as_the_batched_forms_do():
+    with np.errstate(invalid="ignore"):
+        for rpy in (np.array([np.inf, 0.1, 0.2]), np.array([0.1, np.nan, 0.2])):
+            np.testing.assert_array_equal(np.isnan(geometry.euler_to_matrix(rpy)), np.isnan(geometry.euler_to_matrix(rpy[None])[0]))
+            np.testing.assert_array_equal(np.isnan(geometry.euler_rate_matrix(rpy)), np.isnan(geometry.euler_rate_matrix(rpy[None])[0]))
+        R = np.full((3, 3), np.nan)
+        assert np.isnan(geometry.matrix_to_euler(R)).all() and np.isnan(geometry.matrix_to_euler(R[None])).all()
+        R = np.eye(3)
+        R[2, 0] = 1.0 + 1e-12  # rounding past the domain of arcsin: clipped, pitch -90 deg
+        np.testing.assert_allclose(geometry.matrix_to_euler(R), geometry.matrix_to_euler(R[None])[0])
