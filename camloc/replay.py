@@ -8,7 +8,7 @@ second process and filters each batch of decided poses while the beam works on t
 result is the same as the sequential run's, computed by the same code; the run takes about as long
 as the beam alone (a second CPU does the replay).
 
-The second process is a fresh interpreter running this module (``python -m camloc.replay``), fed
+The second process is a fresh interpreter running this module's ``_replay`` (``python -c``), fed
 pickled batches on its stdin and answering on its stdout: not a fork (safe beside BLAS threads, on
 every platform) and not ``multiprocessing``'s spawn, which would run the caller's own script again
 in the child. It builds its own ``_Localizer`` from the dataset and config, so it holds the same
@@ -19,7 +19,6 @@ the replay runs in the calling process after the beam, with a warning.
 
 from __future__ import annotations
 
-import os
 import pickle
 import subprocess
 import sys
@@ -42,13 +41,10 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
     """Run the beam on ``localizer`` (a ``camloc.localizer._Localizer``) here and its replay in a
     second process; on return the localizer holds both results, as after ``search_beam`` and
     ``step`` for every pose."""
-    environment = dict(os.environ)
-    package_parent = str(Path(__file__).resolve().parents[1])  # camloc importable however it was found
-    environment["PYTHONPATH"] = os.pathsep.join(filter(None, [package_parent, environment.get("PYTHONPATH")]))
     with tempfile.TemporaryFile() as errors:
         worker = subprocess.Popen(
-            [sys.executable, "-m", "camloc.replay"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            stderr=errors, env=environment,
+            [sys.executable, "-c", _WORKER_SOURCE.format(package=str(Path(__file__).resolve().parent))],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=errors,
         )
         replay_gone = False
 
@@ -100,6 +96,20 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
     localizer.warnings.extend(payload["warnings"])  # after the beam's own, as in the sequential run
 
 
+# The worker imports this very camloc package, from its folder, however the caller found it (an
+# install, an editable install, a path added by hand), without putting that folder's parent in
+# front of the standard library on sys.path.
+_WORKER_SOURCE = """
+import importlib.util, sys
+spec = importlib.util.spec_from_file_location("camloc", {package!r} + "/__init__.py", submodule_search_locations=[{package!r}])
+module = importlib.util.module_from_spec(spec)
+sys.modules["camloc"] = module
+spec.loader.exec_module(module)
+from camloc.replay import _replay
+_replay(sys.stdin.buffer, sys.stdout.buffer)
+"""
+
+
 def _replay(incoming, outgoing) -> None:
     """The second process: filter each batch of decided poses as it arrives; send back the state."""
     from camloc.localizer import _Localizer
@@ -143,6 +153,3 @@ def _peak_memory_mb() -> Optional[float]:
         pass
     return None
 
-
-if __name__ == "__main__":
-    _replay(sys.stdin.buffer, sys.stdout.buffer)
