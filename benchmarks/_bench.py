@@ -266,16 +266,13 @@ def timed_command(command: list[str], *, timeout: float) -> tuple[float, float, 
 
 
 def peak_memory_mb() -> float:
-    """This process's peak resident memory since its exec, MB: ``VmHWM`` of /proc/self/status,
-    which belongs to the current address space only (``ru_maxrss`` would include the parent's peak
-    carried across exec); ``ru_maxrss`` where /proc is absent."""
-    try:
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
+    """This process's peak resident memory since its exec, MB (``camloc.replay.peak_memory_mb``);
+    ``ru_maxrss`` where /proc is absent."""
+    from camloc.replay import peak_memory_mb as own_peak
+
+    peak = own_peak()
+    if peak is not None:
+        return peak
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux

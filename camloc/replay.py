@@ -129,7 +129,7 @@ def _replay(incoming, outgoing) -> None:
                 localizer.step(k)
         payload = {name: getattr(localizer, name) for name in REPLAYED_ATTRIBUTES}
         payload["warnings"] = localizer.warnings
-        payload["peak_mb"] = _peak_memory_mb()
+        payload["peak_mb"] = peak_memory_mb()
         answer = ("ok", payload)
     except BaseException as error:  # reported to the caller, which raises it
         answer = ("error", error)
@@ -141,9 +141,11 @@ def _replay(incoming, outgoing) -> None:
     outgoing.flush()
 
 
-def _peak_memory_mb() -> Optional[float]:
-    """This process's peak resident memory in MB (``VmHWM``), None where /proc is absent: the
-    caller reports it, since the two processes' peaks add up."""
+def peak_memory_mb() -> Optional[float]:
+    """This process's peak resident memory since its exec, MB: ``VmHWM`` of /proc/self/status,
+    which belongs to the current address space only (``ru_maxrss`` would include the parent's peak
+    carried across exec); None where /proc is absent. The replay reports its own, since the two
+    processes' peaks add up."""
     try:
         with open("/proc/self/status") as status:
             for line in status:
@@ -152,4 +154,3 @@ def _peak_memory_mb() -> Optional[float]:
     except OSError:
         pass
     return None
-
