@@ -352,8 +352,7 @@ class BeamSearch:
     def _branches(self, h: _Hypothesis, o: int, options: _Options) -> list[_Hypothesis]:
         """Children of h for one observation (``options`` under h): unassigned, or paired with a
         viable landmark."""
-        taken = {lm for _, lm in h.pairs}
-        free = np.array([int(lm) not in taken for lm in options.landmarks], dtype=bool)
+        free = ~_member(options.landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64))
         null_cost = float(self.null_cost[o])
         pairs, null = self._viable(np.where(free, options.costs, np.inf), null_cost)
         out = []

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtri
 
+from camloc.association import mahalanobis_3x3
+
 
 @dataclass(frozen=True)
 class JcbbResult:
@@ -59,8 +61,7 @@ def _individual_d2(i: int, columns: np.ndarray, y_all: np.ndarray, H: np.ndarray
     if columns.size == 0:
         return np.zeros(0)
     S = H[columns] @ P @ np.swapaxes(H[columns], 1, 2) + R_obs[i]
-    y = y_all[i, columns]
-    return np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
+    return mahalanobis_3x3(S, y_all[i, columns])[0]
 
 
 def jcbb(

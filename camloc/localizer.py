@@ -448,11 +448,9 @@ class _Localizer:
         keep = np.zeros(obs.size, dtype=bool)
         for camera_id in np.unique(self.dataset.obs_camera[obs]):
             mine = self.dataset.obs_camera[obs] == camera_id
-            camera = self.cameras[int(camera_id)]
-            z_hat, H = self.filter.observe(self.x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[index[mine]])
+            z_hat, H = self.observe(self.x, camera_id, index[mine])
             S = H @ self.P @ np.swapaxes(H, 1, 2) + self.dataset.obs_cov[obs[mine]]
-            y = self.dataset.obs_uvd[obs[mine]] - z_hat
-            d2 = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
+            d2, _ = association.mahalanobis_3x3(S, self.dataset.obs_uvd[obs[mine]] - z_hat)
             keep[mine] = d2 <= self.gate
         return obs[keep], index[keep]
 
@@ -490,9 +488,9 @@ class _Localizer:
         )
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
-        y = result.innovation.reshape(-1, 3)
-        S_blocks = np.array([result.S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(obs.size)])
-        d2 = np.einsum("ni,ni->n", y, np.linalg.solve(S_blocks, y[..., None])[..., 0])
+        p = obs.size
+        S_blocks = result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]  # each pair's own 3x3
+        d2, _ = association.mahalanobis_3x3(S_blocks, result.innovation.reshape(p, 3))
         self.chosen_landmark[obs] = self.dataset.landmark_ids[landmarks]
         self.mahalanobis[obs] = np.sqrt(d2)
         self.update_pose_ids.append(int(self.dataset.pose_ids[k]))
