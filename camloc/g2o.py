@@ -75,6 +75,11 @@ _QUAT_EXACT_TOL = 1e-12
 _QUAT_WARN_TOL = 1e-6
 _QUAT_ZERO_TOL = 1e-9
 
+# Positions and translations beyond this many metres are refused: geodetic coordinates (about 1e7 m)
+# fit with room to spare, while values near the float range overflow the first time they are
+# squared, deep inside the localizer.
+MAX_COORDINATE = 1e9
+
 
 def _upper_names(dim: int) -> tuple[str, ...]:
     rows, cols = np.triu_indices(dim)
@@ -89,6 +94,7 @@ class _Layout:
     names: tuple[str, ...]
     n_ids: int
     summary: str  # the layout in words, for error messages
+    lengths: tuple[str, ...] = ()  # fields in metres, bounded by MAX_COORDINATE
 
     @property
     def n_fields(self) -> int:
@@ -100,13 +106,13 @@ class _Layout:
 
 
 _CAMERA = _Layout(TAG_CAMERA, ("id", "tx", "ty", "tz", "qx", "qy", "qz", "qw", "fx", "fy", "cx", "cy"), 1,
-                  "id tx ty tz qx qy qz qw fx fy cx cy")
-_LANDMARK = _Layout(TAG_LANDMARK, ("id", "x", "y", "z"), 1, "id x y z")
-_POSE = _Layout(TAG_POSE, ("id", "x", "y", "z", "qx", "qy", "qz", "qw"), 1, "id x y z qx qy qz qw")
+                  "id tx ty tz qx qy qz qw fx fy cx cy", ("tx", "ty", "tz"))
+_LANDMARK = _Layout(TAG_LANDMARK, ("id", "x", "y", "z"), 1, "id x y z", ("x", "y", "z"))
+_POSE = _Layout(TAG_POSE, ("id", "x", "y", "z", "qx", "qy", "qz", "qw"), 1, "id x y z qx qy qz qw", ("x", "y", "z"))
 _ODOMETRY = _Layout(TAG_ODOMETRY, ("from", "to", "dx", "dy", "dz", "qx", "qy", "qz", "qw") + _upper_names(6), 2,
-                    "from to dx dy dz qx qy qz qw + 21 information numbers")
+                    "from to dx dy dz qx qy qz qw + 21 information numbers", ("dx", "dy", "dz"))
 _OBSERVATION = _Layout(TAG_OBSERVATION, ("pose", "landmark", "camera", "u", "v", "depth") + _upper_names(3), 3,
-                       "pose landmark camera u v depth + 6 information numbers")
+                       "pose landmark camera u v depth + 6 information numbers", ("depth",))
 _LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, _OBSERVATION)}
 KNOWN_TAGS = tuple(_LAYOUTS)
 
@@ -284,13 +290,23 @@ def _parse_table(path: Path, layout: _Layout, lines: _Lines) -> _Table:
         _raise_first_malformed_line(path, layout, lines)
     table = _Table(records["ids"].reshape(n, layout.n_ids), records["values"].reshape(n, n_values),
                    np.asarray(lines.numbers, dtype=np.int64))
-    bad_rows, bad_cols = np.nonzero(~np.isfinite(table.values))
+    value_names = layout.names[layout.n_ids :]
+    bounded = np.array([name in layout.lengths for name in value_names])
+    bad = ~np.isfinite(table.values) | (bounded & (np.abs(table.values) > MAX_COORDINATE))
+    bad_rows, bad_cols = np.nonzero(bad)
     if bad_rows.size:
         row, col = bad_rows[0], bad_cols[0]
-        name = layout.names[layout.n_ids + col]
-        raise DatasetError(path, int(table.lines[row]),
-                           f"{layout.tag} field {name}: expected a finite number, found {table.values[row, col]}")
+        raise DatasetError(path, int(table.lines[row]), _value_reason(layout, value_names[col], float(table.values[row, col])))
     return table
+
+
+def _value_reason(layout: _Layout, name: str, value: float) -> str | None:
+    """Why one parsed value cannot be used, or None when it can."""
+    if not math.isfinite(value):
+        return f"{layout.tag} field {name}: expected a finite number, found {value}"
+    if name in layout.lengths and abs(value) > MAX_COORDINATE:
+        return f"{layout.tag} field {name}: expected metres within +-{MAX_COORDINATE:.0e}, found {value:.6g}"
+    return None
 
 
 _INTEGER = re.compile(r"[+-]?[0-9]+")
@@ -325,8 +341,9 @@ def _malformed_reason(layout: _Layout, fields: list[str]) -> str | None:
     for name, token in zip(layout.names[layout.n_ids:], fields[layout.n_ids:]):
         if not _is_number(token):
             return f"{layout.tag} field {name}: expected a number, found {token!r}"
-        if not math.isfinite(float(token)):  # as in _parse_table, so that the earliest line wins
-            return f"{layout.tag} field {name}: expected a finite number, found {float(token)}"
+        reason = _value_reason(layout, name, float(token))  # as in _parse_table, so that the earliest line wins
+        if reason is not None:
+            return reason
     return None
 
 
@@ -406,6 +423,11 @@ def _check_positive_definite(path: Path, tag: str, info: np.ndarray, lines: np.n
 def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, Camera]:
     ids = table.ids[:, 0]
     _check_unique(path, ids, table.lines, "camera id")
+    flat = np.flatnonzero((table.values[:, 7] == 0.0) | (table.values[:, 8] == 0.0))
+    if flat.size:
+        row = flat[0]
+        raise DatasetError(path, int(table.lines[row]), f"{TAG_CAMERA} {ids[row]}: expected non-zero focal lengths "
+                                                        f"fx fy, found fx={table.values[row, 7]:g} fy={table.values[row, 8]:g}")
     quat = _unit_quaternions(path, TAG_CAMERA, table.values[:, 3:7], table.lines, messages)
     return {
         int(camera_id): Camera(id=int(camera_id), translation=values[0:3].copy(), quat_xyzw=q,

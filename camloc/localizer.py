@@ -23,12 +23,16 @@ from camloc.beam import BeamSearch, BeamSettings
 from camloc.filters import FILTERS, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
+from camloc.g2o import MAX_COORDINATE
 from camloc.results import UNASSOCIATED, Associations, RunResult
 
 ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
 COSTS = ("nll", "mahalanobis", "euclidean")
 
 ProgressCallback = Callable[[int, int], None]
+
+# Bound on the initial rotation sigma: far beyond any meaningful angle, far from overflow.
+MAX_SIGMA_DEG = 1e6
 
 
 @dataclass(frozen=True)
@@ -103,9 +107,11 @@ class LocalizerConfig:
             (int(self.iterations) == self.iterations and 1 <= self.iterations <= 50, f"iterations must be an integer in 1..50, got {self.iterations}"),
             (0.0 < self.gate_probability < 1.0, f"gate_probability must be in (0, 1), got {self.gate_probability}"),
             (self.margin >= 0.0, f"margin must be >= 0, got {self.margin}"),
-            (self.initial_sigma_xyz > 0.0 and self.initial_sigma_deg > 0.0, "initial sigmas must be > 0"),
-            (self.min_depth is None or self.min_depth >= 0.0, f"min_depth must be >= 0, got {self.min_depth}"),
-            (self.max_depth is None or self.max_depth > (self.min_depth or 0.0), f"max_depth must be > min_depth, got {self.max_depth}"),
+            (0.0 < self.initial_sigma_xyz <= MAX_COORDINATE, f"initial_sigma_xyz must be in (0, {MAX_COORDINATE:.0e}] m, got {self.initial_sigma_xyz}"),
+            (0.0 < self.initial_sigma_deg <= MAX_SIGMA_DEG, f"initial_sigma_deg must be in (0, {MAX_SIGMA_DEG:.0e}] deg, got {self.initial_sigma_deg}"),
+            (self.min_depth is None or 0.0 <= self.min_depth <= MAX_COORDINATE, f"min_depth must be in [0, {MAX_COORDINATE:.0e}] m, got {self.min_depth}"),
+            (self.max_depth is None or (self.min_depth or 0.0) < self.max_depth <= MAX_COORDINATE,
+             f"max_depth must be > min_depth and at most {MAX_COORDINATE:.0e} m, got {self.max_depth}"),
             (self.max_angle_deg is None or 0.0 < self.max_angle_deg < 90.0, f"max_angle_deg must be in (0, 90), got {self.max_angle_deg}"),
             (int(self.beam_width) == self.beam_width and self.beam_width >= 1, f"beam_width must be an integer >= 1, got {self.beam_width}"),
             (self.beam_delta > 0.0 and self.branch_delta > 0.0, "beam_delta and branch_delta must be > 0"),

@@ -149,11 +149,12 @@ class SimulationConfig:
         _require(self.landmarks is None or self.landmarks >= 0, "landmarks", "a count >= 0", self.landmarks)
         _require(not (self.dense and self.landmarks is not None), "dense",
                  "either dense or an explicit landmarks count", f"dense and landmarks={self.landmarks}")
-        _require(self.region is None or self.region > 0, "region", "> 0", self.region)
+        _require(self.region is None or 0 < self.region <= MAX_LENGTH_M, "region", f"in (0, {MAX_LENGTH_M:.0e}] m", self.region)
         _require(self.max_tilt_deg is None or 0 < self.max_tilt_deg <= 90, "max_tilt_deg", "in (0, 90]", self.max_tilt_deg)
         _require(1 <= self.cameras <= 4, "cameras", "1 to 4", self.cameras)
         _require(self.min_range >= 0, "min_range", ">= 0", self.min_range)
-        _require(self.max_range > self.min_range, "max_range", f"more than min_range = {self.min_range}", self.max_range)
+        _require(self.min_range < self.max_range <= MAX_LENGTH_M, "max_range",
+                 f"more than min_range = {self.min_range} and at most {MAX_LENGTH_M:.0e} m", self.max_range)
         _require(0 < self.fov_half_angle_deg < 90, "fov_half_angle_deg", "in (0, 90)", self.fov_half_angle_deg)
         _require(0 < self.detection_probability <= 1, "detection_probability", "in (0, 1]", self.detection_probability)
         _require(self.max_observations_per_pose is None or self.max_observations_per_pose >= 0,
@@ -165,6 +166,15 @@ class SimulationConfig:
             _require(getattr(self, name) >= 0, name, ">= 0", getattr(self, name))
         _require(self.observation_sigma_uv is None or self.observation_sigma_uv >= 0,
                  "observation_sigma_uv", ">= 0", self.observation_sigma_uv)
+        # Upper bounds keep the written file readable (camloc.g2o.MAX_COORDINATE) and the noise meaningful.
+        scaled = {
+            "odometry_sigma_translation": (self.odometry_sigma_translation * self.odometry_sigma_scale, MAX_LENGTH_M, "m"),
+            "odometry_sigma_rotation": (self.odometry_sigma_rotation * self.odometry_sigma_scale, MAX_ROTATION_SIGMA, "rad"),
+            "observation_sigma_depth": (self.observation_sigma_depth * self.observation_sigma_scale, MAX_LENGTH_M, "m"),
+            "observation_sigma_uv": ((self.observation_sigma_uv or 0.0) * self.observation_sigma_scale, MAX_LENGTH_M, "image units"),
+        }
+        for name, (value, bound, unit) in scaled.items():
+            _require(value <= bound, name, f"at most {bound:g} {unit} (times its scale)", value)
 
     @property
     def region_side_m(self) -> float:
@@ -174,6 +184,13 @@ class SimulationConfig:
     def tilt_rad(self) -> float:
         tilt = self.max_tilt_deg if self.max_tilt_deg is not None else DEFAULT_MAX_TILT_DEG[self.trajectory]
         return math.radians(tilt)
+
+
+# Lengths (region, range, sigmas) beyond this are refused: a 20,000-pose walk still stays well
+# inside what the reader accepts (camloc.g2o.MAX_COORDINATE).
+MAX_LENGTH_M = 1e6
+# g2o's rotation error is the quaternion's vector part, which saturates beyond about 1 rad of noise.
+MAX_ROTATION_SIGMA = 1.0
 
 
 class SimulationOptionError(ConfigError):

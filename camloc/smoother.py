@@ -603,7 +603,7 @@ def smooth(
         odometry_factors=int(len(problem.odom_from)),
         observation_factors=int(len(problem.obs_pose)),
         dropped_observations=dropped,
-        downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber**2)),
+        downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
         seconds=time.perf_counter() - started,
     )
 

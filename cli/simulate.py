@@ -96,7 +96,7 @@ def simulate(
         0.03162277660168379, help="Std of the depth, metres: 1/sqrt(1000), information 1000 like the real file."
     ),
     observation_sigma_scale: float = typer.Option(1.0, help="Multiplies the observation sigmas; 0: exact observations."),
-    seed: int = typer.Option(0, help="Seed of the random generator; the same seed gives the same file."),
+    seed: int = typer.Option(0, min=0, help="Seed of the random generator; the same seed gives the same file."),
     json_output: bool = typer.Option(False, "--json", help="Print the summary as JSON instead of a line. Default: off."),
 ) -> None:
     """Simulate a robot, a landmark map, noisy odometry and camera detections; write a g2o file.

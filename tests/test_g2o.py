@@ -145,6 +145,14 @@ BAD_LINES = [
     ("inf-in-information", with_line(10, "EDGE_SE3:QUAT 11 12 0.9 0 0 0 0 0 1 "
                                          "100 0 0 0 0 0 100 0 0 0 0 100 0 0 0 inf 0 0 10000 0 10000"), 10,
      ["finite", "inf"]),
+    ("coordinate-beyond-the-bound", with_line(3, "VERTEX_TRACKXYZ 1 1e300 2.0 3.0"), 3,
+     ["field x", "metres within", "1e+300"]),
+    ("odometry-step-beyond-the-bound", with_line(8, f"EDGE_SE3:QUAT 10 11 1.1 -2e9 0 0 0 0 1 {INFO6}"), 8,
+     ["field dy", "metres within", "-2e+09"]),
+    ("depth-beyond-the-bound", with_line(9, f"EDGE_PROJECT_DEPTH 11 1 0 0.5 0.5 1e200 {INFO3}"), 9,
+     ["field depth", "metres within"]),
+    ("zero-focal-length", with_line(2, "PARAMS_CAMERACALIB 0 0 0 0.3 0.5 -0.5 0.5 -0.5 0 1 0.5 0.5"), 2,
+     ["non-zero focal lengths", "fx=0"]),
     ("zero-quaternion", with_line(6, "VERTEX_SE3:QUAT 11 1 0 0 0 0 0 0"), 6, ["unit quaternion", "norm 0"]),
     ("tiny-quaternion", with_line(8, f"EDGE_SE3:QUAT 10 11 1.1 0 0 0 0 0 1e-12 {INFO6}"), 8, ["norm 1e-12"]),
     ("odometry-information-not-positive-definite",
@@ -178,6 +186,8 @@ BAD_LINES = [
     # Two bad lines of different tags: the earlier one in the file is reported.
     ("earliest-of-two-bad-lines", with_lines({4: "VERTEX_TRACKXYZ 2 4.0 5.0", 11: "EDGE_PROJECT_DEPTH 1 2"}), 4,
      ["VERTEX_TRACKXYZ", "expects 4", "found 3"]),
+    ("huge-value-before-a-short-line-of-the-same-tag", with_lines({3: "VERTEX_TRACKXYZ 1 1.0 2.0 5e9", 4: "VERTEX_TRACKXYZ 2"}), 3,
+     ["field z", "metres within"]),
     ("nan-before-a-short-line-of-the-same-tag", with_lines(
         {9: "EDGE_PROJECT_DEPTH 11 1 0 0.5 inf 1.0 1000 0 0 1000 0 1000", 12: "EDGE_PROJECT_DEPTH 12"}), 9,
      ["finite", "field v"]),

@@ -152,6 +152,8 @@ def test_pose_covariance_matches_euler_covariance_by_sampling(rng):
 @pytest.mark.parametrize("bad", [
     {"association": "magic"}, {"iterations": 0}, {"gate_probability": 1.5}, {"margin": -1.0},
     {"max_angle_deg": 95.0}, {"beam_width": 0}, {"slip_inflation": 0.5}, {"min_depth": 2.0, "max_depth": 1.0},
+    # finite but past what the arithmetic survives (the k-d tree overflows, P loses definiteness)
+    {"max_depth": 1e300}, {"min_depth": 1e300}, {"initial_sigma_xyz": 1e300}, {"initial_sigma_deg": 1e300},
 ])
 def test_bad_configuration_is_a_config_error(bad):
     with pytest.raises(ConfigError):

@@ -309,6 +309,8 @@ def test_ids_sources_and_tag_counts():
     dict(poses=1), dict(clutter_fraction=1.0), dict(outlier_fraction=-0.1), dict(min_range=2.0, max_range=2.0),
     dict(cameras=5), dict(trajectory="spiral"), dict(landmarks=-1), dict(max_tilt_deg=91.0),
     dict(odometry_sigma_scale=-1.0), dict(dense=True, landmarks=10), dict(detection_probability=0.0),
+    dict(region=1e300), dict(max_range=1e300), dict(odometry_sigma_translation=1e300),
+    dict(odometry_sigma_rotation=0.5, odometry_sigma_scale=4.0), dict(observation_sigma_uv=1e300),
 ])
 def test_bad_options_raise_a_config_error(options):
     with pytest.raises(ConfigError, match="simulation option"):
@@ -361,7 +363,7 @@ def test_cli_writes_a_file_that_reads_back_to_the_simulated_dataset(tmp_path):
 
 @pytest.mark.parametrize("arguments", [
     ["--poses", "-3"], ["--clutter-fraction", "1"], ["--min-range", "2", "--max-range", "1"],
-    ["--intrinsics", "fisheye"],
+    ["--intrinsics", "fisheye"], ["--seed", "-1"], ["--max-range", "1e300"],
 ])
 def test_cli_refuses_bad_options_with_exit_status_2(tmp_path, arguments):
     from typer.testing import CliRunner

@@ -233,6 +233,15 @@ def test_least_squares_solution_matches_scipy(small_world):
     assert result.final_cost == pytest.approx(reference.cost, rel=1e-9)
 
 
+def test_a_threshold_too_large_to_square_acts_as_plain_least_squares(small_world):
+    dataset, run, problem = small_world
+    T0 = smoother.initial_poses(dataset, run)
+    plain = smoother.smooth(problem, T0, smoother.SmootherConfig(huber=math.inf))
+    huge = smoother.smooth(problem, T0, smoother.SmootherConfig(huber=1e300))  # 1e300**2 overflows a float
+    assert huge.downweighted_observations == 0
+    np.testing.assert_allclose(huge.T_world_robot, plain.T_world_robot, atol=1e-12)
+
+
 def test_noise_free_data_gives_back_the_truth_from_a_perturbed_start(rng):
     """The residuals follow the simulator's (and FORMAT.md's) models: exact data, exact truth."""
     exact = simulate(SimulationConfig(trajectory="aerial", poses=40, odometry_sigma_scale=0.0,
