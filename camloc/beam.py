@@ -141,9 +141,12 @@ class BeamSearch:
         decided = 0  # poses before this one have been passed to on_decided
         n = self.ctx.dataset.num_poses
         for k in range(n):
-            if k > 0:
-                beam = [self._predicted(h, k - 1, parent) for parent, h in enumerate(beam)]
-            beam = self._explain_pose(k, beam, self.ctx.obs_of_pose[k])
+            try:
+                if k > 0:
+                    beam = [self._predicted(h, k - 1, parent) for parent, h in enumerate(beam)]
+                beam = self._explain_pose(k, beam, self.ctx.obs_of_pose[k])
+            except ekf.FilterDivergedError as error:
+                raise error.at_pose(int(self.ctx.dataset.pose_ids[k])) from None
             self.history.append(beam)
             if on_pose is not None:
                 on_pose(k)

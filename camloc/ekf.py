@@ -35,6 +35,11 @@ def _subtract(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class FilterDivergedError(CamlocError):
     """The innovation covariance is not positive definite: the filter's covariance broke down."""
 
+    def at_pose(self, pose_id: int) -> "FilterDivergedError":
+        """The same error, saying where, and what in a file usually causes it."""
+        return FilterDivergedError(f"pose {pose_id}: {self} (the filter's covariance broke down; information "
+                                   "matrices in the file many orders of magnitude apart usually cause this)")
+
 
 @dataclass(frozen=True)
 class UpdateResult:

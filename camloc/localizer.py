@@ -262,6 +262,12 @@ class _Localizer:
             )
 
     def step(self, k: int) -> None:
+        try:
+            self._step(k)
+        except ekf.FilterDivergedError as error:
+            raise error.at_pose(int(self.dataset.pose_ids[k])) from None
+
+    def _step(self, k: int) -> None:
         if k > 0:
             self._predict(k - 1)                       # x <- x (+) odometry increment
         self._warn_near_singularity(k)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from camloc import geometry
+from camloc.ekf import FilterDivergedError
 from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
 from camloc.localizer import LocalizerConfig, localize
@@ -222,3 +223,15 @@ def test_beam_recovers_from_an_odometry_slip_in_a_dense_map():
     assert position_rmse(recovered, dataset) <= 1.25 * position_rmse(oracle, dataset)
     assert position_rmse(without_recovery, dataset) > 1.5 * position_rmse(recovered, dataset)
     assert recovered.summary["slip_poses"]  # the recovery did fire, and it is what made the difference
+
+
+@pytest.mark.parametrize("association", ["beam", "oracle"])
+def test_a_covariance_breakdown_names_the_pose(association):
+    # Observations claiming a standard deviation of 1e-150 make a stacked innovation covariance
+    # singular in floating point: a clear error naming a pose with observations, not a traceback.
+    dataset = simulate(SimulationConfig(poses=30), seed=2)
+    dataset = dataclasses.replace(dataset, obs_cov=np.broadcast_to(1e-300 * np.eye(3), dataset.obs_cov.shape).copy())
+    with pytest.raises(FilterDivergedError, match=r"^pose (\d+): innovation covariance is not positive definite") as caught:
+        localize(dataset, LocalizerConfig(association=association), parallel=False)
+    pose_id = int(str(caught.value).split(":")[0].split()[1])
+    assert pose_id in dataset.pose_ids[dataset.obs_pose_index]
