@@ -70,6 +70,6 @@ def evaluate_command(
     from camloc.cli import eval_render
 
     if run_dir is None:
-        console.print(eval_render.render_trajectory_comparison(report))
+        console.print(eval_render.render_trajectory_comparison(report), soft_wrap=True)
     else:
         console.print(eval_render.render_run_evaluation(report))

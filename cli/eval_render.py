@@ -160,12 +160,17 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
 
 def render_trajectory_comparison(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.compare_trajectories`` for ``camloc eval --est --ref``."""
+    # Paths go on lines of their own (printed with soft_wrap) so a long path stays whole and copyable.
     header = Text(
-        f"camloc eval: {report['estimate_file']} against {report['reference_file']}: {report['matched']} "
-        f"poses matched of {report['estimate_poses']} and {report['reference_poses']}",
+        f"camloc eval: {report['matched']} poses matched of {report['estimate_poses']} (estimate) "
+        f"and {report['reference_poses']} (reference)",
         style="bold",
     )
-    parts: list[RenderableType] = [header]
+    files = [
+        Text(f"{role}: {report[key]}", style="dim")
+        for role, key in (("estimate", "estimate_file"), ("reference", "reference_file"))
+    ]
+    parts: list[RenderableType] = [header, *files]
     blocks = {"estimate": report}
     parts.append(_trajectory_table(
         blocks, f"trajectory error (align {report['alignment']['method']}, RPE delta {report['rpe']['delta']})"

@@ -87,6 +87,8 @@ def test_eval_of_two_tum_files(run_dir):
     assert "nees" not in report and "association" not in report
     tables = invoke("eval", "--est", run_dir / "estimate.tum", "--ref", run_dir / "groundtruth.tum", "--align", "sim3")
     assert tables.exit_code == 0 and "30 poses matched" in tables.stdout and "sim3" in tables.stdout
+    # Long paths are printed whole on their own lines, never folded at the terminal width.
+    assert str(run_dir / "estimate.tum") in tables.stdout and str(run_dir / "groundtruth.tum") in tables.stdout
 
 
 def test_eval_bad_inputs_exit_2_with_one_line(tmp_path, run_dir):
