@@ -22,14 +22,19 @@ Keeping it fast (most poses are not ambiguous):
   on the pairs before it among its pool of nearby landmarks (no new search of the map);
 - after each pose the beam keeps the ``beam_width`` cheapest hypotheses within ``beam_delta`` of
   the best, and merges hypotheses whose states coincide (within ``merge_sigma`` standard
-  deviations on every axis), so in unambiguous stretches it collapses to one filter.
+  deviations on every axis), so in unambiguous stretches it collapses to one filter;
+- where every observation of a pose is ambiguous (large measurement noise in a dense map) the
+  partial explanations grown from all the beam's hypotheses share a budget of ``partial_budget``
+  (``BeamSearch._explain_all``), instead of beam_width each.
 
 Robustness to odometry slips: when the best hypothesis leaves most of a pose's observations
 unassigned (at least three observations, more than half of them), the pose is explained again from
 that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
 ``slip_cost``, grown from each of a few seed pairs in turn (one right pair pins the pose, and the
 rest follow); if the odometry really slipped, that hypothesis explains the observations and wins.
-Seeds are ranked by the cost of the whole explanation each implies
+The same seeded explanation is tried from the prediction as it is, without the slip's inflation
+and cost: where the odometry is merely noisy and the map dense, explaining the observations one
+by one can lock onto a shifted alignment that a right seed pair avoids. Seeds are ranked by the cost of the whole explanation each implies
 (``association.seeded_explanation_costs``), not by their own cost, which under the wide prior
 barely separates right pairs from wrong ones in a dense map.
 
@@ -63,6 +68,8 @@ class BeamSettings:
     slip_candidates : how many of its individually cheapest pairs the slip hypothesis ranks as
         first pairs (by the cost of the explanation each implies).
     slip_seeds : how many of the best ranked it explains in full.
+    partial_budget : most partial explanations of a pose kept across all the beam's hypotheses,
+        past each one's own best (``BeamSearch._explain_all``).
     """
 
     beam_width: int = 16
@@ -74,6 +81,7 @@ class BeamSettings:
     slip_cost: float = 10.0
     slip_candidates: int = 256
     slip_seeds: int = 8
+    partial_budget: int = 64
 
 
 @dataclass
@@ -96,6 +104,19 @@ class _Options:
     costs: np.ndarray       # (g,) d^2 + ln det S - ln det R, inf outside the gate
     z_hat: np.ndarray       # (g, 3)
     H: np.ndarray           # (g, 3, 6)
+
+
+@dataclass
+class _Partial:
+    """A hypothesis that has explained some of a pose's observations (``BeamSearch._explain_all``)."""
+
+    h: _Hypothesis
+    order: tuple                      # observations (positions in the pose's obs) still to explain, in order
+    options: list                     # _Options of every observation under base_x
+    base_x: np.ndarray                # the state the options were computed under
+    least: dict                       # position -> the least its explanation costs under base_x
+    rest: float                       # sum of least over order
+    root: int                         # which parent it grew from
 
 
 # A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
@@ -192,7 +213,7 @@ class BeamSearch:
     def _explain_pose(self, k: int, beam: list[_Hypothesis], obs: np.ndarray) -> list[_Hypothesis]:
         if obs.size == 0 or self.ctx.tree is None:
             return beam
-        children = [child for h in beam for child in self._explain(h, obs)]
+        children = self._explain_all(beam, obs)
         best = min(children, key=lambda c: c.cost)
         if obs.size >= 3 and 2 * best.unassigned > obs.size:
             self.slips.append(k)
@@ -200,12 +221,14 @@ class BeamSearch:
             slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                   origin.cost + self.settings.slip_cost, origin.parent)
             children += self._explain_from_seeds(slipped, obs)
+            children += self._explain_from_seeds(origin, obs, slipped=False)  # noisy odometry, not a slip
         return self._prune(children)
 
-    def _explain_from_seeds(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
-        """Explanations of obs under a widened prior, each grown from one seed pair.
+    def _explain_from_seeds(self, h: _Hypothesis, obs: np.ndarray, slipped: bool = True) -> list[_Hypothesis]:
+        """Explanations of obs under h (the widened prior of a slip, or the plain prediction with
+        ``slipped=False``), each grown from one seed pair.
 
-        Under the wide prior every observation gates many landmarks and explaining them one by
+        Under a wide prior every observation gates many landmarks and explaining them one by
         one from the prior goes astray. One right pair pins the pose's position, after which the
         others fall into place; so the ``slip_seeds`` pairs whose conditioned explanation of the
         pose looks cheapest (``association.seeded_explanation_costs``, among the
@@ -234,16 +257,45 @@ class BeamSearch:
             children += self._explain(seeded, np.delete(obs, i))[:1]
         children = self._prune(children) if children else self._explain(h, obs)
         for child in children:
-            child.slipped = True
+            child.slipped = slipped
         return children
 
     def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
-        """Children of h that explain all of obs, pruned to the beam.
+        """Children of h that explain all of obs, pruned to the beam."""
+        return self._explain_all([h], obs)
 
-        The clear observations are taken in one stacked update; conditioned on them, the others
-        are gated again, and those that became clear are taken in the next stacked update, until
-        none does (an observation is often ambiguous only until a neighbour's pair pins the pose).
-        Then a branch per option of each observation still ambiguous."""
+    def _explain_all(self, parents: list[_Hypothesis], obs: np.ndarray) -> list[_Hypothesis]:
+        """Children of all parents that explain all of obs.
+
+        Under each parent the clear observations are taken in one stacked update; conditioned on
+        them, the others are gated again, and those that became clear are taken in the next
+        stacked update, until none does (an observation is often ambiguous only until a
+        neighbour's pair pins the pose). Then the observations still ambiguous are branched on
+        one at a time, each parent's partial explanations pruned to a beam of their own, so that
+        a costlier parent's best explanation is grown to the end: where observations are few it
+        is often the right one. Where every observation is ambiguous and the beam is full, that
+        is beam_width^2 partial explanations per observation, mostly near copies (the parents of
+        a pose differ in a pair or two); so past ``partial_budget`` the parents share one budget,
+        ranked by cost plus the least the observations they have still to explain can cost.
+        """
+        partials = [self._after_clear(h, obs, root) for root, h in enumerate(parents)]
+        while any(p.order for p in partials):
+            grown: list[_Partial] = []
+            for p in partials:
+                if not p.order:
+                    grown.append(p)
+                    continue
+                i, order = p.order[0], p.order[1:]
+                options = p.options[i] if p.h.x is p.base_x else self._conditioned(p.h, obs[i : i + 1], [p.options[i]])[0]
+                rest = p.rest - p.least[i]
+                grown += [_Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
+                          for child in self._branches(p.h, int(obs[i]), options)]
+            partials = self._prune_partials(grown)
+        return [p.h for p in partials]
+
+    def _after_clear(self, h: _Hypothesis, obs: np.ndarray, root: int) -> _Partial:
+        """h after its stacked updates with the clear observations (see ``_explain_all``), with
+        the ambiguous rest in the order to branch on them (fewest gated options first)."""
         options = self._options(h, obs)
         child, pending = h, np.arange(obs.size)
         while pending.size:
@@ -257,12 +309,27 @@ class BeamSearch:
                 conditioned = self._conditioned(child, obs[pending], [options[i] for i in pending])
                 for i, o in zip(pending, conditioned):
                     options[i] = o
-        base = child  # the options of the pending observations are under base
-        partial = [child]
-        for i in sorted(pending, key=lambda i: int(np.isfinite(options[i].costs).sum())):
-            grown = [c for p in partial for c in self._branches(p, int(obs[i]), options[i] if p.x is base.x else self._conditioned(p, obs[i : i + 1], [options[i]])[0])]
-            partial = self._prune(grown)
-        return partial
+        order = tuple(sorted((int(i) for i in pending), key=lambda i: int(np.isfinite(options[i].costs).sum())))
+        least = {i: min(float(self.null_cost[obs[i]]), float(options[i].costs.min(initial=np.inf))) for i in order}
+        return _Partial(child, order, options, child.x, least, sum(least.values()), root)
+
+    def _prune_partials(self, partials: list[_Partial]) -> list[_Partial]:
+        """Each parent's partial explanations pruned as ``_prune`` does (they have explained the
+        same observations, so their costs compare); then, if together they are more than
+        ``partial_budget``, the best of each parent and the rest of the budget by cost plus
+        ``rest``, the least their observations still to explain can cost."""
+        by_root: dict[int, list[_Partial]] = {}
+        for p in partials:
+            by_root.setdefault(p.root, []).append(p)
+        kept = [p for group in by_root.values() for p in self._prune(group, lambda p: p.h)]
+        if len(kept) <= self.settings.partial_budget:
+            return kept
+        kept.sort(key=lambda p: p.h.cost + p.rest)
+        firsts = {}
+        for p in kept:
+            firsts.setdefault(p.root, p)
+        others = [p for p in kept if firsts[p.root] is not p]
+        return list(firsts.values()) + others[: max(0, self.settings.partial_budget - len(firsts))]
 
     def _options(self, h: _Hypothesis, obs: np.ndarray) -> list[_Options]:
         """Gated landmarks of every observation under h, computed in one batch per camera."""
@@ -368,15 +435,16 @@ class BeamSearch:
                                    h.pairs + ((o, int(options.landmarks[j])),), h.unassigned))
         return out
 
-    def _prune(self, children: list[_Hypothesis]) -> list[_Hypothesis]:
-        """The cheapest children within beam_delta of the best, merged, at most beam_width."""
-        children = sorted(children, key=lambda c: c.cost)
-        limit = children[0].cost + self.settings.beam_delta
-        kept: list[_Hypothesis] = []
+    def _prune(self, children: list, hypothesis: Callable = lambda c: c) -> list:
+        """The cheapest children within beam_delta of the best, merged, at most beam_width.
+        ``hypothesis(child)`` is the child's _Hypothesis (children may be _Partial)."""
+        children = sorted(children, key=lambda c: hypothesis(c).cost)
+        limit = hypothesis(children[0]).cost + self.settings.beam_delta
+        kept: list = []
         for c in children:
-            if c.cost > limit or len(kept) >= self.settings.beam_width:
+            if hypothesis(c).cost > limit or len(kept) >= self.settings.beam_width:
                 break
-            if not any(self._same_state(c, k) for k in kept):
+            if not any(self._same_state(hypothesis(c), hypothesis(k)) for k in kept):
                 kept.append(c)
         return kept
 
