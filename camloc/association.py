@@ -265,7 +265,6 @@ def seeded_explanation_costs(
     pair_obs: np.ndarray,
     pair_landmark: np.ndarray,
     null_cost: np.ndarray,
-    log_det_R: np.ndarray,
     seeds: np.ndarray,
     *,
     gate: float,
@@ -287,9 +286,10 @@ def seeded_explanation_costs(
     Parameters
     ----------
     y : (N, 3) innovation of every candidate pair; H : (N, 3, n) its Jacobian; R : (N, 3, 3) the
-        observation's covariance; P : (n, n) the prior covariance.
+        observation's covariance (each pair may be in coordinates of its own: pixels and depth,
+        or a camera-frame point); P : (n, n) the prior covariance.
     pair_obs, pair_landmark : (N,) the pair's observation (0..m-1) and landmark.
-    null_cost, log_det_R : (m,) per observation.
+    null_cost : (m,) per observation.
     seeds : (M,) indices of the pairs to score.
     gate : chi^2 gate on a conditioned pair's d^2.
 
@@ -303,6 +303,7 @@ def seeded_explanation_costs(
     chunks = [seeds[i : i + SEED_CHUNK] for i in range(0, seeds.size, SEED_CHUNK)] or [seeds]
     HP = H @ P                                                    # (N, 3, n)
     S = HP @ np.swapaxes(H, 1, 2) + R                             # (N, 3, 3) each pair's own S
+    log_det_R = np.linalg.slogdet(R)[1]                           # (N,)
     return np.concatenate([
         _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, log_det_R, chunk, gate=gate)
         for chunk in chunks
@@ -313,7 +314,8 @@ SEED_CHUNK = 64
 
 
 def _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, log_det_R, seeds, *, gate):
-    """``seeded_explanation_costs`` for one chunk of seeds, given every pair's ``H P`` and S."""
+    """``seeded_explanation_costs`` for one chunk of seeds, given every pair's ``H P``, S and
+    ``ln det R``."""
     N, M, n = y.shape[0], seeds.size, H.shape[-1]
     S_seed, y_seed = S[seeds], y[seeds]
     L_seed = np.linalg.cholesky(S_seed)
@@ -329,7 +331,7 @@ def _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, l
     y_cond = [y[:, i][:, None] - moved[:, i] for i in range(3)]
     d2, log_det = _mahalanobis_sym3(*S_cond, *y_cond)
     d2, log_det = d2.T, log_det.T                                 # (M, N)
-    cost = d2 + log_det - log_det_R[pair_obs][None]
+    cost = d2 + log_det - log_det_R[None]
     excluded = (d2 > gate) | (pair_landmark[None] == pair_landmark[seeds][:, None]) | (pair_obs[None] == pair_obs[seeds][:, None])
     cost = np.where(excluded, np.inf, cost)
     best = np.full((M, null_cost.size), np.inf)                   # per seed and observation
@@ -337,7 +339,7 @@ def _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, l
     best = np.minimum(best, null_cost[None])
     best[np.arange(M), pair_obs[seeds]] = 0.0                     # the seed's own observation
     d2_seed, log_det_seed = mahalanobis_3x3(S_seed, y_seed)
-    own = d2_seed + log_det_seed - log_det_R[pair_obs[seeds]]
+    own = d2_seed + log_det_seed - log_det_R[seeds]
     return own + best.sum(axis=1)
 
 

@@ -12,7 +12,11 @@ next, sums by the chain rule to the joint likelihood of the stacked innovation:
     cost += null_cost                        for an unassigned observation
 
 ``ln det S - ln det R`` charges a pair for the spread of its prediction, so that a vague
-hypothesis does not win by gating everything.
+hypothesis does not win by gating everything. Each pair is judged in the coordinates where its
+linearization at the hypothesis explains it best, the measured (u, v, depth) or the camera-frame
+point they back-project to (``BeamSearch._in_best_coordinates``): a point is linear in the
+robot's position, so with noisy odometry in a dense map a right landmark predicted decimetres off
+still gates there while its pixels have bent out of the gate.
 
 Keeping it fast (most poses are not ambiguous):
 - a hypothesis branches on an observation only into the options within ``branch_delta`` of that
@@ -51,7 +55,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, ekf
+from camloc import association, ekf, models
 
 
 @dataclass(frozen=True)
@@ -102,8 +106,11 @@ class _Options:
 
     landmarks: np.ndarray   # (g,) landmark indices
     costs: np.ndarray       # (g,) d^2 + ln det S - ln det R, inf outside the gate
-    z_hat: np.ndarray       # (g, 3)
-    H: np.ndarray           # (g, 3, 6)
+    z_hat: np.ndarray       # (g, 3) predicted u, v, depth (for the filter's update)
+    H: np.ndarray           # (g, 3, 6) their Jacobian
+    y: np.ndarray           # (g, 3) the innovation in the pair's coordinates (``_in_best_coordinates``)
+    Hc: np.ndarray          # (g, 3, 6) its Jacobian
+    Rc: np.ndarray          # (g, 3, 3) the observation's covariance in them
 
 
 @dataclass
@@ -138,6 +145,8 @@ class BeamSearch:
         self.ctx = context
         self.settings = settings
         self.log_det_R = context.log_det_R      # ln det R of every observation
+        self.point, self.point_cov = context.point, context.point_cov  # every observation in its camera's frame
+        self.log_det_point_cov = context.log_det_point_cov
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         self.history: list[list[_Hypothesis]] = []
         self.slips: list[int] = []
@@ -244,10 +253,10 @@ class BeamSearch:
             return self._explain(h, obs)
         pair_obs, pair_landmark, pair_cost = pair_obs[gated], pair_landmark[gated], pair_cost[gated]
         candidates = np.argsort(pair_cost, kind="stable")[: self.settings.slip_candidates]
-        y = self.ctx.dataset.obs_uvd[obs][pair_obs] - np.concatenate([o.z_hat for o in options])[gated]
         ranked = association.seeded_explanation_costs(
-            y, np.concatenate([o.H for o in options])[gated], self.ctx.dataset.obs_cov[obs][pair_obs], h.P,
-            pair_obs, pair_landmark, self.null_cost[obs], self.log_det_R[obs], candidates, gate=self.settings.gate,
+            np.concatenate([o.y for o in options])[gated], np.concatenate([o.Hc for o in options])[gated],
+            np.concatenate([o.Rc for o in options])[gated], h.P,
+            pair_obs, pair_landmark, self.null_cost[obs], candidates, gate=self.settings.gate,
         )
         children: list[_Hypothesis] = []
         for seed in candidates[np.argsort(ranked, kind="stable")[: self.settings.slip_seeds]]:
@@ -338,18 +347,66 @@ class BeamSearch:
         cameras = ds.obs_camera[obs]
         for camera_id in np.unique(cameras):
             rows = np.flatnonzero(cameras == camera_id)
-            candidates, z_hat, H, HPH = self.ctx.predictions(h.x, h.P, camera_id)
+            candidates = self.ctx.visible(h.x, camera_id)
             if candidates.size == 0:
                 for r in rows:
                     out[r] = _empty_options()
                 continue
+            z_hat, H = self.ctx.observe(h.x, camera_id, candidates)
             o = obs[rows]
-            d2, nll = association.pair_statistics(ds.obs_uvd[o], ds.obs_cov[o], z_hat, HPH)
-            costs = np.where(d2 <= self.settings.gate, nll - self.log_det_R[o][:, None], np.inf)
-            for r, pool_row, cost_row in zip(rows, d2 <= POOL_GATE_FACTOR * self.settings.gate, costs):
-                g = np.flatnonzero(pool_row)
-                out[r] = _Options(candidates[g], cost_row[g], z_hat[g], H[g])
+            d2, costs, in_point, p_hat, Hp = self._in_best_coordinates(h.P, camera_id, o[:, None], z_hat, H)
+            costs = np.where(d2 <= self.settings.gate, costs, np.inf)
+            j, g = np.nonzero(d2 <= POOL_GATE_FACTOR * self.settings.gate)  # each observation's pool, row by row
+            y, Hc, Rc = self._chosen(in_point[j, g], o[j], z_hat[g], H[g], p_hat[g], Hp[g])
+            bounds = np.searchsorted(j, np.arange(rows.size + 1))
+            for k, r in enumerate(rows):
+                part = slice(bounds[k], bounds[k + 1])
+                pool = g[part]
+                out[r] = _Options(candidates[pool], costs[k, pool], z_hat[pool], H[pool], y[part], Hc[part], Rc[part])
         return out
+
+    def _in_best_coordinates(
+        self, P: np.ndarray, camera_id: int, o: np.ndarray, z_hat: np.ndarray, H: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pairs of observations o with the predictions (z_hat, H) of camera camera_id, o
+        broadcast against the predictions' rows, each judged in the coordinates where its
+        linearization explains it best: the measured (u, v, depth), or the camera-frame point
+        they back-project to.
+
+        The two agree to first order and part where the prior is wide. A point is linear in the
+        robot's position, so a prediction a few decimetres off (noisy odometry in a dense map)
+        keeps a Gaussian spread there while in pixels it bends; pixels can fit better where the
+        spread is mostly rotation. The likelier of the two (the smaller
+        ``d^2 + ln det S - ln det R``, the same quantity in either) is kept; a joint cost of
+        several pairs may take each in its own coordinates.
+
+        Returns d^2 and the cost of each pair, whether it is judged as a point, and the
+        predictions as points (m, 3) with their Jacobians (m, 3, n).
+        """
+        ds = self.ctx.dataset
+        p_hat, J = models.back_project(z_hat, self.ctx.cameras[int(camera_id)].intrinsics)
+        Hp = J @ H
+        d2_pixels, log_det_pixels = association.mahalanobis_3x3(
+            H @ P @ np.swapaxes(H, -1, -2) + ds.obs_cov[o], ds.obs_uvd[o] - z_hat)
+        d2_point, log_det_point = association.mahalanobis_3x3(
+            Hp @ P @ np.swapaxes(Hp, -1, -2) + self.point_cov[o], self.point[o] - p_hat)
+        cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
+        cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
+        in_point = cost_point < cost_pixels
+        return np.where(in_point, d2_point, d2_pixels), np.where(in_point, cost_point, cost_pixels), in_point, p_hat, Hp
+
+    def _chosen(
+        self, in_point: np.ndarray, o: np.ndarray, z_hat: np.ndarray, H: np.ndarray, p_hat: np.ndarray, Hp: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The innovation (g, 3), its Jacobian (g, 3, n) and the observation's covariance (g, 3, 3)
+        of g pairs (observations o, predictions z_hat, H and as points p_hat, Hp), each in the
+        coordinates ``_in_best_coordinates`` chose for it."""
+        ds = self.ctx.dataset
+        point = in_point[:, None]
+        y = np.where(point, self.point[o] - p_hat, ds.obs_uvd[o] - z_hat)
+        Hc = np.where(point[:, :, None], Hp, H)
+        Rc = np.where(point[:, :, None], self.point_cov[o], ds.obs_cov[o])
+        return y, Hc, Rc
 
     def _conditioned(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options]) -> list[_Options]:
         """Options of observations obs under h, a hypothesis conditioned on some of the pose's
@@ -368,12 +425,13 @@ class BeamSearch:
             sizes = [options[r].landmarks.size for r in rows]
             landmarks = np.concatenate([options[r].landmarks for r in rows])
             z_hat, H = self.ctx.observe(h.x, int(camera_id), landmarks)
-            HPH = H @ h.P @ np.swapaxes(H, 1, 2)
             owner = np.repeat(obs[rows], sizes)
-            d2, log_det = association.mahalanobis_3x3(HPH + ds.obs_cov[owner], ds.obs_uvd[owner] - z_hat)
-            costs = np.where((d2 <= self.settings.gate) & ~_member(landmarks, taken), d2 + log_det - self.log_det_R[owner], np.inf)
+            d2, costs, in_point, p_hat, Hp = self._in_best_coordinates(h.P, camera_id, owner, z_hat, H)
+            costs = np.where((d2 <= self.settings.gate) & ~_member(landmarks, taken), costs, np.inf)
+            y, Hc, Rc = self._chosen(in_point, owner, z_hat, H, p_hat, Hp)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
-                out[r] = _Options(landmarks[start:stop], costs[start:stop], z_hat[start:stop], H[start:stop])
+                part = slice(start, stop)
+                out[r] = _Options(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part])
         return out
 
     def _viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
@@ -413,8 +471,12 @@ class BeamSearch:
         landmarks = np.array([options[i].landmarks[choice[i]] for i in taken])
         at_prior = (np.array([options[i].z_hat[choice[i]] for i in taken]), np.array([options[i].H[choice[i]] for i in taken]))
         result = self.ctx.updated(h.x, h.P, o, landmarks, at_prior=at_prior)  # stacked, iterated as configured
-        log_det_S = float(np.linalg.slogdet(result.S)[1])
-        cost += result.nis + log_det_S - float(self.log_det_R[o].sum())
+        # the joint cost of the pairs, each in the coordinates its option chose, at h
+        y = np.array([options[i].y[choice[i]] for i in taken]).reshape(-1)
+        Hc = np.array([options[i].Hc[choice[i]] for i in taken]).reshape(-1, h.P.shape[0])
+        Rc = np.array([options[i].Rc[choice[i]] for i in taken])
+        L = ekf.cholesky(ekf.symmetrize(Hc @ h.P @ Hc.T + ekf.block_diagonal(Rc)))
+        cost += float(y @ ekf.cho_solve(L, y)) + 2.0 * float(np.log(np.diagonal(L)).sum()) - float(np.linalg.slogdet(Rc)[1].sum())
         x, P = result.state, result.cov
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
         return _Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
@@ -466,4 +528,6 @@ def _member(values: np.ndarray, few: np.ndarray) -> np.ndarray:
 
 
 def _empty_options() -> _Options:
-    return _Options(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6)))
+    return _Options(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6)), np.zeros((0, 3)),
+                    np.zeros((0, 3, 6)), np.zeros((0, 3, 3)))
+

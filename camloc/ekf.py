@@ -127,6 +127,7 @@ def update(
     iterations: int = 1,
     map_cost: bool = False,
     at_prior: tuple[np.ndarray, np.ndarray] | None = None,
+    start: np.ndarray | None = None,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -141,6 +142,9 @@ def update(
     map_cost : compute ``UpdateResult.map_cost`` at the posterior (one more evaluation of the
         measurement function); otherwise it is NaN.
     at_prior : ``measure(x)``, when the caller already has it (saves one evaluation).
+    start : where the iterations after the first linearize first, instead of the plain EKF step
+        from the prior (with ``iterations >= 2``); the fixed point they seek is the same MAP
+        estimate, and a start near it reaches it where the prior is too far for Gauss-Newton.
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
@@ -151,6 +155,8 @@ def update(
     nis = float(y_prior @ cho_solve(L, y_prior))  # NIS = y' S^-1 y
     delta = K @ y_prior
     x_i = retract(x, delta)  # x+ = x [+] K y
+    if start is not None and iterations >= 2:
+        x_i, delta = start, difference(start, x)
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
         K, _, _ = kalman_gain(P, H_i, R)
@@ -160,9 +166,16 @@ def update(
         if np.max(np.abs(step - delta)) < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
-    cost = float("nan")
-    if map_cost:
-        correction = difference(x_i, x)
-        residual = z - measure(x_i)[0]
-        cost = float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual))
+    cost = posterior_cost(x_i, x, P, z, R, measure, difference) if map_cost else float("nan")
     return UpdateResult(state=x_i, cov=joseph_update(P, K, H, R), innovation=y_prior, S=S, nis=nis, map_cost=cost)
+
+
+def posterior_cost(
+    x_post: np.ndarray, x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
+    measure: MeasurementFunction, difference: StateDifference = _subtract,
+) -> float:
+    """The MAP cost ``d' P^-1 d + r' R^-1 r`` of a posterior x_post: d its correction from the
+    prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``)."""
+    correction = difference(x_post, x)
+    residual = z - measure(x_post)[0]
+    return float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual))

@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
-from camloc import association, ekf, geometry
+from camloc import association, ekf, geometry, models
 from camloc.beam import BeamSearch, BeamSettings
 from camloc.filters import FILTERS, make_filter
 from camloc.dataset import Dataset
@@ -204,6 +204,12 @@ class _Localizer:
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate_probability))  # chi^2 quantile, 3 dof
         self.log_det_R = np.linalg.slogdet(dataset.obs_cov)[1] if dataset.num_observations else np.zeros(0)
+        self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
+        for camera_id, camera in self.cameras.items():
+            mine = dataset.obs_camera == camera_id
+            self.point[mine], self.point_cov[mine] = models.measured_points(dataset.obs_uvd[mine], dataset.obs_cov[mine], camera.intrinsics)
+        self.log_det_point_cov = np.linalg.slogdet(self.point_cov)[1] if dataset.num_observations else np.zeros(0)
+        self.nis_bounds: dict[int, float] = {}
         if config.null_cost is None:
             self.null_cost = association.clutter_null_cost(dataset.obs_uvd, dataset.obs_cov, dataset.obs_camera)
         else:
@@ -492,12 +498,38 @@ class _Localizer:
                 z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask])
             return z_hat.reshape(-1), H.reshape(-1, 6)
 
-        return ekf.update(
-            x, P, z, R, measure,
-            retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
-            map_cost=map_cost,
-            at_prior=None if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1])),
-        )
+        prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
+        options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations, at_prior=prior)
+        result = ekf.update(x, P, z, R, measure, map_cost=map_cost, **options)
+        if self.config.iterations < 2 or result.nis <= self._nis_bound(z.size):
+            return result
+        # An innovation this unlikely under the prior's linearization: with a wide prior (after a
+        # slip, or odometry much noisier than the landmarks' spacing) Gauss-Newton in (u, v,
+        # depth) from the prior can stall far from the MAP estimate. Iterate also from one
+        # update in camera-frame points, where the model is nearly linear in the position, and
+        # keep whichever posterior the MAP cost prefers.
+        alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=self._point_step(x, P, obs, groups, prior), **options)
+        plain = result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference)
+        if not alternative.map_cost < plain:
+            return result
+        return alternative if map_cost else replace(alternative, map_cost=float("nan"))
+
+    def _point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """x after one EKF update with the pairs' measurements as camera-frame points."""
+        z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
+        p_hat, Hp = np.empty_like(z_hat), np.empty_like(H)
+        for camera, mask in groups:
+            p_hat[mask], J = models.back_project(z_hat[mask], camera.intrinsics)
+            Hp[mask] = J @ H[mask]
+        Hp = Hp.reshape(3 * obs.size, -1)
+        K, _, _ = ekf.kalman_gain(P, Hp, ekf.block_diagonal(self.point_cov[obs]))
+        return self.filter.retract(x, K @ (self.point[obs] - p_hat).reshape(-1))
+
+    def _nis_bound(self, dof: int) -> float:
+        """The 99.9% quantile of chi^2 with dof degrees of freedom."""
+        if dof not in self.nis_bounds:
+            self.nis_bounds[dof] = float(chdtri(dof, 0.001))
+        return self.nis_bounds[dof]
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
         p = obs.size

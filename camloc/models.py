@@ -92,6 +92,40 @@ def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, 
     return uvd
 
 
+def back_project(uvd: np.ndarray, intrinsics: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Measurements (M, 3) of u, v, depth -> camera-frame points (M, 3), the inverse of
+    ``project_points``, and its Jacobian d p_camera / d(u, v, depth), (M, 3, 3)."""
+    fx, fy, cx, cy = intrinsics
+    x_over_z = (uvd[:, 0] - cx) / fx
+    y_over_z = (uvd[:, 1] - cy) / fy
+    depth = uvd[:, 2]
+    p_camera = np.stack([x_over_z * depth, y_over_z * depth, depth], axis=1)
+    J = np.zeros((uvd.shape[0], 3, 3))
+    J[:, 0, 0] = depth / fx
+    J[:, 0, 2] = x_over_z
+    J[:, 1, 1] = depth / fy
+    J[:, 1, 2] = y_over_z
+    J[:, 2, 2] = 1.0
+    return p_camera, J
+
+
+# Back-projection needs a positive depth; a measurement at or behind the camera keeps a tiny one,
+# which makes it fit no landmark in front of the camera.
+MIN_POINT_DEPTH = 1e-6
+
+
+def measured_points(
+    uvd: np.ndarray, cov: np.ndarray, intrinsics: tuple[float, float, float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Measurements (M, 3) with covariances (M, 3, 3) as camera-frame points (M, 3) with
+    covariances (M, 3, 3), to first order in the measurement noise. In these coordinates a
+    landmark's prediction is linear in the robot's position, so a wide prior's linearization
+    holds where that of (u, v, depth) does not."""
+    uvd = np.column_stack([uvd[:, :2], np.maximum(uvd[:, 2], MIN_POINT_DEPTH)])
+    points, J = back_project(uvd, intrinsics)
+    return points, J @ cov @ np.swapaxes(J, 1, 2)
+
+
 def observe(
     state: np.ndarray,
     T_robot_camera: np.ndarray,

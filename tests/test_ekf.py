@@ -67,6 +67,30 @@ def test_iterated_update_reaches_the_map_estimate(rng):
     assert result.map_cost == pytest.approx(map_cost(result.state))
 
 
+def test_a_start_changes_where_the_iterations_begin_not_where_they_end(rng):
+    def h(s):
+        return np.array([np.hypot(s[0], s[1]), np.arctan2(s[1], s[0])])
+
+    def H_of(s):
+        r2 = s[0] ** 2 + s[1] ** 2
+        r = np.sqrt(r2)
+        return np.array([[s[0] / r, s[1] / r], [-s[1] / r2, s[0] / r2]])
+
+    measure = lambda s: (h(s), H_of(s))  # noqa: E731
+    x, P, R = np.array([2.0, 0.5]), np.diag([1.0, 1.0]), np.diag([0.01, 0.001])
+    z = h(np.array([1.5, 1.5]))
+    settled = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=30, map_cost=True)
+    started = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=30, map_cost=True,
+                         start=np.array([1.4, 1.6]))
+    np.testing.assert_allclose(started.state, settled.state, atol=1e-8)
+    assert started.nis == settled.nis  # judged at the prior either way
+    assert ekf.posterior_cost(started.state, x, P, z, R, measure, plain_difference) == pytest.approx(started.map_cost)
+    # a plain EKF (one linearization, at the prior) has no iterations for a start to begin
+    plain = ekf.update(x, P, z, R, measure, difference=plain_difference)
+    ignored = ekf.update(x, P, z, R, measure, difference=plain_difference, start=np.array([1.4, 1.6]))
+    np.testing.assert_array_equal(ignored.state, plain.state)
+
+
 def test_joseph_form_keeps_covariance_symmetric_positive_definite(rng):
     P = random_spd(rng, 6, 1e3)
     H = rng.normal(size=(9, 6))

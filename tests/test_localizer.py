@@ -277,3 +277,26 @@ def test_beam_shares_a_budget_of_partial_explanations_where_every_observation_is
     assert all(kept <= max(budget, parents) for parents, _, kept in sizes)
     oracle = localize(dataset, LocalizerConfig(association="oracle"))
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
+
+
+@pytest.mark.parametrize("offset", [(0.6, -0.6, 0.0), (0.3, 0.0, 0.0), (-0.6, 0.3, 0.2)])
+def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, offset):
+    # 43 right pairs pin the pose to a centimetre; from a prior 0.85 m off, Gauss-Newton in (u, v,
+    # depth) stalls half a metre away, and the update starting in camera-frame points does not.
+    from camloc.localizer import _Localizer
+
+    dataset = simulate(SimulationConfig(poses=40, dense=True), seed=3)
+    localizer = _Localizer(dataset, LocalizerConfig(association="oracle"))
+    k = int(np.argmax(np.bincount(dataset.obs_pose_index, minlength=dataset.num_poses)))
+    obs = localizer.obs_of_pose[k]
+    landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
+    truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+    prior = truth + np.r_[offset, 0.0, 0.0, 0.0]
+    P = np.diag([0.3**2] * 3 + [0.05**2] * 3)
+    restarted = localizer.updated(prior, P, obs, landmarks, map_cost=True)
+    monkeypatch.setattr(localizer, "_nis_bound", lambda dof: np.inf)  # never restart
+    plain = localizer.updated(prior, P, obs, landmarks, map_cost=True)
+    assert np.linalg.norm(restarted.state[:3] - truth[:3]) < 0.03
+    assert restarted.map_cost <= plain.map_cost + 1e-9
+    if offset == (0.6, -0.6, 0.0):
+        assert np.linalg.norm(plain.state[:3] - truth[:3]) > 0.3

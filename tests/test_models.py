@@ -74,6 +74,40 @@ def test_observation_jacobian(rng, camera, trial):
     np.testing.assert_allclose(z_hat[:, 2], p_camera[:, 2], atol=1e-12)
 
 
+@pytest.mark.parametrize("camera", CAMERAS)
+def test_back_projection_inverts_projection_and_its_jacobian(rng, camera):
+    _, intrinsics = CAMERAS[camera]
+    p_camera = np.column_stack([rng.uniform(-1, 1, 8), rng.uniform(-1, 1, 8), rng.uniform(0.5, 4.0, 8)])
+    uvd = models.project_points(p_camera, intrinsics)
+    back, J = models.back_project(uvd, intrinsics)
+    np.testing.assert_allclose(back, p_camera, atol=1e-12)
+    for row in range(8):
+        numeric = numeric_jacobian(lambda z: models.back_project(z[None], intrinsics)[0][0], uvd[row], 3)
+        np.testing.assert_allclose(J[row], numeric, atol=1e-6)
+        # the inverse of the projection's Jacobian at the same point
+        np.testing.assert_allclose(J[row] @ models.projection_jacobian(p_camera[row : row + 1], intrinsics)[0], np.eye(3), atol=1e-9)
+
+
+@pytest.mark.parametrize("camera", CAMERAS)
+def test_measured_points_carry_the_measurement_noise_to_first_order(rng, camera):
+    _, (fx, fy, cx, cy) = CAMERAS[camera]
+    uvd = np.array([[cx + 0.3 * fx, cy - 0.2 * fy, 1.5]])
+    sigma = np.array([fx * 1e-3, fy * 1e-3, 1e-3])
+    point, point_cov = models.measured_points(uvd, np.diag(sigma**2)[None], (fx, fy, cx, cy))
+    scattered = models.back_project(uvd + rng.normal(size=(200_000, 3)) * sigma, (fx, fy, cx, cy))[0]
+    np.testing.assert_allclose(point[0], [0.45, -0.3, 1.5], atol=1e-12)
+    variance = np.diagonal(point_cov[0])
+    sampling_error = np.sqrt(np.outer(variance, variance) / scattered.shape[0])  # of each covariance entry
+    assert np.all(np.abs(np.cov(scattered.T) - point_cov[0]) <= 5 * sampling_error)
+
+
+def test_measured_points_keep_a_positive_depth():
+    _, intrinsics = next(iter(CAMERAS.values()))
+    point, point_cov = models.measured_points(np.array([[0.5, 0.5, -1.0]]), np.eye(3)[None] * 1e-3, intrinsics)
+    assert point[0, 2] == models.MIN_POINT_DEPTH
+    assert np.all(np.isfinite(point_cov)) and np.linalg.slogdet(point_cov[0])[0] == 1
+
+
 def test_observation_matches_format_model():
     # FORMAT.md: a landmark 1 m straight ahead of the real file's camera lands at the image centre.
     T_robot_camera, intrinsics = CAMERAS["real-file mount, normalized"]
