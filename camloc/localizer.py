@@ -174,6 +174,8 @@ def localize(
     return localizer.result(time.perf_counter() - started)
 
 
+POINT_CHUNK = 32768
+
 # Below this many poses a second process costs more to start (an interpreter and its imports,
 # about half a second) than it saves.
 PARALLEL_MIN_POSES = 500
@@ -204,10 +206,14 @@ class _Localizer:
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate_probability))  # chi^2 quantile, 3 dof
         self.log_det_R = np.linalg.slogdet(dataset.obs_cov)[1] if dataset.num_observations else np.zeros(0)
+        # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
         self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
-        for camera_id, camera in self.cameras.items():
-            mine = dataset.obs_camera == camera_id
-            self.point[mine], self.point_cov[mine] = models.measured_points(dataset.obs_uvd[mine], dataset.obs_cov[mine], camera.intrinsics)
+        camera_ids = np.array(sorted(self.cameras), dtype=np.int64)
+        table = np.array([self.cameras[int(c)].intrinsics for c in camera_ids]).reshape(-1, 4)
+        intrinsics = table[np.searchsorted(camera_ids, dataset.obs_camera)] if dataset.num_observations else table
+        for start in range(0, dataset.num_observations, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
+            part = slice(start, start + POINT_CHUNK)
+            self.point[part], self.point_cov[part] = models.measured_points(dataset.obs_uvd[part], dataset.obs_cov[part], intrinsics[part].T)
         self.log_det_point_cov = np.linalg.slogdet(self.point_cov)[1] if dataset.num_observations else np.zeros(0)
         self.nis_bounds: dict[int, float] = {}
         if config.null_cost is None:

@@ -94,7 +94,8 @@ def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, 
 
 def back_project(uvd: np.ndarray, intrinsics: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
     """Measurements (M, 3) of u, v, depth -> camera-frame points (M, 3), the inverse of
-    ``project_points``, and its Jacobian d p_camera / d(u, v, depth), (M, 3, 3)."""
+    ``project_points``, and its Jacobian d p_camera / d(u, v, depth), (M, 3, 3). The intrinsics
+    fx, fy, cx, cy may each be an (M,) array: a camera per measurement."""
     fx, fy, cx, cy = intrinsics
     x_over_z = (uvd[:, 0] - cx) / fx
     y_over_z = (uvd[:, 1] - cy) / fy
