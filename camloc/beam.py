@@ -386,10 +386,10 @@ class BeamSearch:
         ds = self.ctx.dataset
         p_hat, J = models.back_project(z_hat, self.ctx.cameras[int(camera_id)].intrinsics)
         Hp = J @ H
-        d2_pixels, log_det_pixels = association.mahalanobis_3x3(
-            H @ P @ np.swapaxes(H, -1, -2) + ds.obs_cov[o], ds.obs_uvd[o] - z_hat)
+        HPH = H @ P @ np.swapaxes(H, -1, -2)
+        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + ds.obs_cov[o], ds.obs_uvd[o] - z_hat)
         d2_point, log_det_point = association.mahalanobis_3x3(
-            Hp @ P @ np.swapaxes(Hp, -1, -2) + self.point_cov[o], self.point[o] - p_hat)
+            J @ HPH @ np.swapaxes(J, -1, -2) + self.point_cov[o], self.point[o] - p_hat)
         cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
         cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
         in_point = cost_point < cost_pixels
