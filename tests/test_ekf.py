@@ -16,6 +16,17 @@ def random_spd(rng, n, scale=1.0):
     return scale * (A @ A.T + n * np.eye(n))
 
 
+def range_bearing(s):
+    """A range-bearing measurement of a 2D position: strongly nonlinear for a wide prior."""
+    return np.array([np.hypot(s[0], s[1]), np.arctan2(s[1], s[0])])
+
+
+def range_bearing_jacobian(s):
+    r2 = s[0] ** 2 + s[1] ** 2
+    r = np.sqrt(r2)
+    return np.array([[s[0] / r, s[1] / r], [-s[1] / r2, s[0] / r2]])
+
+
 def test_linear_update_matches_information_form(rng):
     n, m = 4, 3
     x, P, R = rng.normal(size=n), random_spd(rng, n), random_spd(rng, m, 0.1)
@@ -43,15 +54,7 @@ def test_iterations_change_nothing_on_a_linear_model(rng):
 
 
 def test_iterated_update_reaches_the_map_estimate(rng):
-    # A range-bearing-like measurement, strongly nonlinear for a wide prior.
-    def h(s):
-        return np.array([np.hypot(s[0], s[1]), np.arctan2(s[1], s[0])])
-
-    def H_of(s):
-        r2 = s[0] ** 2 + s[1] ** 2
-        r = np.sqrt(r2)
-        return np.array([[s[0] / r, s[1] / r], [-s[1] / r2, s[0] / r2]])
-
+    h, H_of = range_bearing, range_bearing_jacobian
     x, P, R = np.array([2.0, 0.5]), np.diag([1.0, 1.0]), np.diag([0.01, 0.001])
     z = h(np.array([1.5, 1.5]))
     result = ekf.update(x, P, z, R, lambda s: (h(s), H_of(s)), difference=plain_difference, iterations=20, map_cost=True)
@@ -68,17 +71,9 @@ def test_iterated_update_reaches_the_map_estimate(rng):
 
 
 def test_a_start_changes_where_the_iterations_begin_not_where_they_end(rng):
-    def h(s):
-        return np.array([np.hypot(s[0], s[1]), np.arctan2(s[1], s[0])])
-
-    def H_of(s):
-        r2 = s[0] ** 2 + s[1] ** 2
-        r = np.sqrt(r2)
-        return np.array([[s[0] / r, s[1] / r], [-s[1] / r2, s[0] / r2]])
-
-    measure = lambda s: (h(s), H_of(s))  # noqa: E731
+    measure = lambda s: (range_bearing(s), range_bearing_jacobian(s))  # noqa: E731
     x, P, R = np.array([2.0, 0.5]), np.diag([1.0, 1.0]), np.diag([0.01, 0.001])
-    z = h(np.array([1.5, 1.5]))
+    z = range_bearing(np.array([1.5, 1.5]))
     settled = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=30, map_cost=True)
     started = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=30, map_cost=True,
                          start=np.array([1.4, 1.6]))
