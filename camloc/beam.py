@@ -38,9 +38,10 @@ that hypothesis' prediction with its covariance inflated ``slip_inflation`` time
 rest follow); if the odometry really slipped, that hypothesis explains the observations and wins.
 The same seeded explanation is tried from the prediction as it is, without the slip's inflation
 and cost: where the odometry is merely noisy and the map dense, explaining the observations one
-by one can lock onto a shifted alignment that a right seed pair avoids. Seeds are ranked by the cost of the whole explanation each implies
-(``association.seeded_explanation_costs``), not by their own cost, which under the wide prior
-barely separates right pairs from wrong ones in a dense map.
+by one can lock onto a shifted alignment that a right seed pair avoids. Seeds are ranked by the
+cost of the whole explanation each implies (``association.seeded_explanation_costs``), not by
+their own cost, which under a wide prior barely separates right pairs from wrong ones in a dense
+map.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
@@ -136,9 +137,10 @@ POOL_GATE_FACTOR = 2.0
 class BeamSearch:
     """Runs the beam over a whole dataset.
 
-    ``context`` (the localizer) provides: dataset, filter, tree, obs_of_pose, T_increments,
-    null_cost (K,) (leaving each observation unassigned), log_det_R (K,), ``predictions``,
-    ``observe`` and ``updated``.
+    ``context`` (the localizer) provides: dataset, filter, tree, cameras, obs_of_pose,
+    T_increments, null_cost (K,) (leaving each observation unassigned), log_det_R (K,), every
+    observation as a camera-frame point (point (K, 3), point_cov (K, 3, 3), log_det_point_cov
+    (K,)), ``visible``, ``observe`` and ``updated``.
     """
 
     def __init__(self, context, settings: BeamSettings):
