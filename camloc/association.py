@@ -27,6 +27,7 @@ def candidate_indices(
     min_depth: float,
     max_depth: float,
     max_angle_rad: float,
+    margin: float = 0.0,
 ) -> np.ndarray:
     """Indices (m,) of landmarks that may be visible from a camera.
 
@@ -36,17 +37,39 @@ def candidate_indices(
     T_world_camera : (4, 4) the camera's pose.
     min_depth, max_depth : range of depth (camera z) in metres.
     max_angle_rad : largest angle between the optical axis and a visible landmark's direction.
+    margin : metres the camera's position may be off: landmarks this close to the view (the depth
+        range widened by it, the cone's apex moved back along the axis by ``margin / sin`` of its
+        half-angle, which holds every point within ``margin`` of the cone) count too.
     """
-    centre = T_world_camera[:3, 3]
-    ball_centre, radius = view_cone_ball(centre, T_world_camera[:3, 2], max_depth, max_angle_rad)
+    centre, axis = T_world_camera[:3, 3], T_world_camera[:3, 2]
+    back = margin / np.sin(max_angle_rad) if margin > 0.0 else 0.0
+    ball_centre, radius = view_cone_ball(centre - back * axis, axis, max_depth + margin + back, max_angle_rad)
     near = np.asarray(tree.query_ball_point(ball_centre, radius), dtype=np.int64)
     if near.size == 0:
         return near
     p_camera = (landmark_xyz[near] - centre) @ T_world_camera[:3, :3]
     depth = p_camera[:, 2]
     off_axis = np.hypot(p_camera[:, 0], p_camera[:, 1])
-    visible = (depth > min_depth) & (depth < max_depth) & (off_axis <= depth * np.tan(max_angle_rad))
+    visible = (depth > min_depth - margin) & (depth < max_depth + margin) & (off_axis <= (depth + back) * np.tan(max_angle_rad))
     return near[visible]
+
+
+def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:
+    """How many pairs (counting itself) imply nearly the same shift of the robot as each pair.
+
+    A pair (measured point p in the camera frame, landmark l) says the camera sits at
+    ``l - R_wc p``: with the orientation about right, it implies that the robot is off its
+    predicted position by ``l - (c + R_wc p)`` (c, R_wc: the predicted camera's centre and
+    rotation). The right pairs of a pose all imply its one true shift; wrong pairs scatter theirs
+    over the prior's spread. Under a wide prior, where a pair's own cost cannot tell them apart,
+    the size of its crowd can (a Hough vote).
+
+    shifts : (N, 3) the shift each pair implies; radius : how close two shifts must be to agree.
+    Returns (N,) counts.
+    """
+    if shifts.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.asarray(cKDTree(shifts).query_ball_point(shifts, radius, return_length=True), dtype=np.int64)
 
 
 def view_cone_ball(apex: np.ndarray, axis: np.ndarray, depth: float, half_angle_rad: float) -> tuple[np.ndarray, float]:

@@ -41,7 +41,10 @@ and cost: where the odometry is merely noisy and the map dense, explaining the o
 by one can lock onto a shifted alignment that a right seed pair avoids. Seeds are ranked by the
 cost of the whole explanation each implies (``association.seeded_explanation_costs``), not by
 their own cost, which under a wide prior barely separates right pairs from wrong ones in a dense
-map.
+map. The pairs ranked are the individually cheapest and those whose implied shift of the robot
+the most other pairs share (``association.shift_agreement``, a Hough vote: a pose's right pairs
+all imply its one true shift), found among the landmarks within three standard deviations of the
+predicted view, not only in it.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
@@ -243,10 +246,12 @@ class BeamSearch:
         one from the prior goes astray. One right pair pins the pose's position, after which the
         others fall into place; so the ``slip_seeds`` pairs whose conditioned explanation of the
         pose looks cheapest (``association.seeded_explanation_costs``, among the
-        ``slip_candidates`` individually cheapest pairs) are each tried as the first, the
-        hypothesis conditioned on it, and the rest explained as usual.
+        ``slip_candidates`` individually cheapest pairs and the ``slip_candidates // 4`` with
+        the largest crowds of pairs implying the same shift of the robot) are each tried as the
+        first, the hypothesis conditioned on it, and the rest explained as usual.
         """
-        options = self._options(h, obs)
+        # the seeds are looked for in all the view the wide prior allows, not only the mean's
+        options = self._options(h, obs, widened_view=True)
         pair_obs = np.concatenate([np.full(o.landmarks.size, i) for i, o in enumerate(options)]).astype(np.int64)
         pair_landmark = np.concatenate([o.landmarks for o in options])
         pair_cost = np.concatenate([o.costs for o in options])
@@ -255,6 +260,12 @@ class BeamSearch:
             return self._explain(h, obs)
         pair_obs, pair_landmark, pair_cost = pair_obs[gated], pair_landmark[gated], pair_cost[gated]
         candidates = np.argsort(pair_cost, kind="stable")[: self.settings.slip_candidates]
+        # and the pairs whose implied shift of the robot most others share: a right pair's own
+        # cost under a wide prior may rank it far down
+        agreement = association.shift_agreement(self._implied_shifts(h, obs, pair_obs, pair_landmark), self._agreement_radius(obs))
+        crowded = np.argsort(-agreement, kind="stable")[: self.settings.slip_candidates // 4]
+        crowded = crowded[agreement[crowded] >= 3]  # fewer than three agreeing pairs is no crowd
+        candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])
         ranked = association.seeded_explanation_costs(
             np.concatenate([o.y for o in options])[gated], np.concatenate([o.Hc for o in options])[gated],
             np.concatenate([o.Rc for o in options])[gated], h.P,
@@ -270,6 +281,24 @@ class BeamSearch:
         for child in children:
             child.slipped = slipped
         return children
+
+    def _implied_shifts(self, h: _Hypothesis, obs: np.ndarray, pair_obs: np.ndarray, pair_landmark: np.ndarray) -> np.ndarray:
+        """(N, 3) the shift of the robot from h each pair implies (``association.shift_agreement``)."""
+        ds = self.ctx.dataset
+        T_world_robot = self.ctx.filter.pose(h.x)
+        measured_world = np.empty((pair_obs.size, 3))
+        cameras = ds.obs_camera[obs][pair_obs]
+        for camera_id in np.unique(cameras):
+            mine = cameras == camera_id
+            T_world_camera = T_world_robot @ self.ctx.cameras[int(camera_id)].T_robot_camera
+            measured_world[mine] = T_world_camera[:3, 3] + self.point[obs[pair_obs[mine]]] @ T_world_camera[:3, :3].T
+        return ds.landmark_xyz[pair_landmark] - measured_world
+
+    def _agreement_radius(self, obs: np.ndarray) -> float:
+        """How close two implied shifts must be to agree: three standard deviations of a measured
+        point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
+        point_sigma = np.sqrt(np.trace(self.point_cov[obs], axis1=1, axis2=2) / 3.0)
+        return float(3.0 * np.median(point_sigma) + 0.1 * np.median(np.abs(self.point[obs, 2])))
 
     def _explain(self, h: _Hypothesis, obs: np.ndarray) -> list[_Hypothesis]:
         """Children of h that explain all of obs, pruned to the beam."""
@@ -342,14 +371,15 @@ class BeamSearch:
         others = [p for p in kept if firsts[p.root] is not p]
         return list(firsts.values()) + others[: max(0, self.settings.partial_budget - len(firsts))]
 
-    def _options(self, h: _Hypothesis, obs: np.ndarray) -> list[_Options]:
-        """Gated landmarks of every observation under h, computed in one batch per camera."""
+    def _options(self, h: _Hypothesis, obs: np.ndarray, *, widened_view: bool = False) -> list[_Options]:
+        """Gated landmarks of every observation under h, computed in one batch per camera; with
+        ``widened_view``, among the landmarks within three standard deviations of h's view."""
         ds = self.ctx.dataset
         out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
         cameras = ds.obs_camera[obs]
         for camera_id in np.unique(cameras):
             rows = np.flatnonzero(cameras == camera_id)
-            candidates = self.ctx.visible(h.x, camera_id)
+            candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
             if candidates.size == 0:
                 for r in rows:
                     out[r] = _empty_options()

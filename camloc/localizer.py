@@ -390,13 +390,19 @@ class _Localizer:
         HPH = H @ P @ np.swapaxes(H, 1, 2)
         return candidates, z_hat, H, HPH
 
-    def visible(self, x: np.ndarray, camera_id: int) -> np.ndarray:
+    def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
-        state x, found through the k-d tree of the map."""
+        state x, found through the k-d tree of the map. With P, the view is widened by three
+        standard deviations of the position (in metres) and of the orientation (in angle), for a
+        prior too wide for the data's own margins."""
         camera = self.cameras[int(camera_id)]
+        margin, max_angle = 0.0, self.max_angle
+        if P is not None:
+            margin = 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
+            max_angle = min(max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1])), np.radians(89.0))
         return association.candidate_indices(
             self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
-            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=self.max_angle,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
         )
 
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

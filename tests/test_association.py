@@ -19,6 +19,34 @@ def test_candidates_match_a_brute_force_scan(rng):
         assert visible.sum() > 0
 
 
+def test_candidates_with_a_margin_hold_every_landmark_that_close_to_the_view(rng):
+    landmarks = rng.uniform(-20, 20, size=(5000, 3))
+    tree = cKDTree(landmarks)
+    angle, margin = np.radians(50), 0.8
+    for _ in range(10):
+        T_world_camera = geometry.pose_from_euler(np.r_[rng.uniform(-10, 10, 3), rng.uniform(-1, 1, 3)])
+        plain = association.candidate_indices(tree, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=angle)
+        wide = association.candidate_indices(tree, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=angle,
+                                             margin=margin)
+        assert set(plain.tolist()) < set(wide.tolist())
+        # any camera position within the margin sees only landmarks the wide search returned
+        for shift in rng.normal(size=(20, 3)):
+            moved = T_world_camera.copy()
+            moved[:3, 3] += margin * rng.uniform() * shift / np.linalg.norm(shift)
+            seen = association.candidate_indices(tree, landmarks, moved, min_depth=0.3, max_depth=6.0, max_angle_rad=angle)
+            assert set(seen.tolist()) <= set(wide.tolist())
+
+
+def test_shift_agreement_counts_the_crowd_of_right_pairs(rng):
+    truth = np.array([0.4, -0.7, 0.2])
+    right = truth + rng.normal(scale=0.02, size=(15, 3))
+    wrong = rng.uniform(-4.0, 4.0, size=(300, 3))
+    counts = association.shift_agreement(np.vstack([right, wrong]), radius=0.15)
+    assert counts[:15].min() >= 14
+    assert counts[15:].max() <= 5
+    assert association.shift_agreement(np.zeros((0, 3)), 0.1).shape == (0,)
+
+
 def test_pair_statistics_match_direct_formula(rng):
     z, z_hat = rng.normal(size=(3, 3)), rng.normal(size=(4, 3))
     R_obs = np.stack([np.diag(rng.uniform(0.1, 1, 3)) for _ in range(3)])

@@ -311,3 +311,33 @@ def test_beam_keeps_up_with_the_oracle_when_odometry_noise_rivals_the_landmark_s
     precision, recall = precision_recall(result, dataset)
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset) + 0.01
     assert precision >= 0.99 and recall >= 0.85
+
+
+def test_a_right_pair_implies_the_robot_s_true_shift_from_the_prediction():
+    from camloc.beam import BeamSearch, BeamSettings, _Hypothesis
+    from camloc.localizer import _Localizer
+
+    dataset = simulate(SimulationConfig(poses=30, dense=True, observation_sigma_scale=0.0, cameras=2), seed=5)
+    localizer = _Localizer(dataset, LocalizerConfig())
+    search = BeamSearch(localizer, BeamSettings(gate=localizer.gate))
+    k = int(np.argmax(np.bincount(dataset.obs_pose_index)))
+    obs = localizer.obs_of_pose[k]
+    landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
+    truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+    offset = np.array([0.5, -0.3, 0.2])
+    predicted = _Hypothesis(truth + np.r_[offset, 0.0, 0.0, 0.0], np.eye(6), 0.0, -1)
+    shifts = search._implied_shifts(predicted, obs, np.arange(obs.size), landmarks)
+    assert len(np.unique(dataset.obs_camera[obs])) == 2
+    np.testing.assert_allclose(shifts, np.broadcast_to(-offset, shifts.shape), atol=1e-9)
+
+
+def test_slip_seeds_come_from_the_crowd_of_agreeing_pairs_when_no_own_cost_ranks_them():
+    # At pose 19 the prediction is 1.17 m (4 sigma) off in a dense map: under the slip's wide
+    # prior 7464 pairs gate, the best right one ranks 898th by its own cost, and the 22 right
+    # pairs are found as the largest crowd of pairs implying one shift of the robot.
+    dataset = simulate(SimulationConfig(poses=100, dense=True, odometry_sigma_scale=3.0), seed=6)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    result = localize(dataset)
+    precision, _ = precision_recall(result, dataset)
+    assert position_rmse(result, dataset) <= 1.25 * position_rmse(oracle, dataset)
+    assert precision >= 0.99
