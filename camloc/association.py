@@ -333,7 +333,7 @@ def seeded_explanation_costs(
     ])
 
 
-SEED_CHUNK = 64
+SEED_CHUNK = 16
 
 
 def _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, log_det_R, seeds, *, gate):
