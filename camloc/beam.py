@@ -59,7 +59,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, ekf, models
+from camloc import association, ekf, geometry, models
 
 
 @dataclass(frozen=True)
@@ -291,7 +291,7 @@ class BeamSearch:
         for camera_id in np.unique(cameras):
             mine = cameras == camera_id
             T_world_camera = T_world_robot @ self.ctx.cameras[int(camera_id)].T_robot_camera
-            measured_world[mine] = T_world_camera[:3, 3] + self.point[obs[pair_obs[mine]]] @ T_world_camera[:3, :3].T
+            measured_world[mine] = geometry.transform_points(T_world_camera, self.point[obs[pair_obs[mine]]])
         return ds.landmark_xyz[pair_landmark] - measured_world
 
     def _agreement_radius(self, obs: np.ndarray) -> float:
