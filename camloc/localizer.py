@@ -399,7 +399,8 @@ class _Localizer:
         margin, max_angle = 0.0, self.max_angle
         if P is not None:
             margin = 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
-            max_angle = min(max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1])), np.radians(89.0))
+            widened = max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1]))
+            max_angle = max(max_angle, min(widened, np.radians(89.0)))  # never narrower than the plain view
         return association.candidate_indices(
             self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,

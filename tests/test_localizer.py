@@ -341,3 +341,20 @@ def test_slip_seeds_come_from_the_crowd_of_agreeing_pairs_when_no_own_cost_ranks
     precision, _ = precision_recall(result, dataset)
     assert position_rmse(result, dataset) <= 1.25 * position_rmse(oracle, dataset)
     assert precision >= 0.99
+
+
+@pytest.mark.parametrize("max_angle_deg", [None, 89.5])
+def test_a_view_widened_by_the_covariance_holds_the_plain_view(max_angle_deg):
+    from camloc.localizer import _Localizer
+
+    dataset = simulate(SimulationConfig(poses=20, dense=True), seed=1)
+    localizer = _Localizer(dataset, LocalizerConfig(max_angle_deg=max_angle_deg))
+    for P in (np.diag([0.2**2] * 3 + [0.05**2] * 3), np.diag([1e-12] * 3 + [0.05**2] * 3)):  # the second: orientation only
+        _assert_widened_holds_plain(localizer, dataset, P, strictly=P[0, 0] > 1e-6)
+
+
+def _assert_widened_holds_plain(localizer, dataset, P, *, strictly):
+    for k in range(0, 20, 4):
+        x = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+        plain, widened = set(localizer.visible(x, 0).tolist()), set(localizer.visible(x, 0, P).tolist())
+        assert plain <= widened and (len(widened) > len(plain) or not strictly)
