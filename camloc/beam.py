@@ -377,6 +377,7 @@ class BeamSearch:
         ds = self.ctx.dataset
         out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
         cameras = ds.obs_camera[obs]
+        pool_gate = POOL_GATE_FACTOR * self.settings.gate
         for camera_id in np.unique(cameras):
             rows = np.flatnonzero(cameras == camera_id)
             candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
@@ -386,22 +387,53 @@ class BeamSearch:
                 continue
             z_hat, H = self.ctx.observe(h.x, camera_id, candidates)
             o = obs[rows]
-            d2, costs, in_point, p_hat, Hp = self._in_best_coordinates(h.P, camera_id, o[:, None], z_hat, H)
+            spread = self._spread(h.P, camera_id, z_hat, H)
+            j, g = self._plausible_pairs(o, z_hat, spread, pool_gate)  # row by row
+            p_hat, Hp, HPH, JHPHJ = (part[g] for part in spread)
+            d2, costs, in_point = self._in_best_coordinates(o[j], z_hat[g], p_hat, HPH, JHPHJ)
+            pool = d2 <= pool_gate  # each observation's pool
+            j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
             costs = np.where(d2 <= self.settings.gate, costs, np.inf)
-            j, g = np.nonzero(d2 <= POOL_GATE_FACTOR * self.settings.gate)  # each observation's pool, row by row
-            y, Hc, Rc = self._chosen(in_point[j, g], o[j], z_hat[g], H[g], p_hat[g], Hp[g])
+            y, Hc, Rc = self._chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
             bounds = np.searchsorted(j, np.arange(rows.size + 1))
             for k, r in enumerate(rows):
                 part = slice(bounds[k], bounds[k + 1])
                 pool = g[part]
-                out[r] = _Options(candidates[pool], costs[k, pool], z_hat[pool], H[pool], y[part], Hc[part], Rc[part])
+                out[r] = _Options(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part])
         return out
 
+    def _spread(
+        self, P: np.ndarray, camera_id: int, z_hat: np.ndarray, H: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Predictions (z_hat (m, 3), H (m, 3, n)) of camera camera_id under covariance P, also
+        as camera-frame points: (p_hat (m, 3), their Jacobian Hp (m, 3, n), the spread of the
+        predictions H P H' (m, 3, 3) and of the points Hp P Hp' (m, 3, 3))."""
+        p_hat, J = models.back_project(z_hat, self.ctx.cameras[int(camera_id)].intrinsics)
+        HPH = H @ P @ np.swapaxes(H, -1, -2)
+        return p_hat, J @ H, HPH, J @ HPH @ np.swapaxes(J, -1, -2)
+
+    def _plausible_pairs(self, o: np.ndarray, z_hat: np.ndarray, spread: tuple, limit: float) -> tuple[np.ndarray, np.ndarray]:
+        """(rows into o, rows into z_hat) of the pairs whose d^2 may be within ``limit`` in either
+        coordinates of ``_in_best_coordinates``, row-major; the others are surely beyond it. For
+        S positive definite, ``y' S^-1 y >= |y|^2 / trace(S)``, and the trace of S = H P H' + R
+        is a sum of traces: a bound for every pair from a few numbers per observation and per
+        prediction, where d^2 itself needs a 3x3 system per pair (most of a dense view's pairs
+        are far out of every gate)."""
+        ds = self.ctx.dataset
+        p_hat, _, HPH, JHPHJ = spread
+        spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(ds.obs_cov[o], axis1=1, axis2=2)[:, None]
+        spread_point = np.trace(JHPHJ, axis1=1, axis2=2)[None, :] + np.trace(self.point_cov[o], axis1=1, axis2=2)[:, None]
+        y_pixels = ds.obs_uvd[o][:, None, :] - z_hat[None, :, :]
+        y_point = self.point[o][:, None, :] - p_hat[None, :, :]
+        near = ((np.einsum("ijk,ijk->ij", y_pixels, y_pixels) <= limit * spread_pixels)
+                | (np.einsum("ijk,ijk->ij", y_point, y_point) <= limit * spread_point))
+        return np.nonzero(near)
+
     def _in_best_coordinates(
-        self, P: np.ndarray, camera_id: int, o: np.ndarray, z_hat: np.ndarray, H: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Pairs of observations o with the predictions (z_hat, H) of camera camera_id, o
-        broadcast against the predictions' rows, each judged in the coordinates where its
+        self, o: np.ndarray, z_hat: np.ndarray, p_hat: np.ndarray, HPH: np.ndarray, JHPHJ: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pairs of observations o (g,) with predictions z_hat (g, 3) (``_spread``: as points
+        p_hat, their spreads HPH and JHPHJ), each judged in the coordinates where its
         linearization explains it best: the measured (u, v, depth), or the camera-frame point
         they back-project to.
 
@@ -412,20 +444,15 @@ class BeamSearch:
         ``d^2 + ln det S - ln det R``, the same quantity in either) is kept; a joint cost of
         several pairs may take each in its own coordinates.
 
-        Returns d^2 and the cost of each pair, whether it is judged as a point, and the
-        predictions as points (m, 3) with their Jacobians (m, 3, n).
+        Returns d^2 and the cost of each pair, and whether it is judged as a point.
         """
         ds = self.ctx.dataset
-        p_hat, J = models.back_project(z_hat, self.ctx.cameras[int(camera_id)].intrinsics)
-        Hp = J @ H
-        HPH = H @ P @ np.swapaxes(H, -1, -2)
         d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + ds.obs_cov[o], ds.obs_uvd[o] - z_hat)
-        d2_point, log_det_point = association.mahalanobis_3x3(
-            J @ HPH @ np.swapaxes(J, -1, -2) + self.point_cov[o], self.point[o] - p_hat)
+        d2_point, log_det_point = association.mahalanobis_3x3(JHPHJ + self.point_cov[o], self.point[o] - p_hat)
         cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
         cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
         in_point = cost_point < cost_pixels
-        return np.where(in_point, d2_point, d2_pixels), np.where(in_point, cost_point, cost_pixels), in_point, p_hat, Hp
+        return np.where(in_point, d2_point, d2_pixels), np.where(in_point, cost_point, cost_pixels), in_point
 
     def _chosen(
         self, in_point: np.ndarray, o: np.ndarray, z_hat: np.ndarray, H: np.ndarray, p_hat: np.ndarray, Hp: np.ndarray,
@@ -458,7 +485,8 @@ class BeamSearch:
             landmarks = np.concatenate([options[r].landmarks for r in rows])
             z_hat, H = self.ctx.observe(h.x, int(camera_id), landmarks)
             owner = np.repeat(obs[rows], sizes)
-            d2, costs, in_point, p_hat, Hp = self._in_best_coordinates(h.P, camera_id, owner, z_hat, H)
+            p_hat, Hp, HPH, JHPHJ = self._spread(h.P, camera_id, z_hat, H)
+            d2, costs, in_point = self._in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)
             costs = np.where((d2 <= self.settings.gate) & ~_member(landmarks, taken), costs, np.inf)
             y, Hc, Rc = self._chosen(in_point, owner, z_hat, H, p_hat, Hp)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):

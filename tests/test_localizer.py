@@ -358,3 +358,36 @@ def _assert_widened_holds_plain(localizer, dataset, P, *, strictly):
         x = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
         plain, widened = set(localizer.visible(x, 0).tolist()), set(localizer.visible(x, 0, P).tolist())
         assert plain <= widened and (len(widened) > len(plain) or not strictly)
+
+
+@pytest.mark.parametrize("inflation", [1.0, 25.0])
+def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
+    # The beam computes d^2 only for the pairs |y|^2 / trace(S) does not already put beyond the
+    # pool's gate; every pair within it, in either coordinates, must be among them.
+    from camloc.beam import POOL_GATE_FACTOR, BeamSearch, BeamSettings
+    from camloc.localizer import _Localizer
+
+    dataset = simulate(SimulationConfig(poses=40, dense=True, odometry_sigma_scale=3.0), seed=4)
+    localizer = _Localizer(dataset, LocalizerConfig())
+    search = BeamSearch(localizer, BeamSettings())
+    limit = POOL_GATE_FACTOR * BeamSettings().gate
+    checked = dropped = 0
+    for k in range(0, dataset.num_poses, 3):
+        x = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+        x[:3] += 0.2  # a prediction off by decimetres, as with this odometry
+        P = inflation * np.diag([0.04, 0.04, 0.04, 1e-3, 1e-3, 1e-3])
+        o = localizer.obs_of_pose[k]
+        candidates = localizer.visible(x, 0, P)
+        if o.size == 0 or candidates.size == 0:
+            continue
+        z_hat, H = localizer.observe(x, 0, candidates)
+        spread = search._spread(P, 0, z_hat, H)
+        rows, columns = search._plausible_pairs(o, z_hat, spread, limit)
+        j, g = (a.ravel() for a in np.meshgrid(np.arange(o.size), np.arange(candidates.size), indexing="ij"))
+        d2, _, _ = search._in_best_coordinates(o[j], z_hat[g], spread[0][g], spread[2][g], spread[3][g])
+        within = set(zip(j[d2 <= limit].tolist(), g[d2 <= limit].tolist()))
+        assert within <= set(zip(rows.tolist(), columns.tolist()))
+        checked, dropped = checked + len(within), dropped + j.size - rows.size
+    assert checked > 50
+    if inflation == 1.0:
+        assert dropped > checked  # and it does save work
