@@ -32,7 +32,8 @@ Keeping it fast (most poses are not ambiguous):
   (``BeamSearch._explain_all``), instead of beam_width each.
 
 Robustness to odometry slips: when the best hypothesis leaves most of a pose's observations
-unassigned (at least three observations, more than half of them), the pose is explained again from
+unassigned (at least three observations, more than half of them, and more than the recent poses'
+share of unassigned observations makes likely: clutter), the pose is explained again from
 that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
 ``slip_cost``, grown from each of a few seed pairs in turn (one right pair pins the pose, and the
 rest follow); if the odometry really slipped, that hypothesis explains the observations and wins.
@@ -58,6 +59,7 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
+from scipy.special import bdtrc, chdtri
 
 from camloc import association, ekf, geometry, models
 
@@ -130,6 +132,16 @@ class _Partial:
     root: int                         # which parent it grew from
 
 
+# The slip's search runs where a pose's best explanation leaves an unusual share of its observations
+# unassigned for this data (``BeamSearch._unusually_unexplained``).
+UNEXPLAINED_WINDOW = 50
+UNUSUAL_PROBABILITY = 0.01
+UNEXPLAINED_RATE_CAP = 0.6
+
+# A seeded explanation whose state leaves its prior's 99.9% region is dropped
+# (``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
+STATE_GATE = float(chdtri(6, 0.001))
+
 # A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
 # landmarks that were within this many gates before: its predictions moved by about H dx, with dx
 # drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
@@ -155,6 +167,7 @@ class BeamSearch:
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         self.history: list[list[_Hypothesis]] = []
         self.slips: list[int] = []
+        self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
 
     def run(
         self, x0: np.ndarray, P0: np.ndarray, *,
@@ -232,11 +245,32 @@ class BeamSearch:
         if obs.size >= 3 and 2 * best.unassigned > obs.size:
             self.slips.append(k)
             origin = beam[0]
-            slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
-                                  origin.cost + self.settings.slip_cost, origin.parent)
-            children += self._explain_from_seeds(slipped, obs)
+            if self._unusually_unexplained(best.unassigned, obs.size):
+                slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
+                                      origin.cost + self.settings.slip_cost, origin.parent)
+                children += self._explain_from_seeds(slipped, obs)
             children += self._explain_from_seeds(origin, obs, slipped=False)  # noisy odometry, not a slip
-        return self._prune(children)
+        kept = self._prune(children)
+        self.unexplained.append((kept[0].unassigned, obs.size))
+        return kept
+
+    def _unusually_unexplained(self, unassigned: int, observed: int) -> bool:
+        """Whether leaving ``unassigned`` of a pose's ``observed`` observations unexplained is
+        unlikely for this data: a binomial tail below ``UNUSUAL_PROBABILITY`` at the rate of the
+        last ``UNEXPLAINED_WINDOW`` poses' best explanations (at most ``UNEXPLAINED_RATE_CAP``).
+
+        Where a third of the detections are clutter, most poses leave half their observations
+        unassigned, and re-explaining each of them from seeds (the slip's search) costs a second
+        a pose and finds nothing better. A rate learnt from the recent poses keeps that search
+        for poses that explain less than the data usually lets them. The cap keeps a filter that
+        has lost its way (nothing explained for many poses) from learning that this is normal:
+        at a rate of 0.6, a pose of 9 or more observations none of which fits still triggers.
+        """
+        if not self.unexplained:
+            return True
+        recent = np.array(self.unexplained[-UNEXPLAINED_WINDOW:], dtype=float)
+        rate = min(float(recent[:, 0].sum() / recent[:, 1].sum()), UNEXPLAINED_RATE_CAP)
+        return float(bdtrc(unassigned - 1, observed, rate)) < UNUSUAL_PROBABILITY  # P(X >= unassigned)
 
     def _explain_from_seeds(self, h: _Hypothesis, obs: np.ndarray, slipped: bool = True) -> list[_Hypothesis]:
         """Explanations of obs under h (the widened prior of a slip, or the plain prediction with
@@ -276,11 +310,23 @@ class BeamSearch:
             i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]))
             seeded = _Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
-            children += self._explain(seeded, np.delete(obs, i))[:1]
+            children += [c for c in self._explain(seeded, np.delete(obs, i))[:1] if self._within_prior(c, h)]
         children = self._prune(children) if children else self._explain(h, obs)
         for child in children:
             child.slipped = slipped
         return children
+
+    def _within_prior(self, child: _Hypothesis, h: _Hypothesis) -> bool:
+        """Whether child's state lies within the 99.9% region of h's prior (``STATE_GATE``).
+
+        A child's cost sums its pairs' innovations, each linearized where the hypothesis was
+        before it. Under a wide prior in a dense map, a seed pair can fit a landmark metres from
+        the right one by turning the camera, and the iterated update then carries the state
+        there: every innovation looked likely, yet the state moved many standard deviations. The
+        chain rule's sum equals the state's own cost only for a linear model; this gate catches
+        the explanations for which it does not hold at all."""
+        d = self.ctx.filter.difference(child.x, h.x)
+        return float(d @ np.linalg.solve(h.P, d)) <= STATE_GATE
 
     def _implied_shifts(self, h: _Hypothesis, obs: np.ndarray, pair_obs: np.ndarray, pair_landmark: np.ndarray) -> np.ndarray:
         """(N, 3) the shift of the robot from h each pair implies (``association.shift_agreement``)."""

@@ -216,8 +216,9 @@ def test_jcbb_on_the_real_style_data():
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
 
 
-def _dense_run_with_a_jump(jump: tuple[float, float, float]) -> Dataset:
-    dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=200, landmarks=1500, region=11), seed=7)
+def _dense_run_with_a_jump(jump: tuple[float, float, float], clutter_fraction: float = 0.0) -> Dataset:
+    config = SimulationConfig(trajectory="smooth3d", poses=200, landmarks=1500, region=11, clutter_fraction=clutter_fraction)
+    dataset = simulate(config, seed=7)
     slipped = dataset.odom_translation.copy()
     slipped[100] += np.array(jump)
     return dataclasses.replace(dataset, odom_translation=slipped)
@@ -231,6 +232,59 @@ def test_beam_recovers_from_an_odometry_slip_in_a_dense_map():
     assert position_rmse(recovered, dataset) <= 1.25 * position_rmse(oracle, dataset)
     assert position_rmse(without_recovery, dataset) > 1.5 * position_rmse(recovered, dataset)
     assert recovered.summary["slip_poses"]  # the recovery did fire, and it is what made the difference
+
+
+def test_beam_recovers_from_a_slip_where_a_third_of_the_detections_are_clutter(monkeypatch):
+    # Clutter leaves most of many poses' observations unassigned: the slip's search must still run
+    # at the slip, where nearly all of them are, and not at every cluttered pose.
+    from camloc.beam import BeamSearch
+
+    dataset = _dense_run_with_a_jump((0.6, -0.5, 0.0), clutter_fraction=0.35)
+    slip_searches = []
+    explain_from_seeds = BeamSearch._explain_from_seeds
+
+    def recording(self, h, obs, slipped=True):
+        if slipped:
+            slip_searches.append(len(self.history))
+        return explain_from_seeds(self, h, obs, slipped)
+
+    monkeypatch.setattr(BeamSearch, "_explain_from_seeds", recording)
+    recovered = localize(dataset, parallel=False)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    assert position_rmse(recovered, dataset) <= 1.25 * position_rmse(oracle, dataset)
+    assert 101 in slip_searches, slip_searches  # odometry edge 100 leads to pose 101
+    assert len(slip_searches) < dataset.num_poses / 8  # at every pose leaving half unassigned: 43
+
+
+def test_the_slip_search_runs_where_a_pose_explains_less_than_this_data_usually_lets_it():
+    from camloc.beam import BeamSearch, BeamSettings
+    from camloc.localizer import _Localizer
+
+    search = BeamSearch(_Localizer(simulate(SimulationConfig(poses=5), seed=0), LocalizerConfig()), BeamSettings())
+    assert search._unusually_unexplained(6, 10)        # nothing learnt yet: more than half is enough
+    search.unexplained = [(8, 20)] * 50                 # 40% of the observations left unassigned
+    assert not search._unusually_unexplained(11, 20)   # P(X >= 11 | 20, 0.4) = 0.13: usual here
+    assert search._unusually_unexplained(18, 20)       # about 1e-5
+    search.unexplained = [(20, 20)] * 50                # nothing explained for 50 poses: lost, not clutter
+    assert search._unusually_unexplained(12, 12)       # the rate is capped at 0.6: 0.6^12 = 0.002
+    assert not search._unusually_unexplained(4, 4)     # 0.6^4 = 0.13: too few observations to tell
+
+
+def test_a_seeded_explanation_that_leaves_its_prior_far_behind_is_dropped(monkeypatch):
+    # Dense map, 30% clutter, 10% outliers: at pose 60 the slip's search (25x the covariance)
+    # found a seed pair that fits a landmark 6.8 m from the right one by turning the camera, and
+    # the explanation grown from it cost less than the right one, every innovation along the way
+    # looking likely; the filter was lost for 25 poses. Its state was far outside its own prior.
+    from camloc.beam import BeamSearch
+
+    dataset = simulate(SimulationConfig(poses=200, dense=True, clutter_fraction=0.3, outlier_fraction=0.1), seed=1)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    result = localize(dataset, parallel=False)
+    precision, _ = precision_recall(result, dataset)
+    assert position_rmse(result, dataset) <= 1.25 * position_rmse(oracle, dataset)
+    assert precision >= 0.98
+    monkeypatch.setattr(BeamSearch, "_within_prior", lambda self, child, h: True)
+    assert position_rmse(localize(dataset, parallel=False), dataset) > 1.0
 
 
 def test_beam_explains_a_large_odometry_error_from_a_seed_pair_without_a_slip():
