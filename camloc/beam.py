@@ -56,6 +56,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
+from functools import partial
 from typing import Callable, Optional
 
 import numpy as np
@@ -94,15 +95,44 @@ class BeamSettings:
     partial_budget: int = 64
 
 
-@dataclass
 class _Hypothesis:
-    x: np.ndarray
-    P: np.ndarray
-    cost: float
-    parent: int                       # index of the hypothesis it grew from, at the previous pose
-    pairs: tuple = ()                 # ((observation, landmark index), ...) at this pose
-    unassigned: int = 0
-    slipped: bool = False             # explained from the widened (odometry-slip) prior
+    """A filter (x, P), the assignments at this pose that produced it and their cost.
+
+    A child grown by one more pair (``BeamSearch._branches``) has its cost at once, from the
+    pair's options, but its state only when something first reads x or P (``pending``, a
+    function returning both): at an ambiguous pose many children are pruned on their cost alone
+    (a fifth, where every observation is ambiguous), and their filter updates are never needed.
+    """
+
+    __slots__ = ("_x", "_P", "cost", "parent", "pairs", "unassigned", "slipped", "_pending")
+
+    def __init__(
+        self, x: Optional[np.ndarray], P: Optional[np.ndarray], cost: float, parent: int, pairs: tuple = (),
+        unassigned: int = 0, slipped: bool = False, *, pending: Optional[Callable[[], tuple[np.ndarray, np.ndarray]]] = None,
+    ):
+        self._x, self._P = x, P
+        self.cost = cost
+        self.parent = parent              # index of the hypothesis it grew from, at the previous pose
+        self.pairs = pairs                # ((observation, landmark index), ...) at this pose
+        self.unassigned = unassigned
+        self.slipped = slipped            # explained from the widened (odometry-slip) prior
+        self._pending = pending
+
+    @property
+    def x(self) -> np.ndarray:
+        if self._pending is not None:
+            self._settle()
+        return self._x
+
+    @property
+    def P(self) -> np.ndarray:
+        if self._pending is not None:
+            self._settle()
+        return self._P
+
+    def _settle(self) -> None:
+        self._x, self._P = self._pending()
+        self._pending = None
 
 
 @dataclass
@@ -597,11 +627,15 @@ class BeamSearch:
         if null:
             out.append(_Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))
         for j in np.flatnonzero(pairs):
-            result = self.ctx.updated(h.x, h.P, np.array([o]), options.landmarks[j : j + 1],
-                                      at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]))
-            out.append(_Hypothesis(result.state, result.cov, h.cost + float(options.costs[j]), h.parent,
-                                   h.pairs + ((o, int(options.landmarks[j])),), h.unassigned))
+            out.append(_Hypothesis(None, None, h.cost + float(options.costs[j]), h.parent, h.pairs + ((o, int(options.landmarks[j])),),
+                                   h.unassigned, pending=partial(self._paired_state, h.x, h.P, o, options, int(j))))
         return out
+
+    def _paired_state(self, x: np.ndarray, P: np.ndarray, o: int, options: _Options, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(x, P) updated with observation o paired with its option j."""
+        result = self.ctx.updated(x, P, np.array([o]), options.landmarks[j : j + 1],
+                                  at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]))
+        return result.state, result.cov
 
     def _prune(self, children: list, hypothesis: Callable = lambda c: c) -> list:
         """The cheapest children within beam_delta of the best, merged, at most beam_width.
