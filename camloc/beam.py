@@ -611,8 +611,7 @@ class BeamSearch:
         y = np.array([options[i].y[choice[i]] for i in taken]).reshape(-1)
         Hc = np.array([options[i].Hc[choice[i]] for i in taken]).reshape(-1, h.P.shape[0])
         Rc = np.array([options[i].Rc[choice[i]] for i in taken])
-        L = ekf.cholesky(ekf.symmetrize(Hc @ h.P @ Hc.T + ekf.block_diagonal(Rc)))
-        cost += float(y @ ekf.cho_solve(L, y)) + 2.0 * float(np.log(np.diagonal(L)).sum()) - float(np.linalg.slogdet(Rc)[1].sum())
+        cost += ekf.innovation_cost(h.P, Hc, Rc, y)
         x, P = result.state, result.cov
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
         return _Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)

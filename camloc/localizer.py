@@ -492,7 +492,7 @@ class _Localizer:
         """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
         predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
-        R = ekf.block_diagonal(self.dataset.obs_cov[obs])
+        R = self.dataset.obs_cov[obs]  # the blocks of a block-diagonal covariance (ekf.update)
         cameras = self.dataset.obs_camera[obs]
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
             groups = [(self.cameras[self.single_camera], slice(None))]
@@ -535,8 +535,7 @@ class _Localizer:
             p_hat[mask], J = models.back_project(z_hat[mask], camera.intrinsics)
             Hp[mask] = J @ H[mask]
         Hp = Hp.reshape(3 * obs.size, -1)
-        K, _, _ = ekf.kalman_gain(P, Hp, ekf.block_diagonal(self.point_cov[obs]))
-        return self.filter.retract(x, K @ (self.point[obs] - p_hat).reshape(-1))
+        return self.filter.retract(x, ekf.correction(P, Hp, self.point_cov[obs], (self.point[obs] - p_hat).reshape(-1)))
 
     def _nis_bound(self, dof: int) -> float:
         """The 99.9% quantile of chi^2 with dof degrees of freedom."""
@@ -546,7 +545,7 @@ class _Localizer:
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
         p = obs.size
-        S_blocks = result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]  # each pair's own 3x3
+        S_blocks = result.S if result.S.ndim == 3 else result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]  # each pair's own 3x3
         d2, _ = association.mahalanobis_3x3(S_blocks, result.innovation.reshape(p, 3))
         self.chosen_landmark[obs] = self.dataset.landmark_ids[landmarks]
         self.mahalanobis[obs] = np.sqrt(d2)

@@ -106,3 +106,59 @@ def test_predict_propagates_covariance(rng):
 def test_non_positive_definite_innovation_is_reported():
     with pytest.raises(ekf.FilterDivergedError):
         ekf.kalman_gain(np.eye(2), np.eye(2), -2.0 * np.eye(2))
+
+
+def _block_system(rng, p=6, b=3, n=6):
+    blocks = np.array([random_spd(rng, b, 0.05) for _ in range(p)])
+    return rng.normal(size=n), random_spd(rng, n), blocks, rng.normal(size=(p * b, n)), rng.normal(size=p * b)
+
+
+def test_an_update_in_information_form_matches_the_textbook_one(rng):
+    # More measurement rows than states, with R block-diagonal: the update runs in information
+    # form (O(m)); it must give the textbook update with the full R, to rounding.
+    x, P, blocks, H, z = _block_system(rng)
+    R = ekf.block_diagonal(blocks)
+    for iterations in (1, 3):
+        full = ekf.update(x, P, z, R, lambda s: (H @ s + 0.1 * np.sin(s).sum(), H), difference=plain_difference,
+                          iterations=iterations, map_cost=True)
+        fast = ekf.update(x, P, z, blocks, lambda s: (H @ s + 0.1 * np.sin(s).sum(), H), difference=plain_difference,
+                          iterations=iterations, map_cost=True)
+        np.testing.assert_allclose(fast.state, full.state, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(fast.cov, full.cov, rtol=1e-9, atol=1e-13)
+        assert fast.nis == pytest.approx(full.nis, rel=1e-10)
+        assert fast.map_cost == pytest.approx(full.map_cost, rel=1e-10)
+        p = blocks.shape[0]
+        np.testing.assert_allclose(fast.S, full.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :], rtol=1e-12)
+        assert np.array_equal(fast.cov, fast.cov.T) and np.all(np.linalg.eigvalsh(fast.cov) > 0)
+
+
+def test_the_innovation_cost_and_correction_match_the_textbook_ones(rng):
+    x, P, blocks, H, y = _block_system(rng)
+    S = H @ P @ H.T + ekf.block_diagonal(blocks)
+    expected = y @ np.linalg.solve(S, y) + np.linalg.slogdet(S)[1] - np.linalg.slogdet(blocks)[1].sum()
+    assert ekf.innovation_cost(P, H, blocks, y) == pytest.approx(expected, rel=1e-10)
+    assert ekf.innovation_cost(P, H, ekf.block_diagonal(blocks), y) == pytest.approx(expected, rel=1e-10)
+    np.testing.assert_allclose(ekf.correction(P, H, blocks, y), P @ H.T @ np.linalg.solve(S, y), rtol=1e-9, atol=1e-12)
+    # fewer rows than states: the textbook path, from the blocks
+    assert ekf.innovation_cost(P, H[:3], blocks[:1], y[:3]) == pytest.approx(
+        y[:3] @ np.linalg.solve(S[:3, :3], y[:3]) + np.linalg.slogdet(S[:3, :3])[1] - np.linalg.slogdet(blocks[0])[1], rel=1e-10)
+
+
+def test_a_measurement_block_that_is_not_positive_definite_is_reported(rng):
+    x, P, blocks, H, z = _block_system(rng)
+    blocks[2] = -blocks[2]
+    with pytest.raises(ekf.FilterDivergedError, match="not positive definite"):
+        ekf.update(x, P, z, blocks, lambda s: (H @ s, H), difference=plain_difference)
+    with pytest.raises(ekf.FilterDivergedError, match="not positive definite"):
+        ekf.update(x, P, z, np.full_like(blocks, np.inf), lambda s: (H @ s, H), difference=plain_difference)
+
+
+def test_the_information_form_keeps_covariance_symmetric_positive_definite(rng):
+    # the stress of the Joseph-form test: a wide prior and measurements a billion times tighter
+    P = random_spd(rng, 6, 1e3)
+    H = rng.normal(size=(9, 6))
+    blocks = np.broadcast_to(np.eye(3) * 1e-6, (3, 3, 3)).copy()
+    for _ in range(50):
+        P = ekf.update(np.zeros(6), P, np.zeros(9), blocks, lambda s: (H @ s, H), difference=plain_difference).cov
+    assert np.array_equal(P, P.T)
+    assert np.all(np.linalg.eigvalsh(P) > 0)
