@@ -167,6 +167,7 @@ class _Partial:
 UNEXPLAINED_WINDOW = 50
 UNUSUAL_PROBABILITY = 0.01
 UNEXPLAINED_RATE_CAP = 0.6
+UNEXPLAINED_RUN = 3
 
 # A seeded explanation whose state leaves its prior's 99.9% region is dropped
 # (``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
@@ -287,20 +288,26 @@ class BeamSearch:
     def _unusually_unexplained(self, unassigned: int, observed: int) -> bool:
         """Whether leaving ``unassigned`` of a pose's ``observed`` observations unexplained is
         unlikely for this data: a binomial tail below ``UNUSUAL_PROBABILITY`` at the rate of the
-        last ``UNEXPLAINED_WINDOW`` poses' best explanations (at most ``UNEXPLAINED_RATE_CAP``).
+        last ``UNEXPLAINED_WINDOW`` poses' best explanations (at most ``UNEXPLAINED_RATE_CAP``),
+        for this pose alone or pooled with the ``UNEXPLAINED_RUN - 1`` poses before it.
 
         Where a third of the detections are clutter, most poses leave half their observations
         unassigned, and re-explaining each of them from seeds (the slip's search) costs a second
-        a pose and finds nothing better. A rate learnt from the recent poses keeps that search
-        for poses that explain less than the data usually lets them. The cap keeps a filter that
-        has lost its way (nothing explained for many poses) from learning that this is normal:
-        at a rate of 0.6, a pose of 9 or more observations none of which fits still triggers.
+        a pose, finds nothing better, and now and then a wrong alignment that explains some
+        clutter. A rate learnt from the recent poses keeps that search for poses that explain
+        less than the data usually lets them. A pose of three observations says little (all
+        three unexplained at a rate of 0.4: 6%), but a slip leaves every pose after it
+        unexplained: pooled over three poses, 9 of 9 is 0.03%. The cap keeps a filter that has
+        lost its way (nothing explained for many poses) from learning that this is normal: at
+        0.6, three poses of four observations none of which fits are unusual (0.2%).
         """
         if not self.unexplained:
             return True
-        recent = np.array(self.unexplained[-UNEXPLAINED_WINDOW:], dtype=float)
+        recent = np.array(self.unexplained[-UNEXPLAINED_WINDOW:], dtype=np.int64)
         rate = min(float(recent[:, 0].sum() / recent[:, 1].sum()), UNEXPLAINED_RATE_CAP)
-        return float(bdtrc(unassigned - 1, observed, rate)) < UNUSUAL_PROBABILITY  # P(X >= unassigned)
+        run = recent[len(recent) - (UNEXPLAINED_RUN - 1):].sum(axis=0)
+        tails = bdtrc(np.array([unassigned, unassigned + run[0]]) - 1, np.array([observed, observed + run[1]]), rate)
+        return bool(tails.min() < UNUSUAL_PROBABILITY)  # P(X >= unassigned), alone or pooled
 
     def _explain_from_seeds(self, h: _Hypothesis, obs: np.ndarray, slipped: bool = True) -> list[_Hypothesis]:
         """Explanations of obs under h (the widened prior of a slip, or the plain prediction with
