@@ -197,7 +197,6 @@ class BeamSearch:
         self.log_det_point_cov = context.log_det_point_cov
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         self.history: list[list[_Hypothesis]] = []
-        self.slips: list[int] = []
         self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
 
     def run(
@@ -274,7 +273,6 @@ class BeamSearch:
         children = self._explain_all(beam, obs)
         best = min(children, key=lambda c: c.cost)
         if obs.size >= 3 and 2 * best.unassigned > obs.size:
-            self.slips.append(k)
             origin = beam[0]
             if self._unusually_unexplained(best.unassigned, obs.size):
                 slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,

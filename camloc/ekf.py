@@ -307,9 +307,9 @@ def posterior_cost(
 ) -> float:
     """The MAP cost ``d' P^-1 d + r' R^-1 r`` of a posterior x_post: d its correction from the
     prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``)."""
-    correction = difference(x_post, x)
+    moved = difference(x_post, x)
     residual = z - measure(x_post)[0]
     if R.ndim == 3:  # blocks: each solves its own rows
         p, b, _ = R.shape
-        return float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))
-    return float(correction @ np.linalg.solve(P, correction) + residual @ np.linalg.solve(R, residual))
+        return float(moved @ np.linalg.solve(P, moved) + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))
+    return float(moved @ np.linalg.solve(P, moved) + residual @ np.linalg.solve(R, residual))
