@@ -290,9 +290,9 @@ class BeamSearch:
         for this pose alone or pooled with the ``UNEXPLAINED_RUN - 1`` poses before it.
 
         Where a third of the detections are clutter, most poses leave half their observations
-        unassigned, and re-explaining each of them from seeds (the slip's search) costs a second
-        a pose, finds nothing better, and now and then a wrong alignment that explains some
-        clutter. A rate learnt from the recent poses keeps that search for poses that explain
+        unassigned, and re-explaining each of them from seeds (the slip's search) costs up to
+        half a second a pose, finds nothing better, and now and then a wrong alignment that
+        explains some clutter. A rate learnt from the recent poses keeps that search for poses that explain
         less than the data usually lets them. A pose of three observations says little (all
         three unexplained at a rate of 0.4: 6%), but a slip leaves every pose after it
         unexplained: pooled over three poses, 9 of 9 is 0.03%. The cap keeps a filter that has
