@@ -216,12 +216,16 @@ def test_jcbb_on_the_real_style_data():
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
 
 
-def _dense_run_with_a_jump(jump: tuple[float, float, float], clutter_fraction: float = 0.0) -> Dataset:
-    config = SimulationConfig(trajectory="smooth3d", poses=200, landmarks=1500, region=11, clutter_fraction=clutter_fraction)
-    dataset = simulate(config, seed=7)
+def _with_a_jump(dataset: Dataset, jump: tuple[float, float, float]) -> Dataset:
+    """The dataset with its odometry off by ``jump`` (metres) on edge 100, from pose 100 to 101."""
     slipped = dataset.odom_translation.copy()
     slipped[100] += np.array(jump)
     return dataclasses.replace(dataset, odom_translation=slipped)
+
+
+def _dense_run_with_a_jump(jump: tuple[float, float, float], clutter_fraction: float = 0.0) -> Dataset:
+    config = SimulationConfig(trajectory="smooth3d", poses=200, landmarks=1500, region=11, clutter_fraction=clutter_fraction)
+    return _with_a_jump(simulate(config, seed=7), jump)
 
 
 def test_beam_recovers_from_an_odometry_slip_in_a_dense_map():
@@ -276,10 +280,7 @@ def test_the_slip_search_runs_where_a_pose_explains_less_than_this_data_usually_
 def test_a_slip_among_few_cluttered_observations_is_found_by_the_poses_after_it():
     # 40% clutter, six observations a pose: one pose left unexplained is no surprise, three in a
     # row are. Judged a pose at a time, the slip's search never ran here (RMSE 0.44 m).
-    dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=200, clutter_fraction=0.4), seed=3)
-    slipped = dataset.odom_translation.copy()
-    slipped[100] += np.array((0.6, -0.5, 0.0))
-    dataset = dataclasses.replace(dataset, odom_translation=slipped)
+    dataset = _with_a_jump(simulate(SimulationConfig(trajectory="smooth3d", poses=200, clutter_fraction=0.4), seed=3), (0.6, -0.5, 0.0))
     result = localize(dataset, parallel=False)
     assert set(result.summary["slip_poses"]) & set(dataset.pose_ids[101:104].tolist())
     assert position_rmse(result, dataset) < 0.2
