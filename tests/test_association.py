@@ -259,3 +259,47 @@ def test_view_cone_ball_holds_the_whole_cone_and_is_smaller_than_the_apex_ball(r
         points = apex + np.r_[np.zeros((1, 3)), rim, inside] @ R.T
         assert np.all(np.linalg.norm(points - centre, axis=1) <= radius)
         assert radius < depth / np.cos(half_angle) - 1e-6
+
+
+def _points_in_a_view(rng, n, half_angle_deg, near, far):
+    """n camera-frame points uniform in direction within the cone and in distance near..far."""
+    cos_max = np.cos(np.radians(half_angle_deg))
+    cos_off = rng.uniform(cos_max, 1.0, n)
+    phi = rng.uniform(0.0, 2.0 * np.pi, n)
+    sin_off = np.sqrt(1.0 - cos_off**2)
+    directions = np.c_[sin_off * np.cos(phi), sin_off * np.sin(phi), cos_off]
+    return directions * rng.uniform(near, far, n)[:, None]
+
+
+def _as_measurements(points, fx=1.0, fy=1.0, cx=0.5, cy=0.5):
+    return np.c_[fx * points[:, 0] / points[:, 2] + cx, fy * points[:, 1] / points[:, 2] + cy, points[:, 2]]
+
+
+@pytest.mark.parametrize("image", [None, (525.0, 525.0, 319.5, 239.5)])
+def test_the_core_of_a_view_lies_inside_it_and_holds_much_of_it(rng, image):
+    # the real file's view (a 45 deg cone, 0.5..2 m), or that view clipped to a 640x480 image
+    intrinsics = image or (1.0, 1.0, 0.5, 0.5)
+    points = _points_in_a_view(rng, 4000, 45.0, 0.5, 2.0)
+    uvd = _as_measurements(points, *intrinsics)
+    if image is not None:
+        seen = (uvd[:, 0] >= 0) & (uvd[:, 0] <= 640) & (uvd[:, 1] >= 0) & (uvd[:, 1] <= 480)
+        points, uvd = points[seen], uvd[seen]
+    core = association.core_view(uvd[:2000], points[:2000])
+    # probe the core with points from a wider view: all those it holds are in the true view
+    probes = _points_in_a_view(rng, 20000, 70.0, 0.1, 3.0)
+    probe_uvd = _as_measurements(probes, *intrinsics)
+    inside = association.in_core_view(probe_uvd, probes, core)
+    angle = np.degrees(np.arctan2(np.hypot(probes[:, 0], probes[:, 1]), probes[:, 2]))
+    distance = np.linalg.norm(probes, axis=1)
+    visible = (angle <= 45.0) & (distance >= 0.5) & (distance <= 2.0)
+    if image is not None:
+        visible &= (probe_uvd[:, 0] >= 0) & (probe_uvd[:, 0] <= 640) & (probe_uvd[:, 1] >= 0) & (probe_uvd[:, 1] <= 480)
+    assert inside.any() and np.all(visible[inside])
+    assert inside.sum() > 0.3 * visible.sum()
+    # points behind the camera never count, whatever their u, v
+    assert not association.in_core_view(probe_uvd * [1, 1, -1], -probes, core).any()
+
+
+def test_a_view_with_few_observations_has_no_core(rng):
+    points = _points_in_a_view(rng, association.CORE_MIN_OBSERVATIONS - 1, 45.0, 0.5, 2.0)
+    assert association.core_view(_as_measurements(points), points) is None
