@@ -28,7 +28,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
@@ -52,11 +52,22 @@ def real_dataset() -> Optional[Path]:
 
 
 def camloc_command() -> list[str]:
-    """How a user calls camloc: the installed ``camloc`` script."""
-    found = shutil.which("camloc")
+    """How a user calls camloc: the ``camloc`` script installed beside this interpreter (a venv's
+    bin, activated or not), else the one on PATH."""
+    beside = Path(sys.executable).parent / ("camloc.exe" if os.name == "nt" else "camloc")
+    found = str(beside) if beside.is_file() else shutil.which("camloc")
     if found is None:
-        raise BenchError("the camloc command is not on PATH; install the package (pip install -e .)")
+        raise BenchError("the camloc command is neither beside this Python nor on PATH; install the package (pip install -e .)")
     return [found]
+
+
+def run(main: Callable[[], None]) -> None:
+    """Run a benchmark's main; a step that could not be done ends it with its message, not a traceback."""
+    try:
+        main()
+    except BenchError as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def simulate_flags(options: Mapping[str, Any], seed: int) -> list[str]:

@@ -331,4 +331,4 @@ def print_summary(report: list[dict], methods: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    _bench.run(main)

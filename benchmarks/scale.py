@@ -346,4 +346,4 @@ def print_table(rows: list[dict], overrides: dict, *, quick: bool) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    _bench.run(main)
