@@ -15,8 +15,6 @@ determinant charges for that spread, making the cost a proper likelihood compari
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -54,52 +52,6 @@ def candidate_indices(
     off_axis = np.hypot(p_camera[:, 0], p_camera[:, 1])
     visible = (depth > min_depth - margin) & (depth < max_depth + margin) & (off_axis <= (depth + back) * np.tan(max_angle_rad))
     return near[visible]
-
-
-@dataclass(frozen=True)
-class CoreView:
-    """The inner part of a camera's view, where a landmark is surely seen if it is detected at
-    all: between the ``CORE_QUANTILE`` and ``1 - CORE_QUANTILE`` quantiles of the measured u, v,
-    depth and distance, and within the upper quantile of the angle off the optical axis, all
-    learnt from the camera's observations (clutter included, whose spread only widens the view a
-    little). The data's own bounds may be a cone (the real file), an image rectangle or a depth
-    range; the intersection of inner quantiles of all five lies inside each of them.
-    """
-
-    u: tuple[float, float]
-    v: tuple[float, float]
-    depth: tuple[float, float]
-    distance: tuple[float, float]
-    max_angle_rad: float
-
-
-CORE_QUANTILE = 0.1
-# Fewer observations than this say too little about a camera's view to learn its core.
-CORE_MIN_OBSERVATIONS = 30
-
-
-def core_view(uvd: np.ndarray, points: np.ndarray) -> CoreView | None:
-    """The ``CoreView`` of one camera from its measurements uvd (K, 3) and the camera-frame points
-    (K, 3) they back-project to; None with fewer than ``CORE_MIN_OBSERVATIONS``."""
-    if uvd.shape[0] < CORE_MIN_OBSERVATIONS:
-        return None
-    q = (CORE_QUANTILE, 1.0 - CORE_QUANTILE)
-    distance = np.linalg.norm(points, axis=1)
-    angle = np.arctan2(np.hypot(points[:, 0], points[:, 1]), points[:, 2])
-    return CoreView(
-        tuple(np.quantile(uvd[:, 0], q)), tuple(np.quantile(uvd[:, 1], q)), tuple(np.quantile(uvd[:, 2], q)),
-        tuple(np.quantile(distance, q)), float(np.quantile(angle, q[1])),
-    )
-
-
-def in_core_view(z_hat: np.ndarray, points: np.ndarray, core: CoreView) -> np.ndarray:
-    """Which predictions z_hat (m, 3) (u, v, depth; as camera-frame points (m, 3)) lie in core."""
-    distance = np.linalg.norm(points, axis=1)
-    angle = np.arctan2(np.hypot(points[:, 0], points[:, 1]), points[:, 2])
-    inside = (points[:, 2] > 0.0) & (angle <= core.max_angle_rad)
-    for values, (low, high) in ((z_hat[:, 0], core.u), (z_hat[:, 1], core.v), (z_hat[:, 2], core.depth), (distance, core.distance)):
-        inside &= (values >= low) & (values <= high)
-    return inside
 
 
 def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:

@@ -45,10 +45,7 @@ their own cost, which under a wide prior barely separates right pairs from wrong
 map. The pairs ranked are the individually cheapest and those whose implied shift of the robot
 the most other pairs share (``association.shift_agreement``, a Hough vote: a pose's right pairs
 all imply its one true shift), found among the landmarks within three standard deviations of the
-predicted view, not only in it. At a pose that ran these searches, every child is also charged for
-the landmarks in the core of its view that it leaves unexplained, at the data's recent detection
-rate (``BeamSearch._charged_for_missed_landmarks``): a pose metres away that pairs clutter with the
-edge of its view, while facing landmarks it does not see, loses to the pose that sees them.
+predicted view, not only in it.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
@@ -176,12 +173,6 @@ UNEXPLAINED_RUN = 3
 # (``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
 STATE_GATE = float(chdtri(6, 0.001))
 
-# A pose's seeded explanations are charged for the landmarks they miss (``BeamSearch._charged_for_missed_landmarks``)
-# at the recent detection rate, once the recent poses' views hold this many landmarks, and at most at this rate
-# (a miss then costs 4.6, about a quarter of what an unassigned observation costs in the real file).
-MIN_CORE_LANDMARKS = 20
-DETECTION_RATE_CAP = 0.9
-
 # A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
 # landmarks that were within this many gates before: its predictions moved by about H dx, with dx
 # drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
@@ -207,8 +198,6 @@ class BeamSearch:
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         self.history: list[list[_Hypothesis]] = []
         self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
-        self.observed_poses: list[int] = []  # the poses those are of
-        self._best_core_counts: dict[int, tuple[int, int]] = {}  # pose -> _core_counts of its best explanation
 
     def run(
         self, x0: np.ndarray, P0: np.ndarray, *,
@@ -290,10 +279,8 @@ class BeamSearch:
                                       origin.cost + self.settings.slip_cost, origin.parent)
                 children += self._explain_from_seeds(slipped, obs)
             children += self._explain_from_seeds(origin, obs, slipped=False)  # noisy odometry, not a slip
-            children = self._charged_for_missed_landmarks(children)
         kept = self._prune(children)
         self.unexplained.append((kept[0].unassigned, obs.size))
-        self.observed_poses.append(k)
         return kept
 
     def _unusually_unexplained(self, unassigned: int, observed: int) -> bool:
@@ -363,59 +350,6 @@ class BeamSearch:
         for child in children:
             child.slipped = slipped
         return children
-
-    def _charged_for_missed_landmarks(self, children: list[_Hypothesis]) -> list[_Hypothesis]:
-        """children, each charged ``-2 ln(1 - rate)`` for every landmark in the core of its view
-        that it leaves unexplained (``_core_counts``), at the detection rate the recent poses'
-        best explanations show (``_detection_rate``); those that cannot be kept after it are
-        dropped.
-
-        This is the likelihood of what a hypothesis does not see, which the pairs' costs leave
-        out: hypotheses at nearly the same pose predict the same view, so it barely orders them,
-        and the beam does without it. The seeded explanations are where it does not hold: under
-        the slip's wide prior in a dense cluttered map, a pose metres away can pair five
-        clutter detections with landmarks, explaining more than the right pose does, while it
-        faces thirty landmarks it should see and explains two of them. So the children of a pose
-        that ran them are all charged, the plain ones too.
-        """
-        rate = self._detection_rate()
-        if rate is None:
-            return children
-        miss = -2.0 * np.log1p(-min(rate, DETECTION_RATE_CAP))
-        children = sorted(children, key=lambda c: c.cost)
-        charged: list[_Hypothesis] = []
-        best = np.inf
-        for child in children:  # the charge is never negative: past the beam's reach of the best charged, none can come back
-            if child.cost > best + self.settings.beam_delta:
-                break
-            in_core, explained = self._core_counts(child)
-            child.cost += miss * (in_core - explained)
-            best = min(best, child.cost)
-            charged.append(child)
-        return charged
-
-    def _detection_rate(self) -> Optional[float]:
-        """The share of the landmarks in the core of their view that the best explanations of the
-        last ``UNEXPLAINED_WINDOW`` observed poses explain; None with fewer than
-        ``MIN_CORE_LANDMARKS`` such landmarks in all."""
-        in_core = explained = 0
-        for k in self.observed_poses[-UNEXPLAINED_WINDOW:]:
-            if k not in self._best_core_counts:
-                self._best_core_counts[k] = self._core_counts(self.history[k][0])
-            n, m = self._best_core_counts[k]
-            in_core, explained = in_core + n, explained + m
-        return explained / in_core if in_core >= MIN_CORE_LANDMARKS else None
-
-    def _core_counts(self, h: _Hypothesis) -> tuple[int, int]:
-        """(landmarks in the core of h's view over all cameras, how many of them h's pairs at this
-        pose explain)."""
-        taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
-        in_core = explained = 0
-        for camera_id in self.ctx.core_views:
-            landmarks = self.ctx.in_core_view(h.x, camera_id)
-            in_core += landmarks.size
-            explained += int(_member(landmarks, taken).sum())
-        return in_core, explained
 
     def _within_prior(self, child: _Hypothesis, h: _Hypothesis) -> bool:
         """Whether child's state lies within the 99.9% region of h's prior (``STATE_GATE``).

@@ -220,11 +220,6 @@ class _Localizer:
             self.null_cost = association.clutter_null_cost(dataset.obs_uvd, dataset.obs_cov, dataset.obs_camera)
         else:
             self.null_cost = np.full(dataset.num_observations, float(config.null_cost))
-        # where each camera surely sees what it detects (the beam charges hypotheses for what they miss there)
-        self.core_views = {
-            cid: association.core_view(dataset.obs_uvd[mine], self.point[mine])
-            for cid in self.cameras for mine in [dataset.obs_camera == cid]
-        }
 
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
@@ -410,17 +405,6 @@ class _Localizer:
             self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
         )
-
-    def in_core_view(self, x: np.ndarray, camera_id: int) -> np.ndarray:
-        """Indices of the landmarks in the core of camera ``camera_id``'s view from state x
-        (``association.CoreView``); none where the camera has too few observations to learn it."""
-        core = self.core_views.get(int(camera_id))
-        candidates = self.visible(x, camera_id)
-        if core is None or candidates.size == 0:
-            return candidates[:0]
-        z_hat, _ = self.observe(x, camera_id, candidates)
-        points, _ = models.back_project(z_hat, self.cameras[int(camera_id)].intrinsics)
-        return candidates[association.in_core_view(z_hat, points, core)]
 
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
