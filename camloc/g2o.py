@@ -148,8 +148,10 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
 
     Returns
     -------
-    The dataset, poses in the order of the odometry chain that starts at the first
-    ``VERTEX_SE3:QUAT`` of the file; observations and landmarks in file order.
+    The dataset, poses in the order of the odometry chain; observations and landmarks in file
+    order. The chain starts at its root, the one pose that edges leave and none reach, whose
+    ``VERTEX_SE3:QUAT`` is the known start pose wherever it is in the file; without such a root
+    (no edges, or several chains), at the file's first ``VERTEX_SE3:QUAT``.
 
     Raises
     ------
@@ -174,7 +176,8 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     landmark_ids, landmark_xyz = _build_landmarks(path, tables[TAG_LANDMARK], messages)
     vertex_ids, vertex_xyz, vertex_quat = _build_pose_vertices(path, tables[TAG_POSE], messages)
     odometry = _build_odometry(path, tables[TAG_ODOMETRY], messages)
-    pose_ids, edge_order = _follow_chain(path, int(vertex_ids[0]), odometry)
+    start = _start_vertex(path, vertex_ids, tables[TAG_POSE].lines, odometry)
+    pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry)
     _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[TAG_POSE].lines)
     truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages)
     observations = _build_observations(path, tables[TAG_OBSERVATION], pose_ids, cameras)
@@ -188,8 +191,8 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         landmark_ids=landmark_ids,
         landmark_xyz=landmark_xyz,
         pose_ids=pose_ids,
-        start_xyz=vertex_xyz[0],
-        start_quat_xyzw=vertex_quat[0],
+        start_xyz=vertex_xyz[start],
+        start_quat_xyzw=vertex_quat[start],
         truth_xyz=truth_xyz,
         truth_quat_xyzw=truth_quat,
         odom_translation=odometry["translation"][edge_order],
@@ -494,8 +497,24 @@ def _build_observations(path: Path, table: _Table, pose_ids: np.ndarray,
 # --- the pose chain -------------------------------------------------------------------------
 
 
+def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometry: dict[str, np.ndarray]) -> int:
+    """Row of the start pose's vertex: the chain's root (``read_g2o``), else the first vertex.
+
+    Files written by other tools need not list the first pose first; the edges say which it is."""
+    roots = set(odometry["from"].tolist()) - set(odometry["to"].tolist())
+    if len(roots) != 1:
+        return 0  # no edges, a cycle or several chains: _follow_chain names the problem, if any
+    root = roots.pop()
+    rows = np.flatnonzero(vertex_ids == root)
+    if rows.size == 0:
+        raise DatasetError(path, int(lines[0]),
+                           f"expected a {TAG_POSE} for pose {root}, where the odometry chain starts (the known "
+                           f"start pose), found vertices of other poses only")
+    return int(rows[0])
+
+
 def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Follow the odometry edges from the first pose vertex.
+    """Follow the odometry edges from first_pose (``_start_vertex``).
 
     Returns the pose ids in chain order (N,) and the edge rows in chain order (N-1,). Forks are
     refused earlier (duplicate ``from``); here an edge closing a cycle, or an edge the chain never

@@ -107,6 +107,24 @@ def test_edges_in_any_file_order_are_chained_from_the_first_vertex(tmp_path):
     np.testing.assert_array_equal(dataset.obs_pose_index, [2, 1])
 
 
+def test_the_chain_starts_at_its_root_wherever_its_vertex_is_in_the_file(tmp_path):
+    # Vertices listed last pose first: the edges say pose 10 is where the chain starts.
+    lines = VALID[:4] + [VALID[6], VALID[5], VALID[4]] + VALID[7:]
+    dataset = read_g2o(write_file(tmp_path, lines))
+    assert dataset.pose_ids.tolist() == [10, 11, 12]
+    np.testing.assert_array_equal(dataset.start_xyz, [0, 0, 0])
+    np.testing.assert_array_equal(dataset.truth_xyz[:, 0], [0, 1, 2])
+    # the whole file backwards reads to the same chain, odometry and truth
+    backwards = read_g2o(write_file(tmp_path, VALID[::-1], name="backwards.g2o"))
+    for name in ("pose_ids", "start_xyz", "start_quat_xyzw", "truth_xyz", "odom_translation", "odom_cov"):
+        np.testing.assert_array_equal(getattr(backwards, name), getattr(dataset, name))
+
+
+def test_a_chain_whose_first_pose_has_no_vertex_is_refused(tmp_path):
+    with pytest.raises(DatasetError, match=r"data\.g2o:5: expected a VERTEX_SE3:QUAT for pose 10, where the odometry chain starts"):
+        read_g2o(write_file(tmp_path, with_line(5, None)))
+
+
 def test_comments_blank_lines_tabs_crlf_and_leading_blanks_are_accepted(tmp_path):
     messy = ["", "   # indented comment", "#"]
     for line in VALID:
