@@ -134,7 +134,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds allowed per case (default 3600)")
     parser.add_argument("--skip-real", action="store_true", help="leave out the real file (default: run it when present)")
     parser.add_argument("--no-oracle", action="store_true",
-                        help="do not run the oracle for the reference RMSE column (default: run it, untimed in the table)")
+                        help="do not run the oracle for the reference RMSE and oracle µs/pose columns (default: run it)")
     parser.add_argument("--resume", action="store_true",
                         help="reuse results saved by an earlier run with the same library source (default: measure anew)")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON instead of a table (default: table)")
@@ -257,13 +257,16 @@ def measured(store: _bench.ResultStore, path: Path, config: dict, *, timeout: fl
 
 
 def with_oracle(row: dict, path: Path, overrides: dict, store: _bench.ResultStore, args: argparse.Namespace, say) -> dict:
-    """The row plus the oracle's RMSE on the same file (the file's true ids, same options): the
-    accuracy the association could reach, so that an RMSE can be judged. Not for --no-oracle or
-    when the oracle is what is being timed."""
+    """The row plus the oracle's RMSE and µs/pose on the same file (the file's true ids, same
+    options): the accuracy the association could reach, so that an RMSE can be judged, and what
+    the filter costs with no association to decide, the floor of any method's time. Not for
+    --no-oracle or when the oracle is what is being timed."""
     if args.no_oracle or overrides.get("association") == "oracle" or "error" in row:
         return row
     oracle = measured(store, path, {**overrides, "association": "oracle"}, timeout=args.timeout, say=say)
-    return {**row, "oracle_rmse_m": oracle.get("rmse_m")}
+    seconds, poses = oracle.get("filter_seconds"), oracle.get("poses")
+    return {**row, "oracle_rmse_m": oracle.get("rmse_m"),
+            "oracle_us_per_pose": 1e6 * seconds / poses if seconds is not None and poses else None}
 
 
 def row_of(name: str, result: dict, path: Path) -> dict:
@@ -307,7 +310,8 @@ def announce(say, row: dict) -> dict:
     if "error" in row:
         say(f"{row['case']}: FAILED {row['error']}")
         return row
-    oracle = "" if row.get("oracle_rmse_m") is None else f" (oracle {row['oracle_rmse_m']:.3f} m)"
+    oracle = "" if row.get("oracle_rmse_m") is None else (
+        f" (oracle {row['oracle_rmse_m']:.3f} m, {_bench.fmt(row.get('oracle_us_per_pose'), 0)} µs/pose)")
     saved = " (saved result, --resume)" if row.get("saved") else ""
     say(f"{row['case']}: {row['poses']} poses, {row['landmarks']} landmarks, {row['obs_per_pose']:.2f} obs/pose, "
         f"filter {row['filter_seconds']:.2f} s ({row['us_per_pose']:.0f} µs/pose), peak {row['peak_mb']:.0f} MB, "
@@ -322,7 +326,7 @@ def print_table(rows: list[dict], overrides: dict, *, quick: bool) -> None:
     table = Table(title=f"camloc scale ({'quick' if quick else 'full'}), localizer: {describe_config(overrides)}",
                   caption=f"at the end: {_bench.machine_load()}")
     columns = ["case", "poses", "landmarks", "obs/pose", "read (s)", "filter (s)", "wall (s)", "poses/s", "µs/pose",
-               "µs/obs", "peak MB", "RMSE (m)", "oracle RMSE", "precision"]
+               "µs/obs", "peak MB", "RMSE (m)", "oracle RMSE", "oracle µs/pose", "precision"]
     for column in columns:
         table.add_column(column, justify="left" if column == "case" else "right")
     for row in rows:
@@ -334,7 +338,7 @@ def print_table(rows: list[dict], overrides: dict, *, quick: bool) -> None:
             _bench.fmt(row["read_seconds"], 3), _bench.fmt(row["filter_seconds"], 2), _bench.fmt(row["wall_seconds"], 2),
             _bench.fmt(row["poses_per_second"], 0), _bench.fmt(row["us_per_pose"], 0),
             _bench.fmt(row["us_per_observation"], 0), _bench.fmt(row["peak_mb"], 0), _bench.fmt(row["rmse_m"]),
-            _bench.fmt(row.get("oracle_rmse_m")),
+            _bench.fmt(row.get("oracle_rmse_m")), _bench.fmt(row.get("oracle_us_per_pose"), 0),
             _bench.fmt(row["precision"], 2, percent=True),
         )
     console = Console(width=max(Console().width, 170))
@@ -343,6 +347,8 @@ def print_table(rows: list[dict], overrides: dict, *, quick: bool) -> None:
                   "types it, best of --repeats; simulated: read + localize + evaluate, no run folder written).")
     console.print("µs/pose: flat down the 'first'/'world' rows = linear in poses; flat down the 'map' rows = "
                   "independent of the map's size (same trajectory and observations, map padded out of view).")
+    console.print("oracle µs/pose: the same filter given the file's true association (nothing to decide): the floor "
+                  "under any association method's µs/pose on this machine.")
 
 
 if __name__ == "__main__":
