@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from camloc import sym3
+
 
 def candidate_indices(
     tree: cKDTree,
@@ -350,7 +352,7 @@ def _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, l
     H_rows = H.reshape(N * 3, n)
     V = (H_rows @ U.transpose(1, 0, 2).reshape(n, M * 3)).reshape(N, 3, M, 3)   # H_q U_s
     moved = (H_rows @ correction.T).reshape(N, 3, M)                             # H_q K_s y_s
-    S_cond = [S[:, i, j][:, None] - np.einsum("qsk,qsk->qs", V[:, i], V[:, j]) for i, j in _UPPER_3X3]
+    S_cond = [S[:, i, j][:, None] - np.einsum("qsk,qsk->qs", V[:, i], V[:, j]) for i, j in sym3.UPPER]
     y_cond = [y[:, i][:, None] - moved[:, i] for i in range(3)]
     d2, log_det = _mahalanobis_sym3(*S_cond, *y_cond)
     d2, log_det = d2.T, log_det.T                                 # (M, N)
@@ -378,13 +380,8 @@ def mahalanobis_3x3(S: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarra
                              y[..., 0], y[..., 1], y[..., 2])
 
 
-_UPPER_3X3 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the components a..f below
-
-
 def _mahalanobis_sym3(a, b, c, d, e, f, y1, y2, y3):
     """``mahalanobis_3x3`` from the components of S = [[a, b, c], [b, d, e], [c, e, f]] and y."""
-    A11, A12, A13 = d * f - e * e, c * e - b * f, b * e - c * d   # the adjugate
-    A22, A23, A33 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A11 + b * A12 + c * A13
+    A11, A12, A13, A22, A23, A33, det = sym3.adjugate(a, b, c, d, e, f)
     quadratic = A11 * y1 * y1 + A22 * y2 * y2 + A33 * y3 * y3 + 2.0 * (A12 * y1 * y2 + A13 * y1 * y3 + A23 * y2 * y3)
     return quadratic / det, np.log(det)

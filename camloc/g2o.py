@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camloc import sym3
 from camloc.dataset import Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -50,9 +51,9 @@ def odometry_info_from_cov(cov: np.ndarray) -> np.ndarray:
 
 
 def observation_cov_from_info(info: np.ndarray) -> np.ndarray:
-    """Covariance (..., 3, 3) of (u, v, depth) from the file's information (..., 3, 3)."""
-    cov = np.linalg.inv(info)
-    return 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    """Covariance (..., 3, 3) of (u, v, depth) from the file's information (..., 3, 3), symmetric
+    (in closed form: a LAPACK inverse per observation was a seventh of reading a large file)."""
+    return sym3.inverse(info)
 
 
 class G2oWarning(UserWarning):

@@ -1,0 +1,29 @@
+"""Closed-form algebra of stacks of symmetric 3x3 matrices (adjugate and determinant): a million of
+them cost a few array passes instead of a LAPACK call each. Pure numpy, cheap to import.
+
+A symmetric S = [[a, b, c], [b, d, e], [c, e, f]] is given by its upper triangle a..f, each an
+array of any (common, broadcastable) shape. The relative error is about cond(S) x 1e-16, as for a
+factorization; the covariances and information matrices here stay far from singular.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the components a..f
+
+
+def adjugate(a, b, c, d, e, f):
+    """The upper triangle of adj(S) (A11, A12, A13, A22, A23, A33) and det(S)."""
+    A11, A12, A13 = d * f - e * e, c * e - b * f, b * e - c * d
+    A22, A23, A33 = a * f - c * c, b * c - a * e, a * d - b * b
+    return A11, A12, A13, A22, A23, A33, a * A11 + b * A12 + c * A13
+
+
+def inverse(S: np.ndarray) -> np.ndarray:
+    """S^-1 (..., 3, 3) of symmetric S (..., 3, 3), exactly symmetric; reads only the upper triangle."""
+    *upper, det = adjugate(*(S[..., i, j] for i, j in UPPER))
+    out = np.empty(S.shape, dtype=np.result_type(S, np.float64))
+    for (i, j), value in zip(UPPER, upper):
+        out[..., i, j] = out[..., j, i] = value / det
+    return out

@@ -1,0 +1,26 @@
+"""Closed-form inverse of symmetric 3x3 stacks against LAPACK."""
+
+import numpy as np
+import pytest
+
+from camloc import sym3
+
+
+@pytest.mark.parametrize("scales", [(1.0, 1.0, 1.0), (1e3, 1e3, 1e6), (1e-2, 1e4, 3.0)])
+def test_inverse_matches_lapack_and_is_exactly_symmetric(rng, scales):
+    # information matrices as files give them: normalized image coordinates beside depth, or pixels
+    D = np.diag(np.sqrt(scales))
+    B = rng.normal(size=(500, 3, 3))
+    S = D @ (B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(3)) @ D
+    inverse = sym3.inverse(S)
+    np.testing.assert_allclose(inverse, np.linalg.inv(S), rtol=1e-9, atol=1e-12 * np.abs(np.linalg.inv(S)).max())
+    assert np.array_equal(inverse, np.swapaxes(inverse, 1, 2))
+    # only the upper triangle is read
+    lower_garbage = S.copy()
+    lower_garbage[:, 1, 0] = lower_garbage[:, 2, 0] = lower_garbage[:, 2, 1] = np.nan
+    assert np.array_equal(sym3.inverse(lower_garbage), inverse)
+
+
+def test_inverse_keeps_the_stack_s_shape(rng):
+    S = np.broadcast_to(np.diag([2.0, 4.0, 8.0]), (2, 5, 3, 3))
+    np.testing.assert_array_equal(sym3.inverse(S), np.broadcast_to(np.diag([0.5, 0.25, 0.125]), (2, 5, 3, 3)))
