@@ -223,8 +223,8 @@ class BeamSearch:
                 if k > 0:
                     beam = [self._predicted(h, k - 1, parent) for parent, h in enumerate(beam)]
                 beam = self._explain_pose(k, beam, self.ctx.obs_of_pose[k])
-            except ekf.FilterDivergedError as error:
-                raise error.at_pose(int(self.ctx.dataset.pose_ids[k])) from None
+            except ekf.NUMERICAL_FAILURES as error:
+                raise ekf.as_divergence(error).at_pose(int(self.ctx.dataset.pose_ids[k])) from None
             self.history.append(beam)
             if on_pose is not None:
                 on_pose(k)

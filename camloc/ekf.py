@@ -45,6 +45,19 @@ class FilterDivergedError(CamlocError):
                                    "matrices in the file many orders of magnitude apart usually cause this)")
 
 
+# What a filter step may raise when its covariances break down: numpy's own error where a
+# factorization fails before a check of ours could (information matrices many orders of
+# magnitude apart leave a covariance indefinite to rounding).
+NUMERICAL_FAILURES = (FilterDivergedError, np.linalg.LinAlgError)
+
+
+def as_divergence(error: Exception) -> FilterDivergedError:
+    """A numerical failure of the filter's linear algebra (``NUMERICAL_FAILURES``) as a FilterDivergedError."""
+    if isinstance(error, FilterDivergedError):
+        return error
+    return FilterDivergedError(f"a covariance is no longer positive definite ({error})")
+
+
 @dataclass(frozen=True)
 class UpdateResult:
     """The outcome of one (stacked) update.

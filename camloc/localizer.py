@@ -276,8 +276,8 @@ class _Localizer:
     def step(self, k: int) -> None:
         try:
             self._step(k)
-        except ekf.FilterDivergedError as error:
-            raise error.at_pose(int(self.dataset.pose_ids[k])) from None
+        except ekf.NUMERICAL_FAILURES as error:
+            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k])) from None
 
     def _step(self, k: int) -> None:
         if k > 0:
