@@ -268,9 +268,13 @@ def leave_one_out_costs(
     P_bound = np.linalg.solve(information, np.eye(6))
     r_max = float(np.linalg.eigvalsh(R_obs).max())
     S_bound = H @ P_bound @ np.swapaxes(H, 1, 2) + r_max * np.eye(3)
-    inverse_factor = np.linalg.solve(np.linalg.cholesky(S_bound), np.broadcast_to(np.eye(3), S_bound.shape))
-    w_bound = np.einsum("mij,nmj->nmi", inverse_factor, residual)
-    rows, columns = np.nonzero(np.einsum("nmi,nmi->nm", w_bound, w_bound) <= gate)
+    try:
+        inverse_factor = np.linalg.solve(np.linalg.cholesky(S_bound), np.broadcast_to(np.eye(3), S_bound.shape))
+    except np.linalg.LinAlgError:  # information too far beyond the prior's for rounding: no screen, judge every pair
+        rows, columns = np.nonzero(np.ones(residual.shape[:2], dtype=bool))
+    else:
+        w_bound = np.einsum("mij,nmj->nmi", inverse_factor, residual)
+        rows, columns = np.nonzero(np.einsum("nmi,nmi->nm", w_bound, w_bound) <= gate)
 
     cost = np.full((n, z_hat.shape[0]), np.inf)
     if rows.size == 0:
@@ -384,4 +388,11 @@ def _mahalanobis_sym3(a, b, c, d, e, f, y1, y2, y3):
     """``mahalanobis_3x3`` from the components of S = [[a, b, c], [b, d, e], [c, e, f]] and y."""
     A11, A12, A13, A22, A23, A33, det = sym3.adjugate(a, b, c, d, e, f)
     quadratic = A11 * y1 * y1 + A22 * y2 * y2 + A33 * y3 * y3 + 2.0 * (A12 * y1 * y2 + A13 * y1 * y3 + A23 * y2 * y3)
-    return quadratic / det, np.log(det)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2, log_det = quadratic / det, np.log(det)
+    # an S that rounding left without a positive determinant (information matrices many orders of
+    # magnitude apart) is no spread at all: its pair fits nothing, rather than a NaN or negative d^2 passing a gate
+    broken = ~(det > 0.0)
+    if np.any(broken):
+        d2, log_det = np.where(broken, np.inf, d2), np.where(broken, np.inf, log_det)
+    return d2, log_det

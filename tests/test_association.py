@@ -1,5 +1,7 @@
 """Association primitives: candidate search against brute force, pair statistics, best friends."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -259,3 +261,12 @@ def test_view_cone_ball_holds_the_whole_cone_and_is_smaller_than_the_apex_ball(r
         points = apex + np.r_[np.zeros((1, 3)), rim, inside] @ R.T
         assert np.all(np.linalg.norm(points - centre, axis=1) <= radius)
         assert radius < depth / np.cos(half_angle) - 1e-6
+
+
+def test_a_spread_rounding_left_without_a_positive_determinant_fits_nothing():
+    S = np.array([np.eye(3), np.diag([1.0, 1.0, -1e-18]), np.zeros((3, 3))])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning from the log of a negative determinant
+        d2, log_det = association.mahalanobis_3x3(S, np.full((3, 3), 0.1))
+    assert d2[0] == pytest.approx(0.03) and log_det[0] == pytest.approx(0.0)
+    assert np.all(np.isinf(d2[1:])) and np.all(np.isinf(log_det[1:]))
