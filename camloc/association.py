@@ -378,7 +378,8 @@ def mahalanobis_3x3(S: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarra
     instead of a LAPACK call each. Its relative error is about cond(S) x 1e-16; the gates' S (a
     prediction's spread plus the sensor's noise) stay far from singular.
 
-    S : (..., 3, 3); y : (..., 3). Returns two (...) arrays. Reads only the upper triangle.
+    S : (..., 3, 3); y : (..., 3). Returns two (...) arrays, both inf where rounding left S without
+    a positive determinant (its pair fits nothing). Reads only the upper triangle.
     """
     return _mahalanobis_sym3(S[..., 0, 0], S[..., 0, 1], S[..., 0, 2], S[..., 1, 1], S[..., 1, 2], S[..., 2, 2],
                              y[..., 0], y[..., 1], y[..., 2])

@@ -3,7 +3,7 @@ them cost a few array passes instead of a LAPACK call each. Pure numpy, cheap to
 
 A symmetric S = [[a, b, c], [b, d, e], [c, e, f]] is given by its upper triangle a..f, each an
 array of any (common, broadcastable) shape. The relative error is about cond(S) x 1e-16, as for a
-factorization; the covariances and information matrices here stay far from singular.
+factorization.
 """
 
 from __future__ import annotations
