@@ -264,9 +264,7 @@ def with_oracle(row: dict, path: Path, overrides: dict, store: _bench.ResultStor
     if args.no_oracle or overrides.get("association") == "oracle" or "error" in row:
         return row
     oracle = measured(store, path, {**overrides, "association": "oracle"}, timeout=args.timeout, say=say)
-    seconds, poses = oracle.get("filter_seconds"), oracle.get("poses")
-    return {**row, "oracle_rmse_m": oracle.get("rmse_m"),
-            "oracle_us_per_pose": 1e6 * seconds / poses if seconds is not None and poses else None}
+    return {**row, "oracle_rmse_m": oracle.get("rmse_m"), "oracle_us_per_pose": derived(oracle).get("us_per_pose")}
 
 
 def row_of(name: str, result: dict, path: Path) -> dict:
