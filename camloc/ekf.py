@@ -146,6 +146,7 @@ def update(
     map_cost: bool = False,
     at_prior: tuple[np.ndarray, np.ndarray] | None = None,
     start: np.ndarray | None = None,
+    R_inverse: np.ndarray | None = None,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -167,11 +168,13 @@ def update(
     start : where the iterations after the first linearize first, instead of the plain EKF step
         from the prior (with ``iterations >= 2``); the fixed point they seek is the same MAP
         estimate, and a start near it reaches it where the prior is too far for Gauss-Newton.
+    R_inverse : the (p, b, b) inverses of R's blocks, when the caller has them (the information
+        matrices of a file's measurements): saves inverting the blocks.
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
-    gain_at = _gain_for(P, R, z.size)
+    gain_at = _gain_for(P, R, z.size, R_inverse)
     z_hat, H = measure(x) if at_prior is None else at_prior
     y_prior = z - z_hat
     gain = gain_at(H)
@@ -189,7 +192,7 @@ def update(
         if np.max(np.abs(step - delta)) < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
-    cost = posterior_cost(x_i, x, P, z, R, measure, difference) if map_cost else float("nan")
+    cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse) if map_cost else float("nan")
     return UpdateResult(state=x_i, cov=gain.posterior_cov(), innovation=y_prior, S=S, nis=nis, map_cost=cost)
 
 
@@ -216,42 +219,43 @@ class CovarianceGain:
 
 class InformationGain:
     """The same update for a block-diagonal R, through the (n, n) information the measurements
-    add, ``Lambda = H' R^-1 H``, never an (m, m) matrix: each block whitens its rows
-    (``R_i = L_i L_i'``, ``L_i^-1 H_i``), and with ``A = (I + P Lambda)^-1``:
+    add, ``Lambda = H' R^-1 H``, never an (m, m) matrix. With ``A = (I + P Lambda)^-1``:
 
         K y = A P H' R^-1 y,    y' S^-1 y = y' R^-1 y - g' A P g  (g = H' R^-1 y, Woodbury),
         P+ = A (P + P Lambda P) A'
 
     the last the Joseph form ``(I - K H) P (I - K H)' + K R K'`` with ``I - K H = A``: symmetric
     positive definite by construction. No inverse of P is needed (``(P^-1 + Lambda)^-1 = A P``).
+    R's blocks enter through their inverses, which the caller usually has (a file gives
+    information matrices), where whitening each block's rows cost a batched solve per use.
     """
 
-    def __init__(self, P: np.ndarray, H: np.ndarray, R_blocks: np.ndarray, R_factors: np.ndarray):
-        self.P, self.R_blocks, self.R_factors = P, R_blocks, R_factors
-        p, b, _ = R_factors.shape
+    def __init__(self, P: np.ndarray, H: np.ndarray, R_blocks: np.ndarray, R_inverse: np.ndarray):
+        self.P, self.R_blocks, self.R_inverse = P, R_blocks, R_inverse
+        p, b, _ = R_inverse.shape
         self.H = H
-        self.H_white = _solve_blocks(R_factors, H.reshape(p, b, -1)).reshape(p * b, -1)
-        self.information = self.H_white.T @ self.H_white               # Lambda (n, n)
+        self.R_inverse_H = (R_inverse @ H.reshape(p, b, -1)).reshape(p * b, -1)
+        self.information = symmetrize(H.T @ self.R_inverse_H)              # Lambda (n, n)
         self.I_P_information = np.eye(P.shape[0]) + P @ self.information
         if not np.all(np.isfinite(self.I_P_information)):
             raise FilterDivergedError("innovation covariance is not positive definite")
         self.posterior_plain = symmetrize(np.linalg.solve(self.I_P_information, P))  # A P = (P^-1 + Lambda)^-1
 
-    def _gradient(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p, b, _ = self.R_factors.shape
-        y_white = _solve_blocks(self.R_factors, y.reshape(p, b, 1)).reshape(-1)
-        return self.H_white.T @ y_white, y_white
+    def _gradient(self, y: np.ndarray) -> np.ndarray:
+        return self.R_inverse_H.T @ y
 
     def correction(self, y: np.ndarray) -> np.ndarray:
-        return self.posterior_plain @ self._gradient(y)[0]
+        return self.posterior_plain @ self._gradient(y)
 
     def nis(self, y: np.ndarray) -> float:
-        g, y_white = self._gradient(y)
-        return float(y_white @ y_white - g @ self.posterior_plain @ g)
+        g = self._gradient(y)
+        p, b, _ = self.R_inverse.shape
+        y_blocks = y.reshape(p, b)
+        return float(np.einsum("pi,pij,pj->", y_blocks, self.R_inverse, y_blocks) - g @ self.posterior_plain @ g)
 
     def S(self) -> np.ndarray:
         """The (p, b, b) diagonal blocks ``H_i P H_i' + R_i`` of the innovation covariance."""
-        p, b, _ = self.R_factors.shape
+        p, b, _ = self.R_inverse.shape
         H = self.H.reshape(p, b, -1)
         return H @ self.P @ np.swapaxes(H, 1, 2) + self.R_blocks
 
@@ -268,16 +272,26 @@ class InformationGain:
         return float(log_det)
 
 
-def _gain_for(P: np.ndarray, R: np.ndarray, m: int):
+def _gain_for(P: np.ndarray, R: np.ndarray, m: int, R_inverse: np.ndarray | None = None):
     """H -> the gain of an update with prior covariance P and measurement covariance R (full, or
-    (p, b, b) blocks): in information form where that is cheaper (blocks, m > n)."""
+    (p, b, b) blocks, with their inverses R_inverse when known): in information form where that
+    is cheaper (blocks, m > n)."""
     if R.ndim == 2:
         return lambda H: CovarianceGain(P, H, R)
     if m <= P.shape[0]:
         R_full = block_diagonal(R)
         return lambda H: CovarianceGain(P, H, R_full)
-    factors = block_cholesky(R)
-    return lambda H: InformationGain(P, H, R, factors)
+    if R_inverse is None:
+        R_inverse = block_inverse(R)
+    return lambda H: InformationGain(P, H, R, R_inverse)
+
+
+def block_inverse(blocks: np.ndarray) -> np.ndarray:
+    """Inverses (p, b, b), exactly symmetric, of (p, b, b) symmetric positive definite blocks;
+    FilterDivergedError when one is not positive definite."""
+    block_cholesky(blocks)  # the check of definiteness
+    inverse = np.linalg.inv(blocks)
+    return 0.5 * (inverse + np.swapaxes(inverse, 1, 2))
 
 
 def block_cholesky(blocks: np.ndarray) -> np.ndarray:
@@ -291,23 +305,19 @@ def block_cholesky(blocks: np.ndarray) -> np.ndarray:
     return factors
 
 
-def _solve_blocks(factors: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``L_i^-1 B_i`` for lower-triangular factors L (p, b, b) and B (p, b, k)."""
-    return np.linalg.solve(factors, B)
-
-
-def correction(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) -> np.ndarray:
+def correction(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray, R_inverse: np.ndarray | None = None) -> np.ndarray:
     """``K y``, the correction of one EKF update with innovation y (m,), Jacobian H (m, n) and
-    measurement covariance R, (m, m) or (p, b, b) blocks (in information form where cheaper)."""
-    return _gain_for(P, R, y.size)(H).correction(y)
+    measurement covariance R, (m, m) or (p, b, b) blocks (in information form where cheaper;
+    R_inverse: the blocks' inverses, when known)."""
+    return _gain_for(P, R, y.size, R_inverse)(H).correction(y)
 
 
-def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) -> float:
+def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray, R_inverse: np.ndarray | None = None) -> float:
     """``y' S^-1 y + ln det S - ln det R`` of a stacked innovation y (m,) with Jacobian H (m, n)
     and measurement covariance R, (m, m) or (p, b, b) blocks, ``S = H P H' + R``: twice the
     negative log-likelihood of y, up to a constant, relative to the measurements' own spread.
-    O(m) in information form for blocks with m > n."""
-    gain = _gain_for(P, R, y.size)(H)
+    O(m) in information form for blocks with m > n (R_inverse: the blocks' inverses, when known)."""
+    gain = _gain_for(P, R, y.size, R_inverse)(H)
     if isinstance(gain, InformationGain):
         return gain.nis(y) + gain.log_det_ratio()
     log_det_R = float(np.linalg.slogdet(R)[1].sum())  # of the blocks, or of the full matrix
@@ -316,12 +326,17 @@ def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) 
 
 def posterior_cost(
     x_post: np.ndarray, x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
-    measure: MeasurementFunction, difference: StateDifference = _subtract,
+    measure: MeasurementFunction, difference: StateDifference = _subtract, R_inverse: np.ndarray | None = None,
 ) -> float:
     """The MAP cost ``d' P^-1 d + r' R^-1 r`` of a posterior x_post: d its correction from the
-    prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``)."""
+    prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``); R_inverse: the
+    inverses of R's blocks, when known."""
     moved = difference(x_post, x)
     residual = z - measure(x_post)[0]
+    if R.ndim == 3 and R_inverse is not None:
+        p, b, _ = R.shape
+        r = residual.reshape(p, b)
+        return float(moved @ np.linalg.solve(P, moved) + np.einsum("pi,pij,pj->", r, R_inverse, r))
     if R.ndim == 3:  # blocks: each solves its own rows
         p, b, _ = R.shape
         return float(moved @ np.linalg.solve(P, moved) + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))

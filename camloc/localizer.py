@@ -208,12 +208,14 @@ class _Localizer:
         self.log_det_R = np.linalg.slogdet(dataset.obs_cov)[1] if dataset.num_observations else np.zeros(0)
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
         self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
+        self.point_info = np.zeros((dataset.num_observations, 3, 3))  # point_cov's inverse (obs_info's in these coordinates)
         camera_ids = np.array(sorted(self.cameras), dtype=np.int64)
         table = np.array([self.cameras[int(c)].intrinsics for c in camera_ids]).reshape(-1, 4)
         intrinsics = table[np.searchsorted(camera_ids, dataset.obs_camera)] if dataset.num_observations else table
         for start in range(0, dataset.num_observations, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
             part = slice(start, start + POINT_CHUNK)
             self.point[part], self.point_cov[part] = models.measured_points(dataset.obs_uvd[part], dataset.obs_cov[part], intrinsics[part].T)
+            self.point_info[part] = models.point_information(self.point[part], dataset.obs_info[part], intrinsics[part].T)
         self.log_det_point_cov = np.linalg.slogdet(self.point_cov)[1] if dataset.num_observations else np.zeros(0)
         self.nis_bounds: dict[int, float] = {}
         if config.null_cost is None:
@@ -493,6 +495,7 @@ class _Localizer:
         predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
         R = self.dataset.obs_cov[obs]  # the blocks of a block-diagonal covariance (ekf.update)
+        R_inverse = self.dataset.obs_info[obs]
         cameras = self.dataset.obs_camera[obs]
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
             groups = [(self.cameras[self.single_camera], slice(None))]
@@ -512,7 +515,8 @@ class _Localizer:
             return z_hat.reshape(-1), H.reshape(-1, 6)
 
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
-        options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations, at_prior=prior)
+        options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
+                       at_prior=prior, R_inverse=R_inverse)
         result = ekf.update(x, P, z, R, measure, map_cost=map_cost, **options)
         if self.config.iterations < 2 or result.nis <= self._nis_bound(z.size):
             return result
@@ -522,7 +526,7 @@ class _Localizer:
         # update in camera-frame points, where the model is nearly linear in the position, and
         # keep whichever posterior the MAP cost prefers.
         alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=self._point_step(x, P, obs, groups, prior), **options)
-        plain = result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference)
+        plain = result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference, R_inverse)
         if not alternative.map_cost < plain:
             return result
         return alternative if map_cost else replace(alternative, map_cost=float("nan"))
@@ -535,7 +539,7 @@ class _Localizer:
             p_hat[mask], J = models.back_project(z_hat[mask], camera.intrinsics)
             Hp[mask] = J @ H[mask]
         Hp = Hp.reshape(3 * obs.size, -1)
-        return self.filter.retract(x, ekf.correction(P, Hp, self.point_cov[obs], (self.point[obs] - p_hat).reshape(-1)))
+        return self.filter.retract(x, ekf.correction(P, Hp, self.point_cov[obs], (self.point[obs] - p_hat).reshape(-1), self.point_info[obs]))
 
     def _nis_bound(self, dof: int) -> float:
         """The 99.9% quantile of chi^2 with dof degrees of freedom."""

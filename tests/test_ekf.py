@@ -144,6 +144,21 @@ def test_the_innovation_cost_and_correction_match_the_textbook_ones(rng):
         y[:3] @ np.linalg.solve(S[:3, :3], y[:3]) + np.linalg.slogdet(S[:3, :3])[1] - np.linalg.slogdet(blocks[0])[1], rel=1e-10)
 
 
+def test_given_inverses_of_the_blocks_give_the_same_update(rng):
+    # the localizer passes the file's information matrices instead of having the blocks inverted
+    x, P, blocks, H, z = _block_system(rng)
+    measure = lambda s: (H @ s + 0.1 * np.sin(s).sum(), H)  # noqa: E731
+    inverted = ekf.update(x, P, z, blocks, measure, difference=plain_difference, iterations=3, map_cost=True)
+    given = ekf.update(x, P, z, blocks, measure, difference=plain_difference, iterations=3, map_cost=True,
+                       R_inverse=np.linalg.inv(blocks))
+    np.testing.assert_allclose(given.state, inverted.state, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(given.cov, inverted.cov, rtol=1e-9, atol=1e-13)
+    assert given.nis == pytest.approx(inverted.nis, rel=1e-10)
+    assert given.map_cost == pytest.approx(inverted.map_cost, rel=1e-10)
+    y = z - measure(x)[0]
+    assert ekf.innovation_cost(P, H, blocks, y, np.linalg.inv(blocks)) == pytest.approx(ekf.innovation_cost(P, H, blocks, y), rel=1e-10)
+
+
 def test_a_measurement_block_that_is_not_positive_definite_is_reported(rng):
     x, P, blocks, H, z = _block_system(rng)
     blocks[2] = -blocks[2]
