@@ -185,7 +185,9 @@ class BeamSearch:
     """Runs the beam over a whole dataset.
 
     ``context`` (the localizer) provides: dataset, filter, tree, cameras, obs_of_pose,
-    T_increments, null_cost (K,) (leaving each observation unassigned), log_det_R (K,), every
+    T_increments, null_cost (K,) (leaving each observation unassigned), the noise association
+    judges each observation by (association_cov, association_info (K, 3, 3), log_det_R (K,);
+    ``association.noise_floored``), every
     observation as a camera-frame point (point (K, 3), point_cov (K, 3, 3) and its inverse
     point_info, log_det_point_cov (K,)), ``visible``, ``observe`` and ``updated``.
     """
@@ -193,6 +195,7 @@ class BeamSearch:
     def __init__(self, context, settings: BeamSettings):
         self.ctx = context
         self.settings = settings
+        self.R, self.R_inverse = context.association_cov, context.association_info  # every observation's noise
         self.log_det_R = context.log_det_R      # ln det R of every observation
         self.point, self.point_cov = context.point, context.point_cov  # every observation in its camera's frame
         self.log_det_point_cov = context.log_det_point_cov
@@ -345,7 +348,7 @@ class BeamSearch:
         children: list[_Hypothesis] = []
         for seed in candidates[np.argsort(ranked, kind="stable")[: self.settings.slip_seeds]]:
             i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
-            result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]))
+            result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]), for_association=True)
             seeded = _Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
             children += [c for c in self._explain(seeded, np.delete(obs, i))[:1] if self._within_prior(c, h)]
         children = self._prune(children) if children else self._explain(h, obs)
@@ -504,7 +507,7 @@ class BeamSearch:
         are far out of every gate)."""
         ds = self.ctx.dataset
         p_hat, _, HPH, JHPHJ = spread
-        spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(ds.obs_cov[o], axis1=1, axis2=2)[:, None]
+        spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(self.R[o], axis1=1, axis2=2)[:, None]
         spread_point = np.trace(JHPHJ, axis1=1, axis2=2)[None, :] + np.trace(self.point_cov[o], axis1=1, axis2=2)[:, None]
         y_pixels = ds.obs_uvd[o][:, None, :] - z_hat[None, :, :]
         y_point = self.point[o][:, None, :] - p_hat[None, :, :]
@@ -530,7 +533,7 @@ class BeamSearch:
         Returns d^2 and the cost of each pair, and whether it is judged as a point.
         """
         ds = self.ctx.dataset
-        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + ds.obs_cov[o], ds.obs_uvd[o] - z_hat)
+        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], ds.obs_uvd[o] - z_hat)
         d2_point, log_det_point = association.mahalanobis_3x3(JHPHJ + self.point_cov[o], self.point[o] - p_hat)
         cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
         cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
@@ -547,8 +550,8 @@ class BeamSearch:
         point = in_point[:, None]
         y = np.where(point, self.point[o] - p_hat, ds.obs_uvd[o] - z_hat)
         Hc = np.where(point[:, :, None], Hp, H)
-        Rc = np.where(point[:, :, None], self.point_cov[o], ds.obs_cov[o])
-        Rc_inverse = np.where(point[:, :, None], self.point_info[o], ds.obs_info[o])
+        Rc = np.where(point[:, :, None], self.point_cov[o], self.R[o])
+        Rc_inverse = np.where(point[:, :, None], self.point_info[o], self.R_inverse[o])
         return y, Hc, Rc, Rc_inverse
 
     def _conditioned(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options]) -> list[_Options]:
@@ -614,7 +617,7 @@ class BeamSearch:
         o = obs[taken]
         landmarks = np.array([options[i].landmarks[choice[i]] for i in taken])
         at_prior = (np.array([options[i].z_hat[choice[i]] for i in taken]), np.array([options[i].H[choice[i]] for i in taken]))
-        result = self.ctx.updated(h.x, h.P, o, landmarks, at_prior=at_prior)  # stacked, iterated as configured
+        result = self.ctx.updated(h.x, h.P, o, landmarks, at_prior=at_prior, for_association=True)  # stacked, iterated as configured
         # the joint cost of the pairs, each in the coordinates its option chose, at h
         y = np.array([options[i].y[choice[i]] for i in taken]).reshape(-1)
         Hc = np.array([options[i].Hc[choice[i]] for i in taken]).reshape(-1, h.P.shape[0])
@@ -642,7 +645,7 @@ class BeamSearch:
     def _paired_state(self, x: np.ndarray, P: np.ndarray, o: int, options: _Options, j: int) -> tuple[np.ndarray, np.ndarray]:
         """(x, P) updated with observation o paired with its option j."""
         result = self.ctx.updated(x, P, np.array([o]), options.landmarks[j : j + 1],
-                                  at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]))
+                                  at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True)
         return result.state, result.cov
 
     def _prune(self, children: list, hypothesis: Callable = lambda c: c) -> list:

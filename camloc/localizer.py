@@ -205,21 +205,25 @@ class _Localizer:
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate_probability))  # chi^2 quantile, 3 dof
-        self.log_det_R = np.linalg.slogdet(dataset.obs_cov)[1] if dataset.num_observations else np.zeros(0)
-        # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
-        self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
-        self.point_info = np.zeros((dataset.num_observations, 3, 3))  # point_cov's inverse (obs_info's in these coordinates)
         camera_ids = np.array(sorted(self.cameras), dtype=np.int64)
         table = np.array([self.cameras[int(c)].intrinsics for c in camera_ids]).reshape(-1, 4)
         intrinsics = table[np.searchsorted(camera_ids, dataset.obs_camera)] if dataset.num_observations else table
+        # what association judges each observation by: the file's noise, raised to a floor where
+        # it claims to be near exact (the update keeps the file's own)
+        self.association_cov, self.association_info = association.noise_floored(
+            dataset.obs_uvd, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1])
+        self.log_det_R = np.linalg.slogdet(self.association_cov)[1] if dataset.num_observations else np.zeros(0)
+        # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
+        self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
+        self.point_info = np.zeros((dataset.num_observations, 3, 3))  # point_cov's inverse
         for start in range(0, dataset.num_observations, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
             part = slice(start, start + POINT_CHUNK)
-            self.point[part], self.point_cov[part] = models.measured_points(dataset.obs_uvd[part], dataset.obs_cov[part], intrinsics[part].T)
-            self.point_info[part] = models.point_information(self.point[part], dataset.obs_info[part], intrinsics[part].T)
+            self.point[part], self.point_cov[part] = models.measured_points(dataset.obs_uvd[part], self.association_cov[part], intrinsics[part].T)
+            self.point_info[part] = models.point_information(self.point[part], self.association_info[part], intrinsics[part].T)
         self.log_det_point_cov = np.linalg.slogdet(self.point_cov)[1] if dataset.num_observations else np.zeros(0)
         self.nis_bounds: dict[int, float] = {}
         if config.null_cost is None:
-            self.null_cost = association.clutter_null_cost(dataset.obs_uvd, dataset.obs_cov, dataset.obs_camera)
+            self.null_cost = association.clutter_null_cost(dataset.obs_uvd, self.association_cov, dataset.obs_camera)
         else:
             self.null_cost = np.full(dataset.num_observations, float(config.null_cost))
 
@@ -345,7 +349,7 @@ class _Localizer:
             chosen_landmarks.append(int(landmarks[best]))
             remaining = np.delete(remaining, rows[best])
             if remaining.size:
-                result = self.updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
+                result = self.updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]), for_association=True)
                 x, P = result.state, result.cov
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
 
@@ -366,7 +370,7 @@ class _Localizer:
             column_of = {int(c): j for j, c in enumerate(candidates.tolist())}
             chosen = np.array([column_of.get(chosen_landmark.get(int(o), -2), -1) for o in mine], dtype=np.int64)
             Hc = H[chosen[chosen >= 0]]
-            R_paired = ds.obs_cov[mine[chosen >= 0]]
+            R_paired = self.association_cov[mine[chosen >= 0]]
             pair_information[int(camera_id)] = (np.swapaxes(Hc, 1, 2) @ np.linalg.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((6, 6))
             groups.append((int(camera_id), mine, z_hat, H, chosen))
         prior_information = np.linalg.solve(P_prior, np.eye(6))
@@ -374,7 +378,7 @@ class _Localizer:
             if z_hat.shape[0] == 0:
                 continue
             information = prior_information + sum(v for c, v in pair_information.items() if c != camera_id)
-            cost = association.leave_one_out_costs(ds.obs_uvd[mine], ds.obs_cov[mine], z_hat, H, chosen, information=information, gate=self.gate)
+            cost = association.leave_one_out_costs(ds.obs_uvd[mine], self.association_cov[mine], z_hat, H, chosen, information=information, gate=self.gate)
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
             for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
                 if o in position and not (r > self.config.recheck_margin and st > self.config.recheck_steal_margin):
@@ -427,7 +431,7 @@ class _Localizer:
             if candidates.size == 0:
                 continue
             z = self.dataset.obs_uvd[obs[rows_c]]
-            d2, nll = association.pair_statistics(z, self.dataset.obs_cov[obs[rows_c]], z_hat, HPH)
+            d2, nll = association.pair_statistics(z, self.association_cov[obs[rows_c]], z_hat, HPH)
             cost = {"nll": nll, "mahalanobis": d2}.get(self.config.cost)
             if cost is None:
                 cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
@@ -456,7 +460,7 @@ class _Localizer:
         z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
         y_all = ds.obs_uvd[obs][:, None, :] - z_hat[None, :, :]
         HPH = H @ self.P @ np.swapaxes(H, 1, 2)
-        d2, _ = association.pair_statistics(ds.obs_uvd[obs], ds.obs_cov[obs], z_hat, HPH)
+        d2, _ = association.pair_statistics(ds.obs_uvd[obs], self.association_cov[obs], z_hat, HPH)
         same_camera = np.zeros(d2.shape, dtype=bool)
         start = 0
         for mine, size in blocks:
@@ -466,7 +470,7 @@ class _Localizer:
         rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
         column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
         seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
-        result = jcbb(y_all, H, self.P, ds.obs_cov[obs], compatible,
+        result = jcbb(y_all, H, self.P, self.association_cov[obs], compatible,
                       probability=self.config.gate_probability, max_nodes=self.config.jcbb_max_nodes, seed=seed)
         if not result.exhaustive:
             self.jcbb_cut_short += 1
@@ -482,20 +486,24 @@ class _Localizer:
         for camera_id in np.unique(self.dataset.obs_camera[obs]):
             mine = self.dataset.obs_camera[obs] == camera_id
             z_hat, H = self.observe(self.x, camera_id, index[mine])
-            S = H @ self.P @ np.swapaxes(H, 1, 2) + self.dataset.obs_cov[obs[mine]]
+            S = H @ self.P @ np.swapaxes(H, 1, 2) + self.association_cov[obs[mine]]
             d2, _ = association.mahalanobis_3x3(S, self.dataset.obs_uvd[obs[mine]] - z_hat)
             keep[mine] = d2 <= self.gate
         return obs[keep], index[keep]
 
     def updated(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
-        at_prior: tuple[np.ndarray, np.ndarray] | None = None,
+        at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
     ) -> ekf.UpdateResult:
         """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
-        predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them."""
+        predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them. With
+        ``for_association``, the pairs weigh by the noise association judges them by
+        (``association_cov``): the scratch filters that decide an association, not the estimate."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
-        R = self.dataset.obs_cov[obs]  # the blocks of a block-diagonal covariance (ekf.update)
-        R_inverse = self.dataset.obs_info[obs]
+        if for_association:
+            R, R_inverse = self.association_cov[obs], self.association_info[obs]
+        else:  # the blocks of a block-diagonal covariance (ekf.update)
+            R, R_inverse = self.dataset.obs_cov[obs], self.dataset.obs_info[obs]
         cameras = self.dataset.obs_camera[obs]
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
             groups = [(self.cameras[self.single_camera], slice(None))]

@@ -270,3 +270,24 @@ def test_a_spread_rounding_left_without_a_positive_determinant_fits_nothing():
         d2, log_det = association.mahalanobis_3x3(S, np.full((3, 3), 0.1))
     assert d2[0] == pytest.approx(0.03) and log_det[0] == pytest.approx(0.0)
     assert np.all(np.isinf(d2[1:])) and np.all(np.isinf(log_det[1:]))
+
+
+def test_noise_floor_leaves_real_sensors_noise_as_it_is(rng):
+    uvd = np.column_stack([rng.uniform(0, 640, 50), rng.uniform(0, 480, 50), rng.uniform(0.5, 4.0, 50)])
+    cov = np.broadcast_to(np.diag([0.05**2, 0.05**2, 1e-4**2]), (50, 3, 3)).copy()  # 0.05 px, 0.1 mm: precise, not exact
+    info = np.linalg.inv(cov)
+    floored_cov, floored_info = association.noise_floored(uvd, cov, info, np.full(50, 525.0), np.full(50, 525.0))
+    assert floored_cov is cov and floored_info is info
+
+
+def test_noise_floor_raises_observations_that_claim_to_be_exact(rng):
+    # information 1e12, the simulator's noise-free data, beside one ordinary observation
+    uvd = np.column_stack([rng.uniform(0, 640, 4), rng.uniform(0, 480, 4), [0.5, 1.0, 2.0, 3.0]])
+    cov = np.broadcast_to(np.eye(3) * 1e-12, (4, 3, 3)).copy()
+    cov[3] = np.diag([1.0, 1.0, 1e-3])
+    fx, fy = np.full(4, 500.0), np.full(4, 400.0)
+    floored_cov, floored_info = association.noise_floored(uvd, cov, np.linalg.inv(cov), fx, fy)
+    expected = (association.NOISE_FLOOR * np.column_stack([fx, fy, uvd[:, 2]])) ** 2
+    np.testing.assert_allclose(np.diagonal(floored_cov[:3], axis1=1, axis2=2), expected[:3], rtol=1e-12)  # raised to the floor
+    np.testing.assert_array_equal(floored_cov[3], cov[3])
+    np.testing.assert_allclose(floored_info @ floored_cov, np.broadcast_to(np.eye(3), (4, 3, 3)), atol=1e-9)
