@@ -147,7 +147,6 @@ class _Options:
     y: np.ndarray           # (g, 3) the innovation in the pair's coordinates (``_in_best_coordinates``)
     Hc: np.ndarray          # (g, 3, 6) its Jacobian
     Rc: np.ndarray          # (g, 3, 3) the observation's covariance in them
-    Rc_inverse: np.ndarray  # (g, 3, 3) its inverse
 
 
 @dataclass
@@ -188,8 +187,8 @@ class BeamSearch:
     T_increments, null_cost (K,) (leaving each observation unassigned), the noise association
     judges each observation by (association_cov, association_info (K, 3, 3), log_det_R (K,);
     ``association.noise_floored``), every
-    observation as a camera-frame point (point (K, 3), point_cov (K, 3, 3) and its inverse
-    point_info, log_det_point_cov (K,)), ``visible``, ``observe`` and ``updated``.
+    observation as a camera-frame point (point (K, 3), point_cov (K, 3, 3), log_det_point_cov
+    (K,)), ``visible``, ``observe`` and ``updated``.
     """
 
     def __init__(self, context, settings: BeamSettings):
@@ -199,7 +198,6 @@ class BeamSearch:
         self.log_det_R = context.log_det_R      # ln det R of every observation
         self.point, self.point_cov = context.point, context.point_cov  # every observation in its camera's frame
         self.log_det_point_cov = context.log_det_point_cov
-        self.point_info = context.point_info    # the inverses of point_cov
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         self.history: list[list[_Hypothesis]] = []
         self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
@@ -480,12 +478,12 @@ class BeamSearch:
             pool = d2 <= pool_gate  # each observation's pool
             j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
             costs = np.where(d2 <= self.settings.gate, costs, np.inf)
-            y, Hc, Rc, Rc_inverse = self._chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
+            y, Hc, Rc = self._chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
             bounds = np.searchsorted(j, np.arange(rows.size + 1))
             for k, r in enumerate(rows):
                 part = slice(bounds[k], bounds[k + 1])
                 pool = g[part]
-                out[r] = _Options(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part], Rc_inverse[part])
+                out[r] = _Options(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part])
         return out
 
     def _spread(
@@ -542,17 +540,16 @@ class BeamSearch:
 
     def _chosen(
         self, in_point: np.ndarray, o: np.ndarray, z_hat: np.ndarray, H: np.ndarray, p_hat: np.ndarray, Hp: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The innovation (g, 3), its Jacobian (g, 3, n) and the observation's covariance (g, 3, 3)
-        and its inverse of g pairs (observations o, predictions z_hat, H and as points p_hat, Hp), each in the
+        of g pairs (observations o, predictions z_hat, H and as points p_hat, Hp), each in the
         coordinates ``_in_best_coordinates`` chose for it."""
         ds = self.ctx.dataset
         point = in_point[:, None]
         y = np.where(point, self.point[o] - p_hat, ds.obs_uvd[o] - z_hat)
         Hc = np.where(point[:, :, None], Hp, H)
         Rc = np.where(point[:, :, None], self.point_cov[o], self.R[o])
-        Rc_inverse = np.where(point[:, :, None], self.point_info[o], self.R_inverse[o])
-        return y, Hc, Rc, Rc_inverse
+        return y, Hc, Rc
 
     def _conditioned(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options]) -> list[_Options]:
         """Options of observations obs under h, a hypothesis conditioned on some of the pose's
@@ -575,10 +572,10 @@ class BeamSearch:
             p_hat, Hp, HPH, JHPHJ = self._spread(h.P, camera_id, z_hat, H)
             d2, costs, in_point = self._in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)
             costs = np.where((d2 <= self.settings.gate) & ~_member(landmarks, taken), costs, np.inf)
-            y, Hc, Rc, Rc_inverse = self._chosen(in_point, owner, z_hat, H, p_hat, Hp)
+            y, Hc, Rc = self._chosen(in_point, owner, z_hat, H, p_hat, Hp)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
                 part = slice(start, stop)
-                out[r] = _Options(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part], Rc_inverse[part])
+                out[r] = _Options(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part])
         return out
 
     def _viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
@@ -622,8 +619,7 @@ class BeamSearch:
         y = np.array([options[i].y[choice[i]] for i in taken]).reshape(-1)
         Hc = np.array([options[i].Hc[choice[i]] for i in taken]).reshape(-1, h.P.shape[0])
         Rc = np.array([options[i].Rc[choice[i]] for i in taken])
-        Rc_inverse = np.array([options[i].Rc_inverse[choice[i]] for i in taken])
-        cost += ekf.innovation_cost(h.P, Hc, Rc, y, Rc_inverse)
+        cost += ekf.innovation_cost(h.P, Hc, Rc, y)
         x, P = result.state, result.cov
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
         return _Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
@@ -680,5 +676,5 @@ def _member(values: np.ndarray, few: np.ndarray) -> np.ndarray:
 
 def _empty_options() -> _Options:
     return _Options(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6)), np.zeros((0, 3)),
-                    np.zeros((0, 3, 6)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
+                    np.zeros((0, 3, 6)), np.zeros((0, 3, 3)))
 

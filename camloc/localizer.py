@@ -215,11 +215,9 @@ class _Localizer:
         self.log_det_R = np.linalg.slogdet(self.association_cov)[1] if dataset.num_observations else np.zeros(0)
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
         self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
-        self.point_info = np.zeros((dataset.num_observations, 3, 3))  # point_cov's inverse
         for start in range(0, dataset.num_observations, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
             part = slice(start, start + POINT_CHUNK)
             self.point[part], self.point_cov[part] = models.measured_points(dataset.obs_uvd[part], self.association_cov[part], intrinsics[part].T)
-            self.point_info[part] = models.point_information(self.point[part], self.association_info[part], intrinsics[part].T)
         self.log_det_point_cov = np.linalg.slogdet(self.point_cov)[1] if dataset.num_observations else np.zeros(0)
         self.nis_bounds: dict[int, float] = {}
         if config.null_cost is None:
@@ -547,7 +545,7 @@ class _Localizer:
             p_hat[mask], J = models.back_project(z_hat[mask], camera.intrinsics)
             Hp[mask] = J @ H[mask]
         Hp = Hp.reshape(3 * obs.size, -1)
-        return self.filter.retract(x, ekf.correction(P, Hp, self.point_cov[obs], (self.point[obs] - p_hat).reshape(-1), self.point_info[obs]))
+        return self.filter.retract(x, ekf.correction(P, Hp, self.point_cov[obs], (self.point[obs] - p_hat).reshape(-1)))
 
     def _nis_bound(self, dof: int) -> float:
         """The 99.9% quantile of chi^2 with dof degrees of freedom."""

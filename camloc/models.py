@@ -127,15 +127,6 @@ def measured_points(
     return points, J @ cov @ np.swapaxes(J, 1, 2)
 
 
-def point_information(points: np.ndarray, info: np.ndarray, intrinsics: tuple[float, float, float, float]) -> np.ndarray:
-    """The information (M, 3, 3) of camera-frame points (M, 3) (``measured_points``) measured with
-    information ``info`` (M, 3, 3) in (u, v, depth): ``J' info J`` with J the projection's
-    Jacobian at the points, the inverse of the back-projection's. No covariance is inverted, so
-    measurements that claim to be exact keep their information exactly."""
-    J = projection_jacobian(points, intrinsics)
-    return np.swapaxes(J, 1, 2) @ info @ J
-
-
 def observe(
     state: np.ndarray,
     T_robot_camera: np.ndarray,

@@ -108,17 +108,6 @@ def test_measured_points_keep_a_positive_depth():
     assert np.all(np.isfinite(point_cov)) and np.linalg.slogdet(point_cov[0])[0] == 1
 
 
-@pytest.mark.parametrize("camera", sorted(CAMERAS))
-def test_point_information_is_the_inverse_of_the_point_covariance(rng, camera):
-    _, intrinsics = CAMERAS[camera]
-    fx, fy, cx, cy = intrinsics
-    uvd = np.column_stack([cx + fx * rng.uniform(-0.5, 0.5, 20), cy + fy * rng.uniform(-0.5, 0.5, 20), rng.uniform(0.3, 6.0, 20)])
-    A = rng.normal(size=(20, 3, 3)) * np.array([fx, fy, 1.0])[:, None] * 1e-3
-    info = np.linalg.inv(A @ np.swapaxes(A, 1, 2) + np.diag([fx, fy, 1.0]) ** 2 * 1e-8)
-    point, point_cov = models.measured_points(uvd, np.linalg.inv(info), intrinsics)
-    np.testing.assert_allclose(models.point_information(point, info, intrinsics), np.linalg.inv(point_cov), rtol=1e-7)
-
-
 def test_observation_matches_format_model():
     # FORMAT.md: a landmark 1 m straight ahead of the real file's camera lands at the image centre.
     T_robot_camera, intrinsics = CAMERAS["real-file mount, normalized"]
