@@ -194,7 +194,7 @@ class BeamSearch:
     def __init__(self, context, settings: BeamSettings):
         self.ctx = context
         self.settings = settings
-        self.R, self.R_inverse = context.association_cov, context.association_info  # every observation's noise
+        self.R = context.association_cov        # the noise association judges each observation by
         self.log_det_R = context.log_det_R      # ln det R of every observation
         self.point, self.point_cov = context.point, context.point_cov  # every observation in its camera's frame
         self.log_det_point_cov = context.log_det_point_cov

@@ -305,19 +305,18 @@ def block_cholesky(blocks: np.ndarray) -> np.ndarray:
     return factors
 
 
-def correction(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray, R_inverse: np.ndarray | None = None) -> np.ndarray:
+def correction(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``K y``, the correction of one EKF update with innovation y (m,), Jacobian H (m, n) and
-    measurement covariance R, (m, m) or (p, b, b) blocks (in information form where cheaper;
-    R_inverse: the blocks' inverses, when known)."""
-    return _gain_for(P, R, y.size, R_inverse)(H).correction(y)
+    measurement covariance R, (m, m) or (p, b, b) blocks (in information form where cheaper)."""
+    return _gain_for(P, R, y.size)(H).correction(y)
 
 
-def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray, R_inverse: np.ndarray | None = None) -> float:
+def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) -> float:
     """``y' S^-1 y + ln det S - ln det R`` of a stacked innovation y (m,) with Jacobian H (m, n)
     and measurement covariance R, (m, m) or (p, b, b) blocks, ``S = H P H' + R``: twice the
     negative log-likelihood of y, up to a constant, relative to the measurements' own spread.
-    O(m) in information form for blocks with m > n (R_inverse: the blocks' inverses, when known)."""
-    gain = _gain_for(P, R, y.size, R_inverse)(H)
+    O(m) in information form for blocks with m > n."""
+    gain = _gain_for(P, R, y.size)(H)
     if isinstance(gain, InformationGain):
         return gain.nis(y) + gain.log_det_ratio()
     log_det_R = float(np.linalg.slogdet(R)[1].sum())  # of the blocks, or of the full matrix
