@@ -97,6 +97,25 @@ def test_association_bars_stack_to_the_observations_of_each_pose(result):
     assert labels[0] == f"correct ({scores['correct']})"
 
 
+def test_association_areas_of_a_long_run_stack_to_the_observations_of_each_pose(synthetic_run, monkeypatch):
+    # past MAX_BARS poses: three step areas instead of a bar per pose and outcome
+    result = synthetic_run(seed=5, num_poses=30)
+    monkeypatch.setattr(plotting, "MAX_BARS", 10)
+    ax = Figure().add_subplot()
+    plotting.plot_associations(ax, result)
+    assert not ax.patches and len(ax.collections) == 3
+    index = np.searchsorted(result.pose_ids, result.associations.pose_id)
+    expected = np.bincount(index, minlength=len(result.pose_ids))
+    # the last area's outline: over each pose, its highest level segment is the stack's top
+    outline = ax.collections[-1].get_paths()[0].vertices
+    left, right = np.minimum(outline[:-1, 0], outline[1:, 0]), np.maximum(outline[:-1, 0], outline[1:, 0])
+    level = (outline[:-1, 1] == outline[1:, 1]) & (left < right)  # either way round: the outline comes back along the top
+    at_pose = np.array([outline[:-1][level & (left <= pose) & (pose <= right), 1].max() for pose in result.pose_ids])
+    np.testing.assert_array_equal(at_pose, expected)
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert labels[0].startswith("correct (")
+
+
 def test_plots_without_truth_say_so(synthetic_run):
     result = synthetic_run(with_truth=False)
     for plot in (plotting.plot_position_error, plotting.plot_rotation_error, plotting.plot_nees):
