@@ -249,9 +249,7 @@ class InformationGain:
 
     def nis(self, y: np.ndarray) -> float:
         g = self._gradient(y)
-        p, b, _ = self.R_inverse.shape
-        y_blocks = y.reshape(p, b)
-        return float(np.einsum("pi,pij,pj->", y_blocks, self.R_inverse, y_blocks) - g @ self.posterior_plain @ g)
+        return float(_block_quadratic(y, self.R_inverse) - g @ self.posterior_plain @ g)
 
     def S(self) -> np.ndarray:
         """The (p, b, b) diagonal blocks ``H_i P H_i' + R_i`` of the innovation covariance."""
@@ -332,11 +330,17 @@ def posterior_cost(
     inverses of R's blocks, when known."""
     moved = difference(x_post, x)
     residual = z - measure(x_post)[0]
+    prior_term = moved @ np.linalg.solve(P, moved)
     if R.ndim == 3 and R_inverse is not None:
-        p, b, _ = R.shape
-        r = residual.reshape(p, b)
-        return float(moved @ np.linalg.solve(P, moved) + np.einsum("pi,pij,pj->", r, R_inverse, r))
+        return float(prior_term + _block_quadratic(residual, R_inverse))
     if R.ndim == 3:  # blocks: each solves its own rows
         p, b, _ = R.shape
-        return float(moved @ np.linalg.solve(P, moved) + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))
-    return float(moved @ np.linalg.solve(P, moved) + residual @ np.linalg.solve(R, residual))
+        return float(prior_term + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))
+    return float(prior_term + residual @ np.linalg.solve(R, residual))
+
+
+def _block_quadratic(y: np.ndarray, inverse_blocks: np.ndarray) -> float:
+    """``y' R^-1 y`` for a block-diagonal R given by its blocks' inverses (p, b, b), y (p b,)."""
+    p, b, _ = inverse_blocks.shape
+    y_blocks = y.reshape(p, b)
+    return float(np.einsum("pi,pij,pj->", y_blocks, inverse_blocks, y_blocks))
