@@ -275,16 +275,35 @@ class BeamSearch:
             return beam
         children = self._explain_all(beam, obs)
         best = min(children, key=lambda c: c.cost)
+        seeded: list[list[_Hypothesis]] = []
         if obs.size >= 3 and 2 * best.unassigned > obs.size:
             origin = beam[0]
             if self._unusually_unexplained(best.unassigned, obs.size):
                 slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                       origin.cost + self.settings.slip_cost, origin.parent)
-                children += self._explain_from_seeds(slipped, obs)
-            children += self._explain_from_seeds(origin, obs, slipped=False)  # noisy odometry, not a slip
-        kept = self._prune(children)
+                seeded.append(self._explain_from_seeds(slipped, obs))
+            seeded.append(self._explain_from_seeds(origin, obs, slipped=False))  # noisy odometry, not a slip
+        kept = self._prune(children + [c for group in seeded for c in group])
+        for group in seeded:
+            kept = self._with_a_seeded_one(kept, group)
         self.unexplained.append((kept[0].unassigned, obs.size))
         return kept
+
+    def _with_a_seeded_one(self, kept: list[_Hypothesis], seeded: list[_Hypothesis]) -> list[_Hypothesis]:
+        """The pruned beam with its last place given to the cheapest seeded explanation, when that
+        is within beam_delta of the best and only the beam's width kept it out.
+
+        A pose of few observations says little: under a slip's wide prior the right explanation
+        of three observations pays for its first pair's spread and the slip, about what leaving
+        two of them unassigned costs a wrong hypothesis, and a full beam of that hypothesis' near
+        copies crowds it out. Kept, it explains the next poses' observations where the wrong one
+        goes on leaving them unassigned, and it wins within a pose or two."""
+        if len(kept) < self.settings.beam_width or any(c in kept for c in seeded):
+            return kept  # not crowded out: too costly, or a copy of a kept hypothesis
+        candidate = min(seeded, key=lambda c: c.cost)
+        if candidate.cost > kept[0].cost + self.settings.beam_delta or any(self._same_state(candidate, k) for k in kept):
+            return kept
+        return sorted(kept[:-1] + [candidate], key=lambda c: c.cost)
 
     def _unusually_unexplained(self, unassigned: int, observed: int) -> bool:
         """Whether leaving ``unassigned`` of a pose's ``observed`` observations unexplained is

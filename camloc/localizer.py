@@ -288,12 +288,22 @@ class _Localizer:
             self._predict(k - 1)                       # x <- x (+) odometry increment
         self._warn_near_singularity(k)
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
-        if self.beam_slipped is not None and self.beam_slipped[k]:
+        slipped = self.beam_slipped is not None and bool(self.beam_slipped[k])
+        start = None
+        if slipped:
             self.P = self.P * self.config.slip_inflation  # as the beam did when it chose these pairs
+            if obs.size:
+                # the beam explained the pose from its seed pair, listed first: one right pair pins
+                # the pose, where Gauss-Newton from the slip's wide prior can settle metres away
+                seed_obs, seed_landmark = self.beam_pairs[k][:1, 0], self.beam_pairs[k][:1, 1]
+                start = self.updated(self.x, self.P, seed_obs, seed_landmark).state
         if obs.size:
-            result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)  # one stacked (iterated) update
-            # A lone pair left out leaves the prior its association was already judged by.
-            if self.config.recheck and self.config.association != "oracle" and obs.size >= 2:
+            result = self.updated(self.x, self.P, obs, landmarks, map_cost=True, start=start)  # one stacked (iterated) update
+            # A lone pair left out leaves the prior its association was already judged by; after a
+            # slip, the widened prior leaves each pair's partners too little to confirm it by (a
+            # few pairs pin the pose only together), and dropping them would leave the filter
+            # metres wide where the beam's hypothesis went on from the slip's explanation.
+            if self.config.recheck and self.config.association != "oracle" and obs.size >= 2 and not slipped:
                 keep = self._recheck(self.obs_of_pose[k], obs, landmarks, self.P, result.state)
                 if not keep.all():
                     obs, landmarks = obs[keep], landmarks[keep]
@@ -492,11 +502,14 @@ class _Localizer:
     def updated(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
         at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
+        start: Optional[np.ndarray] = None,
     ) -> ekf.UpdateResult:
         """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
         predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them. With
         ``for_association``, the pairs weigh by the noise association judges them by
-        (``association_cov``): the scratch filters that decide an association, not the estimate."""
+        (``association_cov``): the scratch filters that decide an association, not the estimate.
+        ``start``: a state near the posterior, when the caller knows one; the iterations also run
+        from it, and the posterior with the lower MAP cost is kept."""
         z = self.dataset.obs_uvd[obs].reshape(-1)
         if for_association:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
@@ -524,18 +537,25 @@ class _Localizer:
         options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
                        at_prior=prior, R_inverse=R_inverse)
         result = ekf.update(x, P, z, R, measure, map_cost=map_cost, **options)
-        if self.config.iterations < 2 or result.nis <= self._nis_bound(z.size):
+        if self.config.iterations < 2:
             return result
-        # An innovation this unlikely under the prior's linearization: with a wide prior (after a
-        # slip, or odometry much noisier than the landmarks' spacing) Gauss-Newton in (u, v,
-        # depth) from the prior can stall far from the MAP estimate. Iterate also from one
-        # update in camera-frame points, where the model is nearly linear in the position, and
-        # keep whichever posterior the MAP cost prefers.
-        alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=self._point_step(x, P, obs, groups, prior), **options)
-        plain = result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference, R_inverse)
-        if not alternative.map_cost < plain:
+        starts = [] if start is None else [start]
+        if result.nis > self._nis_bound(z.size):
+            # An innovation this unlikely under the prior's linearization: with a wide prior (after
+            # a slip, or odometry much noisier than the landmarks' spacing) Gauss-Newton in (u, v,
+            # depth) from the prior can stall far from the MAP estimate. Iterate also from one
+            # update in camera-frame points, where the model is nearly linear in the position.
+            starts.append(self._point_step(x, P, obs, groups, prior))
+        if not starts:
             return result
-        return alternative if map_cost else replace(alternative, map_cost=float("nan"))
+        best, lowest = result, result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference, R_inverse)
+        for state in starts:  # keep whichever posterior the MAP cost prefers
+            alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
+            if alternative.map_cost < lowest:
+                best, lowest = alternative, alternative.map_cost
+        if best is result or map_cost:
+            return best
+        return replace(best, map_cost=float("nan"))
 
     def _point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """x after one EKF update with the pairs' measurements as camera-frame points."""

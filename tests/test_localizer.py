@@ -281,6 +281,39 @@ def test_the_slip_search_runs_where_a_pose_explains_less_than_this_data_usually_
     assert not search._unusually_unexplained(3, 4)     # one pose of four says nothing
 
 
+def test_a_seeded_explanation_crowded_out_of_a_full_beam_takes_its_last_place():
+    from camloc.beam import BeamSearch, BeamSettings, _Hypothesis
+    from camloc.localizer import _Localizer
+
+    search = BeamSearch(_Localizer(simulate(SimulationConfig(poses=5), seed=0), LocalizerConfig()), BeamSettings(beam_width=4))
+    P = 0.01 * np.eye(6)
+    copies = [_Hypothesis(np.r_[0.1 * i, 0.0, 0.0, 0.0, 0.0, 0.0], P, 10.0 + i, 0) for i in range(4)]  # one wrong alignment, four ways
+    far = _Hypothesis(np.r_[0.0, 2.0, 0.0, 0.0, 0.0, 0.0], P, 19.0, 0, slipped=True)  # the slip's explanation, 9 costlier
+    kept = search._with_a_seeded_one(list(copies), [far])
+    assert kept == copies[:3] + [far]  # sorted by cost, the best unchanged
+    assert search._with_a_seeded_one(list(copies), [far, copies[3]]) == copies  # a seeded one is kept already
+    assert search._with_a_seeded_one(copies[:3], [far]) == copies[:3]  # room was left: it was pruned on its own
+    too_costly = _Hypothesis(far.x, P, 10.0 + BeamSettings.beam_delta + 0.1, 0)
+    assert search._with_a_seeded_one(list(copies), [too_costly]) == copies
+    a_copy = _Hypothesis(copies[1].x + 1e-4, P, 19.0, 0)
+    assert search._with_a_seeded_one(list(copies), [a_copy]) == copies
+
+
+def test_beam_recovers_where_a_wrong_alignment_s_copies_crowded_out_the_slip_s_explanation():
+    # 3x odometry noise, one to five observations a pose: from pose 245 the beam locks onto a
+    # wrong alignment (an odometry drift of a metre in five poses the oracle also half-follows).
+    # At pose 262 the slip's search explains all three observations with a pose 0.19 m from the
+    # truth, 7 costlier than leaving two unassigned under the wrong one, but sixteen copies of
+    # that one filled the beam. Kept in the beam, it explains pose 263 and wins (RMSE 3.0 m
+    # before, 0.50 now); the replay takes the slip's pairs without re-checking them under the
+    # widened prior, which left its filter metres wide while the beam went on.
+    dataset = simulate(SimulationConfig(poses=300, odometry_sigma_scale=3.0), seed=502)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    result = localize(dataset, parallel=False)
+    assert 1262 in result.summary["slip_poses"]
+    assert position_rmse(result, dataset) <= 1.25 * position_rmse(oracle, dataset)
+
+
 def test_a_slip_among_few_cluttered_observations_is_found_by_the_poses_after_it():
     # 40% clutter, six observations a pose: one pose left unexplained is no surprise, three in a
     # row are. Judged a pose at a time, the slip's search never ran here (RMSE 0.44 m).
@@ -417,6 +450,28 @@ def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, 
     assert restarted.map_cost <= plain.map_cost + 1e-9
     if offset == (0.6, -0.6, 0.0):
         assert np.linalg.norm(plain.state[:3] - truth[:3]) > 0.3
+
+
+def test_an_update_given_a_start_keeps_the_posterior_the_map_cost_prefers(monkeypatch):
+    # the replay's update at a slip pose, started from the beam's seed pair
+    from camloc.localizer import _Localizer
+
+    dataset = simulate(SimulationConfig(poses=40, dense=True), seed=3)
+    localizer = _Localizer(dataset, LocalizerConfig(association="oracle"))
+    k = int(np.argmax(np.bincount(dataset.obs_pose_index, minlength=dataset.num_poses)))
+    obs = localizer.obs_of_pose[k]
+    landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
+    truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+    prior = truth + np.r_[0.6, -0.6, 0.0, 0.0, 0.0, 0.0]
+    P = np.diag([0.3**2] * 3 + [0.05**2] * 3)
+    monkeypatch.setattr(localizer, "_nis_bound", lambda dof: np.inf)  # no restart of its own
+    plain = localizer.updated(prior, P, obs, landmarks, map_cost=True)
+    started = localizer.updated(prior, P, obs, landmarks, map_cost=True, start=truth + np.r_[0.05, 0.0, 0.0, 0.0, 0.0, 0.0])
+    misled = localizer.updated(prior, P, obs, landmarks, map_cost=True, start=truth + np.r_[3.0, 3.0, 0.0, 0.0, 0.0, 0.0])
+    assert np.linalg.norm(plain.state[:3] - truth[:3]) > 0.3
+    assert np.linalg.norm(started.state[:3] - truth[:3]) < 0.03 and started.map_cost < plain.map_cost
+    assert misled.map_cost <= plain.map_cost  # a start never leaves a posterior the MAP cost likes less
+    assert started.map_cost < misled.map_cost
 
 
 def test_beam_keeps_up_with_the_oracle_when_odometry_noise_rivals_the_landmark_spacing():
