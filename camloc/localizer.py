@@ -293,8 +293,9 @@ class _Localizer:
         if slipped:
             self.P = self.P * self.config.slip_inflation  # as the beam did when it chose these pairs
             if obs.size:
-                # the beam explained the pose from its seed pair, listed first: one right pair pins
-                # the pose, where Gauss-Newton from the slip's wide prior can settle metres away
+                # the beam explained the pose from its seed pair, listed first (or, where no seed
+                # held, from the pair it took first): one right pair pins the pose, where
+                # Gauss-Newton from the slip's wide prior can settle metres away
                 seed_obs, seed_landmark = self.beam_pairs[k][:1, 0], self.beam_pairs[k][:1, 1]
                 start = self.updated(self.x, self.P, seed_obs, seed_landmark).state
         if obs.size:

@@ -429,10 +429,9 @@ def test_beam_shares_a_budget_of_partial_explanations_where_every_observation_is
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
 
 
-@pytest.mark.parametrize("offset", [(0.6, -0.6, 0.0), (0.3, 0.0, 0.0), (-0.6, 0.3, 0.2)])
-def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, offset):
-    # 43 right pairs pin the pose to a centimetre; from a prior 0.85 m off, Gauss-Newton in (u, v,
-    # depth) stalls half a metre away, and the update starting in camera-frame points does not.
+def _busiest_pose_of_a_dense_world():
+    """(localizer, the pose's observations, their true landmarks, the true state) at the pose with
+    the most observations (43 right pairs) of a 40-pose dense world."""
     from camloc.localizer import _Localizer
 
     dataset = simulate(SimulationConfig(poses=40, dense=True), seed=3)
@@ -441,6 +440,14 @@ def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, 
     obs = localizer.obs_of_pose[k]
     landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
     truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+    return localizer, obs, landmarks, truth
+
+
+@pytest.mark.parametrize("offset", [(0.6, -0.6, 0.0), (0.3, 0.0, 0.0), (-0.6, 0.3, 0.2)])
+def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, offset):
+    # 43 right pairs pin the pose to a centimetre; from a prior 0.85 m off, Gauss-Newton in (u, v,
+    # depth) stalls half a metre away, and the update starting in camera-frame points does not.
+    localizer, obs, landmarks, truth = _busiest_pose_of_a_dense_world()
     prior = truth + np.r_[offset, 0.0, 0.0, 0.0]
     P = np.diag([0.3**2] * 3 + [0.05**2] * 3)
     restarted = localizer.updated(prior, P, obs, landmarks, map_cost=True)
@@ -454,14 +461,7 @@ def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, 
 
 def test_an_update_given_a_start_keeps_the_posterior_the_map_cost_prefers(monkeypatch):
     # the replay's update at a slip pose, started from the beam's seed pair
-    from camloc.localizer import _Localizer
-
-    dataset = simulate(SimulationConfig(poses=40, dense=True), seed=3)
-    localizer = _Localizer(dataset, LocalizerConfig(association="oracle"))
-    k = int(np.argmax(np.bincount(dataset.obs_pose_index, minlength=dataset.num_poses)))
-    obs = localizer.obs_of_pose[k]
-    landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
-    truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+    localizer, obs, landmarks, truth = _busiest_pose_of_a_dense_world()
     prior = truth + np.r_[0.6, -0.6, 0.0, 0.0, 0.0, 0.0]
     P = np.diag([0.3**2] * 3 + [0.05**2] * 3)
     monkeypatch.setattr(localizer, "_nis_bound", lambda dof: np.inf)  # no restart of its own
