@@ -21,9 +21,17 @@ def adjugate(a, b, c, d, e, f):
 
 
 def inverse(S: np.ndarray) -> np.ndarray:
-    """S^-1 (..., 3, 3) of symmetric S (..., 3, 3), exactly symmetric; reads only the upper triangle."""
-    *upper, det = adjugate(*(S[..., i, j] for i, j in UPPER))
+    """S^-1 (..., 3, 3) of symmetric S (..., 3, 3), exactly symmetric; reads only the upper triangle.
+
+    Each matrix is scaled by its largest entry first: the determinant is a cube of the entries,
+    which overflows from about 1e103 and underflows below 1e-103 where the inverse itself is
+    representable."""
+    components = [S[..., i, j] for i, j in UPPER]
+    scale = np.max(np.abs(np.stack(components)), axis=0)
+    scale = np.where(scale > 0.0, scale, 1.0)  # a zero matrix stays singular: inf / nan, as before
+    *upper, det = adjugate(*(c / scale for c in components))
     out = np.empty(S.shape, dtype=np.result_type(S, np.float64))
-    for (i, j), value in zip(UPPER, upper):
-        out[..., i, j] = out[..., j, i] = value / det
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for (i, j), value in zip(UPPER, upper):
+            out[..., i, j] = out[..., j, i] = value / det / scale
     return out

@@ -24,3 +24,16 @@ def test_inverse_matches_lapack_and_is_exactly_symmetric(rng, scales):
 def test_inverse_keeps_the_stack_s_shape(rng):
     S = np.broadcast_to(np.diag([2.0, 4.0, 8.0]), (2, 5, 3, 3))
     np.testing.assert_array_equal(sym3.inverse(S), np.broadcast_to(np.diag([0.5, 0.25, 0.125]), (2, 5, 3, 3)))
+
+
+@pytest.mark.parametrize("scale", [1e300, 1e150, 1e-150, 1e-300])
+def test_inverse_of_matrices_whose_determinant_leaves_the_float_range(rng, scale):
+    # the determinant of 1e300 * S is 1e900: unscaled, the inverse came out as zeros (or, for
+    # tiny matrices, infinities) where 1e-300 * S^-1 is a representable answer
+    B = rng.normal(size=(20, 3, 3))
+    S = B @ np.swapaxes(B, 1, 2) + np.eye(3)
+    np.testing.assert_allclose(sym3.inverse(scale * S) * scale, np.linalg.inv(S), rtol=1e-9)
+
+
+def test_inverse_of_a_singular_matrix_is_not_finite():
+    assert not np.all(np.isfinite(sym3.inverse(np.zeros((1, 3, 3)))))
