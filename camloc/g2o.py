@@ -81,6 +81,10 @@ _QUAT_ZERO_TOL = 1e-9
 # squared, deep inside the localizer.
 MAX_COORDINATE = 1e9
 
+# Variances beyond the square of that bound say a measurement carries no information at all; the
+# filter's products of such numbers overflow.
+MAX_VARIANCE = MAX_COORDINATE**2
+
 
 def _upper_names(dim: int) -> tuple[str, ...]:
     rows, cols = np.triu_indices(dim)
@@ -181,7 +185,7 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry)
     _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[TAG_POSE].lines)
     truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages)
-    observations = _build_observations(path, tables[TAG_OBSERVATION], pose_ids, cameras)
+    observations = _build_observations(path, tables[TAG_OBSERVATION], pose_ids, cameras, messages)
 
     for message in messages:
         warnings.warn(f"{path}: {message}", G2oWarning, stacklevel=2)
@@ -199,12 +203,12 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         odom_translation=odometry["translation"][edge_order],
         odom_quat_xyzw=odometry["quat"][edge_order],
         odom_info=odom_info,
-        odom_cov=odometry_cov_from_info(odom_info),
+        odom_cov=odometry["cov"][edge_order],
         obs_pose_index=observations["pose_index"],
         obs_camera=observations["camera"],
         obs_uvd=observations["uvd"],
         obs_info=observations["info"],
-        obs_cov=observation_cov_from_info(observations["info"]),
+        obs_cov=observations["cov"],
         obs_true_landmark=observations["landmark"],
         tag_counts={tag: len(lines.numbers) for tag, lines in groups.items()},
         warnings=tuple(messages),
@@ -234,6 +238,8 @@ def _read_text(path: Path) -> str:
 def _group_lines(path: Path, text: str) -> dict[str, _Lines]:
     """Records grouped by tag, in order of first appearance; blank and ``#`` lines dropped."""
     groups: dict[str, _Lines] = {tag: _Lines() for tag in _LAYOUTS}
+    if "\n" not in text:  # classic Mac OS line ends, a carriage return alone
+        text = text.replace("\r", "\n")
     # split("\n") rather than splitlines(): the latter also breaks at \v, \f, \x1c... and would
     # make line numbers disagree with an editor's.
     for number, line in enumerate(text.split("\n"), start=1):
@@ -380,7 +386,12 @@ def _check_unique(path: Path, ids: np.ndarray, lines: np.ndarray, what: str) -> 
 def _unit_quaternions(path: Path, tag: str, quat: np.ndarray, lines: np.ndarray,
                       messages: list[str]) -> np.ndarray:
     """Quaternions (n, 4) normalized where needed; a zero one is a DatasetError."""
-    norm = np.linalg.norm(quat, axis=1)
+    # the norm of components near the float range (1e155 and up) overflows: scale by the largest first
+    largest = np.max(np.abs(quat), axis=1)
+    scaled = quat / np.where(largest > 0.0, largest, 1.0)[:, None]
+    scaled_norm = np.linalg.norm(scaled, axis=1)
+    with np.errstate(over="ignore"):
+        norm = largest * scaled_norm
     zero = np.flatnonzero(norm < _QUAT_ZERO_TOL)
     if zero.size:
         raise DatasetError(path, int(lines[zero[0]]),
@@ -392,7 +403,7 @@ def _unit_quaternions(path: Path, tag: str, quat: np.ndarray, lines: np.ndarray,
                         f"(largest |norm - 1| = {deviation.max():.3g}), normalized")
     fix = deviation > _QUAT_EXACT_TOL
     quat = quat.copy()
-    quat[fix] /= norm[fix, None]
+    quat[fix] = scaled[fix] / scaled_norm[fix, None]
     return quat
 
 
@@ -422,6 +433,35 @@ def _check_positive_definite(path: Path, tag: str, info: np.ndarray, lines: np.n
 
 
 # --- one function per tag -------------------------------------------------------------------
+
+
+def _covariances(path: Path, tag: str, info: np.ndarray, lines: np.ndarray, from_info) -> np.ndarray:
+    """``from_info(info)``, refusing the first covariance that is not positive definite in floating
+    point or whose variances exceed ``MAX_VARIANCE``: an information matrix near either end of the
+    float range, which the filter's products would overflow."""
+    with np.errstate(over="ignore", under="ignore", divide="ignore", invalid="ignore"):
+        cov = from_info(info)
+    usable = np.all(np.isfinite(cov), axis=(1, 2)) & np.all(np.diagonal(cov, axis1=1, axis2=2) <= MAX_VARIANCE, axis=1)
+    bad = np.flatnonzero(~usable)
+    if bad.size == 0:
+        try:
+            np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            bad = np.array([row for row, matrix in enumerate(cov) if not _has_cholesky(matrix)])
+    if bad.size:
+        row = int(bad[0])
+        diagonal = " ".join(f"{value:.3g}" for value in np.diagonal(info[row]))
+        raise DatasetError(path, int(lines[row]), f"{tag}: expected an information matrix whose inverse is positive definite "
+                                                  f"with variances up to {MAX_VARIANCE:.0e}, found information diagonal {diagonal}")
+    return cov
+
+
+def _has_cholesky(matrix: np.ndarray) -> bool:
+    try:
+        np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, Camera]:
@@ -466,12 +506,17 @@ def _build_odometry(path: Path, table: _Table, messages: list[str]) -> dict[str,
         "translation": table.values[:, 0:3].copy(),
         "quat": _unit_quaternions(path, TAG_ODOMETRY, table.values[:, 3:7], table.lines, messages),
         "info": info,
+        "cov": _covariances(path, TAG_ODOMETRY, info, table.lines, odometry_cov_from_info),
     }
 
 
 def _build_observations(path: Path, table: _Table, pose_ids: np.ndarray,
-                        cameras: dict[int, Camera]) -> dict[str, np.ndarray]:
+                        cameras: dict[int, Camera], messages: list[str]) -> dict[str, np.ndarray]:
     """Observations in file order, their pose as an index into the chain ``pose_ids``."""
+    behind = np.flatnonzero(table.values[:, 2] <= 0.0)
+    if behind.size:  # kept, as clutter is: no landmark in front of the camera fits them
+        messages.append(f"line {table.lines[behind[0]]}: {behind.size} {TAG_OBSERVATION} record(s) with depth <= 0, "
+                        "where only landmarks in front of the camera (depth > 0) can be seen; no landmark will fit them")
     pose, landmark, camera = table.ids[:, 0], table.ids[:, 1].copy(), table.ids[:, 2].copy()
     sorter = np.argsort(pose_ids)
     slot = np.minimum(np.searchsorted(pose_ids, pose, sorter=sorter), pose_ids.size - 1)
@@ -492,7 +537,8 @@ def _build_observations(path: Path, table: _Table, pose_ids: np.ndarray,
     info = _info_from_upper(table.values[:, 3:9], 3)
     _check_positive_definite(path, TAG_OBSERVATION, info, table.lines)
     return {"pose_index": pose_index.astype(np.int64), "camera": camera, "landmark": landmark,
-            "uvd": table.values[:, 0:3].copy(), "info": info}
+            "uvd": table.values[:, 0:3].copy(), "info": info,
+            "cov": _covariances(path, TAG_OBSERVATION, info, table.lines, observation_cov_from_info)}
 
 
 # --- the pose chain -------------------------------------------------------------------------

@@ -138,6 +138,26 @@ def test_comments_blank_lines_tabs_crlf_and_leading_blanks_are_accepted(tmp_path
         np.testing.assert_array_equal(getattr(dataset, name), getattr(clean, name))
 
 
+def test_carriage_returns_alone_end_lines_as_classic_mac_os_wrote_them(tmp_path):
+    path = tmp_path / "mac.g2o"
+    path.write_bytes(("\r".join(VALID) + "\r").encode())
+    dataset = read_quietly(path)
+    np.testing.assert_array_equal(dataset.obs_uvd, read_quietly(write_file(tmp_path, VALID)).obs_uvd)
+    path.write_bytes("\r".join(with_line(4, "VERTEX_TRACKXYZ 2 4.0 5.0")).encode())
+    with pytest.raises(DatasetError) as caught:
+        read_quietly(path)
+    assert caught.value.line == 4  # the line numbers an editor shows
+
+
+def test_observations_behind_the_camera_are_kept_with_one_warning(tmp_path):
+    lines = with_lines({9: f"EDGE_PROJECT_DEPTH 11 1 0 0.5 0.5 0 {INFO3}", 11: f"EDGE_PROJECT_DEPTH 12 2 0 0.4 0.6 -2.0 {INFO3}"})
+    with pytest.warns(G2oWarning, match="depth <= 0"):
+        dataset = read_g2o(write_file(tmp_path, lines))
+    assert dataset.num_observations == 3
+    (warning,) = dataset.warnings
+    assert "line 9: 2 EDGE_PROJECT_DEPTH record(s)" in warning
+
+
 def test_byte_order_mark_is_ignored(tmp_path):
     path = tmp_path / "bom.g2o"
     path.write_bytes(b"\xef\xbb\xbf" + ("\n".join(VALID) + "\n").encode())
@@ -178,6 +198,13 @@ BAD_LINES = [
      8, ["positive definite", "-100"]),
     ("observation-information-singular", with_line(11, "EDGE_PROJECT_DEPTH 12 2 0 0.4 0.6 2.0 1000 1000 0 1000 0 1000"),
      11, ["positive definite", "EDGE_PROJECT_DEPTH"]),
+    ("observation-information-too-small-to-invert", with_line(11, "EDGE_PROJECT_DEPTH 12 2 0 0.4 0.6 2.0 1e-300 0 0 1e-300 0 1e-300"),
+     11, ["EDGE_PROJECT_DEPTH", "variances up to 1e+18", "1e-300"]),
+    ("observation-information-denormal", with_line(9, "EDGE_PROJECT_DEPTH 11 1 0 0.5 0.5 1.0 1e-320 0 0 1e-320 0 1e-320"),
+     9, ["EDGE_PROJECT_DEPTH", "variances up to"]),
+    ("odometry-information-below-the-variance-bound",
+     with_line(10, "EDGE_SE3:QUAT 11 12 0.9 0 0 0 0 0 1 1e-20 0 0 0 0 0 100 0 0 0 0 100 0 0 0 10000 0 0 10000 0 10000"),
+     10, ["EDGE_SE3:QUAT", "variances up to", "1e-20"]),
     ("duplicate-camera", VALID[:2] + ["PARAMS_CAMERACALIB 0 0 0 0 0 0 0 1 1 1 0.5 0.5"] + VALID[2:], 3,
      ["duplicate camera id 0", "line 2"]),
     ("duplicate-landmark", with_line(4, "VERTEX_TRACKXYZ 1 4.0 5.0 6.0"), 4, ["duplicate landmark id 1", "line 3"]),
@@ -294,6 +321,23 @@ def test_non_unit_quaternions_are_normalized_with_one_warning_per_tag(tmp_path):
     np.testing.assert_allclose(dataset.odom_quat_xyzw[0], [0, 0, 0, 1])
 
 
+def test_quaternions_near_the_float_range_are_normalized_not_zeroed(tmp_path):
+    # the norm of components of 1e200 overflows to inf, and dividing by it gave a zero quaternion
+    lines = with_lines({2: "PARAMS_CAMERACALIB 0 0 0 0.3 1e200 -1e200 1e200 -1e200 1 1 0.5 0.5",
+                        6: "VERTEX_SE3:QUAT 11 1 0 0 0 0 1e300 1e300",
+                        8: f"EDGE_SE3:QUAT 10 11 1.1 0 0 0 0 0 1e250 {INFO6}"})
+    dataset = read_quietly(write_file(tmp_path, lines))
+    np.testing.assert_allclose(dataset.cameras[0].quat_xyzw, [0.5, -0.5, 0.5, -0.5])
+    np.testing.assert_allclose(dataset.truth_quat_xyzw[1], [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    np.testing.assert_allclose(dataset.odom_quat_xyzw[0], [0, 0, 0, 1])
+
+
+def test_information_near_the_float_range_has_a_representable_covariance(tmp_path):
+    # the closed-form 3x3 inverse's determinant, 1e900, overflowed and gave a zero covariance
+    dataset = read_quietly(write_file(tmp_path, with_line(9, "EDGE_PROJECT_DEPTH 11 1 0 0.5 0.5 1.0 1e300 0 0 1e300 0 1e300")))
+    np.testing.assert_allclose(dataset.obs_cov[0], 1e-300 * np.eye(3))
+
+
 def test_quaternions_rounded_in_the_file_are_normalized_silently(tmp_path):
     lines = with_line(6, "VERTEX_SE3:QUAT 11 1 0 0 0 0 -0.707107 0.707107")  # |q| - 1 = 3e-7
     with warnings.catch_warnings():
@@ -359,7 +403,7 @@ def make_dataset(rng, *, num_poses=6, num_obs=15, with_truth=True, sorted_obs=Tr
         odom_cov=odometry_cov_from_info(odom_info),
         obs_pose_index=pose_index,
         obs_camera=rng.choice([3, 5], num_obs),
-        obs_uvd=rng.uniform(-0.5, 1.5, (num_obs, 3)),
+        obs_uvd=np.column_stack([rng.uniform(-0.5, 1.5, (num_obs, 2)), rng.uniform(0.3, 2.0, num_obs)]),  # in front of the camera
         obs_info=obs_info,
         obs_cov=observation_cov_from_info(obs_info),
         obs_true_landmark=rng.choice([4, 8, 15, 16, 23, 42, 99], num_obs),
