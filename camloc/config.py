@@ -34,9 +34,19 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise ConfigError(f"{path}: not valid TOML ({error})") from None
     values = document.get("localizer", document)
+    if not isinstance(values, dict):
+        raise ConfigError(f"{path}: localizer must be a table of options ([localizer]), found {type(values).__name__} {values!r}")
+    elsewhere = sorted(set(document) - {"localizer"}) if values is not document else []
+    if elsewhere:
+        raise ConfigError(f"{path}: options both at top level ({', '.join(elsewhere)}) and in [localizer]; "
+                          "expected them in one place")
     unknown = sorted(set(values) - set(FIELD_NAMES))
     if unknown:
         raise ConfigError(f"{path}: unknown option(s) {', '.join(unknown)}; expected some of {', '.join(FIELD_NAMES)}")
+    for name, value in values.items():
+        reason = _type_error(name, value)
+        if reason is not None:
+            raise ConfigError(f"{path}: {reason}")
     return dict(values)
 
 
@@ -57,11 +67,22 @@ def make_config(
 
 
 def _check_types(config: LocalizerConfig) -> None:
-    defaults = LocalizerConfig()
     for name in FIELD_NAMES:
-        value, default = getattr(config, name), getattr(defaults, name)
-        expected = type(default) if default is not None else (int, float)
-        if isinstance(default, float):
-            expected = (int, float)
-        if value is not None and (not isinstance(value, expected) or (isinstance(value, bool) and not isinstance(default, bool))):
-            raise ConfigError(f"option {name} must be of type {getattr(expected, '__name__', 'number')}, got {value!r}")
+        reason = _type_error(name, getattr(config, name))
+        if reason is not None:
+            raise ConfigError(reason)
+
+
+def _type_error(name: str, value: Any) -> Optional[str]:
+    """Why ``value`` cannot be option ``name`` (its default's type; a number where the default is a
+    float or None), or None when it can."""
+    default = getattr(_DEFAULTS, name)
+    expected = type(default) if default is not None else (int, float)
+    if isinstance(default, float):
+        expected = (int, float)
+    if value is not None and (not isinstance(value, expected) or (isinstance(value, bool) and not isinstance(default, bool))):
+        return f"option {name} must be of type {getattr(expected, '__name__', 'number')}, got {value!r}"
+    return None
+
+
+_DEFAULTS = LocalizerConfig()

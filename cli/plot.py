@@ -76,6 +76,6 @@ def plot(
         if not show:
             plt.close(fig)
     for path in written:
-        console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+        console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
     if show:
         plt.show()

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
 from camloc.cli.common import console, err_console, handles_errors
 
@@ -185,4 +186,4 @@ def run(
 
         console.print(render_run_summary(result.summary, written))
         for warning in result.summary.get("warnings", []):
-            err_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+            err_console.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)

@@ -30,7 +30,7 @@ def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Grou
     metrics = summary.get("metrics", {})
     counts = summary["counts"]
     timing = summary["timing"]
-    table = Table(title=f"camloc run: {Path(str(summary['dataset'])).name}", title_justify="left")
+    table = Table(title=f"camloc run: {escape(Path(str(summary['dataset'])).name)}", title_justify="left")
     table.add_column("", style="bold")
     label = escape
     table.add_column("EKF", justify="right")

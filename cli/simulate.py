@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
 from camloc.cli.common import console, handles_errors
 
@@ -120,7 +121,7 @@ def simulate(
         console.print_json(json.dumps(summary))
     else:
         console.print(
-            f"[bold]{output}[/]: {summary['poses']} poses, {summary['landmarks']} landmarks, "
+            f"[bold]{escape(str(output))}[/]: {summary['poses']} poses, {summary['landmarks']} landmarks, "
             f"{summary['observations']} observations ({summary['clutter']} clutter, "
             f"{summary['outliers']} outliers), {summary['cameras']} camera(s) from {summary['source']}",
             highlight=False, soft_wrap=True,

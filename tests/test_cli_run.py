@@ -86,6 +86,41 @@ def test_bad_config_file_is_one_line(tmp_path, small_dataset):
     assert "warp_speed" in result.output and "Traceback" not in result.output
 
 
+@pytest.mark.parametrize("text, words", [
+    ("localizer = 3\n", ["localizer must be a table", "int 3"]),
+    ("localizer = [1, 2]\n", ["localizer must be a table", "list"]),
+    ("iterations = 2\n[localizer]\ngate_probability = 0.9\n", ["both at top level (iterations) and in [localizer]"]),
+    ('iterations = "three"\n', ["option iterations must be of type int", "'three'"]),
+])
+def test_a_config_file_of_the_wrong_shape_is_named_in_one_line(tmp_path, small_dataset, text, words):
+    config = tmp_path / "options[1].toml"  # brackets, which the terminal's markup must not eat
+    config.write_text(text)
+    out = tmp_path / "never"
+    result = invoke("run", small_dataset, "-o", out, "--config", config)
+    assert result.exit_code == 2
+    assert f"{config}: " in result.output and "Traceback" not in result.output
+    for word in words:
+        assert word in result.output
+    assert not out.exists()
+
+
+def test_a_file_whose_information_the_filter_cannot_use_is_one_line_naming_a_pose(tmp_path):
+    # information 1e300 on one observation: a covariance of 1e-300 the reader represents, and
+    # the filter's products underflow; the beam once raised a bare ValueError here
+    source = tmp_path / "source.g2o"
+    write_g2o(simulate(SimulationConfig(poses=10), seed=0), source)
+    lines = source.read_text().splitlines()
+    index = next(i for i, line in enumerate(lines) if line.startswith("EDGE_PROJECT_DEPTH"))
+    fields = lines[index].split()
+    lines[index] = " ".join(fields[:7] + ["1e300", "0", "0", "1e300", "0", "1e300"])
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("\n".join(lines) + "\n")
+    result = invoke("run", bad, "-o", tmp_path / "never")
+    assert result.exit_code == 2
+    assert "error: pose " in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "never").exists()
+
+
 def test_malformed_dataset_is_one_line_with_path_and_line(tmp_path, small_dataset):
     lines = small_dataset.read_text().splitlines()
     index = next(i for i, line in enumerate(lines) if line.startswith("EDGE_SE3:QUAT"))
