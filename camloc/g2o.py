@@ -554,9 +554,10 @@ def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometr
     root = roots.pop()
     rows = np.flatnonzero(vertex_ids == root)
     if rows.size == 0:
-        raise DatasetError(path, int(lines[0]),
-                           f"expected a {TAG_POSE} for pose {root}, where the odometry chain starts (the known "
-                           f"start pose), found vertices of other poses only")
+        edge_line = int(odometry["lines"][np.flatnonzero(odometry["from"] == root)[0]])
+        raise DatasetError(path, edge_line,
+                           f"{TAG_ODOMETRY} from pose {root} starts the odometry chain: expected a {TAG_POSE} for "
+                           f"pose {root} (the known start pose), found vertices of other poses only")
     return int(rows[0])
 
 

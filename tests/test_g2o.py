@@ -121,7 +121,7 @@ def test_the_chain_starts_at_its_root_wherever_its_vertex_is_in_the_file(tmp_pat
 
 
 def test_a_chain_whose_first_pose_has_no_vertex_is_refused(tmp_path):
-    with pytest.raises(DatasetError, match=r"data\.g2o:5: expected a VERTEX_SE3:QUAT for pose 10, where the odometry chain starts"):
+    with pytest.raises(DatasetError, match=r"data\.g2o:7: EDGE_SE3:QUAT from pose 10 starts the odometry chain: expected a VERTEX_SE3:QUAT for pose 10"):
         read_g2o(write_file(tmp_path, with_line(5, None)))
 
 
