@@ -79,6 +79,9 @@ class BeamSettings:
     slip_candidates : how many of its individually cheapest pairs the slip hypothesis ranks as
         first pairs (by the cost of the explanation each implies).
     slip_seeds : how many of the best ranked it explains in full.
+    seed_explanations : how many of each seed's cheapest explanations it keeps. One pose may not
+        tell the right explanation from one that pairs a clutter detection the right one leaves
+        unassigned (a few cost units apart); the poses after it do, if both are kept.
     partial_budget : most partial explanations of a pose kept across all the beam's hypotheses,
         past each one's own best (``BeamSearch._explain_all``).
     """
@@ -92,6 +95,7 @@ class BeamSettings:
     slip_cost: float = 10.0
     slip_candidates: int = 256
     slip_seeds: int = 8
+    seed_explanations: int = 2
     partial_budget: int = 64
 
 
@@ -274,6 +278,8 @@ class BeamSearch:
         if obs.size == 0 or self.ctx.tree is None:
             return beam
         children = self._explain_all(beam, obs)
+        if not children:  # every option's cost is NaN: a covariance that is not one
+            raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
         best = min(children, key=lambda c: c.cost)
         seeded: list[list[_Hypothesis]] = []
         if obs.size >= 3 and 2 * best.unassigned > obs.size:
@@ -339,7 +345,8 @@ class BeamSearch:
         pose looks cheapest (``association.seeded_explanation_costs``, among the
         ``slip_candidates`` individually cheapest pairs and the ``slip_candidates // 4`` with
         the largest crowds of pairs implying the same shift of the robot) are each tried as the
-        first, the hypothesis conditioned on it, and the rest explained as usual.
+        first, the hypothesis conditioned on it, and the rest explained as usual; each seed gives
+        its ``seed_explanations`` cheapest explanations.
         """
         # the seeds are looked for in all the view the wide prior allows, not only the mean's
         options = self._options(h, obs, widened_view=True)
@@ -367,7 +374,8 @@ class BeamSearch:
             i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]), for_association=True)
             seeded = _Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
-            children += [c for c in self._explain(seeded, np.delete(obs, i))[:1] if self._within_prior(c, h)]
+            explained = self._explain(seeded, np.delete(obs, i))[: self.settings.seed_explanations]
+            children += [c for c in explained if self._within_prior(c, h)]
         children = self._prune(children) if children else self._explain(h, obs)
         for child in children:
             child.slipped = slipped
