@@ -85,6 +85,11 @@ MAX_COORDINATE = 1e9
 # filter's products of such numbers overflow.
 MAX_VARIANCE = MAX_COORDINATE**2
 
+# Image coordinates and intrinsics, in pixels or normalized units, are bounded alike; focal lengths
+# below MIN_FOCAL_LENGTH (in magnitude) put a pixel's ray beyond the bound in front of the camera.
+MAX_IMAGE = 1e9
+MIN_FOCAL_LENGTH = 1e-9
+
 
 def _upper_names(dim: int) -> tuple[str, ...]:
     rows, cols = np.triu_indices(dim)
@@ -100,6 +105,7 @@ class _Layout:
     n_ids: int
     summary: str  # the layout in words, for error messages
     lengths: tuple[str, ...] = ()  # fields in metres, bounded by MAX_COORDINATE
+    image: tuple[str, ...] = ()  # fields in image units (pixels, or normalized), bounded by MAX_IMAGE
 
     @property
     def n_fields(self) -> int:
@@ -111,13 +117,13 @@ class _Layout:
 
 
 _CAMERA = _Layout(TAG_CAMERA, ("id", "tx", "ty", "tz", "qx", "qy", "qz", "qw", "fx", "fy", "cx", "cy"), 1,
-                  "id tx ty tz qx qy qz qw fx fy cx cy", ("tx", "ty", "tz"))
+                  "id tx ty tz qx qy qz qw fx fy cx cy", ("tx", "ty", "tz"), ("fx", "fy", "cx", "cy"))
 _LANDMARK = _Layout(TAG_LANDMARK, ("id", "x", "y", "z"), 1, "id x y z", ("x", "y", "z"))
 _POSE = _Layout(TAG_POSE, ("id", "x", "y", "z", "qx", "qy", "qz", "qw"), 1, "id x y z qx qy qz qw", ("x", "y", "z"))
 _ODOMETRY = _Layout(TAG_ODOMETRY, ("from", "to", "dx", "dy", "dz", "qx", "qy", "qz", "qw") + _upper_names(6), 2,
                     "from to dx dy dz qx qy qz qw + 21 information numbers", ("dx", "dy", "dz"))
 _OBSERVATION = _Layout(TAG_OBSERVATION, ("pose", "landmark", "camera", "u", "v", "depth") + _upper_names(3), 3,
-                       "pose landmark camera u v depth + 6 information numbers", ("depth",))
+                       "pose landmark camera u v depth + 6 information numbers", ("depth",), ("u", "v"))
 _LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, _OBSERVATION)}
 KNOWN_TAGS = tuple(_LAYOUTS)
 
@@ -301,8 +307,9 @@ def _parse_table(path: Path, layout: _Layout, lines: _Lines) -> _Table:
     table = _Table(records["ids"].reshape(n, layout.n_ids), records["values"].reshape(n, n_values),
                    np.asarray(lines.numbers, dtype=np.int64))
     value_names = layout.names[layout.n_ids :]
-    bounded = np.array([name in layout.lengths for name in value_names])
-    bad = ~np.isfinite(table.values) | (bounded & (np.abs(table.values) > MAX_COORDINATE))
+    bound = np.array([MAX_COORDINATE if name in layout.lengths else MAX_IMAGE if name in layout.image else np.inf
+                      for name in value_names])
+    bad = ~np.isfinite(table.values) | (np.abs(table.values) > bound)
     bad_rows, bad_cols = np.nonzero(bad)
     if bad_rows.size:
         row, col = bad_rows[0], bad_cols[0]
@@ -316,6 +323,8 @@ def _value_reason(layout: _Layout, name: str, value: float) -> str | None:
         return f"{layout.tag} field {name}: expected a finite number, found {value}"
     if name in layout.lengths and abs(value) > MAX_COORDINATE:
         return f"{layout.tag} field {name}: expected metres within +-{MAX_COORDINATE:.0e}, found {value:.6g}"
+    if name in layout.image and abs(value) > MAX_IMAGE:
+        return f"{layout.tag} field {name}: expected image units within +-{MAX_IMAGE:.0e}, found {value:.6g}"
     return None
 
 
@@ -467,11 +476,12 @@ def _has_cholesky(matrix: np.ndarray) -> bool:
 def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, Camera]:
     ids = table.ids[:, 0]
     _check_unique(path, ids, table.lines, "camera id")
-    flat = np.flatnonzero((table.values[:, 7] == 0.0) | (table.values[:, 8] == 0.0))
+    flat = np.flatnonzero((np.abs(table.values[:, 7]) < MIN_FOCAL_LENGTH) | (np.abs(table.values[:, 8]) < MIN_FOCAL_LENGTH))
     if flat.size:
         row = flat[0]
-        raise DatasetError(path, int(table.lines[row]), f"{TAG_CAMERA} {ids[row]}: expected non-zero focal lengths "
-                                                        f"fx fy, found fx={table.values[row, 7]:g} fy={table.values[row, 8]:g}")
+        raise DatasetError(path, int(table.lines[row]), f"{TAG_CAMERA} {ids[row]}: expected non-zero focal lengths fx fy "
+                                                        f"(at least {MIN_FOCAL_LENGTH:g} in magnitude), "
+                                                        f"found fx={table.values[row, 7]:g} fy={table.values[row, 8]:g}")
     quat = _unit_quaternions(path, TAG_CAMERA, table.values[:, 3:7], table.lines, messages)
     return {
         int(camera_id): Camera(id=int(camera_id), translation=values[0:3].copy(), quat_xyzw=q,
