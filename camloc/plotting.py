@@ -271,7 +271,10 @@ def plot_associations(ax: Axes, result: RunResult) -> Axes:
     """
     outcomes = metrics.association_outcomes(result.associations, result.map_landmark_ids)
     scores = metrics.association_scores(result.associations, result.map_landmark_ids)
-    index = np.searchsorted(result.pose_ids, result.associations.pose_id)
+    # Pose ids are in the odometry chain's order, not necessarily increasing: search them sorted.
+    # (load_run has checked that every association is of one of the run's poses.)
+    order = np.argsort(result.pose_ids)
+    index = order[np.searchsorted(result.pose_ids, result.associations.pose_id, sorter=order)]
     counts = {
         name: np.bincount(index[outcomes[name]], minlength=len(result.pose_ids))
         for name in ("correct", "wrong", "rejected")

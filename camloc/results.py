@@ -15,9 +15,15 @@ TUM files repeat the poses for other tools (evo) and are not read back. ``save_r
 folder in a hidden temporary sibling and renames it into place, so a failure leaves nothing
 behind and an existing run of the same name is replaced only by a complete one. The single-file
 helpers (``write_text_atomic``, ``write_bytes_atomic``, ``write_json_atomic``, ``atomic_write``)
-give the same whole-or-nothing guarantee to any other output; ``write_smoothed`` adds
+give the same whole-or-nothing guarantee to any other output, and ``write_files_atomic`` to a set
+of files (the figures of ``camloc plot``); ``write_smoothed`` adds
 ``smoothed.tum`` to an existing run folder that way, and ``load_run`` reads it back into
 ``RunResult.smoothed_xyz`` / ``smoothed_quat_xyzw`` when it is there.
+
+``load_run`` checks what it reads as it reads it, one function per file kind (``read_tum``,
+``read_associations``, ``_check_states``, ``_read_summary``): types, shapes, finite values, unit
+quaternions, covariances, and that the associations are of the run's poses. A damaged folder is
+then a ``DatasetError`` naming the file (and line), not a crash in the metrics or the plots.
 """
 
 from __future__ import annotations
@@ -29,17 +35,19 @@ import io
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import IO, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
 from camloc.errors import CamlocError, DatasetError
+from camloc.g2o import MAX_COORDINATE
 
 UNASSOCIATED = -1
 
@@ -176,6 +184,37 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
         handle.write(data)
 
 
+def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[bytes]], None]) -> None:
+    """Write every file of ``paths``, or none of them.
+
+    ``write(path, handle)`` fills each file's hidden temporary sibling (opened ``"wb"``); only
+    when every one of them is complete are they renamed into place, one after the other. On any
+    failure the temporaries are removed and every path keeps its old content (or stays absent).
+
+    Raises
+    ------
+    CamlocError : a temporary file cannot be created (e.g. the directory does not exist).
+    """
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for path in map(Path, paths):
+            try:
+                fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            except OSError as error:
+                raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
+            staged.append((Path(tmp_name), path))
+            with os.fdopen(fd, "wb") as handle:
+                os.chmod(tmp_name, 0o644)  # mkstemp makes 0600 files; a figure is meant to be shared
+                write(path, handle)
+        for tmp, path in staged:
+            os.replace(tmp, path)
+    except BaseException:
+        for tmp, _ in staged:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        raise
+
+
 def write_json_atomic(path: str | Path, obj: Any) -> None:
     """Write ``obj`` as pretty, strict JSON (see ``to_jsonable``) whole or not at all."""
     write_text_atomic(path, dumps_json(obj))
@@ -244,7 +283,9 @@ def write_tum(path: str | Path, stamps: np.ndarray, xyz: np.ndarray, quat_xyzw: 
 
 def _read_text(path: Path) -> str:
     try:
-        return path.read_text(encoding="utf-8")
+        # utf-8-sig drops a leading byte order mark, which editors on Windows add (the g2o reader
+        # accepts it too); otherwise it is UTF-8.
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DatasetError(path, None, "no such file") from None
     except IsADirectoryError:
@@ -269,7 +310,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Raises
     ------
     DatasetError : ``path:line`` of the first bad line (wrong field count, a field that is not a
-        finite number, a zero quaternion, a repeated timestamp), or when there is no pose.
+        finite number, a coordinate beyond ``MAX_COORDINATE`` metres, a zero quaternion, a
+        repeated timestamp), or when there is no pose.
     """
     path = Path(path)
     rows: list[list[float]] = []
@@ -282,16 +324,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             raise DatasetError(
                 path, number, f"expected 8 fields '{' '.join(TUM_FIELDS)}', found {len(fields)}"
             )
-        values = []
-        for name, text in zip(TUM_FIELDS, fields):
-            try:
-                value = float(text)
-            except ValueError:
-                raise DatasetError(path, number, f"expected a number for {name}, found {text!r}") from None
-            if not math.isfinite(value):
-                raise DatasetError(path, number, f"expected a finite number for {name}, found {text!r}")
-            values.append(value)
-        if math.hypot(*values[4:8]) < 1e-12:
+        values = [_tum_value(path, number, name, text) for name, text in zip(TUM_FIELDS, fields)]
+        if not any(values[4:8]):
             raise DatasetError(path, number, "expected a unit quaternion qx qy qz qw, found all zeros")
         if values[0] in line_of_stamp:
             raise DatasetError(
@@ -302,8 +336,42 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not rows:
         raise DatasetError(path, None, f"expected TUM lines '{' '.join(TUM_FIELDS)}', found none")
     table = np.array(rows)
-    quat = table[:, 4:8] / np.linalg.norm(table[:, 4:8], axis=1, keepdims=True)
-    return table[:, 0], table[:, 1:4], quat
+    return table[:, 0], table[:, 1:4], normalized_quaternions(table[:, 4:8])
+
+
+def _tum_value(path: Path, line: int, name: str, text: str) -> float:
+    """One field of a TUM line: a finite number, and for x, y, z within ``MAX_COORDINATE`` metres."""
+    value = _parse_float(text)
+    if value is None:
+        raise DatasetError(path, line, f"expected a number for {name}, found {text!r}")
+    if not math.isfinite(value):
+        raise DatasetError(path, line, f"expected a finite number for {name}, found {text!r}")
+    if name in ("x", "y", "z") and abs(value) > MAX_COORDINATE:
+        raise DatasetError(path, line, f"expected metres within +-{MAX_COORDINATE:.0e} for {name}, found {text}")
+    return value
+
+
+def _parse_float(text: str) -> float | None:
+    """``text`` as a float, or None. Stricter than ``float()``, which also takes ``1_000`` and
+    non-ASCII digits: no tool writes those, so they are more likely damage than data."""
+    if not text.isascii() or "_" in text:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        return None
+
+
+def normalized_quaternions(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4) scaled to unit norm; none may be all zeros.
+
+    Each is divided by its largest absolute component before its norm is taken: the squares of
+    components beyond about 1e154 overflow (the norm is inf and the quotient all zeros), and those
+    of components below about 1e-162 underflow.
+    """
+    quat_xyzw = np.asarray(quat_xyzw, dtype=float)
+    scaled = quat_xyzw / np.max(np.abs(quat_xyzw), axis=-1, keepdims=True)
+    return scaled / np.linalg.norm(scaled, axis=-1, keepdims=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,8 +408,14 @@ def read_associations(path: str | Path) -> Associations:
 
     Raises
     ------
-    DatasetError : ``path:line`` of a wrong header, a wrong field count or a bad number.
+    DatasetError : ``path:line`` of a wrong header, a wrong field count, an id that is not a 64-bit
+        integer or a value that is not a finite number.
     """
+    return _read_associations_with_lines(path)[0]
+
+
+def _read_associations_with_lines(path: str | Path) -> tuple[Associations, list[int]]:
+    """``read_associations`` and the file's line number of each row (blank lines are skipped)."""
     path = Path(path)
     lines = _read_text(path).splitlines()
     expected_header = ",".join(ASSOCIATIONS_HEADER)
@@ -349,16 +423,18 @@ def read_associations(path: str | Path) -> Associations:
         found = lines[0].strip() if lines else "an empty file"
         raise DatasetError(path, 1, f"expected the header '{expected_header}', found '{found}'")
     columns: dict[str, list] = {name: [] for name in ASSOCIATIONS_HEADER}
+    row_lines: list[int] = []
     for number, fields in enumerate(csv.reader(lines[1:]), start=2):
         if not fields:
             continue
+        row_lines.append(number)
         if len(fields) != len(ASSOCIATIONS_HEADER):
             raise DatasetError(path, number, f"expected {len(ASSOCIATIONS_HEADER)} comma-separated fields, found {len(fields)}")
         for name, text in zip(ASSOCIATIONS_HEADER, fields):
             columns[name].append(_parse_cell(path, number, name, text.strip()))
     landmark = [UNASSOCIATED if value is None else value for value in columns["landmark"]]
     mahalanobis = [math.nan if value is None else value for value in columns["mahalanobis"]]
-    return Associations(
+    associations = Associations(
         pose_id=np.array(columns["pose"], dtype=np.int64),
         camera=np.array(columns["camera"], dtype=np.int64),
         uvd=np.array([columns["u"], columns["v"], columns["depth"]], dtype=float).T.reshape(-1, 3),
@@ -366,22 +442,34 @@ def read_associations(path: str | Path) -> Associations:
         true_landmark=np.array(columns["true_landmark"], dtype=np.int64),
         mahalanobis=np.array(mahalanobis, dtype=float),
     )
+    return associations, row_lines
 
 
 _INT_COLUMNS = ("pose", "camera", "landmark", "true_landmark")
 _OPTIONAL_COLUMNS = ("landmark", "mahalanobis")
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+_INT64_RANGE = (-(2**63), 2**63 - 1)
 
 
 def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | None:
+    """One cell of ``associations.csv``: a 64-bit integer id, or a finite number (empty means
+    rejected, in the optional columns only; the writer never writes NaN or inf)."""
     if not text:
         if name in _OPTIONAL_COLUMNS:
             return None
         raise DatasetError(path, line, f"expected a value for {name}, found an empty cell")
-    try:
-        return int(text) if name in _INT_COLUMNS else float(text)
-    except ValueError:
-        kind = "an integer" if name in _INT_COLUMNS else "a number"
-        raise DatasetError(path, line, f"expected {kind} for {name}, found {text!r}") from None
+    if name in _INT_COLUMNS:
+        if not _INTEGER.fullmatch(text):
+            raise DatasetError(path, line, f"expected an integer for {name}, found {text!r}")
+        if not _INT64_RANGE[0] <= int(text) <= _INT64_RANGE[1]:
+            raise DatasetError(path, line, f"expected an integer for {name} that fits in 64 bits, found {text}")
+        return int(text)
+    value = _parse_float(text)
+    if value is None:
+        raise DatasetError(path, line, f"expected a number for {name}, found {text!r}")
+    if not math.isfinite(value):
+        raise DatasetError(path, line, f"expected a finite number for {name}, found {text!r}")
+    return value
 
 
 # --------------------------------------------------------------------------------------------
@@ -399,7 +487,6 @@ _POSE_ARRAYS = (
 )
 _OTHER_ARRAYS = ("map_landmark_ids", "map_landmark_xyz", "update_pose_ids", "nis", "nis_dof")
 _TRUTH_ARRAYS = ("truth_xyz", "truth_quat_xyzw")
-_INT_ARRAYS = ("pose_ids", "map_landmark_ids", "update_pose_ids", "nis_dof")
 
 
 def run_problems(result: RunResult) -> list[str]:
@@ -557,7 +644,9 @@ def load_run(run_dir: str | Path) -> RunResult:
     Raises
     ------
     CamlocError : ``run_dir`` is not a run folder, or a file is missing, corrupt or inconsistent
-        (``DatasetError`` with the file, and the line where there is one).
+        (``DatasetError`` with the file, and the line where there is one). Every array of
+        ``states.npz`` is checked for its type, shape and values (``_check_states``), so that what
+        is loaded can be scored and drawn.
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -569,9 +658,10 @@ def load_run(run_dir: str | Path) -> RunResult:
         )
     arrays = _read_states(run_dir / STATES_NPZ)
     summary = _read_summary(run_dir / SUMMARY_JSON)
-    associations = read_associations(run_dir / ASSOCIATIONS_CSV)
+    associations, row_lines = _read_associations_with_lines(run_dir / ASSOCIATIONS_CSV)
+    _check_association_poses(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["pose_ids"])
     result = RunResult(
-        dataset=str(arrays.pop("dataset").item()),
+        dataset=arrays.pop("dataset"),
         truth_xyz=arrays.pop("truth_xyz", None),
         truth_quat_xyzw=arrays.pop("truth_quat_xyzw", None),
         associations=associations,
@@ -649,18 +739,191 @@ def _read_states(path: Path) -> dict[str, Any]:
         raise DatasetError(path, None, f"expected a numpy .npz archive, found an unreadable file ({error})") from None
     if not isinstance(stored, dict) or "format_version" not in stored:
         raise DatasetError(path, None, "expected a camloc states archive, found no format_version")
-    version = int(stored["format_version"])
-    if version != RUN_FORMAT_VERSION:
-        raise DatasetError(path, None, f"expected format_version {RUN_FORMAT_VERSION}, found {version}")
+    version = stored["format_version"]
+    if version.ndim != 0 or version.dtype.kind not in "iu" or int(version) != RUN_FORMAT_VERSION:
+        raise DatasetError(path, None, f"expected format_version {RUN_FORMAT_VERSION}, found {_describe(version)}")
     names = ("dataset",) + _POSE_ARRAYS + _OTHER_ARRAYS
     missing = [name for name in names if name not in stored]
     if missing:
         raise DatasetError(path, None, f"expected arrays {', '.join(missing)}, found none of that name")
-    arrays: dict[str, Any] = {name: stored[name] for name in names}
+    dataset = stored["dataset"]
+    if dataset.ndim != 0 or dataset.dtype.kind != "U":
+        raise DatasetError(path, None, f"dataset: expected one string (the dataset's path), found {_describe(dataset)}")
+    arrays: dict[str, Any] = {name: stored[name] for name in names[1:]}
     arrays.update({name: stored[name] for name in _TRUTH_ARRAYS if name in stored})
-    for name in _INT_ARRAYS:
-        arrays[name] = arrays[name].astype(np.int64)
+    arrays = _check_states(path, arrays)
+    arrays["dataset"] = str(dataset)
     return arrays
+
+
+def _describe(array: np.ndarray) -> str:
+    """A short description of an unexpected array, for error messages."""
+    if array.ndim == 0:
+        text = repr(array.item())
+        return text if len(text) <= 40 else text[:37] + "..."
+    return f"an array of {array.dtype} of shape {array.shape}"
+
+
+# What each array of states.npz holds, and its shape after the first axis (None: any size of at
+# least 1, the same on both axes of a covariance):
+#   ids: integers; counts: integers >= 1; numbers: finite; non-negative: finite >= 0;
+#   positions: finite metres within MAX_COORDINATE; quaternions: unit norm;
+#   covariances: symmetric positive semi-definite, not zero at every pose.
+_STATE_ARRAYS: dict[str, tuple[str, tuple]] = {
+    "pose_ids": ("ids", ()),
+    "estimate_xyz": ("positions", (3,)),
+    "estimate_quat_xyzw": ("quaternions", (4,)),
+    "estimate_cov": ("covariances", (6, 6)),
+    "filter_state": ("numbers", (None,)),
+    "filter_cov": ("covariances", (None, None)),
+    "odometry_xyz": ("positions", (3,)),
+    "odometry_quat_xyzw": ("quaternions", (4,)),
+    "truth_xyz": ("positions", (3,)),
+    "truth_quat_xyzw": ("quaternions", (4,)),
+    "map_landmark_ids": ("ids", ()),
+    "map_landmark_xyz": ("positions", (3,)),
+    "update_pose_ids": ("ids", ()),
+    "nis": ("non-negative", ()),
+    "nis_dof": ("counts", ()),
+}
+# The run writes unit quaternions (norm 1 to 1e-15) and symmetric covariances; these tolerances
+# only separate rounding from damage.
+_UNIT_TOLERANCE = 1e-6
+_MATRIX_TOLERANCE = 1e-9
+
+
+def _check_states(path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The arrays of ``states.npz`` as int64 / float64, each checked against ``_STATE_ARRAYS``.
+
+    Shapes are checked here one array at a time; that the arrays agree on N poses, L landmarks
+    and U updates is ``run_problems``'s check, after loading.
+
+    Raises
+    ------
+    DatasetError : ``states.npz: <array>: expected ..., found ...`` for the first bad array.
+    """
+    pose_ids, problem = _checked_state_array(arrays["pose_ids"], *_STATE_ARRAYS["pose_ids"], None)
+    if problem is None:
+        unique, counts = np.unique(pose_ids, return_counts=True)
+        if pose_ids.size == 0:
+            problem = "expected at least one pose, found none"
+        elif np.any(counts > 1):
+            problem = f"expected distinct ids, found {unique[counts > 1][0]} more than once"
+    if problem is not None:
+        raise DatasetError(path, None, f"pose_ids: {problem}")
+    checked = {"pose_ids": pose_ids}
+    for name, array in arrays.items():
+        if name == "pose_ids":
+            continue
+        kind, trailing = _STATE_ARRAYS[name]
+        rows_are_poses = name in _POSE_ARRAYS + _TRUTH_ARRAYS
+        value, problem = _checked_state_array(array, kind, trailing, pose_ids if rows_are_poses else None)
+        if problem is not None:
+            raise DatasetError(path, None, f"{name}: {problem}")
+        checked[name] = value
+    update_pose_ids = checked["update_pose_ids"]
+    unknown = ~np.isin(update_pose_ids, pose_ids)
+    if np.any(unknown):
+        raise DatasetError(
+            path, None, f"update_pose_ids: expected ids of the run's poses, found {update_pose_ids[unknown][0]}, "
+            "which is not in pose_ids"
+        )
+    return checked
+
+
+def _checked_state_array(
+    array: np.ndarray, kind: str, trailing: tuple, pose_ids: np.ndarray | None
+) -> tuple[np.ndarray, str | None]:
+    """``array`` as int64 or float64 for its kind (``_STATE_ARRAYS``), and what is wrong with it
+    (None when nothing is). ``pose_ids``, when the rows are poses, name the row of a bad value."""
+    integers = kind in ("ids", "counts")
+    if integers and not (array.dtype.kind == "i" or (array.dtype.kind == "u" and array.dtype.itemsize < 8)):
+        return array, f"expected 64-bit integers, found {array.dtype}"
+    if not integers and array.dtype.kind not in "fiu":
+        return array, f"expected real numbers, found {array.dtype}"
+    if not _shape_matches(array.shape, trailing):
+        dims = ["N"] + ["D" if size is None else str(size) for size in trailing]
+        expected = "(N,)" if len(dims) == 1 else f"({', '.join(dims)})"
+        return array, f"expected shape {expected}, found {array.shape}"
+    value = array.astype(np.int64 if integers else np.float64)
+
+    def where(row: int) -> str:
+        return f"pose {pose_ids[row]}" if pose_ids is not None and row < len(pose_ids) else f"row {row}"
+
+    return value, _state_value_problem(value, kind, where)
+
+
+def _state_value_problem(value: np.ndarray, kind: str, where: Callable[[int], str]) -> str | None:
+    """What breaks the rule of ``kind`` in ``value`` (N, ...), naming the first bad row, or None."""
+    if kind == "ids":
+        return None
+    if kind == "counts":
+        return _first_bad(value, value < 1, "expected counts of at least 1", where)
+    if kind == "non-negative":
+        return _first_bad(value, ~(value >= 0.0), "expected finite numbers >= 0", where)
+    if kind == "positions":
+        expected = f"expected finite metres within +-{MAX_COORDINATE:.0e}"
+        return _first_bad(value, ~(np.abs(value) <= MAX_COORDINATE), expected, where)
+    problem = _first_bad(value, ~np.isfinite(value), "expected finite numbers", where)
+    if problem is None and kind == "quaternions":
+        norm = np.linalg.norm(value, axis=1)
+        off = np.abs(norm - 1.0) > _UNIT_TOLERANCE
+        if np.any(off):
+            row = int(np.argmax(off))
+            problem = f"expected unit quaternions, found norm {norm[row]:.6g} at {where(row)}"
+    if problem is None and kind == "covariances":
+        problem = _covariance_problem(value, where)
+    return problem
+
+
+def _first_bad(value: np.ndarray, bad: np.ndarray, expected: str, where: Callable[[int], str]) -> str | None:
+    """``"<expected>, found <the first bad value> at <its row>"``, or None when nothing is ``bad``."""
+    if not np.any(bad):
+        return None
+    row = int(np.argmax(bad.reshape(len(bad), -1).any(axis=1)))
+    return f"{expected}, found {value[bad][0]:.6g} at {where(row)}"
+
+
+def _shape_matches(shape: tuple, trailing: tuple) -> bool:
+    """``shape`` is (N, *trailing), a None in ``trailing`` any size >= 1, the same for every None."""
+    if len(shape) != 1 + len(trailing):
+        return False
+    free = {size for size, want in zip(shape[1:], trailing) if want is None}
+    fixed_ok = all(size == want for size, want in zip(shape[1:], trailing) if want is not None)
+    return fixed_ok and len(free) <= 1 and min(free, default=1) >= 1
+
+
+def _covariance_problem(cov: np.ndarray, where: Callable[[int], str]) -> str | None:
+    """What makes finite ``cov`` (N, D, D) not a covariance per pose, or None.
+
+    A single zero (or singular) covariance is possible, a start pose known exactly, and metrics
+    leave it out of NEES; zero at every pose is not a filter's output.
+    """
+    scale = np.max(np.abs(cov), axis=(1, 2))
+    if not np.any(scale > 0.0):
+        return "expected covariances, found zeros at every pose"
+    unit = cov / np.where(scale > 0.0, scale, 1.0)[:, None, None]  # largest entry 1: relative tolerances
+    asymmetric = np.max(np.abs(unit - np.swapaxes(unit, 1, 2)), axis=(1, 2)) > _MATRIX_TOLERANCE
+    if np.any(asymmetric):
+        return f"expected symmetric matrices, found an asymmetric one at {where(int(np.argmax(asymmetric)))}"
+    lowest = np.linalg.eigvalsh(unit)[:, 0]
+    negative = lowest < -_MATRIX_TOLERANCE
+    if np.any(negative):
+        row = int(np.argmax(negative))
+        return (f"expected positive semi-definite matrices, found eigenvalue {lowest[row] * scale[row]:.6g} "
+                f"at {where(row)}")
+    return None
+
+
+def _check_association_poses(path: Path, associations: Associations, row_lines: list[int], pose_ids: np.ndarray) -> None:
+    """Every row of ``associations.csv`` must be an observation of one of the run's poses."""
+    known = np.isin(associations.pose_id, pose_ids)
+    if not np.all(known):
+        row = int(np.argmin(known))
+        raise DatasetError(
+            path, row_lines[row], f"inconsistent run folder: pose {associations.pose_id[row]} is not one of the "
+            f"run's {len(pose_ids)} poses in {STATES_NPZ} ({pose_ids[0]}..{pose_ids[-1]})"
+        )
 
 
 def _read_summary(path: Path) -> dict:
@@ -668,6 +931,9 @@ def _read_summary(path: Path) -> dict:
         summary = json.loads(_read_text(path))
     except json.JSONDecodeError as error:
         raise DatasetError(path, error.lineno, f"expected JSON, found an error: {error.msg}") from None
+    except RecursionError:
+        # json's decoder recurses once per level of nesting; 'camloc run' writes four levels.
+        raise DatasetError(path, None, "expected JSON, found arrays or objects nested too deep to decode") from None
     if not isinstance(summary, dict):
         raise DatasetError(path, 1, f"expected a JSON object, found {type(summary).__name__}")
     return summary

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from enum import Enum
 from pathlib import Path
 from typing import Optional
@@ -40,9 +39,9 @@ def plot(
 ) -> None:
     """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
 
-    By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder; with --output a single report figure holding every panel. Each file is written whole or not at all.
+    By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder; with --output a single report figure holding every panel. The figures are written all or none, each whole.
     """
-    from camloc.results import load_run, write_bytes_atomic
+    from camloc.results import load_run, write_files_atomic
 
     if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
         raise ConfigError(
@@ -59,22 +58,24 @@ def plot(
     from camloc import plotting
 
     if output is not None:
-        jobs = [(output, plotting.REPORT_SIZE, plotting.draw_report)]
+        layouts = {output: (plotting.REPORT_SIZE, plotting.draw_report)}
     else:
-        jobs = [
-            (run_dir / f"fig-{name}.{figure_format.value}", size, draw)
-            for name, (size, draw) in plotting.FIGURES.items()
-        ]
-    written = []
-    for path, size, draw in jobs:
+        layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.FIGURES.items()}
+
+    def render(path: Path, handle) -> None:
+        size, draw = layouts[path]
         fig = plt.figure(figsize=size, layout="constrained")
-        draw(fig, result)
-        buffer = io.BytesIO()
-        fig.savefig(buffer, format=path.suffix.lower().lstrip("."), dpi=dpi)
-        write_bytes_atomic(path, buffer.getvalue())
-        written.append(path)
-        if not show:
-            plt.close(fig)
+        try:
+            draw(fig, result)
+            fig.savefig(handle, format=path.suffix.lower().lstrip("."), dpi=dpi)
+        finally:
+            if not show:
+                plt.close(fig)
+
+    # Every figure or none: each is rendered to a temporary file beside its target, and they are
+    # renamed into place together once all have been drawn.
+    written = list(layouts)
+    write_files_atomic(written, render)
     for path in written:
         console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
     if show:

@@ -156,6 +156,99 @@ def test_plot_bad_inputs_exit_2(tmp_path, run_dir):
 
 
 # --------------------------------------------------------------------------------------------
+# Corrupt run folders and TUM files: one error line naming the file, never a traceback
+
+
+def _rewrite_line(path: Path, number: int, text: str) -> None:
+    lines = path.read_text().splitlines()
+    lines[number - 1] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _rewrite_states(run_dir: Path, **changes) -> None:
+    with np.load(run_dir / "states.npz") as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    np.savez(run_dir / "states.npz", **{**arrays, **changes})
+
+
+# name -> (how the run folder is damaged, the file and line the error must name, a fragment)
+CORRUPT_FOLDERS = {
+    "deep-summary": (lambda run: (run / "summary.json").write_text("[" * 100_000 + "]" * 100_000),
+                     "summary.json", "expected JSON"),
+    "huge-id": (lambda run: _rewrite_line(run / "associations.csv", 2, "1001,0,0.5,0.5,1,99999999999999999999999,100,1.0"),
+                "associations.csv:2", "expected an integer for landmark"),
+    "unknown-pose": (lambda run: _rewrite_line(run / "associations.csv", 2, "99999,0,0.5,0.5,1,100,100,1.0"),
+                     "associations.csv:2", "inconsistent run folder"),
+    "nan-u": (lambda run: _rewrite_line(run / "associations.csv", 2, "1001,0,nan,nan,1,100,100,1.0"),
+              "associations.csv:2", "expected a finite number for u"),
+    "nan-cov": (lambda run: _rewrite_states(run, estimate_cov=np.full((30, 6, 6), np.nan)),
+                "states.npz", "estimate_cov: expected finite numbers"),
+    "zero-quat": (lambda run: _rewrite_states(run, truth_quat_xyzw=np.zeros((30, 4))),
+                  "states.npz", "truth_quat_xyzw: expected unit quaternions"),
+    "nan-estimate": (lambda run: _rewrite_states(run, estimate_xyz=np.full((30, 3), np.nan)),
+                     "states.npz", "estimate_xyz: expected finite metres"),
+    "version": (lambda run: _rewrite_states(run, format_version=np.array("abc")),
+                "states.npz", "expected format_version 1, found 'abc'"),
+    "smoothed-huge-xyz": (lambda run: (run / "smoothed.tum").write_text(
+        (run / "estimate.tum").read_text().replace("\n1000.0 ", "\n1000.0 1e308 1e308 0 0 0 0 1\n#", 1)),
+        "smoothed.tum:2", "expected metres within +-1e+09 for x"),
+}
+
+
+@pytest.mark.parametrize("command", ["eval", "plot"])
+@pytest.mark.parametrize("name", CORRUPT_FOLDERS)
+def test_corrupt_run_folders_exit_2_naming_the_file_and_leave_no_figure(run_dir, command, name):
+    damage, where, fragment = CORRUPT_FOLDERS[name]
+    damage(run_dir)
+    before = sorted(p.name for p in run_dir.iterdir())
+    outcome = invoke(command, run_dir)
+    assert_bad_input(outcome, f"{run_dir / where}")
+    assert fragment in outcome.stderr
+    assert len(outcome.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in run_dir.iterdir()) == before  # no figure, no temporary file
+
+
+def test_plot_writes_every_figure_or_none(run_dir, monkeypatch):
+    from camloc import plotting
+
+    invoke("plot", run_dir)
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir()}
+
+    def broken(fig, result):
+        raise RuntimeError("a drawing bug")
+
+    size, _ = plotting.FIGURES["consistency"]  # the fourth of five figures
+    monkeypatch.setitem(plotting.FIGURES, "consistency", (size, broken))
+    outcome = invoke("plot", run_dir, "--dpi", "60")
+    assert isinstance(outcome.exception, RuntimeError)
+    # the three figures drawn before the failure did not replace the old ones; nothing left over
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
+
+
+def test_eval_of_tum_files_with_huge_quaternions_a_bom_or_huge_coordinates(tmp_path, run_dir):
+    reference = run_dir / "groundtruth.tum"
+    lines = reference.read_text().splitlines()
+    fields = lines[1].split()
+    # qw of 1e200: the norm overflowed, normalizing gave a zero quaternion (a scipy traceback)
+    scaled = tmp_path / "scaled.tum"
+    scaled.write_text("\n".join([" ".join(fields[:4] + [repr(float(q) * 1e200) for q in fields[4:]])] + lines[2:]) + "\n")
+    bom = tmp_path / "bom.tum"
+    bom.write_bytes(b"\xef\xbb\xbf" + reference.read_bytes())
+    for estimate in (scaled, bom):
+        outcome = invoke("eval", "--est", estimate, "--ref", reference, "--json")
+        assert outcome.exit_code == 0, outcome.output
+        report = json.loads(outcome.stdout)
+        assert report["matched"] == 30 and report["ate"]["rmse"] == pytest.approx(0.0, abs=1e-12)
+        assert report["rotation"]["rmse_deg"] == pytest.approx(0.0, abs=1e-5)
+
+    huge = tmp_path / "huge.tum"
+    huge.write_text("\n".join([" ".join(fields[:1] + ["1e200"] * 3 + fields[4:])] + lines[2:]) + "\n")
+    outcome = invoke("eval", "--est", huge, "--ref", reference)
+    assert_bad_input(outcome, f"{huge}:1: expected metres within +-1e+09 for x, found 1e200")
+    assert "RuntimeWarning" not in outcome.output
+
+
+# --------------------------------------------------------------------------------------------
 # The real localizer, end to end
 
 

@@ -97,6 +97,26 @@ def test_association_bars_stack_to_the_observations_of_each_pose(result):
     assert labels[0] == f"correct ({scores['correct']})"
 
 
+def test_association_bars_follow_pose_ids_that_do_not_increase(result):
+    # Pose ids are in the odometry chain's order: a chain may run 1039, 1038, ..., 1000.
+    import dataclasses
+
+    reversed_id = dict(zip(result.pose_ids, result.pose_ids[::-1]))
+    chain = dataclasses.replace(
+        result,
+        pose_ids=result.pose_ids[::-1].copy(),
+        associations=dataclasses.replace(
+            result.associations, pose_id=np.array([reversed_id[i] for i in result.associations.pose_id])
+        ),
+    )
+    ax = plotting.plot_associations(Figure().add_subplot(), chain)
+    heights = np.zeros(len(chain.pose_ids))
+    for container in ax.containers:
+        heights += [bar.get_height() for bar in container]
+    index = np.searchsorted(result.pose_ids, result.associations.pose_id)  # the same poses, in order
+    np.testing.assert_array_equal(heights, np.bincount(index, minlength=len(result.pose_ids)))
+
+
 def test_association_areas_of_a_long_run_stack_to_the_observations_of_each_pose(synthetic_run, monkeypatch):
     # past MAX_BARS poses: three step areas instead of a bar per pose and outcome
     result = synthetic_run(seed=5, num_poses=30)

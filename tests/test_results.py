@@ -55,6 +55,11 @@ def test_read_tum_skips_comments_and_blank_lines_and_normalizes_quaternions(tmp_
         ("# header\n1 0 0 x 0 0 0 1\n", 2, "expected a number for z, found 'x'"),
         ("1 0 0 0 0 0 0 nan\n", 1, "expected a finite number for qw"),
         ("1 0 0 0 0 0 0 0\n", 1, "found all zeros"),
+        # beyond the g2o reader's bound: squared in the metrics, 1e200 overflows (numpy warnings,
+        # a singular matrix in the plots)
+        ("1 0 0 0 0 0 0 1\n2 1e200 0 0 0 0 0 1\n", 2, "expected metres within +-1e+09 for x, found 1e200"),
+        ("1 0 0 -2e9 0 0 0 1\n", 1, "expected metres within +-1e+09 for z"),
+        ("1 1_0 0 0 0 0 0 1\n", 1, "expected a number for x, found '1_0'"),
         ("1 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n", 2, "first on line 1"),
         ("# only a comment\n", None, "found none"),
     ],
@@ -67,6 +72,21 @@ def test_read_tum_reports_the_bad_line(tmp_path, text, line, fragment):
     assert caught.value.line == line
     assert fragment in str(caught.value)
     assert str(caught.value).startswith(f"{path}:{line}:" if line else f"{path}:")
+
+
+def test_read_tum_accepts_a_byte_order_mark(tmp_path):
+    path = tmp_path / "bom.tum"
+    path.write_bytes("\ufeff1 0 0 0 0 0 0 1\n2 1 0 0 0 0 0 1\n".encode())
+    stamps, xyz, _ = read_tum(path)
+    np.testing.assert_array_equal(stamps, [1.0, 2.0])
+    np.testing.assert_array_equal(xyz[1], [1.0, 0.0, 0.0])
+
+
+def test_read_tum_normalizes_quaternions_whose_squares_overflow_or_underflow(tmp_path):
+    path = tmp_path / "scaled.tum"
+    path.write_text("1 0 0 0 0 0 0 1e200\n2 0 0 0 0 0 3e300 4e300\n3 0 0 0 0 0 3e-200 4e-200\n")
+    _, _, quat = read_tum(path)
+    np.testing.assert_allclose(quat, [[0, 0, 0, 1], [0, 0, 0.6, 0.8], [0, 0, 0.6, 0.8]], rtol=0, atol=1e-15)
 
 
 def test_read_tum_of_a_missing_file(tmp_path):
@@ -93,6 +113,26 @@ def test_write_json_is_strict_and_converts_numpy(tmp_path):
     path = tmp_path / "x.json"
     results.write_json_atomic(path, {"a": np.float32(1.5), "b": np.arange(3), "c": float("nan"), "d": (np.int64(2),)})
     assert json.loads(path.read_text()) == {"a": 1.5, "b": [0, 1, 2], "c": None, "d": [2]}
+
+
+def test_write_files_atomic_writes_all_or_none(tmp_path):
+    old = tmp_path / "a.png"
+    old.write_bytes(b"old a")
+
+    def write(path, handle):
+        if path.name == "c.png":
+            raise RuntimeError("drawing failed")
+        handle.write(b"new " + path.name.encode())
+
+    with pytest.raises(RuntimeError):
+        results.write_files_atomic([tmp_path / "a.png", tmp_path / "b.png", tmp_path / "c.png"], write)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]  # no b.png, no temporaries
+    assert old.read_bytes() == b"old a"
+
+    results.write_files_atomic([tmp_path / "a.png", tmp_path / "b.png"], write)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]
+    assert old.read_bytes() == b"new a.png"
+    assert oct((tmp_path / "b.png").stat().st_mode & 0o777) == oct(0o644)
 
 
 def test_atomic_write_into_a_missing_directory_is_a_camloc_error(tmp_path):
@@ -250,6 +290,22 @@ def test_load_run_of_corrupt_json_names_the_line(tmp_path, synthetic_run):
     assert caught.value.line == 3 and "summary.json:3: expected JSON" in str(caught.value)
 
 
+def test_load_run_of_json_nested_too_deep(tmp_path, synthetic_run):
+    # json recurses per level: 100,000 levels was a RecursionError traceback.
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    (run_dir / "summary.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(DatasetError, match="summary.json: expected JSON, found arrays or objects nested too deep"):
+        load_run(run_dir)
+
+
+def test_load_run_accepts_files_with_a_byte_order_mark(tmp_path, synthetic_run):
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    for name in ("summary.json", "associations.csv"):
+        path = run_dir / name
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert load_run(run_dir).summary["dataset"] == "synthetic-circle-7"
+
+
 @pytest.mark.parametrize(
     "edit, line, fragment",
     [
@@ -257,6 +313,18 @@ def test_load_run_of_corrupt_json_names_the_line(tmp_path, synthetic_run):
         (lambda lines: lines[:3] + ["1001,0,0.1,0.2"] + lines[4:], 4, "expected 8 comma-separated fields, found 4"),
         (lambda lines: lines[:2] + ["1001,0,0.1,zero,1.0,100,100,"] + lines[3:], 3, "expected a number for v"),
         (lambda lines: lines[:2] + ["1001,0,0.1,0.2,1.0,100,,"] + lines[3:], 3, "expected a value for true_landmark"),
+        # an id beyond 64 bits was an OverflowError traceback
+        (lambda lines: lines[:1] + ["1001,0,0.1,0.2,1.0,99999999999999999999999,100,1.0"] + lines[2:], 2,
+         "expected an integer for landmark that fits in 64 bits, found 99999999999999999999999"),
+        (lambda lines: lines[:1] + ["1001,0,0.1,0.2,1.0,1_00,100,1.0"] + lines[2:], 2, "expected an integer for landmark"),
+        # the writer never writes NaN or inf: an empty cell is how it says "none"
+        (lambda lines: lines[:1] + ["1001,0,nan,nan,nan,100,100,1.0"] + lines[2:], 2, "expected a finite number for u, found 'nan'"),
+        (lambda lines: lines[:1] + ["1001,0,0.1,0.2,1.0,100,100,inf"] + lines[2:], 2, "expected a finite number for mahalanobis"),
+        # an observation of a pose the run does not have: a broadcast error in the plots, and
+        # silently left out by eval
+        (lambda lines: lines[:1] + ["99999,0,0.5,0.5,1,100,100,1.0"] + lines[2:], 2,
+         "inconsistent run folder: pose 99999 is not one of the run's 40 poses in states.npz (1000..1039)"),
+        (lambda lines: lines[:3] + ["", "99999,0,0.5,0.5,1,100,100,1.0"] + lines[4:], 5, "pose 99999 is not one of"),
     ],
 )
 def test_load_run_of_a_bad_associations_csv_names_the_line(tmp_path, synthetic_run, edit, line, fragment):
@@ -267,3 +335,88 @@ def test_load_run_of_a_bad_associations_csv_names_the_line(tmp_path, synthetic_r
         load_run(run_dir)
     assert caught.value.line == line
     assert fragment in str(caught.value)
+
+
+# --------------------------------------------------------------------------------------------
+# states.npz: every array's type, shape and values
+
+
+def _rewrite_states(run_dir: Path, **changes) -> None:
+    with np.load(run_dir / "states.npz") as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    arrays.update(changes)
+    np.savez(run_dir / "states.npz", **arrays)
+
+
+def _asymmetric(cov: np.ndarray) -> np.ndarray:
+    cov = cov.copy()
+    cov[5, 0, 1] += 1e-3
+    return cov
+
+
+# name -> (the changed arrays of states.npz, from the run; a fragment of the error), after the
+# fuzzing pass's folders: each was a traceback in eval, plot or smooth, or a silent NaN.
+STATES_CORRUPTIONS = {
+    "version-str": (lambda run: dict(format_version=np.array("abc")), "expected format_version 1, found 'abc'"),
+    "version-arr": (lambda run: dict(format_version=np.array([1, 2])),
+                    "expected format_version 1, found an array of int64 of shape (2,)"),
+    "version-float": (lambda run: dict(format_version=np.array(1.0)), "expected format_version 1, found 1.0"),
+    "dataset-arr": (lambda run: dict(dataset=np.array(["a", "b"])), "dataset: expected one string"),
+    "0d-ids": (lambda run: dict(pose_ids=np.array(5)), "pose_ids: expected shape (N,), found ()"),
+    "float-ids": (lambda run: dict(pose_ids=run.pose_ids + 0.5), "pose_ids: expected 64-bit integers, found float64"),
+    "dup-ids": (lambda run: dict(pose_ids=np.zeros_like(run.pose_ids)), "pose_ids: expected distinct ids, found 0 more than once"),
+    "no-poses": (lambda run: {name: getattr(run, name)[:0] for name in ARRAY_FIELDS[:10]},
+                 "pose_ids: expected at least one pose"),
+    "str-est": (lambda run: dict(estimate_xyz=np.full((40, 3), "a")), "estimate_xyz: expected real numbers, found <U1"),
+    "complex-est": (lambda run: dict(estimate_xyz=run.estimate_xyz + 1j), "estimate_xyz: expected real numbers, found complex128"),
+    "est-shape": (lambda run: dict(estimate_xyz=run.estimate_xyz[:, :2]), "estimate_xyz: expected shape (N, 3), found (40, 2)"),
+    "cov-shape": (lambda run: dict(filter_cov=run.filter_cov[:, :, :5]), "filter_cov: expected shape (N, D, D), found (40, 6, 5)"),
+    "nan-est": (lambda run: dict(estimate_xyz=np.full((40, 3), np.nan)),
+                "estimate_xyz: expected finite metres within +-1e+09, found nan at pose 1000"),
+    "huge-truth": (lambda run: dict(truth_xyz=run.truth_xyz * 1e300), "truth_xyz: expected finite metres within +-1e+09"),
+    "inf-state": (lambda run: dict(filter_state=np.where(np.arange(6) == 2, np.inf, run.filter_state)),
+                  "filter_state: expected finite numbers, found inf at pose 1000"),
+    "nan-cov": (lambda run: dict(estimate_cov=np.full((40, 6, 6), np.nan)),
+                "estimate_cov: expected finite numbers, found nan at pose 1000"),
+    "zero-cov": (lambda run: dict(estimate_cov=np.zeros((40, 6, 6))), "estimate_cov: expected covariances, found zeros at every pose"),
+    "neg-cov": (lambda run: dict(estimate_cov=-run.estimate_cov),
+                "estimate_cov: expected positive semi-definite matrices, found eigenvalue"),
+    "asym-cov": (lambda run: dict(filter_cov=_asymmetric(run.filter_cov)),
+                 "filter_cov: expected symmetric matrices, found an asymmetric one at pose 1005"),
+    "zero-quat": (lambda run: dict(estimate_quat_xyzw=np.zeros((40, 4))),
+                  "estimate_quat_xyzw: expected unit quaternions, found norm 0 at pose 1000"),
+    "zero-truth-quat": (lambda run: dict(truth_quat_xyzw=np.zeros((40, 4))), "truth_quat_xyzw: expected unit quaternions, found norm 0"),
+    "zero-odom-quat": (lambda run: dict(odometry_quat_xyzw=np.zeros((40, 4))),
+                       "odometry_quat_xyzw: expected unit quaternions, found norm 0"),
+    "scaled-quat": (lambda run: dict(odometry_quat_xyzw=2.0 * run.odometry_quat_xyzw), "expected unit quaternions, found norm 2"),
+    "neg-nis": (lambda run: dict(nis=-run.nis), "nis: expected finite numbers >= 0, found -"),
+    "nan-nis": (lambda run: dict(nis=np.full_like(run.nis, np.nan)), "nis: expected finite numbers >= 0, found nan at row 0"),
+    "zero-dof": (lambda run: dict(nis_dof=np.zeros_like(run.nis_dof)), "nis_dof: expected counts of at least 1, found 0 at row 0"),
+    "unknown-update": (lambda run: dict(update_pose_ids=run.update_pose_ids + 5000),
+                       "update_pose_ids: expected ids of the run's poses"),
+}
+
+
+@pytest.mark.parametrize("name", STATES_CORRUPTIONS)
+def test_load_run_rejects_a_corrupt_states_archive(tmp_path, synthetic_run, name):
+    run = synthetic_run()  # 40 poses
+    changes, fragment = STATES_CORRUPTIONS[name]
+    run_dir = save_run(tmp_path / "run", run)
+    _rewrite_states(run_dir, **changes(run))
+    with pytest.raises(DatasetError) as caught:
+        load_run(run_dir)
+    assert str(caught.value).startswith(f"{run_dir / 'states.npz'}: ")
+    assert fragment in str(caught.value)
+
+
+def test_load_run_accepts_what_runs_write(tmp_path, synthetic_run):
+    # A start pose known exactly (zero covariance), rounding in a covariance's smallest
+    # eigenvalue and a quaternion's norm, ids stored as int32: not damage.
+    run = synthetic_run()
+    cov = run.estimate_cov.copy()
+    cov[3] -= 1e-13 * np.max(cov[3]) * np.eye(6)  # eigenvalues down by 1e-13 of the largest entry
+    run_dir = save_run(tmp_path / "run", run)
+    _rewrite_states(run_dir, estimate_cov=cov, estimate_quat_xyzw=run.estimate_quat_xyzw * (1 + 1e-12),
+                    pose_ids=run.pose_ids.astype(np.int32))
+    loaded = load_run(run_dir)
+    assert np.all(loaded.estimate_cov[0] == 0.0) and loaded.pose_ids.dtype == np.int64

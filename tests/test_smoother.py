@@ -7,6 +7,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -595,6 +597,34 @@ def test_cli_smooth_bad_inputs(tmp_path, cli_run):
     save_run(moved, dataclasses.replace(load_run(run_dir), summary={"dataset": "gone/world.g2o"}))
     assert_bad_input(invoke("smooth", moved), "pass the g2o file with --dataset FILE")
     assert invoke("smooth", moved, "--dataset", dataset_path, "--json").exit_code == 0
+
+
+def test_cli_smooth_of_a_corrupt_run_folder_names_the_file(tmp_path, cli_run):
+    _, run_dir = cli_run
+    huge_id_row = "1001,0,0.5,0.5,1,99999999999999999999999,1,1.0"
+    for name, damage, where, fragment in (
+        ("deep", lambda run: (run / "summary.json").write_text('{"a":' * 50_000 + "1" + "}" * 50_000),
+         "summary.json", "expected JSON"),
+        ("huge-id", lambda run: (run / "associations.csv").write_text(
+            (run / "associations.csv").read_text().replace("\n", f"\n{huge_id_row}\n", 1)),
+         "associations.csv:2", "expected an integer for landmark"),
+        ("zero-quat", lambda run: _zero_estimate_quaternions(run / "states.npz"),
+         "states.npz", "estimate_quat_xyzw: expected unit quaternions"),
+    ):
+        copy = tmp_path / name
+        shutil.copytree(run_dir, copy)
+        damage(copy)
+        before = sorted(p.name for p in copy.iterdir())
+        outcome = invoke("smooth", copy)
+        assert_bad_input(outcome, f"{copy / where}: {fragment}")
+        assert sorted(p.name for p in copy.iterdir()) == before
+
+
+def _zero_estimate_quaternions(path: Path) -> None:
+    with np.load(path) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    arrays["estimate_quat_xyzw"] = np.zeros_like(arrays["estimate_quat_xyzw"])
+    np.savez(path, **arrays)
 
 
 def test_real_dataset_smooths_below_the_filter(real_dataset_path, tmp_path):
