@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camloc import sym3
+from camloc import geometry, sym3
 from camloc.dataset import Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -397,10 +397,8 @@ def _unit_quaternions(path: Path, tag: str, quat: np.ndarray, lines: np.ndarray,
     """Quaternions (n, 4) normalized where needed; a zero one is a DatasetError."""
     # the norm of components near the float range (1e155 and up) overflows: scale by the largest first
     largest = np.max(np.abs(quat), axis=1)
-    scaled = quat / np.where(largest > 0.0, largest, 1.0)[:, None]
-    scaled_norm = np.linalg.norm(scaled, axis=1)
     with np.errstate(over="ignore"):
-        norm = largest * scaled_norm
+        norm = largest * np.linalg.norm(quat / np.where(largest > 0.0, largest, 1.0)[:, None], axis=1)
     zero = np.flatnonzero(norm < _QUAT_ZERO_TOL)
     if zero.size:
         raise DatasetError(path, int(lines[zero[0]]),
@@ -412,7 +410,7 @@ def _unit_quaternions(path: Path, tag: str, quat: np.ndarray, lines: np.ndarray,
                         f"(largest |norm - 1| = {deviation.max():.3g}), normalized")
     fix = deviation > _QUAT_EXACT_TOL
     quat = quat.copy()
-    quat[fix] = scaled[fix] / scaled_norm[fix, None]
+    quat[fix] = geometry.normalized_quaternions(quat[fix])
     return quat
 
 

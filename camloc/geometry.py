@@ -33,6 +33,18 @@ def hat(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def normalized_quaternions(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4) scaled to unit norm; none may be all zeros.
+
+    Each is divided by its largest absolute component before its norm is taken: the squares of
+    components beyond about 1e154 overflow (the norm is inf and the quotient all zeros), and those
+    of components below about 1e-162 underflow.
+    """
+    quat_xyzw = np.asarray(quat_xyzw, dtype=float)
+    scaled = quat_xyzw / np.max(np.abs(quat_xyzw), axis=-1, keepdims=True)
+    return scaled / np.linalg.norm(scaled, axis=-1, keepdims=True)
+
+
 def quat_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
     """Unit quaternion(s) (..., 4) scalar last -> rotation matrices (..., 3, 3)."""
     quat_xyzw = np.asarray(quat_xyzw, dtype=float)

@@ -46,6 +46,7 @@ from typing import IO, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from camloc import geometry
 from camloc.errors import CamlocError, DatasetError
 from camloc.g2o import MAX_COORDINATE
 
@@ -336,7 +337,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not rows:
         raise DatasetError(path, None, f"expected TUM lines '{' '.join(TUM_FIELDS)}', found none")
     table = np.array(rows)
-    return table[:, 0], table[:, 1:4], normalized_quaternions(table[:, 4:8])
+    return table[:, 0], table[:, 1:4], geometry.normalized_quaternions(table[:, 4:8])
 
 
 def _tum_value(path: Path, line: int, name: str, text: str) -> float:
@@ -360,18 +361,6 @@ def _parse_float(text: str) -> float | None:
         return float(text)
     except ValueError:
         return None
-
-
-def normalized_quaternions(quat_xyzw: np.ndarray) -> np.ndarray:
-    """Quaternions (..., 4) scaled to unit norm; none may be all zeros.
-
-    Each is divided by its largest absolute component before its norm is taken: the squares of
-    components beyond about 1e154 overflow (the norm is inf and the quotient all zeros), and those
-    of components below about 1e-162 underflow.
-    """
-    quat_xyzw = np.asarray(quat_xyzw, dtype=float)
-    scaled = quat_xyzw / np.max(np.abs(quat_xyzw), axis=-1, keepdims=True)
-    return scaled / np.linalg.norm(scaled, axis=-1, keepdims=True)
 
 
 # --------------------------------------------------------------------------------------------

@@ -121,3 +121,10 @@ def test_single_item_fast_paths_give_nan_for_non_finite_input_as_the_batched_for
         R = np.eye(3)
         R[2, 0] = 1.0 + 1e-12  # rounding past the domain of arcsin: clipped, pitch -90 deg
         np.testing.assert_allclose(geometry.matrix_to_euler(R), geometry.matrix_to_euler(R[None])[0])
+
+
+@pytest.mark.parametrize("scale", [1e200, 1.0, 1e-200])
+def test_normalized_quaternions_of_any_representable_length(scale):
+    # the squares of components beyond 1e154 overflow and those below 1e-162 underflow
+    quat = np.array([[1.0, -2.0, 2.0, 4.0], [0.0, 0.0, 0.0, 3.0]]) * scale
+    np.testing.assert_allclose(geometry.normalized_quaternions(quat), [[0.2, -0.4, 0.4, 0.8], [0.0, 0.0, 0.0, 1.0]], rtol=1e-15)
