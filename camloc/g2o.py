@@ -425,18 +425,26 @@ def _info_from_upper(upper: np.ndarray, dim: int) -> np.ndarray:
 
 def _check_positive_definite(path: Path, tag: str, info: np.ndarray, lines: np.ndarray) -> None:
     """Refuse the first information matrix that has no Cholesky factor."""
+    row = _first_without_cholesky(info)
+    if row is not None:
+        eigenvalues = np.linalg.eigvalsh(info[row])
+        raise DatasetError(path, int(lines[row]), f"{tag}: expected a symmetric positive definite information "
+                                                  f"matrix, found smallest eigenvalue {eigenvalues[0]:.3g}")
+
+
+def _first_without_cholesky(matrices: np.ndarray) -> int | None:
+    """The index of the first of the (n, d, d) matrices that has no Cholesky factor, or None."""
     try:
-        np.linalg.cholesky(info)
-        return
+        np.linalg.cholesky(matrices)
+        return None
     except np.linalg.LinAlgError:
         pass
-    for matrix, line in zip(info, lines):  # the batch failed: find which one
+    for row, matrix in enumerate(matrices):  # the batch failed: find which one
         try:
             np.linalg.cholesky(matrix)
         except np.linalg.LinAlgError:
-            eigenvalues = np.linalg.eigvalsh(matrix)
-            raise DatasetError(path, int(line), f"{tag}: expected a symmetric positive definite information "
-                                                f"matrix, found smallest eigenvalue {eigenvalues[0]:.3g}") from None
+            return row
+    return None
 
 
 # --- one function per tag -------------------------------------------------------------------
@@ -450,25 +458,12 @@ def _covariances(path: Path, tag: str, info: np.ndarray, lines: np.ndarray, from
         cov = from_info(info)
     usable = np.all(np.isfinite(cov), axis=(1, 2)) & np.all(np.diagonal(cov, axis1=1, axis2=2) <= MAX_VARIANCE, axis=1)
     bad = np.flatnonzero(~usable)
-    if bad.size == 0:
-        try:
-            np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
-            bad = np.array([row for row, matrix in enumerate(cov) if not _has_cholesky(matrix)])
-    if bad.size:
-        row = int(bad[0])
+    row = int(bad[0]) if bad.size else _first_without_cholesky(cov)
+    if row is not None:
         diagonal = " ".join(f"{value:.3g}" for value in np.diagonal(info[row]))
         raise DatasetError(path, int(lines[row]), f"{tag}: expected an information matrix whose inverse is positive definite "
                                                   f"with variances up to {MAX_VARIANCE:.0e}, found information diagonal {diagonal}")
     return cov
-
-
-def _has_cholesky(matrix: np.ndarray) -> bool:
-    try:
-        np.linalg.cholesky(matrix)
-    except np.linalg.LinAlgError:
-        return False
-    return True
 
 
 def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, Camera]:
