@@ -14,7 +14,7 @@ their one home, written with round-trip precision), plus ``dataset`` and ``forma
 TUM files repeat the poses for other tools (evo) and are not read back. ``save_run`` builds the
 folder in a hidden temporary sibling and renames it into place, so a failure leaves nothing
 behind and an existing run of the same name is replaced only by a complete one. The single-file
-helpers (``write_text_atomic``, ``write_bytes_atomic``, ``write_json_atomic``, ``atomic_write``)
+helpers (``write_text_atomic``, ``write_json_atomic``, ``atomic_write``)
 give the same whole-or-nothing guarantee to any other output, and ``write_files_atomic`` to a set
 of files (the figures of ``camloc plot``); ``write_smoothed`` adds
 ``smoothed.tum`` to an existing run folder that way, and ``load_run`` reads it back into
@@ -154,17 +154,9 @@ def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
     binary : open in ``"wb"`` instead of ``"w"`` (UTF-8 text, ``"\n"`` newlines).
     """
     path = Path(path)
+    tmp = _temporary_sibling(path)
     try:
-        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    except OSError as error:
-        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
-    tmp = Path(tmp_name)
-    try:
-        # mkstemp creates 0600 files; an output is meant to be read like any other file.
-        os.chmod(tmp, 0o644)
-        mode = "wb" if binary else "w"
-        encoding = None if binary else "utf-8"
-        with os.fdopen(fd, mode, encoding=encoding, newline=None if binary else "") as handle:
+        with _open_for_writing(tmp, binary) as handle:
             yield handle
         os.replace(tmp, path)
     except BaseException:
@@ -173,16 +165,27 @@ def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
         raise
 
 
+def _temporary_sibling(path: Path) -> Path:
+    """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
+    try:
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:
+        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
+    os.close(fd)
+    os.chmod(tmp_name, 0o644)
+    return Path(tmp_name)
+
+
+def _open_for_writing(path: Path, binary: bool) -> IO:
+    if binary:
+        return path.open("wb")
+    return path.open("w", encoding="utf-8", newline="")
+
+
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` whole or not at all (temporary file + ``os.replace``)."""
     with atomic_write(path) as handle:
         handle.write(text)
-
-
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` whole or not at all (temporary file + ``os.replace``)."""
-    with atomic_write(path, binary=True) as handle:
-        handle.write(data)
 
 
 def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[bytes]], None]) -> None:
@@ -199,13 +202,8 @@ def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[by
     staged: list[tuple[Path, Path]] = []
     try:
         for path in map(Path, paths):
-            try:
-                fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-            except OSError as error:
-                raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
-            staged.append((Path(tmp_name), path))
-            with os.fdopen(fd, "wb") as handle:
-                os.chmod(tmp_name, 0o644)  # mkstemp makes 0600 files; a figure is meant to be shared
+            staged.append((_temporary_sibling(path), path))
+            with _open_for_writing(staged[-1][0], binary=True) as handle:
                 write(path, handle)
         for tmp, path in staged:
             os.replace(tmp, path)
