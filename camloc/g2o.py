@@ -328,8 +328,9 @@ def _value_reason(layout: _Layout, name: str, value: float) -> str | None:
     return None
 
 
-_INTEGER = re.compile(r"[+-]?[0-9]+")
-_INT64 = (-(2**63), 2**63 - 1)
+# What an id looks like, and the ids that fit in int64 (the run folder's readers share both).
+INTEGER = re.compile(r"[+-]?[0-9]+")
+INT64_RANGE = (-(2**63), 2**63 - 1)
 
 
 def _raise_first_malformed_line(path: Path, layout: _Layout, lines: _Lines) -> None:
@@ -353,28 +354,29 @@ def _malformed_reason(layout: _Layout, fields: list[str]) -> str | None:
         return (f"{layout.tag} expects {layout.n_fields} fields after the tag "
                 f"({layout.summary}), found {len(fields)}")
     for name, token in zip(layout.names[: layout.n_ids], fields):
-        if not _INTEGER.fullmatch(token):
+        if not INTEGER.fullmatch(token):
             return f"{layout.tag} field {name}: expected an integer id, found {token!r}"
-        if not _INT64[0] <= int(token) <= _INT64[1]:
+        if not INT64_RANGE[0] <= int(token) <= INT64_RANGE[1]:
             return f"{layout.tag} field {name}: expected an id that fits in 64 bits, found {token}"
     for name, token in zip(layout.names[layout.n_ids:], fields[layout.n_ids:]):
-        if not _is_number(token):
+        value = parse_number(token)
+        if value is None:
             return f"{layout.tag} field {name}: expected a number, found {token!r}"
-        reason = _value_reason(layout, name, float(token))  # as in _parse_table, so that the earliest line wins
+        reason = _value_reason(layout, name, value)  # as in _parse_table, so that the earliest line wins
         if reason is not None:
             return reason
     return None
 
 
-def _is_number(token: str) -> bool:
-    """What np.loadtxt parses as a float: Python's float() also takes 1_000 and non-ASCII digits."""
+def parse_number(token: str) -> float | None:
+    """``token`` as a float where np.loadtxt parses it as one, else None: Python's float() also
+    takes 1_000 and non-ASCII digits, which no tool writes (more likely damage than data)."""
     if not token.isascii() or "_" in token:
-        return False
+        return None
     try:
-        float(token)
+        return float(token)
     except ValueError:
-        return False
-    return True
+        return None
 
 
 # --- validation helpers shared by the tags --------------------------------------------------

@@ -35,7 +35,6 @@ import io
 import json
 import math
 import os
-import re
 import shutil
 import tempfile
 import zipfile
@@ -48,7 +47,7 @@ import numpy as np
 
 from camloc import geometry
 from camloc.errors import CamlocError, DatasetError
-from camloc.g2o import MAX_COORDINATE
+from camloc.g2o import INT64_RANGE, INTEGER, MAX_COORDINATE, parse_number
 
 UNASSOCIATED = -1
 
@@ -340,25 +339,20 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _tum_value(path: Path, line: int, name: str, text: str) -> float:
     """One field of a TUM line: a finite number, and for x, y, z within ``MAX_COORDINATE`` metres."""
-    value = _parse_float(text)
-    if value is None:
-        raise DatasetError(path, line, f"expected a number for {name}, found {text!r}")
-    if not math.isfinite(value):
-        raise DatasetError(path, line, f"expected a finite number for {name}, found {text!r}")
+    value = _finite_number(path, line, name, text)
     if name in ("x", "y", "z") and abs(value) > MAX_COORDINATE:
         raise DatasetError(path, line, f"expected metres within +-{MAX_COORDINATE:.0e} for {name}, found {text}")
     return value
 
 
-def _parse_float(text: str) -> float | None:
-    """``text`` as a float, or None. Stricter than ``float()``, which also takes ``1_000`` and
-    non-ASCII digits: no tool writes those, so they are more likely damage than data."""
-    if not text.isascii() or "_" in text:
-        return None
-    try:
-        return float(text)
-    except ValueError:
-        return None
+def _finite_number(path: Path, line: int, name: str, text: str) -> float:
+    """A field of a text file that must be a finite number (``g2o.parse_number``'s syntax)."""
+    value = parse_number(text)
+    if value is None:
+        raise DatasetError(path, line, f"expected a number for {name}, found {text!r}")
+    if not math.isfinite(value):
+        raise DatasetError(path, line, f"expected a finite number for {name}, found {text!r}")
+    return value
 
 
 # --------------------------------------------------------------------------------------------
@@ -434,8 +428,6 @@ def _read_associations_with_lines(path: str | Path) -> tuple[Associations, list[
 
 _INT_COLUMNS = ("pose", "camera", "landmark", "true_landmark")
 _OPTIONAL_COLUMNS = ("landmark", "mahalanobis")
-_INTEGER = re.compile(r"[+-]?[0-9]+")
-_INT64_RANGE = (-(2**63), 2**63 - 1)
 
 
 def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | None:
@@ -446,17 +438,12 @@ def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | No
             return None
         raise DatasetError(path, line, f"expected a value for {name}, found an empty cell")
     if name in _INT_COLUMNS:
-        if not _INTEGER.fullmatch(text):
+        if not INTEGER.fullmatch(text):
             raise DatasetError(path, line, f"expected an integer for {name}, found {text!r}")
-        if not _INT64_RANGE[0] <= int(text) <= _INT64_RANGE[1]:
+        if not INT64_RANGE[0] <= int(text) <= INT64_RANGE[1]:
             raise DatasetError(path, line, f"expected an integer for {name} that fits in 64 bits, found {text}")
         return int(text)
-    value = _parse_float(text)
-    if value is None:
-        raise DatasetError(path, line, f"expected a number for {name}, found {text!r}")
-    if not math.isfinite(value):
-        raise DatasetError(path, line, f"expected a finite number for {name}, found {text!r}")
-    return value
+    return _finite_number(path, line, name, text)
 
 
 # --------------------------------------------------------------------------------------------
