@@ -20,7 +20,7 @@ from scipy.special import chdtri
 
 from camloc import association, ekf, geometry, models
 from camloc.beam import BeamSearch, BeamSettings
-from camloc.filters import FILTERS, make_filter
+from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import MAX_COORDINATE
@@ -152,6 +152,8 @@ def localize(
     """
     config = config or LocalizerConfig()
     config.validate()
+    if config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS:
+        return _localize_compiled(dataset, config, on_progress)
     localizer = _Localizer(dataset, config)
     started = time.perf_counter()
     n = dataset.num_poses
@@ -175,6 +177,46 @@ def localize(
 
 
 POINT_CHUNK = 32768
+
+# The associations the compiled loop (``camloc.loop``) runs; the others run in numpy below.
+COMPILED_ASSOCIATIONS = ("beam", "oracle")
+
+
+def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback]) -> RunResult:
+    from camloc.loop import PoseFailure, run_compiled
+    from camloc.scene import candidate_range
+
+    euler = make_filter("euler")
+    x0 = euler.initial(dataset.T_world_start)
+    sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
+    started = time.perf_counter()
+    try:
+        states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
+            dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2))
+    except PoseFailure as failure:
+        raise ekf.FilterDivergedError(f"a covariance is no longer positive definite ({failure})").at_pose(int(dataset.pose_ids[failure.k])) from None
+    seconds = time.perf_counter() - started
+    odometry = np.empty((dataset.num_poses, 4, 4))
+    T = dataset.T_world_start
+    increments = dataset.T_odometry
+    for k in range(dataset.num_poses):
+        if k > 0:
+            T = T @ increments[k - 1]
+        odometry[k] = T
+    warnings = []
+    pitch = np.degrees(np.abs(states[:, 4]))
+    near = np.flatnonzero(pitch > SINGULARITY_WARNING_DEG)
+    if near.size:
+        k = int(near[0])
+        warnings.append(f"pose {int(dataset.pose_ids[k])}: pitch {np.degrees(states[k, 4]):.1f} deg is close to the Euler filter's "
+                        "singularity at +-90 deg; its estimate may degrade from here (--filter se3 has no singularity)")
+    landmark = np.where(chosen >= 0, dataset.landmark_ids[np.maximum(chosen, 0)] if dataset.landmark_ids.size else UNASSOCIATED, UNASSOCIATED)
+    return build_result(
+        dataset, config, euler, states, covs, geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
+        dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
+        slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=candidate_range(dataset, config),
+        timing={"filter_seconds": seconds, "replay_process": False, "replay_process_peak_mb": None},
+    )
 
 # Below this many poses a second process costs more to start (an interpreter and its imports,
 # about half a second) than it saves.
@@ -270,12 +312,6 @@ class _Localizer:
         self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose, on_decided=on_decided)
         slips = np.flatnonzero(self.beam_slipped)
         self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in slips]
-        if slips.size:
-            self.warnings.append(
-                f"{slips.size} pose(s) were explained as odometry slips (prior covariance widened "
-                f"{self.config.slip_inflation:g}x): " + ", ".join(str(i) for i in self.slip_pose_ids[:10])
-                + (" ..." if slips.size > 10 else "")
-            )
 
     def step(self, k: int) -> None:
         try:
@@ -595,70 +631,70 @@ class _Localizer:
             )
 
     def result(self, filter_seconds: float) -> RunResult:
-        ds = self.dataset
-        estimate_xyz, estimate_quat = geometry.pose_to_quat(self.poses)
-        odometry_xyz, odometry_quat = geometry.pose_to_quat(self.odometry_poses)
-        associations = Associations(
-            pose_id=ds.pose_ids[ds.obs_pose_index],
-            camera=ds.obs_camera.copy(),
-            uvd=ds.obs_uvd.copy(),
-            landmark=self.chosen_landmark,
-            true_landmark=ds.obs_true_landmark.copy(),
-            mahalanobis=self.mahalanobis,
+        return build_result(
+            self.dataset, self.config, self.filter, self.states, self.covs, self.poses, self.odometry_poses,
+            self.chosen_landmark, self.mahalanobis, self.update_pose_ids, self.nis, self.map_costs, self.nis_dof,
+            warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb_max_nodes} joint tests at {self.jcbb_cut_short} pose(s) "
+                                        "and kept the best set found"] if self.jcbb_cut_short else []),
+            slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
+            timing={"filter_seconds": filter_seconds, "replay_process": self.replayed_in_parallel,
+                    "replay_process_peak_mb": self.replay_peak_mb},
         )
-        accepted = int(np.count_nonzero(self.chosen_landmark != UNASSOCIATED))
-        summary = {
-            "dataset": ds.source,
-            "config": asdict(self.config),
-            "candidate_range": {"min_depth": self.min_depth, "max_depth": self.max_depth, "max_angle_deg": float(np.degrees(self.max_angle))},
-            "counts": {
-                "poses": ds.num_poses,
-                "observations": ds.num_observations,
-                "accepted": accepted,
-                "rejected": ds.num_observations - accepted,
-                "updates": len(self.nis),
-                "landmarks": int(ds.landmark_ids.size),
-            },
-            "timing": {
-                "filter_seconds": filter_seconds,
-                "poses_per_second": ds.num_poses / filter_seconds if filter_seconds > 0 else float("inf"),
-                "replay_process": self.replayed_in_parallel,
-                "replay_process_peak_mb": self.replay_peak_mb,
-            },
-            "warnings": list(ds.warnings) + self.warnings,
-        }
-        if self.jcbb_cut_short:
-            summary["warnings"].append(f"JCBB hit its bound of {self.config.jcbb_max_nodes} joint tests at {self.jcbb_cut_short} pose(s) and kept the best set found")
-        guard = divergence_guard(np.asarray(self.update_pose_ids, dtype=np.int64), np.asarray(self.map_costs), np.asarray(self.nis_dof))
-        summary["divergence_guard"] = guard
-        summary["slip_poses"] = self.slip_pose_ids
-        if guard["runs"]:
-            summary["warnings"].append(
-                f"the filter may have diverged: its updates' chi-square statistic stayed above the {100 * GUARD_PROBABILITY:g}% bound for "
-                f"{GUARD_RUN_LENGTH} or more consecutive updates at poses "
-                + ", ".join(f"{a}-{b}" for a, b in guard["runs"][:5])
-                + (" ..." if len(guard["runs"]) > 5 else "")
-            )
-        return RunResult(
-            dataset=ds.source,
-            pose_ids=ds.pose_ids.copy(),
-            estimate_xyz=estimate_xyz,
-            estimate_quat_xyzw=estimate_quat,
-            estimate_cov=self.filter.pose_cov(self.states, self.covs),
-            filter_state=self.states,
-            filter_cov=self.covs,
-            odometry_xyz=odometry_xyz,
-            odometry_quat_xyzw=odometry_quat,
-            truth_xyz=ds.truth_xyz,
-            truth_quat_xyzw=ds.truth_quat_xyzw,
-            map_landmark_ids=ds.landmark_ids,
-            map_landmark_xyz=ds.landmark_xyz,
-            associations=associations,
-            update_pose_ids=np.asarray(self.update_pose_ids, dtype=np.int64),
-            nis=np.asarray(self.nis, dtype=float),
-            nis_dof=np.asarray(self.nis_dof, dtype=np.int64),
-            summary=summary,
+
+
+def build_result(dataset, config, filter_model, states, covs, poses, odometry_poses, chosen_landmark, mahalanobis,
+                 update_pose_ids, nis, map_costs, nis_dof, *, warnings, slip_pose_ids, candidate_range, timing) -> RunResult:
+    """The RunResult of a run's records: per pose the filter's stored state (N, S), covariance
+    (N, 6, 6), pose and odometry pose (N, 4, 4); per observation the chosen landmark id
+    (UNASSOCIATED for none) and Mahalanobis distance; per update its pose id, NIS, MAP cost, dof."""
+    ds = dataset
+    estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)
+    odometry_xyz, odometry_quat = geometry.pose_to_quat(odometry_poses)
+    associations = Associations(
+        pose_id=ds.pose_ids[ds.obs_pose_index], camera=ds.obs_camera.copy(), uvd=ds.obs_uvd.copy(),
+        landmark=chosen_landmark, true_landmark=ds.obs_true_landmark.copy(), mahalanobis=mahalanobis,
+    )
+    accepted = int(np.count_nonzero(chosen_landmark != UNASSOCIATED))
+    filter_seconds = timing["filter_seconds"]
+    min_depth, max_depth, max_angle = candidate_range
+    summary = {
+        "dataset": ds.source,
+        "config": asdict(config),
+        "candidate_range": {"min_depth": min_depth, "max_depth": max_depth, "max_angle_deg": float(np.degrees(max_angle))},
+        "counts": {
+            "poses": ds.num_poses, "observations": ds.num_observations, "accepted": accepted,
+            "rejected": ds.num_observations - accepted, "updates": len(nis), "landmarks": int(ds.landmark_ids.size),
+        },
+        "timing": {
+            "filter_seconds": filter_seconds,
+            "poses_per_second": ds.num_poses / filter_seconds if filter_seconds > 0 else float("inf"),
+            **{key: value for key, value in timing.items() if key != "filter_seconds"},
+        },
+        "warnings": list(ds.warnings) + list(warnings),
+    }
+    if slip_pose_ids:
+        summary["warnings"].append(
+            f"{len(slip_pose_ids)} pose(s) were explained as odometry slips (prior covariance widened "
+            f"{config.slip_inflation:g}x): " + ", ".join(str(i) for i in slip_pose_ids[:10]) + (" ..." if len(slip_pose_ids) > 10 else "")
         )
+    guard = divergence_guard(np.asarray(update_pose_ids, dtype=np.int64), np.asarray(map_costs), np.asarray(nis_dof))
+    summary["divergence_guard"] = guard
+    summary["slip_poses"] = list(slip_pose_ids)
+    if guard["runs"]:
+        summary["warnings"].append(
+            f"the filter may have diverged: its updates' chi-square statistic stayed above the {100 * GUARD_PROBABILITY:g}% bound for "
+            f"{GUARD_RUN_LENGTH} or more consecutive updates at poses "
+            + ", ".join(f"{a}-{b}" for a, b in guard["runs"][:5])
+            + (" ..." if len(guard["runs"]) > 5 else "")
+        )
+    return RunResult(
+        dataset=ds.source, pose_ids=ds.pose_ids.copy(), estimate_xyz=estimate_xyz, estimate_quat_xyzw=estimate_quat,
+        estimate_cov=filter_model.pose_cov(states, covs), filter_state=states, filter_cov=covs,
+        odometry_xyz=odometry_xyz, odometry_quat_xyzw=odometry_quat, truth_xyz=ds.truth_xyz, truth_quat_xyzw=ds.truth_quat_xyzw,
+        map_landmark_ids=ds.landmark_ids, map_landmark_xyz=ds.landmark_xyz, associations=associations,
+        update_pose_ids=np.asarray(update_pose_ids, dtype=np.int64), nis=np.asarray(nis, dtype=float),
+        nis_dof=np.asarray(nis_dof, dtype=np.int64), summary=summary,
+    )
 
 
 GUARD_PROBABILITY = 0.999

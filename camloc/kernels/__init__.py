@@ -1,0 +1,15 @@
+"""The compiled kernels of the filter step (numba), over plain arrays, one module per concern:
+
+- ``rotation``: Euler angles, the rate matrix E, retraction and difference of the Euler state;
+- ``motion``: prediction with its Jacobians;
+- ``camera``: the camera model with its Jacobians, back-projection;
+- ``sym3``, ``small``: closed-form 3x3 algebra and loop products of small matrices;
+- ``view``: the grid hash of the map and the view query;
+- ``update``: the stacked, iterated update in information form;
+- ``recheck``: leave-one-out costs and assignment margins;
+- ``beam``: the beam over association hypotheses; ``seeds``: the slip search's seed ranking;
+- ``filtering``: the filter's pass over the poses with known pairs.
+
+Every kernel is ``@jit`` (``_jit``: cached, numba's numpy error model) and has a numpy twin that
+the tests compare it with (``tests/test_kernels.py``).
+"""

@@ -1,0 +1,551 @@
+"""The beam over association hypotheses, compiled: the hypotheses of a pose are arrays, and a
+pose's work is one call. The reasoning (why a beam, the costs, the seeds of a slip, why two
+explanations per seed) is in ``docs/beam.md``; the numpy reference it was checked against is
+``camloc.reference.beam``.
+
+A generation of hypotheses is a tuple of arrays (``new_generation``): states X (n, 6), covariances
+P (n, 6, 6), costs (n,) (twice the negative log-likelihood of all they explain), the index of the
+hypothesis each grew from at the previous pose, observations left unassigned at this pose, whether
+it was explained from a slip's widened prior, and its pairs at this pose (n, cap, 2) of
+(observation, landmark) with their count.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from camloc.kernels._jit import jit
+from camloc.kernels.camera import back_project, camera_pose, observe
+from camloc.kernels.motion import predict
+from camloc.kernels.rotation import difference
+from camloc.kernels.small import mm, sandwich
+from camloc.kernels.sym3 import mahalanobis, trace
+from camloc.kernels.update import innovation_cost, updated
+from camloc.kernels.view import visible, widened_view
+
+AMBIGUOUS, UNASSIGNED = -2, -1
+DONE, SLIP, GROW = 0, 1, 2
+
+
+@jit
+def new_generation(n, cap):
+    return (np.empty((n, 6)), np.empty((n, 6, 6)), np.empty(n), np.full(n, -1, np.int64), np.zeros(n, np.int64),
+            np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
+
+
+@jit
+def copy_hypothesis(src, i, dst, j):
+    """dst[j] = src[i], every field."""
+    dst[0][j], dst[1][j], dst[2][j], dst[3][j] = src[0][i], src[1][i], src[2][i], src[3][i]
+    dst[4][j], dst[5][j], dst[6][j] = src[4][i], src[5][i], src[6][i]
+    dst[7][j, :src[6][i]] = src[7][i, :src[6][i]]
+
+
+@jit
+def carry(gen, indices):
+    """The hypotheses at indices as the next pose's beam: states, covariances and costs (their
+    pairs are in the history)."""
+    out = new_generation(indices.size, 1)
+    for j in range(indices.size):
+        out[0][j], out[1][j], out[2][j] = gen[0][indices[j]], gen[1][indices[j]], gen[2][indices[j]]
+    return out
+
+
+@jit
+def gather(gen, indices, cap):
+    out = new_generation(indices.size, cap)
+    for j in range(indices.size):
+        copy_hypothesis(gen, indices[j], out, j)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# A pair's cost, in the coordinates where its linearization explains it best
+
+@jit
+def pair_in_best_coordinates(scene, o, z_hat, H, P):
+    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point, innovation y (3,), its
+    Jacobian (3, 6)) of observation o against a prediction (z_hat (3,), H (3, 6)) under P, in the
+    measured (u, v, depth) or in the camera-frame point they back-project to, whichever is likelier:
+    a point is linear in the robot's position, pixels can fit better where the spread is rotation."""
+    p_hat, J = back_project(z_hat, scene.camera_K[scene.obs_camera[o]])
+    Hp = mm(J, H)
+    HPH = sandwich(H, P)
+    d2_pixels, log_det_pixels = mahalanobis(HPH + scene.R_assoc[o], scene.z[o] - z_hat)
+    d2_point, log_det_point = mahalanobis(sandwich(J, HPH) + scene.point_cov[o], scene.point[o] - p_hat)
+    cost_pixels = d2_pixels + log_det_pixels - scene.log_det_R[o]
+    cost_point = d2_point + log_det_point - scene.log_det_point_cov[o]
+    if cost_point < cost_pixels:
+        return d2_point, cost_point, True, scene.point[o] - p_hat, Hp
+    return d2_pixels, cost_pixels, False, scene.z[o] - z_hat, H.copy()
+
+
+@jit
+def options_for(scene, settings, x, P, obs, widened):
+    """What each observation (obs (m,)) may be under (x, P): its pool of landmarks within
+    ``pool_gate_factor`` gates, with their costs (inf outside the gate), predictions, innovations
+    and Jacobians in their best coordinates. CSR over the observations: (start (m + 1,), landmark,
+    cost, z_hat (g, 3), H (g, 3, 6), y (g, 3), Hc (g, 3, 6), in_point). ``widened``: among the
+    landmarks within three standard deviations of the view, not only in it."""
+    m = obs.size
+    pool_gate = settings.pool_gate_factor * settings.gate
+    cameras = np.unique(scene.obs_camera[obs])
+    max_angle, margin = scene.view_limits[2], 0.0
+    if widened:
+        margin, max_angle = widened_view(P, scene.view_limits[2])
+    # every camera's candidates, their predictions and spreads, concatenated
+    found = []
+    for c in cameras:
+        R_wc, centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])
+        found.append(visible(scene, R_wc, centre, max_angle, margin))
+    total = 0
+    for f in found:
+        total += f.size
+    cand, cand_camera = np.empty(total, np.int64), np.empty(total, np.int64)
+    z_hat, H = np.empty((total, 3)), np.empty((total, 3, 6))
+    p_hat, spread_pixels, spread_point = np.empty((total, 3)), np.empty(total), np.empty(total)
+    at = 0
+    for g in range(cameras.size):
+        c, f = cameras[g], found[g]
+        zc, Hc = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[f])
+        for q in range(f.size):
+            cand[at], cand_camera[at], z_hat[at], H[at] = f[q], c, zc[q], Hc[q]
+            ph, J = back_project(zc[q], scene.camera_K[c])
+            HPH = sandwich(Hc[q], P)
+            p_hat[at], spread_pixels[at], spread_point[at] = ph, trace(HPH), trace(sandwich(J, HPH))
+            at += 1
+    cap = max(m * total, 1)
+    start = np.zeros(m + 1, np.int64)
+    lm, cost, in_point = np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.bool_)
+    zh, Hs, ys, Hcs = np.empty((cap, 3)), np.empty((cap, 3, 6)), np.empty((cap, 3)), np.empty((cap, 3, 6))
+    n = 0
+    for r in range(m):
+        o = obs[r]
+        c = scene.obs_camera[o]
+        tr_R, tr_point = trace(scene.R_assoc[o]), trace(scene.point_cov[o])
+        for q in range(total):
+            if cand_camera[q] != c:
+                continue
+            # y' S^-1 y >= |y|^2 / trace S: most of a dense view's pairs are surely beyond the pool
+            y_pixels, y_point = scene.z[o] - z_hat[q], scene.point[o] - p_hat[q]
+            if (y_pixels @ y_pixels > pool_gate * (spread_pixels[q] + tr_R)
+                    and y_point @ y_point > pool_gate * (spread_point[q] + tr_point)):
+                continue
+            d2, pair_cost, point, y, Hc = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P)
+            if not d2 <= pool_gate:
+                continue
+            lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
+            zh[n], Hs[n], ys[n], Hcs[n] = z_hat[q], H[q], y, Hc
+            n += 1
+        start[r + 1] = n
+    return start, lm[:n].copy(), cost[:n].copy(), zh[:n].copy(), Hs[:n].copy(), ys[:n].copy(), Hcs[:n].copy(), in_point[:n].copy()
+
+
+@jit
+def taken_by(gen, h):
+    return gen[7][h, :gen[6][h], 1]
+
+
+@jit
+def is_taken(landmark, taken):
+    for t in taken:
+        if t == landmark:
+            return True
+    return False
+
+
+@jit
+def condition(scene, settings, x, P, o, pool, taken):
+    """The options of observation o over its pool (g,) under a hypothesis (x, P) conditioned on
+    some of the pose's pairs, less the landmarks it has taken: (cost, z_hat, H, y, Hc, in_point).
+    The pool is kept; its predictions are made again (moving the old ones to first order is not
+    enough: a pair's correction moves a landmark a metre away by pixels more than that)."""
+    g = pool.size
+    c = scene.obs_camera[o]
+    cost, in_point = np.empty(g), np.empty(g, np.bool_)
+    ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6))
+    z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[pool])
+    for q in range(g):
+        d2, pair_cost, point, y, Hc = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P)
+        cost[q] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
+        in_point[q], ys[q], Hcs[q] = point, y, Hc
+    return cost, z_hat, H, ys, Hcs, in_point
+
+
+@jit
+def noise_inverse(scene, o, in_point):
+    return scene.point_cov_inverse[o] if in_point else scene.R_assoc_inverse[o]
+
+
+@jit
+def least_cost(costs, null_cost):
+    best = null_cost
+    for c in costs:
+        if c < best:
+            best = c
+    return best
+
+
+@jit
+def clear_choices(settings, null_cost, start, lm, cost, positions):
+    """Per position (an observation of the pose): the option index of its only viable landmark,
+    UNASSIGNED when leaving it so is its only viable option, AMBIGUOUS when several options lie
+    within ``branch_delta`` of its best or its one landmark is viable for another observation."""
+    n = positions.size
+    choice = np.full(n, AMBIGUOUS, np.int64)
+    viable_landmarks = np.empty(0, np.int64)
+    for k in range(n):
+        i = positions[k]
+        limit = least_cost(cost[start[i]:start[i + 1]], null_cost[k]) + settings.branch_delta
+        count, last = 0, -1
+        for j in range(start[i], start[i + 1]):
+            if cost[j] <= limit:
+                count += 1
+                last = j
+                viable_landmarks = np.append(viable_landmarks, lm[j])
+        null = null_cost[k] <= limit
+        if count + int(null) == 1:
+            choice[k] = UNASSIGNED if null else last
+    for k in range(n):
+        if choice[k] >= 0:
+            claims = 0
+            for v in viable_landmarks:
+                if v == lm[choice[k]]:
+                    claims += 1
+            if claims > 1:
+                choice[k] = AMBIGUOUS
+    return choice
+
+
+@jit
+def after_clear(scene, settings, gen, h, obs, cap):
+    """Hypothesis h of gen after its stacked updates with the pose's clear observations: the clear
+    ones are taken in one stacked update; conditioned on them the others are gated again, and those
+    that became clear are taken in the next, until none does (an observation is often ambiguous
+    only until a neighbour's pair pins the pose). Returns (the child as a generation of one, its
+    options, the ambiguous rest in the order to branch on them: fewest gated options first, and
+    the least each can cost)."""
+    opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, False)
+    start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    child = new_generation(1, cap)
+    copy_hypothesis(gen, h, child, 0)
+    x, P = gen[0][h].copy(), gen[1][h].copy()
+    pending = np.arange(obs.size)
+    no_start = np.zeros(6)
+    while pending.size:
+        choice = clear_choices(settings, scene.null_cost[obs[pending]], start, lm, cost, pending)
+        clear = choice != AMBIGUOUS
+        if not clear.any():
+            break
+        taken = pending[choice >= 0]
+        options = choice[choice >= 0]
+        for k in range(pending.size):
+            if choice[k] == UNASSIGNED:
+                child[2][0] += scene.null_cost[obs[pending[k]]]
+                child[4][0] += 1
+        if taken.size:
+            o, landmarks = obs[taken], lm[options]
+            x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, zh[options], Hs[options], True, False, no_start, False)[:2]
+            R_inverse = np.empty((taken.size, 3, 3))
+            for t in range(taken.size):
+                R_inverse[t] = noise_inverse(scene, o[t], in_point[options[t]])
+            # the joint cost of the pairs, each in the coordinates its option chose, at the prior
+            child[2][0] += innovation_cost(P, Hcs[options], R_inverse, ys[options])
+            for t in range(taken.size):
+                child[7][0, child[6][0], 0], child[7][0, child[6][0], 1] = o[t], landmarks[t]
+                child[6][0] += 1
+            x, P = x_new, P_new
+        pending = pending[~clear]
+        for i in pending:
+            if start[i + 1] > start[i]:
+                part = slice(start[i], start[i + 1])
+                cost[part], zh[part], Hs[part], ys[part], Hcs[part], in_point[part] = condition(
+                    scene, settings, x, P, obs[i], lm[part], taken_by(child, 0))
+    child[0][0], child[1][0] = x, P
+    counts = np.empty(pending.size, np.int64)
+    for k in range(pending.size):
+        counts[k] = np.isfinite(cost[start[pending[k]]:start[pending[k] + 1]]).sum()
+    order = pending[np.argsort(counts, kind="mergesort")]
+    least = np.zeros(obs.size)
+    for i in order:
+        least[i] = least_cost(cost[start[i]:start[i + 1]], scene.null_cost[obs[i]])
+    return child, opt, order, least
+
+
+@jit
+def same_state(gen, a, b, merge_sigma):
+    """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
+    every axis (the cheaper is kept)."""
+    d = difference(gen[0][a], gen[0][b])
+    for i in range(6):
+        if d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
+            return False
+    return True
+
+
+@jit
+def settle(scene, settings, gen, c, parents, pending):
+    """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
+    its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
+    ambiguous pose many children are pruned on their cost alone and never need their update."""
+    source, obs, landmark, z_hat, H, waiting = pending
+    if not waiting[c]:
+        return
+    p = source[c]
+    x, P = updated(scene, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
+                   z_hat[c:c + 1], H[c:c + 1], True, False, np.zeros(6), False)[:2]
+    gen[0][c], gen[1][c] = x, P
+    waiting[c] = False
+
+
+@jit
+def prune_indices(scene, settings, gen, candidates, parents, pending):
+    """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
+    beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
+    are settled as a comparison first needs them)."""
+    order = candidates[np.argsort(gen[2][candidates], kind="mergesort")]
+    kept = np.empty(min(order.size, settings.beam_width), np.int64)
+    n = 0
+    if order.size == 0:
+        return kept
+    limit = gen[2][order[0]] + settings.beam_delta
+    for c in order:
+        if gen[2][c] > limit or n >= settings.beam_width:
+            break
+        merged = False
+        for q in range(n):
+            settle(scene, settings, gen, c, parents, pending)
+            settle(scene, settings, gen, kept[q], parents, pending)
+            if same_state(gen, c, kept[q], settings.merge_sigma):
+                merged = True
+                break
+        if not merged:
+            kept[n] = c
+            n += 1
+    return kept[:n]
+
+
+@jit
+def settled(n):
+    """The pending-state record of n settled hypotheses."""
+    return (np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3, 6)),
+            np.zeros(n, np.bool_))
+
+
+@jit
+def prune(scene, settings, gen, n):
+    """``prune_indices`` over the first n hypotheses of a settled generation."""
+    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n))
+
+
+@jit
+def prune_partials(scene, settings, gen, root, rest, parents, pending):
+    """Each root's partial explanations pruned as ``prune`` does (they have explained the same
+    observations, so their costs compare); past ``partial_budget`` in all, the best of each root
+    and the rest of the budget by cost plus ``rest``, the least what they still have to explain
+    can cost. Roots are taken in the order they first appear."""
+    n = root.size
+    kept = np.empty(0, np.int64)
+    seen = np.zeros(root.max() + 1 if n else 1, np.bool_)
+    for c in range(n):
+        r = root[c]
+        if seen[r]:
+            continue
+        seen[r] = True
+        kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending)))
+    if kept.size > settings.partial_budget:
+        ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
+        first = np.zeros(ranked.size, np.bool_)
+        seen[:] = False
+        for q in range(ranked.size):
+            if not seen[root[ranked[q]]]:
+                seen[root[ranked[q]]] = True
+                first[q] = True
+        others = ranked[~first][:max(0, settings.partial_budget - first.sum())]
+        kept = np.concatenate((ranked[first], others))
+    for c in kept:
+        settle(scene, settings, gen, c, parents, pending)
+    return kept
+
+
+@jit
+def explain_all(scene, settings, parents, n_parents, obs):
+    """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,).
+
+    Under each parent the clear observations are taken first (``after_clear``). Then the
+    observations still ambiguous are branched on one at a time: unassigned (``null_cost``), or
+    paired with each landmark within ``branch_delta`` of its best option; each parent's partial
+    explanations are pruned to a beam of their own, so that a costlier parent's best explanation
+    is grown to the end (where observations are few it is often the right one), and past
+    ``partial_budget`` they share one budget (``prune_partials``)."""
+    m = obs.size
+    cap = parents[6][:n_parents].max() + m if n_parents else m
+    gen = new_generation(n_parents, cap)
+    options, orders, leasts = [], [], []
+    root = np.arange(n_parents)
+    rest = np.zeros(n_parents)
+    moved = np.zeros(n_parents, np.bool_)
+    for h in range(n_parents):
+        child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap)
+        copy_hypothesis(child, 0, gen, h)
+        options.append(opt)
+        orders.append(order)
+        leasts.append(least)
+        rest[h] = least[order].sum()
+    step = 0
+    while True:
+        growing = False
+        for r in root:
+            growing = growing or step < orders[r].size
+        if not growing:
+            return gen, root.size
+        # the children of every partial explanation for its next observation
+        n = root.size
+        total = 0
+        for p in range(n):
+            total += 1 if step >= orders[root[p]].size else branch_count(scene, settings, gen, p, obs, options[root[p]],
+                                                                              orders[root[p]][step], moved[p])
+        children = new_generation(total, cap)
+        c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
+        pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
+                   np.zeros((total, 3, 6)), np.zeros(total, np.bool_))
+        at = 0
+        for p in range(n):
+            r = root[p]
+            if step >= orders[r].size:
+                copy_hypothesis(gen, p, children, at)
+                c_root[at], c_rest[at], c_moved[at] = r, rest[p], moved[p]
+                at += 1
+                continue
+            i = orders[r][step]
+            at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], rest[p] - leasts[r][i],
+                        children, at, c_root, c_rest, c_moved, pending)
+        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending)
+        gen = gather(children, kept, cap)
+        root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
+        step += 1
+
+
+@jit
+def options_of(scene, settings, gen, p, obs, opt, i, moved):
+    """The options of observation i under partial p: those of its root's base state, or made
+    again under p's own where it has paired something since."""
+    start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    part = slice(start[i], start[i + 1])
+    if not moved:
+        return lm[part], cost[part].copy(), zh[part], Hs[part]
+    cost, z_hat, H, _, _, _ = condition(scene, settings, gen[0][p], gen[1][p], obs[i], lm[part], taken_by(gen, p))
+    return lm[part], cost, z_hat, H
+
+
+@jit
+def viable(gen, p, landmarks, cost, null_cost, branch_delta):
+    """Which options (those of landmarks p has not taken) and whether the null option lie within
+    branch_delta of the best."""
+    taken = taken_by(gen, p)
+    for j in range(cost.size):
+        if is_taken(landmarks[j], taken):
+            cost[j] = np.inf
+    limit = least_cost(cost, null_cost) + branch_delta
+    return cost <= limit, null_cost <= limit
+
+
+@jit
+def branch_count(scene, settings, gen, p, obs, opt, i, moved):
+    landmarks, cost, _, _ = options_of(scene, settings, gen, p, obs, opt, i, moved)
+    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[obs[i]], settings.branch_delta)
+    return pairs.sum() + int(null)
+
+
+@jit
+def branch(scene, settings, gen, p, r, obs, opt, i, moved, rest, children, at, c_root, c_rest, c_moved, pending):
+    """Write the children of partial p for observation i from index ``at``: unassigned, or paired
+    with a viable landmark (its state pending); returns the next free index."""
+    landmarks, cost, z_hat, H = options_of(scene, settings, gen, p, obs, opt, i, moved)
+    o = obs[i]
+    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o], settings.branch_delta)
+    if null:
+        copy_hypothesis(gen, p, children, at)
+        children[2][at] += scene.null_cost[o]
+        children[4][at] += 1
+        c_root[at], c_rest[at], c_moved[at] = r, rest, moved
+        at += 1
+    for j in np.flatnonzero(pairs):
+        copy_hypothesis(gen, p, children, at)
+        children[2][at] += cost[j]
+        children[7][at, children[6][at], 0], children[7][at, children[6][at], 1] = o, landmarks[j]
+        children[6][at] += 1
+        c_root[at], c_rest[at], c_moved[at] = r, rest, True
+        pending[0][at], pending[1][at], pending[2][at] = p, o, landmarks[j]
+        pending[3][at], pending[4][at], pending[5][at] = z_hat[j], H[j], True
+        at += 1
+    return at
+
+
+# ---------------------------------------------------------------------------------------------
+# The run over the poses
+
+@jit
+def predicted(scene, beam, n, k):
+    """The beam's first n hypotheses predicted to pose k (k > 0) with its odometry: same costs,
+    each remembering which it grew from, no pairs yet."""
+    out = new_generation(n, 1)
+    for h in range(n):
+        out[0][h], out[1][h] = predict(beam[0][h], beam[1][h], scene.T_increment[k - 1], scene.odom_cov[k - 1])
+        out[2][h], out[3][h] = beam[2][h], h
+    return out
+
+
+@jit
+def commit(history, k, gen, kept):
+    """Record pose k's kept hypotheses (parent, slipped, pairs) for the backtrack; False where
+    the pair buffer is full (the caller grows it and calls again)."""
+    count, parent, slipped, pair_start, pairs, used = history
+    needed = 0
+    for h in kept:
+        needed += gen[6][h]
+    if used[0] + needed > pairs.shape[0]:
+        return False
+    count[k] = kept.size
+    for q in range(kept.size):
+        h = kept[q]
+        parent[k, q], slipped[k, q] = gen[3][h], gen[5][h]
+        pair_start[k, q] = used[0]
+        pairs[used[0]:used[0] + gen[6][h]] = gen[7][h, :gen[6][h]]
+        used[0] += gen[6][h]
+        pair_start[k, q + 1] = used[0]
+    return True
+
+
+@jit
+def run_poses(scene, settings, first, last, beam, n, history, unexplained, counters):
+    """The beam from pose first to last - 1, from ``beam`` (n hypotheses after pose first - 1, or
+    the start). Per pose: predict every hypothesis, explain the pose's observations, keep the
+    cheapest (``prune``), record them. Stops early with SLIP where the best explanation leaves
+    most of a pose's observations unassigned (the caller decides whether to search from seeds),
+    or GROW where the history's pair buffer is full. counters[1] is the pose being explained.
+
+    Returns (status, pose, beam after it (or the predicted beam at it), its size, the pose's
+    children, their count)."""
+    for k in range(first, last):
+        counters[1] = k
+        parents = predicted(scene, beam, n, k) if k > 0 else beam
+        obs = scene.pose_obs[scene.pose_obs_start[k]:scene.pose_obs_start[k + 1]]
+        if obs.size == 0 or scene.grid_keys.size == 0:
+            children, count, kept = parents, n, np.arange(n)
+        else:
+            children, count = explain_all(scene, settings, parents, n, obs)
+            if count == 0:
+                raise FloatingPointError("no explanation of the pose's observations has a finite cost")
+            best = np.argmin(children[2][:count])
+            if obs.size >= 3 and 2 * children[4][best] > obs.size:
+                return SLIP, k, parents, n, children, count
+            kept = prune(scene, settings, children, count)
+        if not commit(history, k, children, kept):
+            return GROW, k, parents, n, children, count
+        if obs.size and scene.grid_keys.size:
+            u = counters[2]
+            unexplained[u, 0], unexplained[u, 1] = children[4][kept[0]], obs.size
+            counters[2] = u + 1
+        beam, n = carry(children, kept), kept.size
+    return DONE, last, beam, n, beam, n

@@ -1,0 +1,145 @@
+"""The filter's pass over the poses once the association is known or trivial: predict, take the
+pose's pairs (given by an associator, or the file's ids for the oracle), update with all of them
+stacked, re-check each pair by the others, record. One compiled loop over a block of poses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from camloc.kernels._jit import jit
+from camloc.kernels.camera import camera_pose, observe, observe_pairs
+from camloc.kernels.motion import predict
+from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
+from camloc.kernels.small import mm, mtm, sandwich
+from camloc.kernels.sym3 import mahalanobis
+from camloc.kernels.update import updated
+from camloc.kernels.view import visible
+
+GIVEN, ORACLE = 0, 1
+
+
+@jit
+def oracle_pairs(scene, settings, x, P, obs):
+    """The file's landmark of each observation (obs (m,)) where it is in the map and the pair
+    passes the gate at (x, P): a gross outlier keeps its true id but is no evidence to take."""
+    keep = np.zeros(obs.size, np.bool_)
+    landmarks = np.empty(obs.size, np.int64)
+    for r in range(obs.size):
+        o = obs[r]
+        landmarks[r] = scene.true_index[o]
+        if landmarks[r] < 0:
+            continue
+        c = scene.obs_camera[o]
+        z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[landmarks[r]:landmarks[r] + 1])
+        d2, _ = mahalanobis(sandwich(H[0], P) + scene.R_assoc[o], scene.z[o] - z_hat[0])
+        keep[r] = d2 <= settings.gate
+    return obs[keep], landmarks[keep]
+
+
+@jit
+def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
+    """Which of a pose's pairs (p,) keep more than ``recheck_margin`` over their nearest
+    alternative and more than ``recheck_steal_margin`` over a rival taking their landmark, each
+    observation of the pose (obs (m,)) judged by the posterior of the other pairs."""
+    keep = np.ones(pair_obs.size, np.bool_)
+    cameras = np.unique(scene.obs_camera[obs])
+    information = np.zeros((cameras.size, 6, 6))
+    groups = []
+    for g in range(cameras.size):
+        c = cameras[g]
+        mine = obs[scene.obs_camera[obs] == c]
+        R_wc, centre = camera_pose(x_post, scene.camera_R[c], scene.camera_t[c])
+        candidates = visible(scene, R_wc, centre, scene.view_limits[2], 0.0)
+        z_hat, H = observe(x_post, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[candidates])
+        chosen = np.full(mine.size, -1, np.int64)
+        for r in range(mine.size):
+            for q in range(pair_obs.size):
+                if pair_obs[q] == mine[r]:
+                    for j in range(candidates.size):
+                        if candidates[j] == pair_landmarks[q]:
+                            chosen[r] = j
+            if chosen[r] >= 0:
+                Hc = H[chosen[r]]
+                information[g] += mtm(Hc, mm(scene.R_assoc_inverse[mine[r]], Hc))
+        groups.append((mine, z_hat, H, chosen))
+    prior_information = np.linalg.solve(P_prior, np.eye(6))
+    for g in range(cameras.size):
+        mine, z_hat, H, chosen = groups[g]
+        if z_hat.shape[0] == 0:
+            continue
+        others = prior_information.copy()
+        for g2 in range(cameras.size):
+            if g2 != g:
+                others += information[g2]
+        cost = leave_one_out_costs(scene.z[mine], scene.R_assoc[mine], scene.R_assoc_inverse[mine], scene.log_det_R[mine],
+                                   z_hat, H, chosen, others, settings.gate)
+        row, steal = assignment_margins(cost, scene.null_cost[mine], chosen)
+        for r in range(mine.size):
+            for q in range(pair_obs.size):
+                if pair_obs[q] == mine[r] and not (row[r] > settings.recheck_margin and steal[r] > settings.recheck_steal_margin):
+                    keep[q] = False
+    return keep
+
+
+@jit
+def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_obs, pair_landmark, slipped,
+                 states, covs, chosen, mahalanobis_distance, update_pose, nis, map_cost, nis_dof, counters):
+    """Filter poses first..last-1 from (x, P) (the state after pose first - 1, or the start).
+
+    method: GIVEN (pose k's pairs are pair_obs/pair_landmark[pair_start[k]:pair_start[k + 1]], the
+    first the seed of an explanation from a slip, and ``slipped[k]``: the prior is widened by
+    ``slip_inflation`` there) or ORACLE. Writes states (N, 6), covs (N, 6, 6), per observation the
+    chosen landmark (-1 none) and the pair's Mahalanobis distance, per update its pose, NIS, MAP
+    cost and degrees of freedom; counters[0] counts updates, counters[1] is the pose being
+    filtered (where an error stopped it). Returns (x, P) after pose last - 1."""
+    no_start = np.zeros(6)
+    for k in range(first, last):
+        counters[1] = k
+        if k > 0:
+            x, P = predict(x, P, scene.T_increment[k - 1], scene.odom_cov[k - 1])   # x <- x (+) odometry
+        obs_k = scene.pose_obs[scene.pose_obs_start[k]:scene.pose_obs_start[k + 1]]
+        if method == ORACLE:
+            obs, landmarks = oracle_pairs(scene, settings, x, P, obs_k)
+        else:                                                                       # in observation order
+            given_obs = pair_obs[pair_start[k]:pair_start[k + 1]]
+            order = np.argsort(given_obs, kind="mergesort")
+            obs, landmarks = given_obs[order], pair_landmark[pair_start[k]:pair_start[k + 1]][order]
+        start, from_start = no_start, False
+        if method == GIVEN and slipped[k]:
+            P = P * settings.slip_inflation                                         # as the beam did
+            if obs.size:
+                # the beam explained the pose from its seed pair, listed first: one right pair pins
+                # the pose where Gauss-Newton from the slip's wide prior can settle metres away
+                seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
+                z_hat, H = observe_pairs(x, scene.landmark_xyz[seed_landmark], scene.obs_camera[seed_obs], scene.camera_R, scene.camera_t, scene.camera_K)
+                start = updated(scene, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, False, False, no_start, False)[0]
+                from_start = True
+        if obs.size == 0:
+            states[k], covs[k] = x, P
+            continue
+        z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+        result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, False, True, start, from_start)
+        # A lone pair left out leaves the prior its association was judged by; after a slip, the
+        # widened prior leaves each pair's partners too little to confirm it by
+        if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:
+            keep = recheck(scene, settings, obs_k, obs, landmarks, P, result[0])
+            if not keep.all():
+                obs, landmarks = obs[keep], landmarks[keep]
+                if obs.size:
+                    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+                    result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, False, True, no_start, False)
+        if obs.size:
+            x_post, P_post, nis_k, cost_k, y = result
+            for i in range(obs.size):            # each pair's own 3x3 block of S = H P H' + R
+                S = sandwich(H[i], P) + scene.R_file[obs[i]]
+                d2, _ = mahalanobis(S, y[i])
+                chosen[obs[i]] = landmarks[i]
+                mahalanobis_distance[obs[i]] = math.sqrt(d2)
+            u = counters[0]
+            update_pose[u], nis[u], map_cost[u], nis_dof[u] = k, nis_k, cost_k, 3 * obs.size
+            counters[0] = u + 1
+            x, P = x_post, P_post
+        states[k], covs[k] = x, P
+    return x, P

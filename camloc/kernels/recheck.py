@@ -1,0 +1,84 @@
+"""The re-check of a pose's accepted pairs: each observation judged by the posterior of the pose's
+other pairs (its own left out), and a pair kept only when no single change of the assignment comes
+close. The numpy twins are ``camloc.association.leave_one_out_costs`` and ``assignment_margins``.
+
+Leaving pair i out of an update linearized at the posterior (the MAP, where the gradient vanishes):
+
+    L_i = information + sum_{j != i} H_j' R_j^-1 H_j,   L_i delta_i = -H_c' R_i^-1 (z_i - z_hat_c)
+
+and every candidate j's prediction moves to ``z_hat_j + H_j delta_i`` with ``S = H_j L_i^-1 H_j' + R_i``.
+Information is summed from the prior, never subtracted from the posterior, so L_i stays positive definite.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from camloc.kernels._jit import jit
+from camloc.kernels.small import mm, mtm, mv, sandwich
+from camloc.kernels.sym3 import mahalanobis
+
+
+@jit
+def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, information, gate):
+    """Costs (n, m) ``d^2 + ln det S - ln det R`` of n observations (z (n, 3), R, R^-1 (n, 3, 3),
+    ln det R (n,)) against m candidates (z_hat (m, 3), H (m, 3, 6)) at the posterior, each judged
+    with its own pair (chosen (n,): candidate column, -1 for none) left out; inf beyond the gate.
+    ``information``: the prior's plus that of the update's pairs outside these observations."""
+    n, m = z.shape[0], z_hat.shape[0]
+    pair_information = np.zeros((n, 6, 6))
+    total = information.copy()
+    for i in range(n):
+        if chosen[i] >= 0:
+            Hc = H[chosen[i]]
+            pair_information[i] = mtm(Hc, mm(R_inverse[i], Hc))
+            total += pair_information[i]
+    cost = np.full((n, m), np.inf)
+    for i in range(n):
+        L = total - pair_information[i]
+        P_i = np.linalg.solve(L, np.eye(6))
+        P_i = 0.5 * (P_i + P_i.T)
+        delta = np.zeros(6)
+        if chosen[i] >= 0:
+            Hc = H[chosen[i]]
+            delta = -mv(P_i, mv(Hc.T, mv(R_inverse[i], z[i] - z_hat[chosen[i]])))
+        for j in range(m):
+            residual = z[i] - z_hat[j] - mv(H[j], delta)
+            S = sandwich(H[j], P_i) + R[i]
+            d2, log_det = mahalanobis(S, residual)
+            if d2 <= gate:
+                cost[i, j] = d2 + log_det - log_det_R[i]
+    return cost
+
+
+@jit
+def assignment_margins(cost, null_cost, chosen):
+    """(row (n,), steal (n,)): how much costlier the nearest single change that undoes each chosen
+    pair is. row: the observation takes another landmark or none; steal: another observation takes
+    its landmark (giving up what it holds, or going unassigned) while it takes its next best.
+    inf for unassigned observations and where no alternative exists."""
+    n, m = cost.shape
+    current = null_cost.copy()
+    for i in range(n):
+        if chosen[i] >= 0:
+            current[i] = cost[i, chosen[i]]
+    row = np.full(n, np.inf)
+    steal = np.full(n, np.inf)
+    for i in range(n):
+        c = chosen[i]
+        if c < 0:
+            continue
+        other = null_cost[i]
+        for j in range(m):
+            if j != c and cost[i, j] < other:
+                other = cost[i, j]
+        row[i] = other - current[i]
+        rival = np.inf
+        for i2 in range(n):
+            if i2 != i:
+                taking = cost[i2, c] - min(current[i2], null_cost[i2])
+                if taking < rival:
+                    rival = taking
+        if np.isfinite(rival):
+            steal[i] = row[i] + rival
+    return row, steal

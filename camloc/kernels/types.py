@@ -1,0 +1,52 @@
+"""What the kernels take: the run's fixed arrays (``SceneArrays``, built by ``camloc.scene``) and
+its settings (``Settings``), as named tuples that numba passes by reference."""
+
+from __future__ import annotations
+
+from collections import namedtuple
+
+SceneArrays = namedtuple("SceneArrays", [
+    # the map and its spatial index (a uniform grid hash: ``camloc.kernels.view``)
+    "landmark_xyz",        # (L, 3) world frame
+    "grid_origin",         # (3,) corner of cell (0, 0, 0)
+    "grid_cell",           # (1,) side of a cell, metres
+    "grid_dims",           # (3,) int64 cells along x, y, z
+    "grid_keys",           # (G,) int64 sorted keys of the occupied cells
+    "grid_start",          # (G + 1,) int64 offsets of each cell's landmarks in grid_items
+    "grid_items",          # (L,) int64 landmark indices, cell by cell
+    # cameras
+    "camera_R", "camera_t", "camera_K",   # (C, 3, 3) R_robot_camera, (C, 3) t, (C, 4) fx fy cx cy
+    # observations
+    "obs_camera",          # (K,) int64 row of the camera tables
+    "z",                   # (K, 3) u, v, depth
+    "R_file",              # (K, 3, 3) the file's noise: what the estimate weighs pairs by
+    "R_file_inverse",      # (K, 3, 3) its information
+    "R_assoc",             # (K, 3, 3) the noise association judges pairs by (floored, ``association.noise_floored``)
+    "R_assoc_inverse",     # (K, 3, 3)
+    "log_det_R",           # (K,) ln det R_assoc
+    "point",               # (K, 3) each observation as a camera-frame point
+    "point_cov",           # (K, 3, 3) its covariance (from R_assoc)
+    "point_cov_inverse",   # (K, 3, 3)
+    "log_det_point_cov",   # (K,)
+    "null_cost",           # (K,) cost of leaving the observation unassigned
+    "true_index",          # (K,) int64 landmark index of the file's id, -1 where not in the map
+    "pose_obs",            # (K,) int64 observations, pose by pose (in file order within a pose)
+    "pose_obs_start",      # (N + 1,) int64 offsets into pose_obs
+    # odometry
+    "T_increment",         # (N - 1, 4, 4)
+    "odom_cov",            # (N - 1, 6, 6)
+    # view limits and consistency bounds
+    "view_limits",         # (3,) min_depth, max_depth, max_angle (rad)
+    "nis_bound",           # (P + 1,) the 99.9% chi^2 quantile of 3p degrees of freedom, p pairs
+])
+
+Settings = namedtuple("Settings", [
+    "iterations",           # int: linearizations per update
+    "gate",                 # float: chi^2 gate of a pair (3 dof)
+    "recheck",              # bool
+    "recheck_margin", "recheck_steal_margin",
+    "slip_inflation",
+    # the beam
+    "beam_width", "beam_delta", "branch_delta", "merge_sigma", "slip_cost", "partial_budget",
+    "pool_gate_factor",
+])

@@ -1,0 +1,203 @@
+"""The stacked, iterated EKF update in information form, and what the localizer wraps around it.
+
+A pose's pairs are independent measurements (block-diagonal R), so the update adds their
+information to the prior's, a 6x6 system whatever the number of pairs:
+
+    Lambda = sum H_i' R_i^-1 H_i,  A = (I + P Lambda)^-1
+    K y  = A P g,  g = sum H_i' R_i^-1 y_i                          (correction)
+    y' S^-1 y = sum y_i' R_i^-1 y_i - g' A P g                      (NIS, Woodbury)
+    P+ = A (P + P Lambda P) A'                                      (Joseph form, I - K H = A)
+    ln det S - ln det R = ln det (I + P Lambda)                     (determinant lemma)
+
+Iterations (Bell & Cathey 1993): ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with K_i
+at x_i; the covariance uses the last linearization. The numpy twin is ``camloc.ekf.update``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from camloc.kernels._jit import jit
+from camloc.kernels.camera import back_project, observe_pairs
+from camloc.kernels.rotation import difference, retract
+from camloc.kernels.small import mm, mtm, mtv, mv
+
+# Iterated updates stop when the correction changes by less than this (metres / radians).
+CONVERGED = 1e-6
+
+
+@jit
+def information_gain(P, H, R_inverse):
+    """(R^-1 H (p, 3, 6), Lambda (6, 6), I + P Lambda (6, 6), A P (6, 6)) of pairs with
+    Jacobians H (p, 3, 6) and noise information R_inverse (p, 3, 3)."""
+    p = H.shape[0]
+    R_inverse_H = np.empty((p, 3, 6))
+    information = np.zeros((6, 6))
+    for i in range(p):
+        R_inverse_H[i] = mm(R_inverse[i], H[i])
+        information += mtm(H[i], R_inverse_H[i])
+    information = 0.5 * (information + information.T)
+    I_P_information = np.eye(6) + mm(P, information)
+    if not np.all(np.isfinite(I_P_information)):
+        raise FloatingPointError("innovation covariance is not positive definite")
+    posterior = np.linalg.solve(I_P_information, P)
+    return R_inverse_H, information, I_P_information, 0.5 * (posterior + posterior.T)
+
+
+@jit
+def gradient(R_inverse_H, y):
+    """g = sum H_i' R_i^-1 y_i (6,) for innovations y (p, 3)."""
+    g = np.zeros(6)
+    for i in range(y.shape[0]):
+        g += mtv(R_inverse_H[i], y[i])
+    return g
+
+
+@jit
+def block_quadratic(y, R_inverse):
+    """sum y_i' R_i^-1 y_i."""
+    total = 0.0
+    for i in range(y.shape[0]):
+        total += y[i] @ mv(R_inverse[i], y[i])
+    return total
+
+
+@jit
+def normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain):
+    """y' S^-1 y = y' R^-1 y - g' A P g."""
+    g = gradient(R_inverse_H, y)
+    return block_quadratic(y, R_inverse) - g @ mv(posterior_plain, g)
+
+
+@jit
+def posterior_covariance(P, information, I_P_information):
+    """A (P + P Lambda P) A', symmetric positive definite by construction."""
+    spread = np.linalg.solve(I_P_information, P + mm(mm(P, information), P))
+    out = np.linalg.solve(I_P_information, np.ascontiguousarray(spread.T)).T
+    return 0.5 * (out + out.T)
+
+
+@jit
+def innovation_cost(P, H, R_inverse, y):
+    """``y' S^-1 y + ln det S - ln det R`` of stacked innovations y (p, 3) with Jacobians H and
+    noise information R_inverse: twice the negative log-likelihood relative to the noise's own
+    spread (the beam's units)."""
+    R_inverse_H, _, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
+    sign, log_det = np.linalg.slogdet(I_P_information)
+    if sign <= 0.0:
+        raise FloatingPointError("innovation covariance is not positive definite")
+    return normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain) + log_det
+
+
+@jit
+def correction(P, H, R_inverse, y):
+    """K y of one EKF update."""
+    R_inverse_H, _, _, posterior_plain = information_gain(P, H, R_inverse)
+    return mv(posterior_plain, gradient(R_inverse_H, y))
+
+
+@jit
+def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
+    """The MAP cost ``d' P^-1 d + r' R^-1 r`` of the posterior x_post: d its correction from the
+    prior x, r the residual ``z - h(x_post)``; chi^2 with 3p degrees of freedom at the MAP."""
+    moved = difference(x_post, x)
+    z_hat, _ = observe_pairs(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+    return moved @ np.linalg.solve(P, moved) + block_quadratic(z - z_hat, R_inverse)
+
+
+@jit
+def iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+                    iterations, z_hat, H, start, from_start, with_map_cost):
+    """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
+    R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
+    predictions at x. With ``from_start`` the iterations after the first linearize first at
+    start (a state near the MAP estimate, where the prior is too far for Gauss-Newton).
+
+    Returns (x+ (6,), P+ (6, 6), NIS at the prior, MAP cost at x+ (NaN unless asked), y (p, 3)
+    the innovation at the prior)."""
+    y_prior = z - z_hat
+    R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
+    nis = normalized_innovation(y_prior, R_inverse, R_inverse_H, posterior_plain)
+    delta = mv(posterior_plain, gradient(R_inverse_H, y_prior))       # K y
+    x_i = retract(x, delta)                                          # x+ = x [+] K y
+    if from_start and iterations >= 2:
+        x_i, delta = start.copy(), difference(start, x)
+    for _ in range(iterations - 1):
+        z_hat_i, H_i = observe_pairs(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+        R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H_i, R_inverse)
+        moved = difference(x_i, x)
+        r = z - z_hat_i
+        for i in range(r.shape[0]):
+            r[i] += mv(H_i[i], moved)                                   # z - h(x_i) + H_i (x_i [-] x)
+        step = mv(posterior_plain, gradient(R_inverse_H, r))
+        x_i = retract(x, step)
+        if np.max(np.abs(step - delta)) < CONVERGED:
+            break                                                    # the linearization no longer moves
+        delta = step
+    P_post = posterior_covariance(P, information, I_P_information)
+    cost = np.nan
+    if with_map_cost:
+        cost = posterior_cost(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+    return x_i, P_post, nis, cost, y_prior
+
+
+@jit
+def point_step(scene, x, P, obs, z_hat, H):
+    """x after one EKF update with the pairs' measurements as camera-frame points, where the model
+    is nearly linear in the position: where Gauss-Newton in (u, v, depth) from a wide prior
+    stalls, the iterations restart from here."""
+    p = obs.size
+    Hp = np.empty((p, 3, 6))
+    y = np.empty((p, 3))
+    R_inverse = np.empty((p, 3, 3))
+    for i in range(p):
+        o = obs[i]
+        p_hat, J = back_project(z_hat[i], scene.camera_K[scene.obs_camera[o]])
+        Hp[i] = mm(J, H[i])
+        y[i] = scene.point[o] - p_hat
+        R_inverse[i] = scene.point_cov_inverse[o]
+    return retract(x, correction(P, Hp, R_inverse, y))
+
+
+@jit
+def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, for_association, with_map_cost, start, from_start):
+    """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
+    predictions at x are z_hat, H. ``for_association``: weigh the pairs by the noise association
+    judges them by (the scratch filters that decide an association), not the file's.
+
+    Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
+    iterations also run from ``point_step``, and from ``start`` when given; the posterior with the
+    lower MAP cost is kept. Returns as ``iterated_update``."""
+    p = obs.size
+    z = np.empty((p, 3))
+    R_inverse = np.empty((p, 3, 3))
+    landmark_xyz = np.empty((p, 3))
+    pair_camera = np.empty(p, np.int64)
+    for i in range(p):
+        z[i] = scene.z[obs[i]]
+        R_inverse[i] = scene.R_assoc_inverse[obs[i]] if for_association else scene.R_file_inverse[obs[i]]
+        landmark_xyz[i] = scene.landmark_xyz[landmarks[i]]
+        pair_camera[i] = scene.obs_camera[obs[i]]
+    cams = (scene.camera_R, scene.camera_t, scene.camera_K)
+    x1, P1, nis, cost1, y1 = iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, *cams,
+                                             iterations, z_hat, H, start, False, with_map_cost)
+    if iterations < 2:
+        return x1, P1, nis, cost1, y1
+    far = nis > scene.nis_bound[p]
+    if not (from_start or far):
+        return x1, P1, nis, cost1, y1
+    lowest = cost1 if with_map_cost else posterior_cost(x1, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams)
+    best_x, best_P, best_cost, improved = x1, P1, cost1, False
+    for attempt in range(2):
+        if attempt == 0 and not from_start:
+            continue
+        if attempt == 1 and not far:
+            continue
+        s = start if attempt == 0 else point_step(scene, x, P, obs, z_hat, H)
+        x2, P2, _, cost2, _ = iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, *cams,
+                                              iterations, z_hat, H, s, True, True)
+        if cost2 < lowest:
+            best_x, best_P, best_cost, lowest, improved = x2, P2, cost2, cost2, True
+    if improved and not with_map_cost:
+        best_cost = np.nan
+    return best_x, best_P, nis, best_cost, y1

@@ -1,0 +1,116 @@
+"""Which landmarks a camera may see: a uniform grid hash of the map, queried with the smallest
+ball around the view cone, then the cone's own test. The cost grows with the landmarks near the
+view, not with the map (the numpy twin is ``camloc.association.candidate_indices`` over a k-d tree).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from camloc.kernels._jit import jit
+
+# Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
+MAX_CELLS_PER_AXIS = 1 << 20
+
+
+def build_grid(landmark_xyz: np.ndarray, cell: float):
+    """(origin (3,), cell (1,), dims (3,), keys (G,), start (G + 1,), items (L,)) of a grid hash
+    of landmarks (L, 3) with cells of side ``cell`` (widened where the map's extent would need
+    more than ``MAX_CELLS_PER_AXIS`` cells on an axis)."""
+    if landmark_xyz.shape[0] == 0:
+        return np.zeros(3), np.ones(1), np.ones(3, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
+    origin = landmark_xyz.min(axis=0)
+    extent = landmark_xyz.max(axis=0) - origin
+    cell = max(float(cell), float(extent.max()) / (MAX_CELLS_PER_AXIS - 1), 1e-9)
+    index = np.minimum(np.floor((landmark_xyz - origin) / cell).astype(np.int64), MAX_CELLS_PER_AXIS - 1)
+    dims = index.max(axis=0) + 1
+    key = index[:, 0] + dims[0] * (index[:, 1] + dims[1] * index[:, 2])
+    items = np.argsort(key, kind="stable").astype(np.int64)
+    keys, start = np.unique(key[items], return_index=True)
+    return origin, np.array([cell]), dims.astype(np.int64), keys.astype(np.int64), np.append(start, items.size).astype(np.int64), items
+
+
+@jit
+def view_cone_ball(apex, axis, depth, half_angle):
+    """The smallest ball (centre (3,), radius) holding a view cone: apex, unit axis, points up to
+    ``depth`` along it within ``half_angle`` of it. Up to 45 deg it passes through the apex and
+    the base's rim; wider, it is the base's rim ball."""
+    half_angle = min(half_angle, math.radians(89.9))
+    cos = math.cos(half_angle)
+    if cos * cos >= 0.5:
+        along = depth / (2.0 * cos * cos)
+        radius = along
+    else:
+        along = depth
+        radius = depth * math.tan(half_angle)
+    return apex + along * axis, radius * (1.0 + 1e-9) + 1e-9
+
+
+@jit
+def visible(scene, R_wc, centre, max_angle, margin):
+    """Sorted indices of the landmarks in the view of a camera at (R_wc, centre): depth within
+    (min_depth, max_depth) and within ``max_angle`` of the optical axis; with ``margin`` metres
+    the camera's position may be off, every landmark that close to the view too."""
+    min_depth, max_depth = scene.view_limits[0], scene.view_limits[1]
+    axis = np.ascontiguousarray(R_wc[:, 2])
+    back = margin / math.sin(max_angle) if margin > 0.0 else 0.0
+    ball, radius = view_cone_ball(centre - back * axis, axis, max_depth + margin + back, max_angle)
+    tan = math.tan(max_angle)
+    found = np.empty(64, np.int64)
+    count = 0
+    cell, origin, dims = scene.grid_cell[0], scene.grid_origin, scene.grid_dims
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = max(0, int(math.floor((ball[a] - radius - origin[a]) / cell)))
+        hi[a] = min(dims[a] - 1, int(math.floor((ball[a] + radius - origin[a]) / cell)))
+        if hi[a] < lo[a]:
+            return found[:0]
+    cells = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
+    keys = scene.grid_keys
+    scan_all = cells > keys.size                       # a ball wider than the map: visit occupied cells
+    n_keys = keys.size if scan_all else cells
+    for q in range(n_keys):
+        if scan_all:
+            g = q
+            key = keys[g]
+            ix, rest = key % dims[0], key // dims[0]
+            iy, iz = rest % dims[1], rest // dims[1]
+            if ix < lo[0] or ix > hi[0] or iy < lo[1] or iy > hi[1] or iz < lo[2] or iz > hi[2]:
+                continue
+        else:
+            nx, ny = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
+            ix, iy, iz = lo[0] + q % nx, lo[1] + (q // nx) % ny, lo[2] + q // (nx * ny)
+            key = ix + dims[0] * (iy + dims[1] * iz)
+            g = np.searchsorted(keys, key)
+            if g >= keys.size or keys[g] != key:
+                continue
+        for s in range(scene.grid_start[g], scene.grid_start[g + 1]):
+            j = scene.grid_items[s]
+            l = scene.landmark_xyz[j]
+            d0, d1, d2 = l[0] - ball[0], l[1] - ball[1], l[2] - ball[2]
+            if d0 * d0 + d1 * d1 + d2 * d2 > radius * radius:
+                continue
+            v0, v1, v2 = l[0] - centre[0], l[1] - centre[1], l[2] - centre[2]
+            px = R_wc[0, 0] * v0 + R_wc[1, 0] * v1 + R_wc[2, 0] * v2
+            py = R_wc[0, 1] * v0 + R_wc[1, 1] * v1 + R_wc[2, 1] * v2
+            depth = R_wc[0, 2] * v0 + R_wc[1, 2] * v1 + R_wc[2, 2] * v2
+            if depth > min_depth - margin and depth < max_depth + margin and math.hypot(px, py) <= (depth + back) * tan:
+                if count == found.size:
+                    grown = np.empty(2 * count, np.int64)
+                    grown[:count] = found
+                    found = grown
+                found[count] = j
+                count += 1
+    return np.sort(found[:count])
+
+
+@jit
+def widened_view(P, max_angle):
+    """(margin metres, half-angle) of a view widened by three standard deviations of the
+    position and of the orientation of P, for a prior too wide for the data's own margins."""
+    margin = 3.0 * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[:3, :3]))[-1], 0.0))
+    widened = max_angle + 3.0 * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[3:6, 3:6]))[-1], 0.0))
+    return margin, max(max_angle, min(widened, math.radians(89.0)))

@@ -1,0 +1,95 @@
+"""What a run needs and never changes, built once from the dataset and the configuration: the
+map and its grid hash, the cameras, every observation's noise (as the estimate weighs it and as
+association judges it), each observation as a camera-frame point, the cost of leaving it
+unassigned, the odometry, the view limits and the consistency bounds, as the arrays the compiled
+kernels take (``camloc.kernels.types.SceneArrays``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import chdtri
+
+from camloc import association, models, sym3
+from camloc.dataset import Dataset
+from camloc.kernels.types import SceneArrays, Settings
+from camloc.kernels.view import build_grid, view_cone_ball
+
+# Observations are turned into points in chunks: (K, 3, 3) temporaries add up on large files.
+POINT_CHUNK = 32768
+
+
+def build_scene(dataset: Dataset, config) -> SceneArrays:
+    """The run's fixed arrays for ``dataset`` under ``config`` (a ``LocalizerConfig``)."""
+    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
+    cameras = [dataset.cameras[int(c)] for c in camera_ids]
+    camera_K = np.array([(c.fx, c.fy, c.cx, c.cy) for c in cameras], dtype=float).reshape(-1, 4)
+    obs_camera = np.searchsorted(camera_ids, dataset.obs_camera).astype(np.int64)
+    K = dataset.num_observations
+    intrinsics = camera_K[obs_camera] if K else camera_K[:0]
+    # what association judges each observation by: the file's noise, raised to a floor where it
+    # claims to be near exact (the estimate keeps the file's own)
+    R_assoc, R_assoc_inverse = association.noise_floored(dataset.obs_uvd, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1])
+    point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
+    for start in range(0, K, POINT_CHUNK):
+        part = slice(start, start + POINT_CHUNK)
+        point[part], point_cov[part] = models.measured_points(dataset.obs_uvd[part], R_assoc[part], intrinsics[part].T)
+    if config.null_cost is None:
+        null_cost = association.clutter_null_cost(dataset.obs_uvd, R_assoc, dataset.obs_camera)
+    else:
+        null_cost = np.full(K, float(config.null_cost))
+    landmark_index = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
+    true_index = np.array([landmark_index.get(int(i), -1) for i in dataset.obs_true_landmark], dtype=np.int64)
+    pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
+    pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
+    view = np.array(candidate_range(dataset, config))
+    most_pairs = int(np.diff(pose_obs_start).max(initial=0))
+    grid = build_grid(dataset.landmark_xyz, view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), view[1], view[2])[1])
+    return SceneArrays(
+        np.ascontiguousarray(dataset.landmark_xyz, dtype=float), *grid,
+        np.ascontiguousarray([c.T_robot_camera[:3, :3] for c in cameras], dtype=float).reshape(-1, 3, 3),
+        np.ascontiguousarray([c.T_robot_camera[:3, 3] for c in cameras], dtype=float).reshape(-1, 3),
+        camera_K, obs_camera,
+        np.ascontiguousarray(dataset.obs_uvd, dtype=float),
+        np.ascontiguousarray(dataset.obs_cov, dtype=float), np.ascontiguousarray(dataset.obs_info, dtype=float),
+        np.ascontiguousarray(R_assoc), np.ascontiguousarray(R_assoc_inverse),
+        np.linalg.slogdet(R_assoc)[1] if K else np.zeros(0),
+        point, point_cov, sym3.inverse(point_cov) if K else np.zeros((0, 3, 3)),
+        np.linalg.slogdet(point_cov)[1] if K else np.zeros(0),
+        np.ascontiguousarray(null_cost, dtype=float), true_index, pose_obs, pose_obs_start,
+        np.ascontiguousarray(dataset.T_odometry, dtype=float).reshape(-1, 4, 4),
+        np.ascontiguousarray(dataset.odom_cov, dtype=float).reshape(-1, 6, 6),
+        view, chdtri(3 * np.maximum(np.arange(most_pairs + 2), 1), 0.001),
+    )
+
+
+def build_settings(config, gate: float) -> Settings:
+    """The kernels' settings of a ``LocalizerConfig`` (gate: its chi^2 quantile)."""
+    from camloc.kernels.beam_settings import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
+
+    return Settings(
+        int(config.iterations), float(gate), bool(config.recheck), float(config.recheck_margin),
+        float(config.recheck_steal_margin), float(config.slip_inflation), int(config.beam_width),
+        float(config.beam_delta), float(config.branch_delta), MERGE_SIGMA, float(config.slip_cost),
+        PARTIAL_BUDGET, POOL_GATE_FACTOR,
+    )
+
+
+def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
+    """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset:
+    depth up to 1.25 x the largest measured + 0.5 m, the widest observed ray + 10 deg (at most 89)."""
+    depth = dataset.obs_uvd[:, 2]
+    min_depth = config.min_depth if config.min_depth is not None else 0.0
+    max_depth = config.max_depth
+    if max_depth is None:
+        max_depth = 1.25 * float(depth.max()) + 0.5 if depth.size else 10.0
+    if config.max_angle_deg is not None:
+        return min_depth, max_depth, float(np.radians(config.max_angle_deg))
+    if depth.size == 0:
+        return min_depth, max_depth, float(np.radians(60.0))
+    tan = np.zeros((depth.size, 2))
+    for camera_id, camera in dataset.cameras.items():
+        mine = dataset.obs_camera == camera_id
+        tan[mine, 0] = (dataset.obs_uvd[mine, 0] - camera.cx) / camera.fx
+        tan[mine, 1] = (dataset.obs_uvd[mine, 1] - camera.cy) / camera.fy
+    widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))
+    return min_depth, max_depth, float(np.radians(min(widest + 10.0, 89.0)))

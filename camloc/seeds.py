@@ -1,0 +1,172 @@
+"""The beam's search from seed pairs, where a pose's best explanation leaves most of its
+observations unassigned (an odometry slip, or noisy odometry in a dense map): rare, so it runs in
+Python over the compiled kernels. The reasoning is in ``docs/beam.md``.
+
+Under a wide prior every observation gates many landmarks, and explaining them one by one goes
+astray; one right pair pins the pose, after which the others fall into place. So the seed pairs
+whose conditioned explanation of the pose looks cheapest (``association.seeded_explanation_costs``)
+among the individually cheapest pairs and those whose implied shift of the robot most other pairs
+share (``association.shift_agreement``) are each tried first, and the rest explained as usual.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import bdtrc, chdtri
+
+from camloc import association, geometry
+from camloc.kernels import beam as kb
+from camloc.kernels import seeds as ranking
+from camloc.kernels.beam_settings import SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS
+from camloc.kernels.rotation import difference
+from camloc.kernels.update import updated
+
+# The slip's search runs where a pose's best explanation leaves an unusual share of its observations
+# unassigned for this data: a binomial tail below UNUSUAL_PROBABILITY at the recent poses' rate.
+UNEXPLAINED_WINDOW = 50
+UNUSUAL_PROBABILITY = 0.01
+UNEXPLAINED_RATE_CAP = 0.6
+UNEXPLAINED_RUN = 3
+
+# A seeded explanation whose state leaves its prior's 99.9% region is dropped.
+STATE_GATE = float(chdtri(6, 0.001))
+
+
+def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexplained):
+    """The kept hypotheses of a pose whose best explanation (of ``children``) left most of its
+    observations unassigned: the children, and the explanations grown from seeds under the
+    beam's best prediction (``parents``' first), as it is and, where leaving that many
+    unassigned is unusual for this data, widened as after an odometry slip. Returns (the
+    generation they are in, the kept indices)."""
+    best = int(np.argmin(children[2][:count]))
+    origin = kb.gather(parents, np.array([0]), 1)
+    groups = []
+    if unusually_unexplained(int(children[4][best]), obs.size, unexplained):
+        slipped = kb.gather(parents, np.array([0]), 1)
+        slipped[1][0] *= settings.slip_inflation
+        slipped[2][0] += settings.slip_cost
+        groups.append(from_seeds(scene, settings, slipped, obs, slipped=True))
+    groups.append(from_seeds(scene, settings, origin, obs, slipped=False))  # noisy odometry, not a slip
+    everything, sizes = concatenated([(children, count)] + groups)
+    kept = list(kb.prune(scene, settings, everything, sizes.sum()))
+    offsets = np.cumsum(sizes)
+    for g in range(len(groups)):
+        kept = with_a_seeded_one(scene, settings, everything, kept, range(offsets[g], offsets[g + 1]))
+    return everything, np.asarray(kept, dtype=np.int64)
+
+
+def concatenated(generations):
+    """One generation of [(generation, count), ...], and the counts."""
+    cap = max(g[7].shape[1] for g, _ in generations)
+    sizes = np.array([n for _, n in generations], dtype=np.int64)
+    out = kb.new_generation(int(sizes.sum()), cap)
+    at = 0
+    for g, n in generations:
+        for i in range(n):
+            kb.copy_hypothesis(g, i, out, at)
+            at += 1
+    return out, sizes
+
+
+def with_a_seeded_one(scene, settings, gen, kept, seeded):
+    """The pruned beam with its last place given to the cheapest seeded explanation, when that is
+    within beam_delta of the best and only the beam's width kept it out: a full beam of a wrong
+    hypothesis' near copies can crowd out the right explanation of a pose of few observations,
+    which the next poses confirm."""
+    seeded = list(seeded)
+    if len(kept) < settings.beam_width or not seeded or any(c in kept for c in seeded):
+        return kept
+    candidate = min(seeded, key=lambda c: gen[2][c])
+    if gen[2][candidate] > gen[2][kept[0]] + settings.beam_delta or any(kb.same_state(gen, candidate, k, settings.merge_sigma) for k in kept):
+        return kept
+    return sorted(kept[:-1] + [candidate], key=lambda c: gen[2][c])
+
+
+def unusually_unexplained(unassigned: int, observed: int, history: np.ndarray) -> bool:
+    """Whether leaving ``unassigned`` of ``observed`` observations unexplained is unlikely at the
+    rate of the last poses' best explanations (history (h, 2) of unassigned, observed), for this
+    pose alone or pooled with the two before it: where a third of the detections are clutter,
+    most poses leave half unassigned, and searching each from seeds finds nothing better."""
+    if history.shape[0] == 0:
+        return True
+    recent = history[-UNEXPLAINED_WINDOW:]
+    rate = min(float(recent[:, 0].sum() / recent[:, 1].sum()), UNEXPLAINED_RATE_CAP)
+    run = recent[len(recent) - (UNEXPLAINED_RUN - 1):].sum(axis=0)
+    tails = bdtrc(np.array([unassigned, unassigned + run[0]]) - 1, np.array([observed, observed + run[1]]), rate)
+    return bool(tails.min() < UNUSUAL_PROBABILITY)
+
+
+def from_seeds(scene, settings, h, obs, *, slipped: bool):
+    """Explanations of obs under hypothesis h (a generation of one), each grown from one seed pair;
+    each seed gives its SEED_EXPLANATIONS cheapest. Returns (generation, count)."""
+    x, P = h[0][0], h[1][0]
+    start, landmark, cost, z_hat, H, y, Hc, in_point = kb.options_for(scene, settings, x, P, obs, True)
+    pair_obs = np.repeat(np.arange(obs.size), np.diff(start))
+    gated = np.isfinite(cost)
+    if not gated.any():
+        out = kb.explain_all(scene, settings, h, 1, obs)
+        return _flagged(out, slipped)
+    pair_obs, pair_landmark, pair_cost = pair_obs[gated], landmark[gated], cost[gated]
+    candidates = np.argsort(pair_cost, kind="stable")[:SLIP_CANDIDATES]
+    # and the pairs whose implied shift of the robot most others share: a right pair's own cost
+    # under a wide prior may rank it far down
+    agreement = association.shift_agreement(implied_shifts(scene, x, obs, pair_obs, pair_landmark), agreement_radius(scene, obs))
+    crowded = np.argsort(-agreement, kind="stable")[: SLIP_CANDIDATES // 4]
+    crowded = crowded[agreement[crowded] >= 3]
+    candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])
+    pair_in_point = in_point[gated]
+    o = obs[pair_obs]
+    noise = np.where(pair_in_point[:, None, None], scene.point_cov[o], scene.R_assoc[o])
+    ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
+                                              scene.null_cost[obs], candidates.astype(np.int64), settings.gate)
+    explained = []
+    for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
+        i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
+        seeded = kb.gather(h, np.array([0]), 1 + obs.size)
+        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]),
+                                             z_hat[gated][seed:seed + 1], H[gated][seed:seed + 1], True, False, np.zeros(6), False)[:2]
+        seeded[2][0] += pair_cost[seed]
+        seeded[7][0, 0] = (obs[i], lm)
+        seeded[6][0] = 1
+        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i))
+        for c in range(min(count, SEED_EXPLANATIONS)):
+            if within_prior(children[0][c], x, P):
+                explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))
+    if not explained:
+        return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
+    gen, sizes = concatenated(explained)
+    kept = kb.prune(scene, settings, gen, int(sizes.sum()))
+    return _flagged((kb.gather(gen, kept, gen[7].shape[1]), kept.size), slipped)
+
+
+def _flagged(generation, slipped: bool):
+    gen, n = generation
+    gen[5][:n] = slipped
+    return gen, n
+
+
+def within_prior(x_child, x, P) -> bool:
+    """Whether a child's state lies within the 99.9% region of its prior (x, P): under a wide
+    prior in a dense map a seed can fit a landmark metres from the right one by turning the
+    camera, every innovation looking likely while the state moved many standard deviations."""
+    d = difference(x_child, x)
+    return float(d @ np.linalg.solve(P, d)) <= STATE_GATE
+
+
+def implied_shifts(scene, x, obs, pair_obs, pair_landmark):
+    """(N, 3) the shift of the robot from x each pair implies (``association.shift_agreement``)."""
+    T_world_robot = geometry.pose_from_euler(x)
+    measured_world = np.empty((pair_obs.size, 3))
+    cameras = scene.obs_camera[obs][pair_obs]
+    for c in np.unique(cameras):
+        mine = cameras == c
+        T_world_camera = T_world_robot @ geometry.make_pose(scene.camera_R[c], scene.camera_t[c])
+        measured_world[mine] = geometry.transform_points(T_world_camera, scene.point[obs[pair_obs[mine]]])
+    return scene.landmark_xyz[pair_landmark] - measured_world
+
+
+def agreement_radius(scene, obs) -> float:
+    """How close two implied shifts must be to agree: three standard deviations of a measured
+    point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
+    point_sigma = np.sqrt(np.trace(scene.point_cov[obs], axis1=1, axis2=2) / 3.0)
+    return float(3.0 * np.median(point_sigma) + 0.1 * np.median(np.abs(scene.point[obs, 2])))

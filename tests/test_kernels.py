@@ -1,0 +1,195 @@
+"""The compiled kernels against their numpy twins (the formulas the rest of camloc states in numpy)
+on random inputs, their Jacobians against finite differences, and the compiled localizer against
+the numpy one on whole worlds."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import camloc.kernels
+from camloc import association, ekf, geometry, models
+from camloc.kernels import camera, motion, recheck, rotation, seeds, sym3, update, view
+from camloc.kernels._jit import OPTIONS
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+def _random_state(rng):
+    return np.r_[rng.normal(0, 2, 3), rng.uniform(-np.pi, np.pi), rng.uniform(-1.2, 1.2), rng.uniform(-np.pi, np.pi)]
+
+
+def _random_spd(rng, n, scale=1.0):
+    A = rng.normal(0, scale, (n, n))
+    return A @ A.T + scale**2 * np.eye(n)
+
+
+def test_every_kernel_carries_the_shared_options():
+    from numba.core.caching import NullCache
+    from numba.core.registry import CPUDispatcher
+
+    found = 0
+    for info in pkgutil.iter_modules(camloc.kernels.__path__):
+        module = importlib.import_module(f"camloc.kernels.{info.name}")
+        for name, value in vars(module).items():
+            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__:
+                found += 1
+                assert not isinstance(value._cache, NullCache), f"{module.__name__}.{name} is not cached"
+                for key in ("nogil", "error_model"):
+                    assert value.targetoptions[key] == OPTIONS[key], f"{module.__name__}.{name}: {key}"
+    assert found >= 30
+
+
+def test_rotations_match_geometry(rng):
+    for _ in range(20):
+        rpy = _random_state(rng)[3:]
+        R = rotation.euler_to_matrix(*rpy)
+        np.testing.assert_allclose(R, geometry.euler_to_matrix(rpy), atol=1e-14)
+        np.testing.assert_allclose(rotation.matrix_to_euler(R), geometry.matrix_to_euler(R), atol=1e-12)
+        np.testing.assert_allclose(rotation.euler_rate(rpy[0], rpy[1]), geometry.euler_rate_matrix(rpy), atol=1e-14)
+        np.testing.assert_allclose(rotation.euler_rate_inverse(rpy[0], rpy[1]), geometry.euler_rate_matrix_inverse(rpy), atol=1e-12)
+
+
+def test_motion_matches_the_numpy_model_and_finite_differences(rng):
+    for _ in range(10):
+        x = _random_state(rng)
+        T = geometry.pose_from_euler(np.r_[rng.normal(0, 0.5, 3), rng.normal(0, 0.2, 3)])
+        x_next, F, G = motion.motion(x, T)
+        ref = models.motion(x, T)
+        for a, b in zip((x_next, F, G), ref):
+            np.testing.assert_allclose(a, b, atol=1e-12)
+        eps = 1e-6
+        F_fd = np.column_stack([rotation.difference(motion.motion(x + eps * e, T)[0], motion.motion(x - eps * e, T)[0]) / (2 * eps)
+                                for e in np.eye(6)])
+        np.testing.assert_allclose(F, F_fd, atol=1e-6)
+        P, Q = _random_spd(rng, 6, 0.1), _random_spd(rng, 6, 0.01)
+        x2, P2 = motion.predict(x, P, T, Q)
+        np.testing.assert_allclose(P2, ekf.predict(P, F, G, Q), atol=1e-12)
+
+
+def test_observe_matches_the_numpy_model_and_finite_differences(rng):
+    T_rc = geometry.pose_from_euler(np.array([0.1, -0.05, 0.3, -np.pi / 2, 0.1, -np.pi / 2]))
+    K = np.array([520.0, 510.0, 320.0, 240.0])
+    for _ in range(10):
+        x = _random_state(rng)
+        T_wc = geometry.pose_from_euler(x) @ T_rc
+        points = geometry.transform_points(T_wc, np.column_stack([rng.uniform(-1, 1, (8, 2)), rng.uniform(1, 4, 8)]))
+        z_hat, H = camera.observe(x, T_rc[:3, :3].copy(), T_rc[:3, 3].copy(), K, points)
+        ref_z, ref_H = models.observe(x, T_rc, tuple(K), points)
+        np.testing.assert_allclose(z_hat, ref_z, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(H, ref_H, rtol=1e-10, atol=1e-8)
+        eps = 1e-6
+        H_fd = np.stack([(camera.observe(x + eps * e, T_rc[:3, :3].copy(), T_rc[:3, 3].copy(), K, points)[0]
+                          - camera.observe(x - eps * e, T_rc[:3, :3].copy(), T_rc[:3, 3].copy(), K, points)[0]) / (2 * eps)
+                         for e in np.eye(6)], axis=-1)
+        np.testing.assert_allclose(H, H_fd, rtol=1e-5, atol=1e-4)
+
+
+def test_mahalanobis_matches_the_batched_formula(rng):
+    for _ in range(20):
+        S, y = _random_spd(rng, 3), rng.normal(size=3)
+        d2, log_det = sym3.mahalanobis(S, y)
+        ref = association.mahalanobis_3x3(S[None], y[None])
+        np.testing.assert_allclose([d2, log_det], [ref[0][0], ref[1][0]], rtol=1e-12)
+    assert sym3.mahalanobis(-np.eye(3), np.ones(3)) == (np.inf, np.inf)
+
+
+def _pairs(rng, p):
+    H = rng.normal(0, 1, (p, 3, 6))
+    R = np.stack([_random_spd(rng, 3, 0.3) for _ in range(p)])
+    return H, R, np.linalg.inv(R), rng.normal(0, 1, (p, 3))
+
+
+def test_iterated_update_matches_ekf_update(rng):
+    """A linear measurement (z = H x + b): the iterated update is the Kalman update, in numpy."""
+    for p in (1, 2, 5):
+        H, R, R_inverse, _ = _pairs(rng, p)
+        x, P = rng.normal(0, 0.1, 6), _random_spd(rng, 6, 0.2)
+        z = rng.normal(0, 1, (p, 3))
+        ref = ekf.update(x, P, z.reshape(-1), R, lambda s: ((H @ s).reshape(-1), H.reshape(-1, 6)), R_inverse=R_inverse)
+        R_inverse_H, information, I_P_information, posterior_plain = update.information_gain(P, H, R_inverse)
+        y = z - H @ x
+        np.testing.assert_allclose(x + posterior_plain @ update.gradient(R_inverse_H, y), ref.state, atol=1e-10)
+        np.testing.assert_allclose(update.posterior_covariance(P, information, I_P_information), ref.cov, atol=1e-10)
+        np.testing.assert_allclose(update.normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain), ref.nis, rtol=1e-9)
+        cost = update.innovation_cost(P, H, R_inverse, y)
+        np.testing.assert_allclose(cost, ekf.innovation_cost(P, H.reshape(-1, 6), R, y.reshape(-1)), rtol=1e-9)
+
+
+def test_leave_one_out_costs_and_margins_match_numpy(rng):
+    n, m = 4, 7
+    z, z_hat = rng.normal(0, 1, (n, 3)), rng.normal(0, 1, (m, 3))
+    z_hat[:n] = z + rng.normal(0, 0.1, (n, 3))
+    H = rng.normal(0, 0.3, (m, 3, 6))
+    R = np.stack([_random_spd(rng, 3, 0.2) for _ in range(n)])
+    chosen = np.array([0, 1, -1, 3])
+    information = _random_spd(rng, 6, 1.0)
+    ref = association.leave_one_out_costs(z, R, z_hat, H, chosen, information=information, gate=30.0)
+    got = recheck.leave_one_out_costs(z, R, np.linalg.inv(R), np.linalg.slogdet(R)[1], z_hat, H, chosen, information, 30.0)
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
+    assert np.isfinite(got).sum() > n
+    null = rng.uniform(5, 15, n)
+    for a, b in zip(recheck.assignment_margins(got, null, chosen), association.assignment_margins(ref, null, chosen)):
+        np.testing.assert_allclose(a, b, rtol=1e-9)
+
+
+def test_seed_ranking_matches_numpy(rng):
+    N, m = 40, 6
+    H, R, _, y = _pairs(rng, N)
+    y *= 0.5
+    pair_obs = rng.integers(0, m, N)
+    pair_landmark = rng.integers(0, 15, N)
+    P = _random_spd(rng, 6, 0.1)
+    null = rng.uniform(8, 12, m)
+    chosen = np.arange(0, N, 3)
+    ref = association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null, chosen, gate=11.34)
+    got = seeds.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null, chosen, 11.34)
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.7])
+def test_view_query_matches_the_kd_tree(rng, margin):
+    landmarks = rng.uniform(-10, 10, (3000, 3))
+    scene = _scene_with_map(landmarks, max_depth=4.0, max_angle=np.radians(40.0))
+    tree = cKDTree(landmarks)
+    for _ in range(20):
+        T_wc = geometry.pose_from_euler(_random_state(rng))
+        got = view.visible(scene, T_wc[:3, :3].copy(), T_wc[:3, 3].copy(), np.radians(40.0), margin)
+        ref = association.candidate_indices(tree, landmarks, T_wc, min_depth=0.0, max_depth=4.0, max_angle_rad=np.radians(40.0), margin=margin)
+        np.testing.assert_array_equal(got, np.sort(ref))
+
+
+def _scene_with_map(landmarks, *, max_depth, max_angle):
+    from camloc.kernels.types import SceneArrays
+
+    grid = view.build_grid(landmarks, 1.5)
+    empty = np.zeros((0, 3))
+    fields = dict.fromkeys(SceneArrays._fields, empty)
+    fields.update(zip(("grid_origin", "grid_cell", "grid_dims", "grid_keys", "grid_start", "grid_items"), grid))
+    fields["landmark_xyz"] = landmarks
+    fields["view_limits"] = np.array([0.0, max_depth, max_angle])
+    return SceneArrays(**fields)
+
+
+@pytest.mark.parametrize("name", ["grid-small", "smooth3d-clutter", "pixel-2cam"])
+@pytest.mark.parametrize("association_method", ["beam", "oracle"])
+def test_compiled_localizer_equals_the_numpy_one(monkeypatch, name, association_method):
+    """The same pairs and the same states to rounding on the bundled worlds (a clutter world whose
+    slips exercise the seeded search, two pixel cameras)."""
+    import camloc
+    from camloc import localizer
+
+    dataset = camloc.load(DATA / f"{name}.g2o")
+    config = camloc.LocalizerConfig(association=association_method)
+    compiled = camloc.localize(dataset, config)
+    monkeypatch.setattr(localizer, "COMPILED_ASSOCIATIONS", ())
+    reference = camloc.localize(dataset, config, parallel=False)
+    np.testing.assert_array_equal(compiled.associations.landmark, reference.associations.landmark)
+    np.testing.assert_allclose(compiled.filter_state, reference.filter_state, atol=1e-8)
+    np.testing.assert_allclose(compiled.nis, reference.nis, rtol=1e-6)
+    assert compiled.summary["slip_poses"] == reference.summary["slip_poses"]
