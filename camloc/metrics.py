@@ -453,6 +453,12 @@ def _verdict(mean: float, lower: float, upper: float) -> str:
     return "consistent"
 
 
+def _finding(statistic: str, verdict: str, lower: float, upper: float, sample: str) -> str:
+    """``"<statistic> is inside its 95% interval [a, b] for <sample>"`` (above / below)."""
+    where = {"consistent": "inside", "overconfident": "above", "underconfident": "below"}[verdict]
+    return f"{statistic} is {where} its {CONFIDENCE:.0%} interval [{lower:.2f}, {upper:.2f}] for {sample}"
+
+
 def nees_summary(nees: np.ndarray, *, dof: int = POSE_DOF) -> dict:
     """Mean, median and bound shares of per-pose NEES (N,), NaN entries skipped.
 
@@ -479,17 +485,14 @@ def nees_summary(nees: np.ndarray, *, dof: int = POSE_DOF) -> dict:
     mean = float(np.mean(used))
     mean_lower, mean_upper = mean_chi2_bounds(dof, used.size)
     verdict = _verdict(mean, mean_lower, mean_upper)
-    where = {"consistent": "inside", "overconfident": "above", "underconfident": "below"}[verdict]
     return out | {
         "mean": mean,
         "median": float(np.median(used)),
         "within_bounds_share": float(np.mean((used >= lower) & (used <= upper))),
         "mean_bounds": [mean_lower, mean_upper],
         "verdict": verdict,
-        "verdict_line": (
-            f"{verdict}: mean NEES {mean:.2f} is {where} its {CONFIDENCE:.0%} interval "
-            f"[{mean_lower:.2f}, {mean_upper:.2f}] for {used.size} poses ({dof} dof)"
-        ),
+        "verdict_line": f"{verdict}: " + _finding(f"mean NEES {mean:.2f}", verdict, mean_lower, mean_upper,
+                                                  f"{used.size} poses ({dof} dof)"),
     }
 
 
@@ -503,9 +506,10 @@ def nis_summary(nis: np.ndarray, nis_dof: np.ndarray) -> dict:
 
     Returns
     -------
-    ``{"updates", "mean_per_dof", "mean_bounds", "within_bounds_share", "verdict"}``:
+    ``{"updates", "mean_per_dof", "mean_bounds", "within_bounds_share", "verdict", "verdict_line"}``:
     ``mean_per_dof = sum(NIS) / sum(dof)`` (the dof-weighted mean of NIS/dof, exactly
-    chi2(sum dof) / sum dof for a consistent filter, which gives ``mean_bounds``);
+    chi2(sum dof) / sum dof for a consistent filter, which gives ``mean_bounds``: a consistent
+    filter's innovations are white, so unlike NEES the updates are independent samples);
     ``within_bounds_share`` is the share of updates inside their own chi2(dof) 95% bounds.
     Gating rejects large innovations, so a gated filter's NIS is biased low.
     """
@@ -513,18 +517,41 @@ def nis_summary(nis: np.ndarray, nis_dof: np.ndarray) -> dict:
     nis_dof = np.asarray(nis_dof)
     if nis.size == 0:
         return {"updates": 0, "mean_per_dof": None, "mean_bounds": None, "within_bounds_share": None,
-                "verdict": "undetermined"}
+                "verdict": "undetermined", "verdict_line": "undetermined: no filter update"}
     total_dof = int(np.sum(nis_dof))
     mean_per_dof = float(np.sum(nis) / total_dof)
     lower, upper = chi2_bounds(nis_dof)
     mean_lower, mean_upper = mean_chi2_bounds(1, total_dof)
+    verdict = _verdict(mean_per_dof, mean_lower, mean_upper)
     return {
         "updates": int(nis.size),
         "mean_per_dof": mean_per_dof,
         "mean_bounds": [mean_lower, mean_upper],
         "within_bounds_share": float(np.mean((nis >= lower) & (nis <= upper))),
-        "verdict": _verdict(mean_per_dof, mean_lower, mean_upper),
+        "verdict": verdict,
+        "verdict_line": f"{verdict}: " + _finding(f"NIS per dof {mean_per_dof:.2f}", verdict, mean_lower, mean_upper,
+                                                  f"{nis.size} updates ({total_dof} dof)"),
     }
+
+
+def consistency_verdict(nees: dict | None, nis: dict) -> dict:
+    """One verdict on the filter from its NEES (``nees_summary``, None without ground truth) and
+    its NIS (``nis_summary``): a filter is consistent only when every test it could take says so.
+
+    Returns
+    -------
+    ``{"verdict", "verdict_line"}``: ``consistent`` when every determined test is, ``overconfident``
+    / ``underconfident`` when the tests that are not consistent all say that, ``inconsistent`` when
+    they disagree in direction, ``undetermined`` when no test could be taken. The line gives every
+    test's finding, the failing ones first.
+    """
+    tests = [summary for summary in (nees, nis) if summary is not None and summary["verdict"] != "undetermined"]
+    if not tests:
+        return {"verdict": "undetermined", "verdict_line": "undetermined: neither NEES nor NIS could be computed"}
+    failing = {summary["verdict"] for summary in tests} - {"consistent"}
+    verdict = "consistent" if not failing else failing.pop() if len(failing) == 1 else "inconsistent"
+    findings = [summary["verdict_line"].split(": ", 1)[1] for summary in sorted(tests, key=lambda t: t["verdict"] == "consistent")]
+    return {"verdict": verdict, "verdict_line": f"{verdict}: " + "; ".join(findings)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -547,7 +574,8 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
     ``improvement`` (odometry / estimate ATE and rotation RMSE) and ``nees`` (``nees_summary`` of
     ``run_nees``: the given start pose is left out); ``smoothed`` (``trajectory_metrics``) too when
     the run was smoothed (``RunResult.smoothed_xyz``, from ``camloc smooth``);
-    always ``association`` (``association_scores``) and ``nis`` (``nis_summary``).
+    always ``association`` (``association_scores``), ``nis`` (``nis_summary``) and
+    ``consistency`` (``consistency_verdict`` of NEES and NIS: the run's one verdict).
     """
     if align not in ALIGN_METHODS:
         raise ConfigError(f"alignment must be one of {', '.join(ALIGN_METHODS)}, found {align!r}")
@@ -582,4 +610,5 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
         out["notes"].append("no ground truth in the run: trajectory errors, improvement and NEES are not computed")
     out["association"] = association_scores(result.associations, result.map_landmark_ids)
     out["nis"] = nis_summary(result.nis, result.nis_dof)
+    out["consistency"] = consistency_verdict(out.get("nees"), out["nis"])
     return out

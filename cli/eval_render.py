@@ -10,7 +10,8 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-_VERDICT_STYLE = {"consistent": "bold green", "overconfident": "bold red", "underconfident": "bold yellow"}
+_VERDICT_STYLE = {"consistent": "bold green", "overconfident": "bold red", "underconfident": "bold yellow",
+                  "inconsistent": "bold red"}
 
 # (label, path inside a trajectory block, format)
 _TRAJECTORY_ROWS = (
@@ -128,7 +129,7 @@ def _consistency_table(nees: Optional[Mapping[str, Any]], nis: Mapping[str, Any]
 
 def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.evaluate``: trajectories side by side, alignment (when used),
-    association, consistency, then the NEES verdict line and any notes."""
+    association, consistency, then the verdict line (NEES and NIS together) and any notes."""
     parts: list[RenderableType] = [
         Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['poses']} poses)", style="bold")
     ]
@@ -147,12 +148,11 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
             parts.append(_alignment_table(blocks))
     parts.append(_association_table(report["association"]))
     parts.append(_consistency_table(report.get("nees"), report["nis"]))
-    if "nees" in report:
-        if report["nees"]["skipped_poses"]:
-            parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "
-                              "and any whose covariance is singular", style="dim"))
-        verdict = report["nees"]["verdict"]
-        parts.append(Text(f"verdict: {report['nees']['verdict_line']}", style=_VERDICT_STYLE.get(verdict, "")))
+    if "nees" in report and report["nees"]["skipped_poses"]:
+        parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "
+                          "and any whose covariance is singular", style="dim"))
+    consistency = report["consistency"]
+    parts.append(Text(f"verdict: {consistency['verdict_line']}", style=_VERDICT_STYLE.get(consistency["verdict"], "")))
     for note in report.get("notes", []):
         parts.append(Text(f"note: {note}", style="yellow"))
     return Group(*parts)

@@ -46,8 +46,11 @@ def test_eval_prints_tables_with_both_paths_and_the_verdict(run_dir):
     report = metrics.evaluate(load_run(run_dir))
     for text in ("ATE rmse [m]", "EKF", "odometry", "precision", "NEES, 6 dof", "verdict:",
                  f"{report['estimate']['ate']['rmse']:.4f}", f"{report['odometry']['ate']['rmse']:.4f}",
-                 f"{report['association']['precision']:.3f}", report["nees"]["verdict"]):
+                 f"{report['association']['precision']:.3f}", report["nees"]["verdict"],
+                 f"verdict: {report['consistency']['verdict']}: "):
         assert text in outcome.stdout, text
+    # the verdict line speaks for NIS too
+    assert "NIS per dof" in outcome.stdout.split("verdict: ")[-1]
 
 
 def test_eval_json_is_the_library_report(run_dir):

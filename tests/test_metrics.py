@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.special import chdtri
 
 from camloc import geometry, metrics
 from camloc.errors import CamlocError, ConfigError
@@ -342,3 +343,43 @@ def test_evaluate_without_truth_leaves_out_trajectory_parts_with_a_note(syntheti
 def test_evaluate_rejects_an_unknown_alignment(synthetic_run):
     with pytest.raises(ConfigError, match="none, se3, sim3"):
         metrics.evaluate(synthetic_run(), align="affine")
+
+
+def _summaries(nees_scale: float, nis_scale: float) -> tuple[dict, dict]:
+    # chi2 samples at their exact quantiles, scaled: a filter over- (scale > 1) or under-confident
+    quantiles = (np.arange(400) + 0.5) / 400
+    nees = metrics.nees_summary(nees_scale * chdtri(6, 1.0 - quantiles))
+    nis = metrics.nis_summary(nis_scale * chdtri(3, 1.0 - quantiles), np.full(400, 3))
+    return nees, nis
+
+
+def test_consistency_verdict_speaks_for_nees_and_nis():
+    nees, nis = _summaries(1.0, 1.0)
+    assert (nees["verdict"], nis["verdict"]) == ("consistent", "consistent")
+    assert metrics.consistency_verdict(nees, nis)["verdict"] == "consistent"
+
+    # NEES inside its bounds does not make a filter whose NIS is 5x consistent: the failing test first
+    nees, nis = _summaries(1.0, 5.0)
+    verdict = metrics.consistency_verdict(nees, nis)
+    assert verdict["verdict"] == "overconfident"
+    assert verdict["verdict_line"].startswith("overconfident: NIS per dof 5.00 is above its 95% interval")
+    assert "mean NEES 6.00 is inside" in verdict["verdict_line"]
+
+    assert metrics.consistency_verdict(*_summaries(0.5, 1.0))["verdict"] == "underconfident"
+    assert metrics.consistency_verdict(*_summaries(2.0, 0.5))["verdict"] == "inconsistent"
+    # without ground truth, NIS alone decides
+    assert metrics.consistency_verdict(None, _summaries(1.0, 3.0)[1])["verdict"] == "overconfident"
+    empty = metrics.nis_summary(np.zeros(0), np.zeros(0, dtype=int))
+    assert metrics.consistency_verdict(None, empty)["verdict"] == "undetermined"
+
+
+def test_evaluate_gives_one_verdict_of_nees_and_nis(synthetic_run):
+    import dataclasses
+
+    result = synthetic_run(num_poses=40)
+    report = metrics.evaluate(result)
+    assert report["consistency"]["verdict"] == "consistent"
+    overconfident = metrics.evaluate(dataclasses.replace(result, nis=result.nis * 10.0))
+    assert overconfident["nees"]["verdict"] == "consistent"
+    assert overconfident["consistency"]["verdict"] == "overconfident"
+    assert "NIS per dof" in overconfident["consistency"]["verdict_line"]

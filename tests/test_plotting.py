@@ -61,7 +61,7 @@ def test_error_plots_draw_the_errors_over_pose_ids(result):
     assert band[:, 1].max() == pytest.approx(plotting.position_sigma_bound(result).max())
 
     ax = Figure().add_subplot()
-    plotting.plot_rotation_error(ax, result)
+    plotting.plot_rotation_error(ax, result, paths=("odometry",))
     np.testing.assert_allclose(
         _lines_by_label(ax)["odometry"].get_ydata(),
         metrics.rotation_errors_deg(result.odometry_quat_xyzw, result.truth_quat_xyzw),
@@ -123,11 +123,11 @@ def test_association_areas_of_a_long_run_stack_to_the_observations_of_each_pose(
     monkeypatch.setattr(plotting, "MAX_BARS", 10)
     ax = Figure().add_subplot()
     plotting.plot_associations(ax, result)
-    assert not ax.patches and len(ax.collections) == 3
+    assert not ax.patches and len(ax.collections) == 5  # four areas and the wrong pairs' markers
     index = np.searchsorted(result.pose_ids, result.associations.pose_id)
     expected = np.bincount(index, minlength=len(result.pose_ids))
     # the last area's outline: over each pose, its highest level segment is the stack's top
-    outline = ax.collections[-1].get_paths()[0].vertices
+    outline = ax.collections[3].get_paths()[0].vertices
     left, right = np.minimum(outline[:-1, 0], outline[1:, 0]), np.maximum(outline[:-1, 0], outline[1:, 0])
     level = (outline[:-1, 1] == outline[1:, 1]) & (left < right)  # either way round: the outline comes back along the top
     at_pose = np.array([outline[:-1][level & (left <= pose) & (pose <= right), 1].max() for pose in result.pose_ids])
@@ -149,11 +149,134 @@ def test_plots_without_truth_say_so(synthetic_run):
 
 def test_report_lays_out_every_panel(result):
     fig = plotting.draw_report(Figure(figsize=plotting.REPORT_SIZE), result)
-    assert len(fig.axes) == 7
+    assert len(fig.axes) == 9  # paths (2), the filter's errors (2), odometry's (2), NEES, NIS, associations
     assert fig.axes[1].name == "3d"
+    assert "odometry" not in _lines_by_label(fig.axes[2]) and set(_lines_by_label(fig.axes[4])) == {"odometry"}
 
 
 def test_library_core_does_not_import_matplotlib():
     code = "import sys, camloc.results, camloc.metrics, camloc.cli.app; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+# --------------------------------------------------------------------------------------------
+# Figures a reader trusts at a glance (issue 21, point 5)
+
+
+def test_3d_view_draws_the_estimate_over_a_visible_truth_from_a_marked_start(result):
+    ax = Figure().add_subplot(projection="3d")
+    plotting.plot_3d(ax, result)
+    lines = _lines_by_label(ax)
+    estimate = next(line for label, line in lines.items() if label.startswith("EKF"))
+    truth = lines["ground truth"]
+    # drawn in zorder (no depth sorting), the estimate above a wider truth that shows around it
+    assert ax.computed_zorder is False
+    assert estimate.get_zorder() > truth.get_zorder() > ax.collections[0].get_zorder()
+    assert truth.get_linewidth() > 2 * estimate.get_linewidth()
+    start = lines["start"]
+    np.testing.assert_array_equal(np.ravel(start.get_data_3d()), result.estimate_xyz[0])
+    assert start.get_zorder() > estimate.get_zorder() and start.get_marker() == "o"
+    # the limits hold every path and the map
+    points = np.vstack([result.estimate_xyz, result.odometry_xyz, result.truth_xyz, result.map_landmark_xyz])
+    for axis, (low, high) in enumerate((ax.get_xlim(), ax.get_ylim(), ax.get_zlim())):
+        assert low <= points[:, axis].min() and points[:, axis].max() <= high
+
+
+def test_3d_view_stretches_a_flat_scene_and_says_so(result):
+    import dataclasses
+
+    flat = dataclasses.replace(result, map_landmark_xyz=result.map_landmark_xyz * [1.0, 1.0, 0.0])
+    flat = dataclasses.replace(flat, truth_xyz=flat.truth_xyz * [1, 1, 0], estimate_xyz=flat.estimate_xyz * [1, 1, 0],
+                               odometry_xyz=flat.odometry_xyz * [1, 1, 0])
+    ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), flat)
+    width, depth, height = ax.get_box_aspect()
+    assert height == pytest.approx(plotting.MIN_BOX_HEIGHT * max(width, depth))
+    assert "stretched" in ax.get_zlabel()
+    # a scene as tall as it is wide keeps one scale on every axis
+    tall = dataclasses.replace(result, map_landmark_xyz=result.map_landmark_xyz * [1.0, 1.0, 5.0])
+    ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), tall)
+    width, depth, height = ax.get_box_aspect()
+    assert ax.get_zlabel() == "z [m]"
+    assert height / width == pytest.approx(np.ptp(ax.get_zlim()) / np.ptp(ax.get_xlim()))
+
+
+def test_error_figure_gives_odometry_its_own_panels(result):
+    fig = plotting.draw_errors(Figure(figsize=plotting.FIGURES["errors"][0]), result)
+    assert len(fig.axes) == 4
+    filter_axes, odometry_axes = fig.axes[0::2], fig.axes[1::2]
+    for ax in filter_axes:
+        labels = set(_lines_by_label(ax))
+        assert "EKF" in labels and "odometry" not in labels
+        assert len(ax.collections) == 1  # the 3-sigma band, with the filter's errors only
+        band_top = ax.collections[0].get_paths()[0].vertices[:, 1].max()
+        assert ax.get_ylim()[1] >= band_top
+    for ax in odometry_axes:
+        assert set(_lines_by_label(ax)) == {"odometry"} and not ax.collections
+    # the filter's panel is scaled to the filter: odometry's metres would squash it
+    top = plotting.position_sigma_bound(result).max()
+    ekf_error = metrics.position_errors(result.estimate_xyz, result.truth_xyz).max()
+    assert filter_axes[0].get_ylim()[1] <= 1.1 * max(top, ekf_error)
+
+
+def test_consistency_legends_sit_beside_the_data(result):
+    fig = plotting.draw_consistency(Figure(figsize=plotting.FIGURES["consistency"][0]), result)
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        assert legend is not None
+        anchor = legend.get_bbox_to_anchor().transformed(ax.transAxes.inverted())
+        assert anchor.x0 >= 1.0  # to the right of the axis: it hides no point
+    assert "consistency:" in fig.get_suptitle() and "NIS" in fig.get_suptitle()
+
+
+def test_consistency_past_a_thousand_poses_draws_a_rolling_mean(synthetic_run):
+    result = synthetic_run(seed=3, num_poses=plotting.ROLLING_FROM + 300)
+    ax = plotting.plot_nees(Figure().add_subplot(), result)
+    lines = _lines_by_label(ax)
+    raw = lines["EKF NEES"]
+    assert raw.get_linestyle() == "None"  # points, not a solid band of lines
+    rolling = next(line for label, line in lines.items() if label.startswith("rolling mean"))
+    nees = metrics.run_nees(result)
+    used = np.isfinite(nees)
+    window = plotting.rolling_window(int(used.sum()))
+    np.testing.assert_array_equal(rolling.get_xdata(), result.pose_ids[used])
+    middle = len(rolling.get_ydata()) // 2
+    expected = np.mean(nees[used][middle - window // 2: middle - window // 2 + window])
+    assert rolling.get_ydata()[middle] == pytest.approx(expected)
+
+    ax = plotting.plot_nis(Figure().add_subplot(), result)
+    rolling = next(line for label, line in _lines_by_label(ax).items() if label.startswith("rolling mean"))
+    assert np.all(np.isfinite(rolling.get_ydata())) and len(rolling.get_ydata()) == len(result.nis)
+
+    # a short run has no rolling mean
+    short = plotting.plot_nees(Figure().add_subplot(), synthetic_run(seed=3, num_poses=50))
+    assert not any(label.startswith("rolling") for label in _lines_by_label(short))
+
+
+def test_rolling_ratio_weighs_by_the_denominator():
+    np.testing.assert_allclose(plotting.rolling_ratio(np.array([3.0, 3.0, 12.0]), np.array([3, 3, 6]), 3),
+                               [6 / 6, 18 / 12, 15 / 9])
+
+
+def test_associations_tell_every_outcome_apart_and_mark_wrong_pairs(synthetic_run):
+    result = synthetic_run(seed=5, num_poses=60)
+    ax = plotting.plot_associations(Figure().add_subplot(), result)
+    colours = [matplotlib.colors.to_hex(container.patches[0].get_facecolor()) for container in ax.containers]
+    assert len(colours) == 4 and len(set(colours)) == 4  # correct, wrong, missed, clutter rejected
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert [label.split(" (")[0] for label in labels] == ["correct", "wrong", "missed", "clutter rejected",
+                                                          "pose with a wrong pair"]
+    outcomes = metrics.association_outcomes(result.associations, result.map_landmark_ids)
+    index = np.searchsorted(result.pose_ids, result.associations.pose_id)
+    heights = {name: np.array([bar.get_height() for bar in container])
+               for name, container in zip(("correct", "wrong", "missed", "clutter"), ax.containers)}
+    np.testing.assert_array_equal(heights["missed"], np.bincount(index[outcomes["missed"]], minlength=60))
+    np.testing.assert_array_equal(heights["clutter"],
+                                  np.bincount(index[outcomes["rejected"] & ~outcomes["in_map"]], minlength=60))
+    # one marker per pose with a wrong pair, above its stack
+    markers = ax.collections[-1].get_offsets()
+    wrong_poses = np.unique(result.associations.pose_id[outcomes["wrong"]])
+    np.testing.assert_array_equal(np.asarray(markers)[:, 0], wrong_poses)
+    totals = np.bincount(index, minlength=60)
+    assert np.all(np.asarray(markers)[:, 1] > totals[np.searchsorted(result.pose_ids, wrong_poses)])
+    assert ax.get_ylim()[1] > np.asarray(markers)[:, 1].max()
