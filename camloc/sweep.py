@@ -643,6 +643,14 @@ def default_workers() -> int:
         return os.cpu_count() or 1
 
 
+def warm_up() -> None:
+    """Import what a cell needs, once per worker, so that no cell's ``seconds`` holds the imports."""
+    import camloc.localizer  # noqa: F401
+    import camloc.metrics  # noqa: F401
+    import camloc.options  # noqa: F401
+    import camloc.simulate  # noqa: F401
+
+
 def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[Cell, dict]]:
     """Run ``cells`` in ``workers`` spawned processes; yield (cell, result) as each finishes."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -652,7 +660,8 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
         return
     workers = min(workers or default_workers(), len(cells))
     # spawn: a clean interpreter per worker, whatever threads this process runs (a progress bar).
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=warm_up)
     try:
         futures = {pool.submit(run_cell, cell): cell for cell in cells}
         for future in as_completed(futures):
@@ -672,12 +681,18 @@ def dask_results(cells: list[Cell], client) -> Iterator[tuple[Cell, dict]]:
     done; yield (cell, result) as each finishes."""
     futures = []
     try:
+        client.run(warm_up)
         futures = client.map(run_cell, cells, pure=False)
         cell_of = dict(zip((f.key for f in futures), cells))
         from distributed import as_completed
 
         for future in as_completed(futures):
-            yield cell_of[future.key], future.result()
+            try:
+                result = future.result()
+            except Exception as error:  # noqa: BLE001 (run_cell keeps a run's own errors: this is the cluster's)
+                raise CamlocError(f"the Dask cluster could not run a cell ({type(error).__name__}: {error}); "
+                                  "the finished rows are kept, run the same command again to go on") from None
+            yield cell_of[future.key], result
     finally:
         if futures:
             client.cancel(futures)
