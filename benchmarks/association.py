@@ -22,6 +22,15 @@ seed (mean, worst, and how many runs are within 1.25x), precision and recall poo
 observations, and the mean localize time. Each run is printed as soon as it is done; results are
 saved in the cache and ``--resume`` reuses those measured with the same library source.
 
+Why this is not a ``camloc sweep`` spec: a sweep runs a product of options and reports each
+run's own figures, and this script needs more than that. Its cases are five worlds of different
+options, not a product; ``bf-batch`` is two coupled options (``--batch --no-recheck``) that a
+product would also cross with the others; the real file and simulated worlds share one report;
+and it measures what a sweep row does not hold (clutter accepted per 200 clutter observations,
+precision and recall pooled over the seeds, how ambiguous each map is). One case is a plain
+product, and ships as a spec: ``camloc sweep benchmarks/association-real-style.toml -o DIR``
+gives the real-style rows (its summary has the ratio to the oracle; ``bf-batch`` is left out).
+
     nice python benchmarks/association.py --quick
     nice python benchmarks/association.py [--cases dense,clutter] [--seeds 5] [--size 0.5] [--json]
 """

@@ -402,6 +402,46 @@ def plot_associations(ax: Axes, result: RunResult) -> Axes:
 
 
 # --------------------------------------------------------------------------------------------
+# Sweeps (``camloc sweep``)
+
+ORACLE_COLOR = "0.45"
+
+
+def plot_sweep_ate(ax: Axes, groups: list[tuple[str, str | None, list[float]]], *, title: str = "") -> Axes:
+    """Distribution of position RMSE per configuration: a box and every run as a point, log scale.
+
+    Parameters
+    ----------
+    groups : (label, association or None, ate_rmse values in metres) per configuration, in the
+        order to draw them (``camloc.sweep.ate_groups`` puts the oracle beside each method).
+    """
+    associations = list(dict.fromkeys(a for _, a, _ in groups if a not in (None, "oracle")))
+    palette = {a: f"C{n}" for n, a in enumerate(associations)} | {"oracle": ORACLE_COLOR, None: ESTIMATE_COLOR}
+    positions = np.arange(1, len(groups) + 1)
+    filled = [(x, values) for x, (_, _, values) in zip(positions, groups) if values]
+    if filled:
+        boxes = ax.boxplot([v for _, v in filled], positions=[x for x, _ in filled], widths=0.55,
+                           showfliers=False, patch_artist=True, medianprops={"color": "black"})
+        for patch, (x, _) in zip(boxes["boxes"], filled):
+            patch.set(facecolor=palette[groups[x - 1][1]], alpha=0.35)
+    # Every run as a point, jittered sideways by a fixed pattern so the figure is reproducible.
+    for x, (_, association, values) in zip(positions, groups):
+        jitter = (np.arange(len(values)) % 7 - 3) * 0.05
+        ax.plot(x + jitter, values, "o", markersize=3, color=palette[association], alpha=0.8)
+    ax.set_xticks(positions, [label for label, _, _ in groups], fontsize="small")
+    ax.set_xlim(0.4, len(groups) + 0.6)
+    if filled:
+        _plain_log_scale(ax)
+        low, high = ax.get_ylim()
+        if high / low < 10.0:  # within a decade every tick needs its number
+            ax.yaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.set_ylabel("position RMSE [m]")
+    ax.set_title(title or "position RMSE per configuration")
+    ax.grid(True, axis="y", alpha=0.3, which="both")
+    return ax
+
+
+# --------------------------------------------------------------------------------------------
 # Figures: layouts on a figure the caller created
 
 
@@ -451,6 +491,14 @@ def consistency_title(result: RunResult) -> str:
 def draw_associations(fig: Figure, result: RunResult) -> Figure:
     ax = plot_associations(fig.add_subplot(1, 1, 1), result)
     ax.set_title(f"{dataset_name(result)}: {ax.get_title()}")
+    return fig
+
+
+def draw_sweep(fig: Figure, sweep: tuple[list, str]) -> Figure:
+    """A sweep's position RMSE per configuration; ``sweep`` is (groups, title) as
+    ``plot_sweep_ate`` takes them."""
+    groups, title = sweep
+    plot_sweep_ate(fig.add_subplot(1, 1, 1), groups, title=title)
     return fig
 
 

@@ -42,8 +42,10 @@ Randomness  one ``np.random.default_rng(seed)``, split into independent streams 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass, fields
+from typing import Any, Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -200,6 +202,43 @@ class SimulationOptionError(ConfigError):
         self.field = field
         self.reason = reason
         super().__init__(f"simulation option {field}: {reason}")
+
+
+def simulation_config(options: Mapping[str, Any]) -> SimulationConfig:
+    """The ``SimulationConfig`` of ``camloc simulate``'s options named as on its command line.
+
+    Each option is its field's name with dashes (``clutter-fraction`` is ``clutter_fraction``);
+    ``camloc simulate`` and ``camloc sweep``'s ``[simulate]`` table both come through here. A
+    None value is an option not given: its field keeps its default.
+
+    Raises
+    ------
+    SimulationOptionError : an unknown name, a value of the wrong type or out of range; ``field``
+        is the option's command-line name.
+    """
+    values = {}
+    for name, value in options.items():
+        if value is None:
+            continue
+        field = name.replace("-", "_")
+        if "_" in name or field not in _FIELD_TYPES:
+            close = difflib.get_close_matches(field.replace("_", "-"), [f.replace("_", "-") for f in _FIELD_TYPES], n=1)
+            raise SimulationOptionError(name, "not an option of camloc simulate" + (f" (did you mean {close[0]}?)" if close else ""))
+        expected = _FIELD_TYPES[field]
+        if not isinstance(value, expected) or (isinstance(value, bool) and bool not in expected):
+            raise SimulationOptionError(name, f"expected {' or '.join(t.__name__ for t in expected)}, found {value!r}")
+        values[field] = value
+    try:
+        return SimulationConfig(**values)
+    except SimulationOptionError as error:
+        raise SimulationOptionError(error.field.replace("_", "-"), error.reason) from None
+
+
+# field -> the types its value may have (a float option takes an integer too; None is the default).
+_FIELD_TYPES = {
+    f.name: {"str": (str,), "int": (int,), "bool": (bool,), "float": (int, float)}[f.type.split("|")[0].strip()]
+    for f in fields(SimulationConfig)
+}
 
 
 def _require(ok: bool, name: str, expected: str, found: object) -> None:

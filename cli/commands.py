@@ -8,6 +8,7 @@ from camloc.cli.plot import plot
 from camloc.cli.run import run
 from camloc.cli.simulate import simulate
 from camloc.cli.smooth import smooth
+from camloc.cli.sweep import sweep
 
 COMMANDS: list = [
     ("info", info),
@@ -16,4 +17,5 @@ COMMANDS: list = [
     ("plot", plot),
     ("simulate", simulate),
     ("smooth", smooth),
+    ("sweep", sweep),
 ]

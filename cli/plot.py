@@ -22,7 +22,8 @@ class FigureFormat(str, Enum):
 
 @handles_errors
 def plot(
-    run_dir: Path = typer.Argument(..., help="Run folder written by 'camloc run'.", show_default=False),
+    run_dir: Path = typer.Argument(..., help="Run folder written by 'camloc run', or a sweep folder written by "
+                                   "'camloc sweep'.", show_default=False),
     *,
     output: Optional[Path] = typer.Option(
         None, "--output", "-o", help="Write one multi-panel report figure to this file instead "
@@ -39,6 +40,8 @@ def plot(
 ) -> None:
     """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
 
+    For a sweep folder, draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
+
     By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder; with --output a single report figure holding every panel. The figures are written all or none, each whole.
     """
     from camloc.results import load_run, write_files_atomic
@@ -47,7 +50,10 @@ def plot(
         raise ConfigError(
             f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
         )
-    result = load_run(run_dir)
+    from camloc.sweep import is_sweep_folder
+
+    sweep = is_sweep_folder(run_dir)
+    result = _load_sweep(run_dir) if sweep else load_run(run_dir)
 
     import matplotlib
 
@@ -57,7 +63,10 @@ def plot(
 
     from camloc import plotting
 
-    if output is not None:
+    if sweep:
+        size = (max(6.0, 1.1 * len(result[0]) + 2.0), 6.0)
+        layouts = {output or run_dir / f"fig-sweep.{figure_format.value}": (size, plotting.draw_sweep)}
+    elif output is not None:
         layouts = {output: (plotting.REPORT_SIZE, plotting.draw_report)}
     else:
         layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.FIGURES.items()}
@@ -80,3 +89,11 @@ def plot(
         console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
     if show:
         plt.show()
+
+
+def _load_sweep(folder: Path) -> tuple[list, str]:
+    """(groups, title) of a sweep folder's position RMSE distributions (camloc.sweep.ate_groups)."""
+    from camloc.sweep import ate_groups, load_folder
+
+    spec, cells, results = load_folder(folder)
+    return ate_groups(spec, cells, results), f"{folder.name}: position RMSE over {spec.world_column}s, {len(results)} runs"

@@ -42,7 +42,7 @@ def run(
         None, "--config", help="TOML file with localizer options (names as below, with underscores); "
         "options given on the command line win. Default: none.", show_default=False
     ),
-    filter_kind: Optional[FilterChoice] = typer.Option(
+    filter: Optional[FilterChoice] = typer.Option(  # noqa: A002 (named after --filter, see below)
         None, "--filter", help="State parametrization: euler (x, y, z, roll, pitch, yaw; singular at pitch "
         "+-90 deg) or se3 (error-state filter on SE(3), no singularity). Default: euler.", show_default=False
     ),
@@ -55,7 +55,7 @@ def run(
     iterations: Optional[int] = typer.Option(
         None, help="Linearizations per update: 1 = EKF, more = iterated EKF. Default: 3.", show_default=False
     ),
-    gate_probability: Optional[float] = typer.Option(
+    gate: Optional[float] = typer.Option(
         None, "--gate", help="Chi-square gate probability on each pair's innovation (3 dof). Default: 0.99.",
         show_default=False
     ),
@@ -133,34 +133,15 @@ def run(
 
     The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all.
     """
-    from camloc.config import make_config, read_config_file
+    from camloc.config import read_config_file
+    from camloc.options import RUN_OPTIONS, run_config
     from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
 
-    overrides = {
-        "filter": filter_kind.value if filter_kind else None,
-        "association": association.value if association else None,
-        "iterations": iterations,
-        "gate_probability": gate_probability,
-        "cost": cost.value if cost else None,
-        "margin": margin,
-        "sequential": sequential,
-        "beam_width": beam_width,
-        "beam_delta": beam_delta,
-        "branch_delta": branch_delta,
-        "null_cost": null_cost,
-        "slip_inflation": slip_inflation,
-        "slip_cost": slip_cost,
-        "recheck": recheck,
-        "recheck_margin": recheck_margin,
-        "recheck_steal_margin": recheck_steal_margin,
-        "jcbb_max_nodes": jcbb_max_nodes,
-        "min_depth": min_depth,
-        "max_depth": max_depth,
-        "max_angle_deg": max_angle,
-        "initial_sigma_xyz": initial_sigma_xyz,
-        "initial_sigma_deg": initial_sigma_deg,
-    }
-    config = make_config(read_config_file(config_file) if config_file else None, overrides)
+    # Each localizer option's parameter is named after its command-line flag, so the options pass on
+    # by those names (enums as their text); camloc.options maps them onto LocalizerConfig.
+    options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
+               for name, value in locals().items() if name.replace("_", "-") in RUN_OPTIONS}
+    config = run_config(options, read_config_file(config_file) if config_file else None)
     dataset_path = dataset if dataset is not None else DEFAULT_DATASET
     output_dir = output if output is not None else default_output_dir(dataset_path)
 

@@ -105,15 +105,16 @@ def simulate(
     Zero sigmas are simulated exactly and written as a large finite information (1e12).
     """
     from camloc.g2o import write_g2o
-    from camloc.simulate import SimulationConfig, SimulationOptionError, simulate_labelled
+    from camloc.simulate import SimulationConfig, SimulationOptionError, simulate_labelled, simulation_config
 
-    # The options are named after the config's fields: pass each one on, enums as their text.
-    options = {name: value.value if isinstance(value, Enum) else value for name, value in locals().items()
-               if name in SimulationConfig.__dataclass_fields__}
+    # The options are named after the config's fields: pass each one on by its command-line name,
+    # enums as their text.
+    options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
+               for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__}
     try:
-        config = SimulationConfig(**options)
+        config = simulation_config(options)
     except SimulationOptionError as error:
-        raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
+        raise typer.BadParameter(error.reason, param_hint=f"--{error.field}") from None
     simulation = simulate_labelled(config, seed=seed)
     write_g2o(simulation.dataset, output)
     summary = _summary(simulation, output, seed)
