@@ -81,11 +81,6 @@ def test_oracle_updates_are_consistent_at_their_posterior(oracle_runs, world_id)
     assert _inside(summary["mean_per_dof"], summary["mean_bounds"]), (summary["mean_per_dof"], summary["mean_bounds"])
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "filter core: the run records NIS at the prior's linearization of its iterated update "
-    "(ekf.update: nis = y_prior' S_prior^-1 y_prior), which carries the second-order error the "
-    "iterations removed; pixel cameras (1 px against a 0.1 m prior) show 1.2-6x. Recording the "
-    "MAP cost at the posterior (UpdateResult.map_cost, already computed) fixes it"))
 @pytest.mark.parametrize("world_id", WORLD_IDS)
 def test_oracle_run_reports_nis_inside_its_bounds(oracle_runs, world_id):
     # What 'camloc eval' reads: the run's own NIS.

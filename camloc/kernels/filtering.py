@@ -138,7 +138,10 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 chosen[obs[i]] = landmarks[i]
                 mahalanobis_distance[obs[i]] = math.sqrt(d2)
             u = counters[0]
-            update_pose[u], nis[u], map_cost[u], nis_dof[u] = k, nis_k, cost_k, 3 * obs.size
+            # an iterated update's statistic is its MAP cost at the posterior: NIS at the prior's
+            # linearization carries the second-order error the iterations removed
+            recorded = cost_k if settings.iterations > 1 and np.isfinite(cost_k) else nis_k
+            update_pose[u], nis[u], map_cost[u], nis_dof[u] = k, recorded, cost_k, 3 * obs.size
             counters[0] = u + 1
             x, P = x_post, P_post
         states[k], covs[k] = x, P
