@@ -119,3 +119,12 @@ def make_synthetic_run(seed: int = 7, *, num_poses: int = 40, with_truth: bool =
 def synthetic_run():
     """The factory ``make_synthetic_run(seed=7, *, num_poses=40, with_truth=True) -> RunResult``."""
     return make_synthetic_run
+
+
+@pytest.fixture
+def numpy_localizer(monkeypatch):
+    """Run ``localize`` through the numpy localizer (``camloc.localizer._Localizer``, the compiled
+    loop's reference), for tests that probe its internals."""
+    from camloc import localizer
+
+    monkeypatch.setattr(localizer, "COMPILED_ASSOCIATIONS", ())

@@ -117,7 +117,7 @@ def test_iterated_update_matches_ekf_update(rng):
         np.testing.assert_allclose(x + posterior_plain @ update.gradient(R_inverse_H, y), ref.state, atol=1e-10)
         np.testing.assert_allclose(update.posterior_covariance(P, information, I_P_information), ref.cov, atol=1e-10)
         np.testing.assert_allclose(update.normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain), ref.nis, rtol=1e-9)
-        cost = update.innovation_cost(P, H, R_inverse, y)
+        cost = update.innovation_cost(P, H, R, R_inverse, y)
         np.testing.assert_allclose(cost, ekf.innovation_cost(P, H.reshape(-1, 6), R, y.reshape(-1)), rtol=1e-9)
 
 

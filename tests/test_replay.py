@@ -7,6 +7,8 @@ import pickle
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.usefixtures("numpy_localizer")  # the replay process serves the numpy localizer
+
 from camloc.beam import BeamSearch, BeamSettings
 from camloc.localizer import LocalizerConfig, _Localizer, localize
 from camloc.replay import _replay

@@ -173,11 +173,6 @@ def condition(scene, settings, x, P, o, pool, taken):
 
 
 @jit
-def noise_inverse(scene, o, in_point):
-    return scene.point_cov_inverse[o] if in_point else scene.R_assoc_inverse[o]
-
-
-@jit
 def least_cost(costs, null_cost):
     best = null_cost
     for c in costs:
@@ -246,11 +241,14 @@ def after_clear(scene, settings, gen, h, obs, cap):
         if taken.size:
             o, landmarks = obs[taken], lm[options]
             x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, zh[options], Hs[options], True, False, no_start, False)[:2]
-            R_inverse = np.empty((taken.size, 3, 3))
+            R, R_inverse = np.empty((taken.size, 3, 3)), np.empty((taken.size, 3, 3))
             for t in range(taken.size):
-                R_inverse[t] = noise_inverse(scene, o[t], in_point[options[t]])
+                if in_point[options[t]]:
+                    R[t], R_inverse[t] = scene.point_cov[o[t]], scene.point_cov_inverse[o[t]]
+                else:
+                    R[t], R_inverse[t] = scene.R_assoc[o[t]], scene.R_assoc_inverse[o[t]]
             # the joint cost of the pairs, each in the coordinates its option chose, at the prior
-            child[2][0] += innovation_cost(P, Hcs[options], R_inverse, ys[options])
+            child[2][0] += innovation_cost(P, Hcs[options], R, R_inverse, ys[options])
             for t in range(taken.size):
                 child[7][0, child[6][0], 0], child[7][0, child[6][0], 1] = o[t], landmarks[t]
                 child[6][0] += 1

@@ -34,6 +34,22 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
             pair_information[i] = mtm(Hc, mm(R_inverse[i], Hc))
             total += pair_information[i]
     cost = np.full((n, m), np.inf)
+    # Every L_i >= information, so each S is at most H_j information^-1 H_j' + r_max I (r_max: the
+    # largest eigenvalue of any R_i): d^2 under that bound is a lower bound, and the pairs it puts
+    # beyond the gate (most of a view's) need no factorization.
+    P_bound = np.linalg.solve(information, np.eye(6))
+    r_max = 0.0
+    for i in range(n):
+        r_max = max(r_max, np.linalg.eigvalsh(R[i])[-1])
+    bound_inverse = np.empty((m, 3, 3))
+    screened = np.ones(m, np.bool_)
+    for j in range(m):
+        S_bound = sandwich(H[j], P_bound) + r_max * np.eye(3)
+        # rounding can leave the bound indefinite (information 1e12 beside a prior of 1e2): no screen
+        screened[j] = np.isfinite(mahalanobis(S_bound, np.zeros(3))[1]) and S_bound[0, 0] > 0.0 and S_bound[1, 1] > 0.0
+        if screened[j]:
+            bound_inverse[j] = np.linalg.inv(S_bound)
+    residual = np.empty(3)
     for i in range(n):
         L = total - pair_information[i]
         P_i = np.linalg.solve(L, np.eye(6))
@@ -43,7 +59,17 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
             Hc = H[chosen[i]]
             delta = -mv(P_i, mv(Hc.T, mv(R_inverse[i], z[i] - z_hat[chosen[i]])))
         for j in range(m):
-            residual = z[i] - z_hat[j] - mv(H[j], delta)
+            for a in range(3):
+                moved = 0.0
+                for b in range(6):
+                    moved += H[j, a, b] * delta[b]
+                residual[a] = z[i, a] - z_hat[j, a] - moved
+            bound = 0.0
+            for a in range(3 if screened[j] else 0):
+                for b in range(3):
+                    bound += residual[a] * bound_inverse[j, a, b] * residual[b]
+            if screened[j] and not bound <= gate:
+                continue
             S = sandwich(H[j], P_i) + R[i]
             d2, log_det = mahalanobis(S, residual)
             if d2 <= gate:

@@ -45,6 +45,59 @@ def information_gain(P, H, R_inverse):
 
 
 @jit
+def cho_solve(L, B):
+    """S^-1 B from the lower Cholesky factor L of S (m, m); B (m, k)."""
+    m, k = B.shape
+    X = B.copy()
+    for c in range(k):
+        for i in range(m):
+            s = X[i, c]
+            for j in range(i):
+                s -= L[i, j] * X[j, c]
+            X[i, c] = s / L[i, i]
+        for i in range(m - 1, -1, -1):
+            s = X[i, c]
+            for j in range(i + 1, m):
+                s -= L[j, i] * X[j, c]
+            X[i, c] = s / L[i, i]
+    return X
+
+
+@jit
+def covariance_gain(P, H, R):
+    """The textbook gain for few pairs (3p <= 6 rows, where the (m, m) innovation covariance is
+    no larger than the state's information and better conditioned when the noise is tiny):
+    (K = P H' S^-1 (6, m), S = H P H' + R (m, m), its Cholesky factor L, H stacked (m, 6))."""
+    p = H.shape[0]
+    m = 3 * p
+    Hs = np.ascontiguousarray(H).reshape(m, 6)
+    S = mm(mm(Hs, P), Hs.T)
+    for i in range(p):
+        S[3 * i:3 * i + 3, 3 * i:3 * i + 3] += R[i]
+    S = 0.5 * (S + S.T)
+    L = np.linalg.cholesky(S)
+    K = cho_solve(L, mm(Hs, P)).T.copy()
+    return K, S, L, Hs
+
+
+@jit
+def covariance_posterior(P, K, Hs, R):
+    """Joseph form (I - K H) P (I - K H)' + K R K'."""
+    I_KH = np.eye(6) - mm(K, Hs)
+    out = mm(mm(I_KH, P), I_KH.T)
+    p = R.shape[0]
+    for i in range(p):
+        Ki = np.ascontiguousarray(K[:, 3 * i:3 * i + 3])
+        out += mm(mm(Ki, R[i]), Ki.T)
+    return 0.5 * (out + out.T)
+
+
+@jit
+def stacked(y):
+    return np.ascontiguousarray(y).reshape(-1)
+
+
+@jit
 def gradient(R_inverse_H, y):
     """g = sum H_i' R_i^-1 y_i (6,) for innovations y (p, 3)."""
     g = np.zeros(6)
@@ -78,10 +131,19 @@ def posterior_covariance(P, information, I_P_information):
 
 
 @jit
-def innovation_cost(P, H, R_inverse, y):
+def innovation_cost(P, H, R, R_inverse, y):
     """``y' S^-1 y + ln det S - ln det R`` of stacked innovations y (p, 3) with Jacobians H and
-    noise information R_inverse: twice the negative log-likelihood relative to the noise's own
+    noise R, R_inverse (p, 3, 3): twice the negative log-likelihood relative to the noise's own
     spread (the beam's units)."""
+    if y.shape[0] <= 2:
+        K, S, L, Hs = covariance_gain(P, H, R)
+        v = stacked(y)
+        log_det = 0.0
+        for i in range(L.shape[0]):
+            log_det += 2.0 * np.log(L[i, i])
+        for i in range(R.shape[0]):
+            log_det -= np.linalg.slogdet(R[i])[1]
+        return v @ cho_solve(L, v.reshape(-1, 1))[:, 0] + log_det
     R_inverse_H, _, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
     sign, log_det = np.linalg.slogdet(I_P_information)
     if sign <= 0.0:
@@ -90,8 +152,10 @@ def innovation_cost(P, H, R_inverse, y):
 
 
 @jit
-def correction(P, H, R_inverse, y):
+def correction(P, H, R, R_inverse, y):
     """K y of one EKF update."""
+    if y.shape[0] <= 2:
+        return mv(covariance_gain(P, H, R)[0], stacked(y))
     R_inverse_H, _, _, posterior_plain = information_gain(P, H, R_inverse)
     return mv(posterior_plain, gradient(R_inverse_H, y))
 
@@ -106,7 +170,7 @@ def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera
 
 
 @jit
-def iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
                     iterations, z_hat, H, start, from_start, with_map_cost):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
@@ -116,25 +180,42 @@ def iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, cam
     Returns (x+ (6,), P+ (6, 6), NIS at the prior, MAP cost at x+ (NaN unless asked), y (p, 3)
     the innovation at the prior)."""
     y_prior = z - z_hat
-    R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
-    nis = normalized_innovation(y_prior, R_inverse, R_inverse_H, posterior_plain)
-    delta = mv(posterior_plain, gradient(R_inverse_H, y_prior))       # K y
+    few = z.shape[0] <= 2                                            # S (3p x 3p) no larger than 6x6
+    m = 3 * z.shape[0]
+    K, L, Hs = np.zeros((6, m)), np.zeros((m, m)), np.zeros((m, 6))
+    information, I_P_information = np.zeros((6, 6)), np.eye(6)
+    if few:
+        K, S, L, Hs = covariance_gain(P, H, R)
+        v = stacked(y_prior)
+        nis = v @ cho_solve(L, v.reshape(-1, 1))[:, 0]               # NIS = y' S^-1 y
+        delta = mv(K, v)
+    else:
+        R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
+        nis = normalized_innovation(y_prior, R_inverse, R_inverse_H, posterior_plain)
+        delta = mv(posterior_plain, gradient(R_inverse_H, y_prior))   # K y
     x_i = retract(x, delta)                                          # x+ = x [+] K y
     if from_start and iterations >= 2:
         x_i, delta = start.copy(), difference(start, x)
     for _ in range(iterations - 1):
         z_hat_i, H_i = observe_pairs(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
-        R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H_i, R_inverse)
         moved = difference(x_i, x)
         r = z - z_hat_i
         for i in range(r.shape[0]):
             r[i] += mv(H_i[i], moved)                                   # z - h(x_i) + H_i (x_i [-] x)
-        step = mv(posterior_plain, gradient(R_inverse_H, r))
+        if few:
+            K, S, L, Hs = covariance_gain(P, H_i, R)
+            step = mv(K, stacked(r))
+        else:
+            R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H_i, R_inverse)
+            step = mv(posterior_plain, gradient(R_inverse_H, r))
         x_i = retract(x, step)
         if np.max(np.abs(step - delta)) < CONVERGED:
             break                                                    # the linearization no longer moves
         delta = step
-    P_post = posterior_covariance(P, information, I_P_information)
+    if few:
+        P_post = covariance_posterior(P, K, Hs, R)
+    else:
+        P_post = posterior_covariance(P, information, I_P_information)
     cost = np.nan
     if with_map_cost:
         cost = posterior_cost(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
@@ -149,14 +230,15 @@ def point_step(scene, x, P, obs, z_hat, H):
     p = obs.size
     Hp = np.empty((p, 3, 6))
     y = np.empty((p, 3))
+    R = np.empty((p, 3, 3))
     R_inverse = np.empty((p, 3, 3))
     for i in range(p):
         o = obs[i]
         p_hat, J = back_project(z_hat[i], scene.camera_K[scene.obs_camera[o]])
         Hp[i] = mm(J, H[i])
         y[i] = scene.point[o] - p_hat
-        R_inverse[i] = scene.point_cov_inverse[o]
-    return retract(x, correction(P, Hp, R_inverse, y))
+        R[i], R_inverse[i] = scene.point_cov[o], scene.point_cov_inverse[o]
+    return retract(x, correction(P, Hp, R, R_inverse, y))
 
 
 @jit
@@ -170,16 +252,20 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, for_association, 
     lower MAP cost is kept. Returns as ``iterated_update``."""
     p = obs.size
     z = np.empty((p, 3))
+    R = np.empty((p, 3, 3))
     R_inverse = np.empty((p, 3, 3))
     landmark_xyz = np.empty((p, 3))
     pair_camera = np.empty(p, np.int64)
     for i in range(p):
         z[i] = scene.z[obs[i]]
-        R_inverse[i] = scene.R_assoc_inverse[obs[i]] if for_association else scene.R_file_inverse[obs[i]]
+        if for_association:
+            R[i], R_inverse[i] = scene.R_assoc[obs[i]], scene.R_assoc_inverse[obs[i]]
+        else:
+            R[i], R_inverse[i] = scene.R_file[obs[i]], scene.R_file_inverse[obs[i]]
         landmark_xyz[i] = scene.landmark_xyz[landmarks[i]]
         pair_camera[i] = scene.obs_camera[obs[i]]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    x1, P1, nis, cost1, y1 = iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, *cams,
+    x1, P1, nis, cost1, y1 = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams,
                                              iterations, z_hat, H, start, False, with_map_cost)
     if iterations < 2:
         return x1, P1, nis, cost1, y1
@@ -194,7 +280,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, for_association, 
         if attempt == 1 and not far:
             continue
         s = start if attempt == 0 else point_step(scene, x, P, obs, z_hat, H)
-        x2, P2, _, cost2, _ = iterated_update(x, P, z, R_inverse, landmark_xyz, pair_camera, *cams,
+        x2, P2, _, cost2, _ = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams,
                                               iterations, z_hat, H, s, True, True)
         if cost2 < lowest:
             best_x, best_P, best_cost, lowest, improved = x2, P2, cost2, cost2, True
