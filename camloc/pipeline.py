@@ -7,11 +7,11 @@ import time
 from pathlib import Path
 from typing import Optional
 
+from camloc.bundled import bundled_dataset
 from camloc.localizer import LocalizerConfig, ProgressCallback, localize
 from camloc.results import RunResult
 
-REPO_DATA = Path(__file__).resolve().parents[1] / "data"
-DEFAULT_DATASET = REPO_DATA / "grid-small.g2o"
+DEFAULT_DATASET = bundled_dataset()
 RUNS_FOLDER = Path("runs")
 
 

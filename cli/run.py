@@ -33,7 +33,7 @@ class CostChoice(str, Enum):
 @handles_errors
 def run(
     dataset: Optional[Path] = typer.Argument(
-        None, help="g2o dataset to localize. Default: the bundled data/grid-small.g2o.", show_default=False
+        None, help="g2o dataset to localize. Default: the bundled grid-small.g2o.", show_default=False
     ),
     output: Optional[Path] = typer.Option(
         None, "--output", "-o", help="Run folder to write. Default: runs/<dataset name>.", show_default=False

@@ -10,11 +10,11 @@ import pytest
 from typer.testing import CliRunner
 
 from camloc import metrics
+from camloc.bundled import bundled_dataset
 from camloc.cli.app import app
 from camloc.results import load_run, save_run
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-GRID_SMALL = REPO_ROOT / "data" / "grid-small.g2o"
+GRID_SMALL = bundled_dataset()
 FIGURES = ("fig-topdown", "fig-3d", "fig-errors", "fig-consistency", "fig-associations")
 MAGIC = {"png": b"\x89PNG", "pdf": b"%PDF", "svg": b"<?xml"}
 
@@ -253,8 +253,6 @@ def test_eval_of_tum_files_with_huge_quaternions_a_bom_or_huge_coordinates(tmp_p
 
 
 def test_localizer_run_evaluates_and_plots(tmp_path):
-    if not GRID_SMALL.is_file():
-        pytest.skip("data/grid-small.g2o is not generated yet")
     import camloc
 
     dataset = camloc.load(GRID_SMALL)

@@ -319,7 +319,7 @@ def test_bad_options_raise_a_config_error(options):
 
 # ------------------------------------------------------------------------------------------- CLI
 
-BUNDLED = {  # data/README.md gives the same commands
+BUNDLED = {  # camloc/data/README.md gives the same commands
     "grid-small.g2o": (SimulationConfig(), 3),
     "smooth3d-clutter.g2o": (SimulationConfig(trajectory="smooth3d", poses=200, clutter_fraction=0.1,
                                               outlier_fraction=0.02), 1),
@@ -331,7 +331,9 @@ BUNDLED = {  # data/README.md gives the same commands
 def test_bundled_datasets_are_what_their_commands_generate(name):
     from camloc.g2o import read_g2o
 
-    path = Path(__file__).resolve().parents[1] / "data" / name
+    from camloc.bundled import bundled_dataset
+
+    path = bundled_dataset(name)
     config, seed = BUNDLED[name]
     expected = simulate(config, seed=seed)
     read = read_g2o(path)
