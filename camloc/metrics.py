@@ -542,21 +542,27 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
 
     Returns
     -------
-    A JSON-serializable dict: ``dataset``, ``poses``, ``align``, ``delta``, ``notes`` (list);
-    with ground truth ``estimate`` and ``odometry`` (each as ``trajectory_metrics``),
-    ``improvement`` (odometry / estimate ATE and rotation RMSE) and ``nees`` (``nees_summary`` of
-    ``run_nees``: the given start pose is left out); ``smoothed`` (``trajectory_metrics``) too when
-    the run was smoothed (``RunResult.smoothed_xyz``, from ``camloc smooth``);
-    always ``association`` (``association_scores``) and ``nis`` (``nis_summary``).
+    A JSON-serializable dict with the same keys for every run (``docs/json.md``): ``dataset``,
+    ``counts`` (``poses``), ``align``, ``delta``, ``notes`` (list); ``estimate`` and ``odometry``
+    (each as ``trajectory_metrics``), ``improvement`` (odometry / estimate ATE and rotation RMSE)
+    and ``nees`` (``nees_summary`` of ``run_nees``: the given start pose is left out), each None
+    without ground truth; ``smoothed`` (``trajectory_metrics``), None unless the run was smoothed
+    (``RunResult.smoothed_xyz``, from ``camloc smooth``) and has ground truth; ``association``
+    (``association_scores``) and ``nis`` (``nis_summary``).
     """
     if align not in ALIGN_METHODS:
         raise ConfigError(f"alignment must be one of {', '.join(ALIGN_METHODS)}, found {align!r}")
     out: dict = {
         "dataset": result.dataset,
-        "poses": int(len(result.pose_ids)),
+        "counts": {"poses": int(len(result.pose_ids))},
         "align": align,
         "delta": int(delta),
         "notes": [],
+        "estimate": None,
+        "odometry": None,
+        "smoothed": None,
+        "improvement": None,
+        "nees": None,
     }
     if result.truth_xyz is not None:
         estimate = trajectory_metrics(

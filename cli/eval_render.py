@@ -130,12 +130,12 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.evaluate``: trajectories side by side, alignment (when used),
     association, consistency, then the NEES verdict line and any notes."""
     parts: list[RenderableType] = [
-        Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['poses']} poses)", style="bold")
+        Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['counts']['poses']} poses)", style="bold")
     ]
-    if "estimate" in report:
+    if report["estimate"] is not None:
         blocks = {"EKF": report["estimate"], "odometry": report["odometry"]}
         ratio = None
-        if "smoothed" in report:
+        if report["smoothed"] is not None:
             # Three paths: the ratio worth a column is what smoothing gained over the filter.
             blocks["smoothed"] = report["smoothed"]
             ratio = ("smoothed", "EKF")
@@ -146,8 +146,8 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
         if report["align"] != "none":
             parts.append(_alignment_table(blocks))
     parts.append(_association_table(report["association"]))
-    parts.append(_consistency_table(report.get("nees"), report["nis"]))
-    if "nees" in report:
+    parts.append(_consistency_table(report["nees"], report["nis"]))
+    if report["nees"] is not None:
         if report["nees"]["skipped_poses"]:
             parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "
                               "and any whose covariance is singular", style="dim"))

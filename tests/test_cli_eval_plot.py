@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from camloc import metrics
 from camloc.bundled import bundled_dataset
 from camloc.cli.app import app
-from camloc.results import load_run, save_run
+from camloc.results import load_run, read_tum, save_run, write_tum
 
 GRID_SMALL = bundled_dataset()
 FIGURES = ("fig-topdown", "fig-3d", "fig-errors", "fig-consistency", "fig-associations")
@@ -67,13 +67,28 @@ def test_eval_prints_the_alignment(run_dir):
     assert "alignment onto the reference" in outcome.stdout and "se3" in outcome.stdout
 
 
-def test_eval_without_truth_notes_it(tmp_path, synthetic_run):
+def test_eval_without_truth_keeps_its_keys_null_and_notes_it(tmp_path, synthetic_run):
     run = save_run(tmp_path / "run", synthetic_run(with_truth=False))
     outcome = invoke("eval", run, "--json")
     assert outcome.exit_code == 0, outcome.output
     report = json.loads(outcome.stdout)
-    assert "estimate" not in report and "no ground truth" in report["notes"][0]
+    assert report["estimate"] is None and report["odometry"] is None and report["nees"] is None
+    assert "no ground truth" in report["notes"][0]
     assert "no ground truth" in invoke("eval", run).stdout
+
+
+def test_eval_and_plot_score_the_trajectory_on_disk(run_dir):
+    before = json.loads(invoke("eval", run_dir, "--json").stdout)
+    stamps, xyz, quat = read_tum(run_dir / "estimate.tum")
+    write_tum(run_dir / "estimate.tum", stamps, xyz + [10.0, 0.0, 0.0], quat)  # every x shifted by 10 m
+    after = json.loads(invoke("eval", run_dir, "--json").stdout)
+    assert before["estimate"]["ate"]["rmse"] < 0.2
+    assert after["estimate"]["ate"]["rmse"] > 9.0
+    assert after["odometry"] == before["odometry"]
+
+    (run_dir / "estimate.tum").unlink()
+    for command in ("eval", "plot"):
+        assert_bad_input(invoke(command, run_dir), f"{run_dir / 'estimate.tum'}: no such file")
 
 
 def test_eval_of_two_tum_files(run_dir):
@@ -152,7 +167,9 @@ def test_plot_without_truth_still_draws(tmp_path, synthetic_run):
 def test_plot_bad_inputs_exit_2(tmp_path, run_dir):
     assert_bad_input(invoke("plot", tmp_path / "nothing"), "no such directory")
     assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "report.jpg"), "expected a file name ending in .png")
-    assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "missing" / "report.png"), "cannot write")
+    (tmp_path / "a-file").write_text("")
+    assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "a-file" / "report.png"),
+                     f"cannot create the folder {tmp_path / 'a-file'}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -183,12 +200,15 @@ CORRUPT_FOLDERS = {
               "associations.csv:2", "expected a finite number for u"),
     "nan-cov": (lambda run: _rewrite_states(run, estimate_cov=np.full((30, 6, 6), np.nan)),
                 "states.npz", "estimate_cov: expected finite numbers"),
-    "zero-quat": (lambda run: _rewrite_states(run, truth_quat_xyzw=np.zeros((30, 4))),
-                  "states.npz", "truth_quat_xyzw: expected unit quaternions"),
-    "nan-estimate": (lambda run: _rewrite_states(run, estimate_xyz=np.full((30, 3), np.nan)),
-                     "states.npz", "estimate_xyz: expected finite metres"),
+    "zero-quat": (lambda run: _rewrite_line(run / "groundtruth.tum", 3, "1001 0 0 0 0 0 0 0"),
+                  "groundtruth.tum:3", "expected a unit quaternion"),
+    "nan-estimate": (lambda run: _rewrite_line(run / "estimate.tum", 2, "1000 nan 0 0 0 0 0 1"),
+                     "estimate.tum:2", "expected a finite number for x"),
+    "truncated-estimate": (lambda run: _rewrite_line(run / "estimate.tum", 31, "# cut"),
+                           "estimate.tum", "expected the run's 30 pose ids"),
+    "deleted-odometry": (lambda run: (run / "odometry.tum").unlink(), "odometry.tum", "no such file"),
     "version": (lambda run: _rewrite_states(run, format_version=np.array("abc")),
-                "states.npz", "expected format_version 1, found 'abc'"),
+                "states.npz", "expected format_version 1 or 2, found 'abc'"),
     "smoothed-huge-xyz": (lambda run: (run / "smoothed.tum").write_text(
         (run / "estimate.tum").read_text().replace("\n1000.0 ", "\n1000.0 1e308 1e308 0 0 0 0 1\n#", 1)),
         "smoothed.tum:2", "expected metres within +-1e+09 for x"),

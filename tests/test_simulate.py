@@ -355,8 +355,8 @@ def test_cli_writes_a_file_that_reads_back_to_the_simulated_dataset(tmp_path):
     summary = json.loads(result.output)
     expected = simulate_labelled(SimulationConfig(trajectory="smooth3d", poses=60, cameras=2, clutter_fraction=0.1),
                                  seed=4)
-    assert summary["observations"] == expected.dataset.num_observations
-    assert summary["clutter"] == int(expected.is_clutter.sum()) > 0
+    assert summary["counts"]["observations"] == expected.dataset.num_observations
+    assert summary["counts"]["clutter"] == int(expected.is_clutter.sum()) > 0
     read = read_g2o(path)
     for name, array in _arrays(expected.dataset).items():
         np.testing.assert_array_equal(getattr(read, name), array, err_msg=name)
