@@ -324,14 +324,17 @@ def compare_trajectories(
 ) -> dict:
     """``trajectory_metrics`` of two trajectories paired by timestamp (``match_by_timestamp``).
 
-    Returns the dict of ``trajectory_metrics`` plus ``"matched"``, ``"estimate_poses"`` and
-    ``"reference_poses"``.
+    Returns ``"counts"`` (``matched``, ``estimate_poses``, ``reference_poses``) and ``"estimate"``,
+    the dict of ``trajectory_metrics``: the estimate's ATE is ``estimate.ate.rmse`` here as in
+    ``evaluate``.
     """
     index_est, index_ref = match_by_timestamp(stamps_est, stamps_ref, max_diff=max_diff)
     metrics = trajectory_metrics(
         xyz_est[index_est], quat_est[index_est], xyz_ref[index_ref], quat_ref[index_ref], align=align, delta=delta
     )
-    return {"matched": int(len(index_est)), "estimate_poses": int(len(stamps_est)), "reference_poses": int(len(stamps_ref)), **metrics}
+    counts = {"matched": int(len(index_est)), "estimate_poses": int(len(stamps_est)),
+              "reference_poses": int(len(stamps_ref))}
+    return {"counts": counts, "estimate": metrics}
 
 
 # --------------------------------------------------------------------------------------------

@@ -63,6 +63,15 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
     """The ``camloc`` group: every command runs through ``invoke``, which is where a
     ``CamlocError`` (bad input), a bad option and Ctrl-C end, the same way in every command."""
 
+    def parse_args(self, ctx: typer.Context, args: list[str]) -> list[str]:
+        given = bool(args)  # the parser consumes the list
+        try:
+            return super().parse_args(ctx, args)
+        except UsageError as error:
+            if not given:  # plain 'camloc': the help, as no_args_is_help says
+                raise
+            _usage_error(error, ctx)
+
     def invoke(self, ctx: typer.Context) -> Any:
         try:
             return super().invoke(ctx)
@@ -70,15 +79,20 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
             print_error(str(error))
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except UsageError as error:
-            # Instead of click's usage block and framed panel: one line, and where to look.
-            where = error.ctx.command_path if error.ctx is not None else ctx.command_path
-            print_error(f"{error.format_message()} (see '{where} --help')")
-            raise typer.Exit(EXIT_BAD_INPUT) from None
+            _usage_error(error, ctx)
         except KeyboardInterrupt:
             # Outputs are written whole or not at all, so an interrupted command leaves nothing
             # half-written; say so rather than print a traceback or nothing.
             err_console.print("interrupted", style="yellow", highlight=False)
             raise typer.Exit(EXIT_INTERRUPTED) from None
+
+
+def _usage_error(error: UsageError, ctx: typer.Context) -> None:
+    """A bad option or argument: one line and where to look, instead of click's usage block and
+    framed panel; exit status 2."""
+    where = error.ctx.command_path if error.ctx is not None else ctx.command_path
+    print_error(f"{error.format_message()} (see '{where} --help')")
+    raise typer.Exit(EXIT_BAD_INPUT) from None
 
 
 # The library's option classes whose defaults the help shows ("{localizer.iterations}"); they are

@@ -161,9 +161,10 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
 def render_trajectory_comparison(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.compare_trajectories`` for ``camloc eval --est --ref``."""
     # Paths go on lines of their own (printed with soft_wrap) so a long path stays whole and copyable.
+    counts = report["counts"]
     header = Text(
-        f"camloc eval: {report['matched']} poses matched of {report['estimate_poses']} (estimate) "
-        f"and {report['reference_poses']} (reference)",
+        f"camloc eval: {counts['matched']} poses matched of {counts['estimate_poses']} (estimate) "
+        f"and {counts['reference_poses']} (reference)",
         style="bold",
     )
     files = [
@@ -171,10 +172,9 @@ def render_trajectory_comparison(report: Mapping[str, Any]) -> RenderableType:
         for role, key in (("estimate", "estimate_file"), ("reference", "reference_file"))
     ]
     parts: list[RenderableType] = [header, *files]
-    blocks = {"estimate": report}
-    parts.append(_trajectory_table(
-        blocks, f"trajectory error (align {report['alignment']['method']}, RPE delta {report['rpe']['delta']})"
-    ))
-    if report["alignment"]["method"] != "none":
+    blocks = {"estimate": report["estimate"]}
+    parts.append(_trajectory_table(blocks, f"trajectory error (align {report['estimate']['alignment']['method']}, "
+                                           f"RPE delta {report['estimate']['rpe']['delta']})"))
+    if report["estimate"]["alignment"]["method"] != "none":
         parts.append(_alignment_table(blocks))
     return Group(*parts)

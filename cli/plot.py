@@ -10,7 +10,6 @@ import typer
 
 from camloc.cli.common import console, force_option, quiet_option, run_dir_argument, with_default
 from camloc.errors import ConfigError
-from camloc.results import FIGURE_FORMATS
 
 
 class FigureFormat(str, Enum):
@@ -42,7 +41,7 @@ def plot(
 
     By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder, replacing the ones drawn before; with --output a single report figure holding every panel. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
     """
-    from camloc.results import load_run, refuse_existing, write_files_atomic
+    from camloc.results import FIGURE_FORMATS, load_run, refuse_existing, write_files_atomic
 
     if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
         raise ConfigError(

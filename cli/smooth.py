@@ -88,8 +88,9 @@ def _recorded_dataset(run_dir: Path, summary: Mapping[str, Any], fallback: str) 
 
 @contextlib.contextmanager
 def _iteration_status(*, enabled: bool) -> Iterator[Optional[Callable]]:
-    """A transient status line on stderr with the iteration and cost, or None."""
-    if not enabled:
+    """A transient status line on stderr with the iteration and cost, or None (also when stderr
+    is not a terminal)."""
+    if not (enabled and err_console.is_terminal):
         yield None
         return
     with err_console.status("smoothing: linearizing") as status:

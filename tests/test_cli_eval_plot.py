@@ -96,9 +96,10 @@ def test_eval_of_two_tum_files(run_dir):
     assert outcome.exit_code == 0, outcome.output
     report = json.loads(outcome.stdout)
     expected = metrics.evaluate(load_run(run_dir))["estimate"]
-    assert report["matched"] == 30
-    assert report["ate"]["rmse"] == pytest.approx(expected["ate"]["rmse"], abs=1e-12)
-    assert report["rpe"]["rotation"]["rmse_deg"] == pytest.approx(expected["rpe"]["rotation"]["rmse_deg"], abs=1e-9)
+    assert report["counts"]["matched"] == 30
+    assert report["estimate"]["ate"]["rmse"] == pytest.approx(expected["ate"]["rmse"], abs=1e-12)
+    assert report["estimate"]["rpe"]["rotation"]["rmse_deg"] == pytest.approx(expected["rpe"]["rotation"]["rmse_deg"],
+                                                                              abs=1e-9)
     assert "nees" not in report and "association" not in report
     tables = invoke("eval", "--est", run_dir / "estimate.tum", "--ref", run_dir / "groundtruth.tum", "--align", "sim3")
     assert tables.exit_code == 0 and "30 poses matched" in tables.stdout and "sim3" in tables.stdout
@@ -258,8 +259,8 @@ def test_eval_of_tum_files_with_huge_quaternions_a_bom_or_huge_coordinates(tmp_p
         outcome = invoke("eval", "--est", estimate, "--ref", reference, "--json")
         assert outcome.exit_code == 0, outcome.output
         report = json.loads(outcome.stdout)
-        assert report["matched"] == 30 and report["ate"]["rmse"] == pytest.approx(0.0, abs=1e-12)
-        assert report["rotation"]["rmse_deg"] == pytest.approx(0.0, abs=1e-5)
+        assert report["counts"]["matched"] == 30 and report["estimate"]["ate"]["rmse"] == pytest.approx(0.0, abs=1e-12)
+        assert report["estimate"]["rotation"]["rmse_deg"] == pytest.approx(0.0, abs=1e-5)
 
     huge = tmp_path / "huge.tum"
     huge.write_text("\n".join([" ".join(fields[:1] + ["1e200"] * 3 + fields[4:])] + lines[2:]) + "\n")

@@ -184,8 +184,8 @@ def test_compare_trajectories_matches_then_scores(rng):
     report = metrics.compare_trajectories(
         stamps[2:], xyz[2:] + [0.0, 0.0, 0.2], quat[2:], stamps, xyz, quat
     )
-    assert (report["matched"], report["estimate_poses"], report["reference_poses"]) == (10, 10, 12)
-    assert report["ate"]["mean"] == pytest.approx(0.2)
+    assert report["counts"] == {"matched": 10, "estimate_poses": 10, "reference_poses": 12}
+    assert report["estimate"]["ate"]["mean"] == pytest.approx(0.2)
 
 
 # --------------------------------------------------------------------------------------------

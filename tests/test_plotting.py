@@ -157,3 +157,11 @@ def test_library_core_does_not_import_matplotlib():
     code = "import sys, camloc.results, camloc.metrics, camloc.cli.app; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_figures_plot_draws_are_the_ones_a_forced_run_replaces():
+    # results.CAMLOC_FILES names them so that 'camloc run --force' drops the old run's figures.
+    from camloc import plotting, results
+
+    assert tuple(plotting.FIGURES) == results.FIGURE_NAMES
+    assert {f"fig-{name}.png" for name in plotting.FIGURES} <= results.CAMLOC_FILES
