@@ -165,7 +165,7 @@ def _k(n: int) -> str:
 def real_file_case(path: Path, overrides: dict, *, repeats: int, timeout: float) -> dict:
     """``camloc run`` on the real file as a user types it; the fastest of ``repeats`` runs."""
     with tempfile.TemporaryDirectory(prefix="camloc-bench-") as tmp:
-        command = _bench.camloc_command() + ["run", str(path), "-o", str(Path(tmp) / "run"), "--quiet"]
+        command = _bench.camloc_command() + ["run", str(path), "-o", str(Path(tmp) / "run"), "--quiet", "--force"]
         if overrides:
             config = Path(tmp) / "localizer.toml"
             config.write_text("".join(f"{k} = {_toml(v)}\n" for k, v in overrides.items() if v is not None))
@@ -180,7 +180,6 @@ def real_file_case(path: Path, overrides: dict, *, repeats: int, timeout: float)
                 best = {"wall_seconds": seconds, "peak_mb": peak_mb, "summary": summary}
     summary = best["summary"]
     counts, timing = summary["counts"], summary["timing"]
-    metrics = summary.get("metrics") or {}
     return {
         "case": "real file",
         "poses": counts["poses"],
@@ -190,8 +189,8 @@ def real_file_case(path: Path, overrides: dict, *, repeats: int, timeout: float)
         "filter_seconds": timing.get("filter_seconds"),
         "wall_seconds": best["wall_seconds"],
         "peak_mb": best["peak_mb"],
-        "rmse_m": ((metrics.get("estimate") or {}).get("ate") or {}).get("rmse"),
-        "precision": (metrics.get("association") or {}).get("precision"),
+        "rmse_m": ((summary["estimate"] or {}).get("ate") or {}).get("rmse"),
+        "precision": summary["association"]["precision"],
         "association": summary["config"]["association"],
     }
 

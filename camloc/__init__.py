@@ -1,7 +1,7 @@
 """camloc: localize a robot in a known landmark map from g2o odometry and camera observations.
 
     >>> import camloc
-    >>> dataset = camloc.load("data/grid-small.g2o")
+    >>> dataset = camloc.load(camloc.bundled_dataset("grid-small"))
     >>> result = camloc.localize(dataset)
 
 Heavy modules are imported on first use so that ``camloc --help`` stays instant.
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "load", "localize", "LocalizerConfig"]
+__all__ = ["__version__", "load", "localize", "LocalizerConfig", "bundled_dataset"]
 
 
 def __getattr__(name: str):
@@ -23,4 +23,8 @@ def __getattr__(name: str):
         from camloc import localizer
 
         return getattr(localizer, name)
+    if name == "bundled_dataset":
+        from camloc.bundled import bundled_dataset
+
+        return bundled_dataset
     raise AttributeError(f"module 'camloc' has no attribute {name!r}")

@@ -22,7 +22,7 @@ def summarize_dataset(dataset: Dataset) -> dict[str, Any]:
     -------
     A dict with keys:
 
-    - ``source``: the dataset's source.
+    - ``dataset``: the dataset's source (its path), the key every command's JSON uses for it.
     - ``counts``: poses, odometry_edges, landmarks, observations, cameras.
     - ``tag_counts``: records per tag as in the file; ``unknown_tags``: the ones camloc skipped.
     - ``cameras``: per camera id, ``translation_m`` (3) and ``rotation_rpy_deg`` (3) of the mount
@@ -43,7 +43,7 @@ def summarize_dataset(dataset: Dataset) -> dict[str, Any]:
     - ``warnings``: the reader's warnings.
     """
     return {
-        "source": dataset.source,
+        "dataset": dataset.source,
         "counts": {
             "poses": dataset.num_poses,
             "odometry_edges": int(dataset.odom_translation.shape[0]),

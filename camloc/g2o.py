@@ -636,7 +636,7 @@ def write_g2o(dataset: Dataset, path: str | os.PathLike) -> None:
     reaches (as in the real dataset) when the observations are sorted by pose, else all edges
     then all observations in dataset order. Floats are written with ``repr``, the shortest text
     that reads back to the same double. The file is written whole or not at all (a temporary file
-    in the same directory, then ``os.replace``).
+    in the same directory, then ``os.replace``); missing parent folders are created.
 
     Parameters
     ----------
@@ -644,7 +644,10 @@ def write_g2o(dataset: Dataset, path: str | os.PathLike) -> None:
         covariances are derived from them on reading.
     path : the destination .g2o file.
     """
+    from camloc.results import make_folder  # results reads numbers with this module's rules
+
     path = Path(path)
+    make_folder(path.parent)
     try:
         _write_atomically(path, "".join(_format_dataset(dataset)))
     except OSError as error:

@@ -324,14 +324,17 @@ def compare_trajectories(
 ) -> dict:
     """``trajectory_metrics`` of two trajectories paired by timestamp (``match_by_timestamp``).
 
-    Returns the dict of ``trajectory_metrics`` plus ``"matched"``, ``"estimate_poses"`` and
-    ``"reference_poses"``.
+    Returns ``"counts"`` (``matched``, ``estimate_poses``, ``reference_poses``) and ``"estimate"``,
+    the dict of ``trajectory_metrics``: the estimate's ATE is ``estimate.ate.rmse`` here as in
+    ``evaluate``.
     """
     index_est, index_ref = match_by_timestamp(stamps_est, stamps_ref, max_diff=max_diff)
     metrics = trajectory_metrics(
         xyz_est[index_est], quat_est[index_est], xyz_ref[index_ref], quat_ref[index_ref], align=align, delta=delta
     )
-    return {"matched": int(len(index_est)), "estimate_poses": int(len(stamps_est)), "reference_poses": int(len(stamps_ref)), **metrics}
+    counts = {"matched": int(len(index_est)), "estimate_poses": int(len(stamps_est)),
+              "reference_poses": int(len(stamps_ref))}
+    return {"counts": counts, "estimate": metrics}
 
 
 # --------------------------------------------------------------------------------------------
@@ -569,22 +572,28 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
 
     Returns
     -------
-    A JSON-serializable dict: ``dataset``, ``poses``, ``align``, ``delta``, ``notes`` (list);
-    with ground truth ``estimate`` and ``odometry`` (each as ``trajectory_metrics``),
-    ``improvement`` (odometry / estimate ATE and rotation RMSE) and ``nees`` (``nees_summary`` of
-    ``run_nees``: the given start pose is left out); ``smoothed`` (``trajectory_metrics``) too when
-    the run was smoothed (``RunResult.smoothed_xyz``, from ``camloc smooth``);
-    always ``association`` (``association_scores``), ``nis`` (``nis_summary``) and
+    A JSON-serializable dict with the same keys for every run (``docs/json.md``): ``dataset``,
+    ``counts`` (``poses``), ``align``, ``delta``, ``notes`` (list); ``estimate`` and ``odometry``
+    (each as ``trajectory_metrics``), ``improvement`` (odometry / estimate ATE and rotation RMSE)
+    and ``nees`` (``nees_summary`` of ``run_nees``: the given start pose is left out), each None
+    without ground truth; ``smoothed`` (``trajectory_metrics``), None unless the run was smoothed
+    (``RunResult.smoothed_xyz``, from ``camloc smooth``) and has ground truth; ``association``
+    (``association_scores``) ``nis`` (``nis_summary``) and
     ``consistency`` (``consistency_verdict`` of NEES and NIS: the run's one verdict).
     """
     if align not in ALIGN_METHODS:
         raise ConfigError(f"alignment must be one of {', '.join(ALIGN_METHODS)}, found {align!r}")
     out: dict = {
         "dataset": result.dataset,
-        "poses": int(len(result.pose_ids)),
+        "counts": {"poses": int(len(result.pose_ids))},
         "align": align,
         "delta": int(delta),
         "notes": [],
+        "estimate": None,
+        "odometry": None,
+        "smoothed": None,
+        "improvement": None,
+        "nees": None,
     }
     if result.truth_xyz is not None:
         estimate = trajectory_metrics(

@@ -5,13 +5,13 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Any, Mapping, Optional
 
+from camloc.bundled import bundled_dataset
 from camloc.localizer import LocalizerConfig, ProgressCallback, localize
 from camloc.results import RunResult
 
-REPO_DATA = Path(__file__).resolve().parents[1] / "data"
-DEFAULT_DATASET = REPO_DATA / "grid-small.g2o"
+DEFAULT_DATASET = bundled_dataset()
 RUNS_FOLDER = Path("runs")
 
 
@@ -25,27 +25,47 @@ def run_dataset(
     config: LocalizerConfig,
     output_dir: Optional[str | Path],
     *,
+    force: bool = False,
     on_progress: Optional[ProgressCallback] = None,
 ) -> tuple[RunResult, Path | None]:
     """Read, localize, evaluate and (when ``output_dir`` is given) save atomically.
 
-    Returns the result, its summary holding the headline metrics when there is ground truth, and
-    the folder written (None when nothing was saved).
+    This is the one place that decides what happens to an existing output folder: it is refused
+    before the run starts (so that a long run is not refused at its end) unless it is empty, or
+    a run folder and ``force`` (``results.check_run_folder``); ``results.save_run`` then replaces
+    it whole, keeping the files that are not camloc's.
+
+    Returns
+    -------
+    The result, whose summary (``run_summary``) holds the metrics of ``camloc eval``, and the
+    folder written (None when nothing was saved).
+
+    Raises
+    ------
+    CamlocError : the dataset cannot be read or localized, or ``output_dir`` may not be written.
     """
     from camloc.g2o import read_g2o
     from camloc.metrics import evaluate
-    from camloc.results import save_run
+    from camloc.results import check_run_folder, save_run
 
+    if output_dir is not None:
+        check_run_folder(output_dir, force=force)
     started = time.perf_counter()
     dataset = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
     result = localize(dataset, config, on_progress=on_progress)
     summary = dict(result.summary)
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
-    if dataset.has_ground_truth:
-        summary["metrics"] = evaluate(result)
-    result = dataclasses.replace(result, summary=summary)
+    result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None
-    save_run(output_dir, result)
+    save_run(output_dir, result, force=force)
     return result, Path(output_dir)
+
+
+def run_summary(summary: Mapping[str, Any], evaluation: Mapping[str, Any]) -> dict:
+    """The localizer's summary with the metrics of ``camloc eval`` beside it, under the same keys
+    (``estimate.ate.rmse`` in both; ``docs/json.md``): what ``summary.json`` and ``run --json``
+    hold. Where both name a key (``dataset``, ``counts``) the run's is kept; its ``counts`` has
+    more than the evaluation's ``poses``."""
+    return {**summary, **{key: value for key, value in evaluation.items() if key not in summary}}

@@ -9,20 +9,24 @@ A run folder holds:
 - ``summary.json``: dataset, configuration, counts, timings and headline metrics;
 - ``smoothed.tum`` (only after ``camloc smooth``): the smoother's poses, TUM like the others.
 
-``states.npz`` holds every array of ``RunResult`` except the associations (``associations.csv`` is
-their one home, written with round-trip precision), plus ``dataset`` and ``format_version``; the
-TUM files repeat the poses for other tools (evo) and are not read back. ``save_run`` builds the
-folder in a hidden temporary sibling and renames it into place, so a failure leaves nothing
-behind and an existing run of the same name is replaced only by a complete one. The single-file
-helpers (``write_text_atomic``, ``write_json_atomic``, ``atomic_write``)
-give the same whole-or-nothing guarantee to any other output, and ``write_files_atomic`` to a set
-of files (the figures of ``camloc plot``); ``write_smoothed`` adds
-``smoothed.tum`` to an existing run folder that way, and ``load_run`` reads it back into
-``RunResult.smoothed_xyz`` / ``smoothed_quat_xyzw`` when it is there.
+The TUM files are the run's trajectories: ``load_run`` reads the estimate, odometry and ground
+truth from them (timestamps must be the run's pose ids), so that ``camloc eval`` and ``camloc
+plot`` score and draw what is on disk, an edited or swapped trajectory included.
+``states.npz`` holds the other arrays of ``RunResult`` (the associations' one home is
+``associations.csv``, written with round-trip precision), plus ``dataset`` and
+``format_version`` (2; version 1 also held copies of the poses, which are not read). ``save_run`` builds the folder in a hidden temporary sibling and renames it into place,
+so a failure leaves nothing behind; an existing run folder is replaced only with ``force=True``,
+and then keeps the files that are not camloc's (``CAMLOC_FILES``). The single-file helpers
+(``write_text_atomic``, ``write_json_atomic``, ``atomic_write``) give the same whole-or-nothing
+guarantee to any other output, and ``write_files_atomic`` to a set of files (the figures of
+``camloc plot``); ``write_smoothed`` adds ``smoothed.tum`` to an existing run folder that way,
+and ``load_run`` reads it back into ``RunResult.smoothed_xyz`` / ``smoothed_quat_xyzw`` when it
+is there. Every writer creates missing parent folders (``make_folder``).
 
 ``load_run`` checks what it reads as it reads it, one function per file kind (``read_tum``,
-``read_associations``, ``_check_states``, ``_read_summary``): types, shapes, finite values, unit
-quaternions, covariances, and that the associations are of the run's poses. A damaged folder is
+``read_associations``, ``_check_states``, ``_read_summary``): types, shapes, finite values,
+covariances, that the TUM files' timestamps are the run's pose ids and that the associations are
+of the run's poses. A damaged folder is
 then a ``DatasetError`` naming the file (and line), not a crash in the metrics or the plots.
 """
 
@@ -30,7 +34,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import dataclasses
 import io
 import json
 import math
@@ -60,9 +63,21 @@ SUMMARY_JSON = "summary.json"
 SMOOTHED_TUM = "smoothed.tum"
 ASSOCIATIONS_HEADER = ("pose", "camera", "u", "v", "depth", "landmark", "true_landmark", "mahalanobis")
 TUM_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
-RUN_FORMAT_VERSION = 1
+RUN_FORMAT_VERSION = 2
+# Version 1 also stored the poses in states.npz; its folders load the same, those copies unread.
+_READABLE_FORMAT_VERSIONS = (1, 2)
 # What makes a folder a run folder: enough to load it back.
 _REQUIRED_FILES = (STATES_NPZ, SUMMARY_JSON, ASSOCIATIONS_CSV)
+# The figures 'camloc plot' draws into a run folder, fig-<name>.<format>.
+FIGURE_NAMES = ("topdown", "3d", "errors", "consistency", "associations")
+FIGURE_FORMATS = ("png", "pdf", "svg")
+# Every file camloc writes into a run folder; replacing a run (force=True) drops these, the
+# derived ones included (a smoothed path or a figure of the old run would pass for the new one's),
+# and keeps everything else.
+CAMLOC_FILES = frozenset(
+    (ESTIMATE_TUM, ODOMETRY_TUM, GROUNDTRUTH_TUM, ASSOCIATIONS_CSV, STATES_NPZ, SUMMARY_JSON, SMOOTHED_TUM)
+    + tuple(f"fig-{name}.{suffix}" for name in FIGURE_NAMES for suffix in FIGURE_FORMATS)
+)
 
 
 @dataclass(frozen=True)
@@ -149,7 +164,7 @@ def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
 
     Parameters
     ----------
-    path : the file to (re)write; its directory must exist.
+    path : the file to (re)write; missing parent folders are created.
     binary : open in ``"wb"`` instead of ``"w"`` (UTF-8 text, ``"\n"`` newlines).
     """
     path = Path(path)
@@ -164,8 +179,35 @@ def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
         raise
 
 
+def make_folder(folder: str | Path) -> None:
+    """Create ``folder`` and its missing parents (every command's outputs go through here).
+
+    Raises
+    ------
+    CamlocError : ``cannot create the folder <folder>: <reason>``.
+    """
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CamlocError(f"cannot create the folder {folder}: {error.strerror or error}") from None
+
+
+def refuse_existing(path: str | Path, *, force: bool) -> None:
+    """Refuse to replace an existing ``path`` unless ``force``: a user's file is never overwritten
+    by accident (the course dataset, a figure, a report).
+
+    Raises
+    ------
+    CamlocError : ``<path>: already exists; refusing to replace it without --force``.
+    """
+    path = Path(path)
+    if not force and (path.exists() or path.is_symlink()):
+        raise CamlocError(f"{path}: already exists; refusing to replace it without --force")
+
+
 def _temporary_sibling(path: Path) -> Path:
     """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
+    make_folder(path.parent)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as error:
@@ -196,7 +238,7 @@ def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[by
 
     Raises
     ------
-    CamlocError : a temporary file cannot be created (e.g. the directory does not exist).
+    CamlocError : a folder or a temporary file cannot be created.
     """
     staged: list[tuple[Path, Path]] = []
     try:
@@ -297,7 +339,9 @@ def _read_text(path: Path) -> str:
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read a TUM trajectory file (``timestamp x y z qx qy qz qw`` a line, ``#`` comments).
 
-    Quaternions are normalized (files written by other tools are not always exactly unit).
+    Quaternions that are not unit to 1e-12 are normalized (files written by other tools are not
+    always exactly unit); unit ones are kept as they are, so a file ``write_tum`` wrote reads back
+    to the same numbers.
 
     Returns
     -------
@@ -334,7 +378,12 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not rows:
         raise DatasetError(path, None, f"expected TUM lines '{' '.join(TUM_FIELDS)}', found none")
     table = np.array(rows)
-    return table[:, 0], table[:, 1:4], geometry.normalized_quaternions(table[:, 4:8])
+    quat = table[:, 4:8]
+    # What camloc wrote is unit to rounding and read back bit for bit; only others are rescaled.
+    with np.errstate(over="ignore"):
+        off_unit = ~(np.abs(np.linalg.norm(quat, axis=1) - 1.0) <= 1e-12)
+    quat[off_unit] = geometry.normalized_quaternions(quat[off_unit])
+    return table[:, 0], table[:, 1:4], quat
 
 
 def _tum_value(path: Path, line: int, name: str, text: str) -> float:
@@ -449,18 +498,17 @@ def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | No
 # --------------------------------------------------------------------------------------------
 # Run folders
 
-_POSE_ARRAYS = (
-    "pose_ids",
-    "estimate_xyz",
-    "estimate_quat_xyzw",
-    "estimate_cov",
-    "filter_state",
-    "filter_cov",
-    "odometry_xyz",
-    "odometry_quat_xyzw",
-)
+# What states.npz holds: arrays whose rows are the poses, and the others.
+_POSE_ARRAYS = ("pose_ids", "estimate_cov", "filter_state", "filter_cov")
 _OTHER_ARRAYS = ("map_landmark_ids", "map_landmark_xyz", "update_pose_ids", "nis", "nis_dof")
-_TRUTH_ARRAYS = ("truth_xyz", "truth_quat_xyzw")
+# The trajectories' one home: TUM file -> the RunResult fields it holds (ground truth and the
+# smoothed path only when there are some).
+_TUM_ARRAYS = {
+    ESTIMATE_TUM: ("estimate_xyz", "estimate_quat_xyzw"),
+    ODOMETRY_TUM: ("odometry_xyz", "odometry_quat_xyzw"),
+    GROUNDTRUTH_TUM: ("truth_xyz", "truth_quat_xyzw"),
+    SMOOTHED_TUM: ("smoothed_xyz", "smoothed_quat_xyzw"),
+}
 
 
 def run_problems(result: RunResult) -> list[str]:
@@ -517,17 +565,40 @@ def is_run_folder(path: str | Path) -> bool:
     return path.is_dir() and all((path / name).is_file() for name in _REQUIRED_FILES)
 
 
-def save_run(run_dir: str | Path, result: RunResult) -> Path:
+def check_run_folder(run_dir: str | Path, *, force: bool = False) -> None:
+    """Whether a run may be written to ``run_dir``: it is absent or an empty directory, or (with
+    ``force``) a camloc run folder. Checked before a run starts, so that a long run is not refused
+    at its end, and again by ``save_run``.
+
+    Raises
+    ------
+    CamlocError : ``run_dir`` holds something else: a file, or a directory that is not a run
+        folder (never replaced, even with ``force``); or a run folder and not ``force``.
+    """
+    run_dir = Path(run_dir)
+    if not (run_dir.exists() or run_dir.is_symlink()) or _is_empty_dir(run_dir):
+        return
+    if not is_run_folder(run_dir):
+        raise CamlocError(
+            f"{run_dir}: already exists and is not a camloc run folder; refusing to replace it, "
+            "choose another output folder"
+        )
+    refuse_existing(run_dir, force=force)
+
+
+def save_run(run_dir: str | Path, result: RunResult, *, force: bool = False) -> Path:
     """Write ``result`` as a run folder (see the module docstring), whole or not at all.
 
-    The folder is built in a hidden temporary sibling (``.NAME.tmp-*``) and renamed into place;
-    an existing run folder of the same name is moved aside only once the new one is complete,
-    then deleted. Missing parent directories are created.
+    The folder is built in a hidden temporary sibling (``.NAME.tmp-*``) and renamed into place.
+    An existing run folder is replaced only with ``force``: the files of the old folder that are
+    not camloc's (``CAMLOC_FILES``: a user's notes) are moved into the new one, and the old one is
+    moved aside once the new one is complete, then deleted. Missing parent folders are created.
 
     Parameters
     ----------
-    run_dir : the run folder to create or replace.
+    run_dir : the run folder to create (or, with ``force``, replace).
     result : the run.
+    force : replace an existing run folder (see ``check_run_folder``).
 
     Returns
     -------
@@ -535,29 +606,35 @@ def save_run(run_dir: str | Path, result: RunResult) -> Path:
 
     Raises
     ------
-    CamlocError : ``run_dir`` exists and is not a run folder (a file, or a directory with other
-        content: it is never replaced), or it cannot be written.
+    CamlocError : ``run_dir`` exists and may not be replaced (``check_run_folder``), or it cannot
+        be written.
     ValueError : ``result`` is malformed (see ``run_problems``): a bug in its producer.
     """
     run_dir = Path(run_dir)
     problems = run_problems(result)
     if problems:
         raise ValueError("malformed RunResult: " + "; ".join(problems))
-    if run_dir.exists() and not (is_run_folder(run_dir) or _is_empty_dir(run_dir)):
-        raise CamlocError(
-            f"{run_dir}: expected a camloc run folder (or a new name) to write the run into, "
-            "found other content; refusing to replace it"
-        )
+    check_run_folder(run_dir, force=force)
+    make_folder(run_dir.parent)
     try:
-        run_dir.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(dir=run_dir.parent, prefix=f".{run_dir.name}.tmp-"))
     except OSError as error:
-        raise CamlocError(f"cannot create the run folder {run_dir}: {error.strerror or error}") from None
+        raise CamlocError(f"cannot create the folder {run_dir}: {error.strerror or error}") from None
+    kept: list[str] = []
     try:
         os.chmod(tmp, 0o755)
         _write_run_files(tmp, result)
+        if run_dir.is_dir():
+            for entry in sorted(run_dir.iterdir()):
+                if entry.name not in CAMLOC_FILES:
+                    os.rename(entry, tmp / entry.name)
+                    kept.append(entry.name)
         _move_into_place(tmp, run_dir)
     except BaseException:
+        # _move_into_place has put the old folder back; so do the user's files.
+        for name in kept:
+            with contextlib.suppress(OSError):
+                os.rename(tmp / name, run_dir / name)
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return run_dir
@@ -569,24 +646,13 @@ def _is_empty_dir(path: Path) -> bool:
 
 def _write_run_files(folder: Path, result: RunResult) -> None:
     # The folder is private until renamed, so plain writes suffice inside it.
-    (folder / ESTIMATE_TUM).write_text(
-        tum_text(result.pose_ids, result.estimate_xyz, result.estimate_quat_xyzw), encoding="utf-8"
-    )
-    (folder / ODOMETRY_TUM).write_text(
-        tum_text(result.pose_ids, result.odometry_xyz, result.odometry_quat_xyzw), encoding="utf-8"
-    )
-    if result.truth_xyz is not None:
-        (folder / GROUNDTRUTH_TUM).write_text(
-            tum_text(result.pose_ids, result.truth_xyz, result.truth_quat_xyzw), encoding="utf-8"
-        )
-    if result.smoothed_xyz is not None:
-        (folder / SMOOTHED_TUM).write_text(
-            tum_text(result.pose_ids, result.smoothed_xyz, result.smoothed_quat_xyzw), encoding="utf-8"
-        )
+    for name, (xyz, quat) in _TUM_ARRAYS.items():
+        if getattr(result, xyz) is not None:
+            (folder / name).write_text(
+                tum_text(result.pose_ids, getattr(result, xyz), getattr(result, quat)), encoding="utf-8"
+            )
     (folder / ASSOCIATIONS_CSV).write_text(associations_text(result.associations), encoding="utf-8")
     arrays = {name: np.asarray(getattr(result, name)) for name in _POSE_ARRAYS + _OTHER_ARRAYS}
-    if result.truth_xyz is not None:
-        arrays.update({name: np.asarray(getattr(result, name)) for name in _TRUTH_ARRAYS})
     with open(folder / STATES_NPZ, "wb") as handle:
         np.savez_compressed(
             handle, format_version=np.int64(RUN_FORMAT_VERSION), dataset=np.str_(result.dataset), **arrays
@@ -612,17 +678,26 @@ def _move_into_place(tmp: Path, run_dir: Path) -> None:
 def load_run(run_dir: str | Path) -> RunResult:
     """Read a run folder written by ``save_run`` back into a ``RunResult``.
 
-    Arrays come from ``states.npz``, the associations from ``associations.csv``, the summary
-    from ``summary.json``, the smoothed path from ``smoothed.tum`` when there is one.
+    The trajectories come from the TUM files (``estimate.tum``, ``odometry.tum``; the ground
+    truth from ``groundtruth.tum`` and the smoothed path from ``smoothed.tum`` when they are
+    there), the other arrays from ``states.npz``, the associations from
+    ``associations.csv``, the summary from ``summary.json``. What is scored and drawn is what is
+    on disk: an edited trajectory gives new numbers, a truncated, swapped or missing one an error.
 
     Raises
     ------
     CamlocError : ``run_dir`` is not a run folder, or a file is missing, corrupt or inconsistent
         (``DatasetError`` with the file, and the line where there is one). Every array of
-        ``states.npz`` is checked for its type, shape and values (``_check_states``), so that what
-        is loaded can be scored and drawn.
+        ``states.npz`` is checked for its type, shape and values (``_check_states``), and each
+        TUM file line by line and for the run's pose ids as timestamps, so that what is loaded can
+        be scored and drawn.
     """
     run_dir = Path(run_dir)
+    if run_dir.is_file():
+        raise CamlocError(
+            f"{run_dir}: expected a run folder written by 'camloc run', found a file"
+            + (f" (a dataset: localize it first, 'camloc run {run_dir}')" if run_dir.suffix.lower() == ".g2o" else "")
+        )
     if not run_dir.is_dir():
         raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run', found no such directory")
     missing = [name for name in _REQUIRED_FILES if not (run_dir / name).is_file()]
@@ -631,20 +706,17 @@ def load_run(run_dir: str | Path) -> RunResult:
             f"{run_dir}: expected a run folder written by 'camloc run', missing {', '.join(missing)}"
         )
     arrays = _read_states(run_dir / STATES_NPZ)
+    for name, (xyz, quat) in _TUM_ARRAYS.items():
+        optional = name in (GROUNDTRUTH_TUM, SMOOTHED_TUM)
+        if not (optional and not (run_dir / name).exists()):
+            hint = "smooth the run again" if name == SMOOTHED_TUM else "run 'camloc run' again"
+            arrays[xyz], arrays[quat] = read_run_tum(run_dir / name, arrays["pose_ids"], hint=hint)
     summary = _read_summary(run_dir / SUMMARY_JSON)
     associations, row_lines = _read_associations_with_lines(run_dir / ASSOCIATIONS_CSV)
     _check_association_poses(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["pose_ids"])
-    result = RunResult(
-        dataset=arrays.pop("dataset"),
-        truth_xyz=arrays.pop("truth_xyz", None),
-        truth_quat_xyzw=arrays.pop("truth_quat_xyzw", None),
-        associations=associations,
-        summary=summary,
-        **arrays,
-    )
-    smoothed = load_smoothed(run_dir, result.pose_ids)
-    if smoothed is not None:
-        result = dataclasses.replace(result, smoothed_xyz=smoothed[0], smoothed_quat_xyzw=smoothed[1])
+    arrays.setdefault("truth_xyz", None)
+    arrays.setdefault("truth_quat_xyzw", None)
+    result = RunResult(dataset=arrays.pop("dataset"), associations=associations, summary=summary, **arrays)
     problems = run_problems(result)
     if problems:
         raise CamlocError(f"{run_dir}: inconsistent run folder: {'; '.join(problems)}")
@@ -694,14 +766,27 @@ def load_smoothed(run_dir: str | Path, pose_ids: np.ndarray | None = None) -> tu
     path = Path(run_dir) / SMOOTHED_TUM
     if not path.exists():
         return None
+    if pose_ids is None:
+        return read_tum(path)[1:]
+    return read_run_tum(path, pose_ids, hint="smooth the run again")
+
+
+def read_run_tum(path: str | Path, pose_ids: np.ndarray, *, hint: str) -> tuple[np.ndarray, np.ndarray]:
+    """The poses ``(xyz (N, 3), quat_xyzw (N, 4))`` of a run folder's TUM file, whose timestamps
+    must be exactly the run's ``pose_ids`` (N,), in order.
+
+    Raises
+    ------
+    DatasetError : a missing or malformed file, or one of another run or cut short (``hint`` says
+        what to do).
+    """
     stamps, xyz, quat = read_tum(path)
-    if pose_ids is not None:
-        expected = np.asarray(pose_ids, dtype=float)
-        if stamps.shape != expected.shape or not np.array_equal(stamps, expected):
-            raise DatasetError(
-                path, None, f"expected the run's {len(expected)} pose ids as timestamps, found {len(stamps)} "
-                f"timestamps ({stamps[0]:g}..{stamps[-1]:g}) that differ; smooth the run again"
-            )
+    expected = np.asarray(pose_ids, dtype=float)
+    if stamps.shape != expected.shape or not np.array_equal(stamps, expected):
+        raise DatasetError(
+            path, None, f"expected the run's {len(expected)} pose ids ({expected[0]:g}..{expected[-1]:g}) as "
+            f"timestamps, found {len(stamps)} timestamps ({stamps[0]:g}..{stamps[-1]:g}) that differ; {hint}"
+        )
     return xyz, quat
 
 
@@ -714,8 +799,9 @@ def _read_states(path: Path) -> dict[str, Any]:
     if not isinstance(stored, dict) or "format_version" not in stored:
         raise DatasetError(path, None, "expected a camloc states archive, found no format_version")
     version = stored["format_version"]
-    if version.ndim != 0 or version.dtype.kind not in "iu" or int(version) != RUN_FORMAT_VERSION:
-        raise DatasetError(path, None, f"expected format_version {RUN_FORMAT_VERSION}, found {_describe(version)}")
+    if version.ndim != 0 or version.dtype.kind not in "iu" or int(version) not in _READABLE_FORMAT_VERSIONS:
+        expected = " or ".join(map(str, _READABLE_FORMAT_VERSIONS))
+        raise DatasetError(path, None, f"expected format_version {expected}, found {_describe(version)}")
     names = ("dataset",) + _POSE_ARRAYS + _OTHER_ARRAYS
     missing = [name for name in names if name not in stored]
     if missing:
@@ -724,7 +810,6 @@ def _read_states(path: Path) -> dict[str, Any]:
     if dataset.ndim != 0 or dataset.dtype.kind != "U":
         raise DatasetError(path, None, f"dataset: expected one string (the dataset's path), found {_describe(dataset)}")
     arrays: dict[str, Any] = {name: stored[name] for name in names[1:]}
-    arrays.update({name: stored[name] for name in _TRUTH_ARRAYS if name in stored})
     arrays = _check_states(path, arrays)
     arrays["dataset"] = str(dataset)
     return arrays
@@ -741,28 +826,20 @@ def _describe(array: np.ndarray) -> str:
 # What each array of states.npz holds, and its shape after the first axis (None: any size of at
 # least 1, the same on both axes of a covariance):
 #   ids: integers; counts: integers >= 1; numbers: finite; non-negative: finite >= 0;
-#   positions: finite metres within MAX_COORDINATE; quaternions: unit norm;
+#   positions: finite metres within MAX_COORDINATE;
 #   covariances: symmetric positive semi-definite, not zero at every pose.
 _STATE_ARRAYS: dict[str, tuple[str, tuple]] = {
     "pose_ids": ("ids", ()),
-    "estimate_xyz": ("positions", (3,)),
-    "estimate_quat_xyzw": ("quaternions", (4,)),
     "estimate_cov": ("covariances", (6, 6)),
     "filter_state": ("numbers", (None,)),
     "filter_cov": ("covariances", (None, None)),
-    "odometry_xyz": ("positions", (3,)),
-    "odometry_quat_xyzw": ("quaternions", (4,)),
-    "truth_xyz": ("positions", (3,)),
-    "truth_quat_xyzw": ("quaternions", (4,)),
     "map_landmark_ids": ("ids", ()),
     "map_landmark_xyz": ("positions", (3,)),
     "update_pose_ids": ("ids", ()),
     "nis": ("non-negative", ()),
     "nis_dof": ("counts", ()),
 }
-# The run writes unit quaternions (norm 1 to 1e-15) and symmetric covariances; these tolerances
-# only separate rounding from damage.
-_UNIT_TOLERANCE = 1e-6
+# The run writes symmetric covariances; this tolerance only separates rounding from damage.
 _MATRIX_TOLERANCE = 1e-9
 
 
@@ -790,7 +867,7 @@ def _check_states(path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.nda
         if name == "pose_ids":
             continue
         kind, trailing = _STATE_ARRAYS[name]
-        rows_are_poses = name in _POSE_ARRAYS + _TRUTH_ARRAYS
+        rows_are_poses = name in _POSE_ARRAYS
         value, problem = _checked_state_array(array, kind, trailing, pose_ids if rows_are_poses else None)
         if problem is not None:
             raise DatasetError(path, None, f"{name}: {problem}")
@@ -839,12 +916,6 @@ def _state_value_problem(value: np.ndarray, kind: str, where: Callable[[int], st
         expected = f"expected finite metres within +-{MAX_COORDINATE:.0e}"
         return _first_bad(value, ~(np.abs(value) <= MAX_COORDINATE), expected, where)
     problem = _first_bad(value, ~np.isfinite(value), "expected finite numbers", where)
-    if problem is None and kind == "quaternions":
-        norm = np.linalg.norm(value, axis=1)
-        off = np.abs(norm - 1.0) > _UNIT_TOLERANCE
-        if np.any(off):
-            row = int(np.argmax(off))
-            problem = f"expected unit quaternions, found norm {norm[row]:.6g} at {where(row)}"
     if problem is None and kind == "covariances":
         problem = _covariance_problem(value, where)
     return problem

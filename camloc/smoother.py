@@ -746,13 +746,16 @@ def smooth_run(
 
 
 def smoothing_report(run: RunResult, result: SmoothingResult, config: SmootherConfig) -> dict:
-    """A JSON-serializable summary: the optimization, and with ground truth the filter's and the
-    smoothed path's position RMSE (m) and rotation RMSE (deg) against it (no alignment)."""
+    """A JSON-serializable summary, under the keys the other commands use for the same
+    quantities (``docs/json.md``): the optimization (its time as ``timing.smooth_seconds``), and
+    the filter's and the smoothed path's errors against the ground truth as ``estimate`` and
+    ``smoothed`` (``metrics.trajectory_metrics``, no alignment: ``estimate.ate.rmse`` in metres,
+    ``estimate.rotation.rmse_deg``, ... as in ``camloc eval``), both None without ground truth."""
     from camloc import metrics
 
     report: dict = {
         "dataset": run.dataset,
-        "poses": int(len(run.pose_ids)),
+        "counts": {"poses": int(len(run.pose_ids))},
         "huber": config.huber if math.isfinite(config.huber) else None,
         "odometry_factors": result.odometry_factors,
         "observation_factors": result.observation_factors,
@@ -763,18 +766,12 @@ def smoothing_report(run: RunResult, result: SmoothingResult, config: SmootherCo
         "initial_cost": result.initial_cost,
         "final_cost": result.final_cost,
         "condition_estimate": result.condition if math.isfinite(result.condition) else None,
-        "seconds": result.seconds,
+        "timing": {"smooth_seconds": result.seconds},
+        "estimate": None,
+        "smoothed": None,
     }
     if run.truth_xyz is not None:
-        def rmse(errors: np.ndarray) -> float:
-            return float(np.sqrt(np.mean(np.square(errors))))
-
-        paths = {"filter": (run.estimate_xyz, run.estimate_quat_xyzw), "smoothed": (result.xyz, result.quat_xyzw)}
-        report["errors"] = {
-            name: {
-                "position_rmse_m": rmse(metrics.position_errors(xyz, run.truth_xyz)),
-                "rotation_rmse_deg": rmse(metrics.rotation_errors_deg(quat, run.truth_quat_xyzw)),
-            }
-            for name, (xyz, quat) in paths.items()
-        }
+        for name, (xyz, quat) in {"estimate": (run.estimate_xyz, run.estimate_quat_xyzw),
+                                  "smoothed": (result.xyz, result.quat_xyzw)}.items():
+            report[name] = metrics.trajectory_metrics(xyz, quat, run.truth_xyz, run.truth_quat_xyzw)
     return report

@@ -6,9 +6,11 @@ from __future__ import annotations
 import typer
 
 from camloc import __version__
+from camloc.cli.common import CamlocCommand, CamlocGroup
 
 app = typer.Typer(
     name="camloc",
+    cls=CamlocGroup,
     help="Localize a robot in a known landmark map from g2o odometry and camera observations.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
@@ -35,7 +37,7 @@ def _register_commands() -> None:
     from camloc.cli import commands
 
     for name, function in commands.COMMANDS:
-        app.command(name)(function)
+        app.command(name, cls=CamlocCommand)(function)
 
 
 _register_commands()

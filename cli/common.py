@@ -1,33 +1,180 @@
-"""Shared pieces of the command line: consoles and the one place errors become exit status 2."""
+"""Shared pieces of the command line: consoles, the options every command words the same way, and
+the one place where errors, bad options and Ctrl-C become a line on stderr and an exit status."""
 
 from __future__ import annotations
 
-import functools
-from typing import Callable, TypeVar
+import importlib
+import re
+from enum import Enum
+from typing import Any
 
 import typer
 from rich.console import Console
 from rich.markup import escape
+from typer.core import TyperCommand, TyperGroup, TyperOption
+
+try:  # typer 0.2x carries its own copy of click
+    from typer._click.exceptions import UsageError
+except ImportError:  # older typer runs on click itself
+    from click.exceptions import UsageError
 
 from camloc.errors import CamlocError
 
 console = Console()
 err_console = Console(stderr=True)
 
-F = TypeVar("F", bound=Callable)
-
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for a job stopped by Ctrl-C
+
+# The placeholders of the two kinds of input, the same in every command's usage line and help.
+DATASET = "DATASET"
+RUN_DIR = "RUN_DIR"
 
 
-def handles_errors(command: F) -> F:
-    """Turn a ``CamlocError`` raised by a command into one red line on stderr and exit status 2."""
+def print_error(message: str) -> None:
+    """``error: <message>`` on stderr, one line however long (paths stay whole and copyable)."""
+    err_console.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
 
-    @functools.wraps(command)
-    def wrapper(*args, **kwargs):
+
+class _FlagsWithoutValueType:
+    """Flags listed in ``--help`` without a value type: typer shows ``<bool>``, a value the flag
+    refuses (``--json true`` is an error)."""
+
+    def get_params(self, ctx: typer.Context) -> list:
+        params = super().get_params(ctx)  # type: ignore[misc]
+        for param in params:
+            if isinstance(param, TyperOption) and param.is_flag and param.metavar is None:
+                param.metavar = ""
+        return params
+
+
+class CamlocCommand(_FlagsWithoutValueType, TyperCommand):
+    """Every camloc command (``app.command(name, cls=CamlocCommand)``): its options' defaults are
+    written into their help when ``--help`` is shown (``with_default``)."""
+
+    def format_help(self, ctx: typer.Context, formatter: Any) -> Any:
+        for param in self.get_params(ctx):
+            if param.help and "{" in param.help:
+                param.help = _resolve_defaults(param)
+        return super().format_help(ctx, formatter)
+
+
+class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
+    """The ``camloc`` group: every command runs through ``invoke``, which is where a
+    ``CamlocError`` (bad input), a bad option and Ctrl-C end, the same way in every command."""
+
+    def parse_args(self, ctx: typer.Context, args: list[str]) -> list[str]:
+        given = bool(args)  # the parser consumes the list
         try:
-            return command(*args, **kwargs)
-        except CamlocError as error:
-            err_console.print(f"[bold red]error:[/] {escape(str(error))}", markup=True, highlight=False, soft_wrap=True)
-            raise typer.Exit(EXIT_BAD_INPUT) from None
+            return super().parse_args(ctx, args)
+        except UsageError as error:
+            if not given:  # plain 'camloc': the help, as no_args_is_help says
+                raise
+            _usage_error(error, ctx)
 
-    return wrapper  # type: ignore[return-value]
+    def invoke(self, ctx: typer.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except CamlocError as error:
+            print_error(str(error))
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+        except UsageError as error:
+            _usage_error(error, ctx)
+        except KeyboardInterrupt:
+            # Outputs are written whole or not at all, so an interrupted command leaves nothing
+            # half-written; say so rather than print a traceback or nothing.
+            err_console.print("interrupted", style="yellow", highlight=False)
+            raise typer.Exit(EXIT_INTERRUPTED) from None
+
+
+def _usage_error(error: UsageError, ctx: typer.Context) -> None:
+    """A bad option or argument: one line and where to look, instead of click's usage block and
+    framed panel; exit status 2."""
+    where = error.ctx.command_path if error.ctx is not None else ctx.command_path
+    print_error(f"{error.format_message()} (see '{where} --help')")
+    raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+# The library's option classes whose defaults the help shows ("{localizer.iterations}"); they are
+# imported only when --help is printed, so that starting a command does not pay for scipy.
+_DEFAULT_SOURCES = {
+    "localizer": ("camloc.localizer", "LocalizerConfig"),
+    "simulation": ("camloc.simulate", "SimulationConfig"),
+    "smoother": ("camloc.smoother", "SmootherConfig"),
+}
+_PLACEHOLDER = re.compile(r"\{(?:default|(\w+)\.(\w+))\}")
+
+
+def with_default(text: str, source: str = "default") -> str:
+    """``text`` followed by ``Default: <value>.``, the one way every option states its default.
+
+    The value is not typed again: ``source`` ``"default"`` is the option's own default, and
+    ``"<kind>.<field>"`` (kinds of ``_DEFAULT_SOURCES``) the default of a library option that
+    the command leaves to the library; both are filled in when ``--help`` is shown.
+    """
+    return f"{text} Default: {{{source}}}."
+
+
+def _resolve_defaults(param: Any) -> str:
+    def value(match: re.Match) -> str:
+        if match[1] is None:
+            default = param.default
+        else:
+            module, name = _DEFAULT_SOURCES[match[1]]
+            default = getattr(getattr(importlib.import_module(module), name)(), match[2])
+        return _describe_default(param, default)
+
+    return _PLACEHOLDER.sub(value, param.help)
+
+
+def _describe_default(param: Any, value: Any) -> str:
+    """A default as the help shows it: enums by value, floats shortest, flags on/off or by name."""
+    if isinstance(value, bool):
+        if param.secondary_opts:
+            return param.opts[0] if value else param.secondary_opts[0]
+        return "on" if value else "off"
+    if isinstance(value, Enum):
+        return str(value.value)
+    if isinstance(value, float):
+        text = repr(value)  # 2.0, 0.99, inf; a long one shortened: 0.0316228
+        return text if len(text) <= 8 else f"{value:.6g}"
+    return str(value)
+
+
+def library_option(text: str, source: str, *names: str, **limits: Any) -> Any:
+    """An option that, when not given (None), leaves the value to the library: to its default,
+    named by ``source`` as in ``with_default``, or to a file of options (``run --config``)."""
+    return typer.Option(None, *names, help=with_default(text, source), show_default=False, **limits)
+
+
+def quiet_option() -> Any:
+    return typer.Option(False, "--quiet", "-q", help=with_default("Print nothing but errors."), show_default=False)
+
+
+def json_option(what: str, *, instead: str = "tables") -> Any:
+    return typer.Option(False, "--json", help=with_default(
+        f"Print {what} as one JSON object (keys listed in docs/json.md) instead of {instead}."),
+        show_default=False)
+
+
+def force_option(what: str) -> Any:
+    return typer.Option(False, "--force", help=with_default(
+        f"Replace {what} when it already exists (without it, an existing one is refused)."),
+        show_default=False)
+
+
+def run_dir_argument(text: str = "Run folder written by 'camloc run'.", *, required: bool = True) -> Any:
+    return typer.Argument(... if required else None, metavar=RUN_DIR, help=text, show_default=False)
+
+
+def dataset_argument(text: str, *, required: bool = True) -> Any:
+    return typer.Argument(... if required else None, metavar=DATASET, help=text, show_default=False)
+
+
+def echo_json(obj: Any, *, enabled: bool) -> bool:
+    """Print ``obj`` as strict JSON on stdout when ``enabled`` (``--json``); True when printed."""
+    if enabled:
+        from camloc.results import dumps_json
+
+        typer.echo(dumps_json(obj), nl=False)
+    return enabled

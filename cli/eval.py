@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from camloc.cli.common import console, handles_errors
+from camloc.cli.common import console, echo_json, json_option, quiet_option, run_dir_argument, with_default
 from camloc.errors import ConfigError
 
 
@@ -18,39 +18,41 @@ class AlignChoice(str, Enum):
     sim3 = "sim3"
 
 
-@handles_errors
 def evaluate_command(
-    run_dir: Optional[Path] = typer.Argument(
-        None, help="Run folder written by 'camloc run'. Omit it to compare --est with --ref.", show_default=False
+    run_dir: Optional[Path] = run_dir_argument(
+        "Run folder written by 'camloc run'. Omit it to compare --est with --ref.", required=False
     ),
     *,
     align: AlignChoice = typer.Option(
-        AlignChoice.none, "--align", help="Align each trajectory to the ground truth before ATE/RPE: none, "
-        "se3 (rotation + translation, like evo -a) or sim3 (and scale, like evo -as), by Umeyama's method. "
-        "NEES always uses the unaligned estimate. Default: none.", show_default=False
+        AlignChoice.none, "--align", help=with_default("Align each trajectory to the ground truth before ATE/RPE: "
+        "none, se3 (rotation + translation, like evo -a) or sim3 (and scale, like evo -as), by Umeyama's method. "
+        "NEES always uses the unaligned estimate."), show_default=False
     ),
     delta: int = typer.Option(
-        1, "--delta", min=1, help="RPE pose distance, in frames (evo_rpe --delta N --delta_unit f). Default: 1.", show_default=False
+        1, "--delta", min=1, help=with_default("RPE pose distance, in frames (evo_rpe --delta N --delta_unit f)."),
+        show_default=False
     ),
     est: Optional[Path] = typer.Option(
-        None, "--est", help="Estimated trajectory, TUM file (with --ref, instead of RUN_DIR).", show_default=False
+        None, "--est", help="Estimated trajectory, TUM file (with --ref, instead of RUN_DIR). Default: none.",
+        show_default=False
     ),
     ref: Optional[Path] = typer.Option(
-        None, "--ref", help="Reference (ground-truth) trajectory, TUM file (with --est).", show_default=False
+        None, "--ref", help="Reference (ground-truth) trajectory, TUM file (with --est). Default: none.",
+        show_default=False
     ),
     max_diff: float = typer.Option(
-        0.01, "--max-diff", min=0.0, help="Largest timestamp difference when pairing --est and --ref poses "
-        "(camloc writes pose ids as timestamps). Default: 0.01.", show_default=False
+        0.01, "--max-diff", min=0.0, help=with_default("Largest timestamp difference when pairing --est and --ref "
+        "poses (camloc writes pose ids as timestamps)."), show_default=False
     ),
-    json_output: bool = typer.Option(False, "--json", help="Print the metrics as JSON instead of tables. "
-                                     "Default: tables.", show_default=False),
+    json_output: bool = json_option("the metrics"),
+    quiet: bool = quiet_option(),
 ) -> None:
     """Evaluate a run: trajectory error (ATE, rotation, RPE) of the EKF and of odometry alone side by side, data association scores, and filter consistency (NEES, NIS) with a verdict.
 
-    With --est A.tum --ref B.tum instead of RUN_DIR, only the trajectory metrics of A against B, poses paired by timestamp. The numbers follow evo's definitions (evo_ape -r trans_part / angle_deg, evo_rpe --delta_unit f).
+    The trajectories are read from the run folder's TUM files, so an edited one is scored as it is. With --est A.tum --ref B.tum instead of RUN_DIR, only the trajectory metrics of A against B, poses paired by timestamp. The numbers follow evo's definitions (evo_ape -r trans_part / angle_deg, evo_rpe --delta_unit f).
     """
     from camloc import metrics
-    from camloc.results import dumps_json, load_run, read_tum
+    from camloc.results import load_run, read_tum
 
     if run_dir is not None and (est is not None or ref is not None):
         raise ConfigError("expected either RUN_DIR or --est and --ref, found both")
@@ -64,8 +66,7 @@ def evaluate_command(
     else:
         report = metrics.evaluate(load_run(run_dir), align=align.value, delta=delta)
 
-    if json_output:
-        typer.echo(dumps_json(report), nl=False)
+    if echo_json(report, enabled=json_output) or quiet:
         return
     from camloc.cli import eval_render
 

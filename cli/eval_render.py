@@ -131,12 +131,12 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.evaluate``: trajectories side by side, alignment (when used),
     association, consistency, then the verdict line (NEES and NIS together) and any notes."""
     parts: list[RenderableType] = [
-        Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['poses']} poses)", style="bold")
+        Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['counts']['poses']} poses)", style="bold")
     ]
-    if "estimate" in report:
+    if report["estimate"] is not None:
         blocks = {"EKF": report["estimate"], "odometry": report["odometry"]}
         ratio = None
-        if "smoothed" in report:
+        if report["smoothed"] is not None:
             # Three paths: the ratio worth a column is what smoothing gained over the filter.
             blocks["smoothed"] = report["smoothed"]
             ratio = ("smoothed", "EKF")
@@ -147,8 +147,8 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
         if report["align"] != "none":
             parts.append(_alignment_table(blocks))
     parts.append(_association_table(report["association"]))
-    parts.append(_consistency_table(report.get("nees"), report["nis"]))
-    if "nees" in report and report["nees"]["skipped_poses"]:
+    parts.append(_consistency_table(report["nees"], report["nis"]))
+    if report["nees"] is not None and report["nees"]["skipped_poses"]:
         parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "
                           "and any whose covariance is singular", style="dim"))
     consistency = report["consistency"]
@@ -161,9 +161,10 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
 def render_trajectory_comparison(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.compare_trajectories`` for ``camloc eval --est --ref``."""
     # Paths go on lines of their own (printed with soft_wrap) so a long path stays whole and copyable.
+    counts = report["counts"]
     header = Text(
-        f"camloc eval: {report['matched']} poses matched of {report['estimate_poses']} (estimate) "
-        f"and {report['reference_poses']} (reference)",
+        f"camloc eval: {counts['matched']} poses matched of {counts['estimate_poses']} (estimate) "
+        f"and {counts['reference_poses']} (reference)",
         style="bold",
     )
     files = [
@@ -171,10 +172,9 @@ def render_trajectory_comparison(report: Mapping[str, Any]) -> RenderableType:
         for role, key in (("estimate", "estimate_file"), ("reference", "reference_file"))
     ]
     parts: list[RenderableType] = [header, *files]
-    blocks = {"estimate": report}
-    parts.append(_trajectory_table(
-        blocks, f"trajectory error (align {report['alignment']['method']}, RPE delta {report['rpe']['delta']})"
-    ))
-    if report["alignment"]["method"] != "none":
+    blocks = {"estimate": report["estimate"]}
+    parts.append(_trajectory_table(blocks, f"trajectory error (align {report['estimate']['alignment']['method']}, "
+                                           f"RPE delta {report['estimate']['rpe']['delta']})"))
+    if report["estimate"]["alignment"]["method"] != "none":
         parts.append(_alignment_table(blocks))
     return Group(*parts)

@@ -4,18 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
-from camloc.cli.common import console, handles_errors
+from camloc.cli.common import console, dataset_argument, echo_json, json_option, quiet_option
 
 
-@handles_errors
 def info(
-    dataset: Path = typer.Argument(..., metavar="DATASET", help="The g2o dataset to summarize.", show_default=False),
-    json_output: bool = typer.Option(
-        False, "--json", help="Print the summary as one JSON object (snake_case keys) instead of tables. "
-        "Default: tables.", show_default=False
-    ),
+    dataset: Path = dataset_argument("The g2o dataset to summarize."),
+    json_output: bool = json_option("the summary"),
+    quiet: bool = quiet_option(),
 ) -> None:
     """Summarize DATASET: records per tag (unknown ones included), cameras, trajectory length and
     extent, odometry and observation noise, observations per pose, unobserved landmarks and
@@ -23,7 +18,6 @@ def info(
 
     Reads the file only; writes nothing. Exit status 2 when the file cannot be read.
     """
-    import json
     import warnings
 
     from camloc.dataset_summary import summarize_dataset
@@ -33,9 +27,8 @@ def info(
         # The reader's warnings are part of the summary; printing them twice would be noise.
         warnings.simplefilter("ignore", G2oWarning)
         summary = summarize_dataset(read_g2o(dataset))
-    if json_output:
-        typer.echo(json.dumps(summary, indent=2))
-    else:
-        from camloc.cli.info_render import render_dataset_summary
+    if echo_json(summary, enabled=json_output) or quiet:
+        return
+    from camloc.cli.info_render import render_dataset_summary
 
-        console.print(render_dataset_summary(summary))
+    console.print(render_dataset_summary(summary))

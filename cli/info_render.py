@@ -25,7 +25,7 @@ def _ids(ids: Sequence[int], limit: int = 12) -> str:
 
 def render_dataset_summary(summary: Mapping[str, Any]) -> Group:
     """Tables for the counts, the cameras and the dataset's statistics, then the warnings."""
-    title = Text.assemble(("camloc info: ", "bold"), str(summary["source"]))
+    title = Text.assemble(("camloc info: ", "bold"), str(summary["dataset"]))
     return Group(title, _records_table(summary), _cameras_table(summary["cameras"]), _statistics_table(summary),
                  *_warning_lines(summary["warnings"]))
 

@@ -8,10 +8,8 @@ from typing import Optional
 
 import typer
 
-from camloc.cli.common import console, handles_errors
+from camloc.cli.common import console, force_option, quiet_option, run_dir_argument, with_default
 from camloc.errors import ConfigError
-
-FIGURE_FORMATS = ("png", "pdf", "svg")
 
 
 class FigureFormat(str, Enum):
@@ -20,36 +18,39 @@ class FigureFormat(str, Enum):
     svg = "svg"
 
 
-@handles_errors
 def plot(
-    run_dir: Path = typer.Argument(..., help="Run folder written by 'camloc run', or a sweep folder written by "
-                                   "'camloc sweep'.", show_default=False),
+    run_dir: Path = run_dir_argument(),
     *,
     output: Optional[Path] = typer.Option(
-        None, "--output", "-o", help="Write one multi-panel report figure to this file instead "
-        "(.png, .pdf or .svg, by its suffix). Default: separate figures in the run folder.", show_default=False
+        None, "--output", "-o", help="Write one multi-panel report figure to this file instead (.png, .pdf or "
+        ".svg, by its suffix; missing parent folders are created); an existing file is refused unless --force. "
+        "Default: separate figures in the run folder.", show_default=False
     ),
+    force: bool = force_option("the --output file"),
     figure_format: FigureFormat = typer.Option(
-        FigureFormat.png, "--format", help="File format of the separate figures in the run folder "
-        "(ignored with --output). Default: png.", show_default=False
+        FigureFormat.png, "--format", help=with_default("File format of the separate figures in the run folder "
+                                                        "(ignored with --output)."), show_default=False
     ),
-    dpi: int = typer.Option(150, min=50, max=1200, help="Resolution of raster (.png) figures, dots per inch. "
-                            "Default: 150.", show_default=False),
-    show: bool = typer.Option(False, "--show", help="Also open the figures in a window (needs a display). "
-                              "Default: headless, files only.", show_default=False),
+    dpi: int = typer.Option(150, min=50, max=1200, help=with_default("Resolution of raster (.png) figures, dots "
+                                                                     "per inch."), show_default=False),
+    show: bool = typer.Option(False, "--show", help=with_default("Also open the figures in a window (needs a "
+                                                                 "display); off: files only."), show_default=False),
+    quiet: bool = quiet_option(),
 ) -> None:
     """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
 
-    For a sweep folder, draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
+    By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder, replacing the ones drawn before; with --output a single report figure holding every panel. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
 
-    By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder; with --output a single report figure holding every panel. The figures are written all or none, each whole.
+    For a sweep folder (written by 'camloc sweep'), draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
     """
-    from camloc.results import load_run, write_files_atomic
+    from camloc.results import FIGURE_FORMATS, load_run, refuse_existing, write_files_atomic
 
     if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
         raise ConfigError(
             f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
         )
+    if output is not None:
+        refuse_existing(output, force=force)
     from camloc.sweep import is_sweep_folder
 
     sweep = is_sweep_folder(run_dir)
@@ -85,8 +86,9 @@ def plot(
     # renamed into place together once all have been drawn.
     written = list(layouts)
     write_files_atomic(written, render)
-    for path in written:
-        console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
+    if not quiet:
+        for path in written:
+            console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
     if show:
         plt.show()
 

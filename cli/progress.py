@@ -12,8 +12,10 @@ from camloc.cli.common import err_console
 
 @contextlib.contextmanager
 def pose_progress(*, enabled: bool, description: str) -> Iterator[Callable[[int, int], None] | None]:
-    """Yield an ``on_progress(done, total)`` callback driving a transient bar on stderr, or None."""
-    if not enabled:
+    """Yield an ``on_progress(done, total)`` callback driving a transient bar on stderr, or None
+    (also when stderr is not a terminal: there a bar is only noise, and the blank line it leaves
+    would stand before an error)."""
+    if not (enabled and err_console.is_terminal):
         yield None
         return
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("poses"), TimeElapsedColumn())

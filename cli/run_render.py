@@ -26,8 +26,7 @@ def _fmt(value: Any, spec: str) -> str:
 
 def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Group:
     """The end-of-run table: trajectory error of the EKF and of odometry alone, rotation error,
-    associations and speed."""
-    metrics = summary.get("metrics", {})
+    associations and speed (the summary holds the metrics of ``camloc eval`` under its keys)."""
     counts = summary["counts"]
     timing = summary["timing"]
     table = Table(title=f"camloc run: {escape(Path(str(summary['dataset'])).name)}", title_justify="left")
@@ -35,21 +34,21 @@ def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Grou
     label = escape
     table.add_column("EKF", justify="right")
     table.add_column("odometry only", justify="right")
-    if metrics:
-        table.add_row(label("position RMSE [m]"), _fmt(_get(metrics, "estimate.ate.rmse"), ".4f"), _fmt(_get(metrics, "odometry.ate.rmse"), ".4f"))
-        table.add_row(label("position max [m]"), _fmt(_get(metrics, "estimate.ate.max"), ".4f"), _fmt(_get(metrics, "odometry.ate.max"), ".4f"))
-        table.add_row(label("rotation RMSE [deg]"), _fmt(_get(metrics, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(metrics, "odometry.rotation.rmse_deg"), ".2f"))
-        table.add_row("NEES mean (6 dof)", _fmt(_get(metrics, "nees.mean"), ".2f"), "")
+    if summary.get("estimate") is not None:
+        table.add_row(label("position RMSE [m]"), _fmt(_get(summary, "estimate.ate.rmse"), ".4f"), _fmt(_get(summary, "odometry.ate.rmse"), ".4f"))
+        table.add_row(label("position max [m]"), _fmt(_get(summary, "estimate.ate.max"), ".4f"), _fmt(_get(summary, "odometry.ate.max"), ".4f"))
+        table.add_row(label("rotation RMSE [deg]"), _fmt(_get(summary, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(summary, "odometry.rotation.rmse_deg"), ".2f"))
+        table.add_row("NEES mean (6 dof)", _fmt(_get(summary, "nees.mean"), ".2f"), "")
     else:
         table.add_row("trajectory error", "no ground truth", "")
     association = Table(title="associations", title_justify="left")
     for name in ("observations", "accepted", "correct", "wrong", "rejected", "precision", "recall"):
         association.add_column(name, justify="right")
-    correct = _get(metrics, "association.correct")
-    wrong = _get(metrics, "association.wrong")
+    correct = _get(summary, "association.correct")
+    wrong = _get(summary, "association.wrong")
     association.add_row(
         str(counts["observations"]), str(counts["accepted"]), _fmt(correct, "d"), _fmt(wrong, "d"), str(counts["rejected"]),
-        _fmt(_get(metrics, "association.precision"), ".3f"), _fmt(_get(metrics, "association.recall"), ".3f"),
+        _fmt(_get(summary, "association.precision"), ".3f"), _fmt(_get(summary, "association.recall"), ".3f"),
     )
     footer = Text(
         f"{counts['poses']} poses in {timing['filter_seconds']:.2f} s ({timing['poses_per_second']:.0f} poses/s)"

@@ -9,34 +9,36 @@ from typing import Any, Callable, Iterator, Mapping, Optional
 
 import typer
 
-from camloc.cli.common import console, err_console, handles_errors
+from camloc.cli.common import (
+    console,
+    echo_json,
+    err_console,
+    json_option,
+    library_option,
+    quiet_option,
+    run_dir_argument,
+)
 from camloc.errors import CamlocError
 
-DEFAULT_HUBER = 2.0
-DEFAULT_MAX_ITERATIONS = 50
 
-
-@handles_errors
 def smooth(
-    run_dir: Path = typer.Argument(..., help="Run folder written by 'camloc run'.", show_default=False),
+    run_dir: Path = run_dir_argument(),
     *,
     dataset: Optional[Path] = typer.Option(
-        None, "--dataset", help="The g2o file the run was made from. Default: the path recorded in the run's "
-        "summary.json (relative to where 'camloc run' was started).", show_default=False
+        None, "--dataset", metavar="DATASET", help="The g2o file the run was made from. Default: the path "
+        "recorded in the run's summary.json (relative to where 'camloc run' was started).", show_default=False
     ),
-    huber: float = typer.Option(
-        DEFAULT_HUBER, "--huber", help="Huber threshold on each observation's Mahalanobis distance (whitened "
-        "units): farther observations pull with a constant force; 'inf' gives plain least squares. "
-        f"Default: {DEFAULT_HUBER}.", show_default=False
+    huber: Optional[float] = library_option(
+        "Huber threshold on each observation's Mahalanobis distance (whitened "
+        "units): farther observations pull with a constant force; 'inf' gives plain least squares.",
+        "smoother.huber", "--huber"
     ),
-    max_iterations: int = typer.Option(
-        DEFAULT_MAX_ITERATIONS, "--max-iterations", min=1, help="Most linearizations (Gauss-Newton / "
-        "Levenberg-Marquardt steps) before stopping; a run that stops there is reported as not converged. "
-        f"Default: {DEFAULT_MAX_ITERATIONS}.", show_default=False
+    max_iterations: Optional[int] = library_option(
+        "Most linearizations (Gauss-Newton / Levenberg-Marquardt steps) before stopping; a run that stops there "
+        "is reported as not converged.", "smoother.max_iterations", "--max-iterations", min=1
     ),
-    json_output: bool = typer.Option(
-        False, "--json", help="Print the report as JSON instead of tables. Default: tables.", show_default=False
-    ),
+    json_output: bool = json_option("the report"),
+    quiet: bool = quiet_option(),
 ) -> None:
     """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
 
@@ -46,9 +48,10 @@ def smooth(
 
     from camloc import smoother
     from camloc.g2o import G2oWarning, read_g2o
-    from camloc.results import dumps_json, load_run, write_smoothed
+    from camloc.results import load_run, write_smoothed
 
-    config = smoother.SmootherConfig(huber=huber, max_iterations=max_iterations)
+    given = {"huber": huber, "max_iterations": max_iterations}
+    config = smoother.SmootherConfig(**{name: value for name, value in given.items() if value is not None})
     config.validate()
     started = time.perf_counter()
     run = load_run(run_dir)
@@ -59,16 +62,15 @@ def smooth(
         data = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
 
-    with _iteration_status(enabled=not json_output) as on_iteration:
+    with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
         result = smoother.smooth_run(data, run, config, on_iteration=on_iteration)
     written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
 
     report = smoother.smoothing_report(run, result, config)
     report["dataset"] = str(dataset_path)
-    report["read_seconds"] = read_seconds
-    report["output"] = str(written)
-    if json_output:
-        typer.echo(dumps_json(report), nl=False)
+    report["timing"] = {"read_seconds": read_seconds, **report["timing"]}
+    report["smoothed_file"] = str(written)
+    if echo_json(report, enabled=json_output) or quiet:
         return
     console.print(render_smoothing(report))
 
@@ -86,8 +88,9 @@ def _recorded_dataset(run_dir: Path, summary: Mapping[str, Any], fallback: str) 
 
 @contextlib.contextmanager
 def _iteration_status(*, enabled: bool) -> Iterator[Optional[Callable]]:
-    """A transient status line on stderr with the iteration and cost, or None."""
-    if not enabled:
+    """A transient status line on stderr with the iteration and cost, or None (also when stderr
+    is not a terminal)."""
+    if not (enabled and err_console.is_terminal):
         yield None
         return
     with err_console.status("smoothing: linearizing") as status:
@@ -105,15 +108,15 @@ def render_smoothing(report: Mapping[str, Any]):
     from rich.table import Table
     from rich.text import Text
 
-    parts: list = [Text(f"camloc smooth: {Path(str(report['dataset'])).name} ({report['poses']} poses)", style="bold")]
-    errors = report.get("errors")
-    if errors is not None:
+    parts: list = [Text(f"camloc smooth: {Path(str(report['dataset'])).name} ({report['counts']['poses']} poses)",
+                        style="bold")]
+    if report["estimate"] is not None:
         table = Table(title="error vs ground truth (no alignment)", title_justify="left")
         for column in ("", "EKF", "smoothed", "smoothed / EKF"):
             table.add_column(column, justify="right" if column else "left")
-        for label, key, spec in (("position RMSE [m]", "position_rmse_m", ".4f"),
-                                 ("rotation RMSE [deg]", "rotation_rmse_deg", ".3f")):
-            before, after = errors["filter"][key], errors["smoothed"][key]
+        for label, (block, key), spec in (("position RMSE [m]", ("ate", "rmse"), ".4f"),
+                                          ("rotation RMSE [deg]", ("rotation", "rmse_deg"), ".3f")):
+            before, after = report["estimate"][block][key], report["smoothed"][block][key]
             ratio = f"{after / before:.2f}x" if before else "-"
             table.add_row(escape(label), format(before, spec), format(after, spec), Text(ratio, style="bold"))
         parts.append(table)
@@ -133,15 +136,16 @@ def render_smoothing(report: Mapping[str, Any]):
         ("iterations", iterations),
         ("cost, initial -> final", f"{report['initial_cost']:.6g} -> {report['final_cost']:.6g}"),
         ("condition estimate", condition),
-        ("time", f"{report['seconds']:.2f} s smoothing, {report['read_seconds']:.2f} s reading"),
+        ("time", f"{report['timing']['smooth_seconds']:.2f} s smoothing, "
+                 f"{report['timing']['read_seconds']:.2f} s reading"),
     )
     for label, value in rows:
         table.add_row(escape(label), escape(value))
     parts.append(table)
     if report["dropped_observations"]:
         parts.append(Text(f"note: {report['dropped_observations']} accepted observation(s) left out: their landmark "
-                          "is behind the camera at the filter's poses", style="yellow"))
+        "is behind the camera at the filter's poses", style="yellow"))
     if not report["converged"]:
         parts.append(Text("warning: stopped at --max-iterations before the steps became tiny", style="yellow"))
-    parts.append(Text(f"wrote {report['output']}"))
+    parts.append(Text(f"wrote {report['smoothed_file']}"))
     return Group(*parts)

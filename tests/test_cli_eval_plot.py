@@ -10,11 +10,11 @@ import pytest
 from typer.testing import CliRunner
 
 from camloc import metrics
+from camloc.bundled import bundled_dataset
 from camloc.cli.app import app
-from camloc.results import load_run, save_run
+from camloc.results import load_run, read_tum, save_run, write_tum
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-GRID_SMALL = REPO_ROOT / "data" / "grid-small.g2o"
+GRID_SMALL = bundled_dataset()
 FIGURES = ("fig-topdown", "fig-3d", "fig-errors", "fig-consistency", "fig-associations")
 MAGIC = {"png": b"\x89PNG", "pdf": b"%PDF", "svg": b"<?xml"}
 
@@ -70,13 +70,28 @@ def test_eval_prints_the_alignment(run_dir):
     assert "alignment onto the reference" in outcome.stdout and "se3" in outcome.stdout
 
 
-def test_eval_without_truth_notes_it(tmp_path, synthetic_run):
+def test_eval_without_truth_keeps_its_keys_null_and_notes_it(tmp_path, synthetic_run):
     run = save_run(tmp_path / "run", synthetic_run(with_truth=False))
     outcome = invoke("eval", run, "--json")
     assert outcome.exit_code == 0, outcome.output
     report = json.loads(outcome.stdout)
-    assert "estimate" not in report and "no ground truth" in report["notes"][0]
+    assert report["estimate"] is None and report["odometry"] is None and report["nees"] is None
+    assert "no ground truth" in report["notes"][0]
     assert "no ground truth" in invoke("eval", run).stdout
+
+
+def test_eval_and_plot_score_the_trajectory_on_disk(run_dir):
+    before = json.loads(invoke("eval", run_dir, "--json").stdout)
+    stamps, xyz, quat = read_tum(run_dir / "estimate.tum")
+    write_tum(run_dir / "estimate.tum", stamps, xyz + [10.0, 0.0, 0.0], quat)  # every x shifted by 10 m
+    after = json.loads(invoke("eval", run_dir, "--json").stdout)
+    assert before["estimate"]["ate"]["rmse"] < 0.2
+    assert after["estimate"]["ate"]["rmse"] > 9.0
+    assert after["odometry"] == before["odometry"]
+
+    (run_dir / "estimate.tum").unlink()
+    for command in ("eval", "plot"):
+        assert_bad_input(invoke(command, run_dir), f"{run_dir / 'estimate.tum'}: no such file")
 
 
 def test_eval_of_two_tum_files(run_dir):
@@ -84,9 +99,10 @@ def test_eval_of_two_tum_files(run_dir):
     assert outcome.exit_code == 0, outcome.output
     report = json.loads(outcome.stdout)
     expected = metrics.evaluate(load_run(run_dir))["estimate"]
-    assert report["matched"] == 30
-    assert report["ate"]["rmse"] == pytest.approx(expected["ate"]["rmse"], abs=1e-12)
-    assert report["rpe"]["rotation"]["rmse_deg"] == pytest.approx(expected["rpe"]["rotation"]["rmse_deg"], abs=1e-9)
+    assert report["counts"]["matched"] == 30
+    assert report["estimate"]["ate"]["rmse"] == pytest.approx(expected["ate"]["rmse"], abs=1e-12)
+    assert report["estimate"]["rpe"]["rotation"]["rmse_deg"] == pytest.approx(expected["rpe"]["rotation"]["rmse_deg"],
+                                                                              abs=1e-9)
     assert "nees" not in report and "association" not in report
     tables = invoke("eval", "--est", run_dir / "estimate.tum", "--ref", run_dir / "groundtruth.tum", "--align", "sim3")
     assert tables.exit_code == 0 and "30 poses matched" in tables.stdout and "sim3" in tables.stdout
@@ -155,7 +171,9 @@ def test_plot_without_truth_still_draws(tmp_path, synthetic_run):
 def test_plot_bad_inputs_exit_2(tmp_path, run_dir):
     assert_bad_input(invoke("plot", tmp_path / "nothing"), "no such directory")
     assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "report.jpg"), "expected a file name ending in .png")
-    assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "missing" / "report.png"), "cannot write")
+    (tmp_path / "a-file").write_text("")
+    assert_bad_input(invoke("plot", run_dir, "-o", tmp_path / "a-file" / "report.png"),
+                     f"cannot create the folder {tmp_path / 'a-file'}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -186,12 +204,15 @@ CORRUPT_FOLDERS = {
               "associations.csv:2", "expected a finite number for u"),
     "nan-cov": (lambda run: _rewrite_states(run, estimate_cov=np.full((30, 6, 6), np.nan)),
                 "states.npz", "estimate_cov: expected finite numbers"),
-    "zero-quat": (lambda run: _rewrite_states(run, truth_quat_xyzw=np.zeros((30, 4))),
-                  "states.npz", "truth_quat_xyzw: expected unit quaternions"),
-    "nan-estimate": (lambda run: _rewrite_states(run, estimate_xyz=np.full((30, 3), np.nan)),
-                     "states.npz", "estimate_xyz: expected finite metres"),
+    "zero-quat": (lambda run: _rewrite_line(run / "groundtruth.tum", 3, "1001 0 0 0 0 0 0 0"),
+                  "groundtruth.tum:3", "expected a unit quaternion"),
+    "nan-estimate": (lambda run: _rewrite_line(run / "estimate.tum", 2, "1000 nan 0 0 0 0 0 1"),
+                     "estimate.tum:2", "expected a finite number for x"),
+    "truncated-estimate": (lambda run: _rewrite_line(run / "estimate.tum", 31, "# cut"),
+                           "estimate.tum", "expected the run's 30 pose ids"),
+    "deleted-odometry": (lambda run: (run / "odometry.tum").unlink(), "odometry.tum", "no such file"),
     "version": (lambda run: _rewrite_states(run, format_version=np.array("abc")),
-                "states.npz", "expected format_version 1, found 'abc'"),
+                "states.npz", "expected format_version 1 or 2, found 'abc'"),
     "smoothed-huge-xyz": (lambda run: (run / "smoothed.tum").write_text(
         (run / "estimate.tum").read_text().replace("\n1000.0 ", "\n1000.0 1e308 1e308 0 0 0 0 1\n#", 1)),
         "smoothed.tum:2", "expected metres within +-1e+09 for x"),
@@ -241,8 +262,8 @@ def test_eval_of_tum_files_with_huge_quaternions_a_bom_or_huge_coordinates(tmp_p
         outcome = invoke("eval", "--est", estimate, "--ref", reference, "--json")
         assert outcome.exit_code == 0, outcome.output
         report = json.loads(outcome.stdout)
-        assert report["matched"] == 30 and report["ate"]["rmse"] == pytest.approx(0.0, abs=1e-12)
-        assert report["rotation"]["rmse_deg"] == pytest.approx(0.0, abs=1e-5)
+        assert report["counts"]["matched"] == 30 and report["estimate"]["ate"]["rmse"] == pytest.approx(0.0, abs=1e-12)
+        assert report["estimate"]["rotation"]["rmse_deg"] == pytest.approx(0.0, abs=1e-5)
 
     huge = tmp_path / "huge.tum"
     huge.write_text("\n".join([" ".join(fields[:1] + ["1e200"] * 3 + fields[4:])] + lines[2:]) + "\n")
@@ -256,8 +277,6 @@ def test_eval_of_tum_files_with_huge_quaternions_a_bom_or_huge_coordinates(tmp_p
 
 
 def test_localizer_run_evaluates_and_plots(tmp_path):
-    if not GRID_SMALL.is_file():
-        pytest.skip("data/grid-small.g2o is not generated yet")
     import camloc
 
     dataset = camloc.load(GRID_SMALL)

@@ -41,7 +41,7 @@ def test_run_writes_the_run_folder_and_a_table(tmp_path, small_dataset):
     np.testing.assert_array_equal(estimate[:, 0], dataset.pose_ids)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["config"]["association"] == "beam"
-    assert summary["metrics"]["estimate"]["ate"]["rmse"] < 0.2
+    assert summary["estimate"]["ate"]["rmse"] < 0.2
 
 
 def test_run_json_and_quiet(tmp_path, small_dataset):

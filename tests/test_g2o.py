@@ -488,9 +488,13 @@ def test_write_is_atomic(tmp_path, rng, monkeypatch):
     assert read_g2o(target).num_observations == dataset.num_observations
 
 
-def test_write_into_a_missing_directory_is_a_camloc_error(tmp_path, rng):
-    with pytest.raises(CamlocError, match="cannot write"):
-        write_g2o(make_dataset(rng), tmp_path / "absent" / "out.g2o")
+def test_write_creates_missing_folders_or_says_it_cannot(tmp_path, rng):
+    dataset = make_dataset(rng)
+    write_g2o(dataset, tmp_path / "absent" / "out.g2o")
+    assert read_g2o(tmp_path / "absent" / "out.g2o").num_observations == dataset.num_observations
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(CamlocError, match="cannot create the folder"):
+        write_g2o(dataset, tmp_path / "a-file" / "out.g2o")
 
 
 # --------------------------------------------------------------------------------------------

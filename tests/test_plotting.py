@@ -280,3 +280,11 @@ def test_associations_tell_every_outcome_apart_and_mark_wrong_pairs(synthetic_ru
     totals = np.bincount(index, minlength=60)
     assert np.all(np.asarray(markers)[:, 1] > totals[np.searchsorted(result.pose_ids, wrong_poses)])
     assert ax.get_ylim()[1] > np.asarray(markers)[:, 1].max()
+
+
+def test_the_figures_plot_draws_are_the_ones_a_forced_run_replaces():
+    # results.CAMLOC_FILES names them so that 'camloc run --force' drops the old run's figures.
+    from camloc import plotting, results
+
+    assert tuple(plotting.FIGURES) == results.FIGURE_NAMES
+    assert {f"fig-{name}.png" for name in plotting.FIGURES} <= results.CAMLOC_FILES

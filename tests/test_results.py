@@ -135,9 +135,12 @@ def test_write_files_atomic_writes_all_or_none(tmp_path):
     assert oct((tmp_path / "b.png").stat().st_mode & 0o777) == oct(0o644)
 
 
-def test_atomic_write_into_a_missing_directory_is_a_camloc_error(tmp_path):
-    with pytest.raises(CamlocError, match="cannot write"):
-        results.write_text_atomic(tmp_path / "nope" / "x.txt", "x")
+def test_atomic_writes_create_missing_folders_or_say_they_cannot(tmp_path):
+    results.write_text_atomic(tmp_path / "new" / "deeper" / "x.txt", "x")
+    assert (tmp_path / "new" / "deeper" / "x.txt").read_text() == "x"
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(CamlocError, match=f"cannot create the folder {tmp_path / 'a-file' / 'sub'}: "):
+        results.write_text_atomic(tmp_path / "a-file" / "sub" / "x.txt", "x")
 
 
 # --------------------------------------------------------------------------------------------
@@ -207,17 +210,51 @@ def test_a_failing_save_keeps_the_previous_run(tmp_path, synthetic_run, monkeypa
 
     monkeypatch.setattr(results, "dumps_json", broken_dumps)
     with pytest.raises(TypeError):
-        save_run(run_dir, synthetic_run(seed=2))
+        save_run(run_dir, synthetic_run(seed=2), force=True)
     assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
     assert _leftovers(tmp_path) == []
 
 
-def test_saving_again_replaces_the_run_whole(tmp_path, synthetic_run):
+def test_saving_again_is_refused_without_force(tmp_path, synthetic_run):
     run_dir = tmp_path / "run"
     save_run(run_dir, synthetic_run(seed=1))
-    save_run(run_dir, synthetic_run(seed=2, with_truth=False))
-    assert not (run_dir / "groundtruth.tum").exists()  # nothing of the old run survives
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir()}
+    with pytest.raises(CamlocError, match=f"{run_dir}: already exists; refusing to replace it without --force"):
+        save_run(run_dir, synthetic_run(seed=2))
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
+
+
+def test_saving_again_with_force_replaces_the_run_and_keeps_the_users_files(tmp_path, synthetic_run):
+    run_dir = tmp_path / "run"
+    save_run(run_dir, synthetic_run(seed=1))
+    (run_dir / "notes.md").write_text("what I saw")
+    (run_dir / "mine").mkdir()
+    (run_dir / "mine" / "fig-topdown.png").write_bytes(b"my own figure")
+    for stale in ("smoothed.tum", "fig-topdown.png", "fig-errors.pdf"):  # derived from the old run
+        (run_dir / stale).write_bytes(b"old")
+    save_run(run_dir, synthetic_run(seed=2, with_truth=False), force=True)
+    assert sorted(p.name for p in run_dir.iterdir()) == [
+        "associations.csv", "estimate.tum", "mine", "notes.md", "odometry.tum", "states.npz", "summary.json"
+    ]
+    assert (run_dir / "notes.md").read_text() == "what I saw"
+    assert (run_dir / "mine" / "fig-topdown.png").read_bytes() == b"my own figure"
     assert load_run(run_dir).dataset == "synthetic-circle-2"
+    assert _leftovers(tmp_path) == []
+
+
+def test_a_failing_forced_save_keeps_the_previous_run_and_the_users_files(tmp_path, synthetic_run, monkeypatch):
+    run_dir = tmp_path / "run"
+    save_run(run_dir, synthetic_run(seed=1))
+    (run_dir / "notes.md").write_text("what I saw")
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir()}
+
+    def broken_rename(tmp, target):
+        raise OSError("device busy")
+
+    monkeypatch.setattr(results, "_move_into_place", broken_rename)
+    with pytest.raises(OSError, match="device busy"):
+        save_run(run_dir, synthetic_run(seed=2), force=True)
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
     assert _leftovers(tmp_path) == []
 
 
@@ -225,8 +262,10 @@ def test_save_refuses_to_replace_a_folder_that_is_not_a_run(tmp_path, synthetic_
     precious = tmp_path / "thesis"
     precious.mkdir()
     (precious / "chapter1.tex").write_text("years of work")
-    with pytest.raises(CamlocError, match="refusing to replace it"):
-        save_run(precious, synthetic_run())
+    for force in (False, True):
+        with pytest.raises(CamlocError, match="is not a camloc run folder; refusing to replace it"):
+            save_run(precious, synthetic_run(), force=force)
+    assert [p.name for p in precious.iterdir()] == ["chapter1.tex"]
     assert (precious / "chapter1.tex").read_text() == "years of work"
 
 
@@ -276,9 +315,9 @@ def test_load_run_of_inconsistent_arrays(tmp_path, synthetic_run):
     run_dir = save_run(tmp_path / "run", synthetic_run())
     with np.load(run_dir / "states.npz") as npz:
         arrays = {name: npz[name] for name in npz.files}
-    arrays["estimate_xyz"] = arrays["estimate_xyz"][:-1]
+    arrays["filter_state"] = arrays["filter_state"][:-1]
     np.savez(run_dir / "states.npz", **arrays)
-    with pytest.raises(CamlocError, match=r"inconsistent run folder: estimate_xyz has shape \(39, 3\)"):
+    with pytest.raises(CamlocError, match=r"inconsistent run folder: filter_state has shape \(39, 6\)"):
         load_run(run_dir)
 
 
@@ -357,23 +396,25 @@ def _asymmetric(cov: np.ndarray) -> np.ndarray:
 # name -> (the changed arrays of states.npz, from the run; a fragment of the error), after the
 # fuzzing pass's folders: each was a traceback in eval, plot or smooth, or a silent NaN.
 STATES_CORRUPTIONS = {
-    "version-str": (lambda run: dict(format_version=np.array("abc")), "expected format_version 1, found 'abc'"),
+    "version-str": (lambda run: dict(format_version=np.array("abc")), "expected format_version 1 or 2, found 'abc'"),
     "version-arr": (lambda run: dict(format_version=np.array([1, 2])),
-                    "expected format_version 1, found an array of int64 of shape (2,)"),
-    "version-float": (lambda run: dict(format_version=np.array(1.0)), "expected format_version 1, found 1.0"),
+                    "expected format_version 1 or 2, found an array of int64 of shape (2,)"),
+    "version-float": (lambda run: dict(format_version=np.array(1.5)), "expected format_version 1 or 2, found 1.5"),
     "dataset-arr": (lambda run: dict(dataset=np.array(["a", "b"])), "dataset: expected one string"),
     "0d-ids": (lambda run: dict(pose_ids=np.array(5)), "pose_ids: expected shape (N,), found ()"),
     "float-ids": (lambda run: dict(pose_ids=run.pose_ids + 0.5), "pose_ids: expected 64-bit integers, found float64"),
     "dup-ids": (lambda run: dict(pose_ids=np.zeros_like(run.pose_ids)), "pose_ids: expected distinct ids, found 0 more than once"),
-    "no-poses": (lambda run: {name: getattr(run, name)[:0] for name in ARRAY_FIELDS[:10]},
+    "no-poses": (lambda run: {name: getattr(run, name)[:0] for name in ("pose_ids", "estimate_cov", "filter_state", "filter_cov")},
                  "pose_ids: expected at least one pose"),
-    "str-est": (lambda run: dict(estimate_xyz=np.full((40, 3), "a")), "estimate_xyz: expected real numbers, found <U1"),
-    "complex-est": (lambda run: dict(estimate_xyz=run.estimate_xyz + 1j), "estimate_xyz: expected real numbers, found complex128"),
-    "est-shape": (lambda run: dict(estimate_xyz=run.estimate_xyz[:, :2]), "estimate_xyz: expected shape (N, 3), found (40, 2)"),
+    "str-map": (lambda run: dict(map_landmark_xyz=np.full((30, 3), "a")), "map_landmark_xyz: expected real numbers, found <U1"),
+    "complex-cov": (lambda run: dict(estimate_cov=run.estimate_cov + 1j), "estimate_cov: expected real numbers, found complex128"),
+    "map-shape": (lambda run: dict(map_landmark_xyz=run.map_landmark_xyz[:, :2]),
+                  "map_landmark_xyz: expected shape (N, 3), found (30, 2)"),
     "cov-shape": (lambda run: dict(filter_cov=run.filter_cov[:, :, :5]), "filter_cov: expected shape (N, D, D), found (40, 6, 5)"),
-    "nan-est": (lambda run: dict(estimate_xyz=np.full((40, 3), np.nan)),
-                "estimate_xyz: expected finite metres within +-1e+09, found nan at pose 1000"),
-    "huge-truth": (lambda run: dict(truth_xyz=run.truth_xyz * 1e300), "truth_xyz: expected finite metres within +-1e+09"),
+    "nan-map": (lambda run: dict(map_landmark_xyz=np.full((30, 3), np.nan)),
+                "map_landmark_xyz: expected finite metres within +-1e+09, found nan at row 0"),
+    "huge-map": (lambda run: dict(map_landmark_xyz=run.map_landmark_xyz * 1e300),
+                 "map_landmark_xyz: expected finite metres within +-1e+09"),
     "inf-state": (lambda run: dict(filter_state=np.where(np.arange(6) == 2, np.inf, run.filter_state)),
                   "filter_state: expected finite numbers, found inf at pose 1000"),
     "nan-cov": (lambda run: dict(estimate_cov=np.full((40, 6, 6), np.nan)),
@@ -383,12 +424,6 @@ STATES_CORRUPTIONS = {
                 "estimate_cov: expected positive semi-definite matrices, found eigenvalue"),
     "asym-cov": (lambda run: dict(filter_cov=_asymmetric(run.filter_cov)),
                  "filter_cov: expected symmetric matrices, found an asymmetric one at pose 1005"),
-    "zero-quat": (lambda run: dict(estimate_quat_xyzw=np.zeros((40, 4))),
-                  "estimate_quat_xyzw: expected unit quaternions, found norm 0 at pose 1000"),
-    "zero-truth-quat": (lambda run: dict(truth_quat_xyzw=np.zeros((40, 4))), "truth_quat_xyzw: expected unit quaternions, found norm 0"),
-    "zero-odom-quat": (lambda run: dict(odometry_quat_xyzw=np.zeros((40, 4))),
-                       "odometry_quat_xyzw: expected unit quaternions, found norm 0"),
-    "scaled-quat": (lambda run: dict(odometry_quat_xyzw=2.0 * run.odometry_quat_xyzw), "expected unit quaternions, found norm 2"),
     "neg-nis": (lambda run: dict(nis=-run.nis), "nis: expected finite numbers >= 0, found -"),
     "nan-nis": (lambda run: dict(nis=np.full_like(run.nis, np.nan)), "nis: expected finite numbers >= 0, found nan at row 0"),
     "zero-dof": (lambda run: dict(nis_dof=np.zeros_like(run.nis_dof)), "nis_dof: expected counts of at least 1, found 0 at row 0"),
@@ -416,7 +451,66 @@ def test_load_run_accepts_what_runs_write(tmp_path, synthetic_run):
     cov = run.estimate_cov.copy()
     cov[3] -= 1e-13 * np.max(cov[3]) * np.eye(6)  # eigenvalues down by 1e-13 of the largest entry
     run_dir = save_run(tmp_path / "run", run)
-    _rewrite_states(run_dir, estimate_cov=cov, estimate_quat_xyzw=run.estimate_quat_xyzw * (1 + 1e-12),
-                    pose_ids=run.pose_ids.astype(np.int32))
+    _rewrite_states(run_dir, estimate_cov=cov, pose_ids=run.pose_ids.astype(np.int32))
     loaded = load_run(run_dir)
     assert np.all(loaded.estimate_cov[0] == 0.0) and loaded.pose_ids.dtype == np.int64
+
+
+# --------------------------------------------------------------------------------------------
+# The TUM files are the run's trajectories
+
+
+def test_load_run_reads_the_trajectories_the_tum_files_hold(tmp_path, synthetic_run):
+    run = synthetic_run()
+    run_dir = save_run(tmp_path / "run", run)
+    stamps, xyz, quat = read_tum(run_dir / "estimate.tum")
+    write_tum(run_dir / "estimate.tum", stamps, xyz + [10.0, 0.0, 0.0], quat)  # a user's edit
+    loaded = load_run(run_dir)
+    np.testing.assert_array_equal(loaded.estimate_xyz, run.estimate_xyz + [10.0, 0.0, 0.0])
+    np.testing.assert_array_equal(loaded.estimate_quat_xyzw, run.estimate_quat_xyzw)
+    np.testing.assert_array_equal(loaded.odometry_xyz, run.odometry_xyz)
+
+    (run_dir / "groundtruth.tum").unlink()
+    assert load_run(run_dir).truth_xyz is None
+    bare = save_run(tmp_path / "bare", synthetic_run(with_truth=False))
+    write_tum(bare / "groundtruth.tum", run.pose_ids, run.truth_xyz, run.truth_quat_xyzw)
+    np.testing.assert_array_equal(load_run(bare).truth_xyz, run.truth_xyz)
+
+
+def _drop_last_pose(path: Path) -> None:
+    path.write_text("".join(path.read_text().splitlines(keepends=True)[:-1]))
+
+
+def _rewrite_line(path: Path, number: int, text: str) -> None:
+    lines = path.read_text().splitlines()
+    lines[number - 1] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+TUM_DAMAGE = {
+    "truncated": (_drop_last_pose, ": expected the run's 40 pose ids (1000..1039) as timestamps, "
+                                   "found 39 timestamps (1000..1038) that differ; run 'camloc run' again"),
+    "deleted": (lambda path: path.unlink(), ": no such file"),
+    "nan": (lambda path: _rewrite_line(path, 3, "1001 nan 0 0 0 0 0 1"), ":3: expected a finite number for x"),
+    "another-run": (lambda path: path.write_text(path.read_text().replace("\n10", "\n20")),
+                    ": expected the run's 40 pose ids (1000..1039) as timestamps, found 40 timestamps (2000..2039)"),
+}
+
+
+@pytest.mark.parametrize("name", TUM_DAMAGE)
+def test_a_damaged_trajectory_file_is_an_error_naming_it(tmp_path, synthetic_run, name):
+    damage, message = TUM_DAMAGE[name]
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    damage(run_dir / "estimate.tum")
+    with pytest.raises(DatasetError) as caught:
+        load_run(run_dir)
+    assert str(caught.value).startswith(f"{run_dir / 'estimate.tum'}{message}")
+
+
+def test_a_format_1_folder_loads_its_trajectories_from_the_tum_files(tmp_path, synthetic_run):
+    # Version 1 also kept the poses in states.npz; they are not what is read.
+    run = synthetic_run()
+    run_dir = save_run(tmp_path / "run", run)
+    _rewrite_states(run_dir, format_version=np.array(1), estimate_xyz=np.zeros_like(run.estimate_xyz),
+                    truth_xyz=run.truth_xyz)
+    np.testing.assert_array_equal(load_run(run_dir).estimate_xyz, run.estimate_xyz)

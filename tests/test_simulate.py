@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -319,7 +318,7 @@ def test_bad_options_raise_a_config_error(options):
 
 # ------------------------------------------------------------------------------------------- CLI
 
-BUNDLED = {  # data/README.md gives the same commands
+BUNDLED = {  # camloc/data/README.md gives the same commands
     "grid-small.g2o": (SimulationConfig(), 3),
     "smooth3d-clutter.g2o": (SimulationConfig(trajectory="smooth3d", poses=200, clutter_fraction=0.1,
                                               outlier_fraction=0.02), 1),
@@ -331,7 +330,9 @@ BUNDLED = {  # data/README.md gives the same commands
 def test_bundled_datasets_are_what_their_commands_generate(name):
     from camloc.g2o import read_g2o
 
-    path = Path(__file__).resolve().parents[1] / "data" / name
+    from camloc.bundled import bundled_dataset
+
+    path = bundled_dataset(name)
     config, seed = BUNDLED[name]
     expected = simulate(config, seed=seed)
     read = read_g2o(path)
@@ -353,8 +354,8 @@ def test_cli_writes_a_file_that_reads_back_to_the_simulated_dataset(tmp_path):
     summary = json.loads(result.output)
     expected = simulate_labelled(SimulationConfig(trajectory="smooth3d", poses=60, cameras=2, clutter_fraction=0.1),
                                  seed=4)
-    assert summary["observations"] == expected.dataset.num_observations
-    assert summary["clutter"] == int(expected.is_clutter.sum()) > 0
+    assert summary["counts"]["observations"] == expected.dataset.num_observations
+    assert summary["counts"]["clutter"] == int(expected.is_clutter.sum()) > 0
     read = read_g2o(path)
     for name, array in _arrays(expected.dataset).items():
         np.testing.assert_array_equal(getattr(read, name), array, err_msg=name)

@@ -446,8 +446,8 @@ def test_write_smoothed_then_load_run_reads_it(tmp_path, synthetic_run):
     # save_run keeps it (a whole run, smoothed path included) ...
     save_run(tmp_path / "copy", loaded)
     np.testing.assert_array_equal(load_run(tmp_path / "copy").smoothed_xyz, xyz)
-    # ... and a new run replaces the folder whole, smoothed path gone with the old run.
-    save_run(run_dir, result)
+    # ... and a new run replaces the folder (force), the old run's smoothed path gone with it.
+    save_run(run_dir, result, force=True)
     assert not (run_dir / SMOOTHED_TUM).exists()
 
 
@@ -471,7 +471,8 @@ def test_smoothed_file_of_another_run_is_an_error(tmp_path, synthetic_run):
     result = synthetic_run(num_poses=12)
     run_dir = save_run(tmp_path / "run", result)
     write_smoothed(run_dir, result.pose_ids + 5, result.truth_xyz, result.truth_quat_xyzw)
-    with pytest.raises(DatasetError, match="smoothed.tum: expected the run's 12 pose ids as timestamps"):
+    with pytest.raises(DatasetError, match=r"smoothed.tum: expected the run's 12 pose ids \(1000..1011\) as timestamps, found 12 timestamps "
+                       r"\(1005..1016\) that differ; smooth the run again"):
         load_run(run_dir)
     with pytest.raises(CamlocError, match="expected a run folder"):
         write_smoothed(tmp_path, result.pose_ids, result.truth_xyz, result.truth_quat_xyzw)
@@ -506,7 +507,7 @@ def test_evaluate_reports_the_smoothed_path(synthetic_run):
     from camloc import metrics
 
     base = synthetic_run(seed=5, num_poses=30)
-    assert "smoothed" not in metrics.evaluate(base)
+    assert metrics.evaluate(base)["smoothed"] is None
     result = dataclasses.replace(base, smoothed_xyz=base.truth_xyz + np.array([0.03, 0.0, 0.04]),
                                  smoothed_quat_xyzw=base.truth_quat_xyzw)
     report = metrics.evaluate(result)
@@ -546,16 +547,17 @@ def test_cli_smooth_then_eval_and_plot(cli_run):
     outcome = invoke("smooth", run_dir, "--json")
     assert outcome.exit_code == 0, outcome.output
     report = json.loads(outcome.stdout)
-    assert report["output"] == str(run_dir / SMOOTHED_TUM) and report["dataset"] == str(dataset_path)
-    assert report["converged"] and report["huber"] == 2.0 and report["poses"] == 60
-    errors = report["errors"]
-    assert errors["smoothed"]["position_rmse_m"] < 0.9 * errors["filter"]["position_rmse_m"]
+    assert report["smoothed_file"] == str(run_dir / SMOOTHED_TUM) and report["dataset"] == str(dataset_path)
+    assert report["converged"] and report["huber"] == 2.0 and report["counts"]["poses"] == 60
+    assert report["smoothed"]["ate"]["rmse"] < 0.9 * report["estimate"]["ate"]["rmse"]
 
     loaded = load_run(run_dir)
-    assert errors["smoothed"]["position_rmse_m"] == pytest.approx(position_rmse(loaded.smoothed_xyz, loaded.truth_xyz))
+    assert report["smoothed"]["ate"]["rmse"] == pytest.approx(position_rmse(loaded.smoothed_xyz, loaded.truth_xyz))
     evaluation = json.loads(invoke("eval", run_dir, "--json").stdout)
-    assert evaluation["smoothed"]["ate"]["rmse"] == pytest.approx(errors["smoothed"]["position_rmse_m"])
-    assert evaluation["estimate"]["ate"]["rmse"] == pytest.approx(errors["filter"]["position_rmse_m"])
+    # The same quantity under the same key: smooth and eval agree.
+    for path in ("smoothed", "estimate"):
+        for block, key in (("ate", "rmse"), ("rotation", "rmse_deg")):
+            assert evaluation[path][block][key] == pytest.approx(report[path][block][key], rel=1e-12)
     tables = invoke("eval", run_dir)
     assert "smoothed / EKF" in tables.stdout and f"{evaluation['smoothed']['ate']['rmse']:.4f}" in tables.stdout
 
@@ -608,8 +610,8 @@ def test_cli_smooth_of_a_corrupt_run_folder_names_the_file(tmp_path, cli_run):
         ("huge-id", lambda run: (run / "associations.csv").write_text(
             (run / "associations.csv").read_text().replace("\n", f"\n{huge_id_row}\n", 1)),
          "associations.csv:2", "expected an integer for landmark"),
-        ("zero-quat", lambda run: _zero_estimate_quaternions(run / "states.npz"),
-         "states.npz", "estimate_quat_xyzw: expected unit quaternions"),
+        ("zero-quat", lambda run: _zero_first_estimate_quaternion(run / "estimate.tum"),
+         "estimate.tum:2", "expected a unit quaternion qx qy qz qw, found all zeros"),
     ):
         copy = tmp_path / name
         shutil.copytree(run_dir, copy)
@@ -620,11 +622,10 @@ def test_cli_smooth_of_a_corrupt_run_folder_names_the_file(tmp_path, cli_run):
         assert sorted(p.name for p in copy.iterdir()) == before
 
 
-def _zero_estimate_quaternions(path: Path) -> None:
-    with np.load(path) as npz:
-        arrays = {name: npz[name] for name in npz.files}
-    arrays["estimate_quat_xyzw"] = np.zeros_like(arrays["estimate_quat_xyzw"])
-    np.savez(path, **arrays)
+def _zero_first_estimate_quaternion(path: Path) -> None:
+    lines = path.read_text().splitlines()
+    lines[1] = " ".join(lines[1].split()[:4] + ["0", "0", "0", "0"])
+    path.write_text("\n".join(lines) + "\n")
 
 
 def test_real_dataset_smooths_below_the_filter(real_dataset_path, tmp_path):

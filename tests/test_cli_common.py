@@ -1,0 +1,222 @@
+"""What every command does the same way: errors, bad options, Ctrl-C, --quiet, --help, and the
+files it will not overwrite."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from camloc.cli.app import app
+from camloc.g2o import write_g2o
+from camloc.results import save_run
+from camloc.simulate import SimulationConfig, simulate
+
+COMMANDS = ("run", "eval", "plot", "info", "simulate", "smooth")
+
+
+def invoke(*args, **kwargs):
+    return CliRunner().invoke(app, [str(arg) for arg in args], **kwargs)
+
+
+def assert_one_error_line(outcome, fragment: str, *, status: int = 2) -> None:
+    assert outcome.exit_code == status, outcome.output
+    assert outcome.stderr.startswith("error: "), outcome.stderr  # no stray blank line before it
+    assert len(outcome.stderr.splitlines()) == 1, outcome.stderr
+    assert fragment in outcome.stderr, outcome.stderr
+    assert outcome.stdout == ""
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("common")
+    dataset = folder / "world.g2o"
+    write_g2o(simulate(SimulationConfig(poses=20), seed=3), dataset)
+    run_dir = folder / "run"
+    assert invoke("run", dataset, "-o", run_dir, "--quiet").exit_code == 0
+    return dataset, run_dir
+
+
+# --------------------------------------------------------------------------------------------
+# Bad options, errors and Ctrl-C
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["run", "--iterations", "x"], "Invalid value for '--iterations'"),
+    (["run", "--warp"], "No such option: --warp"),
+    (["eval", "--delta", "0"], "Invalid value for '--delta'"),
+    (["plot", "RUN", "--dpi", "10"], "Invalid value for '--dpi'"),
+    (["info"], "Missing argument 'DATASET'"),
+    (["simulate", "-o", "x.g2o", "--poses", "-3"], "--poses"),
+    (["simulate", "-o", "x.g2o", "--intrinsics", "fisheye"], "Invalid value for '--intrinsics'"),
+    (["smooth"], "Missing argument 'RUN_DIR'"),
+    (["frobnicate"], "No such command 'frobnicate'"),
+    (["--bogus"], "No such option: --bogus"),
+])
+def test_a_bad_option_is_one_short_line_and_exit_2_in_every_command(tmp_path, monkeypatch, args, fragment):
+    monkeypatch.chdir(tmp_path)
+    outcome = invoke(*args)
+    assert_one_error_line(outcome, fragment)
+    command = args[0] if args[0] in COMMANDS else ""
+    assert outcome.stderr.rstrip().endswith(f"(see '{' '.join(filter(None, ['camloc', command]))} --help')")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args, target", [
+    (["run", "{dataset}", "-o", "{tmp}/r", "--quiet"], "camloc.pipeline.localize"),
+    (["eval", "{run_dir}"], "camloc.metrics.evaluate"),
+    (["info", "{dataset}"], "camloc.dataset_summary.summarize_dataset"),
+    (["simulate", "-o", "{tmp}/s.g2o"], "camloc.simulate.simulate_labelled"),
+])
+def test_ctrl_c_says_interrupted_and_exits_130(tmp_path, monkeypatch, world, args, target):
+    dataset, run_dir = world
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(target, interrupted)
+    outcome = invoke(*(arg.format(dataset=dataset, run_dir=run_dir, tmp=tmp_path) for arg in args))
+    assert outcome.exit_code == 130
+    assert outcome.stderr == "interrupted\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_eval_plot_and_smooth_of_a_dataset_file_say_what_it_is(world):
+    dataset, _ = world
+    for command in ("eval", "plot", "smooth"):
+        assert_one_error_line(invoke(command, dataset), f"{dataset}: expected a run folder written by 'camloc run', "
+                                                        f"found a file (a dataset: localize it first, 'camloc run {dataset}')")
+
+
+# --------------------------------------------------------------------------------------------
+# Output files and folders: created the same way, never replaced without --force
+
+
+def test_every_command_creates_missing_output_folders(tmp_path, world):
+    dataset, run_dir = world
+    assert invoke("run", dataset, "-o", tmp_path / "a" / "b" / "run", "--quiet").exit_code == 0
+    assert invoke("simulate", "-o", tmp_path / "c" / "d" / "w.g2o", "--poses", "5", "--quiet").exit_code == 0
+    assert invoke("plot", run_dir, "-o", tmp_path / "e" / "f" / "report.png", "--quiet").exit_code == 0
+    for path in ("a/b/run/summary.json", "c/d/w.g2o", "e/f/report.png"):
+        assert (tmp_path / path).is_file(), path
+
+
+def test_every_command_words_a_folder_it_cannot_create_the_same_way(tmp_path, world):
+    dataset, run_dir = world
+    blocker = tmp_path / "a-file"
+    blocker.write_text("mine")
+    for args in (["run", dataset, "-o", blocker / "run"], ["simulate", "-o", blocker / "w.g2o"],
+                 ["plot", run_dir, "-o", blocker / "report.png"]):
+        assert_one_error_line(invoke(*args), f"cannot create the folder {blocker}: ")
+    assert blocker.read_text() == "mine"
+
+
+def test_simulate_and_plot_refuse_an_existing_file_without_force(tmp_path, world):
+    _, run_dir = world
+    precious = tmp_path / "course.g2o"
+    precious.write_text("the course dataset\n")
+    report = tmp_path / "report.pdf"
+    report.write_text("my report")
+    assert_one_error_line(invoke("simulate", "-o", precious), f"{precious}: already exists; refusing to replace it "
+                                                              "without --force")
+    assert_one_error_line(invoke("plot", run_dir, "-o", report), f"{report}: already exists")
+    assert precious.read_text() == "the course dataset\n" and report.read_text() == "my report"
+    assert invoke("simulate", "-o", precious, "--poses", "5", "--force", "--quiet").exit_code == 0
+    assert precious.read_text().startswith("PARAMS_CAMERACALIB") or "VERTEX" in precious.read_text()
+    assert invoke("plot", run_dir, "-o", report, "--force", "--quiet").exit_code == 0
+    assert report.read_bytes()[:4] == b"%PDF"
+
+
+def test_run_refuses_an_existing_run_folder_unless_forced_and_keeps_the_users_files(tmp_path, world, synthetic_run):
+    dataset, _ = world
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    (run_dir / "notes.md").write_text("what I saw")
+    (run_dir / "smoothed.tum").write_text("# the old run's\n")
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir()}
+    assert_one_error_line(invoke("run", dataset, "-o", run_dir), f"{run_dir}: already exists; refusing to replace it "
+                                                                 "without --force")
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
+
+    assert invoke("run", dataset, "-o", run_dir, "--force", "--quiet").exit_code == 0
+    assert (run_dir / "notes.md").read_text() == "what I saw"
+    assert not (run_dir / "smoothed.tum").exists()  # it belonged to the old run
+    assert str(dataset) in (run_dir / "summary.json").read_text()
+
+    other = tmp_path / "thesis"
+    other.mkdir()
+    (other / "chapter.tex").write_text("years of work")
+    assert_one_error_line(invoke("run", dataset, "-o", other, "--force"), "is not a camloc run folder")
+    assert [p.name for p in other.iterdir()] == ["chapter.tex"]
+
+
+# --------------------------------------------------------------------------------------------
+# --quiet, and run and eval agreeing
+
+
+def test_quiet_prints_nothing_in_every_command(tmp_path, world):
+    dataset, run_dir = world
+    for args in (["run", dataset, "-o", tmp_path / "r"], ["eval", run_dir], ["plot", run_dir],
+                 ["info", dataset], ["simulate", "-o", tmp_path / "s.g2o", "--poses", "5"], ["smooth", run_dir]):
+        outcome = invoke(*args, "--quiet")
+        assert outcome.exit_code == 0, outcome.output
+        assert outcome.output == "", args
+    assert {"--quiet", "-q"} <= _options_of("run") and all("--quiet" in _options_of(name) for name in COMMANDS)
+
+
+def test_run_and_eval_show_the_same_precision_without_ground_truth(tmp_path, world):
+    dataset, _ = world
+    lines = dataset.read_text().splitlines()
+    vertices = [i for i, line in enumerate(lines) if line.startswith("VERTEX_SE3:QUAT")]
+    bare = tmp_path / "bare.g2o"
+    bare.write_text("\n".join(line for i, line in enumerate(lines) if i not in vertices[1:]) + "\n")
+    table = invoke("run", bare, "-o", tmp_path / "run", env={"COLUMNS": "200"})
+    assert table.exit_code == 0, table.output
+    evaluation = invoke("eval", tmp_path / "run", "--json")
+    precision = f"{__import__('json').loads(evaluation.stdout)['association']['precision']:.3f}"
+    row = next(line for line in table.stdout.splitlines() if re.match(r"^│\s+\d+\s+│", line))
+    assert row.split("│")[6].strip() == precision
+
+
+# --------------------------------------------------------------------------------------------
+# --help
+
+
+def _command(name: str):
+    return typer.main.get_command(app).commands[name]
+
+
+def _options_of(name: str) -> set[str]:
+    return {opt for param in _command(name).params for opt in param.opts}
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_help_states_every_default_the_same_way_and_no_bool_value(name):
+    outcome = invoke(name, "--help", env={"COLUMNS": "300"})
+    assert outcome.exit_code == 0
+    text = outcome.stdout
+    assert "<bool>" not in text and "[default:" not in text and "{" not in text.replace("{DATASET}", "").replace(
+        "{RUN_DIR}", "")
+    for param in _command(name).params:
+        if isinstance(param, typer.core.TyperArgument):
+            assert param.metavar in ("DATASET", "RUN_DIR"), param.name
+        elif not param.required:
+            assert "Default: " in param.help, f"{name} {param.opts[0]}"
+
+
+def test_help_defaults_are_the_codes_defaults():
+    from camloc.localizer import LocalizerConfig
+    from camloc.simulate import SimulationConfig
+    from camloc.smoother import SmootherConfig
+
+    def flat(*args):
+        return " ".join(invoke(*args, env={"COLUMNS": "300"}).stdout.replace("│", " ").split())
+
+    run, simulate_help, smooth = flat("run", "--help"), flat("simulate", "--help"), flat("smooth", "--help")
+    defaults = LocalizerConfig()
+    assert f"kept after each pose. Default: {defaults.beam_width}." in run
+    assert f"iterated EKF. Default: {defaults.iterations}." in run
+    assert "Default: --recheck." in run and "Default: --sequential." in run
+    assert f"(at least 2). Default: {SimulationConfig().poses}." in simulate_help
+    assert f"least squares. Default: {SmootherConfig().huber!r}." in smooth
