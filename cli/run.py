@@ -52,7 +52,7 @@ def run(
         None, "--config", help="TOML file with localizer options (names as below, with underscores); "
         "options given on the command line win. Default: none.", show_default=False
     ),
-    filter: Optional[FilterChoice]  # noqa: A002 (named after --filter) = library_option(
+    filter: Optional[FilterChoice] = library_option(  # noqa: A002 (named after --filter)
         "State parametrization: euler (x, y, z, roll, pitch, yaw; singular "
         "at pitch +-90 deg) or se3 (error-state filter on SE(3), no singularity).",
         "localizer.filter", "--filter"
@@ -174,6 +174,10 @@ def run(
 
     from camloc.g2o import G2oWarning
 
+    from camloc.kernels import cache_is_warm
+
+    if not (quiet or json_output) and config.filter == "euler" and not cache_is_warm():
+        err_console.print("compiling camloc's kernels: once after an install, about a minute", highlight=False)
     with warnings.catch_warnings(), pose_progress(
         enabled=not (quiet or json_output), description=f"localizing {dataset_path.name}"
     ) as on_progress:

@@ -9,12 +9,11 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from camloc.cli.common import console, err_console, handles_errors
+from camloc.cli.common import console, err_console
 
 EXIT_INTERRUPTED = 130
 
 
-@handles_errors
 def sweep(
     spec_file: Path = typer.Argument(..., help="The sweep spec (TOML): seeds or datasets, \\[simulate] and \\[run] "
                                      "options by their command-line names; a list is one value per cell.",

@@ -17,7 +17,7 @@ from camloc import association, ekf, geometry, models
 from camloc.kernels import camera, motion, recheck, rotation, seeds, sym3, update, view
 from camloc.kernels._jit import OPTIONS
 
-DATA = Path(__file__).resolve().parents[1] / "data"
+DATA = Path(__file__).resolve().parents[1] / "camloc" / "data"
 
 
 def _random_state(rng):

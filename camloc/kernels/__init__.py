@@ -13,3 +13,20 @@
 Every kernel is ``@jit`` (``_jit``: cached, numba's numpy error model) and has a numpy twin that
 the tests compare it with (``tests/test_kernels.py``).
 """
+
+import os
+
+
+def cache_is_warm() -> bool:
+    """Whether the main kernels are already compiled in numba's cache (the first run after an
+    install compiles them, once: about a minute); True where that cannot be told."""
+    try:
+        from camloc.kernels import beam, filtering
+
+        for kernel in (beam.run_poses, filtering.filter_poses):
+            cache = kernel._cache
+            if not os.path.exists(os.path.join(cache._cache_path, cache._index_name)):
+                return False
+    except Exception:  # numba's cache layout is not public: never claim a compile that is not one
+        return True
+    return True
