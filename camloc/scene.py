@@ -43,7 +43,9 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
     view = np.array(candidate_range(dataset, config))
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
-    grid = build_grid(dataset.landmark_xyz, view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), view[1], view[2])[1])
+    # cells of half the view's ball: a query visits about 4^3 of them, where cells of the ball's
+    # size hold six times the ball's volume in their 3^3
+    grid = build_grid(dataset.landmark_xyz, 0.5 * view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), view[1], view[2])[1])
     return SceneArrays(
         np.ascontiguousarray(dataset.landmark_xyz, dtype=float), *grid,
         np.ascontiguousarray([c.T_robot_camera[:3, :3] for c in cameras], dtype=float).reshape(-1, 3, 3),

@@ -15,11 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.camera import back_project, camera_pose, observe
+from camloc.kernels.camera import camera_pose, observe
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
-from camloc.kernels.small import mm, sandwich
-from camloc.kernels.sym3 import mahalanobis, trace
+from camloc.kernels.sym3 import mahalanobis_components
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import visible, widened_view
 
@@ -63,21 +62,75 @@ def gather(gen, indices, cap):
 # A pair's cost, in the coordinates where its linearization explains it best
 
 @jit
-def pair_in_best_coordinates(scene, o, z_hat, H, P):
-    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point, innovation y (3,), its
-    Jacobian (3, 6)) of observation o against a prediction (z_hat (3,), H (3, 6)) under P, in the
-    measured (u, v, depth) or in the camera-frame point they back-project to, whichever is likelier:
-    a point is linear in the robot's position, pixels can fit better where the spread is rotation."""
-    p_hat, J = back_project(z_hat, scene.camera_K[scene.obs_camera[o]])
-    Hp = mm(J, H)
-    HPH = sandwich(H, P)
-    d2_pixels, log_det_pixels = mahalanobis(HPH + scene.R_assoc[o], scene.z[o] - z_hat)
-    d2_point, log_det_point = mahalanobis(sandwich(J, HPH) + scene.point_cov[o], scene.point[o] - p_hat)
+def spread_entry(H, P, r, q):
+    """(H P H')[r, q] for H (3, 6) and symmetric P (6, 6)."""
+    s = 0.0
+    for i in range(6):
+        row = 0.0
+        for j in range(6):
+            row += P[i, j] * H[q, j]
+        s += H[r, i] * row
+    return s
+
+
+@jit
+def spread(H, P):
+    """The upper triangle (a, b, c, d, e, f) of H P H' for H (3, 6) and symmetric P (6, 6)."""
+    return (spread_entry(H, P, 0, 0), spread_entry(H, P, 0, 1), spread_entry(H, P, 0, 2),
+            spread_entry(H, P, 1, 1), spread_entry(H, P, 1, 2), spread_entry(H, P, 2, 2))
+
+
+@jit
+def pair_in_best_coordinates(scene, o, z_hat, H, P, y, Hc):
+    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against a
+    prediction (z_hat (3,), H (3, 6)) under P, in the measured (u, v, depth) or in the camera-frame
+    point they back-project to, whichever is likelier (a point is linear in the robot's position;
+    pixels can fit better where the spread is rotation); writes the innovation y (3,) and its
+    Jacobian Hc (3, 6) in the chosen coordinates."""
+    K = scene.camera_K[scene.obs_camera[o]]
+    x_over_z, y_over_z, depth = (z_hat[0] - K[2]) / K[0], (z_hat[1] - K[3]) / K[1], z_hat[2]
+    j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z     # d p / d (u, v, depth)
+    a00, a01, a02, a11, a12, a22 = spread(H, P)                            # H P H'
+    R, C = scene.R_assoc[o], scene.point_cov[o]
+    d2_pixels, log_det_pixels = mahalanobis_components(
+        a00 + R[0, 0], a01 + R[0, 1], a02 + R[0, 2], a11 + R[1, 1], a12 + R[1, 2], a22 + R[2, 2],
+        scene.z[o, 0] - z_hat[0], scene.z[o, 1] - z_hat[1], scene.z[o, 2] - z_hat[2])
+    # J (H P H') J' with J = [[j00, 0, j02], [0, j11, j12], [0, 0, 1]]
+    b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
+    b01 = j00 * j11 * a01 + j00 * j12 * a02 + j02 * j11 * a12 + j02 * j12 * a22
+    b02 = j00 * a02 + j02 * a22
+    b11 = j11 * j11 * a11 + 2.0 * j11 * j12 * a12 + j12 * j12 * a22
+    b12 = j11 * a12 + j12 * a22
+    p0, p1 = scene.point[o, 0] - x_over_z * depth, scene.point[o, 1] - y_over_z * depth
+    p2 = scene.point[o, 2] - depth
+    d2_point, log_det_point = mahalanobis_components(
+        b00 + C[0, 0], b01 + C[0, 1], b02 + C[0, 2], b11 + C[1, 1], b12 + C[1, 2], a22 + C[2, 2], p0, p1, p2)
     cost_pixels = d2_pixels + log_det_pixels - scene.log_det_R[o]
     cost_point = d2_point + log_det_point - scene.log_det_point_cov[o]
     if cost_point < cost_pixels:
-        return d2_point, cost_point, True, scene.point[o] - p_hat, Hp
-    return d2_pixels, cost_pixels, False, scene.z[o] - z_hat, H.copy()
+        y[0], y[1], y[2] = p0, p1, p2
+        for i in range(6):
+            Hc[0, i] = j00 * H[0, i] + j02 * H[2, i]
+            Hc[1, i] = j11 * H[1, i] + j12 * H[2, i]
+            Hc[2, i] = H[2, i]
+        return d2_point, cost_point, True
+    for a in range(3):
+        y[a] = scene.z[o, a] - z_hat[a]
+        for i in range(6):
+            Hc[a, i] = H[a, i]
+    return d2_pixels, cost_pixels, False
+
+
+@jit
+def view_spread(H, P, z_hat, K):
+    """(trace of H P H', trace of its spread as a camera-frame point) of a prediction: the
+    screen's bound on every pair with it."""
+    a00, a01, a02, a11, a12, a22 = spread(H, P)
+    x_over_z, y_over_z, depth = (z_hat[0] - K[2]) / K[0], (z_hat[1] - K[3]) / K[1], z_hat[2]
+    j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z
+    b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
+    b11 = j11 * j11 * a11 + 2.0 * j11 * j12 * a12 + j12 * j12 * a22
+    return a00 + a11 + a22, b00 + b11 + a22
 
 
 @jit
@@ -108,11 +161,12 @@ def options_for(scene, settings, x, P, obs, widened):
     for g in range(cameras.size):
         c, f = cameras[g], found[g]
         zc, Hc = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[f])
+        K = scene.camera_K[c]
         for q in range(f.size):
             cand[at], cand_camera[at], z_hat[at], H[at] = f[q], c, zc[q], Hc[q]
-            ph, J = back_project(zc[q], scene.camera_K[c])
-            HPH = sandwich(Hc[q], P)
-            p_hat[at], spread_pixels[at], spread_point[at] = ph, trace(HPH), trace(sandwich(J, HPH))
+            x_over_z, y_over_z = (zc[q, 0] - K[2]) / K[0], (zc[q, 1] - K[3]) / K[1]
+            p_hat[at, 0], p_hat[at, 1], p_hat[at, 2] = x_over_z * zc[q, 2], y_over_z * zc[q, 2], zc[q, 2]
+            spread_pixels[at], spread_point[at] = view_spread(Hc[q], P, zc[q], K)
             at += 1
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
@@ -122,20 +176,23 @@ def options_for(scene, settings, x, P, obs, widened):
     for r in range(m):
         o = obs[r]
         c = scene.obs_camera[o]
-        tr_R, tr_point = trace(scene.R_assoc[o]), trace(scene.point_cov[o])
+        tr_R = scene.R_assoc[o, 0, 0] + scene.R_assoc[o, 1, 1] + scene.R_assoc[o, 2, 2]
+        tr_point = scene.point_cov[o, 0, 0] + scene.point_cov[o, 1, 1] + scene.point_cov[o, 2, 2]
         for q in range(total):
             if cand_camera[q] != c:
                 continue
             # y' S^-1 y >= |y|^2 / trace S: most of a dense view's pairs are surely beyond the pool
-            y_pixels, y_point = scene.z[o] - z_hat[q], scene.point[o] - p_hat[q]
-            if (y_pixels @ y_pixels > pool_gate * (spread_pixels[q] + tr_R)
-                    and y_point @ y_point > pool_gate * (spread_point[q] + tr_point)):
+            e_pixels = e_point = 0.0
+            for a in range(3):
+                e_pixels += (scene.z[o, a] - z_hat[q, a]) ** 2
+                e_point += (scene.point[o, a] - p_hat[q, a]) ** 2
+            if e_pixels > pool_gate * (spread_pixels[q] + tr_R) and e_point > pool_gate * (spread_point[q] + tr_point):
                 continue
-            d2, pair_cost, point, y, Hc = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P)
+            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P, ys[n], Hcs[n])
             if not d2 <= pool_gate:
                 continue
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
-            zh[n], Hs[n], ys[n], Hcs[n] = z_hat[q], H[q], y, Hc
+            zh[n], Hs[n] = z_hat[q], H[q]
             n += 1
         start[r + 1] = n
     return start, lm[:n].copy(), cost[:n].copy(), zh[:n].copy(), Hs[:n].copy(), ys[:n].copy(), Hcs[:n].copy(), in_point[:n].copy()
@@ -166,9 +223,9 @@ def condition(scene, settings, x, P, o, pool, taken):
     ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6))
     z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[pool])
     for q in range(g):
-        d2, pair_cost, point, y, Hc = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P)
+        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P, ys[q], Hcs[q])
         cost[q] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
-        in_point[q], ys[q], Hcs[q] = point, y, Hc
+        in_point[q] = point
     return cost, z_hat, H, ys, Hcs, in_point
 
 

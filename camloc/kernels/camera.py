@@ -12,33 +12,46 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.rotation import euler_rate, euler_to_matrix, hat
-from camloc.kernels.small import mm, mtm, mtv
+from camloc.kernels.rotation import euler_rate, euler_to_matrix
+from camloc.kernels.small import mm
 
 
 @jit
 def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark, z_hat, H, d_position):
     """Write the prediction z_hat (3,) of one landmark (3,) and its Jacobian H (3, 6) with respect
     to the Euler state (rotation R, Euler rate matrix E, position t); d_position = -R_rc' R', the
-    derivative of the camera-frame point by the position."""
+    derivative of the camera-frame point by the position. Scalar code: this runs for every
+    candidate of every hypothesis, where a temporary array costs more than the arithmetic."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    p_robot = mtv(R, landmark - t)
-    p = mtv(R_rc, p_robot - t_rc)
-    d_rotation = mtm(R_rc, mm(hat(p_robot), E))        # d p_camera / d rpy
-    inverse_depth = 1.0 / p[2]
-    z_hat[0] = fx * p[0] * inverse_depth + cx
-    z_hat[1] = fy * p[1] * inverse_depth + cy
-    z_hat[2] = p[2]
+    d0, d1, d2 = landmark[0] - t[0], landmark[1] - t[1], landmark[2] - t[2]
+    r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
+    r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+    r2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+    q0, q1, q2 = r0 - t_rc[0], r1 - t_rc[1], r2 - t_rc[2]
+    px = R_rc[0, 0] * q0 + R_rc[1, 0] * q1 + R_rc[2, 0] * q2  # p_camera = R_c' (p_robot - t_c)
+    py = R_rc[0, 1] * q0 + R_rc[1, 1] * q1 + R_rc[2, 1] * q2
+    pz = R_rc[0, 2] * q0 + R_rc[1, 2] * q1 + R_rc[2, 2] * q2
+    inverse_depth = 1.0 / pz
+    z_hat[0] = fx * px * inverse_depth + cx
+    z_hat[1] = fy * py * inverse_depth + cy
+    z_hat[2] = pz
     # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, 1]]
-    u_x, u_z = fx * inverse_depth, -fx * p[0] * inverse_depth * inverse_depth
-    v_y, v_z = fy * inverse_depth, -fy * p[1] * inverse_depth * inverse_depth
+    u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
+    v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
     for c in range(3):
+        # d p_robot / d rpy = [p_robot]x E, column c
+        m0 = -r2 * E[1, c] + r1 * E[2, c]
+        m1 = r2 * E[0, c] - r0 * E[2, c]
+        m2 = -r1 * E[0, c] + r0 * E[1, c]
+        rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rpy = R_c' [p_robot]x E
+        rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
+        rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
         H[0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
         H[1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
         H[2, c] = d_position[2, c]
-        H[0, 3 + c] = u_x * d_rotation[0, c] + u_z * d_rotation[2, c]
-        H[1, 3 + c] = v_y * d_rotation[1, c] + v_z * d_rotation[2, c]
-        H[2, 3 + c] = d_rotation[2, c]
+        H[0, 3 + c] = u_x * rot0 + u_z * rot2
+        H[1, 3 + c] = v_y * rot1 + v_z * rot2
+        H[2, 3 + c] = rot2
 
 
 @jit
@@ -67,9 +80,12 @@ def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
     p = landmark_xyz.shape[0]
     z_hat = np.empty((p, 3))
     H = np.empty((p, 3, 6))
+    d_position = np.empty((camera_R.shape[0], 3, 3))
+    for c in range(camera_R.shape[0]):
+        d_position[c] = -mm(camera_R[c].T, R.T)
     for i in range(p):
         c = pair_camera[i]
-        observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz[i], z_hat[i], H[i], -mm(camera_R[c].T, R.T))
+        observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz[i], z_hat[i], H[i], d_position[c])
     return z_hat, H
 
 

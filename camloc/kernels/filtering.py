@@ -12,7 +12,7 @@ from camloc.kernels._jit import jit
 from camloc.kernels.camera import camera_pose, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
-from camloc.kernels.small import mm, mtm, sandwich
+from camloc.kernels.small import mm, mtm, sandwich, solve
 from camloc.kernels.sym3 import mahalanobis
 from camloc.kernels.update import updated
 from camloc.kernels.view import visible
@@ -64,7 +64,7 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
                 Hc = H[chosen[r]]
                 information[g] += mtm(Hc, mm(scene.R_assoc_inverse[mine[r]], Hc))
         groups.append((mine, z_hat, H, chosen))
-    prior_information = np.linalg.solve(P_prior, np.eye(6))
+    prior_information = solve(P_prior, np.eye(6))
     for g in range(cameras.size):
         mine, z_hat, H, chosen = groups[g]
         if z_hat.shape[0] == 0:

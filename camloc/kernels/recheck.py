@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.small import mm, mtm, mv, sandwich
-from camloc.kernels.sym3 import mahalanobis
+from camloc.kernels.small import mm, mtm, mv, sandwich, solve
+from camloc.kernels.sym3 import inverse, mahalanobis
 
 
 @jit
@@ -37,10 +37,10 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
     # Every L_i >= information, so each S is at most H_j information^-1 H_j' + r_max I (r_max: the
     # largest eigenvalue of any R_i): d^2 under that bound is a lower bound, and the pairs it puts
     # beyond the gate (most of a view's) need no factorization.
-    P_bound = np.linalg.solve(information, np.eye(6))
+    P_bound = solve(information, np.eye(6))
     r_max = 0.0
-    for i in range(n):
-        r_max = max(r_max, np.linalg.eigvalsh(R[i])[-1])
+    for i in range(n):                      # the trace bounds the largest eigenvalue: a valid, looser screen
+        r_max = max(r_max, R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2])
     bound_inverse = np.empty((m, 3, 3))
     screened = np.ones(m, np.bool_)
     for j in range(m):
@@ -48,11 +48,11 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
         # rounding can leave the bound indefinite (information 1e12 beside a prior of 1e2): no screen
         screened[j] = np.isfinite(mahalanobis(S_bound, np.zeros(3))[1]) and S_bound[0, 0] > 0.0 and S_bound[1, 1] > 0.0
         if screened[j]:
-            bound_inverse[j] = np.linalg.inv(S_bound)
+            bound_inverse[j] = inverse(S_bound)
     residual = np.empty(3)
     for i in range(n):
         L = total - pair_information[i]
-        P_i = np.linalg.solve(L, np.eye(6))
+        P_i = solve(L, np.eye(6))
         P_i = 0.5 * (P_i + P_i.T)
         delta = np.zeros(6)
         if chosen[i] >= 0:

@@ -15,7 +15,12 @@ import numpy as np
 
 from camloc.kernels._jit import jit
 from camloc.kernels.small import mm, mv, sandwich
-from camloc.kernels.sym3 import mahalanobis
+from camloc.kernels.sym3 import inverse, log_det as log_det_3x3, mahalanobis, mahalanobis_components
+
+
+# Seeds are screened in chunks: the whitened innovations of every pair under a chunk of seeds are
+# one matrix product (3N x 6 by 6 x chunk), a few MB at most.
+SEED_CHUNK = 32
 
 
 @jit
@@ -26,52 +31,79 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
     landmark (N,); P the prior covariance; null_cost (m,); gate on a conditioned pair's d^2."""
     N, m = y.shape[0], null_cost.size
     S = np.empty((N, 3, 3))
-    S_inverse = np.empty((N, 3, 3))
     log_det_R = np.empty(N)
     HP = np.empty((N, 3, 6))
+    # W_q with W_q' W_q = S_q^-1 whitens pair q: |W_q (y_q - H_q c)|^2 = d^2 under S_q
+    white_y = np.empty(3 * N)
+    white_H = np.empty((3 * N, 6))
     for q in range(N):
         HP[q] = mm(H[q], P)
-        S[q] = sandwich(H[q], P) + R[q]
-        S_inverse[q] = np.linalg.inv(S[q])
-        log_det_R[q] = np.linalg.slogdet(R[q])[1]
+        S[q] = mm(HP[q], H[q].T) + R[q]
+        log_det_R[q] = log_det_3x3(R[q])
+        A = inverse(S[q])                                  # A = L L' (3x3 Cholesky by hand), W = L'
+        l00 = np.sqrt(A[0, 0])
+        l10, l20 = A[1, 0] / l00, A[2, 0] / l00
+        l11 = np.sqrt(A[1, 1] - l10 * l10)
+        l21 = (A[2, 1] - l20 * l10) / l11
+        l22 = np.sqrt(A[2, 2] - l20 * l20 - l21 * l21)
+        white_y[3 * q] = l00 * y[q, 0] + l10 * y[q, 1] + l20 * y[q, 2]
+        white_y[3 * q + 1] = l11 * y[q, 1] + l21 * y[q, 2]
+        white_y[3 * q + 2] = l22 * y[q, 2]
+        for b in range(6):
+            white_H[3 * q, b] = l00 * H[q, 0, b] + l10 * H[q, 1, b] + l20 * H[q, 2, b]
+            white_H[3 * q + 1, b] = l11 * H[q, 1, b] + l21 * H[q, 2, b]
+            white_H[3 * q + 2, b] = l22 * H[q, 2, b]
+    H_flat = np.ascontiguousarray(H).reshape(3 * N, 6)
     out = np.empty(seeds.size)
     best = np.empty(m)
-    y_cond = np.empty(3)
-    for k in range(seeds.size):
-        s = seeds[k]
-        # conditioning on s: P_s = P - U U' with U = P H_s' L_s^-T, correction K_s y_s = U L_s^-1 y_s
-        L = np.linalg.cholesky(S[s])
-        Ut = np.linalg.solve(L, HP[s])                    # (3, 6) = U'
-        w = np.linalg.solve(L, y[s])
-        correction = Ut.T @ w
-        for i in range(m):
-            best[i] = null_cost[i]
-        for q in range(N):
-            if pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
-                continue
-            for a in range(3):
-                moved = 0.0
-                for b in range(6):
-                    moved += H[q, a, b] * correction[b]
-                y_cond[a] = y[q, a] - moved
-            # S|s <= S, so d^2 under S is a lower bound: most pairs under a seed are far out
-            bound = 0.0
-            for a in range(3):
-                for b in range(3):
-                    bound += y_cond[a] * S_inverse[q, a, b] * y_cond[b]
-            if bound > gate:
-                continue
-            V = mm(H[q], Ut.T)                            # H_q U
-            S_cond = S[q] - mm(V, V.T)
-            d2, log_det = mahalanobis(S_cond, y_cond)
-            if d2 <= gate:
-                cost = d2 + log_det - log_det_R[q]
-                if cost < best[pair_obs[q]]:
-                    best[pair_obs[q]] = cost
-        best[pair_obs[s]] = 0.0
-        d2_seed, log_det_seed = mahalanobis(S[s], y[s])
-        total = d2_seed + log_det_seed - log_det_R[s]
-        for i in range(m):
-            total += best[i]
-        out[k] = total
+    for first in range(0, seeds.size, SEED_CHUNK):
+        chunk = seeds[first:first + SEED_CHUNK]
+        c = chunk.size
+        corrections = np.empty((6, c))
+        U = np.empty((6, 3 * c))
+        for k in range(c):
+            s = chunk[k]
+            # conditioning on s: P_s = P - U U' with U = P H_s' L_s^-T, correction K_s y_s = U L_s^-1 y_s
+            L = np.linalg.cholesky(S[s])
+            Ut = np.linalg.solve(L, HP[s])
+            U[:, 3 * k:3 * k + 3] = Ut.T
+            corrections[:, k] = Ut.T @ np.linalg.solve(L, y[s])
+        # every pair under every seed of the chunk in three matrix products
+        white_moved = white_H @ corrections                 # (3N, c): W_q H_q c_s
+        moved = H_flat @ corrections                        # (3N, c): H_q c_s
+        V = H_flat @ U                                      # (3N, 3c): H_q U_s
+        for k in range(c):
+            s = chunk[k]
+            for i in range(m):
+                best[i] = null_cost[i]
+            for q in range(N):
+                if pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
+                    continue
+                # S|s <= S, so d^2 under S is a lower bound: most pairs under a seed are far out
+                w0 = white_y[3 * q] - white_moved[3 * q, k]
+                w1 = white_y[3 * q + 1] - white_moved[3 * q + 1, k]
+                w2 = white_y[3 * q + 2] - white_moved[3 * q + 2, k]
+                if w0 * w0 + w1 * w1 + w2 * w2 > gate:
+                    continue
+                r0, r1, r2 = 3 * q, 3 * q + 1, 3 * q + 2
+                k0, k1, k2 = 3 * k, 3 * k + 1, 3 * k + 2
+                # S|s = S_q - (H_q U)(H_q U)'
+                a = S[q, 0, 0] - (V[r0, k0] * V[r0, k0] + V[r0, k1] * V[r0, k1] + V[r0, k2] * V[r0, k2])
+                b = S[q, 0, 1] - (V[r0, k0] * V[r1, k0] + V[r0, k1] * V[r1, k1] + V[r0, k2] * V[r1, k2])
+                cc = S[q, 0, 2] - (V[r0, k0] * V[r2, k0] + V[r0, k1] * V[r2, k1] + V[r0, k2] * V[r2, k2])
+                d = S[q, 1, 1] - (V[r1, k0] * V[r1, k0] + V[r1, k1] * V[r1, k1] + V[r1, k2] * V[r1, k2])
+                e = S[q, 1, 2] - (V[r1, k0] * V[r2, k0] + V[r1, k1] * V[r2, k1] + V[r1, k2] * V[r2, k2])
+                f = S[q, 2, 2] - (V[r2, k0] * V[r2, k0] + V[r2, k1] * V[r2, k1] + V[r2, k2] * V[r2, k2])
+                d2, log_det = mahalanobis_components(a, b, cc, d, e, f, y[q, 0] - moved[r0, k], y[q, 1] - moved[r1, k],
+                                                     y[q, 2] - moved[r2, k])
+                if d2 <= gate:
+                    cost = d2 + log_det - log_det_R[q]
+                    if cost < best[pair_obs[q]]:
+                        best[pair_obs[q]] = cost
+            best[pair_obs[s]] = 0.0
+            d2_seed, log_det_seed = mahalanobis(S[s], y[s])
+            total = d2_seed + log_det_seed - log_det_R[s]
+            for i in range(m):
+                total += best[i]
+            out[first + k] = total
     return out

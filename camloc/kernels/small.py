@@ -73,3 +73,42 @@ def sandwich(H, P):
             out[i, j] = s
             out[j, i] = s
     return out
+
+
+@jit
+def solve(A, B):
+    """A^-1 B for a small square A (n, n) and B (n, k) or (n,), by Gaussian elimination with
+    partial pivoting (LAPACK's call costs more than a 6x6 system); raises FloatingPointError where
+    A is singular."""
+    n = A.shape[0]
+    M = A.copy()
+    vector = B.ndim == 1
+    X = B.reshape(n, -1).copy() if not vector else B.copy().reshape(n, 1)
+    k = X.shape[1]
+    for col in range(n):
+        pivot, best = col, abs(M[col, col])
+        for r in range(col + 1, n):
+            if abs(M[r, col]) > best:
+                pivot, best = r, abs(M[r, col])
+        if not best > 0.0:
+            raise FloatingPointError("a singular matrix in a filter step")
+        if pivot != col:
+            for j in range(n):
+                M[col, j], M[pivot, j] = M[pivot, j], M[col, j]
+            for j in range(k):
+                X[col, j], X[pivot, j] = X[pivot, j], X[col, j]
+        inverse_pivot = 1.0 / M[col, col]
+        for r in range(col + 1, n):
+            factor = M[r, col] * inverse_pivot
+            if factor != 0.0:
+                for j in range(col, n):
+                    M[r, j] -= factor * M[col, j]
+                for j in range(k):
+                    X[r, j] -= factor * X[col, j]
+    for col in range(n - 1, -1, -1):
+        for j in range(k):
+            s = X[col, j]
+            for q in range(col + 1, n):
+                s -= M[col, q] * X[q, j]
+            X[col, j] = s / M[col, col]
+    return X

@@ -20,7 +20,7 @@ import numpy as np
 from camloc.kernels._jit import jit
 from camloc.kernels.camera import back_project, observe_pairs
 from camloc.kernels.rotation import difference, retract
-from camloc.kernels.small import mm, mtm, mtv, mv
+from camloc.kernels.small import mm, mtm, mtv, mv, solve
 
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
@@ -31,16 +31,26 @@ def information_gain(P, H, R_inverse):
     """(R^-1 H (p, 3, 6), Lambda (6, 6), I + P Lambda (6, 6), A P (6, 6)) of pairs with
     Jacobians H (p, 3, 6) and noise information R_inverse (p, 3, 3)."""
     p = H.shape[0]
-    R_inverse_H = np.empty((p, 3, 6))
+    R_inverse_H = np.zeros((p, 3, 6))
     information = np.zeros((6, 6))
     for i in range(p):
-        R_inverse_H[i] = mm(R_inverse[i], H[i])
-        information += mtm(H[i], R_inverse_H[i])
-    information = 0.5 * (information + information.T)
+        for a in range(3):
+            for b in range(3):
+                r = R_inverse[i, a, b]
+                for c in range(6):
+                    R_inverse_H[i, a, c] += r * H[i, b, c]
+        for a in range(3):
+            for c in range(6):
+                h = H[i, a, c]
+                for d in range(c, 6):
+                    information[c, d] += h * R_inverse_H[i, a, d]
+    for c in range(6):
+        for d in range(c):
+            information[c, d] = information[d, c]
     I_P_information = np.eye(6) + mm(P, information)
     if not np.all(np.isfinite(I_P_information)):
         raise FloatingPointError("innovation covariance is not positive definite")
-    posterior = np.linalg.solve(I_P_information, P)
+    posterior = solve(I_P_information, P)
     return R_inverse_H, information, I_P_information, 0.5 * (posterior + posterior.T)
 
 
@@ -102,7 +112,9 @@ def gradient(R_inverse_H, y):
     """g = sum H_i' R_i^-1 y_i (6,) for innovations y (p, 3)."""
     g = np.zeros(6)
     for i in range(y.shape[0]):
-        g += mtv(R_inverse_H[i], y[i])
+        for a in range(3):
+            for c in range(6):
+                g[c] += R_inverse_H[i, a, c] * y[i, a]
     return g
 
 
@@ -111,7 +123,9 @@ def block_quadratic(y, R_inverse):
     """sum y_i' R_i^-1 y_i."""
     total = 0.0
     for i in range(y.shape[0]):
-        total += y[i] @ mv(R_inverse[i], y[i])
+        for a in range(3):
+            for b in range(3):
+                total += y[i, a] * R_inverse[i, a, b] * y[i, b]
     return total
 
 
@@ -125,8 +139,8 @@ def normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain):
 @jit
 def posterior_covariance(P, information, I_P_information):
     """A (P + P Lambda P) A', symmetric positive definite by construction."""
-    spread = np.linalg.solve(I_P_information, P + mm(mm(P, information), P))
-    out = np.linalg.solve(I_P_information, np.ascontiguousarray(spread.T)).T
+    spread = solve(I_P_information, P + mm(mm(P, information), P))
+    out = solve(I_P_information, np.ascontiguousarray(spread.T)).T
     return 0.5 * (out + out.T)
 
 
@@ -166,7 +180,7 @@ def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera
     prior x, r the residual ``z - h(x_post)``; chi^2 with 3p degrees of freedom at the MAP."""
     moved = difference(x_post, x)
     z_hat, _ = observe_pairs(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
-    return moved @ np.linalg.solve(P, moved) + block_quadratic(z - z_hat, R_inverse)
+    return moved @ solve(P, moved)[:, 0] + block_quadratic(z - z_hat, R_inverse)
 
 
 @jit
