@@ -389,12 +389,7 @@ def test_observations_claiming_to_be_exact_in_four_cameras_are_localized_exactly
     assert evaluate(result)["association"]["precision"] == 1.0
 
 
-@pytest.mark.parametrize("kind", [
-    pytest.param(dict(intrinsics="pixel"), marks=pytest.mark.xfail(strict=False, reason=(
-        "compiled loop: on noise-free pixel data (information 1e12) the replay's iterated update at pose 1001 "
-        "lands 0.1 m from the numpy one (same pairs; choosing between two unconverged starts by MAP costs equal "
-        "to rounding), and the re-check then drops pairs: recall 0.895 against 1.0"))),
-    dict(trajectory="smooth3d")])
+@pytest.mark.parametrize("kind", [dict(intrinsics="pixel"), dict(trajectory="smooth3d")])
 def test_association_of_noise_free_observations_matches_the_oracle(kind):
     # before association.noise_floored: recall 0.15 and 0.14 m (pixel camera) and 0.64 and
     # 0.12 m (smooth3d), where the oracle gets 0.050 and 0.037 m; on 100 poses with the pixel
