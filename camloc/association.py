@@ -16,7 +16,10 @@ determinant charges for that spread, making the cost a proper likelihood compari
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the k-d tree is imported where it is built: scipy.spatial costs 0.1 s to import
+    from scipy.spatial import cKDTree
 
 from camloc import sym3
 
@@ -71,6 +74,8 @@ def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:
     """
     if shifts.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
+    from scipy.spatial import cKDTree
+
     return np.asarray(cKDTree(shifts).query_ball_point(shifts, radius, return_length=True), dtype=np.int64)
 
 

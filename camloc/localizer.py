@@ -15,7 +15,6 @@ from dataclasses import asdict, dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
 from camloc import association, ekf, geometry, models
@@ -243,6 +242,8 @@ class _Localizer:
             for cid, cam in dataset.cameras.items()
         }
         self.single_camera = int(next(iter(dataset.cameras))) if len(dataset.cameras) == 1 else None
+        from scipy.spatial import cKDTree  # here: the compiled loop has no use for it, and it costs 0.1 s to import
+
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
