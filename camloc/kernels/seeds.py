@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.small import mm, mv, sandwich
+from camloc.kernels.small import mm, mtv, mv, sandwich
 from camloc.kernels.sym3 import inverse, log_det as log_det_3x3, mahalanobis, mahalanobis_components
 
 
@@ -67,7 +67,7 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
             L = np.linalg.cholesky(S[s])
             Ut = np.linalg.solve(L, HP[s])
             U[:, 3 * k:3 * k + 3] = Ut.T
-            corrections[:, k] = Ut.T @ np.linalg.solve(L, y[s])
+            corrections[:, k] = mtv(Ut, np.linalg.solve(L, y[s]))
         # every pair under every seed of the chunk in three matrix products
         white_moved = white_H @ corrections                 # (3N, c): W_q H_q c_s
         moved = H_flat @ corrections                        # (3N, c): H_q c_s

@@ -157,7 +157,7 @@ def innovation_cost(P, H, R, R_inverse, y):
             log_det += 2.0 * np.log(L[i, i])
         for i in range(R.shape[0]):
             log_det -= np.linalg.slogdet(R[i])[1]
-        return v @ cho_solve(L, v.reshape(-1, 1))[:, 0] + log_det
+        return v @ cho_solve(L, v.reshape(-1, 1)).ravel() + log_det
     R_inverse_H, _, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
     sign, log_det = np.linalg.slogdet(I_P_information)
     if sign <= 0.0:
@@ -180,7 +180,7 @@ def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera
     prior x, r the residual ``z - h(x_post)``; chi^2 with 3p degrees of freedom at the MAP."""
     moved = difference(x_post, x)
     z_hat, _ = observe_pairs(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
-    return moved @ solve(P, moved)[:, 0] + block_quadratic(z - z_hat, R_inverse)
+    return moved @ solve(P, moved).ravel() + block_quadratic(z - z_hat, R_inverse)
 
 
 @jit
@@ -201,7 +201,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     if few:
         K, S, L, Hs = covariance_gain(P, H, R)
         v = stacked(y_prior)
-        nis = v @ cho_solve(L, v.reshape(-1, 1))[:, 0]               # NIS = y' S^-1 y
+        nis = v @ cho_solve(L, v.reshape(-1, 1)).ravel()               # NIS = y' S^-1 y
         delta = mv(K, v)
     else:
         R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
