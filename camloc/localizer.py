@@ -546,7 +546,7 @@ class _Localizer:
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
-        """Which of a pose's pairs keep at least ``recheck_margin`` over their nearest alternative
+        """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative
         (``association.assignment_margins``) when each observation is judged by the posterior of
         the other pairs (``association.leave_one_out_costs``): (p,) bool."""
         ds = self.dataset
