@@ -17,7 +17,6 @@ so the scripts keep working while the localizer's internals change.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import os
@@ -184,24 +183,58 @@ class ResultStore:
 
 def localizer_options(settings: list[str], *, fixed: Optional[Mapping[str, Any]] = None,
                       forbidden: tuple[str, ...] = ()) -> dict[str, Any]:
-    """LocalizerConfig options from ``KEY=VALUE`` strings (values as JSON when they parse, else
-    strings), merged over ``fixed`` and validated now rather than in every child: a bad option is
-    one line on stderr and exit status 2."""
-    import camloc
+    """Localizer options from ``KEY=VALUE`` strings (values as JSON when they parse, else strings),
+    merged over ``fixed`` and validated now rather than in every child: a bad option is one line on
+    stderr and exit status 2. KEY is a config file's name, dotted for a group's option:
+    ``gate=0.95``, ``beam.width=8``, ``recheck.enabled=false`` (``camloc.config``)."""
     from camloc.errors import CamlocError
 
-    known = sorted({f.name for f in dataclasses.fields(camloc.LocalizerConfig)} - set(forbidden))
     options = dict(fixed or {})
     for setting in settings:
         key, sep, text = setting.partition("=")
-        if not sep or key not in known:
-            _fail(f"--set expects KEY=VALUE with KEY one of {', '.join(known)}; found {setting!r}")
+        if not sep or key in forbidden:
+            _fail(f"--set expects KEY=VALUE with KEY a localizer option other than {', '.join(forbidden) or 'none'}, "
+                  f"as a config file names it (gate, beam.width); found {setting!r}")
         options[key] = parse_value(text)
     try:
-        camloc.LocalizerConfig(**options).validate()
-    except (CamlocError, TypeError) as error:
+        localizer_config(options)
+    except CamlocError as error:
         _fail(f"localizer options {options}: {error}")
     return options
+
+
+def localizer_config(options: Mapping[str, Any]):
+    """The validated LocalizerConfig of options named as ``localizer_options`` takes them."""
+    from camloc.config import make_config, parse_config
+
+    return make_config(parse_config(_document(options), source="--set"))
+
+
+def options_for(association: str, options: Mapping[str, Any]) -> dict[str, Any]:
+    """``options`` without the ones of association methods other than ``association`` (which
+    ``camloc.LocalizerConfig`` refuses)."""
+    from camloc.config import parse_config
+    from camloc.localizer import option_methods
+
+    methods = option_methods()
+
+    def applies(key: str, value: Any) -> bool:
+        (path,) = parse_config(_document({key: value}), source="--set").values
+        return association in methods.get(path, (association,))
+
+    return {key: value for key, value in options.items() if applies(key, value)}
+
+
+def _document(options: Mapping[str, Any]) -> dict[str, Any]:
+    """The TOML document of dotted options: ``{"beam.width": 8}`` -> ``{"beam": {"width": 8}}``."""
+    document: dict[str, Any] = {}
+    for key, value in options.items():
+        *tables, name = key.split(".")
+        node = document
+        for table in tables:
+            node = node.setdefault(table, {})
+        node[name] = value
+    return document
 
 
 def _fail(message: str) -> None:
@@ -221,7 +254,7 @@ def parse_value(text: str) -> Any:
 
 
 def run_case(path: Path, config: Mapping[str, Any], *, timeout: float) -> dict:
-    """Localize ``path`` with ``LocalizerConfig(**config)`` in a fresh interpreter.
+    """Localize ``path`` with the options ``config`` (as ``localizer_options`` names them) in a fresh interpreter.
 
     Returns the child's JSON (see ``_worker``): times, peak memory, poses, landmarks, observations
     and metrics, plus ``wall_seconds``, the child's whole life (interpreter start, read, localize,
@@ -297,7 +330,7 @@ def _worker(request: dict) -> dict:
     started = time.perf_counter()
     dataset = camloc.load(request["path"])
     read_seconds = time.perf_counter() - started
-    config = camloc.LocalizerConfig(**request["config"])
+    config = localizer_config(request["config"])
     started = time.perf_counter()
     result = camloc.localize(dataset, config)
     filter_seconds = time.perf_counter() - started

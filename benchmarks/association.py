@@ -55,8 +55,8 @@ TARGET_TEXT = ("targets: precision >= 99.5%, recall >= 95% (dense), RMSE within 
 METHODS = {
     "beam": {"association": "beam"},
     "jcbb": {"association": "jcbb"},
-    "best-friends": {"association": "best-friends", "sequential": True},
-    "bf-batch": {"association": "best-friends", "sequential": False, "recheck": False},
+    "best-friends": {"association": "best-friends", "best-friends.sequential": True},
+    "bf-batch": {"association": "best-friends", "best-friends.sequential": False, "recheck.enabled": False},
     "oracle": {"association": "oracle"},
 }
 
@@ -122,7 +122,7 @@ def main() -> None:
         for seed, path in worlds:
             oracle_rmse = None
             for method in methods:
-                config = {**METHODS[method], **args.settings}
+                config = {**METHODS[method], **_bench.options_for(METHODS[method]["association"], args.settings)}
                 result = store.get(path, config)
                 if result is None:
                     result = _bench.run_case(path, config, timeout=args.timeout)
@@ -165,13 +165,14 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--size", type=float, default=1.0,
                         help="multiplies every case's poses and landmark count (default 1)")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
-                        help="a LocalizerConfig option given to every method, e.g. --set iterations=1 (default: none)")
+                        help="a localizer option given to every method it is an option of, named as in a config file, "
+                        "e.g. --set iterations=1 --set beam.width=8 (default: none)")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed per run (default 1800)")
     parser.add_argument("--resume", action="store_true",
                         help="reuse results saved by an earlier run with the same library source (default: measure anew)")
     parser.add_argument("--json", action="store_true", help="print everything as JSON instead of tables (default: tables)")
     args = parser.parse_args()
-    # The method sets the association; everything else applies to every method alike.
+    # The method sets the association; everything else applies to every method that has the option.
     args.settings = _bench.localizer_options(args.settings, forbidden=("association",))
     return args
 

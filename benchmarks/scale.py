@@ -24,7 +24,7 @@ times are wall-clock around those calls. µs/pose = filter time / poses, flat wh
 linear in poses and independent of the map; µs/obs divides by observations instead.
 
     nice python benchmarks/scale.py --quick
-    nice python benchmarks/scale.py [--association beam] [--set beam_width=8] [--json]
+    nice python benchmarks/scale.py [--association beam] [--set beam.width=8] [--json]
 
 Generated worlds are cached in ``--cache`` (default ~/.cache/camloc-bench), keyed by their simulate
 arguments and the simulator's source; results are saved there too and ``--resume`` reuses those
@@ -128,7 +128,7 @@ def parse_args() -> argparse.Namespace:
                         help="association method, any LocalizerConfig accepts, e.g. beam, jcbb, best-friends, oracle "
                         "(default: LocalizerConfig's default)")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
-                        help="any other LocalizerConfig option, e.g. --set beam_width=8 --set sequential=false "
+                        help="any other localizer option, named as in a config file, e.g. --set beam.width=8 --set gate=0.95 "
                         "(repeatable; default: none)")
     parser.add_argument("--repeats", type=int, default=3, help="real-file runs, the fastest is reported (default 3)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds allowed per case (default 3600)")
@@ -262,7 +262,7 @@ def with_oracle(row: dict, path: Path, overrides: dict, store: _bench.ResultStor
     --no-oracle or when the oracle is what is being timed."""
     if args.no_oracle or overrides.get("association") == "oracle" or "error" in row:
         return row
-    oracle = measured(store, path, {**overrides, "association": "oracle"}, timeout=args.timeout, say=say)
+    oracle = measured(store, path, {**_bench.options_for("oracle", overrides), "association": "oracle"}, timeout=args.timeout, say=say)
     return {**row, "oracle_rmse_m": oracle.get("rmse_m"), "oracle_us_per_pose": derived(oracle).get("us_per_pose")}
 
 

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "load", "localize", "LocalizerConfig", "bundled_dataset"]
+# LocalizerConfig's groups of options, as the library writes them: LocalizerConfig(beam=BeamOptions(width=8))
+_OPTION_GROUPS = ("BeamOptions", "BestFriendsOptions", "JcbbOptions", "RecheckOptions", "ViewOptions")
+
+__all__ = ["__version__", "load", "localize", "LocalizerConfig", *_OPTION_GROUPS, "bundled_dataset"]
 
 
 def __getattr__(name: str):
@@ -19,7 +22,7 @@ def __getattr__(name: str):
         from camloc.g2o import read_g2o
 
         return read_g2o
-    if name in ("localize", "LocalizerConfig"):
+    if name in ("localize", "LocalizerConfig", *_OPTION_GROUPS):
         from camloc import localizer
 
         return getattr(localizer, name)

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, replace
-from typing import Callable, Optional
+from dataclasses import MISSING, asdict, dataclass, field, fields, is_dataclass, replace
+from typing import Callable, ClassVar, Optional
 
 import numpy as np
 from scipy.special import chdtri
@@ -35,94 +35,241 @@ MAX_SIGMA_DEG = 1e6
 
 
 @dataclass(frozen=True)
+class BeamOptions:
+    """The beam's options (``association="beam"``, ``camloc.beam``; costs are 2 x negative
+    log-likelihoods). Defaults: ``camloc.beam.BeamSettings``.
+
+    Attributes
+    ----------
+    width : association hypotheses kept after each pose.
+    delta : drop hypotheses this much costlier than the best.
+    branch_delta : explore only an observation's options within this cost of its best.
+    slip_inflation : covariance factor of the odometry-slip hypothesis (>= 1).
+    slip_cost : extra cost of the odometry-slip hypothesis.
+    """
+
+    METHODS: ClassVar[tuple[str, ...]] = ("beam",)
+
+    width: int = BeamSettings.beam_width
+    delta: float = BeamSettings.beam_delta
+    branch_delta: float = BeamSettings.branch_delta
+    slip_inflation: float = BeamSettings.slip_inflation
+    slip_cost: float = BeamSettings.slip_cost
+
+
+@dataclass(frozen=True)
+class BestFriendsOptions:
+    """Best friends' options (``association="best-friends"``; cost and margin also pick the pairs
+    that seed ``"jcbb"``).
+
+    Attributes
+    ----------
+    cost : pair cost: "nll" (d^2 + ln det S), "mahalanobis" (d^2), "euclidean" (|z - z_hat| in
+        measurement units).
+    margin : lonely-best-friends margin, in cost units: a pair is rejected when a rival in its row
+        or column is less than ``margin`` more expensive.
+    sequential : accept pairs one at a time, most unambiguous first, conditioning the filter on
+        each before looking at the rest (the final update is still one stacked update from the
+        prior); False pairs all observations at once (the original method). Best friends only:
+        jcbb takes its seed in one batch.
+    """
+
+    METHODS: ClassVar[tuple[str, ...]] = ("best-friends", "jcbb")
+
+    cost: str = "nll"
+    margin: float = 1.0
+    sequential: bool = field(default=True, metadata={"methods": ("best-friends",)})
+
+
+@dataclass(frozen=True)
+class JcbbOptions:
+    """Joint compatibility branch and bound's options (``association="jcbb"``, ``camloc.jcbb``).
+
+    Attributes
+    ----------
+    max_nodes : bound on the joint compatibility tests per pose; past it the best set found is kept.
+    """
+
+    METHODS: ClassVar[tuple[str, ...]] = ("jcbb",)
+
+    max_nodes: int = 2000
+
+
+@dataclass(frozen=True)
+class RecheckOptions:
+    """The re-check after each update (every association but "oracle", which ignores it).
+
+    Each accepted pair is judged again by the posterior of the pose's other pairs (its own left
+    out, ``association.leave_one_out_costs``) and the pose updated again without the pairs that do
+    not hold. A pair holds when leaving its observation unassigned or pairing it with another
+    landmark costs more than ``margin``, and handing its landmark to another of the pose's
+    observations costs more than ``steal_margin`` (two detections that fit one landmark about
+    equally well: one of them is clutter, and which is not known).
+
+    Attributes
+    ----------
+    enabled : run the re-check.
+    margin, steal_margin : as above, in cost units (>= 0).
+    """
+
+    enabled: bool = True
+    margin: float = 0.0
+    steal_margin: float = 6.0
+
+
+@dataclass(frozen=True)
+class ViewOptions:
+    """Which map landmarks are candidates for a camera's observations (every association).
+
+    Attributes
+    ----------
+    min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
+        1.25 x the largest measured depth + 0.5 m).
+    max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
+        widest observed ray + 10 deg, at most 89 deg).
+    """
+
+    min_depth: Optional[float] = None
+    max_depth: Optional[float] = None
+    max_angle_deg: Optional[float] = None
+
+
+@dataclass(frozen=True)
 class LocalizerConfig:
-    """Every option of the localizer; ``summary.json`` records it so a run can be repeated.
+    """Every option of the localizer; ``summary.json`` records it (``dataclasses.asdict``) so a run
+    can be repeated.
+
+    The options every run may want are at the top; each method's own options are in its group,
+    and an option of a method that is not selected must keep its default (``validate``).
+    ``camloc.options`` names each option as the command line and config files do.
 
     Attributes
     ----------
     filter : "euler" (state x, y, z, roll, pitch, yaw; singular at pitch +-90 deg) or "se3" (an
         error-state filter on SE(3), no singularity), see ``camloc.filters``.
-    association : "beam" (a beam of association hypotheses, see ``camloc.beam``), "best-friends"
-        (mutual best match + gates) or "oracle" (the file's landmark ids, gated like any pair:
-        what perfect association gives). Only "oracle" reads the file's landmark ids.
+    association : "beam" (a beam of association hypotheses, see ``camloc.beam``), "jcbb" (joint
+        compatibility branch and bound, seeded by best friends), "best-friends" (mutual best
+        match + gates) or "oracle" (the file's landmark ids, gated like any pair: what perfect
+        association gives). Only "oracle" reads the file's landmark ids.
     iterations : linearizations per update (1 = EKF, more = iterated EKF).
-    gate_probability : chi^2 gate on each pair's innovation, 3 degrees of freedom.
-    cost : pair cost for best friends: "nll" (d^2 + ln det S), "mahalanobis" (d^2), "euclidean"
-        (|z - z_hat| in measurement units).
-    margin : lonely-best-friends margin, in cost units: a pair is rejected when a rival in its row
-        or column is less than ``margin`` more expensive.
-    sequential : accept best-friends pairs one at a time, most unambiguous first, conditioning the
-        filter on each before looking at the rest (the final update is still one stacked update
-        from the prior); False pairs all observations at once (the original method).
-    beam_width, beam_delta, branch_delta, slip_inflation, slip_cost : the beam's parameters, see
-        ``camloc.beam.BeamSettings`` (costs are 2 x negative log-likelihoods).
-    null_cost : cost of leaving an observation unassigned (the beam, and the re-check); None: per
-        observation, from the data (``association.clutter_null_cost``: clutter uniform over the
-        measured volume).
-    recheck : after each update, judge every accepted pair again by the posterior of the pose's
-        other pairs (its own left out, ``association.leave_one_out_costs``) and update again
-        without the pairs that do not hold (not for "oracle"). A pair holds when leaving its
-        observation unassigned or pairing it with another landmark costs more than
-        ``recheck_margin``, and handing its landmark to another of the pose's observations costs
-        more than ``recheck_steal_margin`` (two detections that fit one landmark about equally
-        well: one of them is clutter, and which is not known).
-    jcbb_max_nodes : bound on the joint compatibility tests per pose of "jcbb" (``camloc.jcbb``).
-    min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
-        1.25 x the largest measured depth + 0.5 m).
-    max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
-        widest observed ray + 10 deg, at most 89 deg).
-    initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose.
+    gate : probability of the chi^2 gate on each pair's innovation, 3 degrees of freedom.
+    null_cost : cost of leaving an observation unassigned, read by the beam and by the re-check
+        (so by no single method: it is not in a method's group); None: per observation, from the
+        data (``association.clutter_null_cost``: clutter uniform over the measured volume).
+    initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose (metres, degrees).
+    beam, best_friends, jcbb : each method's own options (``BeamOptions``, ``BestFriendsOptions``,
+        ``JcbbOptions``).
+    recheck : the re-check after each update (``RecheckOptions``).
+    view : the candidate landmarks' depth range and field of view (``ViewOptions``).
     """
 
     filter: str = "euler"
     association: str = "beam"
     iterations: int = 3
-    gate_probability: float = 0.99
-    cost: str = "nll"
-    margin: float = 1.0
-    sequential: bool = True
-    beam_width: int = BeamSettings.beam_width
-    beam_delta: float = BeamSettings.beam_delta
-    branch_delta: float = BeamSettings.branch_delta
+    gate: float = 0.99
     null_cost: Optional[float] = None
-    slip_inflation: float = BeamSettings.slip_inflation
-    slip_cost: float = BeamSettings.slip_cost
-    recheck: bool = True
-    recheck_margin: float = 0.0
-    recheck_steal_margin: float = 6.0
-    jcbb_max_nodes: int = 2000
-    min_depth: Optional[float] = None
-    max_depth: Optional[float] = None
-    max_angle_deg: Optional[float] = None
     initial_sigma_xyz: float = 0.01
     initial_sigma_deg: float = 0.5
+    beam: BeamOptions = field(default_factory=BeamOptions)
+    best_friends: BestFriendsOptions = field(default_factory=BestFriendsOptions)
+    jcbb: JcbbOptions = field(default_factory=JcbbOptions)
+    recheck: RecheckOptions = field(default_factory=RecheckOptions)
+    view: ViewOptions = field(default_factory=ViewOptions)
+
+    @property
+    def gate_probability(self) -> float:
+        """``gate``, under its former name, for ``camloc.loop`` until it reads ``gate``."""
+        return self.gate
 
     def validate(self) -> None:
-        """Raise ConfigError naming the first option that is out of range."""
-        checks = [
-            (self.filter in FILTERS, f"filter must be one of {tuple(FILTERS)}, got {self.filter!r}"),
-            (self.association in ASSOCIATION_METHODS, f"association must be one of {ASSOCIATION_METHODS}, got {self.association!r}"),
-            (self.cost in COSTS, f"cost must be one of {COSTS}, got {self.cost!r}"),
-            (int(self.iterations) == self.iterations and 1 <= self.iterations <= 50, f"iterations must be an integer in 1..50, got {self.iterations}"),
-            (0.0 < self.gate_probability < 1.0, f"gate_probability must be in (0, 1), got {self.gate_probability}"),
-            (self.margin >= 0.0, f"margin must be >= 0, got {self.margin}"),
-            (0.0 < self.initial_sigma_xyz <= MAX_COORDINATE, f"initial_sigma_xyz must be in (0, {MAX_COORDINATE:.0e}] m, got {self.initial_sigma_xyz}"),
-            (0.0 < self.initial_sigma_deg <= MAX_SIGMA_DEG, f"initial_sigma_deg must be in (0, {MAX_SIGMA_DEG:.0e}] deg, got {self.initial_sigma_deg}"),
-            (self.min_depth is None or 0.0 <= self.min_depth <= MAX_COORDINATE, f"min_depth must be in [0, {MAX_COORDINATE:.0e}] m, got {self.min_depth}"),
-            (self.max_depth is None or (self.min_depth or 0.0) < self.max_depth <= MAX_COORDINATE,
-             f"max_depth must be > min_depth and at most {MAX_COORDINATE:.0e} m, got {self.max_depth}"),
-            (self.max_angle_deg is None or 0.0 < self.max_angle_deg < 90.0, f"max_angle_deg must be in (0, 90), got {self.max_angle_deg}"),
-            (int(self.beam_width) == self.beam_width and self.beam_width >= 1, f"beam_width must be an integer >= 1, got {self.beam_width}"),
-            (self.beam_delta > 0.0 and self.branch_delta > 0.0, "beam_delta and branch_delta must be > 0"),
-            (self.null_cost is None or self.null_cost > 0.0, f"null_cost must be > 0, got {self.null_cost}"),
-            (self.slip_cost >= 0.0, f"slip_cost must be >= 0, got {self.slip_cost}"),
-            (self.recheck_margin >= 0.0 and self.recheck_steal_margin >= 0.0, "recheck_margin and recheck_steal_margin must be >= 0"),
-            (self.slip_inflation >= 1.0, f"slip_inflation must be >= 1, got {self.slip_inflation}"),
-            (int(self.jcbb_max_nodes) == self.jcbb_max_nodes and self.jcbb_max_nodes >= 1, f"jcbb_max_nodes must be an integer >= 1, got {self.jcbb_max_nodes}"),
-        ]
-        for ok, message in checks:
+        """Raise ``OptionError`` naming the first option that is out of range, of a wrong kind, or
+        set (to other than its default) for a method that is not selected."""
+        for path, ok, reason in self._checks():
             if not ok:
-                raise ConfigError(message)
+                raise OptionError(path, reason)
+        for path, methods in option_methods().items():
+            if self.association not in methods and option_value(self, path) != option_value(_DEFAULT_CONFIG, path):
+                raise OptionError(path, f"applies only with association {' or '.join(methods)}; the selected "
+                                        f"association is {self.association}")
+
+    def _checks(self) -> list[tuple[str, bool, str]]:
+        """(option path, holds, what it must be) for every rule of a single option's range."""
+        groups = [(f.name, isinstance(getattr(self, f.name), type(f.default_factory()))) for f in fields(self)
+                  if f.default_factory is not MISSING]
+        wrong = next((name for name, ok in groups if not ok), None)
+        if wrong is not None:  # the checks below read the groups' fields
+            kind = type(getattr(_DEFAULT_CONFIG, wrong)).__name__
+            return [(wrong, False, f"must be a {kind}, got {getattr(self, wrong)!r}")]
+        beam, best_friends, recheck, view = self.beam, self.best_friends, self.recheck, self.view
+        return [
+            ("filter", self.filter in FILTERS, f"must be one of {', '.join(FILTERS)}, got {self.filter!r}"),
+            ("association", self.association in ASSOCIATION_METHODS,
+             f"must be one of {', '.join(ASSOCIATION_METHODS)}, got {self.association!r}"),
+            ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= 50, f"must be an integer in 1..50, got {self.iterations}"),
+            ("gate", 0.0 < self.gate < 1.0, f"must be a probability in (0, 1), got {self.gate}"),
+            ("null_cost", self.null_cost is None or self.null_cost > 0.0, f"must be > 0, got {self.null_cost}"),
+            ("initial_sigma_xyz", 0.0 < self.initial_sigma_xyz <= MAX_COORDINATE,
+             f"must be in (0, {MAX_COORDINATE:.0e}] m, got {self.initial_sigma_xyz}"),
+            ("initial_sigma_deg", 0.0 < self.initial_sigma_deg <= MAX_SIGMA_DEG,
+             f"must be in (0, {MAX_SIGMA_DEG:.0e}] deg, got {self.initial_sigma_deg}"),
+            ("beam.width", _is_integer(beam.width) and beam.width >= 1, f"must be an integer >= 1, got {beam.width}"),
+            ("beam.delta", beam.delta > 0.0, f"must be > 0, got {beam.delta}"),
+            ("beam.branch_delta", beam.branch_delta > 0.0, f"must be > 0, got {beam.branch_delta}"),
+            ("beam.slip_inflation", beam.slip_inflation >= 1.0, f"must be >= 1, got {beam.slip_inflation}"),
+            ("beam.slip_cost", beam.slip_cost >= 0.0, f"must be >= 0, got {beam.slip_cost}"),
+            ("best_friends.cost", best_friends.cost in COSTS, f"must be one of {', '.join(COSTS)}, got {best_friends.cost!r}"),
+            ("best_friends.margin", best_friends.margin >= 0.0, f"must be >= 0, got {best_friends.margin}"),
+            ("jcbb.max_nodes", _is_integer(self.jcbb.max_nodes) and self.jcbb.max_nodes >= 1,
+             f"must be an integer >= 1, got {self.jcbb.max_nodes}"),
+            ("recheck.margin", recheck.margin >= 0.0, f"must be >= 0, got {recheck.margin}"),
+            ("recheck.steal_margin", recheck.steal_margin >= 0.0, f"must be >= 0, got {recheck.steal_margin}"),
+            ("view.min_depth", view.min_depth is None or 0.0 <= view.min_depth <= MAX_COORDINATE,
+             f"must be in [0, {MAX_COORDINATE:.0e}] m, got {view.min_depth}"),
+            ("view.max_depth", view.max_depth is None or (view.min_depth or 0.0) < view.max_depth <= MAX_COORDINATE,
+             f"must be above the minimum depth ({view.min_depth or 0.0:g} m) and at most {MAX_COORDINATE:.0e} m, got {view.max_depth}"),
+            ("view.max_angle_deg", view.max_angle_deg is None or 0.0 < view.max_angle_deg < 90.0,
+             f"must be in (0, 90) deg, got {view.max_angle_deg}"),
+        ]
+
+
+class OptionError(ConfigError):
+    """An option out of range: ``path`` is its place in ``LocalizerConfig`` (``"beam.width"``),
+    ``reason`` what it must be. The message names the option by its path; ``camloc.config`` names
+    it as the user wrote it (``--beam-width``, ``[beam] width``)."""
+
+    def __init__(self, path: str, reason: str):
+        self.path, self.reason = path, reason
+        super().__init__(f"{path} {reason}")
+
+
+def option_methods() -> dict[str, tuple[str, ...]]:
+    """The options that belong to some association methods only: option path -> those methods.
+    A group's methods are its ``METHODS``; a field's own ``methods`` metadata narrows them."""
+    out = {}
+    for group in fields(LocalizerConfig):
+        options = getattr(_DEFAULT_CONFIG, group.name)
+        if not is_dataclass(options):
+            continue
+        for f in fields(options):
+            methods = f.metadata.get("methods", getattr(options, "METHODS", None))
+            if methods is not None:
+                out[f"{group.name}.{f.name}"] = methods
+    return out
+
+
+def option_value(config: LocalizerConfig, path: str):
+    """The value of option ``path`` (``"iterations"``, ``"beam.width"``)."""
+    value = config
+    for name in path.split("."):
+        value = getattr(value, name)
+    return value
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and float(value).is_integer()
+
+
+_DEFAULT_CONFIG = LocalizerConfig()
 
 
 @dataclass(frozen=True)
@@ -247,7 +394,7 @@ class _Localizer:
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
         self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
-        self.gate = float(chdtri(3, 1.0 - config.gate_probability))  # chi^2 quantile, 3 dof
+        self.gate = float(chdtri(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
         camera_ids = np.array(sorted(self.cameras), dtype=np.int64)
         table = np.array([self.cameras[int(c)].intrinsics for c in camera_ids]).reshape(-1, 4)
         intrinsics = table[np.searchsorted(camera_ids, dataset.obs_camera)] if dataset.num_observations else table
@@ -306,8 +453,8 @@ class _Localizer:
         ``on_decided`` receives the decided poses as the beam goes (``BeamSearch.run``)."""
         c = self.config
         settings = BeamSettings(
-            beam_width=c.beam_width, beam_delta=c.beam_delta, branch_delta=c.branch_delta,
-            gate=self.gate, slip_inflation=c.slip_inflation, slip_cost=c.slip_cost,
+            beam_width=c.beam.width, beam_delta=c.beam.delta, branch_delta=c.beam.branch_delta,
+            gate=self.gate, slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost,
         )
         search = BeamSearch(self, settings)
         self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose, on_decided=on_decided)
@@ -328,7 +475,7 @@ class _Localizer:
         slipped = self.beam_slipped is not None and bool(self.beam_slipped[k])
         start = None
         if slipped:
-            self.P = self.P * self.config.slip_inflation  # as the beam did when it chose these pairs
+            self.P = self.P * self.config.beam.slip_inflation  # as the beam did when it chose these pairs
             if obs.size:
                 # the beam explained the pose from its seed pair, listed first (or, where no seed
                 # held, from the pair it took first): one right pair pins the pose, where
@@ -341,7 +488,7 @@ class _Localizer:
             # slip, the widened prior leaves each pair's partners too little to confirm it by (a
             # few pairs pin the pose only together), and dropping them would leave the filter
             # metres wide where the beam's hypothesis went on from the slip's explanation.
-            if self.config.recheck and self.config.association != "oracle" and obs.size >= 2 and not slipped:
+            if self.config.recheck.enabled and self.config.association != "oracle" and obs.size >= 2 and not slipped:
                 keep = self._recheck(self.obs_of_pose[k], obs, landmarks, self.P, result.state)
                 if not keep.all():
                     obs, landmarks = obs[keep], landmarks[keep]
@@ -373,7 +520,7 @@ class _Localizer:
             return self._associate_oracle(obs)
         if self.config.association == "jcbb":
             return self._associate_jcbb(obs)
-        if not self.config.sequential:
+        if not self.config.best_friends.sequential:
             rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
             return obs[rows], landmarks
         return self._associate_sequentially(obs)
@@ -400,7 +547,7 @@ class _Localizer:
         return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
-        """Which of a pose's pairs keep at least ``recheck_margin`` over their nearest alternative
+        """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative
         (``association.assignment_margins``) when each observation is judged by the posterior of
         the other pairs (``association.leave_one_out_costs``): (p,) bool."""
         ds = self.dataset
@@ -427,7 +574,7 @@ class _Localizer:
             cost = association.leave_one_out_costs(ds.obs_uvd[mine], self.association_cov[mine], z_hat, H, chosen, information=information, gate=self.gate)
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
             for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
-                if o in position and not (r > self.config.recheck_margin and st > self.config.recheck_steal_margin):
+                if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin):
                     keep[position[o]] = False
         return keep
 
@@ -478,10 +625,10 @@ class _Localizer:
                 continue
             z = self.dataset.obs_uvd[obs[rows_c]]
             d2, nll = association.pair_statistics(z, self.association_cov[obs[rows_c]], z_hat, HPH)
-            cost = {"nll": nll, "mahalanobis": d2}.get(self.config.cost)
+            cost = {"nll": nll, "mahalanobis": d2}.get(self.config.best_friends.cost)
             if cost is None:
                 cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
-            r, c, gap = association.best_friends(cost, d2, gate=self.gate, margin=self.config.margin)
+            r, c, gap = association.best_friends(cost, d2, gate=self.gate, margin=self.config.best_friends.margin)
             rows_all.append(rows_c[r])
             landmarks_all.append(candidates[c])
             gaps_all.append(gap)
@@ -517,7 +664,7 @@ class _Localizer:
         column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
         seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
         result = jcbb(y_all, H, self.P, self.association_cov[obs], compatible,
-                      probability=self.config.gate_probability, max_nodes=self.config.jcbb_max_nodes, seed=seed)
+                      probability=self.config.gate, max_nodes=self.config.jcbb.max_nodes, seed=seed)
         if not result.exhaustive:
             self.jcbb_cut_short += 1
         paired = result.assignment >= 0
@@ -635,7 +782,7 @@ class _Localizer:
         return build_result(
             self.dataset, self.config, self.filter, self.states, self.covs, self.poses, self.odometry_poses,
             self.chosen_landmark, self.mahalanobis, self.update_pose_ids, self.nis, self.map_costs, self.nis_dof,
-            warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb_max_nodes} joint tests at {self.jcbb_cut_short} pose(s) "
+            warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb.max_nodes} joint tests at {self.jcbb_cut_short} pose(s) "
                                         "and kept the best set found"] if self.jcbb_cut_short else []),
             slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
             timing={"filter_seconds": filter_seconds, "replay_process": self.replayed_in_parallel,
@@ -676,7 +823,7 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
     if slip_pose_ids:
         summary["warnings"].append(
             f"{len(slip_pose_ids)} pose(s) were explained as odometry slips (prior covariance widened "
-            f"{config.slip_inflation:g}x): " + ", ".join(str(i) for i in slip_pose_ids[:10]) + (" ..." if len(slip_pose_ids) > 10 else "")
+            f"{config.beam.slip_inflation:g}x): " + ", ".join(str(i) for i in slip_pose_ids[:10]) + (" ..." if len(slip_pose_ids) > 10 else "")
         )
     guard = divergence_guard(np.asarray(update_pose_ids, dtype=np.int64), np.asarray(map_costs), np.asarray(nis_dof))
     summary["divergence_guard"] = guard
@@ -741,12 +888,13 @@ def divergence_guard(update_pose_ids: np.ndarray, statistic: np.ndarray, dof: np
 def _candidate_range(dataset: Dataset, config: LocalizerConfig) -> tuple[float, float, float]:
     """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset."""
     depth = dataset.obs_uvd[:, 2]
-    min_depth = config.min_depth if config.min_depth is not None else 0.0
-    max_depth = config.max_depth
+    view = config.view
+    min_depth = view.min_depth if view.min_depth is not None else 0.0
+    max_depth = view.max_depth
     if max_depth is None:
         max_depth = 1.25 * float(depth.max()) + 0.5 if depth.size else 10.0
-    if config.max_angle_deg is not None:
-        return min_depth, max_depth, float(np.radians(config.max_angle_deg))
+    if view.max_angle_deg is not None:
+        return min_depth, max_depth, float(np.radians(view.max_angle_deg))
     if depth.size == 0:
         return min_depth, max_depth, float(np.radians(60.0))
     tan = np.zeros((depth.size, 2))

@@ -69,9 +69,9 @@ def build_settings(config, gate: float) -> Settings:
     from camloc.kernels.beam_settings import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
     return Settings(
-        int(config.iterations), float(gate), bool(config.recheck), float(config.recheck_margin),
-        float(config.recheck_steal_margin), float(config.slip_inflation), int(config.beam_width),
-        float(config.beam_delta), float(config.branch_delta), MERGE_SIGMA, float(config.slip_cost),
+        int(config.iterations), float(gate), bool(config.recheck.enabled), float(config.recheck.margin),
+        float(config.recheck.steal_margin), float(config.beam.slip_inflation), int(config.beam.width),
+        float(config.beam.delta), float(config.beam.branch_delta), MERGE_SIGMA, float(config.beam.slip_cost),
         PARTIAL_BUDGET, POOL_GATE_FACTOR,
     )
 
@@ -80,12 +80,13 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset:
     depth up to 1.25 x the largest measured + 0.5 m, the widest observed ray + 10 deg (at most 89)."""
     depth = dataset.obs_uvd[:, 2]
-    min_depth = config.min_depth if config.min_depth is not None else 0.0
-    max_depth = config.max_depth
+    view = config.view
+    min_depth = view.min_depth if view.min_depth is not None else 0.0
+    max_depth = view.max_depth
     if max_depth is None:
         max_depth = 1.25 * float(depth.max()) + 0.5 if depth.size else 10.0
-    if config.max_angle_deg is not None:
-        return min_depth, max_depth, float(np.radians(config.max_angle_deg))
+    if view.max_angle_deg is not None:
+        return min_depth, max_depth, float(np.radians(view.max_angle_deg))
     if depth.size == 0:
         return min_depth, max_depth, float(np.radians(60.0))
     tan = np.zeros((depth.size, 2))

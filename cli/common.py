@@ -102,14 +102,15 @@ _DEFAULT_SOURCES = {
     "simulation": ("camloc.simulate", "SimulationConfig"),
     "smoother": ("camloc.smoother", "SmootherConfig"),
 }
-_PLACEHOLDER = re.compile(r"\{(?:default|(\w+)\.(\w+))\}")
+_PLACEHOLDER = re.compile(r"\{(?:default|(\w+)\.([\w.]+))\}")
 
 
 def with_default(text: str, source: str = "default") -> str:
     """``text`` followed by ``Default: <value>.``, the one way every option states its default.
 
     The value is not typed again: ``source`` ``"default"`` is the option's own default, and
-    ``"<kind>.<field>"`` (kinds of ``_DEFAULT_SOURCES``) the default of a library option that
+    ``"<kind>.<field>"`` (kinds of ``_DEFAULT_SOURCES``; ``<field>`` may be dotted,
+    ``"localizer.beam.width"``) the default of a library option that
     the command leaves to the library; both are filled in when ``--help`` is shown.
     """
     return f"{text} Default: {{{source}}}."
@@ -121,7 +122,9 @@ def _resolve_defaults(param: Any) -> str:
             default = param.default
         else:
             module, name = _DEFAULT_SOURCES[match[1]]
-            default = getattr(getattr(importlib.import_module(module), name)(), match[2])
+            default = getattr(importlib.import_module(module), name)()
+            for field in match[2].split("."):  # a group's option: "localizer.beam.width"
+                default = getattr(default, field)
         return _describe_default(param, default)
 
     return _PLACEHOLDER.sub(value, param.help)

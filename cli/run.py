@@ -39,6 +39,15 @@ class CostChoice(str, Enum):
     euclidean = "euclidean"
 
 
+# The help's panels: each method's own options, then the options of every method but oracle and of
+# all; their config file's table in brackets (camloc.options).
+BEAM = escape("Beam: --association beam; [beam] in a config file")
+BEST_FRIENDS = escape("Best friends: --association best-friends (cost and margin also seed jcbb); [best-friends] in a config file")
+JCBB = escape("JCBB: --association jcbb; [jcbb] in a config file")
+RECHECK = escape("Re-check: every association but oracle; [recheck] in a config file")
+VIEW = escape("Candidate landmarks: every association; [view] in a config file")
+
+
 def run(
     dataset: Optional[Path] = dataset_argument(
         "g2o dataset to localize. Default: the bundled grid-small.g2o.", required=False
@@ -49,8 +58,9 @@ def run(
     ),
     force: bool = force_option("the run folder (files in it that are not camloc's are kept)"),
     config_file: Optional[Path] = typer.Option(
-        None, "--config", help="TOML file with localizer options (names as below, with underscores); "
-        "options given on the command line win. Default: none.", show_default=False
+        None, "--config", help=escape("TOML file of localizer options, named as on the command line: top-level "
+        "ones as they are (gate = 0.95), a group's in its table without the group's prefix ([beam] width = 8 for "
+        "--beam-width 8); options given on the command line win. Default: none."), show_default=False
     ),
     filter: Optional[FilterChoice] = library_option(  # noqa: A002 (named after --filter)
         "State parametrization: euler (x, y, z, roll, pitch, yaw; singular "
@@ -60,7 +70,8 @@ def run(
     association: Optional[AssociationChoice] = library_option(
         "Data association: beam (a beam of association hypotheses), jcbb (joint "
         "compatibility branch and bound, seeded by best friends), best-friends (mutual best match with gates) "
-        "or oracle (the file's landmark ids, gated; for comparison). Only oracle reads the file's ids.",
+        "or oracle (the file's landmark ids, gated; for comparison). Only oracle reads the file's ids. "
+        "An option of a method that is not selected is refused.",
         "localizer.association"
     ),
     iterations: Optional[int] = library_option(
@@ -69,77 +80,11 @@ def run(
     ),
     gate: Optional[float] = library_option(
         "Chi-square gate probability on each pair's innovation (3 dof).",
-        "localizer.gate_probability", "--gate"
-    ),
-    cost: Optional[CostChoice] = library_option(
-        "Best-friends pair cost: nll (Mahalanobis + log det S), mahalanobis, euclidean.",
-        "localizer.cost"
-    ),
-    margin: Optional[float] = library_option(
-        "Lonely-best-friends margin in cost units: reject a pair whose closest rival "
-        "is within it.",
-        "localizer.margin"
-    ),
-    sequential: Optional[bool] = library_option(
-        "Accept best-friends pairs one at a time, conditioning "
-        "on each (sequential), or all at once (batch, the original method).",
-        "localizer.sequential", "--sequential/--batch"
-    ),
-    beam_width: Optional[int] = library_option(
-        "Beam: association hypotheses kept after each pose.",
-        "localizer.beam_width"
-    ),
-    beam_delta: Optional[float] = library_option(
-        "Beam: drop hypotheses this much costlier than the best (2 x log-likelihood "
-        "ratio).",
-        "localizer.beam_delta"
-    ),
-    branch_delta: Optional[float] = library_option(
-        "Beam: explore only an observation's options within this cost of its best.",
-        "localizer.branch_delta"
+        "localizer.gate", "--gate"
     ),
     null_cost: Optional[float] = typer.Option(
-        None, help="Beam: cost of leaving an observation unassigned. Default: from the data (clutter "
-        "uniform over the measured volume; about 18 for the real file's camera).", show_default=False
-    ),
-    slip_inflation: Optional[float] = library_option(
-        "Beam: covariance factor of the odometry-slip hypothesis.",
-        "localizer.slip_inflation"
-    ),
-    slip_cost: Optional[float] = library_option(
-        "Beam: extra cost of the odometry-slip hypothesis.",
-        "localizer.slip_cost"
-    ),
-    recheck: Optional[bool] = library_option(
-        "After each update, judge every pair again by the "
-        "posterior of the pose's other pairs and drop the ones that do not hold (not for oracle).",
-        "localizer.recheck", "--recheck/--no-recheck"
-    ),
-    recheck_margin: Optional[float] = library_option(
-        "Re-check: drop a pair when leaving its observation unassigned or pairing it "
-        "with another landmark costs no more than this.",
-        "localizer.recheck_margin"
-    ),
-    recheck_steal_margin: Optional[float] = library_option(
-        "Re-check: drop a pair when another observation of the pose could take its "
-        "landmark for no more than this extra cost (two detections fit one landmark).",
-        "localizer.recheck_steal_margin"
-    ),
-    jcbb_max_nodes: Optional[int] = library_option(
-        "JCBB: most joint compatibility tests per pose; past it the best set found is "
-        "kept.",
-        "localizer.jcbb_max_nodes"
-    ),
-    min_depth: Optional[float] = typer.Option(
-        None, help="Nearest candidate landmark depth, metres. Default: 0 (no lower bound).", show_default=False
-    ),
-    max_depth: Optional[float] = typer.Option(
-        None, help="Farthest candidate landmark depth, metres. Default: from the data "
-        "(1.25 x the largest measured depth + 0.5).", show_default=False
-    ),
-    max_angle: Optional[float] = typer.Option(
-        None, help="Candidates within this angle of the optical axis, degrees. Default: from the data "
-        "(widest observed ray + 10).", show_default=False
+        None, help="Cost of leaving an observation unassigned, for the beam and the re-check. Default: from the "
+        "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
     ),
     initial_sigma_xyz: Optional[float] = library_option(
         "Standard deviation of the start position, metres.",
@@ -148,6 +93,70 @@ def run(
     initial_sigma_deg: Optional[float] = library_option(
         "Standard deviation of the start orientation, degrees.",
         "localizer.initial_sigma_deg"
+    ),
+    beam_width: Optional[int] = library_option(
+        "Association hypotheses kept after each pose.",
+        "localizer.beam.width", rich_help_panel=BEAM
+    ),
+    beam_delta: Optional[float] = library_option(
+        "Drop hypotheses this much costlier than the best (2 x log-likelihood ratio).",
+        "localizer.beam.delta", rich_help_panel=BEAM
+    ),
+    branch_delta: Optional[float] = library_option(
+        "Explore only an observation's options within this cost of its best.",
+        "localizer.beam.branch_delta", rich_help_panel=BEAM
+    ),
+    slip_inflation: Optional[float] = library_option(
+        "Covariance factor of the odometry-slip hypothesis.",
+        "localizer.beam.slip_inflation", rich_help_panel=BEAM
+    ),
+    slip_cost: Optional[float] = library_option(
+        "Extra cost of the odometry-slip hypothesis.",
+        "localizer.beam.slip_cost", rich_help_panel=BEAM
+    ),
+    cost: Optional[CostChoice] = library_option(
+        "Pair cost: nll (Mahalanobis + log det S), mahalanobis, euclidean.",
+        "localizer.best_friends.cost", rich_help_panel=BEST_FRIENDS
+    ),
+    margin: Optional[float] = library_option(
+        "Lonely-best-friends margin in cost units: reject a pair whose closest rival is within it.",
+        "localizer.best_friends.margin", rich_help_panel=BEST_FRIENDS
+    ),
+    sequential: Optional[bool] = library_option(
+        "Accept pairs one at a time, conditioning on each (sequential), or all at once (batch, the original "
+        "method). Best friends only.",
+        "localizer.best_friends.sequential", "--sequential/--batch", rich_help_panel=BEST_FRIENDS
+    ),
+    jcbb_max_nodes: Optional[int] = library_option(
+        "Most joint compatibility tests per pose; past it the best set found is kept.",
+        "localizer.jcbb.max_nodes", rich_help_panel=JCBB
+    ),
+    recheck: Optional[bool] = library_option(
+        "After each update, judge every pair again by the posterior of the pose's other pairs and drop the "
+        "ones that do not hold.",
+        "localizer.recheck.enabled", "--recheck/--no-recheck", rich_help_panel=RECHECK
+    ),
+    recheck_margin: Optional[float] = library_option(
+        "Drop a pair when leaving its observation unassigned or pairing it with another landmark costs no "
+        "more than this.",
+        "localizer.recheck.margin", rich_help_panel=RECHECK
+    ),
+    recheck_steal_margin: Optional[float] = library_option(
+        "Drop a pair when another observation of the pose could take its landmark for no more than this "
+        "extra cost (two detections fit one landmark).",
+        "localizer.recheck.steal_margin", rich_help_panel=RECHECK
+    ),
+    min_depth: Optional[float] = typer.Option(
+        None, help="Nearest candidate landmark depth, metres. Default: 0 (no lower bound).", show_default=False,
+        rich_help_panel=VIEW
+    ),
+    max_depth: Optional[float] = typer.Option(
+        None, help="Farthest candidate landmark depth, metres. Default: from the data "
+        "(1.25 x the largest measured depth + 0.5).", show_default=False, rich_help_panel=VIEW
+    ),
+    max_angle: Optional[float] = typer.Option(
+        None, help="Candidates within this angle of the optical axis, degrees. Default: from the data "
+        "(widest observed ray + 10).", show_default=False, rich_help_panel=VIEW
     ),
     json_output: bool = json_option("the run summary (what summary.json holds)"),
     quiet: bool = quiet_option(),

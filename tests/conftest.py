@@ -107,7 +107,7 @@ def make_synthetic_run(seed: int = 7, *, num_poses: int = 40, with_truth: bool =
         nis_dof=nis_dof,
         summary={
             "dataset": f"synthetic-circle-{seed}",
-            "config": {"gate_probability": np.float64(0.99), "seed": np.int64(seed)},
+            "config": {"gate": np.float64(0.99), "seed": np.int64(seed)},
             "counts": {"poses": n, "observations": len(rows), "accepted": int(np.count_nonzero(accepted))},
             "timing": {"filter_seconds": np.float64(0.25), "poses_per_second": float("inf")},
             "warnings": [],

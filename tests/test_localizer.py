@@ -11,7 +11,7 @@ from camloc.ekf import FilterDivergedError
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
-from camloc.localizer import LocalizerConfig, localize
+from camloc.localizer import BeamOptions, BestFriendsOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
 from camloc.metrics import evaluate
 from camloc.simulate import SimulationConfig, simulate
 
@@ -83,7 +83,7 @@ def test_recheck_rejects_clutter_the_beam_accepted(seed):
     oracle = localize(dataset, LocalizerConfig(association="oracle"))
     scores = {}
     for recheck in (False, True):
-        result = localize(dataset, LocalizerConfig(recheck=recheck))
+        result = localize(dataset, LocalizerConfig(recheck=RecheckOptions(enabled=recheck)))
         made = result.associations.landmark != -1
         correct = made & (result.associations.landmark == result.associations.true_landmark)
         scores[recheck] = (np.count_nonzero(made & clutter), correct.sum() / made.sum(), position_rmse(result, dataset))
@@ -158,15 +158,30 @@ def test_pose_covariance_matches_euler_covariance_by_sampling(rng):
     np.testing.assert_allclose(np.cov(errors.T), predicted, atol=0.05 * np.abs(predicted).max())
 
 
-@pytest.mark.parametrize("bad", [
-    {"association": "magic"}, {"iterations": 0}, {"gate_probability": 1.5}, {"margin": -1.0},
-    {"max_angle_deg": 95.0}, {"beam_width": 0}, {"slip_inflation": 0.5}, {"min_depth": 2.0, "max_depth": 1.0},
+@pytest.mark.parametrize("bad, option", [
+    ({"association": "magic"}, "association"), ({"iterations": 0}, "iterations"), ({"gate": 1.5}, "gate"),
+    ({"association": "best-friends", "best_friends": BestFriendsOptions(margin=-1.0)}, "best_friends.margin"),
+    ({"view": ViewOptions(max_angle_deg=95.0)}, "view.max_angle_deg"), ({"beam": BeamOptions(width=0)}, "beam.width"),
+    ({"beam": BeamOptions(slip_inflation=0.5)}, "beam.slip_inflation"),
+    ({"view": ViewOptions(min_depth=2.0, max_depth=1.0)}, "view.max_depth"),
     # finite but past what the arithmetic survives (the k-d tree overflows, P loses definiteness)
-    {"max_depth": 1e300}, {"min_depth": 1e300}, {"initial_sigma_xyz": 1e300}, {"initial_sigma_deg": 1e300},
+    ({"view": ViewOptions(max_depth=1e300)}, "view.max_depth"), ({"view": ViewOptions(min_depth=1e300)}, "view.min_depth"),
+    ({"initial_sigma_xyz": 1e300}, "initial_sigma_xyz"), ({"initial_sigma_deg": 1e300}, "initial_sigma_deg"),
+    # a group of the wrong kind; an option of a method that is not selected
+    ({"beam": {"width": 8}}, "beam"), ({"jcbb": dataclasses.replace(LocalizerConfig().jcbb, max_nodes=10)}, "jcbb.max_nodes"),
+    ({"association": "jcbb", "best_friends": BestFriendsOptions(sequential=False)}, "best_friends.sequential"),
 ])
-def test_bad_configuration_is_a_config_error(bad):
-    with pytest.raises(ConfigError):
+def test_bad_configuration_is_a_config_error_naming_the_option(bad, option):
+    with pytest.raises(ConfigError) as error:
         LocalizerConfig(**bad).validate()
+    assert error.value.path == option and str(error.value).startswith(f"{option} ")
+
+
+def test_an_option_of_another_method_at_its_default_and_a_shared_one_are_accepted():
+    jcbb = LocalizerConfig(association="jcbb", best_friends=BestFriendsOptions(cost="mahalanobis", margin=2.0))
+    jcbb.validate()  # best friends' cost and margin pick the pairs that seed jcbb
+    LocalizerConfig(association="oracle", recheck=RecheckOptions(enabled=False), null_cost=5.0).validate()
+    LocalizerConfig(association="oracle", beam=BeamOptions(width=LocalizerConfig().beam.width)).validate()
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -203,7 +218,8 @@ def test_divergence_guard_reports_runs_of_inconsistent_updates():
 def test_a_filter_fed_wrong_pairs_reports_divergence():
     dataset = simulate(SimulationConfig(trajectory="grid", poses=120), seed=1)
     # best friends, batch, no margin: the fragile original method, on data where it breaks
-    broken = localize(dataset, LocalizerConfig(association="best-friends", sequential=False, margin=0.0, recheck=False))
+    broken = localize(dataset, LocalizerConfig(
+        association="best-friends", best_friends=BestFriendsOptions(sequential=False, margin=0.0), recheck=RecheckOptions(enabled=False)))
     healthy = localize(dataset, LocalizerConfig(association="oracle"))
     assert position_rmse(broken, dataset) > 0.5
     assert len(broken.summary["divergence_guard"]["runs"]) >= 1
@@ -236,7 +252,7 @@ def test_beam_recovers_from_an_odometry_slip_in_a_dense_map():
     dataset = _dense_run_with_a_jump((0.6, -0.5, 0.0))  # an 8-sigma odometry error at one step
     oracle = localize(dataset, LocalizerConfig(association="oracle"))
     recovered = localize(dataset)
-    without_recovery = localize(dataset, LocalizerConfig(slip_cost=1e9))
+    without_recovery = localize(dataset, LocalizerConfig(beam=BeamOptions(slip_cost=1e9)))
     assert position_rmse(recovered, dataset) <= 1.25 * position_rmse(oracle, dataset)
     assert position_rmse(without_recovery, dataset) > 1.5 * position_rmse(recovered, dataset)
     assert recovered.summary["slip_poses"]  # the recovery did fire, and it is what made the difference
@@ -360,7 +376,7 @@ def test_beam_explains_a_large_odometry_error_from_a_seed_pair_without_a_slip():
     # from a right seed pair under the plain prediction, they do not, and no slip is needed.
     dataset = _dense_run_with_a_jump((0.3, -0.25, 0.0))
     oracle = localize(dataset, LocalizerConfig(association="oracle"))
-    without_slips = localize(dataset, LocalizerConfig(slip_cost=1e9))
+    without_slips = localize(dataset, LocalizerConfig(beam=BeamOptions(slip_cost=1e9)))
     assert position_rmse(without_slips, dataset) <= 1.25 * position_rmse(oracle, dataset)
     assert not localize(dataset).summary["slip_poses"]
 
@@ -535,7 +551,7 @@ def test_a_view_widened_by_the_covariance_holds_the_plain_view(max_angle_deg):
     from camloc.localizer import _Localizer
 
     dataset = simulate(SimulationConfig(poses=20, dense=True), seed=1)
-    localizer = _Localizer(dataset, LocalizerConfig(max_angle_deg=max_angle_deg))
+    localizer = _Localizer(dataset, LocalizerConfig(view=ViewOptions(max_angle_deg=max_angle_deg)))
     for P in (np.diag([0.2**2] * 3 + [0.05**2] * 3), np.diag([1e-12] * 3 + [0.05**2] * 3)):  # the second: orientation only
         _assert_widened_holds_plain(localizer, dataset, P, strictly=P[0, 0] > 1e-6)
 

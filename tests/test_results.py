@@ -160,7 +160,7 @@ def test_save_and_load_round_trip(tmp_path, synthetic_run):
                                       err_msg=name)
     assert loaded.pose_ids.dtype == np.int64 and loaded.associations.landmark.dtype == np.int64
     # numpy scalars became JSON numbers, inf became null.
-    assert loaded.summary["config"] == {"gate_probability": 0.99, "seed": 7}
+    assert loaded.summary["config"] == {"gate": 0.99, "seed": 7}
     assert loaded.summary["timing"]["poses_per_second"] is None
 
 
