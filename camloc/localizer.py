@@ -176,11 +176,6 @@ class LocalizerConfig:
     recheck: RecheckOptions = field(default_factory=RecheckOptions)
     view: ViewOptions = field(default_factory=ViewOptions)
 
-    @property
-    def gate_probability(self) -> float:
-        """``gate``, under its former name, for ``camloc.loop`` until it reads ``gate``."""
-        return self.gate
-
     def validate(self) -> None:
         """Raise ``OptionError`` naming the first option that is out of range, of a wrong kind, or
         set (to other than its default) for a method that is not selected."""
@@ -340,7 +335,8 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
             dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2))
     except PoseFailure as failure:
-        raise ekf.FilterDivergedError(f"a covariance is no longer positive definite ({failure})").at_pose(int(dataset.pose_ids[failure.k])) from None
+        detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
+        raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k])) from None
     seconds = time.perf_counter() - started
     odometry = np.empty((dataset.num_poses, 4, 4))
     T = dataset.T_world_start

@@ -33,7 +33,7 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
     observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices)."""
     scene = build_scene(dataset, config)
-    settings = build_settings(config, float(chdtri(3, 1.0 - config.gate_probability)))
+    settings = build_settings(config, float(chdtri(3, 1.0 - config.gate)))
     n, K = dataset.num_poses, dataset.num_observations
     progress = _Progress(n, on_progress, halves=2 if config.association == "beam" else 1)
     if config.association == "beam":

@@ -12,7 +12,7 @@ from camloc.kernels._jit import jit
 from camloc.kernels.camera import camera_pose, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
-from camloc.kernels.small import mm, mtm, sandwich, solve
+from camloc.kernels.small import check_covariance, mm, mtm, sandwich, solve
 from camloc.kernels.sym3 import mahalanobis
 from camloc.kernels.update import updated
 from camloc.kernels.view import visible
@@ -132,6 +132,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                     result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, False, True, no_start, False)
         if obs.size:
             x_post, P_post, nis_k, cost_k, y = result
+            check_covariance(P_post)
             for i in range(obs.size):            # each pair's own 3x3 block of S = H P H' + R
                 S = sandwich(H[i], P) + scene.R_file[obs[i]]
                 d2, _ = mahalanobis(S, y[i])
