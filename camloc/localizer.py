@@ -273,12 +273,22 @@ class _CameraModel:
     intrinsics: tuple[float, float, float, float]
 
 
+ENGINES = ("auto", "compiled", "numpy")
+
+# Below this many poses the numpy localizer finishes first: the compiled loop pays about 0.6 s a
+# process to start numba and load its kernels from the cache (the real file's 101 poses: 1.3 s
+# wall with the compiled loop, 0.8 s with numpy), and the numpy beam costs 2-4 ms a pose more.
+COMPILED_MIN_POSES = 300
+
+
 def localize(
     dataset: Dataset,
     config: Optional[LocalizerConfig] = None,
     *,
     on_progress: Optional[ProgressCallback] = None,
     parallel: Optional[bool] = None,
+    engine: str = "auto",
+    on_compile: Optional[Callable[[], None]] = None,
 ) -> RunResult:
     """Localize every pose of ``dataset`` against its landmark map.
 
@@ -287,13 +297,30 @@ def localize(
     dataset : the dataset; its ``obs_true_landmark`` is read only with ``association="oracle"``.
     config : options (defaults when None).
     on_progress : called as ``on_progress(poses_done, poses_total)`` about 200 times per run.
-    parallel : with the beam, run the filter that replays its association in a second process
-        while the beam goes on (``camloc.replay``); the result is the same either way. None: when
-        there are at least ``PARALLEL_MIN_POSES`` poses and two CPUs.
+    parallel : with the numpy beam, run the filter that replays its association in a second
+        process while the beam goes on (``camloc.replay``); the result is the same either way.
+        None: when there are at least ``PARALLEL_MIN_POSES`` poses and two CPUs.
+    engine : "compiled" (the loop over numba kernels, ``camloc.loop``: the Euler filter with beam
+        or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
+        loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
+        dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
+        which ran.
+    on_compile : called once before the compiled loop starts when its kernels are not yet in
+        numba's cache (the first run after an install compiles them: a few minutes).
     """
     config = config or LocalizerConfig()
     config.validate()
-    if config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS:
+    if engine not in ENGINES:
+        raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
+    compilable = config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
+    if engine == "compiled" and not compilable:
+        raise ConfigError(f"the compiled loop runs the euler filter with {' or '.join(COMPILED_ASSOCIATIONS)} association; "
+                          f"filter {config.filter!r} with association {config.association!r} runs in numpy")
+    if engine == "compiled" or (engine == "auto" and compilable and dataset.num_poses >= COMPILED_MIN_POSES):
+        from camloc.kernels import cache_is_warm
+
+        if on_compile is not None and not cache_is_warm():
+            on_compile()
         return _localize_compiled(dataset, config, on_progress)
     localizer = _Localizer(dataset, config)
     started = time.perf_counter()
@@ -357,7 +384,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
         dataset, config, euler, states, covs, geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
         dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
         slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=candidate_range(dataset, config),
-        timing={"filter_seconds": seconds, "replay_process": False, "replay_process_peak_mb": None},
+        timing={"filter_seconds": seconds, "engine": "compiled", "replay_process": False, "replay_process_peak_mb": None},
     )
 
 # Below this many poses a second process costs more to start (an interpreter and its imports,
@@ -781,7 +808,7 @@ class _Localizer:
             warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb.max_nodes} joint tests at {self.jcbb_cut_short} pose(s) "
                                         "and kept the best set found"] if self.jcbb_cut_short else []),
             slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
-            timing={"filter_seconds": filter_seconds, "replay_process": self.replayed_in_parallel,
+            timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": self.replayed_in_parallel,
                     "replay_process_peak_mb": self.replay_peak_mb},
         )
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Callable, Mapping, Optional
 
 from camloc.bundled import bundled_dataset
 from camloc.localizer import LocalizerConfig, ProgressCallback, localize
@@ -27,6 +27,7 @@ def run_dataset(
     *,
     force: bool = False,
     on_progress: Optional[ProgressCallback] = None,
+    on_compile: Optional[Callable[[], None]] = None,
 ) -> tuple[RunResult, Path | None]:
     """Read, localize, evaluate and (when ``output_dir`` is given) save atomically.
 
@@ -53,7 +54,7 @@ def run_dataset(
     started = time.perf_counter()
     dataset = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
-    result = localize(dataset, config, on_progress=on_progress)
+    result = localize(dataset, config, on_progress=on_progress, on_compile=on_compile)
     summary = dict(result.summary)
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))

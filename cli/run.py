@@ -183,16 +183,13 @@ def run(
 
     from camloc.g2o import G2oWarning
 
-    from camloc.kernels import cache_is_warm
-
-    if not (quiet or json_output) and config.filter == "euler" and not cache_is_warm():
-        err_console.print("compiling camloc's kernels: once after an install, about a minute", highlight=False)
     with warnings.catch_warnings(), pose_progress(
         enabled=not (quiet or json_output), description=f"localizing {dataset_path.name}"
     ) as on_progress:
         # The reader's warnings are part of the summary, printed once below.
         warnings.simplefilter("ignore", G2oWarning)
-        result, written = run_dataset(dataset_path, config, output_dir, force=force, on_progress=on_progress)
+        result, written = run_dataset(dataset_path, config, output_dir, force=force, on_progress=on_progress,
+                                      on_compile=None if quiet or json_output else _say_compiling)
 
     if echo_json(result.summary, enabled=json_output):
         return
@@ -202,3 +199,7 @@ def run(
         console.print(render_run_summary(result.summary, written))
         for warning in result.summary.get("warnings", []):
             err_console.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
+
+
+def _say_compiling() -> None:
+    err_console.print("compiling camloc's kernels: once after an install, a few minutes", highlight=False)

@@ -178,17 +178,15 @@ def _scene_with_map(landmarks, *, max_depth, max_angle):
 
 @pytest.mark.parametrize("name", ["grid-small", "smooth3d-clutter", "pixel-2cam"])
 @pytest.mark.parametrize("association_method", ["beam", "oracle"])
-def test_compiled_localizer_equals_the_numpy_one(monkeypatch, name, association_method):
+def test_compiled_localizer_equals_the_numpy_one(name, association_method):
     """The same pairs and the same states to rounding on the bundled worlds (a clutter world whose
     slips exercise the seeded search, two pixel cameras)."""
     import camloc
-    from camloc import localizer
-
     dataset = camloc.load(DATA / f"{name}.g2o")
     config = camloc.LocalizerConfig(association=association_method)
-    compiled = camloc.localize(dataset, config)
-    monkeypatch.setattr(localizer, "COMPILED_ASSOCIATIONS", ())
-    reference = camloc.localize(dataset, config, parallel=False)
+    compiled = camloc.localize(dataset, config, engine="compiled")
+    reference = camloc.localize(dataset, config, parallel=False, engine="numpy")
+    assert (compiled.summary["timing"]["engine"], reference.summary["timing"]["engine"]) == ("compiled", "numpy")
     np.testing.assert_array_equal(compiled.associations.landmark, reference.associations.landmark)
     np.testing.assert_allclose(compiled.filter_state, reference.filter_state, atol=1e-8)
     np.testing.assert_allclose(compiled.nis, reference.nis, rtol=1e-6)
@@ -200,11 +198,10 @@ def test_compiled_localizer_equals_the_numpy_one(monkeypatch, name, association_
     dict(poses=80, trajectory="aerial", cameras=2, intrinsics="pixel"),
     dict(poses=120, trajectory="smooth3d", landmarks=1500, region=11, clutter_fraction=0.35),
 ], ids=["noise-free", "aerial-2cam", "dense-clutter"])
-def test_compiled_beam_equals_the_numpy_one_on_simulated_worlds(monkeypatch, kind):
+def test_compiled_beam_equals_the_numpy_one_on_simulated_worlds(kind):
     import dataclasses
 
     import camloc
-    from camloc import localizer
     from camloc.simulate import SimulationConfig, simulate
 
     dataset = simulate(SimulationConfig(**kind), seed=3)
@@ -212,9 +209,26 @@ def test_compiled_beam_equals_the_numpy_one_on_simulated_worlds(monkeypatch, kin
         jumped = dataset.odom_translation.copy()
         jumped[60] += np.array([0.6, -0.5, 0.0])
         dataset = dataclasses.replace(dataset, odom_translation=jumped)
-    compiled = camloc.localize(dataset)
-    monkeypatch.setattr(localizer, "COMPILED_ASSOCIATIONS", ())
-    reference = camloc.localize(dataset, parallel=False)
+    compiled = camloc.localize(dataset, engine="compiled")
+    reference = camloc.localize(dataset, parallel=False, engine="numpy")
     np.testing.assert_array_equal(compiled.associations.landmark, reference.associations.landmark)
     np.testing.assert_allclose(compiled.filter_state, reference.filter_state, atol=1e-7)
     assert compiled.summary["slip_poses"] == reference.summary["slip_poses"]
+
+
+
+def test_the_engine_is_chosen_by_size_and_method_and_can_be_forced():
+    import camloc
+    from camloc.errors import ConfigError
+    from camloc.localizer import COMPILED_MIN_POSES
+
+    small = camloc.load(DATA / "grid-small.g2o")
+    assert small.num_poses < COMPILED_MIN_POSES
+    assert camloc.localize(small).summary["timing"]["engine"] == "numpy"       # starting numba costs more
+    calls = []
+    forced = camloc.localize(small, engine="compiled", on_compile=lambda: calls.append(1))
+    assert forced.summary["timing"]["engine"] == "compiled" and calls == []   # the cache is warm by now
+    with pytest.raises(ConfigError, match="runs in numpy"):
+        camloc.localize(small, camloc.LocalizerConfig(filter="se3"), engine="compiled")
+    with pytest.raises(ConfigError, match="engine must be one of"):
+        camloc.localize(small, engine="gpu")
