@@ -55,19 +55,24 @@ class ConfigFile:
         return f"{self.source}: " + (f"[{table}] " if table else "") + key_of(path)
 
 
-def read_config_file(path: str | Path) -> ConfigFile:
-    """The options of a TOML file; ConfigError for a missing file, bad TOML or unknown keys."""
+def read_toml(path: str | Path, *, what: str = "config file") -> dict[str, Any]:
+    """The document of a TOML file; ConfigError naming it (and ``what`` it should be) for a missing
+    file, a folder or bad TOML."""
     path = Path(path)
     try:
         with path.open("rb") as handle:
-            document = tomllib.load(handle)
+            return tomllib.load(handle)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
+        raise ConfigError(f"{path}: {what} not found") from None
     except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, expected a TOML file") from None
+        raise ConfigError(f"{path}: is a directory, expected a TOML {what}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise ConfigError(f"{path}: not valid TOML ({error})") from None
-    return parse_config(document, source=str(path))
+
+
+def read_config_file(path: str | Path) -> ConfigFile:
+    """The options of a TOML file; ConfigError for a missing file, bad TOML or unknown keys."""
+    return parse_config(read_toml(path), source=str(path))
 
 
 def parse_config(document: Mapping[str, Any], *, source: str) -> ConfigFile:

@@ -416,7 +416,9 @@ class _Localizer:
 
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
-        self.min_depth, self.max_depth, self.max_angle = _candidate_range(dataset, config)
+        from camloc.scene import candidate_range
+
+        self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
         camera_ids = np.array(sorted(self.cameras), dtype=np.int64)
         table = np.array([self.cameras[int(c)].intrinsics for c in camera_ids]).reshape(-1, 4)
@@ -908,22 +910,3 @@ def divergence_guard(update_pose_ids: np.ndarray, statistic: np.ndarray, dof: np
     return {"inconsistent_poses": update_pose_ids[bad].tolist(), "runs": runs}
 
 
-def _candidate_range(dataset: Dataset, config: LocalizerConfig) -> tuple[float, float, float]:
-    """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset."""
-    depth = dataset.obs_uvd[:, 2]
-    view = config.view
-    min_depth = view.min_depth if view.min_depth is not None else 0.0
-    max_depth = view.max_depth
-    if max_depth is None:
-        max_depth = 1.25 * float(depth.max()) + 0.5 if depth.size else 10.0
-    if view.max_angle_deg is not None:
-        return min_depth, max_depth, float(np.radians(view.max_angle_deg))
-    if depth.size == 0:
-        return min_depth, max_depth, float(np.radians(60.0))
-    tan = np.zeros((depth.size, 2))
-    for camera_id, camera in dataset.cameras.items():
-        mine = dataset.obs_camera == camera_id
-        tan[mine, 0] = (dataset.obs_uvd[mine, 0] - camera.cx) / camera.fx
-        tan[mine, 1] = (dataset.obs_uvd[mine, 1] - camera.cy) / camera.fy
-    widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))
-    return min_depth, max_depth, float(np.radians(min(widest + 10.0, 89.0)))

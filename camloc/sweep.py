@@ -36,7 +36,6 @@ import math
 import multiprocessing
 import os
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Optional
@@ -108,17 +107,10 @@ class SweepSpec:
 
 def read_spec(path: str | Path) -> SweepSpec:
     """Read and validate a sweep spec file (see ``parse_spec``)."""
+    from camloc.config import read_toml
+
     path = Path(path)
-    try:
-        with path.open("rb") as handle:
-            document = tomllib.load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: spec file not found") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, expected a TOML sweep spec") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
-        raise ConfigError(f"{path}: not valid TOML ({error})") from None
-    return parse_spec(document, source=str(path), base_dir=str(path.parent))
+    return parse_spec(read_toml(path, what="sweep spec"), source=str(path), base_dir=str(path.parent))
 
 
 def parse_spec(document: Mapping[str, Any], *, source: str = "spec", base_dir: str = ".") -> SweepSpec:
