@@ -153,9 +153,12 @@ def test_seed_ranking_matches_numpy(rng):
 
 
 @pytest.mark.parametrize("margin", [0.0, 0.7])
-def test_view_query_matches_the_kd_tree(rng, margin):
+@pytest.mark.parametrize("dense", [True, False], ids=["table-by-key", "binary-search"])
+def test_view_query_matches_the_kd_tree(rng, margin, dense):
     landmarks = rng.uniform(-10, 10, (3000, 3))
     scene = _scene_with_map(landmarks, max_depth=4.0, max_angle=np.radians(40.0))
+    if not dense:
+        scene = scene._replace(grid_dense_start=np.zeros(0, np.int64))
     tree = cKDTree(landmarks)
     for _ in range(20):
         T_wc = geometry.pose_from_euler(_random_state(rng))
@@ -170,7 +173,8 @@ def _scene_with_map(landmarks, *, max_depth, max_angle):
     grid = view.build_grid(landmarks, 1.5)
     empty = np.zeros((0, 3))
     fields = dict.fromkeys(SceneArrays._fields, empty)
-    fields.update(zip(("grid_origin", "grid_cell", "grid_dims", "grid_keys", "grid_start", "grid_items"), grid))
+    fields.update(zip(("grid_origin", "grid_cell", "grid_dims", "grid_keys", "grid_start", "grid_items", "grid_xyz",
+                       "grid_dense_start"), grid))
     fields["landmark_xyz"] = landmarks
     fields["view_limits"] = np.array([0.0, max_depth, max_angle])
     return SceneArrays(**fields)

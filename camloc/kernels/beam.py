@@ -62,39 +62,38 @@ def gather(gen, indices, cap):
 # A pair's cost, in the coordinates where its linearization explains it best
 
 @jit
-def spread_entry(H, P, r, q):
-    """(H P H')[r, q] for H (3, 6) and symmetric P (6, 6)."""
-    s = 0.0
-    for i in range(6):
-        row = 0.0
+def spread(H, i, P):
+    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6)."""
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for k in range(6):
         for j in range(6):
-            row += P[i, j] * H[q, j]
-        s += H[r, i] * row
-    return s
+            p = P[k, j]
+            h0, h1, h2 = H[i, 0, j], H[i, 1, j], H[i, 2, j]
+            g0, g1, g2 = H[i, 0, k] * p, H[i, 1, k] * p, H[i, 2, k] * p
+            a00 += g0 * h0
+            a01 += g0 * h1
+            a02 += g0 * h2
+            a11 += g1 * h1
+            a12 += g1 * h2
+            a22 += g2 * h2
+    return a00, a01, a02, a11, a12, a22
 
 
 @jit
-def spread(H, P):
-    """The upper triangle (a, b, c, d, e, f) of H P H' for H (3, 6) and symmetric P (6, 6)."""
-    return (spread_entry(H, P, 0, 0), spread_entry(H, P, 0, 1), spread_entry(H, P, 0, 2),
-            spread_entry(H, P, 1, 1), spread_entry(H, P, 1, 2), spread_entry(H, P, 2, 2))
-
-
-@jit
-def pair_in_best_coordinates(scene, o, z_hat, H, P, y, Hc):
-    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against a
-    prediction (z_hat (3,), H (3, 6)) under P, in the measured (u, v, depth) or in the camera-frame
-    point they back-project to, whichever is likelier (a point is linear in the robot's position;
-    pixels can fit better where the spread is rotation); writes the innovation y (3,) and its
-    Jacobian Hc (3, 6) in the chosen coordinates."""
+def pair_in_best_coordinates(scene, o, z_hat, H, q, P, y, Hc, n):
+    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
+    prediction q (z_hat[q] (3,), H[q] (3, 6)) under P, in the measured (u, v, depth) or in the
+    camera-frame point they back-project to, whichever is likelier (a point is linear in the
+    robot's position; pixels can fit better where the spread is rotation); writes the innovation
+    y[n] (3,) and its Jacobian Hc[n] (3, 6) in the chosen coordinates."""
     K = scene.camera_K[scene.obs_camera[o]]
-    x_over_z, y_over_z, depth = (z_hat[0] - K[2]) / K[0], (z_hat[1] - K[3]) / K[1], z_hat[2]
+    x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
     j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z     # d p / d (u, v, depth)
-    a00, a01, a02, a11, a12, a22 = spread(H, P)                            # H P H'
+    a00, a01, a02, a11, a12, a22 = spread(H, q, P)                         # H P H'
     R, C = scene.R_assoc[o], scene.point_cov[o]
     d2_pixels, log_det_pixels = mahalanobis_components(
         a00 + R[0, 0], a01 + R[0, 1], a02 + R[0, 2], a11 + R[1, 1], a12 + R[1, 2], a22 + R[2, 2],
-        scene.z[o, 0] - z_hat[0], scene.z[o, 1] - z_hat[1], scene.z[o, 2] - z_hat[2])
+        scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], scene.z[o, 2] - z_hat[q, 2])
     # J (H P H') J' with J = [[j00, 0, j02], [0, j11, j12], [0, 0, 1]]
     b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
     b01 = j00 * j11 * a01 + j00 * j12 * a02 + j02 * j11 * a12 + j02 * j12 * a22
@@ -108,25 +107,25 @@ def pair_in_best_coordinates(scene, o, z_hat, H, P, y, Hc):
     cost_pixels = d2_pixels + log_det_pixels - scene.log_det_R[o]
     cost_point = d2_point + log_det_point - scene.log_det_point_cov[o]
     if cost_point < cost_pixels:
-        y[0], y[1], y[2] = p0, p1, p2
+        y[n, 0], y[n, 1], y[n, 2] = p0, p1, p2
         for i in range(6):
-            Hc[0, i] = j00 * H[0, i] + j02 * H[2, i]
-            Hc[1, i] = j11 * H[1, i] + j12 * H[2, i]
-            Hc[2, i] = H[2, i]
+            Hc[n, 0, i] = j00 * H[q, 0, i] + j02 * H[q, 2, i]
+            Hc[n, 1, i] = j11 * H[q, 1, i] + j12 * H[q, 2, i]
+            Hc[n, 2, i] = H[q, 2, i]
         return d2_point, cost_point, True
     for a in range(3):
-        y[a] = scene.z[o, a] - z_hat[a]
+        y[n, a] = scene.z[o, a] - z_hat[q, a]
         for i in range(6):
-            Hc[a, i] = H[a, i]
+            Hc[n, a, i] = H[q, a, i]
     return d2_pixels, cost_pixels, False
 
 
 @jit
-def view_spread(H, P, z_hat, K):
-    """(trace of H P H', trace of its spread as a camera-frame point) of a prediction: the
+def view_spread(H, q, P, z_hat, K):
+    """(trace of H P H', trace of its spread as a camera-frame point) of prediction q: the
     screen's bound on every pair with it."""
-    a00, a01, a02, a11, a12, a22 = spread(H, P)
-    x_over_z, y_over_z, depth = (z_hat[0] - K[2]) / K[0], (z_hat[1] - K[3]) / K[1], z_hat[2]
+    a00, a01, a02, a11, a12, a22 = spread(H, q, P)
+    x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
     j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z
     b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
     b11 = j11 * j11 * a11 + 2.0 * j11 * j12 * a12 + j12 * j12 * a22
@@ -166,7 +165,7 @@ def options_for(scene, settings, x, P, obs, widened):
             cand[at], cand_camera[at], z_hat[at], H[at] = f[q], c, zc[q], Hc[q]
             x_over_z, y_over_z = (zc[q, 0] - K[2]) / K[0], (zc[q, 1] - K[3]) / K[1]
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2] = x_over_z * zc[q, 2], y_over_z * zc[q, 2], zc[q, 2]
-            spread_pixels[at], spread_point[at] = view_spread(Hc[q], P, zc[q], K)
+            spread_pixels[at], spread_point[at] = view_spread(Hc, q, P, zc, K)
             at += 1
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
@@ -188,7 +187,7 @@ def options_for(scene, settings, x, P, obs, widened):
                 e_point += (scene.point[o, a] - p_hat[q, a]) ** 2
             if e_pixels > pool_gate * (spread_pixels[q] + tr_R) and e_point > pool_gate * (spread_point[q] + tr_point):
                 continue
-            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P, ys[n], Hcs[n])
+            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, P, ys, Hcs, n)
             if not d2 <= pool_gate:
                 continue
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
@@ -223,7 +222,7 @@ def condition(scene, settings, x, P, o, pool, taken):
     ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6))
     z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[pool])
     for q in range(g):
-        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat[q], H[q], P, ys[q], Hcs[q])
+        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, P, ys, Hcs, q)
         cost[q] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
         in_point[q] = point
     return cost, z_hat, H, ys, Hcs, in_point

@@ -17,13 +17,14 @@ from camloc.kernels.small import mm
 
 
 @jit
-def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark, z_hat, H, d_position):
-    """Write the prediction z_hat (3,) of one landmark (3,) and its Jacobian H (3, 6) with respect
-    to the Euler state (rotation R, Euler rate matrix E, position t); d_position = -R_rc' R', the
-    derivative of the camera-frame point by the position. Scalar code: this runs for every
-    candidate of every hypothesis, where a temporary array costs more than the arithmetic."""
+def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position):
+    """Write the prediction z_hat[i] (3,) of landmark landmarks[j] (3,) and its Jacobian H[i]
+    (3, 6) with respect to the Euler state (rotation R, Euler rate matrix E, position t);
+    d_position = -R_rc' R', the derivative of the camera-frame point by the position. Scalar code
+    on whole arrays and indices: this runs for every candidate of every hypothesis, where a
+    temporary array or a row view (counting references) costs more than the arithmetic."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    d0, d1, d2 = landmark[0] - t[0], landmark[1] - t[1], landmark[2] - t[2]
+    d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
     r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
     r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
     r2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
@@ -32,9 +33,9 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark, z_hat, H, d_position
     py = R_rc[0, 1] * q0 + R_rc[1, 1] * q1 + R_rc[2, 1] * q2
     pz = R_rc[0, 2] * q0 + R_rc[1, 2] * q1 + R_rc[2, 2] * q2
     inverse_depth = 1.0 / pz
-    z_hat[0] = fx * px * inverse_depth + cx
-    z_hat[1] = fy * py * inverse_depth + cy
-    z_hat[2] = pz
+    z_hat[i, 0] = fx * px * inverse_depth + cx
+    z_hat[i, 1] = fy * py * inverse_depth + cy
+    z_hat[i, 2] = pz
     # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, 1]]
     u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
     v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
@@ -46,12 +47,12 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark, z_hat, H, d_position
         rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rpy = R_c' [p_robot]x E
         rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
         rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
-        H[0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
-        H[1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
-        H[2, c] = d_position[2, c]
-        H[0, 3 + c] = u_x * rot0 + u_z * rot2
-        H[1, 3 + c] = v_y * rot1 + v_z * rot2
-        H[2, 3 + c] = rot2
+        H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
+        H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
+        H[i, 2, c] = d_position[2, c]
+        H[i, 0, 3 + c] = u_x * rot0 + u_z * rot2
+        H[i, 1, 3 + c] = v_y * rot1 + v_z * rot2
+        H[i, 2, 3 + c] = rot2
 
 
 @jit
@@ -66,7 +67,7 @@ def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     z_hat = np.empty((m, 3))
     H = np.empty((m, 3, 6))
     for j in range(m):
-        observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz[j], z_hat[j], H[j], d_position)
+        observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position)
     return z_hat, H
 
 
@@ -85,7 +86,7 @@ def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
         d_position[c] = -mm(camera_R[c].T, R.T)
     for i in range(p):
         c = pair_camera[i]
-        observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz[i], z_hat[i], H[i], d_position[c])
+        observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c])
     return z_hat, H
 
 

@@ -57,9 +57,9 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
         for r in range(mine.size):
             for q in range(pair_obs.size):
                 if pair_obs[q] == mine[r]:
-                    for j in range(candidates.size):
-                        if candidates[j] == pair_landmarks[q]:
-                            chosen[r] = j
+                    j = np.searchsorted(candidates, pair_landmarks[q])    # candidates are sorted
+                    if j < candidates.size and candidates[j] == pair_landmarks[q]:
+                        chosen[r] = j
             if chosen[r] >= 0:
                 Hc = H[chosen[r]]
                 information[g] += mtm(Hc, mm(scene.R_assoc_inverse[mine[r]], Hc))

@@ -14,6 +14,8 @@ SceneArrays = namedtuple("SceneArrays", [
     "grid_keys",           # (G,) int64 sorted keys of the occupied cells
     "grid_start",          # (G + 1,) int64 offsets of each cell's landmarks in grid_items
     "grid_items",          # (L,) int64 landmark indices, cell by cell
+    "grid_xyz",            # (L, 3) their coordinates in that order (a query reads them in sequence)
+    "grid_dense_start",    # (nx ny nz + 1,) int64 offsets by key where the grid is small, else empty
     # cameras
     "camera_R", "camera_t", "camera_K",   # (C, 3, 3) R_robot_camera, (C, 3) t, (C, 4) fx fy cx cy
     # observations

@@ -13,14 +13,18 @@ from camloc.kernels._jit import jit
 
 # Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
 MAX_CELLS_PER_AXIS = 1 << 20
+# Up to this many cells in all, a table by key finds a cell's landmarks without a binary search.
+MAX_DENSE_CELLS = 1 << 22
 
 
 def build_grid(landmark_xyz: np.ndarray, cell: float):
-    """(origin (3,), cell (1,), dims (3,), keys (G,), start (G + 1,), items (L,)) of a grid hash
-    of landmarks (L, 3) with cells of side ``cell`` (widened where the map's extent would need
-    more than ``MAX_CELLS_PER_AXIS`` cells on an axis)."""
+    """(origin (3,), cell (1,), dims (3,), keys (G,), start (G + 1,), items (L,), their
+    coordinates (L, 3), offsets by key (nx ny nz + 1,) or empty) of a grid hash of landmarks
+    (L, 3) with cells of side ``cell`` (widened where the map's extent would need more than
+    ``MAX_CELLS_PER_AXIS`` cells on an axis)."""
     if landmark_xyz.shape[0] == 0:
-        return np.zeros(3), np.ones(1), np.ones(3, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
+        return (np.zeros(3), np.ones(1), np.ones(3, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64),
+                np.zeros((0, 3)), np.zeros(0, np.int64))
     origin = landmark_xyz.min(axis=0)
     extent = landmark_xyz.max(axis=0) - origin
     cell = max(float(cell), float(extent.max()) / (MAX_CELLS_PER_AXIS - 1), 1e-9)
@@ -29,7 +33,11 @@ def build_grid(landmark_xyz: np.ndarray, cell: float):
     key = index[:, 0] + dims[0] * (index[:, 1] + dims[1] * index[:, 2])
     items = np.argsort(key, kind="stable").astype(np.int64)
     keys, start = np.unique(key[items], return_index=True)
-    return origin, np.array([cell]), dims.astype(np.int64), keys.astype(np.int64), np.append(start, items.size).astype(np.int64), items
+    dense = np.zeros(0, np.int64)
+    if int(np.prod(dims)) <= MAX_DENSE_CELLS:
+        dense = np.searchsorted(key[items], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
+    return (origin, np.array([cell]), dims.astype(np.int64), keys.astype(np.int64), np.append(start, items.size).astype(np.int64), items,
+            np.ascontiguousarray(landmark_xyz[items], dtype=float), dense)
 
 
 @jit
@@ -70,30 +78,39 @@ def visible(scene, R_wc, centre, max_angle, margin):
             return found[:0]
     cells = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
     keys = scene.grid_keys
+    dense = scene.grid_dense_start.size > 0
     scan_all = cells > keys.size                       # a ball wider than the map: visit occupied cells
     n_keys = keys.size if scan_all else cells
     for q in range(n_keys):
         if scan_all:
-            g = q
-            key = keys[g]
+            key = keys[q]
             ix, rest = key % dims[0], key // dims[0]
             iy, iz = rest % dims[1], rest // dims[1]
             if ix < lo[0] or ix > hi[0] or iy < lo[1] or iy > hi[1] or iz < lo[2] or iz > hi[2]:
                 continue
+            first, stop = scene.grid_start[q], scene.grid_start[q + 1]
         else:
             nx, ny = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
             ix, iy, iz = lo[0] + q % nx, lo[1] + (q // nx) % ny, lo[2] + q // (nx * ny)
             key = ix + dims[0] * (iy + dims[1] * iz)
-            g = np.searchsorted(keys, key)
-            if g >= keys.size or keys[g] != key:
-                continue
-        for s in range(scene.grid_start[g], scene.grid_start[g + 1]):
-            j = scene.grid_items[s]
-            l = scene.landmark_xyz[j]
-            d0, d1, d2 = l[0] - ball[0], l[1] - ball[1], l[2] - ball[2]
+            if dense:
+                first, stop = scene.grid_dense_start[key], scene.grid_dense_start[key + 1]
+            else:
+                g = np.searchsorted(keys, key)
+                if g >= keys.size or keys[g] != key:
+                    continue
+                first, stop = scene.grid_start[g], scene.grid_start[g + 1]
+        if stop > first and not cell_near_cone(origin, cell, ix, iy, iz, centre - back * axis, axis, max_depth + margin + back,
+                                               max_angle, min_depth - margin):
+            continue
+        for s in range(first, stop):
+            # scalar reads: a row view would count references on every landmark
+            l0, l1, l2 = scene.grid_xyz[s, 0], scene.grid_xyz[s, 1], scene.grid_xyz[s, 2]
+            d0, d1, d2 = l0 - ball[0], l1 - ball[1], l2 - ball[2]
             if d0 * d0 + d1 * d1 + d2 * d2 > radius * radius:
                 continue
-            v0, v1, v2 = l[0] - centre[0], l[1] - centre[1], l[2] - centre[2]
+            j = scene.grid_items[s]
+            v0, v1, v2 = l0 - centre[0], l1 - centre[1], l2 - centre[2]
             px = R_wc[0, 0] * v0 + R_wc[1, 0] * v1 + R_wc[2, 0] * v2
             py = R_wc[0, 1] * v0 + R_wc[1, 1] * v1 + R_wc[2, 1] * v2
             depth = R_wc[0, 2] * v0 + R_wc[1, 2] * v1 + R_wc[2, 2] * v2
@@ -105,6 +122,24 @@ def visible(scene, R_wc, centre, max_angle, margin):
                 found[count] = j
                 count += 1
     return np.sort(found[:count])
+
+
+@jit
+def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, half_angle, min_depth):
+    """Whether grid cell (ix, iy, iz) may hold a point of the view cone (apex, unit axis, points up
+    to ``depth`` along it and beyond ``min_depth``, within ``half_angle`` of it): its ball's distance
+    to the cone is at most its radius (a conservative test: a cell it keeps may hold none)."""
+    h = 0.8660254037844386 * cell                      # half the cell's diagonal
+    v0 = origin[0] + (ix + 0.5) * cell - apex[0]
+    v1 = origin[1] + (iy + 0.5) * cell - apex[1]
+    v2 = origin[2] + (iz + 0.5) * cell - apex[2]
+    along = v0 * axis[0] + v1 * axis[1] + v2 * axis[2]
+    if along < min(min_depth, 0.0) - h or along > depth + h:
+        return False
+    p0, p1, p2 = v0 - along * axis[0], v1 - along * axis[1], v2 - along * axis[2]
+    perp = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    # signed distance to the cone's side: perp cos - along sin (negative inside)
+    return perp * math.cos(half_angle) - along * math.sin(half_angle) <= h
 
 
 @jit
