@@ -12,7 +12,6 @@ from scipy.special import chdtri
 from camloc import association, models, sym3
 from camloc.dataset import Dataset
 from camloc.kernels.types import SceneArrays, Settings
-from camloc.kernels.view import build_grid, view_cone_ball
 
 # Observations are turned into points in chunks: (K, 3, 3) temporaries add up on large files.
 POINT_CHUNK = 32768
@@ -20,6 +19,8 @@ POINT_CHUNK = 32768
 
 def build_scene(dataset: Dataset, config) -> SceneArrays:
     """The run's fixed arrays for ``dataset`` under ``config`` (a ``LocalizerConfig``)."""
+    from camloc.kernels.view import build_grid, view_cone_ball  # numba: imported where the compiled loop runs
+
     camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
     cameras = [dataset.cameras[int(c)] for c in camera_ids]
     camera_K = np.array([(c.fx, c.fy, c.cx, c.cy) for c in cameras], dtype=float).reshape(-1, 4)
