@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from camloc.cli.common import console, err_console
+from camloc.cli.common import console, err_console, json_option, quiet_option
 
 EXIT_INTERRUPTED = 130
 
@@ -28,7 +28,8 @@ def sweep(
         None, "--scheduler", help="Run the cells on the Dask cluster of this scheduler (tcp://HOST:PORT) instead "
         "of local processes; needs the dask extra (pip install -e \".\\[dask]\"). Default: local.", show_default=False
     ),
-    json_output: bool = typer.Option(False, "--json", help="Print the outcome and summary as JSON instead of a table. Default: table."),
+    json_output: bool = json_option("the outcome and summary", instead="a table"),
+    quiet: bool = quiet_option(),
 ) -> None:
     """Run every cell of SPEC_FILE (one localization run per seed and option combination) and write runs.csv (a row per run) and summary.csv (a row per configuration: median, mean, p90 and worst position RMSE, ratio to the oracle).
 
@@ -40,7 +41,7 @@ def sweep(
 
     spec = read_spec(spec_file)
     try:
-        with cell_progress(enabled=not json_output, description=f"sweeping {spec_file.name}") as on_row:
+        with cell_progress(enabled=not (json_output or quiet), description=f"sweeping {spec_file.name}") as on_row:
             outcome = run_sweep(spec, output, workers=workers, scheduler=scheduler, on_row=on_row)
     except KeyboardInterrupt:
         err_console.print(f"[yellow]interrupted:[/] the finished rows are in {escape(str(output))}; run the same "
@@ -48,5 +49,5 @@ def sweep(
         raise typer.Exit(EXIT_INTERRUPTED) from None
     if json_output:
         typer.echo(dumps_json(vars(outcome)), nl=False)
-    else:
+    elif not quiet:
         console.print(render_summary(spec, outcome))

@@ -336,3 +336,15 @@ def test_the_association_benchmark_spec_parses():
     """The spec beside the association benchmark (too long to run here: 40 runs of 300 poses)."""
     spec = read_spec(Path(__file__).resolve().parents[1] / "benchmarks" / "association-real-style.toml")
     assert len(expand(spec)) == 10 * 4 and dict(spec.run)["association"][0] == "oracle"
+
+
+def test_quiet_prints_nothing_and_still_writes_the_rows(tmp_path):
+    worlds = tmp_path / "worlds"
+    worlds.mkdir()
+    write_g2o(simulate(SimulationConfig(poses=30), seed=2), worlds / "a.g2o")
+    spec = tmp_path / "quiet.toml"
+    spec.write_text('datasets = ["worlds/*.g2o"]\n[run]\nassociation = "oracle"\n')
+    result = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1", "--quiet")
+    assert result.exit_code == 0, result.output
+    assert result.output == ""
+    assert [r["status"] for r in rows_of(tmp_path / "out")] == ["ok"]
