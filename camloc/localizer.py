@@ -344,8 +344,6 @@ def localize(
     return localizer.result(time.perf_counter() - started)
 
 
-POINT_CHUNK = 32768
-
 # The associations the compiled loop (``camloc.loop``) runs; the others run in numpy below.
 COMPILED_ASSOCIATIONS = ("beam", "oracle")
 
@@ -416,29 +414,17 @@ class _Localizer:
 
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
-        from camloc.scene import candidate_range
+        from camloc.scene import candidate_range, observation_noise
 
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
-        camera_ids = np.array(sorted(self.cameras), dtype=np.int64)
-        table = np.array([self.cameras[int(c)].intrinsics for c in camera_ids]).reshape(-1, 4)
-        intrinsics = table[np.searchsorted(camera_ids, dataset.obs_camera)] if dataset.num_observations else table
-        # what association judges each observation by: the file's noise, raised to a floor where
-        # it claims to be near exact (the update keeps the file's own)
-        self.association_cov, self.association_info = association.noise_floored(
-            dataset.obs_uvd, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1])
-        self.log_det_R = np.linalg.slogdet(self.association_cov)[1] if dataset.num_observations else np.zeros(0)
+        # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
-        self.point, self.point_cov = np.zeros((dataset.num_observations, 3)), np.zeros((dataset.num_observations, 3, 3))
-        for start in range(0, dataset.num_observations, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
-            part = slice(start, start + POINT_CHUNK)
-            self.point[part], self.point_cov[part] = models.measured_points(dataset.obs_uvd[part], self.association_cov[part], intrinsics[part].T)
-        self.log_det_point_cov = np.linalg.slogdet(self.point_cov)[1] if dataset.num_observations else np.zeros(0)
+        noise = observation_noise(dataset, config)
+        self.association_cov, self.association_info, self.log_det_R = noise.cov, noise.info, noise.log_det
+        self.point, self.point_cov, self.log_det_point_cov = noise.point, noise.point_cov, noise.log_det_point_cov
+        self.null_cost = noise.null_cost
         self.nis_bounds: dict[int, float] = {}
-        if config.null_cost is None:
-            self.null_cost = association.clutter_null_cost(dataset.obs_uvd, self.association_cov, dataset.obs_camera)
-        else:
-            self.null_cost = np.full(dataset.num_observations, float(config.null_cost))
 
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))

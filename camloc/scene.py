@@ -6,6 +6,8 @@ kernels take (``camloc.kernels.types.SceneArrays``)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.special import chdtri
 
@@ -26,18 +28,7 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     camera_K = np.array([(c.fx, c.fy, c.cx, c.cy) for c in cameras], dtype=float).reshape(-1, 4)
     obs_camera = np.searchsorted(camera_ids, dataset.obs_camera).astype(np.int64)
     K = dataset.num_observations
-    intrinsics = camera_K[obs_camera] if K else camera_K[:0]
-    # what association judges each observation by: the file's noise, raised to a floor where it
-    # claims to be near exact (the estimate keeps the file's own)
-    R_assoc, R_assoc_inverse = association.noise_floored(dataset.obs_uvd, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1])
-    point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
-    for start in range(0, K, POINT_CHUNK):
-        part = slice(start, start + POINT_CHUNK)
-        point[part], point_cov[part] = models.measured_points(dataset.obs_uvd[part], R_assoc[part], intrinsics[part].T)
-    if config.null_cost is None:
-        null_cost = association.clutter_null_cost(dataset.obs_uvd, R_assoc, dataset.obs_camera)
-    else:
-        null_cost = np.full(K, float(config.null_cost))
+    noise = observation_noise(dataset, config)
     landmark_index = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
     true_index = np.array([landmark_index.get(int(i), -1) for i in dataset.obs_true_landmark], dtype=np.int64)
     pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
@@ -54,15 +45,52 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
         camera_K, obs_camera,
         np.ascontiguousarray(dataset.obs_uvd, dtype=float),
         np.ascontiguousarray(dataset.obs_cov, dtype=float), np.ascontiguousarray(dataset.obs_info, dtype=float),
-        np.ascontiguousarray(R_assoc), np.ascontiguousarray(R_assoc_inverse),
-        np.linalg.slogdet(R_assoc)[1] if K else np.zeros(0),
-        point, point_cov, sym3.inverse(point_cov) if K else np.zeros((0, 3, 3)),
-        np.linalg.slogdet(point_cov)[1] if K else np.zeros(0),
-        np.ascontiguousarray(null_cost, dtype=float), true_index, pose_obs, pose_obs_start,
+        np.ascontiguousarray(noise.cov), np.ascontiguousarray(noise.info), noise.log_det,
+        noise.point, noise.point_cov, sym3.inverse(noise.point_cov) if K else np.zeros((0, 3, 3)), noise.log_det_point_cov,
+        np.ascontiguousarray(noise.null_cost, dtype=float), true_index, pose_obs, pose_obs_start,
         np.ascontiguousarray(dataset.T_odometry, dtype=float).reshape(-1, 4, 4),
         np.ascontiguousarray(dataset.odom_cov, dtype=float).reshape(-1, 6, 6),
         view, chdtri(3 * np.maximum(np.arange(most_pairs + 2), 1), 0.001),
     )
+
+
+@dataclass(frozen=True)
+class ObservationNoise:
+    """Every observation (K of them) as association judges it: ``cov``, ``info`` (K, 3, 3) the
+    file's noise raised to a floor where it claims to be near exact (``association.noise_floored``;
+    the estimate keeps the file's own) and ``log_det`` (K,) ln det cov; the observation as a
+    camera-frame point (K, 3) with ``point_cov`` (K, 3, 3) and its ln det (K,); and ``null_cost`` (K,),
+    what leaving it unassigned costs."""
+
+    cov: np.ndarray
+    info: np.ndarray
+    log_det: np.ndarray
+    point: np.ndarray
+    point_cov: np.ndarray
+    log_det_point_cov: np.ndarray
+    null_cost: np.ndarray
+
+
+def observation_noise(dataset: Dataset, config) -> ObservationNoise:
+    """The ``ObservationNoise`` of ``dataset``'s observations under ``config`` (its ``null_cost``,
+    or clutter uniform over the measured volume where that is None)."""
+    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
+    camera_K = np.array([(dataset.cameras[int(c)].fx, dataset.cameras[int(c)].fy, dataset.cameras[int(c)].cx,
+                          dataset.cameras[int(c)].cy) for c in camera_ids], dtype=float).reshape(-1, 4)
+    K = dataset.num_observations
+    intrinsics = camera_K[np.searchsorted(camera_ids, dataset.obs_camera)] if K else camera_K[:0]
+    cov, info = association.noise_floored(dataset.obs_uvd, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1])
+    point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
+    for start in range(0, K, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
+        part = slice(start, start + POINT_CHUNK)
+        point[part], point_cov[part] = models.measured_points(dataset.obs_uvd[part], cov[part], intrinsics[part].T)
+    if config.null_cost is None:
+        null_cost = association.clutter_null_cost(dataset.obs_uvd, cov, dataset.obs_camera)
+    else:
+        null_cost = np.full(K, float(config.null_cost))
+    log_det = np.linalg.slogdet(cov)[1] if K else np.zeros(0)
+    log_det_point_cov = np.linalg.slogdet(point_cov)[1] if K else np.zeros(0)
+    return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
 
 
 def build_settings(config, gate: float) -> Settings:
