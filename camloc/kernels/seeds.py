@@ -9,12 +9,11 @@ innovation covariance), linearized at the prior.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.small import mm, mtv, mv, sandwich
+from camloc.kernels.small import mm, mtv
 from camloc.kernels.sym3 import inverse, log_det as log_det_3x3, mahalanobis, mahalanobis_components
 
 

@@ -15,20 +15,7 @@ from camloc.kernels._jit import jit
 def mahalanobis(S, y):
     """(y' S^-1 y, ln det S) of a symmetric positive definite S (3, 3) (upper triangle read) and y
     (3,); both inf where rounding left S without a positive determinant: its pair fits nothing."""
-    a, b, c, d, e, f = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
-    A11, A12, A13 = d * f - e * e, c * e - b * f, b * e - c * d
-    A22, A23, A33 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A11 + b * A12 + c * A13
-    if not det > 0.0:
-        return np.inf, np.inf
-    y1, y2, y3 = y[0], y[1], y[2]
-    quadratic = A11 * y1 * y1 + A22 * y2 * y2 + A33 * y3 * y3 + 2.0 * (A12 * y1 * y2 + A13 * y1 * y3 + A23 * y2 * y3)
-    return quadratic / det, math.log(det)
-
-
-@jit
-def trace(S):
-    return S[0, 0] + S[1, 1] + S[2, 2]
+    return mahalanobis_components(S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2], y[0], y[1], y[2])
 
 
 @jit

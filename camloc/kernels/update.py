@@ -20,7 +20,7 @@ import numpy as np
 from camloc.kernels._jit import jit
 from camloc.kernels.camera import back_project, observe_pairs
 from camloc.kernels.rotation import difference, retract
-from camloc.kernels.small import mm, mtm, mtv, mv, solve
+from camloc.kernels.small import mm, mv, solve
 
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
