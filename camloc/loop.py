@@ -12,7 +12,6 @@ needing a search from seed pairs to ``camloc.seeds``), then the filter replays i
 
 from __future__ import annotations
 
-import time
 from typing import Callable, Optional
 
 import numpy as np
@@ -47,9 +46,10 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     update_pose, nis, map_cost, dof = np.zeros(n, np.int64), np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
     counters = np.zeros(3, np.int64)
     x, P = initial_x.copy(), initial_P.copy()
+    pair_obs, pair_landmark = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
     for first, last in progress.blocks():
-        x, P = _at_pose(counters, filter_poses, scene, settings, method, first, last, x, P, pair_start, pairs[:, 0].copy(),
-                        pairs[:, 1].copy(), slipped, states, covs, chosen, distance, update_pose, nis, map_cost, dof, counters)
+        x, P = _at_pose(counters, filter_poses, scene, settings, method, first, last, x, P, pair_start, pair_obs,
+                        pair_landmark, slipped, states, covs, chosen, distance, update_pose, nis, map_cost, dof, counters)
         progress.done(last)
     u = int(counters[0])
     return states, covs, chosen, distance, update_pose[:u], nis[:u], map_cost[:u], dof[:u], np.flatnonzero(slipped)
