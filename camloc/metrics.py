@@ -16,7 +16,12 @@ run on the TUM files of a run folder:
 
 Consistency uses the chi-square tests of Bar-Shalom, Li and Kirubarajan, "Estimation with
 Applications to Tracking and Navigation" (2001), sec. 5.4: a consistent filter's NEES per pose is
-chi2(6); the time-averaged NEES of M poses lies, with 95% probability, in chi2(6M) bounds / M.
+chi2(6), and the average of N independent ones lies, with 95% probability, in chi2(6N) bounds / N.
+Bar-Shalom averages over N Monte Carlo runs at one time step (``monte_carlo_nees``); one run's
+poses are not independent (an error persists from pose to pose), so the time average of a single
+run (``nees_summary``) takes the same bounds with N the run's effective number of independent
+poses, ``M / tau``, tau its integrated autocorrelation time (``integrated_autocorrelation_time``,
+Geyer 1992). NIS needs no such correction: a consistent filter's innovations are white.
 NEES is always computed on the unaligned estimate: an alignment fitted to the truth would remove
 error the covariance is meant to describe.
 """
@@ -402,10 +407,53 @@ def chi2_bounds(dof: np.ndarray | int, *, confidence: float = CONFIDENCE) -> tup
     return chdtri(dof, 1.0 - tail), chdtri(dof, tail)  # chi^2 quantiles at tail and 1 - tail
 
 
-def mean_chi2_bounds(dof: int, count: int, *, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Bounds of the mean of ``count`` independent chi2(dof) samples: chi2(dof*count) bounds / count."""
+def mean_chi2_bounds(dof: int, count: float, *, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Bounds of the mean of ``count`` independent chi2(dof) samples: chi2(dof*count) bounds / count.
+
+    ``count`` may be an effective sample size (not an integer): the mean of M correlated samples
+    whose mean has the variance of ``count`` independent ones is approximated by the chi-square of
+    that variance (Satterthwaite), which keeps the skew of a short run's mean.
+    """
     lower, upper = chi2_bounds(dof * count, confidence=confidence)
     return float(lower / count), float(upper / count)
+
+
+def autocorrelation(series: np.ndarray) -> np.ndarray:
+    """Sample autocorrelation ``rho_k`` (M,) of a series (M,) at lags 0..M-1, through the FFT.
+
+    The biased estimator (sums divided by M, not M - k), whose sequence is positive semi-definite;
+    a constant series has ``rho_0 = 1`` and zeros elsewhere.
+    """
+    x = np.asarray(series, dtype=float)
+    x = x - x.mean()
+    n = x.size
+    spectrum = np.fft.rfft(x, 2 * n)  # zero-padded: a linear, not circular, correlation
+    covariance = np.fft.irfft(spectrum * np.conj(spectrum), 2 * n)[:n]
+    if covariance[0] <= 0.0:
+        return np.eye(1, n)[0]
+    return covariance / covariance[0]
+
+
+def integrated_autocorrelation_time(series: np.ndarray) -> float:
+    """``tau = 1 + 2 sum_k rho_k`` of a stationary series (M,): the variance of its mean is
+    ``tau`` times that of M independent samples, so it holds ``M / tau`` independent samples' worth.
+
+    Geyer's initial monotone sequence estimator (C. J. Geyer, "Practical Markov chain Monte Carlo",
+    Statistical Science 7(4), 1992, sec. 3.3): the sums of adjacent pairs of autocorrelations
+    ``Gamma_m = rho_2m + rho_2m+1`` are positive and decreasing for a reversible process, so the
+    sum stops at the first that is not positive and each is capped by the one before. It needs no
+    window to tune. At least 1: a consistent filter's NEES is never anti-correlated (the covariance
+    of two poses' NEES is ``2 tr(P_i^-1 C P_j^-1 C')``, C their errors' cross-covariance, >= 0), so
+    a value below 1 is sampling noise that would narrow the interval.
+    """
+    rho = autocorrelation(series)
+    if rho.size < 4:
+        return 1.0
+    pairs = rho[0 : rho.size - 1 : 2] + rho[1 : rho.size : 2]  # Gamma_m, m = 0, 1, ...
+    not_positive = np.flatnonzero(pairs <= 0.0)
+    pairs = pairs[: not_positive[0] if not_positive.size else pairs.size]
+    pairs = np.minimum.accumulate(pairs)  # initial monotone sequence
+    return max(float(2.0 * pairs.sum() - 1.0), 1.0)
 
 
 def _positive_definite(cov: np.ndarray) -> np.ndarray:
@@ -463,14 +511,20 @@ def _finding(statistic: str, verdict: str, lower: float, upper: float, sample: s
 
 
 def nees_summary(nees: np.ndarray, *, dof: int = POSE_DOF) -> dict:
-    """Mean, median and bound shares of per-pose NEES (N,), NaN entries skipped.
+    """Mean, median and bound shares of one run's per-pose NEES (N,), NaN entries skipped.
+
+    The interval of the mean is ``mean_chi2_bounds`` of the run's effective number of independent
+    poses, ``M / tau`` (``integrated_autocorrelation_time`` of the poses used, in their order):
+    consecutive poses share their error, so the M poses' mean varies ``tau`` times as much as the
+    mean of M independent ones, and chi2(dof M) / M would reject a consistent filter far more often
+    than 5% (docs/filter.md, "Consistency").
 
     Returns
     -------
     ``{"dof", "poses", "skipped_poses", "mean", "median", "bounds" (per pose), "within_bounds_share",
-    "mean_bounds" (of the mean over the poses used), "verdict", "verdict_line"}``; the verdict is
-    ``overconfident`` when the mean is above its interval, ``underconfident`` below, else
-    ``consistent`` (``undetermined`` without a usable pose).
+    "autocorrelation_time", "effective_poses", "mean_bounds" (of the mean over the poses used),
+    "verdict", "verdict_line"}``; the verdict is ``overconfident`` when the mean is above its
+    interval, ``underconfident`` below, else ``consistent`` (``undetermined`` without a usable pose).
     """
     nees = np.asarray(nees, dtype=float)
     used = nees[np.isfinite(nees)]
@@ -483,19 +537,64 @@ def nees_summary(nees: np.ndarray, *, dof: int = POSE_DOF) -> dict:
         "confidence": CONFIDENCE,
     }
     if used.size == 0:
-        return out | {"mean": None, "median": None, "within_bounds_share": None, "mean_bounds": None,
-                      "verdict": "undetermined", "verdict_line": "undetermined: no pose has a usable covariance"}
+        return out | {"mean": None, "median": None, "within_bounds_share": None, "autocorrelation_time": None,
+                      "effective_poses": None, "mean_bounds": None, "verdict": "undetermined",
+                      "verdict_line": "undetermined: no pose has a usable covariance"}
     mean = float(np.mean(used))
-    mean_lower, mean_upper = mean_chi2_bounds(dof, used.size)
+    tau = integrated_autocorrelation_time(used)
+    effective = used.size / tau
+    mean_lower, mean_upper = mean_chi2_bounds(dof, effective)
     verdict = _verdict(mean, mean_lower, mean_upper)
+    sample = f"{used.size} poses ({dof} dof, worth {effective:.0f} independent ones)"
     return out | {
         "mean": mean,
         "median": float(np.median(used)),
         "within_bounds_share": float(np.mean((used >= lower) & (used <= upper))),
+        "autocorrelation_time": tau,
+        "effective_poses": float(effective),
         "mean_bounds": [mean_lower, mean_upper],
         "verdict": verdict,
-        "verdict_line": f"{verdict}: " + _finding(f"mean NEES {mean:.2f}", verdict, mean_lower, mean_upper,
-                                                  f"{used.size} poses ({dof} dof)"),
+        "verdict_line": f"{verdict}: " + _finding(f"mean NEES {mean:.2f}", verdict, mean_lower, mean_upper, sample),
+    }
+
+
+def monte_carlo_nees(nees: np.ndarray, *, dof: int = POSE_DOF) -> dict:
+    """Bar-Shalom's Monte Carlo NEES test (sec. 5.4.2) of N independent runs of K time steps.
+
+    Parameters
+    ----------
+    nees : (N, K) per-pose NEES of each run (``run_nees``), NaN where a pose is left out.
+
+    Returns
+    -------
+    ``{"runs", "dof", "average" (K,): the ensemble average over the runs at each step (NaN where
+    no run has a value), "bounds" (K, 2): chi2(dof n_k) / n_k with n_k the runs with a value,
+    "within_bounds_share": of the steps with a value, "mean": the grand mean, "standard_error":
+    from the spread of the runs' own means (the runs are independent, the steps of a run are not),
+    "run_means" (N,)}``. A consistent filter has about 95% of its steps inside and a grand mean
+    within about two standard errors of ``dof``.
+    """
+    nees = np.atleast_2d(np.asarray(nees, dtype=float))
+    finite = np.isfinite(nees)
+    counts = finite.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        average = np.where(counts > 0, np.where(finite, nees, 0.0).sum(axis=0) / counts, np.nan)
+    bounds = np.full((nees.shape[1], 2), np.nan)
+    steps = counts > 0
+    lower, upper = chi2_bounds(dof * counts[steps])
+    bounds[steps] = np.column_stack([lower / counts[steps], upper / counts[steps]])
+    inside = (average[steps] >= bounds[steps, 0]) & (average[steps] <= bounds[steps, 1])
+    run_means = np.array([np.mean(row[np.isfinite(row)]) if np.any(np.isfinite(row)) else np.nan for row in nees])
+    used = run_means[np.isfinite(run_means)]
+    return {
+        "runs": int(nees.shape[0]),
+        "dof": int(dof),
+        "average": average,
+        "bounds": bounds,
+        "within_bounds_share": float(np.mean(inside)) if inside.size else None,
+        "mean": float(np.mean(used)) if used.size else None,
+        "standard_error": float(np.std(used, ddof=1) / np.sqrt(used.size)) if used.size > 1 else None,
+        "run_means": run_means,
     }
 
 

@@ -66,6 +66,53 @@ def posterior_costs(dataset, result) -> np.ndarray:
     return np.array(costs)
 
 
+def linear_gaussian_nees(rng, *, runs: int, steps: int, ratio: float, warm_up: int = 50) -> np.ndarray:
+    """(runs, steps) NEES of a perfectly consistent Kalman filter: a 6-D random walk (odometry-like
+    steps of 0.1 m and 0.02 rad) measured whole at every step with a noise ``ratio`` times the step.
+
+    Linear and Gaussian, so its NEES is exactly chi2(6) at every step; its error persists from
+    step to step (the more, the larger ``ratio``). The gain does not depend on the data, so the
+    runs advance together; ``warm_up`` steps let the covariance settle first.
+    """
+    q_sigma = np.array([0.1, 0.1, 0.1, 0.02, 0.02, 0.02])
+    Q, R = np.diag(q_sigma**2), np.diag((ratio * q_sigma) ** 2)
+    P = Q.copy()
+    error = rng.standard_normal((runs, 6)) * q_sigma  # x_true - x_hat
+    nees = np.empty((runs, warm_up + steps))
+    for k in range(warm_up + steps):
+        P = P + Q  # predict: F = I, G = I
+        error = error + rng.standard_normal((runs, 6)) * q_sigma
+        K = np.linalg.solve(P + R, P).T  # K = P H' S^-1, H = I
+        measured = error + rng.standard_normal((runs, 6)) * ratio * q_sigma  # z - H x_hat
+        error = error - measured @ K.T  # x_hat += K (z - H x_hat)
+        I_K = np.eye(6) - K
+        P = I_K @ P @ I_K.T + K @ R @ K.T  # Joseph form
+        nees[:, k] = np.einsum("ri,ij,rj->r", error, np.linalg.inv(P), error)
+    return nees[:, warm_up:]
+
+
+def _rejected(summary: dict) -> bool:
+    return summary["verdict"] != "consistent"
+
+
+@pytest.mark.parametrize("ratio, naive_rejects_at_least", [(1.0, 0.0), (3.0, 0.15)])
+def test_single_run_interval_rejects_a_consistent_filter_five_percent_of_the_time(ratio, naive_rejects_at_least):
+    # 200 runs of 200 steps of a filter consistent by construction. Its per-step NEES is chi2(6),
+    # but the steps of a run share their error: at ratio 3 (lag-1 autocorrelation of NEES about
+    # 0.5, tau about 3) the interval of 200 independent samples rejects a quarter of the runs.
+    # The interval of the run's effective number of independent poses holds its 95%; at ratio 1
+    # (tau about 1.3, camloc's oracle runs are near there) both do.
+    nees = linear_gaussian_nees(np.random.default_rng(21), runs=200, steps=POSES, ratio=ratio)
+    assert abs(np.mean(nees) - metrics.POSE_DOF) < 0.1  # the filter is consistent
+    corrected = np.mean([_rejected(metrics.nees_summary(run)) for run in nees])
+    naive = np.mean([not _inside(np.mean(run), metrics.mean_chi2_bounds(metrics.POSE_DOF, run.size)) for run in nees])
+    assert 0.01 <= corrected <= 0.12, (corrected, naive)
+    assert naive >= naive_rejects_at_least, (corrected, naive)
+    # ... and it still sees a covariance 20% too small or too large.
+    assert np.mean([_rejected(metrics.nees_summary(run / 0.8)) for run in nees]) > 0.5
+    assert np.mean([_rejected(metrics.nees_summary(run / 1.2)) for run in nees]) > 0.5
+
+
 def _inside(mean: float, bounds: list[float]) -> bool:
     return bounds[0] <= mean <= bounds[1]
 

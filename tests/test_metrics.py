@@ -347,9 +347,11 @@ def test_evaluate_rejects_an_unknown_alignment(synthetic_run):
 
 
 def _summaries(nees_scale: float, nis_scale: float) -> tuple[dict, dict]:
-    # chi2 samples at their exact quantiles, scaled: a filter over- (scale > 1) or under-confident
+    # chi2 samples at their exact quantiles, scaled: a filter over- (scale > 1) or under-confident.
+    # NEES in a shuffled order: sorted, the poses would look like one slow drift, worth a single
+    # independent pose to nees_summary's autocorrelation time.
     quantiles = (np.arange(400) + 0.5) / 400
-    nees = metrics.nees_summary(nees_scale * chdtri(6, 1.0 - quantiles))
+    nees = metrics.nees_summary(nees_scale * np.random.default_rng(0).permutation(chdtri(6, 1.0 - quantiles)))
     nis = metrics.nis_summary(nis_scale * chdtri(3, 1.0 - quantiles), np.full(400, 3))
     return nees, nis
 
