@@ -295,8 +295,9 @@ def _plot_series(ax: Axes, x: np.ndarray, values: np.ndarray, weights: np.ndarra
 
 
 def plot_nees(ax: Axes, result: RunResult) -> Axes:
-    """NEES per pose (6 dof, log scale) with its per-pose chi2 95% bounds and the mean's interval;
-    past ``ROLLING_FROM`` poses, with its rolling mean.
+    """NEES per pose (6 dof, log scale) with its per-pose chi2 95% bounds and the mean's interval
+    (of the run's effective number of independent poses, ``metrics.nees_summary``); past
+    ``ROLLING_FROM`` poses, with its rolling mean.
 
     The given start pose is left out (``metrics.run_nees``).
     """
@@ -314,7 +315,8 @@ def plot_nees(ax: Axes, result: RunResult) -> Axes:
         mean_lower, mean_upper = summary["mean_bounds"]
         ax.axhline(summary["mean"], color="crimson" if summary["verdict"] != "consistent" else ESTIMATE_COLOR,
                    linestyle="--", linewidth=1.2,
-                   label=f"mean {summary['mean']:.2f}\n(95% interval [{mean_lower:.2f}, {mean_upper:.2f}])")
+                   label=f"mean {summary['mean']:.2f}\n(95% interval [{mean_lower:.2f}, {mean_upper:.2f}]\n"
+                         f"of {summary['effective_poses']:.0f} independent poses)")
     _plain_log_scale(ax)
     _finish_time_axis(ax, result, "NEES (6 dof)", f"pose NEES: {summary['verdict']}")
     return ax

@@ -151,6 +151,12 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
     if report["nees"] is not None and report["nees"]["skipped_poses"]:
         parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "
                           "and any whose covariance is singular", style="dim"))
+    if report["nees"] is not None and report["nees"].get("effective_poses") is not None:
+        nees = report["nees"]
+        parts.append(Text(f"NEES: consecutive poses share their error, so the interval of the mean counts "
+                          f"{nees['effective_poses']:.0f} independent poses, not {nees['poses']} "
+                          f"(autocorrelation time {nees['autocorrelation_time']:.2f}); one run of a consistent "
+                          "filter falls outside it 5% of the time", style="dim"))
     consistency = report["consistency"]
     parts.append(Text(f"verdict: {consistency['verdict_line']}", style=_VERDICT_STYLE.get(consistency["verdict"], "")))
     for note in report.get("notes", []):

@@ -136,16 +136,64 @@ def test_oracle_run_reports_nis_inside_its_bounds(oracle_runs, world_id):
     assert summary["verdict"] == "consistent", summary
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "filter core: NEES runs 4-6% above 6 (2,388 poses of 12 runs: mean 6.35, median 5.52 against "
-    "chi2(6)'s 5.35), a third of it from the oracle's 99% gate dropping the pairs whose innovation "
-    "the prior's error made large (6.23 without the gate); a single run's mean is outside the "
-    "interval in about a quarter of the worlds"))
-@pytest.mark.parametrize("world_id", WORLD_IDS)
-def test_oracle_run_nees_is_inside_its_bounds(oracle_runs, world_id):
-    _, result = oracle_runs[world_id]
-    summary = metrics.nees_summary(metrics.run_nees(result))
-    assert summary["verdict"] == "consistent", summary["verdict_line"]
+def test_oracle_run_nees_verdict_on_every_kind_of_world(oracle_runs):
+    # One run per kind of world, each judged by the interval of its effective number of
+    # independent poses. A consistent filter fails a run 5% of the time, so 12 kinds are not all
+    # expected to pass: at most 2 (a binomial(12, 0.05) exceeds 2 with probability 0.02). The
+    # Monte Carlo study (docs/filter.md, "Consistency") measured 0-30% per kind with the default
+    # gate, the excess being the gate and the linearization at poses with one or two pixel pairs;
+    # these runs (seed 0) reject one, smooth3d-normalized-1cam (6.71 against [5.37, 6.67]).
+    summaries = {world_id: metrics.nees_summary(metrics.run_nees(result)) for world_id, (_, result) in oracle_runs.items()}
+    rejected = [summary["verdict_line"] for summary in summaries.values() if summary["verdict"] != "consistent"]
+    assert len(rejected) <= 2, rejected
+    assert all(summary["verdict"] != "underconfident" for summary in summaries.values())
+    assert all(1.0 <= summary["autocorrelation_time"] <= 3.0 for summary in summaries.values())
+    # ... and a covariance 20% too small on every pose is seen on nearly every kind.
+    scaled = [metrics.nees_summary(metrics.run_nees(result) / 0.8)["verdict"] for _, result in oracle_runs.values()]
+    assert scaled.count("overconfident") >= 10, scaled
+
+
+MONTE_CARLO_SEEDS = 16
+MONTE_CARLO_WORLDS = [("grid", "normalized", 2), ("smooth3d", "pixel", 2), ("aerial", "normalized", 2)]
+
+
+def _oracle_nees(trajectory: str, intrinsics: str, cameras: int, seeds: int, **options) -> np.ndarray:
+    """(seeds, POSES) per-pose NEES of oracle runs on seeds 0.. of one kind of world; ``options``
+    split between ``SimulationConfig`` (``*_sigma_scale``) and ``LocalizerConfig`` (the rest)."""
+    simulation = {key: options.pop(key) for key in list(options) if key.endswith("sigma_scale")}
+    config = SimulationConfig(trajectory=trajectory, intrinsics=intrinsics, cameras=cameras, poses=POSES, **simulation)
+    localizer = camloc.LocalizerConfig(association="oracle", **options)
+    return np.array([metrics.run_nees(camloc.localize(simulate(config, seed=seed), localizer, parallel=False))
+                     for seed in range(seeds)])
+
+
+@pytest.mark.parametrize("world", MONTE_CARLO_WORLDS, ids=lambda world: "-".join(map(str, world)))
+def test_monte_carlo_nees_of_oracle_runs_is_inside_its_bounds(world):
+    # Bar-Shalom's test: at each pose, the average NEES of independent runs against chi2(6N)/N;
+    # the grand mean against the standard error of the runs' means. The gate all but open
+    # (1 - 1e-6): the oracle's 99% gate drops the pairs whose innovation the prior's error made
+    # large, which raises NEES by 1.5% (docs/filter.md); the default gate is tested above.
+    nees = _oracle_nees(*world, MONTE_CARLO_SEEDS, gate=1.0 - 1e-6)
+    summary = metrics.monte_carlo_nees(nees)
+    assert abs(summary["mean"] - metrics.POSE_DOF) < 3.0 * summary["standard_error"], summary["mean"]
+    assert summary["within_bounds_share"] >= 0.85
+    # The same runs with a covariance 10% too small fail the grand mean's test. (The per-pose test
+    # of 16 runs is too wide to see 10%: it keeps 86-87% of the poses inside.)
+    overconfident = metrics.monte_carlo_nees(nees / 0.9)
+    assert overconfident["mean"] - metrics.POSE_DOF > 3.0 * overconfident["standard_error"]
+
+
+@pytest.mark.slow
+def test_monte_carlo_nees_is_consistent_on_every_kind_of_world_once_the_prior_is_tight():
+    # What is left of the excess without the gate is the first-order linearization: at poses with
+    # one or two pixel pairs, a wide prior against a precise bearing leaves a curved posterior
+    # whose Gauss-Newton covariance is too small (aerial-pixel-1cam: 6.27 +- 0.07 over 30 runs).
+    # With odometry 10x more precise the prior is tight enough for the linearization: every kind
+    # of world is consistent (measured: grand means 5.88..6.13, all within 1.6 standard errors).
+    for world in WORLDS:
+        summary = metrics.monte_carlo_nees(_oracle_nees(*world, 20, gate=1.0 - 1e-6, odometry_sigma_scale=0.1))
+        assert abs(summary["mean"] - metrics.POSE_DOF) < 3.0 * summary["standard_error"], (world, summary["mean"])
+        assert summary["within_bounds_share"] >= 0.8, (world, summary["within_bounds_share"])
 
 
 def test_oracle_runs_nees_pooled_over_the_worlds_is_near_its_dof(oracle_runs):
