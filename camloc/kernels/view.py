@@ -64,9 +64,11 @@ def visible(scene, R_wc, centre, max_angle, margin):
     min_depth, max_depth = scene.view_limits[0], scene.view_limits[1]
     axis = np.ascontiguousarray(R_wc[:, 2])
     back = margin / math.sin(max_angle) if margin > 0.0 else 0.0
-    ball, radius = view_cone_ball(centre - back * axis, axis, max_depth + margin + back, max_angle)
-    tan = math.tan(max_angle)
-    found = np.empty(64, np.int64)
+    apex = centre - back * axis
+    reach = max_depth + margin + back
+    ball, radius = view_cone_ball(apex, axis, reach, max_angle)
+    cone = (math.tan(max_angle), math.cos(max_angle), math.sin(max_angle))
+    found = np.empty(256, np.int64)
     count = 0
     cell, origin, dims = scene.grid_cell[0], scene.grid_origin, scene.grid_dims
     lo = np.empty(3, np.int64)
@@ -100,34 +102,45 @@ def visible(scene, R_wc, centre, max_angle, margin):
                 if g >= keys.size or keys[g] != key:
                     continue
                 first, stop = scene.grid_start[g], scene.grid_start[g + 1]
-        if stop > first and not cell_near_cone(origin, cell, ix, iy, iz, centre - back * axis, axis, max_depth + margin + back,
-                                               max_angle, min_depth - margin):
+        if stop == first or not cell_near_cone(origin, cell, ix, iy, iz, apex, axis, reach, cone[1], cone[2], min_depth - margin):
             continue
-        for s in range(first, stop):
-            # scalar reads: a row view would count references on every landmark
-            l0, l1, l2 = scene.grid_xyz[s, 0], scene.grid_xyz[s, 1], scene.grid_xyz[s, 2]
-            d0, d1, d2 = l0 - ball[0], l1 - ball[1], l2 - ball[2]
-            if d0 * d0 + d1 * d1 + d2 * d2 > radius * radius:
-                continue
-            j = scene.grid_items[s]
-            v0, v1, v2 = l0 - centre[0], l1 - centre[1], l2 - centre[2]
-            px = R_wc[0, 0] * v0 + R_wc[1, 0] * v1 + R_wc[2, 0] * v2
-            py = R_wc[0, 1] * v0 + R_wc[1, 1] * v1 + R_wc[2, 1] * v2
-            depth = R_wc[0, 2] * v0 + R_wc[1, 2] * v1 + R_wc[2, 2] * v2
-            if depth > min_depth - margin and depth < max_depth + margin and math.hypot(px, py) <= (depth + back) * tan:
-                if count == found.size:
-                    grown = np.empty(2 * count, np.int64)
-                    grown[:count] = found
-                    found = grown
-                found[count] = j
-                count += 1
+        if count + (stop - first) > found.size:
+            grown = np.empty(2 * (count + stop - first), np.int64)
+            grown[:count] = found[:count]
+            found = grown
+        count = cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth - margin, max_depth + margin, back,
+                             cone[0], found, count)
     return np.sort(found[:count])
 
 
 @jit
-def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, half_angle, min_depth):
+def cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth, max_depth, back, tan, found, count):
+    """Append the landmarks first..stop-1 of the grid's order that lie in the ball and the view
+    (depth within (min_depth, max_depth), within the cone widened ``back`` metres behind the
+    camera) to found (room for all of them) from ``count``; returns the new count. Without
+    branches: which side of each test a landmark falls on is a coin toss the CPU would guess
+    wrong half the time."""
+    b0, b1, b2, c0, c1, c2 = ball[0], ball[1], ball[2], centre[0], centre[1], centre[2]
+    r2 = radius * radius
+    for s in range(first, stop):
+        l0, l1, l2 = scene.grid_xyz[s, 0], scene.grid_xyz[s, 1], scene.grid_xyz[s, 2]
+        d0, d1, d2 = l0 - b0, l1 - b1, l2 - b2
+        v0, v1, v2 = l0 - c0, l1 - c1, l2 - c2
+        px = R_wc[0, 0] * v0 + R_wc[1, 0] * v1 + R_wc[2, 0] * v2
+        py = R_wc[0, 1] * v0 + R_wc[1, 1] * v1 + R_wc[2, 1] * v2
+        depth = R_wc[0, 2] * v0 + R_wc[1, 2] * v1 + R_wc[2, 2] * v2
+        cone_radius = (depth + back) * tan
+        inside = ((d0 * d0 + d1 * d1 + d2 * d2 <= r2) & (depth > min_depth) & (depth < max_depth) & (cone_radius >= 0.0)
+                  & (px * px + py * py <= cone_radius * cone_radius))
+        found[count] = scene.grid_items[s]
+        count += inside
+    return count
+
+
+@jit
+def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, cos_half_angle, sin_half_angle, min_depth):
     """Whether grid cell (ix, iy, iz) may hold a point of the view cone (apex, unit axis, points up
-    to ``depth`` along it and beyond ``min_depth``, within ``half_angle`` of it): its ball's distance
+    to ``depth`` along it and beyond ``min_depth``, within the half-angle of it): its ball's distance
     to the cone is at most its radius (a conservative test: a cell it keeps may hold none)."""
     h = 0.8660254037844386 * cell                      # half the cell's diagonal
     v0 = origin[0] + (ix + 0.5) * cell - apex[0]
@@ -139,7 +152,7 @@ def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, half_angle, min_
     p0, p1, p2 = v0 - along * axis[0], v1 - along * axis[1], v2 - along * axis[2]
     perp = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
     # signed distance to the cone's side: perp cos - along sin (negative inside)
-    return perp * math.cos(half_angle) - along * math.sin(half_angle) <= h
+    return perp * cos_half_angle - along * sin_half_angle <= h
 
 
 @jit
