@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import inlined, jit
 from camloc.kernels.camera import camera_pose, observe
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
-from camloc.kernels.sym3 import mahalanobis_components
+from camloc.kernels.sym3 import mahalanobis_components, spread
 from camloc.kernels.update import innovation_cost, updated
-from camloc.kernels.view import visible, widened_view
+from camloc.kernels.view import visible
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -62,34 +62,23 @@ def gather(gen, indices, cap):
 # A pair's cost, in the coordinates where its linearization explains it best
 
 @jit
-def spread(H, i, P):
-    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6)."""
-    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    for k in range(6):
-        for j in range(6):
-            p = P[k, j]
-            h0, h1, h2 = H[i, 0, j], H[i, 1, j], H[i, 2, j]
-            g0, g1, g2 = H[i, 0, k] * p, H[i, 1, k] * p, H[i, 2, k] * p
-            a00 += g0 * h0
-            a01 += g0 * h1
-            a02 += g0 * h2
-            a11 += g1 * h1
-            a12 += g1 * h2
-            a22 += g2 * h2
-    return a00, a01, a02, a11, a12, a22
+def spread_row(spreads, q):
+    return spreads[q, 0], spreads[q, 1], spreads[q, 2], spreads[q, 3], spreads[q, 4], spreads[q, 5]
 
 
 @jit
-def pair_in_best_coordinates(scene, o, z_hat, H, q, P, y, Hc, n):
+def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n):
     """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
-    prediction q (z_hat[q] (3,), H[q] (3, 6)) under P, in the measured (u, v, depth) or in the
+    prediction q (z_hat[q] (3,), H[q] (3, 6), ``spread_q`` the upper triangle of H[q] P H[q]'
+    (``sym3.spread``): one per prediction, whatever the observation) under P, in the measured
+    (u, v, depth) or in the
     camera-frame point they back-project to, whichever is likelier (a point is linear in the
     robot's position; pixels can fit better where the spread is rotation); writes the innovation
     y[n] (3,) and its Jacobian Hc[n] (3, 6) in the chosen coordinates."""
     K = scene.camera_K[scene.obs_camera[o]]
     x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
     j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z     # d p / d (u, v, depth)
-    a00, a01, a02, a11, a12, a22 = spread(H, q, P)                         # H P H'
+    a00, a01, a02, a11, a12, a22 = spread_q                                # H P H'
     R, C = scene.R_assoc[o], scene.point_cov[o]
     d2_pixels, log_det_pixels = mahalanobis_components(
         a00 + R[0, 0], a01 + R[0, 1], a02 + R[0, 2], a11 + R[1, 1], a12 + R[1, 2], a22 + R[2, 2],
@@ -121,10 +110,10 @@ def pair_in_best_coordinates(scene, o, z_hat, H, q, P, y, Hc, n):
 
 
 @jit
-def view_spread(H, q, P, z_hat, K):
-    """(trace of H P H', trace of its spread as a camera-frame point) of prediction q: the
-    screen's bound on every pair with it."""
-    a00, a01, a02, a11, a12, a22 = spread(H, q, P)
+def view_spread(spread_q, q, z_hat, K):
+    """(trace of H P H', trace of its spread as a camera-frame point) of prediction q, whose
+    H P H' has the upper triangle ``spread_q``: the screen's bound on every pair with it."""
+    a00, a01, a02, a11, a12, a22 = spread_q
     x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
     j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z
     b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
@@ -133,18 +122,15 @@ def view_spread(H, q, P, z_hat, K):
 
 
 @jit
-def options_for(scene, settings, x, P, obs, widened):
+def options_for(scene, settings, x, P, obs, margin, max_angle):
     """What each observation (obs (m,)) may be under (x, P): its pool of landmarks within
     ``pool_gate_factor`` gates, with their costs (inf outside the gate), predictions, innovations
     and Jacobians in their best coordinates. CSR over the observations: (start (m + 1,), landmark,
-    cost, z_hat (g, 3), H (g, 3, 6), y (g, 3), Hc (g, 3, 6), in_point). ``widened``: among the
-    landmarks within three standard deviations of the view, not only in it."""
+    cost, z_hat (g, 3), H (g, 3, 6), y (g, 3), Hc (g, 3, 6), in_point). Among the landmarks in the
+    view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``)."""
     m = obs.size
     pool_gate = settings.pool_gate_factor * settings.gate
     cameras = np.unique(scene.obs_camera[obs])
-    max_angle, margin = scene.view_limits[2], 0.0
-    if widened:
-        margin, max_angle = widened_view(P, scene.view_limits[2])
     # every camera's candidates, their predictions and spreads, concatenated
     found = []
     for c in cameras:
@@ -156,6 +142,7 @@ def options_for(scene, settings, x, P, obs, widened):
     cand, cand_camera = np.empty(total, np.int64), np.empty(total, np.int64)
     z_hat, H = np.empty((total, 3)), np.empty((total, 3, 6))
     p_hat, spread_pixels, spread_point = np.empty((total, 3)), np.empty(total), np.empty(total)
+    spreads = np.empty((total, 6))
     at = 0
     for g in range(cameras.size):
         c, f = cameras[g], found[g]
@@ -165,7 +152,8 @@ def options_for(scene, settings, x, P, obs, widened):
             cand[at], cand_camera[at], z_hat[at], H[at] = f[q], c, zc[q], Hc[q]
             x_over_z, y_over_z = (zc[q, 0] - K[2]) / K[0], (zc[q, 1] - K[3]) / K[1]
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2] = x_over_z * zc[q, 2], y_over_z * zc[q, 2], zc[q, 2]
-            spread_pixels[at], spread_point[at] = view_spread(Hc, q, P, zc, K)
+            spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread(Hc, q, P)
+            spread_pixels[at], spread_point[at] = view_spread(spread_row(spreads, at), q, zc, K)
             at += 1
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
@@ -187,7 +175,7 @@ def options_for(scene, settings, x, P, obs, widened):
                 e_point += (scene.point[o, a] - p_hat[q, a]) ** 2
             if e_pixels > pool_gate * (spread_pixels[q] + tr_R) and e_point > pool_gate * (spread_point[q] + tr_point):
                 continue
-            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, P, ys, Hcs, n)
+            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread_row(spreads, q), ys, Hcs, n)
             if not d2 <= pool_gate:
                 continue
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
@@ -210,7 +198,7 @@ def is_taken(landmark, taken):
     return False
 
 
-@jit
+@inlined
 def condition(scene, settings, x, P, o, pool, taken):
     """The options of observation o over its pool (g,) under a hypothesis (x, P) conditioned on
     some of the pose's pairs, less the landmarks it has taken: (cost, z_hat, H, y, Hc, in_point).
@@ -222,7 +210,7 @@ def condition(scene, settings, x, P, o, pool, taken):
     ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6))
     z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[pool])
     for q in range(g):
-        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, P, ys, Hcs, q)
+        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread(H, q, P), ys, Hcs, q)
         cost[q] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
         in_point[q] = point
     return cost, z_hat, H, ys, Hcs, in_point
@@ -244,7 +232,8 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
     within ``branch_delta`` of its best or its one landmark is viable for another observation."""
     n = positions.size
     choice = np.full(n, AMBIGUOUS, np.int64)
-    viable_landmarks = np.empty(0, np.int64)
+    viable_landmarks = np.empty(lm.size, np.int64)
+    viable = 0
     for k in range(n):
         i = positions[k]
         limit = least_cost(cost[start[i]:start[i + 1]], null_cost[k]) + settings.branch_delta
@@ -253,14 +242,15 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
             if cost[j] <= limit:
                 count += 1
                 last = j
-                viable_landmarks = np.append(viable_landmarks, lm[j])
+                viable_landmarks[viable] = lm[j]
+                viable += 1
         null = null_cost[k] <= limit
         if count + int(null) == 1:
             choice[k] = UNASSIGNED if null else last
     for k in range(n):
         if choice[k] >= 0:
             claims = 0
-            for v in viable_landmarks:
+            for v in viable_landmarks[:viable]:
                 if v == lm[choice[k]]:
                     claims += 1
             if claims > 1:
@@ -268,7 +258,7 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
     return choice
 
 
-@jit
+@inlined
 def after_clear(scene, settings, gen, h, obs, cap):
     """Hypothesis h of gen after its stacked updates with the pose's clear observations: the clear
     ones are taken in one stacked update; conditioned on them the others are gated again, and those
@@ -276,13 +266,13 @@ def after_clear(scene, settings, gen, h, obs, cap):
     only until a neighbour's pair pins the pose). Returns (the child as a generation of one, its
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
     the least each can cost)."""
-    opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, False)
+    opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
     child = new_generation(1, cap)
     copy_hypothesis(gen, h, child, 0)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)
-    no_start = np.zeros(6)
+    no_start = np.empty(0)                       # ``updated``'s start: none
     while pending.size:
         choice = clear_choices(settings, scene.null_cost[obs[pending]], start, lm, cost, pending)
         clear = choice != AMBIGUOUS
@@ -296,7 +286,8 @@ def after_clear(scene, settings, gen, h, obs, cap):
                 child[4][0] += 1
         if taken.size:
             o, landmarks = obs[taken], lm[options]
-            x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, zh[options], Hs[options], True, False, no_start, False)[:2]
+            x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, zh[options], Hs[options], scene.R_assoc,
+                                   scene.R_assoc_inverse, no_start)[:2]
             R, R_inverse = np.empty((taken.size, 3, 3)), np.empty((taken.size, 3, 3))
             for t in range(taken.size):
                 if in_point[options[t]]:
@@ -337,7 +328,7 @@ def same_state(gen, a, b, merge_sigma):
     return True
 
 
-@jit
+@inlined
 def settle(scene, settings, gen, c, parents, pending):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
@@ -347,12 +338,12 @@ def settle(scene, settings, gen, c, parents, pending):
         return
     p = source[c]
     x, P = updated(scene, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
-                   z_hat[c:c + 1], H[c:c + 1], True, False, np.zeros(6), False)[:2]
+                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
     gen[0][c], gen[1][c] = x, P
     waiting[c] = False
 
 
-@jit
+@inlined
 def prune_indices(scene, settings, gen, candidates, parents, pending):
     """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
     beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
@@ -392,7 +383,7 @@ def prune(scene, settings, gen, n):
     return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n))
 
 
-@jit
+@inlined
 def prune_partials(scene, settings, gen, root, rest, parents, pending):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
@@ -480,7 +471,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
         step += 1
 
 
-@jit
+@inlined
 def options_of(scene, settings, gen, p, obs, opt, i, moved):
     """The options of observation i under partial p: those of its root's base state, or made
     again under p's own where it has paired something since."""
@@ -504,14 +495,14 @@ def viable(gen, p, landmarks, cost, null_cost, branch_delta):
     return cost <= limit, null_cost <= limit
 
 
-@jit
+@inlined
 def branch_count(scene, settings, gen, p, obs, opt, i, moved):
     landmarks, cost, _, _ = options_of(scene, settings, gen, p, obs, opt, i, moved)
     pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[obs[i]], settings.branch_delta)
     return pairs.sum() + int(null)
 
 
-@jit
+@inlined
 def branch(scene, settings, gen, p, r, obs, opt, i, moved, rest, children, at, c_root, c_rest, c_moved, pending):
     """Write the children of partial p for observation i from index ``at``: unassigned, or paired
     with a viable landmark (its state pending); returns the next free index."""
@@ -539,7 +530,7 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, rest, children, at, c
 # ---------------------------------------------------------------------------------------------
 # The run over the poses
 
-@jit
+@inlined
 def predicted(scene, beam, n, k):
     """The beam's first n hypotheses predicted to pose k (k > 0) with its odometry: same costs,
     each remembering which it grew from, no pairs yet."""

@@ -12,8 +12,8 @@ from camloc.kernels._jit import jit
 from camloc.kernels.camera import camera_pose, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
-from camloc.kernels.small import check_covariance, mm, mtm, sandwich, solve
-from camloc.kernels.sym3 import mahalanobis
+from camloc.kernels.small import check_covariance, mm, mtm, solve
+from camloc.kernels.sym3 import mahalanobis_components, spread
 from camloc.kernels.update import updated
 from camloc.kernels.view import visible
 
@@ -24,18 +24,22 @@ GIVEN, ORACLE = 0, 1
 def oracle_pairs(scene, settings, x, P, obs):
     """The file's landmark of each observation (obs (m,)) where it is in the map and the pair
     passes the gate at (x, P): a gross outlier keeps its true id but is no evidence to take."""
-    keep = np.zeros(obs.size, np.bool_)
-    landmarks = np.empty(obs.size, np.int64)
-    for r in range(obs.size):
-        o = obs[r]
-        landmarks[r] = scene.true_index[o]
-        if landmarks[r] < 0:
-            continue
-        c = scene.obs_camera[o]
-        z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[landmarks[r]:landmarks[r] + 1])
-        d2, _ = mahalanobis(sandwich(H[0], P) + scene.R_assoc[o], scene.z[o] - z_hat[0])
-        keep[r] = d2 <= settings.gate
-    return obs[keep], landmarks[keep]
+    mapped = obs[scene.true_index[obs] >= 0]
+    landmarks = scene.true_index[mapped]
+    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[mapped], scene.camera_R, scene.camera_t,
+                             scene.camera_K)
+    keep = np.zeros(mapped.size, np.bool_)
+    for r in range(mapped.size):
+        keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= settings.gate
+    return mapped[keep], landmarks[keep]
+
+
+@jit
+def pair_distance(R, o, z, z_hat, H, i, P):
+    """d^2 of observation o (z[o], noise R[o]) against prediction i (z_hat[i], H[i]) under P."""
+    a, b, c, d, e, f = spread(H, i, P)
+    return mahalanobis_components(a + R[o, 0, 0], b + R[o, 0, 1], c + R[o, 0, 2], d + R[o, 1, 1], e + R[o, 1, 2],
+                                  f + R[o, 2, 2], z[o, 0] - z_hat[i, 0], z[o, 1] - z_hat[i, 1], z[o, 2] - z_hat[i, 2])[0]
 
 
 @jit
@@ -94,7 +98,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
     chosen landmark (-1 none) and the pair's Mahalanobis distance, per update its pose, NIS, MAP
     cost and degrees of freedom; counters[0] counts updates, counters[1] is the pose being
     filtered (where an error stopped it). Returns (x, P) after pose last - 1."""
-    no_start = np.zeros(6)
+    no_start = np.empty(0)                       # ``updated``'s start: none
     for k in range(first, last):
         counters[1] = k
         if k > 0:
@@ -106,7 +110,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             given_obs = pair_obs[pair_start[k]:pair_start[k + 1]]
             order = np.argsort(given_obs, kind="mergesort")
             obs, landmarks = given_obs[order], pair_landmark[pair_start[k]:pair_start[k + 1]][order]
-        start, from_start = no_start, False
+        start = no_start
         if method == GIVEN and slipped[k]:
             P = P * settings.slip_inflation                                         # as the beam did
             if obs.size:
@@ -114,13 +118,13 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 # the pose where Gauss-Newton from the slip's wide prior can settle metres away
                 seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
                 z_hat, H = observe_pairs(x, scene.landmark_xyz[seed_landmark], scene.obs_camera[seed_obs], scene.camera_R, scene.camera_t, scene.camera_K)
-                start = updated(scene, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, False, False, no_start, False)[0]
-                from_start = True
+                start = updated(scene, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
+                                no_start)[0]
         if obs.size == 0:
             states[k], covs[k] = x, P
             continue
         z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-        result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, False, True, start, from_start)
+        result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
         if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:
@@ -129,15 +133,14 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 obs, landmarks = obs[keep], landmarks[keep]
                 if obs.size:
                     z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-                    result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, False, True, no_start, False)
+                    result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
+                                     no_start)
         if obs.size:
             x_post, P_post, nis_k, cost_k, y = result
             check_covariance(P_post)
             for i in range(obs.size):            # each pair's own 3x3 block of S = H P H' + R
-                S = sandwich(H[i], P) + scene.R_file[obs[i]]
-                d2, _ = mahalanobis(S, y[i])
                 chosen[obs[i]] = landmarks[i]
-                mahalanobis_distance[obs[i]] = math.sqrt(d2)
+                mahalanobis_distance[obs[i]] = math.sqrt(pair_distance(scene.R_file, obs[i], scene.z, z_hat, H, i, P))
             u = counters[0]
             # an iterated update's statistic is its MAP cost at the posterior: NIS at the prior's
             # linearization carries the second-order error the iterations removed

@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.small import mm, mtm, mv, sandwich, solve
-from camloc.kernels.sym3 import inverse, mahalanobis
+from camloc.kernels.small import mm, mtm, mv, solve
+from camloc.kernels.sym3 import inverse_components, mahalanobis_components, spread
 
 
 @jit
@@ -41,15 +41,16 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
     r_max = 0.0
     for i in range(n):                      # the trace bounds the largest eigenvalue: a valid, looser screen
         r_max = max(r_max, R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2])
-    bound_inverse = np.empty((m, 3, 3))
+    bound_inverse = np.empty((m, 6))        # the upper triangle of each bound's inverse
     screened = np.ones(m, np.bool_)
     for j in range(m):
-        S_bound = sandwich(H[j], P_bound) + r_max * np.eye(3)
+        a, b, c, d, e, f = spread(H, j, P_bound)
+        a, d, f = a + r_max, d + r_max, f + r_max
         # rounding can leave the bound indefinite (information 1e12 beside a prior of 1e2): no screen
-        screened[j] = np.isfinite(mahalanobis(S_bound, np.zeros(3))[1]) and S_bound[0, 0] > 0.0 and S_bound[1, 1] > 0.0
+        screened[j] = np.isfinite(mahalanobis_components(a, b, c, d, e, f, 0.0, 0.0, 0.0)[1]) and a > 0.0 and d > 0.0
         if screened[j]:
-            bound_inverse[j] = inverse(S_bound)
-    residual = np.empty(3)
+            (bound_inverse[j, 0], bound_inverse[j, 1], bound_inverse[j, 2], bound_inverse[j, 3], bound_inverse[j, 4],
+             bound_inverse[j, 5]) = inverse_components(a, b, c, d, e, f)
     for i in range(n):
         L = total - pair_information[i]
         P_i = solve(L, np.eye(6))
@@ -59,19 +60,22 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
             Hc = H[chosen[i]]
             delta = -mv(P_i, mv(Hc.T, mv(R_inverse[i], z[i] - z_hat[chosen[i]])))
         for j in range(m):
-            for a in range(3):
-                moved = 0.0
-                for b in range(6):
-                    moved += H[j, a, b] * delta[b]
-                residual[a] = z[i, a] - z_hat[j, a] - moved
-            bound = 0.0
-            for a in range(3 if screened[j] else 0):
-                for b in range(3):
-                    bound += residual[a] * bound_inverse[j, a, b] * residual[b]
-            if screened[j] and not bound <= gate:
-                continue
-            S = sandwich(H[j], P_i) + R[i]
-            d2, log_det = mahalanobis(S, residual)
+            r0 = z[i, 0] - z_hat[j, 0]
+            r1 = z[i, 1] - z_hat[j, 1]
+            r2 = z[i, 2] - z_hat[j, 2]
+            for b in range(6):
+                r0 -= H[j, 0, b] * delta[b]
+                r1 -= H[j, 1, b] * delta[b]
+                r2 -= H[j, 2, b] * delta[b]
+            if screened[j]:
+                w = bound_inverse[j]
+                bound = (w[0] * r0 * r0 + w[3] * r1 * r1 + w[5] * r2 * r2
+                         + 2.0 * (w[1] * r0 * r1 + w[2] * r0 * r2 + w[4] * r1 * r2))
+                if not bound <= gate:
+                    continue
+            a, b, c, d, e, f = spread(H, j, P_i)
+            d2, log_det = mahalanobis_components(a + R[i, 0, 0], b + R[i, 0, 1], c + R[i, 0, 2], d + R[i, 1, 1],
+                                                 e + R[i, 1, 2], f + R[i, 2, 2], r0, r1, r2)
             if d2 <= gate:
                 cost[i, j] = d2 + log_det - log_det_R[i]
     return cost

@@ -34,22 +34,25 @@ def mahalanobis_components(a, b, c, d, e, f, y1, y2, y3):
 def inverse(S):
     """S^-1 (3, 3) of a symmetric S (upper triangle read), exactly symmetric, by the adjugate
     (scaled by the largest entry first, as ``camloc.sym3.inverse``); inf/nan where S is singular."""
-    scale = 0.0
-    for i in range(3):
-        for j in range(i, 3):
-            scale = max(scale, abs(S[i, j]))
+    i00, i01, i02, i11, i12, i22 = inverse_components(S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2])
+    out = np.empty((3, 3))
+    out[0, 0], out[0, 1], out[0, 2] = i00, i01, i02
+    out[1, 0], out[1, 1], out[1, 2] = i01, i11, i12
+    out[2, 0], out[2, 1], out[2, 2] = i02, i12, i22
+    return out
+
+
+@jit
+def inverse_components(a, b, c, d, e, f):
+    """The upper triangle of ``inverse`` of S = [[a, b, c], [b, d, e], [c, e, f]], given as scalars."""
+    scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f))
     if scale == 0.0:
         scale = 1.0
-    a, b, c = S[0, 0] / scale, S[0, 1] / scale, S[0, 2] / scale
-    d, e, f = S[1, 1] / scale, S[1, 2] / scale, S[2, 2] / scale
+    a, b, c, d, e, f = a / scale, b / scale, c / scale, d / scale, e / scale, f / scale
     A11, A12, A13 = d * f - e * e, c * e - b * f, b * e - c * d
     A22, A23, A33 = a * f - c * c, b * c - a * e, a * d - b * b
     det = (a * A11 + b * A12 + c * A13) * scale
-    out = np.empty((3, 3))
-    out[0, 0], out[0, 1], out[0, 2] = A11 / det, A12 / det, A13 / det
-    out[1, 0], out[1, 1], out[1, 2] = A12 / det, A22 / det, A23 / det
-    out[2, 0], out[2, 1], out[2, 2] = A13 / det, A23 / det, A33 / det
-    return out
+    return A11 / det, A12 / det, A13 / det, A22 / det, A23 / det, A33 / det
 
 
 @jit
@@ -58,3 +61,21 @@ def log_det(S):
     a, b, c, d, e, f = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
     det = a * (d * f - e * e) + b * (c * e - b * f) + c * (b * e - c * d)
     return math.log(det) if det > 0.0 else np.inf
+
+
+@jit
+def spread(H, i, P):
+    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6)."""
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for k in range(6):
+        for j in range(6):
+            p = P[k, j]
+            h0, h1, h2 = H[i, 0, j], H[i, 1, j], H[i, 2, j]
+            g0, g1, g2 = H[i, 0, k] * p, H[i, 1, k] * p, H[i, 2, k] * p
+            a00 += g0 * h0
+            a01 += g0 * h1
+            a02 += g0 * h2
+            a11 += g1 * h1
+            a12 += g1 * h2
+            a22 += g2 * h2
+    return a00, a01, a02, a11, a12, a22
