@@ -20,6 +20,7 @@ from camloc.kernels import seeds as ranking
 from camloc.kernels.beam_settings import SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS
 from camloc.kernels.rotation import difference
 from camloc.kernels.update import updated
+from camloc.kernels.view import widened_view
 
 # The slip's search runs where a pose's best explanation leaves an unusual share of its observations
 # unassigned for this data: a binomial tail below UNUSUAL_PROBABILITY at the recent poses' rate.
@@ -100,7 +101,9 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     """Explanations of obs under hypothesis h (a generation of one), each grown from one seed pair;
     each seed gives its SEED_EXPLANATIONS cheapest. Returns (generation, count)."""
     x, P = h[0][0], h[1][0]
-    start, landmark, cost, z_hat, H, y, Hc, in_point = kb.options_for(scene, settings, x, P, obs, True)
+    # among the landmarks within three standard deviations of the view, not only in it
+    margin, max_angle = widened_view(P, scene.view_limits[2])
+    start, landmark, cost, z_hat, H, y, Hc, in_point = kb.options_for(scene, settings, x, P, obs, margin, max_angle)
     pair_obs = np.repeat(np.arange(obs.size), np.diff(start))
     gated = np.isfinite(cost)
     if not gated.any():
@@ -123,8 +126,8 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
         i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
         seeded = kb.gather(h, np.array([0]), 1 + obs.size)
-        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]),
-                                             z_hat[gated][seed:seed + 1], H[gated][seed:seed + 1], True, False, np.zeros(6), False)[:2]
+        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), z_hat[gated][seed:seed + 1],
+                                             H[gated][seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1

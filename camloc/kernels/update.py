@@ -21,6 +21,7 @@ from camloc.kernels._jit import jit
 from camloc.kernels.camera import back_project, observe_pairs
 from camloc.kernels.rotation import difference, retract
 from camloc.kernels.small import mm, mv, solve
+from camloc.kernels.sym3 import log_det as log_det_3x3
 
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
@@ -156,7 +157,7 @@ def innovation_cost(P, H, R, R_inverse, y):
         for i in range(L.shape[0]):
             log_det += 2.0 * np.log(L[i, i])
         for i in range(R.shape[0]):
-            log_det -= np.linalg.slogdet(R[i])[1]
+            log_det -= log_det_3x3(R[i])
         return v @ cho_solve(L, v.reshape(-1, 1)).ravel() + log_det
     R_inverse_H, _, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
     sign, log_det = np.linalg.slogdet(I_P_information)
@@ -185,14 +186,15 @@ def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera
 
 @jit
 def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                    iterations, z_hat, H, start, from_start, with_map_cost):
+                    iterations, z_hat, H, start):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
-    predictions at x. With ``from_start`` the iterations after the first linearize first at
-    start (a state near the MAP estimate, where the prior is too far for Gauss-Newton).
+    predictions at x. With a ``start`` (6,) (none: size 0) the iterations after the first
+    linearize first at start (a state near the MAP estimate, where the prior is too far for
+    Gauss-Newton).
 
-    Returns (x+ (6,), P+ (6, 6), NIS at the prior, MAP cost at x+ (NaN unless asked), y (p, 3)
-    the innovation at the prior)."""
+    Returns (x+ (6,), P+ (6, 6), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
+    prior)."""
     y_prior = z - z_hat
     few = z.shape[0] <= 2                                            # S (3p x 3p) no larger than 6x6
     m = 3 * z.shape[0]
@@ -208,7 +210,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         nis = normalized_innovation(y_prior, R_inverse, R_inverse_H, posterior_plain)
         delta = mv(posterior_plain, gradient(R_inverse_H, y_prior))   # K y
     x_i = retract(x, delta)                                          # x+ = x [+] K y
-    if from_start and iterations >= 2:
+    if start.size and iterations >= 2:
         x_i, delta = start.copy(), difference(start, x)
     for _ in range(iterations - 1):
         z_hat_i, H_i = observe_pairs(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
@@ -230,9 +232,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         P_post = covariance_posterior(P, K, Hs, R)
     else:
         P_post = posterior_covariance(P, information, I_P_information)
-    cost = np.nan
-    if with_map_cost:
-        cost = posterior_cost(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+    cost = posterior_cost(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
     return x_i, P_post, nis, cost, y_prior
 
 
@@ -256,14 +256,15 @@ def point_step(scene, x, P, obs, z_hat, H):
 
 
 @jit
-def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, for_association, with_map_cost, start, from_start):
+def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
-    predictions at x are z_hat, H. ``for_association``: weigh the pairs by the noise association
-    judges them by (the scratch filters that decide an association), not the file's.
+    predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)
+    and ``noise_inverse``: the file's (``scene.R_file``) for the estimate, the floored noise
+    association judges pairs by (``scene.R_assoc``) for the scratch filters that decide it.
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
-    iterations also run from ``point_step``, and from ``start`` when given; the posterior with the
-    lower MAP cost is kept. Returns as ``iterated_update``."""
+    iterations also run from ``point_step``, and from ``start`` (6,) when given (size 0: none); the
+    posterior with the lower MAP cost is kept. Returns as ``iterated_update``."""
     p = obs.size
     z = np.empty((p, 3))
     R = np.empty((p, 3, 3))
@@ -272,32 +273,18 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, for_association, 
     pair_camera = np.empty(p, np.int64)
     for i in range(p):
         z[i] = scene.z[obs[i]]
-        if for_association:
-            R[i], R_inverse[i] = scene.R_assoc[obs[i]], scene.R_assoc_inverse[obs[i]]
-        else:
-            R[i], R_inverse[i] = scene.R_file[obs[i]], scene.R_file_inverse[obs[i]]
+        R[i], R_inverse[i] = noise[obs[i]], noise_inverse[obs[i]]
         landmark_xyz[i] = scene.landmark_xyz[landmarks[i]]
         pair_camera[i] = scene.obs_camera[obs[i]]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    x1, P1, nis, cost1, y1 = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams,
-                                             iterations, z_hat, H, start, False, with_map_cost)
-    if iterations < 2:
-        return x1, P1, nis, cost1, y1
-    far = nis > scene.nis_bound[p]
-    if not (from_start or far):
-        return x1, P1, nis, cost1, y1
-    lowest = cost1 if with_map_cost else posterior_cost(x1, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams)
-    best_x, best_P, best_cost, improved = x1, P1, cost1, False
-    for attempt in range(2):
-        if attempt == 0 and not from_start:
-            continue
-        if attempt == 1 and not far:
-            continue
-        s = start if attempt == 0 else point_step(scene, x, P, obs, z_hat, H)
-        x2, P2, _, cost2, _ = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams,
-                                              iterations, z_hat, H, s, True, True)
-        if cost2 < lowest:
-            best_x, best_P, best_cost, lowest, improved = x2, P2, cost2, cost2, True
-    if improved and not with_map_cost:
-        best_cost = np.nan
-    return best_x, best_P, nis, best_cost, y1
+    none = np.empty(0)
+    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)
+    if iterations < 2 or not (start.size or best[2] > scene.nis_bound[p]):
+        return best
+    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[p] else (start, none)
+    for s in starts:
+        if s.size:
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s)
+            if again[3] < best[3]:
+                best = (again[0], again[1], best[2], again[3], best[4])
+    return best
