@@ -68,7 +68,8 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
             U[:, 3 * k:3 * k + 3] = Ut.T
             corrections[:, k] = mtv(Ut, np.linalg.solve(L, y[s]))
         # every pair under every seed of the chunk in three matrix products
-        white_moved = white_H @ corrections                 # (3N, c): W_q H_q c_s
+        # (c, 3N): W_q H_q c_s, a seed's row contiguous for the screen that reads all of it
+        white_moved = np.ascontiguousarray((white_H @ corrections).T)
         moved = H_flat @ corrections                        # (3N, c): H_q c_s
         V = H_flat @ U                                      # (3N, 3c): H_q U_s
         for k in range(c):
@@ -79,9 +80,9 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
                 if pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
                     continue
                 # S|s <= S, so d^2 under S is a lower bound: most pairs under a seed are far out
-                w0 = white_y[3 * q] - white_moved[3 * q, k]
-                w1 = white_y[3 * q + 1] - white_moved[3 * q + 1, k]
-                w2 = white_y[3 * q + 2] - white_moved[3 * q + 2, k]
+                w0 = white_y[3 * q] - white_moved[k, 3 * q]
+                w1 = white_y[3 * q + 1] - white_moved[k, 3 * q + 1]
+                w2 = white_y[3 * q + 2] - white_moved[k, 3 * q + 2]
                 if w0 * w0 + w1 * w1 + w2 * w2 > gate:
                     continue
                 r0, r1, r2 = 3 * q, 3 * q + 1, 3 * q + 2
