@@ -105,18 +105,20 @@ spec = importlib.util.spec_from_file_location("camloc", {package!r} + "/__init__
 module = importlib.util.module_from_spec(spec)
 sys.modules["camloc"] = module
 spec.loader.exec_module(module)
+from camloc.localizer import _Localizer
 from camloc.replay import _replay
-_replay(sys.stdin.buffer, sys.stdout.buffer)
+_replay(sys.stdin.buffer, sys.stdout.buffer, _Localizer)
 """
 
 
-def _replay(incoming, outgoing) -> None:
-    """The second process: filter each batch of decided poses as it arrives; send back the state."""
-    from camloc.localizer import _Localizer
-
+def _replay(incoming, outgoing, make_localizer) -> None:
+    """The second process: filter each batch of decided poses as it arrives, with the localizer
+    ``make_localizer(dataset, config)`` builds (``camloc.localizer._Localizer``, named by the
+    worker's script: this module imports nothing of the localizer that imports it); send back the
+    state."""
     try:
         dataset, config = pickle.load(incoming)
-        localizer = _Localizer(dataset, config)
+        localizer = make_localizer(dataset, config)
         n = dataset.num_poses
         localizer.beam_pairs = [np.zeros((0, 2), np.int64)] * n
         localizer.beam_slipped = np.zeros(n, dtype=bool)

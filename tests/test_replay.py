@@ -63,7 +63,7 @@ def _replay_answer(messages):
     for message in messages:
         pickle.dump(message, incoming)
     incoming.seek(0)
-    _replay(incoming, outgoing)
+    _replay(incoming, outgoing, _Localizer)
     outgoing.seek(0)
     return pickle.load(outgoing)
 
