@@ -29,8 +29,7 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     obs_camera = np.searchsorted(camera_ids, dataset.obs_camera).astype(np.int64)
     K = dataset.num_observations
     noise = observation_noise(dataset, config)
-    landmark_index = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
-    true_index = np.array([landmark_index.get(int(i), -1) for i in dataset.obs_true_landmark], dtype=np.int64)
+    true_index = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
     pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
     view = np.array(candidate_range(dataset, config))
@@ -69,6 +68,15 @@ class ObservationNoise:
     point_cov: np.ndarray
     log_det_point_cov: np.ndarray
     null_cost: np.ndarray
+
+
+def landmark_rows(landmark_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(n,) int64 the row of each of ``ids`` (n,) in ``landmark_ids`` (L,), -1 where it has none."""
+    order = np.argsort(landmark_ids, kind="stable")
+    sorted_ids = np.asarray(landmark_ids)[order]
+    at = np.minimum(np.searchsorted(sorted_ids, ids), max(sorted_ids.size - 1, 0))
+    found = (sorted_ids[at] == ids) if sorted_ids.size else np.zeros(np.shape(ids), bool)
+    return np.where(found, order[at] if sorted_ids.size else -1, -1).astype(np.int64)
 
 
 def observation_noise(dataset: Dataset, config) -> ObservationNoise:
