@@ -13,7 +13,7 @@ import numpy as np
 
 from camloc.kernels._jit import jit
 from camloc.kernels.rotation import euler_rate, euler_to_matrix
-from camloc.kernels.small import mm
+from camloc.kernels.small import mm, mv
 
 
 @jit
@@ -108,4 +108,4 @@ def back_project(z, intrinsics):
 def camera_pose(x, R_rc, t_rc):
     """T_world_camera as (R_wc (3, 3), c (3,)) of the Euler state x and the camera mount."""
     R = euler_to_matrix(x[3], x[4], x[5])
-    return R @ R_rc, x[0:3] + R @ t_rc
+    return mm(R, R_rc), x[0:3] + mv(R, t_rc)
