@@ -52,9 +52,9 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
             white_H[3 * q, b] = l00 * H[q, 0, b] + l10 * H[q, 1, b] + l20 * H[q, 2, b]
             white_H[3 * q + 1, b] = l11 * H[q, 1, b] + l21 * H[q, 2, b]
             white_H[3 * q + 2, b] = l22 * H[q, 2, b]
-    H_flat = np.ascontiguousarray(H).reshape(3 * N, 6)
     out = np.empty(seeds.size)
     best = np.empty(m)
+    V = np.empty((3, 3))
     for first in range(0, seeds.size, SEED_CHUNK):
         chunk = seeds[first:first + SEED_CHUNK]
         c = chunk.size
@@ -67,11 +67,9 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
             Ut = np.linalg.solve(L, HP[s])
             U[:, 3 * k:3 * k + 3] = Ut.T
             corrections[:, k] = mtv(Ut, np.linalg.solve(L, y[s]))
-        # every pair under every seed of the chunk in three matrix products
-        # (c, 3N): W_q H_q c_s, a seed's row contiguous for the screen that reads all of it
+        # every pair's whitened shift under every seed of the chunk in one matrix product, (c, 3N):
+        # W_q H_q c_s, a seed's row contiguous for the screen that reads all of it
         white_moved = np.ascontiguousarray((white_H @ corrections).T)
-        moved = H_flat @ corrections                        # (3N, c): H_q c_s
-        V = H_flat @ U                                      # (3N, 3c): H_q U_s
         for k in range(c):
             s = chunk[k]
             for i in range(m):
@@ -85,17 +83,27 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
                 w2 = white_y[3 * q + 2] - white_moved[k, 3 * q + 2]
                 if w0 * w0 + w1 * w1 + w2 * w2 > gate:
                     continue
-                r0, r1, r2 = 3 * q, 3 * q + 1, 3 * q + 2
-                k0, k1, k2 = 3 * k, 3 * k + 1, 3 * k + 2
-                # S|s = S_q - (H_q U)(H_q U)'
-                a = S[q, 0, 0] - (V[r0, k0] * V[r0, k0] + V[r0, k1] * V[r0, k1] + V[r0, k2] * V[r0, k2])
-                b = S[q, 0, 1] - (V[r0, k0] * V[r1, k0] + V[r0, k1] * V[r1, k1] + V[r0, k2] * V[r1, k2])
-                cc = S[q, 0, 2] - (V[r0, k0] * V[r2, k0] + V[r0, k1] * V[r2, k1] + V[r0, k2] * V[r2, k2])
-                d = S[q, 1, 1] - (V[r1, k0] * V[r1, k0] + V[r1, k1] * V[r1, k1] + V[r1, k2] * V[r1, k2])
-                e = S[q, 1, 2] - (V[r1, k0] * V[r2, k0] + V[r1, k1] * V[r2, k1] + V[r1, k2] * V[r2, k2])
-                f = S[q, 2, 2] - (V[r2, k0] * V[r2, k0] + V[r2, k1] * V[r2, k1] + V[r2, k2] * V[r2, k2])
-                d2, log_det = mahalanobis_components(a, b, cc, d, e, f, y[q, 0] - moved[r0, k], y[q, 1] - moved[r1, k],
-                                                     y[q, 2] - moved[r2, k])
+                # the few pairs the screen lets through: their shift H_q c_s, and S|s = S_q - V V'
+                # with V = H_q U_s (3, 3)
+                m0 = m1 = m2 = 0.0
+                V[:] = 0.0
+                for b in range(6):
+                    h0, h1, h2, shift = H[q, 0, b], H[q, 1, b], H[q, 2, b], corrections[b, k]
+                    m0 += h0 * shift
+                    m1 += h1 * shift
+                    m2 += h2 * shift
+                    for j in range(3):
+                        u = U[b, 3 * k + j]
+                        V[0, j] += h0 * u
+                        V[1, j] += h1 * u
+                        V[2, j] += h2 * u
+                a = S[q, 0, 0] - (V[0, 0] * V[0, 0] + V[0, 1] * V[0, 1] + V[0, 2] * V[0, 2])
+                b = S[q, 0, 1] - (V[0, 0] * V[1, 0] + V[0, 1] * V[1, 1] + V[0, 2] * V[1, 2])
+                cc = S[q, 0, 2] - (V[0, 0] * V[2, 0] + V[0, 1] * V[2, 1] + V[0, 2] * V[2, 2])
+                d = S[q, 1, 1] - (V[1, 0] * V[1, 0] + V[1, 1] * V[1, 1] + V[1, 2] * V[1, 2])
+                e = S[q, 1, 2] - (V[1, 0] * V[2, 0] + V[1, 1] * V[2, 1] + V[1, 2] * V[2, 2])
+                f = S[q, 2, 2] - (V[2, 0] * V[2, 0] + V[2, 1] * V[2, 1] + V[2, 2] * V[2, 2])
+                d2, log_det = mahalanobis_components(a, b, cc, d, e, f, y[q, 0] - m0, y[q, 1] - m1, y[q, 2] - m2)
                 if d2 <= gate:
                     cost = d2 + log_det - log_det_R[q]
                     if cost < best[pair_obs[q]]:

@@ -216,8 +216,10 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         z_hat_i, H_i = observe_pairs(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
         moved = difference(x_i, x)
         r = z - z_hat_i
-        for i in range(r.shape[0]):
-            r[i] += mv(H_i[i], moved)                                   # z - h(x_i) + H_i (x_i [-] x)
+        for i in range(r.shape[0]):                                  # z - h(x_i) + H_i (x_i [-] x)
+            for a in range(3):
+                for b in range(6):
+                    r[i, a] += H_i[i, a, b] * moved[b]
         if few:
             K, S, L, Hs = covariance_gain(P, H_i, R)
             step = mv(K, stacked(r))
@@ -225,7 +227,10 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H_i, R_inverse)
             step = mv(posterior_plain, gradient(R_inverse_H, r))
         x_i = retract(x, step)
-        if np.max(np.abs(step - delta)) < CONVERGED:
+        change = 0.0
+        for b in range(6):
+            change = max(change, abs(step[b] - delta[b]))
+        if change < CONVERGED:
             break                                                    # the linearization no longer moves
         delta = step
     if few:
