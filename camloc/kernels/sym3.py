@@ -21,13 +21,21 @@ def mahalanobis(S, y):
 @jit
 def mahalanobis_components(a, b, c, d, e, f, y1, y2, y3):
     """``mahalanobis`` of S = [[a, b, c], [b, d, e], [c, e, f]] and y = (y1, y2, y3), given as scalars."""
+    quadratic, det = quadratic_and_det(a, b, c, d, e, f, y1, y2, y3)
+    if not det > 0.0:
+        return np.inf, np.inf
+    return quadratic / det, math.log(det)
+
+
+@jit
+def quadratic_and_det(a, b, c, d, e, f, y1, y2, y3):
+    """(y' adj(S) y, det S) of S = [[a, b, c], [b, d, e], [c, e, f]]: d^2 = quadratic / det where
+    det > 0, for a caller that tests d^2 against a gate before it pays for a logarithm."""
     A11, A12, A13 = d * f - e * e, c * e - b * f, b * e - c * d
     A22, A23, A33 = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * A11 + b * A12 + c * A13
-    if not det > 0.0:
-        return np.inf, np.inf
     quadratic = A11 * y1 * y1 + A22 * y2 * y2 + A33 * y3 * y3 + 2.0 * (A12 * y1 * y2 + A13 * y1 * y3 + A23 * y2 * y3)
-    return quadratic / det, math.log(det)
+    return quadratic, det
 
 
 @jit
