@@ -306,7 +306,7 @@ def localize(
         dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
         which ran.
     on_compile : called once before the compiled loop starts when its kernels are not yet in
-        numba's cache (the first run after an install compiles them: a few minutes).
+        numba's cache (the first run after an install compiles them: about two minutes).
     """
     config = config or LocalizerConfig()
     config.validate()
