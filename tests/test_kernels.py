@@ -236,3 +236,33 @@ def test_the_engine_is_chosen_by_size_and_method_and_can_be_forced():
         camloc.localize(small, camloc.LocalizerConfig(filter="se3"), engine="compiled")
     with pytest.raises(ConfigError, match="engine must be one of"):
         camloc.localize(small, engine="gpu")
+
+
+def test_a_changed_kernel_source_clears_the_cache_of_every_kernel(tmp_path):
+    # numba checks a cached function against its own file only: a callee changed in another file
+    # would leave its callers' cache stale, so any change to the folder clears the folder's cache
+    from camloc.kernels import SOURCE_STAMP, clear_stale_cache
+
+    source, cache = tmp_path / "kernels", tmp_path / "cache"
+    source.mkdir()
+    cache.mkdir()
+    (source / "beam.py").write_text("x = 1\n")
+    (source / "sym3.py").write_text("y = 2\n")
+    compiled = [cache / "beam.run_poses-565.py311.nbi", cache / "beam.run_poses-565.py311.1.nbc", cache / "sym3.spread-9.py311.nbi"]
+    foreign = cache / "other.f-1.py311.nbi"  # another package's, in a shared NUMBA_CACHE_DIR
+    for path in [*compiled, foreign]:
+        path.write_bytes(b"")
+    assert clear_stale_cache(cache, source)                  # no stamp: compiled from unknown sources
+    assert not any(path.exists() for path in compiled) and foreign.exists()
+    assert (cache / SOURCE_STAMP).exists()
+    compiled[0].write_bytes(b"")
+    assert not clear_stale_cache(cache, source) and compiled[0].exists()   # same sources: kept
+    (source / "sym3.py").write_text("y = 3\n")               # a callee's file changes
+    assert clear_stale_cache(cache, source) and not compiled[0].exists()
+
+
+def test_the_stale_cache_check_looks_where_numba_caches_the_kernels():
+    import camloc.kernels
+    from camloc.kernels import beam
+
+    assert camloc.kernels._cache_folder == Path(beam.run_poses._cache._cache_path)
