@@ -62,9 +62,22 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
             white_H[3 * q, b] = l00 * H[q, 0, b] + l10 * H[q, 1, b] + l20 * H[q, 2, b]
             white_H[3 * q + 1, b] = l11 * H[q, 1, b] + l21 * H[q, 2, b]
             white_H[3 * q + 2, b] = l22 * H[q, 2, b]
+    # every pair's Jacobian, innovation and S by component, each a row over the pairs: the
+    # conditioned costs of one seed are then one loop the compiler turns into vector arithmetic
+    H_rows = np.empty((18, N))
+    y_rows = np.empty((3, N))
+    S_rows = np.empty((6, N))
+    for q in range(N):
+        for a in range(3):
+            y_rows[a, q] = y[q, a]
+            for b in range(6):
+                H_rows[6 * a + b, q] = H[q, a, b]
+        S_rows[0, q], S_rows[1, q], S_rows[2, q] = S[q, 0, 0], S[q, 0, 1], S[q, 0, 2]
+        S_rows[3, q], S_rows[4, q], S_rows[5, q] = S[q, 1, 1], S[q, 1, 2], S[q, 2, 2]
     out = np.empty(seeds.size)
     best = np.empty(m)
     bound = np.empty(N)
+    quadratic, det = np.empty(N), np.empty(N)
     for first in range(0, seeds.size, SEED_CHUNK):
         chunk = seeds[first:first + SEED_CHUNK]
         c = chunk.size
@@ -95,38 +108,20 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
             s = chunk[k]
             for i in range(m):
                 best[i] = null_cost[i]
-            # S|s <= S, so d^2 under S is a lower bound: most pairs under a seed are far out (one
-            # pass without branches over the seed's row, then only the pairs within it)
+            # S|s <= S, so d^2 under S is a lower bound and screens the pairs (as the numpy twin
+            # does); under a slip's wide prior most pass it, so every pair's conditioned cost is
+            # computed in one branch-free pass and the screen only decides which of them count
             for q in range(N):
                 w0 = white_y[3 * q] - white_moved[k, 3 * q]
                 w1 = white_y[3 * q + 1] - white_moved[k, 3 * q + 1]
                 w2 = white_y[3 * q + 2] - white_moved[k, 3 * q + 2]
                 bound[q] = w0 * w0 + w1 * w1 + w2 * w2
+            conditioned_costs(H_rows, y_rows, S_rows, corrections[:, k], U[:, 3 * k:3 * k + 3], quadratic, det)
             for q in range(N):
                 if bound[q] > gate or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
                     continue
-                # the few pairs the screen lets through: their shift H_q c_s, and S|s = S_q - V V'
-                # with V = H_q U_s (3, 3)
-                m0 = m1 = m2 = 0.0
-                v00 = v01 = v02 = v10 = v11 = v12 = v20 = v21 = v22 = 0.0
-                for b in range(6):
-                    h0, h1, h2, shift = H[q, 0, b], H[q, 1, b], H[q, 2, b], corrections[b, k]
-                    u0, u1, u2 = U[b, 3 * k], U[b, 3 * k + 1], U[b, 3 * k + 2]
-                    m0 += h0 * shift
-                    m1 += h1 * shift
-                    m2 += h2 * shift
-                    v00, v01, v02 = v00 + h0 * u0, v01 + h0 * u1, v02 + h0 * u2
-                    v10, v11, v12 = v10 + h1 * u0, v11 + h1 * u1, v12 + h1 * u2
-                    v20, v21, v22 = v20 + h2 * u0, v21 + h2 * u1, v22 + h2 * u2
-                a = S[q, 0, 0] - (v00 * v00 + v01 * v01 + v02 * v02)
-                b = S[q, 0, 1] - (v00 * v10 + v01 * v11 + v02 * v12)
-                cc = S[q, 0, 2] - (v00 * v20 + v01 * v21 + v02 * v22)
-                d = S[q, 1, 1] - (v10 * v10 + v11 * v11 + v12 * v12)
-                e = S[q, 1, 2] - (v10 * v20 + v11 * v21 + v12 * v22)
-                f = S[q, 2, 2] - (v20 * v20 + v21 * v21 + v22 * v22)
-                quadratic, det = quadratic_and_det(a, b, cc, d, e, f, y[q, 0] - m0, y[q, 1] - m1, y[q, 2] - m2)
-                if det > 0.0 and quadratic <= gate * det:        # d^2 within the gate: its logarithm only then
-                    cost = quadratic / det + math.log(det) - log_det_R[q]
+                if det[q] > 0.0 and quadratic[q] <= gate * det[q]:  # d^2 within the gate: its logarithm only then
+                    cost = quadratic[q] / det[q] + math.log(det[q]) - log_det_R[q]
                     if cost < best[pair_obs[q]]:
                         best[pair_obs[q]] = cost
             best[pair_obs[s]] = 0.0
@@ -136,3 +131,31 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
                 total += best[i]
             out[first + k] = total
     return out
+
+
+@jit
+def conditioned_costs(H_rows, y_rows, S_rows, correction, U, quadratic, det):
+    """Every pair's innovation conditioned on one seed, as (y' adj(S|s) y, det S|s) written to
+    quadratic, det (N,): the pair's shift H_q c_s (correction (6,)) and S|s = S_q - V V' with
+    V = H_q U_s (U (6, 3)). Pairs by component (rows (18, N), (3, N), (6, N)), without branches:
+    most pairs of a wide view pass the screen, and the loop runs as vector arithmetic."""
+    shifts, u = np.ascontiguousarray(correction), np.ascontiguousarray(U)
+    for q in range(H_rows.shape[1]):
+        m0 = m1 = m2 = 0.0
+        v00 = v01 = v02 = v10 = v11 = v12 = v20 = v21 = v22 = 0.0
+        for b in range(6):
+            h0, h1, h2 = H_rows[b, q], H_rows[6 + b, q], H_rows[12 + b, q]
+            shift = shifts[b]
+            m0 += h0 * shift
+            m1 += h1 * shift
+            m2 += h2 * shift
+            v00, v01, v02 = v00 + h0 * u[b, 0], v01 + h0 * u[b, 1], v02 + h0 * u[b, 2]
+            v10, v11, v12 = v10 + h1 * u[b, 0], v11 + h1 * u[b, 1], v12 + h1 * u[b, 2]
+            v20, v21, v22 = v20 + h2 * u[b, 0], v21 + h2 * u[b, 1], v22 + h2 * u[b, 2]
+        a = S_rows[0, q] - (v00 * v00 + v01 * v01 + v02 * v02)
+        b_ = S_rows[1, q] - (v00 * v10 + v01 * v11 + v02 * v12)
+        c = S_rows[2, q] - (v00 * v20 + v01 * v21 + v02 * v22)
+        d = S_rows[3, q] - (v10 * v10 + v11 * v11 + v12 * v12)
+        e = S_rows[4, q] - (v10 * v20 + v11 * v21 + v12 * v22)
+        f = S_rows[5, q] - (v20 * v20 + v21 * v21 + v22 * v22)
+        quadratic[q], det[q] = quadratic_and_det(a, b_, c, d, e, f, y_rows[0, q] - m0, y_rows[1, q] - m1, y_rows[2, q] - m2)
