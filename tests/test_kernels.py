@@ -262,7 +262,18 @@ def test_a_changed_kernel_source_clears_the_cache_of_every_kernel(tmp_path):
 
 
 def test_the_stale_cache_check_looks_where_numba_caches_the_kernels():
-    import camloc.kernels
-    from camloc.kernels import beam
+    from camloc.kernels import _jit, beam
 
-    assert camloc.kernels._cache_folder == Path(beam.run_poses._cache._cache_path)
+    assert _jit.CACHE_FOLDER == Path(beam.run_poses._cache._cache_path)
+
+
+def test_the_numpy_engine_never_imports_numba(tmp_path):
+    # a small file runs in numpy, where starting numba (0.2 s, 50 MB) would be all cost: the
+    # kernels' cache check once imported it through camloc.kernels.types
+    import subprocess
+    import sys
+
+    code = ("import sys, camloc; r = camloc.localize(camloc.load(camloc.bundled_dataset())); "
+            "print(r.summary['timing']['engine'], 'numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path)
+    assert out.stdout.split() == ["numpy", "False"]

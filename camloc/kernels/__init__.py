@@ -15,9 +15,9 @@ the tests compare it with (``tests/test_kernels.py``).
 
 numba's cache checks a compiled function against its own file only: a kernel whose callee in
 another file changed would keep the callee's old code (and an inlined step's). So the first
-import of this package compares a digest of all the kernels' sources with the one their cache was
-written for, and clears that cache where they differ (``clear_stale_cache``): an install rewrites
-every file, but an editable checkout changes one at a time.
+import of the kernels compares a digest of all their sources with the one their cache was written
+for, and clears that cache where they differ (``check_cache``): an install rewrites every file,
+but an editable checkout changes one at a time.
 """
 
 import hashlib
@@ -77,9 +77,13 @@ def _numba_cache_folder() -> Path | None:
     return None
 
 
-_cache_folder = _numba_cache_folder()
-if _cache_folder is not None:
-    clear_stale_cache(_cache_folder, Path(__file__).parent)
+def check_cache() -> Path | None:
+    """``clear_stale_cache`` of numba's cache of this folder (called once, by ``_jit``, where the
+    kernels are defined: ``types`` and this package import without numba); returns the folder."""
+    folder = _numba_cache_folder()
+    if folder is not None:
+        clear_stale_cache(folder, Path(__file__).parent)
+    return folder
 
 
 def cache_is_warm() -> bool:

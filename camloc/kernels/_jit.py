@@ -12,6 +12,11 @@ from functools import partial
 
 import numba
 
+from camloc.kernels import check_cache
+
+# numba's cache of these kernels, cleared first where any kernel's source changed since it was written
+CACHE_FOLDER = check_cache()
+
 OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
 
 jit = partial(numba.njit, **OPTIONS)
