@@ -24,5 +24,5 @@ jit = partial(numba.njit, **OPTIONS)
 # A step of a larger kernel, called only from compiled code, whose body numba copies into its
 # callers: numba compiles every other function on its own, with the code of everything it calls
 # optimized and generated once more, so that a deep call tree costs its depth times its size
-# to compile. Inlining the middle of the tree (the beam's steps) cut the first compile by ~20%.
+# to compile. Inlining the middle of the tree (the beam's steps) cut the first compile 140 -> 120 s.
 inlined = partial(numba.njit, inline="always", **OPTIONS)
