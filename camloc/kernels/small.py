@@ -49,33 +49,6 @@ def mv(A, v):
 
 
 @jit
-def mtv(A, v):
-    """A' @ v."""
-    out = np.zeros(A.shape[1])
-    for q in range(A.shape[0]):
-        a = v[q]
-        for i in range(A.shape[1]):
-            out[i] += A[q, i] * a
-    return out
-
-
-@jit
-def sandwich(H, P):
-    """H P H' of H (r, n) and symmetric P (n, n)."""
-    HP = mm(H, P)
-    r = H.shape[0]
-    out = np.empty((r, r))
-    for i in range(r):
-        for j in range(i, r):
-            s = 0.0
-            for q in range(H.shape[1]):
-                s += HP[i, q] * H[j, q]
-            out[i, j] = s
-            out[j, i] = s
-    return out
-
-
-@jit
 def solve(A, B):
     """A^-1 B for a small square A (n, n) and B (n, k) or (n,), by Gaussian elimination with
     partial pivoting (LAPACK's call costs more than a 6x6 system); raises FloatingPointError where
