@@ -13,7 +13,7 @@ from camloc.kernels.camera import camera_pose, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
 from camloc.kernels.small import check_covariance, mm, mtm, solve
-from camloc.kernels.sym3 import mahalanobis_components, spread
+from camloc.kernels.sym3 import innovation_mahalanobis
 from camloc.kernels.update import updated
 from camloc.kernels.view import visible
 
@@ -37,9 +37,7 @@ def oracle_pairs(scene, settings, x, P, obs):
 @jit
 def pair_distance(R, o, z, z_hat, H, i, P):
     """d^2 of observation o (z[o], noise R[o]) against prediction i (z_hat[i], H[i]) under P."""
-    a, b, c, d, e, f = spread(H, i, P)
-    return mahalanobis_components(a + R[o, 0, 0], b + R[o, 0, 1], c + R[o, 0, 2], d + R[o, 1, 1], e + R[o, 1, 2],
-                                  f + R[o, 2, 2], z[o, 0] - z_hat[i, 0], z[o, 1] - z_hat[i, 1], z[o, 2] - z_hat[i, 2])[0]
+    return innovation_mahalanobis(H, i, P, R, o, z[o, 0] - z_hat[i, 0], z[o, 1] - z_hat[i, 1], z[o, 2] - z_hat[i, 2])[0]
 
 
 @jit

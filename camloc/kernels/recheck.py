@@ -16,7 +16,7 @@ import numpy as np
 
 from camloc.kernels._jit import jit
 from camloc.kernels.small import mm, mtm, mv, solve
-from camloc.kernels.sym3 import inverse_components, mahalanobis_components, spread
+from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, mahalanobis_components, spread
 
 
 @jit
@@ -73,9 +73,7 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
                          + 2.0 * (w[1] * r0 * r1 + w[2] * r0 * r2 + w[4] * r1 * r2))
                 if not bound <= gate:
                     continue
-            a, b, c, d, e, f = spread(H, j, P_i)
-            d2, log_det = mahalanobis_components(a + R[i, 0, 0], b + R[i, 0, 1], c + R[i, 0, 2], d + R[i, 1, 1],
-                                                 e + R[i, 1, 2], f + R[i, 2, 2], r0, r1, r2)
+            d2, log_det = innovation_mahalanobis(H, j, P_i, R, i, r0, r1, r2)
             if d2 <= gate:
                 cost[i, j] = d2 + log_det - log_det_R[i]
     return cost

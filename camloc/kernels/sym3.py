@@ -39,20 +39,10 @@ def quadratic_and_det(a, b, c, d, e, f, y1, y2, y3):
 
 
 @jit
-def inverse(S):
-    """S^-1 (3, 3) of a symmetric S (upper triangle read), exactly symmetric, by the adjugate
-    (scaled by the largest entry first, as ``camloc.sym3.inverse``); inf/nan where S is singular."""
-    i00, i01, i02, i11, i12, i22 = inverse_components(S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2])
-    out = np.empty((3, 3))
-    out[0, 0], out[0, 1], out[0, 2] = i00, i01, i02
-    out[1, 0], out[1, 1], out[1, 2] = i01, i11, i12
-    out[2, 0], out[2, 1], out[2, 2] = i02, i12, i22
-    return out
-
-
-@jit
 def inverse_components(a, b, c, d, e, f):
-    """The upper triangle of ``inverse`` of S = [[a, b, c], [b, d, e], [c, e, f]], given as scalars."""
+    """The upper triangle of S^-1 of a symmetric S = [[a, b, c], [b, d, e], [c, e, f]], given as
+    scalars, by the adjugate (scaled by the largest entry first, as ``camloc.sym3.inverse``);
+    inf/nan where S is singular."""
     scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f))
     if scale == 0.0:
         scale = 1.0
@@ -87,3 +77,12 @@ def spread(H, i, P):
             a12 += g1 * h2
             a22 += g2 * h2
     return a00, a01, a02, a11, a12, a22
+
+
+@jit
+def innovation_mahalanobis(H, i, P, R, o, y1, y2, y3):
+    """``mahalanobis`` of a pair's innovation y = (y1, y2, y3) under S = H[i] P H[i]' + R[o]
+    (H (n, 3, 6), P (6, 6), R (K, 3, 3)), without forming S."""
+    a, b, c, d, e, f = spread(H, i, P)
+    return mahalanobis_components(a + R[o, 0, 0], b + R[o, 0, 1], c + R[o, 0, 2], d + R[o, 1, 1], e + R[o, 1, 2],
+                                  f + R[o, 2, 2], y1, y2, y3)
