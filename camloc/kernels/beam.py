@@ -67,32 +67,46 @@ def spread_row(spreads, q):
 
 
 @jit
-def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n):
-    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
-    prediction q (z_hat[q] (3,), H[q] (3, 6), ``spread_q`` the upper triangle of H[q] P H[q]'
-    (``sym3.spread``): one per prediction, whatever the observation) under P, in the measured
-    (u, v, depth) or in the
-    camera-frame point they back-project to, whichever is likelier (a point is linear in the
-    robot's position; pixels can fit better where the spread is rotation); writes the innovation
-    y[n] (3,) and its Jacobian Hc[n] (3, 6) in the chosen coordinates."""
-    K = scene.camera_K[scene.obs_camera[o]]
+def as_point(z_hat, q, K):
+    """The camera-frame point prediction q (z_hat[q] of u, v, depth) back-projects to through
+    intrinsics K, and the nonzero entries (j00, j02, j11, j12) of its Jacobian by (u, v, depth),
+    J = [[j00, 0, j02], [0, j11, j12], [0, 0, 1]]: (p0, p1, p2, j00, j02, j11, j12)."""
     x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
-    j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z     # d p / d (u, v, depth)
-    a00, a01, a02, a11, a12, a22 = spread_q                                # H P H'
-    R, C = scene.R_assoc[o], scene.point_cov[o]
-    d2_pixels, log_det_pixels = mahalanobis_components(
-        a00 + R[0, 0], a01 + R[0, 1], a02 + R[0, 2], a11 + R[1, 1], a12 + R[1, 2], a22 + R[2, 2],
-        scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], scene.z[o, 2] - z_hat[q, 2])
-    # J (H P H') J' with J = [[j00, 0, j02], [0, j11, j12], [0, 0, 1]]
+    return x_over_z * depth, y_over_z * depth, depth, depth / K[0], x_over_z, depth / K[1], y_over_z
+
+
+@jit
+def point_spread(spread_q, j00, j02, j11, j12):
+    """The upper triangle of J (H P H') J' (``as_point``'s J) from that of H P H' (``spread_q``)."""
+    a00, a01, a02, a11, a12, a22 = spread_q
     b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
     b01 = j00 * j11 * a01 + j00 * j12 * a02 + j02 * j11 * a12 + j02 * j12 * a22
     b02 = j00 * a02 + j02 * a22
     b11 = j11 * j11 * a11 + 2.0 * j11 * j12 * a12 + j12 * j12 * a22
     b12 = j11 * a12 + j12 * a22
-    p0, p1 = scene.point[o, 0] - x_over_z * depth, scene.point[o, 1] - y_over_z * depth
-    p2 = scene.point[o, 2] - depth
+    return b00, b01, b02, b11, b12, a22
+
+
+@jit
+def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n):
+    """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
+    prediction q (z_hat[q] (3,), H[q] (3, 6), ``spread_q`` the upper triangle of H[q] P H[q]'
+    (``sym3.spread``): one per prediction, whatever the observation) under P, in the measured
+    (u, v, depth) or in the camera-frame point they back-project to, whichever is likelier (a
+    point is linear in the robot's position; pixels can fit better where the spread is
+    rotation); writes the innovation y[n] (3,) and its Jacobian Hc[n] (3, 6) in the chosen
+    coordinates."""
+    K = scene.camera_K[scene.obs_camera[o]]
+    p0, p1, p2, j00, j02, j11, j12 = as_point(z_hat, q, K)
+    a00, a01, a02, a11, a12, a22 = spread_q                                # H P H'
+    R, C = scene.R_assoc[o], scene.point_cov[o]
+    d2_pixels, log_det_pixels = mahalanobis_components(
+        a00 + R[0, 0], a01 + R[0, 1], a02 + R[0, 2], a11 + R[1, 1], a12 + R[1, 2], a22 + R[2, 2],
+        scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], scene.z[o, 2] - z_hat[q, 2])
+    b00, b01, b02, b11, b12, b22 = point_spread(spread_q, j00, j02, j11, j12)
+    p0, p1, p2 = scene.point[o, 0] - p0, scene.point[o, 1] - p1, scene.point[o, 2] - p2
     d2_point, log_det_point = mahalanobis_components(
-        b00 + C[0, 0], b01 + C[0, 1], b02 + C[0, 2], b11 + C[1, 1], b12 + C[1, 2], a22 + C[2, 2], p0, p1, p2)
+        b00 + C[0, 0], b01 + C[0, 1], b02 + C[0, 2], b11 + C[1, 1], b12 + C[1, 2], b22 + C[2, 2], p0, p1, p2)
     cost_pixels = d2_pixels + log_det_pixels - scene.log_det_R[o]
     cost_point = d2_point + log_det_point - scene.log_det_point_cov[o]
     if cost_point < cost_pixels:
@@ -107,18 +121,6 @@ def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n):
         for i in range(6):
             Hc[n, a, i] = H[q, a, i]
     return d2_pixels, cost_pixels, False
-
-
-@jit
-def view_spread(spread_q, q, z_hat, K):
-    """(trace of H P H', trace of its spread as a camera-frame point) of prediction q, whose
-    H P H' has the upper triangle ``spread_q``: the screen's bound on every pair with it."""
-    a00, a01, a02, a11, a12, a22 = spread_q
-    x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
-    j00, j02, j11, j12 = depth / K[0], x_over_z, depth / K[1], y_over_z
-    b00 = j00 * j00 * a00 + 2.0 * j00 * j02 * a02 + j02 * j02 * a22
-    b11 = j11 * j11 * a11 + 2.0 * j11 * j12 * a12 + j12 * j12 * a22
-    return a00 + a11 + a22, b00 + b11 + a22
 
 
 @jit
@@ -150,10 +152,12 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
         K = scene.camera_K[c]
         for q in range(f.size):
             cand[at], cand_camera[at], z_hat[at], H[at] = f[q], c, zc[q], Hc[q]
-            x_over_z, y_over_z = (zc[q, 0] - K[2]) / K[0], (zc[q, 1] - K[3]) / K[1]
-            p_hat[at, 0], p_hat[at, 1], p_hat[at, 2] = x_over_z * zc[q, 2], y_over_z * zc[q, 2], zc[q, 2]
-            spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread(Hc, q, P)
-            spread_pixels[at], spread_point[at] = view_spread(spread_row(spreads, at), q, zc, K)
+            p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(zc, q, K)
+            spread_q = spread(Hc, q, P)
+            spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
+            # the screen's bound on every pair with this prediction: the traces of its spreads
+            b00, _, _, b11, _, b22 = point_spread(spread_q, j00, j02, j11, j12)
+            spread_pixels[at], spread_point[at] = spread_q[0] + spread_q[3] + spread_q[5], b00 + b11 + b22
             at += 1
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
