@@ -413,9 +413,9 @@ class _Localizer:
         from scipy.spatial import cKDTree  # here: the compiled loop has no use for it, and it costs 0.1 s to import
 
         self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
-        self.landmark_index_of_id = {int(i): n for n, i in enumerate(dataset.landmark_ids)}
-        from camloc.scene import candidate_range, observation_noise
+        from camloc.scene import candidate_range, landmark_rows, observation_noise
 
+        self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
         self.gate = float(chdtri(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
         # what association judges each observation by (the update keeps the file's own noise), and
@@ -684,7 +684,7 @@ class _Localizer:
     def _associate_oracle(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The file's landmark ids, kept where the id is in the map and the pair passes the gate
         (a gross outlier keeps its true id but is no evidence any filter should take)."""
-        index = np.array([self.landmark_index_of_id.get(int(i), -1) for i in self.dataset.obs_true_landmark[obs]], dtype=np.int64)
+        index = self.true_landmark_row[obs]
         obs, index = obs[index >= 0], index[index >= 0]
         keep = np.zeros(obs.size, dtype=bool)
         for camera_id in np.unique(self.dataset.obs_camera[obs]):

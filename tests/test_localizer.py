@@ -480,7 +480,8 @@ def _busiest_pose_of_a_dense_world():
     localizer = _Localizer(dataset, LocalizerConfig(association="oracle"))
     k = int(np.argmax(np.bincount(dataset.obs_pose_index, minlength=dataset.num_poses)))
     obs = localizer.obs_of_pose[k]
-    landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
+    landmarks = localizer.true_landmark_row[obs]
+    assert (landmarks >= 0).all()  # every observation's landmark is in the map
     truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
     return localizer, obs, landmarks, truth
 
@@ -536,7 +537,8 @@ def test_a_right_pair_implies_the_robot_s_true_shift_from_the_prediction():
     search = BeamSearch(localizer, BeamSettings(gate=localizer.gate))
     k = int(np.argmax(np.bincount(dataset.obs_pose_index)))
     obs = localizer.obs_of_pose[k]
-    landmarks = np.array([localizer.landmark_index_of_id[int(i)] for i in dataset.obs_true_landmark[obs]])
+    landmarks = localizer.true_landmark_row[obs]
+    assert (landmarks >= 0).all()  # every observation's landmark is in the map
     truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
     offset = np.array([0.5, -0.3, 0.2])
     predicted = _Hypothesis(truth + np.r_[offset, 0.0, 0.0, 0.0], np.eye(6), 0.0, -1)
