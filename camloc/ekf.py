@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf, dpotrs
 
 from camloc.errors import CamlocError
 
@@ -107,21 +106,17 @@ def joseph_update(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) ->
 
 
 def cholesky(S: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factor of a symmetric positive definite matrix, through LAPACK directly:
-    the filter factors thousands of tiny matrices, where scipy's wrappers cost more than the
-    arithmetic."""
-    L, info = dpotrf(S, lower=1, clean=1)
-    if info != 0:
-        raise FilterDivergedError("innovation covariance is not positive definite")
-    return L
+    """Lower Cholesky factor of a symmetric positive definite matrix (numpy's, not scipy's:
+    importing scipy.linalg costs ``camloc run`` 0.15 s, a sixth of its time on a small file)."""
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        raise FilterDivergedError("innovation covariance is not positive definite") from None
 
 
 def cho_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``S^-1 B`` from the lower Cholesky factor L of S."""
-    X, info = dpotrs(L, B, lower=1)
-    if info != 0:
-        raise FilterDivergedError(f"Cholesky solve failed (LAPACK info {info})")
-    return X
+    """``S^-1 B`` from the lower Cholesky factor L of S: ``L' \\ (L \\ B)``."""
+    return np.linalg.solve(L.T, np.linalg.solve(L, B))
 
 
 def kalman_gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,11 +15,11 @@ from __future__ import annotations
 from typing import Callable, Optional
 
 import numpy as np
-from scipy.special import chdtri
 
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
+from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -32,7 +32,7 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
     observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices)."""
     scene = build_scene(dataset, config)
-    settings = build_settings(config, float(chdtri(3, 1.0 - config.gate)))
+    settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
     n, K = dataset.num_poses, dataset.num_observations
     progress = _Progress(n, on_progress, halves=2 if config.association == "beam" else 1)
     if config.association == "beam":

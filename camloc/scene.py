@@ -9,11 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri
 
 from camloc import association, models, sym3
 from camloc.dataset import Dataset
 from camloc.kernels.types import SceneArrays, Settings
+from camloc.tails import chi2_quantile
 
 # Observations are turned into points in chunks: (K, 3, 3) temporaries add up on large files.
 POINT_CHUNK = 32768
@@ -49,7 +49,7 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
         np.ascontiguousarray(noise.null_cost, dtype=float), true_index, pose_obs, pose_obs_start,
         np.ascontiguousarray(dataset.T_odometry, dtype=float).reshape(-1, 4, 4),
         np.ascontiguousarray(dataset.odom_cov, dtype=float).reshape(-1, 6, 6),
-        view, chdtri(3 * np.maximum(np.arange(most_pairs + 2), 1), 0.001),
+        view, chi2_quantile(3 * np.maximum(np.arange(most_pairs + 2), 1), 0.001),
     )
 
 

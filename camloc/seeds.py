@@ -12,7 +12,6 @@ share (``association.shift_agreement``) are each tried first, and the rest expla
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import bdtrc, chdtri
 
 from camloc import association, geometry
 from camloc.kernels import beam as kb
@@ -21,6 +20,7 @@ from camloc.kernels.beam_settings import SEED_EXPLANATIONS, SLIP_CANDIDATES, SLI
 from camloc.kernels.rotation import difference
 from camloc.kernels.update import updated
 from camloc.kernels.view import widened_view
+from camloc.tails import binomial_tail, chi2_quantile
 
 # The slip's search runs where a pose's best explanation leaves an unusual share of its observations
 # unassigned for this data: a binomial tail below UNUSUAL_PROBABILITY at the recent poses' rate.
@@ -30,7 +30,7 @@ UNEXPLAINED_RATE_CAP = 0.6
 UNEXPLAINED_RUN = 3
 
 # A seeded explanation whose state leaves its prior's 99.9% region is dropped.
-STATE_GATE = float(chdtri(6, 0.001))
+STATE_GATE = float(chi2_quantile(6, 0.001))
 
 
 def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexplained):
@@ -93,7 +93,7 @@ def unusually_unexplained(unassigned: int, observed: int, history: np.ndarray) -
     recent = history[-UNEXPLAINED_WINDOW:]
     rate = min(float(recent[:, 0].sum() / recent[:, 1].sum()), UNEXPLAINED_RATE_CAP)
     run = recent[len(recent) - (UNEXPLAINED_RUN - 1):].sum(axis=0)
-    tails = bdtrc(np.array([unassigned, unassigned + run[0]]) - 1, np.array([observed, observed + run[1]]), rate)
+    tails = binomial_tail(np.array([unassigned, unassigned + run[0]]) - 1, np.array([observed, observed + run[1]]), rate)
     return bool(tails.min() < UNUSUAL_PROBABILITY)
 
 

@@ -32,6 +32,26 @@ def test_euler_formulas_match_scipy(rng):
     np.testing.assert_allclose(geometry.euler_to_matrix(rpy[0]), expected[0], atol=1e-12)
 
 
+def test_quaternion_formulas_match_scipy(rng):
+    # camloc writes them out (scipy's import is a fifth of a small run); they must be scipy's to rounding
+    from scipy.spatial.transform import Rotation
+
+    quat = rng.normal(size=(2000, 4)) * rng.uniform(0.1, 10.0, size=(2000, 1))  # not unit: both normalize
+    np.testing.assert_allclose(geometry.quat_to_matrix(quat), Rotation.from_quat(quat).as_matrix(), atol=1e-15)
+    np.testing.assert_allclose(geometry.quat_to_matrix(quat[:3].reshape(3, 1, 4)), Rotation.from_quat(quat[:3]).as_matrix()[:, None], atol=1e-15)
+    # every branch of Shepperd's method: random rotations, and half-turns about each axis and between them
+    half_turns = np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.6, 0.8, 0], [0, 0.6, -0.8], [0.48, 0.6, 0.64]])
+    R = np.concatenate([Rotation.random(3000, random_state=1).as_matrix(), Rotation.from_rotvec(half_turns).as_matrix(), np.eye(3)[None]])
+    expected = Rotation.from_matrix(R).as_quat()
+    expected *= np.where(expected[:, 3:4] < 0.0, -1.0, 1.0)
+    quat = geometry.matrix_to_quat(R)
+    assert np.all(quat[:, 3] >= 0.0) and geometry.matrix_to_quat(R[0]).shape == (4,)
+    on_the_half_turn = np.abs(expected[:, 3]) < 1e-12  # q and -q: both w = 0, either sign is the rotation
+    np.testing.assert_allclose(quat[~on_the_half_turn], expected[~on_the_half_turn], atol=1e-15)
+    np.testing.assert_allclose(np.abs(quat[on_the_half_turn]), np.abs(expected[on_the_half_turn]), atol=1e-15)
+    np.testing.assert_allclose(geometry.quat_to_matrix(quat), R, atol=1e-14)
+
+
 def test_euler_and_quaternion_round_trips(rng):
     rpy = random_rpy(rng, 200)
     np.testing.assert_allclose(geometry.matrix_to_euler(geometry.euler_to_matrix(rpy)), rpy, atol=1e-9)
