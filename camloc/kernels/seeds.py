@@ -17,24 +17,25 @@ from camloc.kernels._jit import jit
 from camloc.kernels.sym3 import inverse_components, log_det as log_det_3x3, mahalanobis, quadratic_and_det, spread
 
 
-# Seeds are screened in chunks: the whitened innovations of every pair under a chunk of seeds are
-# one matrix product (3N x 6 by 6 x chunk), a few MB at most.
-SEED_CHUNK = 32
-
-
 @jit
 def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, seeds, gate):
     """(M,) the approximate cost of explaining a pose's m observations given each seed pair
     (seeds (M,) indices of pairs) is right. Pairs: innovation y (N, 3), Jacobian H (N, 3, 6),
     noise R (N, 3, 3) (each in its own coordinates), observation pair_obs (N,) in 0..m-1 and
-    landmark (N,); P the prior covariance; null_cost (m,); gate on a conditioned pair's d^2."""
+    landmark (N,); P the prior covariance; null_cost (m,); gate on a conditioned pair's d^2.
+
+    No BLAS call: a matrix product here ran on BLAS's threads, which, on a machine with one other
+    busy process, made the whole run twice as slow (benchmarks: ``docs/performance.md``)."""
     N, m = y.shape[0], null_cost.size
     S = np.empty((N, 3, 3))
     log_det_R = np.empty(N)
     HP = np.empty((N, 3, 6))
-    # W_q with W_q' W_q = S_q^-1 whitens pair q: |W_q (y_q - H_q c)|^2 = d^2 under S_q
-    white_y = np.empty(3 * N)
-    white_H = np.empty((3 * N, 6))
+    # every pair's Jacobian, innovation, S and S^-1 by component, each a row over the pairs: the
+    # costs under one seed are then one loop the compiler turns into vector arithmetic
+    H_rows = np.empty((18, N))
+    y_rows = np.empty((3, N))
+    S_rows = np.empty((6, N))
+    S_inverse_rows = np.empty((6, N))
     for q in range(N):
         for a in range(3):
             for b in range(6):
@@ -49,113 +50,85 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
         S[q, 1, 0], S[q, 1, 1], S[q, 1, 2] = s01, s11, s12
         S[q, 2, 0], S[q, 2, 1], S[q, 2, 2] = s02, s12, s22
         log_det_R[q] = log_det_3x3(R[q])
-        a00, a01, a02, a11, a12, a22 = inverse_components(s00, s01, s02, s11, s12, s22)
-        l00 = np.sqrt(a00)                                 # A = S^-1 = L L' (3x3 Cholesky by hand), W = L'
-        l10, l20 = a01 / l00, a02 / l00
-        l11 = np.sqrt(a11 - l10 * l10)
-        l21 = (a12 - l20 * l10) / l11
-        l22 = np.sqrt(a22 - l20 * l20 - l21 * l21)
-        white_y[3 * q] = l00 * y[q, 0] + l10 * y[q, 1] + l20 * y[q, 2]
-        white_y[3 * q + 1] = l11 * y[q, 1] + l21 * y[q, 2]
-        white_y[3 * q + 2] = l22 * y[q, 2]
-        for b in range(6):
-            white_H[3 * q, b] = l00 * H[q, 0, b] + l10 * H[q, 1, b] + l20 * H[q, 2, b]
-            white_H[3 * q + 1, b] = l11 * H[q, 1, b] + l21 * H[q, 2, b]
-            white_H[3 * q + 2, b] = l22 * H[q, 2, b]
-    # every pair's Jacobian, innovation and S by component, each a row over the pairs: the
-    # conditioned costs of one seed are then one loop the compiler turns into vector arithmetic
-    H_rows = np.empty((18, N))
-    y_rows = np.empty((3, N))
-    S_rows = np.empty((6, N))
-    for q in range(N):
         for a in range(3):
             y_rows[a, q] = y[q, a]
             for b in range(6):
                 H_rows[6 * a + b, q] = H[q, a, b]
-        S_rows[0, q], S_rows[1, q], S_rows[2, q] = S[q, 0, 0], S[q, 0, 1], S[q, 0, 2]
-        S_rows[3, q], S_rows[4, q], S_rows[5, q] = S[q, 1, 1], S[q, 1, 2], S[q, 2, 2]
+        S_rows[0, q], S_rows[1, q], S_rows[2, q] = s00, s01, s02
+        S_rows[3, q], S_rows[4, q], S_rows[5, q] = s11, s12, s22
+        a00, a01, a02, a11, a12, a22 = inverse_components(s00, s01, s02, s11, s12, s22)
+        S_inverse_rows[0, q], S_inverse_rows[1, q], S_inverse_rows[2, q] = a00, a01, a02
+        S_inverse_rows[3, q], S_inverse_rows[4, q], S_inverse_rows[5, q] = a11, a12, a22
     out = np.empty(seeds.size)
     best = np.empty(m)
-    bound = np.empty(N)
-    quadratic, det = np.empty(N), np.empty(N)
-    for first in range(0, seeds.size, SEED_CHUNK):
-        chunk = seeds[first:first + SEED_CHUNK]
-        c = chunk.size
-        corrections = np.empty((6, c))
-        U = np.empty((6, 3 * c))
-        for k in range(c):
-            s = chunk[k]
-            # conditioning on s: P_s = P - U U' with U = P H_s' L_s^-T, correction K_s y_s = U L_s^-1 y_s
-            c00 = np.sqrt(S[s, 0, 0])                      # S_s = L L' (by hand: LAPACK's call costs more)
-            c10, c20 = S[s, 1, 0] / c00, S[s, 2, 0] / c00
-            c11 = np.sqrt(S[s, 1, 1] - c10 * c10)
-            c21 = (S[s, 2, 1] - c20 * c10) / c11
-            c22 = np.sqrt(S[s, 2, 2] - c20 * c20 - c21 * c21)
-            w0 = y[s, 0] / c00                             # L^-1 y_s and the rows of L^-1 H_s P
-            w1 = (y[s, 1] - c10 * w0) / c11
-            w2 = (y[s, 2] - c20 * w0 - c21 * w1) / c22
-            for b in range(6):
-                u0 = HP[s, 0, b] / c00
-                u1 = (HP[s, 1, b] - c10 * u0) / c11
-                u2 = (HP[s, 2, b] - c20 * u0 - c21 * u1) / c22
-                U[b, 3 * k], U[b, 3 * k + 1], U[b, 3 * k + 2] = u0, u1, u2
-                corrections[b, k] = u0 * w0 + u1 * w1 + u2 * w2
-        # every pair's whitened shift under every seed of the chunk in one matrix product, (c, 3N):
-        # W_q H_q c_s, a seed's row contiguous for the screen that reads all of it (BLAS writes it
-        # so from the transposed operands; transposing its product after was half the ranking)
-        white_moved = corrections.T @ white_H.T
-        for k in range(c):
-            s = chunk[k]
-            for i in range(m):
-                best[i] = null_cost[i]
-            # S|s <= S, so d^2 under S is a lower bound and screens the pairs (as the numpy twin
-            # does); under a slip's wide prior most pass it, so every pair's conditioned cost is
-            # computed in one branch-free pass and the screen only decides which of them count
-            for q in range(N):
-                w0 = white_y[3 * q] - white_moved[k, 3 * q]
-                w1 = white_y[3 * q + 1] - white_moved[k, 3 * q + 1]
-                w2 = white_y[3 * q + 2] - white_moved[k, 3 * q + 2]
-                bound[q] = w0 * w0 + w1 * w1 + w2 * w2
-            conditioned_costs(H_rows, y_rows, S_rows, corrections[:, k], U[:, 3 * k:3 * k + 3], quadratic, det)
-            for q in range(N):
-                if bound[q] > gate or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
-                    continue
-                if det[q] > 0.0 and quadratic[q] <= gate * det[q]:  # d^2 within the gate: its logarithm only then
-                    cost = quadratic[q] / det[q] + math.log(det[q]) - log_det_R[q]
-                    if cost < best[pair_obs[q]]:
-                        best[pair_obs[q]] = cost
-            best[pair_obs[s]] = 0.0
-            d2_seed, log_det_seed = mahalanobis(S[s], y[s])
-            total = d2_seed + log_det_seed - log_det_R[s]
-            for i in range(m):
-                total += best[i]
-            out[first + k] = total
+    bound, quadratic, det = np.empty(N), np.empty(N), np.empty(N)
+    correction = np.empty(6)
+    U = np.empty((6, 3))
+    for k in range(seeds.size):
+        s = seeds[k]
+        # conditioning on s: P_s = P - U U' with U = P H_s' L_s^-T, correction K_s y_s = U L_s^-1 y_s
+        c00 = np.sqrt(S[s, 0, 0])                          # S_s = L L' (by hand: LAPACK's call costs more)
+        c10, c20 = S[s, 1, 0] / c00, S[s, 2, 0] / c00
+        c11 = np.sqrt(S[s, 1, 1] - c10 * c10)
+        c21 = (S[s, 2, 1] - c20 * c10) / c11
+        c22 = np.sqrt(S[s, 2, 2] - c20 * c20 - c21 * c21)
+        w0 = y[s, 0] / c00                                 # L^-1 y_s and the rows of L^-1 H_s P
+        w1 = (y[s, 1] - c10 * w0) / c11
+        w2 = (y[s, 2] - c20 * w0 - c21 * w1) / c22
+        for b in range(6):
+            u0 = HP[s, 0, b] / c00
+            u1 = (HP[s, 1, b] - c10 * u0) / c11
+            u2 = (HP[s, 2, b] - c20 * u0 - c21 * u1) / c22
+            U[b, 0], U[b, 1], U[b, 2] = u0, u1, u2
+            correction[b] = u0 * w0 + u1 * w1 + u2 * w2
+        for i in range(m):
+            best[i] = null_cost[i]
+        # S|s <= S, so d^2 under S is a lower bound and screens the pairs (as the numpy twin does);
+        # under a slip's wide prior most pass it, so every pair's conditioned cost is computed in
+        # one branch-free pass and the screen only decides which of them count
+        conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bound, quadratic, det)
+        for q in range(N):
+            if bound[q] > gate or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
+                continue
+            if det[q] > 0.0 and quadratic[q] <= gate * det[q]:  # d^2 within the gate: its logarithm only then
+                cost = quadratic[q] / det[q] + math.log(det[q]) - log_det_R[q]
+                if cost < best[pair_obs[q]]:
+                    best[pair_obs[q]] = cost
+        best[pair_obs[s]] = 0.0
+        d2_seed, log_det_seed = mahalanobis(S[s], y[s])
+        total = d2_seed + log_det_seed - log_det_R[s]
+        for i in range(m):
+            total += best[i]
+        out[k] = total
     return out
 
 
 @jit
-def conditioned_costs(H_rows, y_rows, S_rows, correction, U, quadratic, det):
-    """Every pair's innovation conditioned on one seed, as (y' adj(S|s) y, det S|s) written to
-    quadratic, det (N,): the pair's shift H_q c_s (correction (6,)) and S|s = S_q - V V' with
-    V = H_q U_s (U (6, 3)). Pairs by component (rows (18, N), (3, N), (6, N)), without branches:
-    most pairs of a wide view pass the screen, and the loop runs as vector arithmetic."""
-    shifts, u = np.ascontiguousarray(correction), np.ascontiguousarray(U)
+def conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bound, quadratic, det):
+    """Every pair's innovation shifted by one seed's correction (6,), r_q = y_q - H_q c_s, as
+    its d^2 under its own S (bound (N,)) and, conditioned on the seed, (r' adj(S|s) r, det S|s)
+    (quadratic, det (N,)), with S|s = S_q - V V' and V = H_q U_s (U (6, 3)). Pairs by component
+    (rows (18, N), (3, N), (6, N), (6, N)), without branches: most pairs of a wide view pass the
+    screen, and the loop runs as vector arithmetic."""
     for q in range(H_rows.shape[1]):
         m0 = m1 = m2 = 0.0
         v00 = v01 = v02 = v10 = v11 = v12 = v20 = v21 = v22 = 0.0
         for b in range(6):
             h0, h1, h2 = H_rows[b, q], H_rows[6 + b, q], H_rows[12 + b, q]
-            shift = shifts[b]
+            shift = correction[b]
             m0 += h0 * shift
             m1 += h1 * shift
             m2 += h2 * shift
-            v00, v01, v02 = v00 + h0 * u[b, 0], v01 + h0 * u[b, 1], v02 + h0 * u[b, 2]
-            v10, v11, v12 = v10 + h1 * u[b, 0], v11 + h1 * u[b, 1], v12 + h1 * u[b, 2]
-            v20, v21, v22 = v20 + h2 * u[b, 0], v21 + h2 * u[b, 1], v22 + h2 * u[b, 2]
+            v00, v01, v02 = v00 + h0 * U[b, 0], v01 + h0 * U[b, 1], v02 + h0 * U[b, 2]
+            v10, v11, v12 = v10 + h1 * U[b, 0], v11 + h1 * U[b, 1], v12 + h1 * U[b, 2]
+            v20, v21, v22 = v20 + h2 * U[b, 0], v21 + h2 * U[b, 1], v22 + h2 * U[b, 2]
+        r0, r1, r2 = y_rows[0, q] - m0, y_rows[1, q] - m1, y_rows[2, q] - m2
+        bound[q] = (S_inverse_rows[0, q] * r0 * r0 + S_inverse_rows[3, q] * r1 * r1 + S_inverse_rows[5, q] * r2 * r2
+                    + 2.0 * (S_inverse_rows[1, q] * r0 * r1 + S_inverse_rows[2, q] * r0 * r2 + S_inverse_rows[4, q] * r1 * r2))
         a = S_rows[0, q] - (v00 * v00 + v01 * v01 + v02 * v02)
         b_ = S_rows[1, q] - (v00 * v10 + v01 * v11 + v02 * v12)
         c = S_rows[2, q] - (v00 * v20 + v01 * v21 + v02 * v22)
         d = S_rows[3, q] - (v10 * v10 + v11 * v11 + v12 * v12)
         e = S_rows[4, q] - (v10 * v20 + v11 * v21 + v12 * v22)
         f = S_rows[5, q] - (v20 * v20 + v21 * v21 + v22 * v22)
-        quadratic[q], det[q] = quadratic_and_det(a, b_, c, d, e, f, y_rows[0, q] - m0, y_rows[1, q] - m1, y_rows[2, q] - m2)
+        quadratic[q], det[q] = quadratic_and_det(a, b_, c, d, e, f, r0, r1, r2)
