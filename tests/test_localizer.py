@@ -11,7 +11,7 @@ from camloc.ekf import FilterDivergedError
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
-from camloc.localizer import BeamOptions, BestFriendsOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
+from camloc.localizer import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
 from camloc.metrics import evaluate
 from camloc.simulate import SimulationConfig, simulate
 
@@ -245,6 +245,17 @@ def test_jcbb_on_the_real_style_data():
     precision, recall = precision_recall(result, dataset)
     assert precision >= 0.98 and recall >= 0.9
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
+
+
+def test_jcbb_counts_the_poses_its_bound_cut_short_in_the_run_s_warnings():
+    dataset = simulate(SimulationConfig(poses=40, dense=True), seed=1)
+    cut_short = {}
+    for max_nodes in (5, 2000):
+        result = localize(dataset, LocalizerConfig(association="jcbb", jcbb=JcbbOptions(max_nodes=max_nodes)))
+        warnings = [w for w in result.summary["warnings"] if w.startswith(f"JCBB hit its bound of {max_nodes} joint tests at ")]
+        cut_short[max_nodes] = int(warnings[0].split(" at ")[1].split()[0]) if warnings else 0
+    observed = np.unique(dataset.obs_pose_index).size
+    assert observed >= cut_short[5] > cut_short[2000]  # at most once a pose, and more with a tighter bound
 
 
 def _with_a_jump(dataset: Dataset, jump: tuple[float, float, float]) -> Dataset:
