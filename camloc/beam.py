@@ -49,7 +49,11 @@ predicted view, not only in it.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
-NIS are computed exactly as for any other association method.
+NIS are computed exactly as for any other association method. Per pose these are the pairs a
+per-pose method of ``camloc.associators`` returns, ``(observation indices, landmark rows)``, but
+the beam is not one of them: a pose's pairs are final only once the poses after it have
+confirmed them (every hypothesis left descends from one there), so it searches the whole run and
+the localizer looks each pose's pairs up in its result.
 """
 
 from __future__ import annotations
@@ -57,12 +61,19 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 from functools import partial
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional, Protocol
 
 import numpy as np
 from scipy.special import bdtrc, chdtri
 
 from camloc import association, ekf, geometry, models
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+    from camloc.associators import CameraModel
+    from camloc.dataset import Dataset
+    from camloc.filters import EulerFilter, SE3Filter
 
 
 @dataclass(frozen=True)
@@ -184,18 +195,41 @@ STATE_GATE = float(chdtri(6, 0.001))
 POOL_GATE_FACTOR = 2.0
 
 
+class BeamContext(Protocol):
+    """What the beam reads of the run, all of it fixed for the run; ``camloc.localizer._Localizer``
+    provides it (``visible`` and ``observe`` through its ``camloc.associators.AssociationScene``)."""
+
+    dataset: Dataset
+    filter: EulerFilter | SE3Filter
+    tree: Optional[cKDTree]              # over dataset.landmark_xyz; None for an empty map
+    cameras: dict[int, CameraModel]
+    obs_of_pose: list[np.ndarray]        # each pose's observations (indices into the dataset's)
+    T_increments: np.ndarray             # (N - 1, 4, 4) the odometry increments
+    null_cost: np.ndarray                # (K,) cost of leaving each observation unassigned
+    association_cov: np.ndarray          # (K, 3, 3) the noise association judges each observation by
+    log_det_R: np.ndarray                # (K,) its ln det     (``association.noise_floored``)
+    point: np.ndarray                    # (K, 3) each observation as a point in its camera's frame,
+    point_cov: np.ndarray                # (K, 3, 3) its covariance
+    log_det_point_cov: np.ndarray        # (K,) and that covariance's ln det
+
+    def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
+        """The landmarks camera ``camera_id`` may see from x; with P, from within three standard
+        deviations of x."""
+
+    def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (m, 3) of the landmarks by camera ``camera_id`` from x, and their Jacobians."""
+
+    def updated(
+        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *,
+        at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
+    ) -> ekf.UpdateResult:
+        """The filter's stacked, iterated update of (x, P) with the given pairs."""
+
+
 class BeamSearch:
-    """Runs the beam over a whole dataset.
+    """Runs the beam over a whole dataset, reading the run through ``context`` (``BeamContext``)."""
 
-    ``context`` (the localizer) provides: dataset, filter, tree, cameras, obs_of_pose,
-    T_increments, null_cost (K,) (leaving each observation unassigned), the noise association
-    judges each observation by (association_cov, association_info (K, 3, 3), log_det_R (K,);
-    ``association.noise_floored``), every
-    observation as a camera-frame point (point (K, 3), point_cov (K, 3, 3), log_det_point_cov
-    (K,)), ``visible``, ``observe`` and ``updated``.
-    """
-
-    def __init__(self, context, settings: BeamSettings):
+    def __init__(self, context: BeamContext, settings: BeamSettings):
         self.ctx = context
         self.settings = settings
         self.R = context.association_cov        # the noise association judges each observation by
