@@ -19,7 +19,7 @@ from scipy.special import chdtri
 
 from camloc import association, associators, ekf, geometry, models
 from camloc.associators import AssociationScene, CameraModel
-from camloc.beam import BeamSearch, BeamSettings
+from camloc.beam import BeamSearch, BeamSettings, BeamStatistics
 from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
@@ -471,22 +471,31 @@ class _Localizer:
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
         self.beam_slipped: np.ndarray | None = None
+        self.beam_statistics: Optional[BeamStatistics] = None  # what the beam did (search_beam)
         self.slip_pose_ids: list[int] = []
         self.replayed_in_parallel = False  # the replay ran in a second process (camloc.replay)
         self.replay_peak_mb: Optional[float] = None  # that process's peak memory, where known
 
-    def search_beam(
-        self, on_pose: Optional[Callable[[int], None]] = None,
-        on_decided: Optional[Callable[[int, list[np.ndarray], np.ndarray], None]] = None,
-    ) -> None:
-        """Decide every pose's association with the beam (``camloc.beam``) before filtering;
-        ``on_decided`` receives the decided poses as the beam goes (``BeamSearch.run``)."""
+    def beam_settings(self) -> BeamSettings:
+        """The beam's settings of this run: the config's, and ``BeamSettings``' defaults for the
+        rest."""
         c = self.config
-        settings = BeamSettings(
+        return BeamSettings(
             beam_width=c.beam.width, beam_delta=c.beam.delta, branch_delta=c.beam.branch_delta,
             gate=self.gate, slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost,
         )
-        search = BeamSearch(self, settings)
+
+    def search_beam(
+        self, on_pose: Optional[Callable[[int], None]] = None,
+        on_decided: Optional[Callable[[int, list[np.ndarray], np.ndarray], None]] = None,
+        *, settings: Optional[BeamSettings] = None,
+    ) -> None:
+        """Decide every pose's association with the beam (``camloc.beam``) before filtering;
+        ``on_decided`` receives the decided poses as the beam goes (``BeamSearch.run``).
+        ``settings``: the beam's, when not ``beam_settings()`` (for a setting the config does not
+        hold, such as ``state_gate``). The search's statistics are kept in ``beam_statistics``."""
+        search = BeamSearch(self, settings if settings is not None else self.beam_settings())
+        self.beam_statistics = search.statistics
         self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose, on_decided=on_decided)
         slips = np.flatnonzero(self.beam_slipped)
         self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in slips]
