@@ -49,20 +49,36 @@ predicted view, not only in it.
 
 The beam returns the association of the best final hypothesis; the localizer then runs its
 ordinary filter with those pairs (stacked, iterated updates), so that the estimate, covariance and
-NIS are computed exactly as for any other association method.
+NIS are computed exactly as for any other association method. Per pose these are the pairs a
+per-pose method of ``camloc.associators`` returns, ``(observation indices, landmark rows)``, but
+the beam is not one of them: a pose's pairs are final only once the poses after it have
+confirmed them (every hypothesis left descends from one there), so it searches the whole run and
+the localizer looks each pose's pairs up in its result.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 
 import numpy as np
 from scipy.special import bdtrc, chdtri
 
 from camloc import association, ekf, geometry, models
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+    from camloc.associators import CameraModel
+    from camloc.dataset import Dataset
+    from camloc.filters import EulerFilter, SE3Filter
+
+
+# A seeded explanation whose state leaves its prior's 99.9% region is dropped (``BeamSettings.state_gate``,
+# ``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
+STATE_GATE = float(chdtri(6, 0.001))
 
 
 @dataclass(frozen=True)
@@ -84,6 +100,9 @@ class BeamSettings:
         unassigned (a few cost units apart); the poses after it do, if both are kept.
     partial_budget : most partial explanations of a pose kept across all the beam's hypotheses,
         past each one's own best (``BeamSearch._explain_all``).
+    state_gate : a seeded explanation whose state is further than this from its prior (its
+        squared Mahalanobis distance, 6 dof) is dropped (``BeamSearch._within_prior``); inf keeps
+        every one.
     """
 
     beam_width: int = 16
@@ -97,6 +116,40 @@ class BeamSettings:
     slip_seeds: int = 8
     seed_explanations: int = 2
     partial_budget: int = 64
+    state_gate: float = STATE_GATE
+
+
+class PartialPruning(NamedTuple):
+    """One pruning of a pose's partial explanations (``BeamSearch._prune_partials``): ``grown``
+    of them, from ``parents`` of the hypotheses the pose started from, of which ``kept`` were kept."""
+
+    pose: int
+    parents: int
+    grown: int
+    kept: int
+
+
+@dataclass
+class BeamStatistics:
+    """What a ``BeamSearch`` did, counted as it runs (``BeamSearch.statistics``); nothing reads
+    them back, they are for tests and measurements.
+
+    Attributes
+    ----------
+    slip_search_poses : the poses explained again from a slip's widened prior (the seeded
+        search under ``slip_inflation``), in order.
+    seeded_search_poses : the poses explained again from seed pairs under the plain prediction.
+    partial_prunings : every pruning of partial explanations (``PartialPruning``), in order.
+    children_created : children paired with a landmark (``BeamSearch._branches``), whose state
+        is computed only when first read.
+    children_settled : of those, the ones whose state was computed.
+    """
+
+    slip_search_poses: list[int] = field(default_factory=list)
+    seeded_search_poses: list[int] = field(default_factory=list)
+    partial_prunings: list[PartialPruning] = field(default_factory=list)
+    children_created: int = 0
+    children_settled: int = 0
 
 
 class _Hypothesis:
@@ -173,10 +226,6 @@ UNUSUAL_PROBABILITY = 0.01
 UNEXPLAINED_RATE_CAP = 0.6
 UNEXPLAINED_RUN = 3
 
-# A seeded explanation whose state leaves its prior's 99.9% region is dropped
-# (``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
-STATE_GATE = float(chdtri(6, 0.001))
-
 # A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
 # landmarks that were within this many gates before: its predictions moved by about H dx, with dx
 # drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
@@ -184,18 +233,41 @@ STATE_GATE = float(chdtri(6, 0.001))
 POOL_GATE_FACTOR = 2.0
 
 
+class BeamContext(Protocol):
+    """What the beam reads of the run, all of it fixed for the run; ``camloc.localizer._Localizer``
+    provides it (``visible`` and ``observe`` through its ``camloc.associators.AssociationScene``)."""
+
+    dataset: Dataset
+    filter: EulerFilter | SE3Filter
+    tree: Optional[cKDTree]              # over dataset.landmark_xyz; None for an empty map
+    cameras: dict[int, CameraModel]
+    obs_of_pose: list[np.ndarray]        # each pose's observations (indices into the dataset's)
+    T_increments: np.ndarray             # (N - 1, 4, 4) the odometry increments
+    null_cost: np.ndarray                # (K,) cost of leaving each observation unassigned
+    association_cov: np.ndarray          # (K, 3, 3) the noise association judges each observation by
+    log_det_R: np.ndarray                # (K,) its ln det     (``association.noise_floored``)
+    point: np.ndarray                    # (K, 3) each observation as a point in its camera's frame,
+    point_cov: np.ndarray                # (K, 3, 3) its covariance
+    log_det_point_cov: np.ndarray        # (K,) and that covariance's ln det
+
+    def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
+        """The landmarks camera ``camera_id`` may see from x; with P, from within three standard
+        deviations of x."""
+
+    def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (m, 3) of the landmarks by camera ``camera_id`` from x, and their Jacobians."""
+
+    def updated(
+        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *,
+        at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
+    ) -> ekf.UpdateResult:
+        """The filter's stacked, iterated update of (x, P) with the given pairs."""
+
+
 class BeamSearch:
-    """Runs the beam over a whole dataset.
+    """Runs the beam over a whole dataset, reading the run through ``context`` (``BeamContext``)."""
 
-    ``context`` (the localizer) provides: dataset, filter, tree, cameras, obs_of_pose,
-    T_increments, null_cost (K,) (leaving each observation unassigned), the noise association
-    judges each observation by (association_cov, association_info (K, 3, 3), log_det_R (K,);
-    ``association.noise_floored``), every
-    observation as a camera-frame point (point (K, 3), point_cov (K, 3, 3), log_det_point_cov
-    (K,)), ``visible``, ``observe`` and ``updated``.
-    """
-
-    def __init__(self, context, settings: BeamSettings):
+    def __init__(self, context: BeamContext, settings: BeamSettings):
         self.ctx = context
         self.settings = settings
         self.R = context.association_cov        # the noise association judges each observation by
@@ -203,7 +275,8 @@ class BeamSearch:
         self.point, self.point_cov = context.point, context.point_cov  # every observation in its camera's frame
         self.log_det_point_cov = context.log_det_point_cov
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
-        self.history: list[list[_Hypothesis]] = []
+        self.history: list[list[_Hypothesis]] = []  # each pose's beam; during a pose, those before it
+        self.statistics = BeamStatistics()
         self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
 
     def run(
@@ -287,7 +360,9 @@ class BeamSearch:
             if self._unusually_unexplained(best.unassigned, obs.size):
                 slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                       origin.cost + self.settings.slip_cost, origin.parent)
+                self.statistics.slip_search_poses.append(k)
                 seeded.append(self._explain_from_seeds(slipped, obs))
+            self.statistics.seeded_search_poses.append(k)
             seeded.append(self._explain_from_seeds(origin, obs, slipped=False))  # noisy odometry, not a slip
         kept = self._prune(children + [c for group in seeded for c in group])
         for group in seeded:
@@ -382,7 +457,7 @@ class BeamSearch:
         return children
 
     def _within_prior(self, child: _Hypothesis, h: _Hypothesis) -> bool:
-        """Whether child's state lies within the 99.9% region of h's prior (``STATE_GATE``).
+        """Whether child's state lies within h's prior's 99.9% region (``BeamSettings.state_gate``).
 
         A child's cost sums its pairs' innovations, each linearized where the hypothesis was
         before it. Under a wide prior in a dense map, a seed pair can fit a landmark metres from
@@ -391,7 +466,7 @@ class BeamSearch:
         chain rule's sum equals the state's own cost only for a linear model; this gate catches
         the explanations for which it does not hold at all."""
         d = self.ctx.filter.difference(child.x, h.x)
-        return float(d @ np.linalg.solve(h.P, d)) <= STATE_GATE
+        return float(d @ np.linalg.solve(h.P, d)) <= self.settings.state_gate
 
     def _implied_shifts(self, h: _Hypothesis, obs: np.ndarray, pair_obs: np.ndarray, pair_landmark: np.ndarray) -> np.ndarray:
         """(N, 3) the shift of the robot from h each pair implies (``association.shift_agreement``)."""
@@ -473,14 +548,15 @@ class BeamSearch:
         for p in partials:
             by_root.setdefault(p.root, []).append(p)
         kept = [p for group in by_root.values() for p in self._prune(group, lambda p: p.h)]
-        if len(kept) <= self.settings.partial_budget:
-            return kept
-        kept.sort(key=lambda p: p.h.cost + p.rest)
-        firsts = {}
-        for p in kept:
-            firsts.setdefault(p.root, p)
-        others = [p for p in kept if firsts[p.root] is not p]
-        return list(firsts.values()) + others[: max(0, self.settings.partial_budget - len(firsts))]
+        if len(kept) > self.settings.partial_budget:
+            kept.sort(key=lambda p: p.h.cost + p.rest)
+            firsts = {}
+            for p in kept:
+                firsts.setdefault(p.root, p)
+            others = [p for p in kept if firsts[p.root] is not p]
+            kept = list(firsts.values()) + others[: max(0, self.settings.partial_budget - len(firsts))]
+        self.statistics.partial_prunings.append(PartialPruning(len(self.history), len(by_root), len(partials), len(kept)))
+        return kept
 
     def _options(self, h: _Hypothesis, obs: np.ndarray, *, widened_view: bool = False) -> list[_Options]:
         """Gated landmarks of every observation under h, computed in one batch per camera; with
@@ -660,13 +736,16 @@ class BeamSearch:
         out = []
         if null:
             out.append(_Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))
-        for j in np.flatnonzero(pairs):
+        paired = np.flatnonzero(pairs)
+        self.statistics.children_created += paired.size
+        for j in paired:
             out.append(_Hypothesis(None, None, h.cost + float(options.costs[j]), h.parent, h.pairs + ((o, int(options.landmarks[j])),),
                                    h.unassigned, pending=partial(self._paired_state, h.x, h.P, o, options, int(j))))
         return out
 
     def _paired_state(self, x: np.ndarray, P: np.ndarray, o: int, options: _Options, j: int) -> tuple[np.ndarray, np.ndarray]:
         """(x, P) updated with observation o paired with its option j."""
+        self.statistics.children_settled += 1
         result = self.ctx.updated(x, P, np.array([o]), options.landmarks[j : j + 1],
                                   at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True)
         return result.state, result.cov

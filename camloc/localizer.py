@@ -17,8 +17,9 @@ from typing import Callable, ClassVar, Optional
 import numpy as np
 from scipy.special import chdtri
 
-from camloc import association, ekf, geometry, models
-from camloc.beam import BeamSearch, BeamSettings
+from camloc import association, associators, ekf, geometry, models
+from camloc.associators import AssociationScene, CameraModel
+from camloc.beam import BeamSearch, BeamSettings, BeamStatistics
 from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
@@ -267,12 +268,6 @@ def _is_integer(value) -> bool:
 _DEFAULT_CONFIG = LocalizerConfig()
 
 
-@dataclass(frozen=True)
-class _CameraModel:
-    T_robot_camera: np.ndarray
-    intrinsics: tuple[float, float, float, float]
-
-
 ENGINES = ("auto", "compiled", "numpy")
 
 # Below this many poses the numpy localizer finishes first: the compiled loop pays about 0.6 s a
@@ -398,6 +393,25 @@ def _parallel_worthwhile(num_poses: int) -> bool:
     return num_poses >= PARALLEL_MIN_POSES and cpus >= 2
 
 
+# The per-pose association methods (``camloc.associators``) by name, each with its options from the config.
+PER_POSE_ASSOCIATORS: dict[str, Callable[[LocalizerConfig], associators.Associator]] = {
+    "oracle": lambda config: associators.oracle,
+    "best-friends": lambda config: associators.BestFriends(
+        cost=config.best_friends.cost, margin=config.best_friends.margin, sequential=config.best_friends.sequential),
+    "jcbb": lambda config: associators.Jcbb(
+        probability=config.gate, max_nodes=config.jcbb.max_nodes, seed_cost=config.best_friends.cost,
+        seed_margin=config.best_friends.margin),
+}
+
+
+def per_pose_associator(config: LocalizerConfig) -> Optional[associators.Associator]:
+    """The per-pose method ``config.association`` names (``PER_POSE_ASSOCIATORS``); None for the
+    beam, which decides the pairs of the whole run at once (``_Localizer.search_beam``)."""
+    if config.association == "beam":
+        return None
+    return PER_POSE_ASSOCIATORS[config.association](config)
+
+
 class _Localizer:
     """The filter's state over one run; ``step(k)`` processes pose k."""
 
@@ -406,7 +420,7 @@ class _Localizer:
         self.config = config
         self.filter = make_filter(config.filter)
         self.cameras = {
-            cid: _CameraModel(cam.T_robot_camera, (cam.fx, cam.fy, cam.cx, cam.cy))
+            cid: CameraModel(cam.T_robot_camera, (cam.fx, cam.fy, cam.cx, cam.cy))
             for cid, cam in dataset.cameras.items()
         }
         self.single_camera = int(next(iter(dataset.cameras))) if len(dataset.cameras) == 1 else None
@@ -430,6 +444,12 @@ class _Localizer:
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
         self.T_increments = dataset.T_odometry
+        self.scene = AssociationScene(  # what the per-pose association methods read
+            dataset=dataset, filter=self.filter, cameras=self.cameras, tree=self.tree, min_depth=self.min_depth,
+            max_depth=self.max_depth, max_angle=self.max_angle, gate=self.gate, association_cov=self.association_cov,
+            true_landmark_row=self.true_landmark_row, conditioned=self.conditioned,
+        )
+        self.associate = per_pose_associator(config)  # None for the beam (search_beam)
 
         n, k_obs = dataset.num_poses, dataset.num_observations
         self.states = np.zeros((n, self.filter.stored_size))
@@ -444,7 +464,6 @@ class _Localizer:
         self.nis_dof: list[int] = []
         self.warnings: list[str] = []
         self.warned_singularity = False
-        self.jcbb_cut_short = 0
 
         sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
         self.x = self.filter.initial(dataset.T_world_start)
@@ -452,22 +471,31 @@ class _Localizer:
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
         self.beam_slipped: np.ndarray | None = None
+        self.beam_statistics: Optional[BeamStatistics] = None  # what the beam did (search_beam)
         self.slip_pose_ids: list[int] = []
         self.replayed_in_parallel = False  # the replay ran in a second process (camloc.replay)
         self.replay_peak_mb: Optional[float] = None  # that process's peak memory, where known
 
-    def search_beam(
-        self, on_pose: Optional[Callable[[int], None]] = None,
-        on_decided: Optional[Callable[[int, list[np.ndarray], np.ndarray], None]] = None,
-    ) -> None:
-        """Decide every pose's association with the beam (``camloc.beam``) before filtering;
-        ``on_decided`` receives the decided poses as the beam goes (``BeamSearch.run``)."""
+    def beam_settings(self) -> BeamSettings:
+        """The beam's settings of this run: the config's, and ``BeamSettings``' defaults for the
+        rest."""
         c = self.config
-        settings = BeamSettings(
+        return BeamSettings(
             beam_width=c.beam.width, beam_delta=c.beam.delta, branch_delta=c.beam.branch_delta,
             gate=self.gate, slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost,
         )
-        search = BeamSearch(self, settings)
+
+    def search_beam(
+        self, on_pose: Optional[Callable[[int], None]] = None,
+        on_decided: Optional[Callable[[int, list[np.ndarray], np.ndarray], None]] = None,
+        *, settings: Optional[BeamSettings] = None,
+    ) -> None:
+        """Decide every pose's association with the beam (``camloc.beam``) before filtering;
+        ``on_decided`` receives the decided poses as the beam goes (``BeamSearch.run``).
+        ``settings``: the beam's, when not ``beam_settings()`` (for a setting the config does not
+        hold, such as ``state_gate``). The search's statistics are kept in ``beam_statistics``."""
+        search = BeamSearch(self, settings if settings is not None else self.beam_settings())
+        self.beam_statistics = search.statistics
         self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose, on_decided=on_decided)
         slips = np.flatnonzero(self.beam_slipped)
         self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in slips]
@@ -524,38 +552,14 @@ class _Localizer:
         if obs.size == 0 or self.tree is None:
             return none
         if self.beam_pairs is not None:
+            # the beam decided every pose's pairs over the whole run first (search_beam, or the
+            # replay process handing them over as they are decided)
             pairs = self.beam_pairs[k]
             order = np.argsort(pairs[:, 0], kind="stable")
             return pairs[order, 0], pairs[order, 1]
-        if self.config.association == "oracle":
-            return self._associate_oracle(obs)
-        if self.config.association == "jcbb":
-            return self._associate_jcbb(obs)
-        if not self.config.best_friends.sequential:
-            rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
-            return obs[rows], landmarks
-        return self._associate_sequentially(obs)
-
-    def _associate_sequentially(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Best friends one pair at a time: accept the most unambiguous pair, condition a scratch
-        copy of the filter on it, and look again at the rest. Each accepted pair shrinks the
-        uncertainty that made the others ambiguous, so a pose's pairs support each other."""
-        x, P = self.x, self.P
-        remaining = obs
-        chosen_obs: list[int] = []
-        chosen_landmarks: list[int] = []
-        while remaining.size:
-            rows, landmarks, gap = self._best_friends(x, P, remaining, taken=np.asarray(chosen_landmarks, np.int64))
-            if rows.size == 0:
-                break
-            best = int(np.argmax(gap))
-            chosen_obs.append(int(remaining[rows[best]]))
-            chosen_landmarks.append(int(landmarks[best]))
-            remaining = np.delete(remaining, rows[best])
-            if remaining.size:
-                result = self.updated(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]), for_association=True)
-                x, P = result.state, result.cov
-        return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
+        if self.associate is None:
+            raise RuntimeError("the beam decides the pairs of the whole run first: call search_beam before step")
+        return self.associate(self.scene, self.x, self.P, obs)
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
         """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative
@@ -589,111 +593,21 @@ class _Localizer:
                     keep[position[o]] = False
         return keep
 
-    def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The landmarks camera ``camera_id`` may see from state x: (candidates (m,), z_hat (m, 3),
-        H (m, 3, n), HPH (m, 3, 3)).
-
-        Candidates: ``visible``.
-        """
-        candidates = self.visible(x, camera_id)
-        z_hat, H = self.observe(x, camera_id, candidates)
-        HPH = H @ P @ np.swapaxes(H, 1, 2)
-        return candidates, z_hat, H, HPH
-
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
-        """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
-        state x, found through the k-d tree of the map. With P, the view is widened by three
-        standard deviations of the position (in metres) and of the orientation (in angle), for a
-        prior too wide for the data's own margins."""
-        camera = self.cameras[int(camera_id)]
-        margin, max_angle = 0.0, self.max_angle
-        if P is not None:
-            margin = 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
-            widened = max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1]))
-            max_angle = max(max_angle, min(widened, np.radians(89.0)))  # never narrower than the plain view
-        return association.candidate_indices(
-            self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
-            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
-        )
+        """``AssociationScene.visible``: the landmarks camera ``camera_id`` may see from x (with P,
+        from anywhere within three standard deviations of it)."""
+        return self.scene.visible(x, camera_id, P)
 
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
-        state x, and their Jacobians (m, 3, n)."""
-        camera = self.cameras[int(camera_id)]
-        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks])
+        """``AssociationScene.observe``: predictions (m, 3) of the landmarks by camera ``camera_id``
+        from x, and their Jacobians (m, 3, n)."""
+        return self.scene.observe(x, camera_id, landmarks)
 
-    def _best_friends(
-        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, *, taken: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Best-friends pairs at (x, P) over all cameras: (rows into obs, landmark indices, gaps)."""
-        rows_all, landmarks_all, gaps_all = [], [], []
-        for camera_id in np.unique(self.dataset.obs_camera[obs]):
-            rows_c = np.flatnonzero(self.dataset.obs_camera[obs] == camera_id)
-            candidates, z_hat, H, HPH = self.predictions(x, P, camera_id)
-            free = ~np.isin(candidates, taken)
-            candidates, z_hat, HPH = candidates[free], z_hat[free], HPH[free]
-            if candidates.size == 0:
-                continue
-            z = self.dataset.obs_uvd[obs[rows_c]]
-            d2, nll = association.pair_statistics(z, self.association_cov[obs[rows_c]], z_hat, HPH)
-            cost = {"nll": nll, "mahalanobis": d2}.get(self.config.best_friends.cost)
-            if cost is None:
-                cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
-            r, c, gap = association.best_friends(cost, d2, gate=self.gate, margin=self.config.best_friends.margin)
-            rows_all.append(rows_c[r])
-            landmarks_all.append(candidates[c])
-            gaps_all.append(gap)
-        if not rows_all:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        return np.concatenate(rows_all), np.concatenate(landmarks_all), np.concatenate(gaps_all)
-
-    def _associate_jcbb(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Joint compatibility branch and bound over every camera of the pose at once (the pairs
-        share the pose's error), seeded by best friends."""
-        from camloc.jcbb import jcbb
-
-        ds = self.dataset
-        cands, z_hats, Hs, blocks = [], [], [], []
-        for camera_id in np.unique(ds.obs_camera[obs]):
-            c = self.visible(self.x, camera_id)
-            z_hat, H = self.observe(self.x, camera_id, c)
-            cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((ds.obs_camera[obs] == camera_id, c.size))
-        candidates = np.concatenate(cands)
-        if candidates.size == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
-        y_all = ds.obs_uvd[obs][:, None, :] - z_hat[None, :, :]
-        HPH = H @ self.P @ np.swapaxes(H, 1, 2)
-        d2, _ = association.pair_statistics(ds.obs_uvd[obs], self.association_cov[obs], z_hat, HPH)
-        same_camera = np.zeros(d2.shape, dtype=bool)
-        start = 0
-        for mine, size in blocks:
-            same_camera[mine, start : start + size] = True
-            start += size
-        compatible = (d2 <= self.gate) & same_camera
-        rows, landmarks, _ = self._best_friends(self.x, self.P, obs, taken=np.zeros(0, np.int64))
-        column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
-        seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
-        result = jcbb(y_all, H, self.P, self.association_cov[obs], compatible,
-                      probability=self.config.gate, max_nodes=self.config.jcbb.max_nodes, seed=seed)
-        if not result.exhaustive:
-            self.jcbb_cut_short += 1
-        paired = result.assignment >= 0
-        return obs[paired], candidates[result.assignment[paired]]
-
-    def _associate_oracle(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The file's landmark ids, kept where the id is in the map and the pair passes the gate
-        (a gross outlier keeps its true id but is no evidence any filter should take)."""
-        index = self.true_landmark_row[obs]
-        obs, index = obs[index >= 0], index[index >= 0]
-        keep = np.zeros(obs.size, dtype=bool)
-        for camera_id in np.unique(self.dataset.obs_camera[obs]):
-            mine = self.dataset.obs_camera[obs] == camera_id
-            z_hat, H = self.observe(self.x, camera_id, index[mine])
-            S = H @ self.P @ np.swapaxes(H, 1, 2) + self.association_cov[obs[mine]]
-            d2, _ = association.mahalanobis_3x3(S, self.dataset.obs_uvd[obs[mine]] - z_hat)
-            keep[mine] = d2 <= self.gate
-        return obs[keep], index[keep]
+    def conditioned(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(x, P) after the update with the given pairs, weighed as association judges them: the
+        scratch filter of a method that conditions on some pairs before judging the rest."""
+        result = self.updated(x, P, obs, landmarks, for_association=True)
+        return result.state, result.cov
 
     def updated(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
@@ -790,11 +704,12 @@ class _Localizer:
             )
 
     def result(self, filter_seconds: float) -> RunResult:
+        cut_short = self.associate.poses_cut_short if isinstance(self.associate, associators.Jcbb) else 0
         return build_result(
             self.dataset, self.config, self.filter, self.states, self.covs, self.poses, self.odometry_poses,
             self.chosen_landmark, self.mahalanobis, self.update_pose_ids, self.nis, self.map_costs, self.nis_dof,
-            warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb.max_nodes} joint tests at {self.jcbb_cut_short} pose(s) "
-                                        "and kept the best set found"] if self.jcbb_cut_short else []),
+            warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb.max_nodes} joint tests at {cut_short} pose(s) "
+                                        "and kept the best set found"] if cut_short else []),
             slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
             timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": self.replayed_in_parallel,
                     "replay_process_peak_mb": self.replay_peak_mb},

@@ -291,3 +291,26 @@ def test_noise_floor_raises_observations_that_claim_to_be_exact(rng):
     np.testing.assert_allclose(np.diagonal(floored_cov[:3], axis1=1, axis2=2), expected[:3], rtol=1e-12)  # raised to the floor
     np.testing.assert_array_equal(floored_cov[3], cov[3])
     np.testing.assert_allclose(floored_info @ floored_cov, np.broadcast_to(np.eye(3), (4, 3, 3)), atol=1e-9)
+
+
+@pytest.mark.parametrize("association, sequential", [("oracle", True), ("best-friends", True), ("best-friends", False), ("jcbb", True)])
+def test_every_per_pose_method_pairs_rightly_from_the_true_state(association, sequential):
+    # each method by its name in the localizer's table, called through the one signature
+    # associate(scene, x, P, obs) on every pose of a world without clutter, from the true state
+    from camloc.localizer import PER_POSE_ASSOCIATORS, BestFriendsOptions, LocalizerConfig, _Localizer
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=30, cameras=2), seed=4)
+    config = LocalizerConfig(association=association, best_friends=BestFriendsOptions(sequential=sequential))
+    localizer = _Localizer(dataset, config)
+    associate, scene = PER_POSE_ASSOCIATORS[association](config), localizer.scene
+    P = np.diag([0.05**2] * 3 + [0.01**2] * 3)
+    right = paired = 0
+    for k in range(1, dataset.num_poses):  # the first pose has no observations
+        x = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
+        obs, landmarks = associate(scene, x, P, localizer.obs_of_pose[k])
+        assert obs.dtype == landmarks.dtype == np.int64 and obs.shape == landmarks.shape
+        assert set(obs.tolist()) <= set(localizer.obs_of_pose[k].tolist())
+        right, paired = right + int(np.sum(scene.true_landmark_row[obs] == landmarks)), paired + obs.size
+    assert paired > 200
+    assert right == paired >= 0.99 * dataset.num_observations

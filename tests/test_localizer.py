@@ -11,7 +11,7 @@ from camloc.ekf import FilterDivergedError
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
-from camloc.localizer import BeamOptions, BestFriendsOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
+from camloc.localizer import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
 from camloc.metrics import evaluate
 from camloc.simulate import SimulationConfig, simulate
 
@@ -25,6 +25,19 @@ def localize_both(dataset, config=None, **options):
     reference = localize(dataset, config, engine="numpy", parallel=False, **options)
     np.testing.assert_array_equal(compiled.associations.landmark, reference.associations.landmark)
     return compiled
+
+
+def beam_run(dataset, **settings):
+    """The numpy localizer's beam run of ``dataset`` (what ``localize(dataset, engine="numpy",
+    parallel=False)`` returns) and the beam's ``BeamStatistics``; ``settings``: ``BeamSettings``
+    fields changed from the run's (library settings a ``LocalizerConfig`` does not hold)."""
+    from camloc.localizer import _Localizer
+
+    localizer = _Localizer(dataset, LocalizerConfig())
+    localizer.search_beam(settings=dataclasses.replace(localizer.beam_settings(), **settings))
+    for k in range(dataset.num_poses):
+        localizer.step(k)
+    return localizer.result(filter_seconds=0.0), localizer.beam_statistics
 
 
 def rmse(xyz, dataset):
@@ -247,6 +260,17 @@ def test_jcbb_on_the_real_style_data():
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
 
 
+def test_jcbb_counts_the_poses_its_bound_cut_short_in_the_run_s_warnings():
+    dataset = simulate(SimulationConfig(poses=40, dense=True), seed=1)
+    cut_short = {}
+    for max_nodes in (5, 2000):
+        result = localize(dataset, LocalizerConfig(association="jcbb", jcbb=JcbbOptions(max_nodes=max_nodes)))
+        warnings = [w for w in result.summary["warnings"] if w.startswith(f"JCBB hit its bound of {max_nodes} joint tests at ")]
+        cut_short[max_nodes] = int(warnings[0].split(" at ")[1].split()[0]) if warnings else 0
+    observed = np.unique(dataset.obs_pose_index).size
+    assert observed >= cut_short[5] > cut_short[2000]  # at most once a pose, and more with a tighter bound
+
+
 def _with_a_jump(dataset: Dataset, jump: tuple[float, float, float]) -> Dataset:
     """The dataset with its odometry off by ``jump`` (metres) on edge 100, from pose 100 to 101."""
     slipped = dataset.odom_translation.copy()
@@ -269,24 +293,14 @@ def test_beam_recovers_from_an_odometry_slip_in_a_dense_map():
     assert recovered.summary["slip_poses"]  # the recovery did fire, and it is what made the difference
 
 
-def test_beam_recovers_from_a_slip_where_a_third_of_the_detections_are_clutter(monkeypatch, numpy_localizer):
+def test_beam_recovers_from_a_slip_where_a_third_of_the_detections_are_clutter():
     # Clutter leaves most of many poses' observations unassigned: the slip's search must still run
     # at the slip, where nearly all of them are, and not at every cluttered pose.
-    from camloc.beam import BeamSearch
-
     dataset = _dense_run_with_a_jump((0.6, -0.5, 0.0), clutter_fraction=0.35)
-    slip_searches = []
-    explain_from_seeds = BeamSearch._explain_from_seeds
-
-    def recording(self, h, obs, slipped=True):
-        if slipped:
-            slip_searches.append(len(self.history))
-        return explain_from_seeds(self, h, obs, slipped)
-
-    monkeypatch.setattr(BeamSearch, "_explain_from_seeds", recording)
-    recovered = localize(dataset, parallel=False)
-    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    recovered, statistics = beam_run(dataset)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"), engine="numpy")
     assert position_rmse(recovered, dataset) <= 1.25 * position_rmse(oracle, dataset)
+    slip_searches = statistics.slip_search_poses
     assert 101 in slip_searches, slip_searches  # odometry edge 100 leads to pose 101
     assert len(slip_searches) < dataset.num_poses / 5  # 30; at every pose leaving half unassigned: 43
 
@@ -365,21 +379,19 @@ def test_a_slip_among_few_cluttered_observations_is_found_by_the_poses_after_it(
     assert position_rmse(result, dataset) < 0.2
 
 
-def test_a_seeded_explanation_that_leaves_its_prior_far_behind_is_dropped(monkeypatch, numpy_localizer):
+def test_a_seeded_explanation_that_leaves_its_prior_far_behind_is_dropped():
     # Dense map, 30% clutter, 10% outliers: at pose 60 the slip's search (25x the covariance)
     # found a seed pair that fits a landmark 6.8 m from the right one by turning the camera, and
     # the explanation grown from it cost less than the right one, every innovation along the way
     # looking likely; the filter was lost for 25 poses. Its state was far outside its own prior.
-    from camloc.beam import BeamSearch
-
     dataset = simulate(SimulationConfig(poses=200, dense=True, clutter_fraction=0.3, outlier_fraction=0.1), seed=1)
-    oracle = localize(dataset, LocalizerConfig(association="oracle"))
-    result = localize(dataset, parallel=False)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"), engine="numpy")
+    result, _ = beam_run(dataset)
     precision, _ = precision_recall(result, dataset)
     assert position_rmse(result, dataset) <= 1.25 * position_rmse(oracle, dataset)
     assert precision >= 0.98
-    monkeypatch.setattr(BeamSearch, "_within_prior", lambda self, child, h: True)
-    assert position_rmse(localize(dataset, parallel=False), dataset) > 1.0
+    without_the_gate, _ = beam_run(dataset, state_gate=np.inf)
+    assert position_rmse(without_the_gate, dataset) > 1.0
 
 
 def test_beam_explains_a_large_odometry_error_from_a_seed_pair_without_a_slip():
@@ -447,27 +459,19 @@ def test_a_factorization_numpy_refuses_is_reported_as_a_breakdown_at_its_pose(mo
         localize(dataset, LocalizerConfig(association=association), parallel=False)
 
 
-def test_beam_shares_a_budget_of_partial_explanations_where_every_observation_is_ambiguous(monkeypatch, numpy_localizer):
+def test_beam_shares_a_budget_of_partial_explanations_where_every_observation_is_ambiguous():
     # 3x measurement noise in a dense map: every observation gates several landmarks and the beam
     # is full, so each hypothesis growing its own beam would keep beam_width^2 partial explanations.
-    from camloc.beam import BeamSearch, BeamSettings
+    from camloc.beam import BeamSettings
 
     dataset = simulate(SimulationConfig(poses=12, dense=True, observation_sigma_scale=3.0), seed=0)
-    sizes: list[tuple[int, int, int]] = []  # parents, partials grown, partials kept
-    prune = BeamSearch._prune_partials
-
-    def recording(self, partials):
-        kept = prune(self, partials)
-        sizes.append((len({p.root for p in partials}), len(partials), len(kept)))
-        return kept
-
-    monkeypatch.setattr(BeamSearch, "_prune_partials", recording)
-    result = localize(dataset, parallel=False)
+    result, statistics = beam_run(dataset)
+    prunings = statistics.partial_prunings  # parents, partials grown, partials kept, each time
     budget, width = BeamSettings.partial_budget, BeamSettings.beam_width
     assert budget < width * width
-    assert max(grown for _, grown, _ in sizes) > budget  # the beam was full and the parents many
-    assert all(kept <= max(budget, parents) for parents, _, kept in sizes)
-    oracle = localize(dataset, LocalizerConfig(association="oracle"))
+    assert max(p.grown for p in prunings) > budget  # the beam was full and the parents many
+    assert all(p.kept <= max(budget, p.parents) for p in prunings)
+    oracle = localize(dataset, LocalizerConfig(association="oracle"), engine="numpy")
     assert position_rmse(result, dataset) <= 1.5 * position_rmse(oracle, dataset)
 
 
@@ -609,8 +613,8 @@ def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
         assert dropped > checked  # and it does save work
 
 
-def test_a_child_s_state_is_computed_once_and_only_when_read(monkeypatch, numpy_localizer):
-    from camloc.beam import BeamSearch, _Hypothesis
+def test_a_child_s_state_is_computed_once_and_only_when_read():
+    from camloc.beam import _Hypothesis
 
     calls = []
     child = _Hypothesis(None, None, 1.5, 0, ((3, 7),), pending=lambda: calls.append(1) or (np.ones(6), 2.0 * np.eye(6)))
@@ -619,19 +623,5 @@ def test_a_child_s_state_is_computed_once_and_only_when_read(monkeypatch, numpy_
     assert np.array_equal(child.x, np.ones(6)) and len(calls) == 1
     # where every observation is ambiguous, many children are pruned before anything reads them
     dataset = simulate(SimulationConfig(poses=12, dense=True, observation_sigma_scale=3.0), seed=0)
-    created, updated = [0], [0]
-    branches, paired_state = BeamSearch._branches, BeamSearch._paired_state
-
-    def counting_branches(self, *args):
-        out = branches(self, *args)
-        created[0] += sum(1 for c in out if c._pending is not None)
-        return out
-
-    def counting_paired_state(self, *args):
-        updated[0] += 1
-        return paired_state(self, *args)
-
-    monkeypatch.setattr(BeamSearch, "_branches", counting_branches)
-    monkeypatch.setattr(BeamSearch, "_paired_state", counting_paired_state)
-    localize(dataset, parallel=False)
-    assert 0 < updated[0] < 0.9 * created[0]  # 13,737 of 17,441 here
+    _, statistics = beam_run(dataset)
+    assert 0 < statistics.children_settled < 0.9 * statistics.children_created  # 13,737 of 17,441 here

@@ -1,0 +1,258 @@
+"""The numpy localizer's per-pose association methods, behind one signature:
+
+    associate(scene, x, P, obs) -> (obs_indices (p,), landmark_indices (p,))
+
+``scene`` (``AssociationScene``) is what the methods read of the run and never change: the
+dataset's arrays, the cameras, the map's k-d tree, each observation's noise as association judges
+it, the gate and the candidate range. ``(x, P)`` is the filter's prediction at the pose; ``obs``
+(m,) are the pose's observations (indices into the dataset's, at least one; the map has at least
+one landmark). The result is the accepted pairs: observation indices and the map rows of their
+landmarks (int64), which the filter then takes in one stacked update. A method's options are set
+once per run, as the fields of its object (``BestFriends(cost="nll", margin=1.0, sequential=True)``).
+
+- ``oracle``: the file's landmark ids, gated like any pair.
+- ``BestFriends``: mutual best matches with a margin, one pair at a time or all at once.
+- ``Jcbb``: joint compatibility branch and bound (``camloc.jcbb``), seeded by best friends.
+
+The beam (``camloc.beam.BeamSearch``) yields the same pairs per pose but is not one of these: it
+searches the whole run at once (a pose's pairs are final only once the poses after it have
+confirmed them), and the localizer looks up each pose's pairs from its result.
+
+The arithmetic is ``camloc.association``'s and ``camloc.jcbb``'s (pure functions of arrays); this
+module gathers their inputs from the scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, Optional
+
+import numpy as np
+
+from camloc import association
+from camloc.jcbb import jcbb
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+    from camloc.dataset import Dataset
+    from camloc.filters import EulerFilter, SE3Filter
+
+Pairs = tuple[np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A camera as the filter's measurement model takes it: ``T_robot_camera`` (4, 4) and
+    ``intrinsics`` (fx, fy, cx, cy)."""
+
+    T_robot_camera: np.ndarray
+    intrinsics: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True, eq=False)
+class AssociationScene:
+    """What the per-pose association methods read of a run, built once by the localizer.
+
+    Attributes
+    ----------
+    dataset : the dataset (its observations ``obs_uvd``, ``obs_camera`` and map ``landmark_xyz``).
+    filter : the state's parametrization (``camloc.filters``): its measurement model and pose.
+    cameras : camera id -> ``CameraModel``.
+    tree : k-d tree over ``dataset.landmark_xyz``; None for an empty map.
+    min_depth, max_depth : candidate landmarks' depth range, metres.
+    max_angle : candidates within this angle of the optical axis, radians.
+    gate : chi^2 quantile (3 dof) a pair's d^2 must not exceed.
+    association_cov : (K, 3, 3) each observation's covariance as association judges it
+        (``association.noise_floored``; the filter's update keeps the file's own).
+    true_landmark_row : (K,) the map row of each observation's landmark by the file's ids, -1 where
+        it has none; read by ``oracle`` only.
+    conditioned : ``conditioned(x, P, obs, landmarks) -> (x, P)``: the state conditioned on the
+        given pairs, weighed by ``association_cov`` (the localizer's stacked, iterated update),
+        for a method that judges the rest of a pose's observations after some pairs.
+    """
+
+    dataset: Dataset
+    filter: EulerFilter | SE3Filter
+    cameras: dict[int, CameraModel]
+    tree: Optional[cKDTree]
+    min_depth: float
+    max_depth: float
+    max_angle: float
+    gate: float
+    association_cov: np.ndarray
+    true_landmark_row: np.ndarray
+    conditioned: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+    def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
+        """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
+        state x, found through the k-d tree of the map. With P, the view is widened by three
+        standard deviations of the position (in metres) and of the orientation (in angle), for a
+        prior too wide for the data's own margins."""
+        camera = self.cameras[int(camera_id)]
+        margin, max_angle = 0.0, self.max_angle
+        if P is not None:
+            margin = 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
+            widened = max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1]))
+            max_angle = max(max_angle, min(widened, np.radians(89.0)))  # never narrower than the plain view
+        return association.candidate_indices(
+            self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
+        )
+
+    def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
+        state x, and their Jacobians (m, 3, n)."""
+        camera = self.cameras[int(camera_id)]
+        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks])
+
+    def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The landmarks camera ``camera_id`` may see from state x (``visible``): (candidates (m,),
+        z_hat (m, 3), H (m, 3, n), HPH (m, 3, 3))."""
+        candidates = self.visible(x, camera_id)
+        z_hat, H = self.observe(x, camera_id, candidates)
+        HPH = H @ P @ np.swapaxes(H, 1, 2)
+        return candidates, z_hat, H, HPH
+
+
+Associator = Callable[[AssociationScene, np.ndarray, np.ndarray, np.ndarray], Pairs]
+
+
+def oracle(scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray) -> Pairs:
+    """The file's landmark ids, kept where the id is in the map and the pair passes the gate
+    (a gross outlier keeps its true id but is no evidence any filter should take)."""
+    index = scene.true_landmark_row[obs]
+    obs, index = obs[index >= 0], index[index >= 0]
+    keep = np.zeros(obs.size, dtype=bool)
+    for camera_id in np.unique(scene.dataset.obs_camera[obs]):
+        mine = scene.dataset.obs_camera[obs] == camera_id
+        z_hat, H = scene.observe(x, camera_id, index[mine])
+        S = H @ P @ np.swapaxes(H, 1, 2) + scene.association_cov[obs[mine]]
+        d2, _ = association.mahalanobis_3x3(S, scene.dataset.obs_uvd[obs[mine]] - z_hat)
+        keep[mine] = d2 <= scene.gate
+    return obs[keep], index[keep]
+
+
+@dataclass(frozen=True)
+class BestFriends:
+    """Best friends (``association.best_friends``): an observation and a landmark pair when each
+    is the other's cheapest, the pair passes the gate and no rival comes within ``margin``.
+
+    Attributes
+    ----------
+    cost : "nll" (d^2 + ln det S), "mahalanobis" (d^2) or "euclidean" (|z - z_hat|).
+    margin : a pair is refused when a rival in its row or column costs less than this more.
+    sequential : accept the pair with the widest margin, condition the state on it
+        (``AssociationScene.conditioned``) and look again at the rest; False pairs all the
+        observations at once.
+    """
+
+    cost: str
+    margin: float
+    sequential: bool
+
+    def __call__(self, scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray) -> Pairs:
+        if not self.sequential:
+            rows, landmarks, _ = best_friends_pairs(scene, x, P, obs, taken=np.zeros(0, np.int64), cost=self.cost, margin=self.margin)
+            return obs[rows], landmarks
+        return self._one_at_a_time(scene, x, P, obs)
+
+    def _one_at_a_time(self, scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray) -> Pairs:
+        """Accept the most unambiguous pair, condition a scratch copy of the filter on it, and look
+        again at the rest. Each accepted pair shrinks the uncertainty that made the others
+        ambiguous, so a pose's pairs support each other."""
+        remaining = obs
+        chosen_obs: list[int] = []
+        chosen_landmarks: list[int] = []
+        while remaining.size:
+            rows, landmarks, gap = best_friends_pairs(scene, x, P, remaining, taken=np.asarray(chosen_landmarks, np.int64),
+                                                      cost=self.cost, margin=self.margin)
+            if rows.size == 0:
+                break
+            best = int(np.argmax(gap))
+            chosen_obs.append(int(remaining[rows[best]]))
+            chosen_landmarks.append(int(landmarks[best]))
+            remaining = np.delete(remaining, rows[best])
+            if remaining.size:
+                x, P = scene.conditioned(x, P, np.asarray(chosen_obs[-1:]), np.asarray(chosen_landmarks[-1:]))
+        return np.asarray(chosen_obs, np.int64), np.asarray(chosen_landmarks, np.int64)
+
+
+def best_friends_pairs(
+    scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray, *, taken: np.ndarray, cost: str, margin: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best-friends pairs at (x, P) over all cameras, each camera's observations against its own
+    candidates less the landmarks ``taken``: (rows into obs, landmark indices, gaps: each pair's
+    margin over its closest rival)."""
+    ds = scene.dataset
+    rows_all, landmarks_all, gaps_all = [], [], []
+    for camera_id in np.unique(ds.obs_camera[obs]):
+        rows_c = np.flatnonzero(ds.obs_camera[obs] == camera_id)
+        candidates, z_hat, H, HPH = scene.predictions(x, P, camera_id)
+        free = ~np.isin(candidates, taken)
+        candidates, z_hat, HPH = candidates[free], z_hat[free], HPH[free]
+        if candidates.size == 0:
+            continue
+        z = ds.obs_uvd[obs[rows_c]]
+        d2, nll = association.pair_statistics(z, scene.association_cov[obs[rows_c]], z_hat, HPH)
+        pair_cost = {"nll": nll, "mahalanobis": d2}.get(cost)
+        if pair_cost is None:
+            pair_cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
+        r, c, gap = association.best_friends(pair_cost, d2, gate=scene.gate, margin=margin)
+        rows_all.append(rows_c[r])
+        landmarks_all.append(candidates[c])
+        gaps_all.append(gap)
+    if not rows_all:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(rows_all), np.concatenate(landmarks_all), np.concatenate(gaps_all)
+
+
+@dataclass(eq=False)
+class Jcbb:
+    """Joint compatibility branch and bound (``camloc.jcbb``) over every camera of the pose at
+    once (the pairs share the pose's error), seeded by best friends' pairs taken all at once.
+
+    Attributes
+    ----------
+    probability : of the joint chi^2 test.
+    max_nodes : bound on the joint tests per pose; past it the best set found is kept.
+    seed_cost, seed_margin : best friends' cost and margin, which pick the seed.
+    poses_cut_short : poses where ``max_nodes`` ended the search before it was exhaustive, counted
+        over the run for its warning: the one thing a call changes.
+    """
+
+    probability: float
+    max_nodes: int
+    seed_cost: str
+    seed_margin: float
+    poses_cut_short: int = field(default=0, init=False)
+
+    def __call__(self, scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray) -> Pairs:
+        ds = scene.dataset
+        cands, z_hats, Hs, blocks = [], [], [], []
+        for camera_id in np.unique(ds.obs_camera[obs]):
+            c = scene.visible(x, camera_id)
+            z_hat, H = scene.observe(x, camera_id, c)
+            cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((ds.obs_camera[obs] == camera_id, c.size))
+        candidates = np.concatenate(cands)
+        if candidates.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
+        y_all = ds.obs_uvd[obs][:, None, :] - z_hat[None, :, :]
+        HPH = H @ P @ np.swapaxes(H, 1, 2)
+        d2, _ = association.pair_statistics(ds.obs_uvd[obs], scene.association_cov[obs], z_hat, HPH)
+        same_camera = np.zeros(d2.shape, dtype=bool)
+        start = 0
+        for mine, size in blocks:
+            same_camera[mine, start : start + size] = True
+            start += size
+        compatible = (d2 <= scene.gate) & same_camera
+        rows, landmarks, _ = best_friends_pairs(scene, x, P, obs, taken=np.zeros(0, np.int64), cost=self.seed_cost, margin=self.seed_margin)
+        column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
+        seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
+        result = jcbb(y_all, H, P, scene.association_cov[obs], compatible,
+                      probability=self.probability, max_nodes=self.max_nodes, seed=seed)
+        if not result.exhaustive:
+            self.poses_cut_short += 1
+        paired = result.assignment >= 0
+        return obs[paired], candidates[result.assignment[paired]]
