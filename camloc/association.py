@@ -2,7 +2,8 @@
 
 Pipeline for one camera at one pose:
 1. ``candidate_indices``: map landmarks in front of the camera within the depth range, found through
-   a k-d tree of the map (cost independent of the map's size beyond the local density);
+   a ``PointIndex`` of the map (a k-d tree: cost independent of the map's size beyond the local
+   density; a scan of a small map);
 2. ``pair_statistics``: for every (observation, candidate) pair, the squared Mahalanobis distance of
    the innovation and the pair's negative log-likelihood ``d^2 + ln det S``;
 3. ``best_friends``: keep a pair only when each is the other's cheapest, the pair passes the chi^2
@@ -16,16 +17,38 @@ determinant charges for that spread, making the cost a proper likelihood compari
 from __future__ import annotations
 
 import numpy as np
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:  # the k-d tree is imported where it is built: scipy.spatial costs 0.1 s to import
-    from scipy.spatial import cKDTree
 
 from camloc import sym3
 
+# Up to this many points a scan finds those within a ball as quickly as a k-d tree does, and
+# scipy.spatial, whose import is 0.2 s (a fifth of ``camloc run`` on a small file), stays unloaded.
+SCAN_MAX_POINTS = 2048
+# shift_agreement compares every pair of shifts directly up to this many (an n x n table).
+SCAN_MAX_SHIFTS = 256
+
+
+class PointIndex:
+    """The points (N, 3) within a ball of any centre: a k-d tree (scipy's ``cKDTree``) over more
+    than ``SCAN_MAX_POINTS`` points, a scan over fewer; both exact, indices in increasing order."""
+
+    def __init__(self, points: np.ndarray):
+        self.points = np.ascontiguousarray(points, dtype=float)
+        self._tree = None
+        if self.points.shape[0] > SCAN_MAX_POINTS:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points)
+
+    def within(self, centre: np.ndarray, radius: float) -> np.ndarray:
+        """(m,) int64 indices of the points at most ``radius`` from ``centre`` (3,)."""
+        if self._tree is not None:
+            return np.asarray(self._tree.query_ball_point(centre, radius, return_sorted=True), dtype=np.int64)
+        offset = self.points - centre
+        return np.flatnonzero(np.einsum("ij,ij->i", offset, offset) <= radius * radius)
+
 
 def candidate_indices(
-    tree: cKDTree,
+    index: PointIndex,
     landmark_xyz: np.ndarray,
     T_world_camera: np.ndarray,
     *,
@@ -38,7 +61,7 @@ def candidate_indices(
 
     Parameters
     ----------
-    tree : k-d tree over ``landmark_xyz`` (L, 3), world frame.
+    index : ``PointIndex`` over ``landmark_xyz`` (L, 3), world frame.
     T_world_camera : (4, 4) the camera's pose.
     min_depth, max_depth : range of depth (camera z) in metres.
     max_angle_rad : largest angle between the optical axis and a visible landmark's direction.
@@ -49,7 +72,7 @@ def candidate_indices(
     centre, axis = T_world_camera[:3, 3], T_world_camera[:3, 2]
     back = margin / np.sin(max_angle_rad) if margin > 0.0 else 0.0
     ball_centre, radius = view_cone_ball(centre - back * axis, axis, max_depth + margin + back, max_angle_rad)
-    near = np.asarray(tree.query_ball_point(ball_centre, radius), dtype=np.int64)
+    near = index.within(ball_centre, radius)
     if near.size == 0:
         return near
     p_camera = (landmark_xyz[near] - centre) @ T_world_camera[:3, :3]
@@ -74,6 +97,9 @@ def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:
     """
     if shifts.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
+    if shifts.shape[0] <= SCAN_MAX_SHIFTS:
+        offset = shifts[:, None, :] - shifts[None, :, :]
+        return np.count_nonzero(np.einsum("ijk,ijk->ij", offset, offset) <= radius * radius, axis=1).astype(np.int64)
     from scipy.spatial import cKDTree
 
     return np.asarray(cKDTree(shifts).query_ball_point(shifts, radius, return_length=True), dtype=np.int64)
@@ -82,7 +108,7 @@ def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:
 def view_cone_ball(apex: np.ndarray, axis: np.ndarray, depth: float, half_angle_rad: float) -> tuple[np.ndarray, float]:
     """The smallest ball holding the cone of a camera's view, (centre (3,), radius): the cone's
     apex at ``apex``, unit ``axis``, points up to ``depth`` along the axis and within
-    ``half_angle_rad`` of it. The k-d tree's cost grows with the points the ball returns, and the
+    ``half_angle_rad`` of it. A ball query's cost grows with the points the ball returns, and the
     ball around the apex that holds the cone holds 1.7x (57 deg) to 5x (30 deg) more.
 
     Up to 45 deg the ball passes through the apex and the base's rim (centre ``depth / (2

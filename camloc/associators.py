@@ -3,7 +3,7 @@
     associate(scene, x, P, obs) -> (obs_indices (p,), landmark_indices (p,))
 
 ``scene`` (``AssociationScene``) is what the methods read of the run and never change: the
-dataset's arrays, the cameras, the map's k-d tree, each observation's noise as association judges
+dataset's arrays, the cameras, the map's ``association.PointIndex``, each observation's noise as association judges
 it, the gate and the candidate range. ``(x, P)`` is the filter's prediction at the pose; ``obs``
 (m,) are the pose's observations (indices into the dataset's, at least one; the map has at least
 one landmark). The result is the accepted pairs: observation indices and the map rows of their
@@ -33,8 +33,6 @@ from camloc import association
 from camloc.jcbb import jcbb
 
 if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
-
     from camloc.dataset import Dataset
     from camloc.filters import EulerFilter, SE3Filter
 
@@ -59,7 +57,7 @@ class AssociationScene:
     dataset : the dataset (its observations ``obs_uvd``, ``obs_camera`` and map ``landmark_xyz``).
     filter : the state's parametrization (``camloc.filters``): its measurement model and pose.
     cameras : camera id -> ``CameraModel``.
-    tree : k-d tree over ``dataset.landmark_xyz``; None for an empty map.
+    map_index : ``association.PointIndex`` over ``dataset.landmark_xyz``; None for an empty map.
     min_depth, max_depth : candidate landmarks' depth range, metres.
     max_angle : candidates within this angle of the optical axis, radians.
     gate : chi^2 quantile (3 dof) a pair's d^2 must not exceed.
@@ -75,7 +73,7 @@ class AssociationScene:
     dataset: Dataset
     filter: EulerFilter | SE3Filter
     cameras: dict[int, CameraModel]
-    tree: Optional[cKDTree]
+    map_index: Optional[association.PointIndex]
     min_depth: float
     max_depth: float
     max_angle: float
@@ -86,7 +84,7 @@ class AssociationScene:
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
-        state x, found through the k-d tree of the map. With P, the view is widened by three
+        state x, found through the map's index. With P, the view is widened by three
         standard deviations of the position (in metres) and of the orientation (in angle), for a
         prior too wide for the data's own margins."""
         camera = self.cameras[int(camera_id)]
@@ -96,7 +94,7 @@ class AssociationScene:
             widened = max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1]))
             max_angle = max(max_angle, min(widened, np.radians(89.0)))  # never narrower than the plain view
         return association.candidate_indices(
-            self.tree, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
+            self.map_index, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
         )
 

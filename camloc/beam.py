@@ -64,13 +64,11 @@ from functools import partial
 from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 
 import numpy as np
-from scipy.special import bdtrc, chdtri
 
 from camloc import association, ekf, geometry, models
+from camloc.tails import binomial_tail, chi2_quantile
 
 if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
-
     from camloc.associators import CameraModel
     from camloc.dataset import Dataset
     from camloc.filters import EulerFilter, SE3Filter
@@ -78,7 +76,7 @@ if TYPE_CHECKING:
 
 # A seeded explanation whose state leaves its prior's 99.9% region is dropped (``BeamSettings.state_gate``,
 # ``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
-STATE_GATE = float(chdtri(6, 0.001))
+STATE_GATE = float(chi2_quantile(6, 0.001))
 
 
 @dataclass(frozen=True)
@@ -239,7 +237,7 @@ class BeamContext(Protocol):
 
     dataset: Dataset
     filter: EulerFilter | SE3Filter
-    tree: Optional[cKDTree]              # over dataset.landmark_xyz; None for an empty map
+    map_index: Optional[association.PointIndex]  # over dataset.landmark_xyz; None for an empty map
     cameras: dict[int, CameraModel]
     obs_of_pose: list[np.ndarray]        # each pose's observations (indices into the dataset's)
     T_increments: np.ndarray             # (N - 1, 4, 4) the odometry increments
@@ -348,7 +346,7 @@ class BeamSearch:
         return _Hypothesis(x, P, h.cost, parent)
 
     def _explain_pose(self, k: int, beam: list[_Hypothesis], obs: np.ndarray) -> list[_Hypothesis]:
-        if obs.size == 0 or self.ctx.tree is None:
+        if obs.size == 0 or self.ctx.map_index is None:
             return beam
         children = self._explain_all(beam, obs)
         if not children:  # every option's cost is NaN: a covariance that is not one
@@ -407,7 +405,7 @@ class BeamSearch:
         recent = np.array(self.unexplained[-UNEXPLAINED_WINDOW:], dtype=np.int64)
         rate = min(float(recent[:, 0].sum() / recent[:, 1].sum()), UNEXPLAINED_RATE_CAP)
         run = recent[len(recent) - (UNEXPLAINED_RUN - 1):].sum(axis=0)
-        tails = bdtrc(np.array([unassigned, unassigned + run[0]]) - 1, np.array([observed, observed + run[1]]), rate)
+        tails = binomial_tail(np.array([unassigned, unassigned + run[0]]) - 1, np.array([observed, observed + run[1]]), rate)
         return bool(tails.min() < UNUSUAL_PROBABILITY)  # P(X >= unassigned), alone or pooled
 
     def _explain_from_seeds(self, h: _Hypothesis, obs: np.ndarray, slipped: bool = True) -> list[_Hypothesis]:

@@ -22,9 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri
 
 from camloc.association import mahalanobis_3x3
+from camloc.tails import chi2_quantile
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,7 @@ def jcbb(
         every observation, nothing can beat it and the search is skipped.
     """
     n = compatible.shape[0]
-    bounds = chdtri(3 * np.arange(1, n + 1), 1.0 - probability)  # chi^2 quantiles, 3k dof
+    bounds = chi2_quantile(3 * np.arange(1, n + 1), 1.0 - probability)  # chi^2 quantiles, 3k dof
     if seed and len(seed) == n:
         nis = joint_nis(seed, y_all, H, P, R_obs)
         if nis <= bounds[n - 1]:

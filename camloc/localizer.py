@@ -15,7 +15,6 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, is_dataclass,
 from typing import Callable, ClassVar, Optional
 
 import numpy as np
-from scipy.special import chdtri
 
 from camloc import association, associators, ekf, geometry, models
 from camloc.associators import AssociationScene, CameraModel
@@ -25,6 +24,7 @@ from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import MAX_COORDINATE
 from camloc.results import UNASSOCIATED, Associations, RunResult
+from camloc.tails import chi2_quantile
 
 ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
 COSTS = ("nll", "mahalanobis", "euclidean")
@@ -424,14 +424,12 @@ class _Localizer:
             for cid, cam in dataset.cameras.items()
         }
         self.single_camera = int(next(iter(dataset.cameras))) if len(dataset.cameras) == 1 else None
-        from scipy.spatial import cKDTree  # here: the compiled loop has no use for it, and it costs 0.1 s to import
-
-        self.tree = cKDTree(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
+        self.map_index = association.PointIndex(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         from camloc.scene import candidate_range, landmark_rows, observation_noise
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
-        self.gate = float(chdtri(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
+        self.gate = float(chi2_quantile(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
         # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
         noise = observation_noise(dataset, config)
@@ -445,7 +443,7 @@ class _Localizer:
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
         self.T_increments = dataset.T_odometry
         self.scene = AssociationScene(  # what the per-pose association methods read
-            dataset=dataset, filter=self.filter, cameras=self.cameras, tree=self.tree, min_depth=self.min_depth,
+            dataset=dataset, filter=self.filter, cameras=self.cameras, map_index=self.map_index, min_depth=self.min_depth,
             max_depth=self.max_depth, max_angle=self.max_angle, gate=self.gate, association_cov=self.association_cov,
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned,
         )
@@ -549,7 +547,7 @@ class _Localizer:
     def _associate(self, k: int, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Accepted pairs of pose k: observation indices and landmark indices, both (p,)."""
         none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
-        if obs.size == 0 or self.tree is None:
+        if obs.size == 0 or self.map_index is None:
             return none
         if self.beam_pairs is not None:
             # the beam decided every pose's pairs over the whole run first (search_beam, or the
@@ -680,7 +678,7 @@ class _Localizer:
     def _nis_bound(self, dof: int) -> float:
         """The 99.9% quantile of chi^2 with dof degrees of freedom."""
         if dof not in self.nis_bounds:
-            self.nis_bounds[dof] = float(chdtri(dof, 0.001))
+            self.nis_bounds[dof] = float(chi2_quantile(dof, 0.001))
         return self.nis_bounds[dof]
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
@@ -796,7 +794,7 @@ def divergence_guard(update_pose_ids: np.ndarray, statistic: np.ndarray, dof: np
     """
     if statistic.size == 0:
         return {"inconsistent_poses": [], "runs": []}
-    bad = statistic > chdtri(dof, 1.0 - GUARD_PROBABILITY)
+    bad = statistic > chi2_quantile(dof, 1.0 - GUARD_PROBABILITY)
     runs, start, length = [], None, 0
     for pose_id, is_bad in zip(update_pose_ids.tolist(), bad.tolist()):
         if is_bad:

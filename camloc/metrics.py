@@ -1,6 +1,6 @@
 """Metrics of a localization run: trajectory error, association scores and filter consistency.
 
-Pure numpy and scipy: no I/O, no printing; every function returns plain numbers or arrays, and
+Pure numpy: no I/O, no printing; every function returns plain numbers or arrays, and
 ``evaluate`` a JSON-serializable dict (undefined values are ``None``).
 
 Trajectory metrics follow evo's definitions, so the numbers agree with ``evo_ape`` / ``evo_rpe``
@@ -32,10 +32,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.special import chdtri
 
 from camloc import geometry
 from camloc.errors import CamlocError, ConfigError
+from camloc.tails import chi2_quantile
 
 if TYPE_CHECKING:
     from camloc.results import Associations, RunResult
@@ -404,7 +404,7 @@ def association_scores(associations: Associations, map_landmark_ids: np.ndarray)
 def chi2_bounds(dof: np.ndarray | int, *, confidence: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
     """Two-sided chi-square bounds: P(lower <= X <= upper) = confidence for X ~ chi2(dof)."""
     tail = (1.0 - confidence) / 2.0
-    return chdtri(dof, 1.0 - tail), chdtri(dof, tail)  # chi^2 quantiles at tail and 1 - tail
+    return chi2_quantile(dof, 1.0 - tail), chi2_quantile(dof, tail)  # chi^2 quantiles at tail and 1 - tail
 
 
 def mean_chi2_bounds(dof: int, count: float, *, confidence: float = CONFIDENCE) -> tuple[float, float]:

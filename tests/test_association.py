@@ -4,17 +4,16 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from camloc import association, geometry
 
 
 def test_candidates_match_a_brute_force_scan(rng):
     landmarks = rng.uniform(-20, 20, size=(5000, 3))
-    tree = cKDTree(landmarks)
+    index = association.PointIndex(landmarks)
     for _ in range(10):
         T_world_camera = geometry.pose_from_euler(np.r_[rng.uniform(-10, 10, 3), rng.uniform(-1, 1, 3)])
-        found = association.candidate_indices(tree, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=np.radians(50))
+        found = association.candidate_indices(index, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=np.radians(50))
         p = (landmarks - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]
         visible = (p[:, 2] > 0.3) & (p[:, 2] < 6.0) & (np.hypot(p[:, 0], p[:, 1]) <= p[:, 2] * np.tan(np.radians(50)))
         assert set(found.tolist()) == set(np.flatnonzero(visible).tolist())
@@ -23,20 +22,46 @@ def test_candidates_match_a_brute_force_scan(rng):
 
 def test_candidates_with_a_margin_hold_every_landmark_that_close_to_the_view(rng):
     landmarks = rng.uniform(-20, 20, size=(5000, 3))
-    tree = cKDTree(landmarks)
+    index = association.PointIndex(landmarks)
     angle, margin = np.radians(50), 0.8
     for _ in range(10):
         T_world_camera = geometry.pose_from_euler(np.r_[rng.uniform(-10, 10, 3), rng.uniform(-1, 1, 3)])
-        plain = association.candidate_indices(tree, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=angle)
-        wide = association.candidate_indices(tree, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=angle,
+        plain = association.candidate_indices(index, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=angle)
+        wide = association.candidate_indices(index, landmarks, T_world_camera, min_depth=0.3, max_depth=6.0, max_angle_rad=angle,
                                              margin=margin)
         assert set(plain.tolist()) < set(wide.tolist())
         # any camera position within the margin sees only landmarks the wide search returned
         for shift in rng.normal(size=(20, 3)):
             moved = T_world_camera.copy()
             moved[:3, 3] += margin * rng.uniform() * shift / np.linalg.norm(shift)
-            seen = association.candidate_indices(tree, landmarks, moved, min_depth=0.3, max_depth=6.0, max_angle_rad=angle)
+            seen = association.candidate_indices(index, landmarks, moved, min_depth=0.3, max_depth=6.0, max_angle_rad=angle)
             assert set(seen.tolist()) <= set(wide.tolist())
+
+
+@pytest.mark.parametrize("size", [association.SCAN_MAX_POINTS, association.SCAN_MAX_POINTS + 1], ids=["scan", "k-d tree"])
+def test_a_point_index_finds_exactly_the_points_within_a_ball(rng, size):
+    # a small map is scanned (no scipy import on a small run), a large one searched by k-d tree
+    points = rng.uniform(-10, 10, size=(size, 3))
+    index = association.PointIndex(points)
+    found_any = 0
+    for centre, radius in zip(rng.uniform(-10, 10, size=(20, 3)), rng.uniform(0.5, 6.0, size=20)):
+        found = index.within(centre, radius)
+        expected = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= radius)
+        np.testing.assert_array_equal(found, expected)
+        assert found.dtype == np.int64
+        found_any += found.size
+    assert found_any > 100
+    assert index.within(np.full(3, 100.0), 1.0).shape == (0,)
+
+
+def test_shift_agreement_counts_the_same_by_scan_and_by_k_d_tree(rng):
+    shifts = rng.normal(scale=0.3, size=(association.SCAN_MAX_SHIFTS + 40, 3))
+    by_tree = association.shift_agreement(shifts, 0.2)
+    by_scan = association.shift_agreement(shifts[:association.SCAN_MAX_SHIFTS], 0.2)
+    distances = np.linalg.norm(shifts[:, None, :] - shifts[None, :, :], axis=-1)
+    np.testing.assert_array_equal(by_tree, (distances <= 0.2).sum(axis=1))
+    np.testing.assert_array_equal(by_scan, (distances[:association.SCAN_MAX_SHIFTS, :association.SCAN_MAX_SHIFTS] <= 0.2).sum(axis=1))
+    assert by_tree.min() >= 1 and by_tree.max() > 5
 
 
 def test_shift_agreement_counts_the_crowd_of_right_pairs(rng):

@@ -7,7 +7,7 @@ from scipy.stats import chi2
 
 from camloc.tails import binomial_tail, chi2_cdf, chi2_quantile, chi2_survival
 
-DOFS = list(range(1, 41)) + [60, 99, 150, 301, 600, 1500]
+DOFS = list(range(1, 41)) + [60, 99, 150, 301, 600, 1500] + [0.5, 2.7, 223.8, 6 * 37.31]  # and not whole: effective counts
 TAILS = [1e-12, 1e-6, 0.001, 0.0027, 0.01, 0.05, 0.3, 0.5, 0.51, 0.9, 0.975, 0.99, 0.999, 1.0 - 1e-9]
 
 
@@ -26,9 +26,9 @@ def test_chi2_quantile_takes_scalars_and_broadcasts():
     dof = 3 * np.arange(1, 7).reshape(2, 3)
     assert chi2_quantile(dof, 0.001).shape == (2, 3)
     np.testing.assert_allclose(chi2_quantile(dof, 0.001), chdtri(dof, 0.001), rtol=1e-12)
-    with pytest.raises(ValueError, match="dof >= 1 and 0 < tail < 1"):
+    with pytest.raises(ValueError, match="dof > 0 and 0 < tail < 1"):
         chi2_quantile(0, 0.01)
-    with pytest.raises(ValueError, match="dof >= 1 and 0 < tail < 1"):
+    with pytest.raises(ValueError, match="dof > 0 and 0 < tail < 1"):
         chi2_quantile(3, 1.0)
 
 
