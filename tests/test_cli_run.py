@@ -206,3 +206,19 @@ def test_version_and_help():
     for panel in ("Beam: --association beam; [beam]", "JCBB: --association jcbb; [jcbb]", "[best-friends] in a config file",
                   "Re-check: every association but oracle; [recheck]", "[view] in a config file"):
         assert panel in help_text
+
+
+def test_a_small_run_never_imports_scipy(tmp_path):
+    # scipy's import (0.2 s, of which its array-API layer most) was a fifth of `camloc run` on a
+    # small file: the run's chi-square quantiles, quaternions, Cholesky and ball queries do without
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom camloc.cli.app import main\n"
+            "sys.argv = ['camloc', 'run', '-o', 'out', '--quiet']\n"
+            "try:\n    main()\nexcept SystemExit as done:\n    assert not done.code, done.code\n"
+            "print(sorted(name for name in sys.modules if name.split('.')[0] == 'scipy')[:3])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+    assert (tmp_path / "out" / "summary.json").is_file()
