@@ -50,7 +50,8 @@ def chi2_density(x: float, dof: float) -> float:
 
 def chi2_quantile(dof, tail):
     """The x with ``P(X > x) = tail`` for X ~ chi^2(dof): a float for scalar arguments, else an
-    array of the arguments' broadcast shape. dof > 0, tail in (0, 1).
+    array of the arguments' broadcast shape. As scipy's: tail 0 gives inf, tail 1 gives 0, and a
+    dof that is not positive or a tail outside [0, 1] (or NaN) gives NaN.
 
     Newton's method from the Wilson-Hilferty approximation, on the survival function above the
     median and on the distribution function below it (the tests hold it to scipy's ``chdtri``)."""
@@ -61,15 +62,18 @@ def chi2_quantile(dof, tail):
 
 def binomial_tail(k, n, p):
     """``P(X > k)`` for X ~ Binomial(n, p): a float for scalar arguments, else an array of the
-    arguments' broadcast shape. ``k < 0`` gives 1 and ``k >= n`` gives 0."""
-    k_array, n_array, p_array = np.broadcast_arrays(np.asarray(k), np.asarray(n), np.asarray(p, dtype=float))
-    out = np.array([_binomial_tail(int(a), int(b), float(c)) for a, b, c in zip(k_array.ravel(), n_array.ravel(), p_array.ravel())])
+    arguments' broadcast shape. ``k < 0`` gives 1 and ``k >= n`` gives 0; as scipy's, a NaN
+    argument or p outside [0, 1] gives NaN."""
+    k_array, n_array, p_array = np.broadcast_arrays(np.asarray(k, dtype=float), np.asarray(n, dtype=float), np.asarray(p, dtype=float))
+    out = np.array([_binomial_tail(a, b, c) for a, b, c in zip(k_array.ravel().tolist(), n_array.ravel().tolist(), p_array.ravel().tolist())])
     return float(out[0]) if k_array.ndim == 0 else out.reshape(k_array.shape)
 
 
 def _chi2_quantile(dof: float, tail: float) -> float:
-    if not (dof > 0.0 and 0.0 < tail < 1.0):
-        raise ValueError(f"chi2_quantile needs dof > 0 and 0 < tail < 1, got dof {dof}, tail {tail}")
+    if not (dof > 0.0 and 0.0 <= tail <= 1.0) or math.isinf(dof):
+        return math.nan
+    if tail == 0.0 or tail == 1.0:
+        return math.inf if tail == 0.0 else 0.0
     z = NormalDist().inv_cdf(1.0 - tail)
     c = 2.0 / (9.0 * dof)
     x = dof * max(1.0 - c + z * math.sqrt(c), 0.1) ** 3  # Wilson-Hilferty; the floor keeps x > 0
@@ -122,7 +126,10 @@ def _upper_fraction(a: float, y: float) -> float:
     return math.exp(-y + a * math.log(y) - math.lgamma(a)) * h
 
 
-def _binomial_tail(k: int, n: int, p: float) -> float:
+def _binomial_tail(k: float, n: float, p: float) -> float:
+    if math.isnan(k) or math.isnan(n) or not 0.0 <= p <= 1.0:
+        return math.nan
+    k, n = math.floor(k), int(n)
     if k < 0:
         return 1.0
     if k >= n:
