@@ -17,6 +17,7 @@ converges quickly where it is used, and neither subtracts from 1 the tail it is 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from statistics import NormalDist
 
 import numpy as np
@@ -56,7 +57,9 @@ def chi2_quantile(dof, tail):
     Newton's method from the Wilson-Hilferty approximation, on the survival function above the
     median and on the distribution function below it (the tests hold it to scipy's ``chdtri``)."""
     dof_array, tail_array = np.broadcast_arrays(np.asarray(dof, dtype=float), np.asarray(tail, dtype=float))
-    out = np.array([_chi2_quantile(float(d), float(q)) for d, q in zip(dof_array.ravel(), tail_array.ravel())])
+    # once per distinct (dof, tail): a run asks for the bound of every update, from a few dofs
+    pairs, inverse = np.unique(np.column_stack([dof_array.ravel(), tail_array.ravel()]), axis=0, return_inverse=True)
+    out = np.array([_chi2_quantile(d, q) for d, q in pairs.tolist()])[inverse.ravel()]
     return float(out[0]) if dof_array.ndim == 0 else out.reshape(dof_array.shape)
 
 
@@ -69,6 +72,7 @@ def binomial_tail(k, n, p):
     return float(out[0]) if k_array.ndim == 0 else out.reshape(k_array.shape)
 
 
+@lru_cache(maxsize=4096)  # the same few bounds are asked for at every pose (JCBB, the NIS bound)
 def _chi2_quantile(dof: float, tail: float) -> float:
     if not (dof > 0.0 and 0.0 <= tail <= 1.0) or math.isinf(dof):
         return math.nan
