@@ -93,8 +93,7 @@ def cache_is_warm() -> bool:
         from camloc.kernels import beam, filtering
 
         for kernel in (beam.run_poses, filtering.filter_poses):
-            cache = kernel._cache
-            if not os.path.exists(os.path.join(cache._cache_path, cache._index_name)):
+            if not os.path.exists(kernel._cache._cache_file._index_path):
                 return False
     except Exception:  # numba's cache layout is not public: never claim a compile that is not one
         return True
