@@ -1,0 +1,153 @@
+"""The compiled core's own figures, which ``scale.py`` (one fresh process per case) does not show:
+
+- ``warm``: poses per second once the kernels are loaded: ``--calls`` calls of ``camloc.localize``
+  on the 20k world in one process, beam and oracle; the first call of each pays numba's start and
+  the loading of the cached machine code, the later ones do not. Wall time of the call and the
+  loop's own ``summary["timing"]["filter_seconds"]`` (scene, association, filter).
+- ``calls``: Python-level calls per pose (cProfile's count over one warm call on the first 1,000
+  poses): what is left of the interpreter in the loop.
+- ``compile``: the first run after an install: ``camloc run`` on the first 1,000 poses in a child
+  process with an empty ``NUMBA_CACHE_DIR``, its wall time and peak memory (about two minutes;
+  ``--skip-compile`` leaves it out).
+
+    nice python benchmarks/core.py [--quick] [--calls 3] [--skip-compile] [--json]
+
+The worlds are ``scale.py``'s (``--quick``: its 1,000-pose world), cached in ``--cache``. Nothing
+here asserts anything about time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _bench  # noqa: E402  (the benchmarks folder is not a package)
+from scale import FULL, QUICK  # noqa: E402
+
+import camloc  # noqa: E402
+from camloc import LocalizerConfig  # noqa: E402
+
+METHODS = ("beam", "oracle")
+
+
+def main() -> None:
+    args = parse_args()
+    plan = QUICK if args.quick else FULL
+    cache = args.cache.expanduser()
+    say = (lambda text: print(text, file=sys.stderr, flush=True))
+    say(f"camloc core benchmark ({'quick' if args.quick else 'full'}); {_bench.source_note()}; {_bench.machine_load()}")
+    world_path = _bench.simulated(cache, plan.world, seed=plan.seed)
+    first_path = world_path if plan.world["poses"] <= 1000 else _bench.first_poses(cache, world_path, 1000)
+    report: dict = {"world": world_path.name, "poses": None, "warm": {}, "calls_per_pose": {}, "compile": None}
+
+    world = camloc.load(world_path)
+    report["poses"] = world.num_poses
+    for method in METHODS:
+        say(f"warm: {args.calls} calls of camloc.localize on {world.num_poses} poses, association={method} ...")
+        report["warm"][method] = warm_calls(world, method, args.calls)
+
+    first = camloc.load(first_path)
+    for method in METHODS:
+        report["calls_per_pose"][method] = calls_per_pose(first, method)
+
+    if args.skip_compile:
+        say("compile: skipped (--skip-compile)")
+    else:
+        say(f"compile: camloc run {first_path.name} with an empty NUMBA_CACHE_DIR (about two minutes) ...")
+        report["compile"] = first_compile(first_path, timeout=args.timeout)
+
+    say(f"done; {_bench.machine_load()}")
+    if args.json:
+        print(json.dumps(report | {"source": _bench.source_note(), "machine": _bench.machine_load()}, indent=2))
+    else:
+        print_report(report)
+
+
+def warm_calls(dataset, method: str, calls: int) -> list[dict]:
+    """Each call's wall time and the loop's own time, in seconds."""
+    config = LocalizerConfig(association=method)
+    rows = []
+    for _ in range(calls):
+        started = time.perf_counter()
+        result = camloc.localize(dataset, config)
+        rows.append({"wall": time.perf_counter() - started, "filter": result.summary["timing"]["filter_seconds"],
+                     "engine": result.summary["timing"]["engine"]})
+    return rows
+
+
+def calls_per_pose(dataset, method: str) -> float:
+    """Python-level function calls per pose in one warm call (cProfile's count)."""
+    config = LocalizerConfig(association=method)
+    camloc.localize(dataset, config)
+    profile = cProfile.Profile()
+    profile.enable()
+    camloc.localize(dataset, config)
+    profile.disable()
+    return pstats.Stats(profile).total_calls / dataset.num_poses
+
+
+def first_compile(path: Path, *, timeout: float) -> dict:
+    """Wall time and peak memory of ``camloc run`` compiling every kernel it needs from nothing
+    (spawned through ``_bench.timed_command``, so that the peak is the child's own)."""
+    with tempfile.TemporaryDirectory(prefix="camloc-core-") as scratch:
+        command = _bench.camloc_command() + ["run", str(path), "-o", str(Path(scratch) / "run"), "--quiet"]
+        saved = os.environ.get("NUMBA_CACHE_DIR")
+        os.environ["NUMBA_CACHE_DIR"] = str(Path(scratch) / "numba")  # the child's cache; this process's numba has read its own
+        try:
+            seconds, peak_mb, status = _bench.timed_command(command, timeout=timeout)
+        finally:
+            if saved is None:
+                os.environ.pop("NUMBA_CACHE_DIR")
+            else:
+                os.environ["NUMBA_CACHE_DIR"] = saved
+    if status != 0:
+        raise _bench.BenchError(f"camloc run exited {status} while compiling")
+    return {"seconds": seconds, "peak_mb": peak_mb}
+
+
+def print_report(report: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    n = report["poses"]
+    table = Table(title=f"camloc core: warm process, {report['world']} ({n} poses)")
+    for column in ("association", "call", "wall (s)", "loop (s)", "poses/s (loop)", "µs/pose (loop)", "engine"):
+        table.add_column(column, justify="right" if column not in ("association", "engine") else "left")
+    for m, (method, rows) in enumerate(report["warm"].items()):
+        for i, row in enumerate(rows):
+            # the process's first call starts numba and loads the cached kernels the later ones reuse
+            table.add_row(method, str(i + 1) + (" (first)" if m == i == 0 else ""), f"{row['wall']:.2f}", f"{row['filter']:.2f}",
+                          f"{n / row['filter']:,.0f}", f"{1e6 * row['filter'] / n:.0f}", row["engine"])
+    console = Console()
+    console.print(table)
+    for method, rows in report["warm"].items():
+        later = [row["filter"] for row in rows[1:]] or [rows[0]["filter"]]
+        console.print(f"{method}: warm loop median {statistics.median(later):.2f} s = {n / statistics.median(later):,.0f} poses/s; "
+                      f"Python-level calls per pose {report['calls_per_pose'][method]:.1f}")
+    if report["compile"] is not None:
+        console.print(f"first compile: {report['compile']['seconds']:.0f} s, peak {report['compile']['peak_mb']:.0f} MB")
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="scale.py's 1,000-pose world instead of its 20k one (default: full)")
+    parser.add_argument("--cache", type=Path, default=_bench.DEFAULT_CACHE,
+                        help=f"generated worlds are kept here (default {_bench.DEFAULT_CACHE})")
+    parser.add_argument("--calls", type=int, default=3, help="camloc.localize calls per association in one process (default 3)")
+    parser.add_argument("--skip-compile", action="store_true", help="leave out the first compile (default: measure it)")
+    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed for the first compile (default 1800)")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON instead of a table (default: table)")
+    return parser.parse_args()
+
+
+if __name__ == "__main__":
+    _bench.run(main)
