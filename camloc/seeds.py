@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import association, geometry
+from camloc import geometry
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
 from camloc.kernels.beam_settings import SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS
@@ -113,7 +113,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     candidates = np.argsort(pair_cost, kind="stable")[:SLIP_CANDIDATES]
     # and the pairs whose implied shift of the robot most others share: a right pair's own cost
     # under a wide prior may rank it far down
-    agreement = association.shift_agreement(implied_shifts(scene, x, obs, pair_obs, pair_landmark), agreement_radius(scene, obs))
+    agreement = ranking.shift_agreement(implied_shifts(scene, x, obs, pair_obs, pair_landmark), agreement_radius(scene, obs))
     crowded = np.argsort(-agreement, kind="stable")[: SLIP_CANDIDATES // 4]
     crowded = crowded[agreement[crowded] >= 3]
     candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])

@@ -152,6 +152,15 @@ def test_seed_ranking_matches_numpy(rng):
     np.testing.assert_allclose(got, ref, rtol=1e-9)
 
 
+@pytest.mark.parametrize("size", [200, 1500], ids=["scanned", "k-d tree"])
+def test_shift_agreement_matches_numpy(rng, size):
+    # the slip search's Hough vote: a crowd of right pairs among scattered wrong ones
+    shifts = np.vstack([0.4 + rng.normal(scale=0.05, size=(size // 10, 3)), rng.uniform(-3.0, 3.0, size=(size - size // 10, 3))])
+    got = seeds.shift_agreement(shifts, 0.15)
+    np.testing.assert_array_equal(got, association.shift_agreement(shifts, 0.15))
+    assert got.max() >= size // 20 and got.min() >= 1
+
+
 @pytest.mark.parametrize("margin", [0.0, 0.7])
 @pytest.mark.parametrize("dense", [True, False], ids=["table-by-key", "binary-search"])
 def test_view_query_matches_the_kd_tree(rng, margin, dense):

@@ -4,7 +4,8 @@ is taken first (the numpy twin: ``camloc.association.seeded_explanation_costs``)
     cost_s + sum over the other observations i of min(null_i, min_q c_q|s)
 
 with ``c_q|s`` pair q's cost conditioned on seed s (the Schur complement of the two pairs' joint
-innovation covariance), linearized at the prior.
+innovation covariance), linearized at the prior. And the other way seeds are found: how many
+pairs imply nearly the same shift of the robot as each (``shift_agreement``).
 """
 
 from __future__ import annotations
@@ -132,3 +133,27 @@ def conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bou
         e = S_rows[4, q] - (v10 * v20 + v11 * v21 + v12 * v22)
         f = S_rows[5, q] - (v20 * v20 + v21 * v21 + v22 * v22)
         quadratic[q], det[q] = quadratic_and_det(a, b_, c, d, e, f, r0, r1, r2)
+
+
+@jit
+def shift_agreement(shifts, radius):
+    """(N,) how many of the shifts (N, 3) lie within ``radius`` of each, itself included: the
+    numpy twin's ``camloc.association.shift_agreement``, by a sweep along x (a pair further apart
+    in x than the radius is further apart in space), without scipy's k-d tree."""
+    n = shifts.shape[0]
+    order = np.argsort(shifts[:, 0])
+    counts = np.ones(n, np.int64)
+    limit = radius * radius
+    for a in range(n):
+        i = order[a]
+        for b in range(a + 1, n):
+            j = order[b]
+            d0 = shifts[j, 0] - shifts[i, 0]
+            if d0 > radius:
+                break
+            d1 = shifts[j, 1] - shifts[i, 1]
+            d2 = shifts[j, 2] - shifts[i, 2]
+            if d0 * d0 + d1 * d1 + d2 * d2 <= limit:
+                counts[i] += 1
+                counts[j] += 1
+    return counts
