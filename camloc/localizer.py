@@ -292,9 +292,10 @@ def localize(
     dataset : the dataset; its ``obs_true_landmark`` is read only with ``association="oracle"``.
     config : options (defaults when None).
     on_progress : called as ``on_progress(poses_done, poses_total)`` about 200 times per run.
-    parallel : with the numpy beam, run the filter that replays its association in a second
-        process while the beam goes on (``camloc.replay``); the result is the same either way.
-        None: when there are at least ``PARALLEL_MIN_POSES`` poses and two CPUs.
+    parallel : with the beam, run the filter that replays its association while the beam goes on:
+        the compiled loop in a second thread (``camloc.loop``), the numpy beam in a second process
+        (``camloc.replay``); the result is the same either way. None: with two CPUs (and, for the
+        numpy beam's process, at least ``PARALLEL_MIN_POSES`` poses).
     engine : "compiled" (the loop over numba kernels, ``camloc.loop``: the Euler filter with beam
         or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
         loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
@@ -316,7 +317,7 @@ def localize(
 
         if on_compile is not None and not cache_is_warm():
             on_compile()
-        return _localize_compiled(dataset, config, on_progress)
+        return _localize_compiled(dataset, config, on_progress, parallel if parallel is not None else _cpus() >= 2)
     localizer = _Localizer(dataset, config)
     started = time.perf_counter()
     n = dataset.num_poses
@@ -343,7 +344,8 @@ def localize(
 COMPILED_ASSOCIATIONS = ("beam", "oracle")
 
 
-def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback]) -> RunResult:
+def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback],
+                       concurrent: bool) -> RunResult:
     from camloc.loop import PoseFailure, run_compiled
     from camloc.scene import candidate_range
 
@@ -353,7 +355,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
     started = time.perf_counter()
     try:
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
-            dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2))
+            dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2), concurrent=concurrent)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
         raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k])) from None
@@ -377,7 +379,8 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
         dataset, config, euler, states, covs, geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
         dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
         slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=candidate_range(dataset, config),
-        timing={"filter_seconds": seconds, "engine": "compiled", "replay_process": False, "replay_process_peak_mb": None},
+        timing={"filter_seconds": seconds, "engine": "compiled", "replay_process": False, "replay_process_peak_mb": None,
+                "replay_thread": concurrent and config.association == "beam"},
     )
 
 # Below this many poses a second process costs more to start (an interpreter and its imports,
@@ -386,11 +389,15 @@ PARALLEL_MIN_POSES = 500
 
 
 def _parallel_worthwhile(num_poses: int) -> bool:
+    return num_poses >= PARALLEL_MIN_POSES and _cpus() >= 2
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on."""
     try:
-        cpus = len(os.sched_getaffinity(0))
+        return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    return num_poses >= PARALLEL_MIN_POSES and cpus >= 2
+        return os.cpu_count() or 1
 
 
 # The per-pose association methods (``camloc.associators``) by name, each with its options from the config.
@@ -710,7 +717,7 @@ class _Localizer:
                                         "and kept the best set found"] if cut_short else []),
             slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
             timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": self.replayed_in_parallel,
-                    "replay_process_peak_mb": self.replay_peak_mb},
+                    "replay_process_peak_mb": self.replay_peak_mb, "replay_thread": False},
         )
 
 

@@ -5,9 +5,13 @@
     filter(scene, pairs)                            # predict, update, re-check, record
     result(...)                                     # the run, as camloc.results.RunResult
 
-The beam runs over every pose first (``search_beam``: a compiled loop that hands the rare poses
-needing a search from seed pairs to ``camloc.seeds``), then the filter replays its association
+The beam runs over the poses (``search_beam``: a compiled loop that hands the rare poses needing a
+search from seed pairs to ``camloc.seeds``), and the filter replays its association
 (``filter_poses``), so that estimate, covariance and NIS are computed as for any other method.
+A pose's pairs are settled once the beam has narrowed to one hypothesis at it or after it (all
+later hypotheses descend from that one), which on most data is most poses: with ``concurrent``,
+the filter replays each settled stretch in a second thread while the beam goes on (the kernels
+release the GIL), with the same result as one pass after the other.
 """
 
 from __future__ import annotations
@@ -25,39 +29,143 @@ ProgressCallback = Callable[[int, int], None]
 
 # The progress callback is called this many times per run at most (between compiled blocks).
 PROGRESS_STEPS = 200
+# The beam hands settled poses to the filter's thread at least this often.
+SEGMENT_POSES = 256
 
 
-def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None, *, initial_x, initial_P):
+def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None, *, initial_x, initial_P,
+                 concurrent: bool = False):
     """Localize every pose of ``dataset``; returns the arrays ``camloc.localizer`` assembles into
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
-    observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices)."""
+    observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices).
+    ``concurrent``: with the beam, filter the settled poses in a second thread (same result)."""
     scene = build_scene(dataset, config)
     settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
-    n, K = dataset.num_poses, dataset.num_observations
-    progress = _Progress(n, on_progress, halves=2 if config.association == "beam" else 1)
+    n = dataset.num_poses
     if config.association == "beam":
-        pair_start, pairs, slipped = search_beam(scene, settings, initial_x, initial_P, progress)
-        method = GIVEN
-    else:
-        pair_start, pairs, slipped = np.zeros(n + 1, np.int64), np.zeros((0, 2), np.int64), np.zeros(n, np.bool_)
-        method = ORACLE
-    states, covs = np.zeros((n, 6)), np.zeros((n, 6, 6))
-    chosen, distance = np.full(K, -1, np.int64), np.full(K, np.nan)
-    update_pose, nis, map_cost, dof = np.zeros(n, np.int64), np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
-    counters = np.zeros(3, np.int64)
-    x, P = initial_x.copy(), initial_P.copy()
-    pair_obs, pair_landmark = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+        replay = _Filter(scene, settings, GIVEN, initial_x, initial_P)
+        progress = _Progress(n, on_progress, halves=2, most=SEGMENT_POSES if concurrent else None)
+        if concurrent:
+            progress.filtered = lambda: replay.filtered
+        with _Replay(replay, concurrent) as segments:
+            search_beam(scene, settings, initial_x, initial_P, progress, segments.settle)
+            segments.finish(progress)
+        return replay.outputs()
+    run = _Filter(scene, settings, ORACLE, initial_x, initial_P)
+    progress = _Progress(n, on_progress, halves=1)
     for first, last in progress.blocks():
-        x, P = _at_pose(counters, filter_poses, scene, settings, method, first, last, x, P, pair_start, pair_obs,
-                        pair_landmark, slipped, states, covs, chosen, distance, update_pose, nis, map_cost, dof, counters)
+        run.poses(first, last)
         progress.done(last)
-    u = int(counters[0])
-    return states, covs, chosen, distance, update_pose[:u], nis[:u], map_cost[:u], dof[:u], np.flatnonzero(slipped)
+    return run.outputs()
 
 
-def search_beam(scene, settings, x0, P0, progress):
-    """Every pose's pairs as the beam decides them: (pair_start (N + 1,), pairs (p, 2) of
-    (observation, landmark), the seed pair first at a slip; slipped (N,))."""
+class _Filter:
+    """The filter's pass (``filter_poses``), stretch by stretch in pose order, and its outputs.
+    With the beam (GIVEN), the pairs of each stretch are set (``set_pairs``) before it runs."""
+
+    def __init__(self, scene, settings, method, initial_x, initial_P):
+        n, K = scene.pose_obs_start.size - 1, scene.z.shape[0]
+        self.scene, self.settings, self.method = scene, settings, method
+        self.x, self.P = initial_x.copy(), initial_P.copy()
+        self.states, self.covs = np.zeros((n, 6)), np.zeros((n, 6, 6))
+        self.chosen, self.distance = np.full(K, -1, np.int64), np.full(K, np.nan)
+        self.update_pose, self.nis, self.map_cost, self.dof = np.zeros(n, np.int64), np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
+        self.counters = np.zeros(3, np.int64)
+        # pose k's pairs are pair_obs/pair_landmark[pair_start[k]:pair_start[k + 1]]: the arrays
+        # grow by copy, so a stretch handed to the thread keeps reading the arrays it was given
+        self.pair_start, self.slipped = np.zeros(n + 1, np.int64), np.zeros(n, np.bool_)
+        self.pair_obs, self.pair_landmark = np.zeros(max(64, 2 * K), np.int64), np.zeros(max(64, 2 * K), np.int64)
+        self.filtered = 0
+
+    def set_pairs(self, first: int, pairs: list, slipped: np.ndarray):
+        """Pairs ((p, 2) of observation, landmark each) and slip flags of poses first, first + 1, ...;
+        returns the pair arrays the stretch reads."""
+        at = self.pair_start[first]
+        sizes = np.array([p.shape[0] for p in pairs], dtype=np.int64)
+        self.pair_start[first + 1:first + 1 + sizes.size] = at + np.cumsum(sizes)
+        end = at + int(sizes.sum())
+        if end > self.pair_obs.size:
+            grown = max(end, 2 * self.pair_obs.size)
+            self.pair_obs = np.concatenate([self.pair_obs, np.zeros(grown - self.pair_obs.size, np.int64)])
+            self.pair_landmark = np.concatenate([self.pair_landmark, np.zeros(grown - self.pair_landmark.size, np.int64)])
+        if pairs:
+            joined = np.concatenate(pairs)
+            self.pair_obs[at:end], self.pair_landmark[at:end] = joined[:, 0], joined[:, 1]
+        self.slipped[first:first + sizes.size] = slipped
+        return self.pair_obs, self.pair_landmark
+
+    def poses(self, first: int, last: int, pair_obs=None, pair_landmark=None):
+        """Filter poses first..last - 1, from the state after pose first - 1."""
+        pair_obs = self.pair_obs if pair_obs is None else pair_obs
+        pair_landmark = self.pair_landmark if pair_landmark is None else pair_landmark
+        self.x, self.P = _at_pose(self.counters, filter_poses, self.scene, self.settings, self.method, first, last, self.x,
+                                  self.P, self.pair_start, pair_obs, pair_landmark, self.slipped, self.states, self.covs,
+                                  self.chosen, self.distance, self.update_pose, self.nis, self.map_cost, self.dof,
+                                  self.counters)
+        self.filtered = last
+
+    def outputs(self):
+        u = int(self.counters[0])
+        return (self.states, self.covs, self.chosen, self.distance, self.update_pose[:u], self.nis[:u], self.map_cost[:u],
+                self.dof[:u], np.flatnonzero(self.slipped))
+
+
+class _Replay:
+    """The filter's replay of the beam's settled poses: in a thread of its own (``concurrent``),
+    stretch by stretch as the beam settles them, or in the caller's thread at ``finish``.
+
+    A failure in the filter's thread surfaces at ``finish`` (after the beam's own, as when the two
+    run one after the other); the stretches after it are skipped."""
+
+    def __init__(self, replay: _Filter, concurrent: bool):
+        self.replay, self.settled, self.pending = replay, 0, []
+        self.executor = None
+        if concurrent:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="camloc-filter")
+        self.failed = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.executor is not None:
+            self.executor.shutdown(wait=True, cancel_futures=True)
+        return False
+
+    def settle(self, last: int, pairs: list, slipped: np.ndarray):
+        """Poses settled..last - 1 are settled, with these pairs and slip flags."""
+        first, self.settled = self.settled, last
+        arrays = self.replay.set_pairs(first, pairs, slipped)
+        if self.executor is not None:
+            self.pending.append(self.executor.submit(self._run, first, last, *arrays))
+
+    def _run(self, first, last, pair_obs, pair_landmark):
+        if self.failed:
+            return
+        try:
+            self.replay.poses(first, last, pair_obs, pair_landmark)
+        except BaseException:
+            self.failed = True
+            raise
+
+    def finish(self, progress: "_Progress"):
+        """Filter what is left (every pose when not concurrent), reporting progress."""
+        if self.executor is None:
+            for first, last in progress.blocks():
+                self.replay.poses(first, last)
+                progress.done(last)
+            return
+        for future in self.pending:
+            future.result()
+            progress.done_both(self.replay.filtered)
+
+
+def search_beam(scene, settings, x0, P0, progress, settle):
+    """Every pose's pairs as the beam decides them, handed to ``settle(last, pairs, slipped)`` for
+    poses up to last - 1 (pairs: a list of (p, 2) of (observation, landmark), the seed pair first
+    at a slip; slipped (p,)) as soon as the beam has settled them, and for the rest at the end."""
     n = scene.pose_obs_start.size - 1
     width = settings.beam_width
     history = (np.zeros(n, np.int64), np.zeros((n, width), np.int64), np.zeros((n, width), np.bool_),
@@ -67,6 +175,7 @@ def search_beam(scene, settings, x0, P0, progress):
     beam = kb.new_generation(1, 1)
     beam[0][0], beam[1][0], beam[2][0] = x0, P0, 0.0
     size = 1
+    settled = 0
     for first, last in progress.blocks():
         k = first
         while k < last:
@@ -89,21 +198,34 @@ def search_beam(scene, settings, x0, P0, progress):
                 k += 1
                 continue
             beam, size = parents, n_parents
+        through = settled_through(history[0], settled, last)
+        if through >= settled:
+            settle(through + 1, *_backtrack(history, settled, through))
+            settled = through + 1
         progress.done(last)
-    return _backtrack(history, n)
+    if settled < n:
+        settle(n, *_backtrack(history, settled, n - 1))
 
 
-def _backtrack(history, n):
-    """The pairs of every pose along the ancestors of the last pose's best hypothesis."""
+def settled_through(kept_count, first, stop):
+    """The last pose of first..stop - 1 at which the beam kept one hypothesis (first - 1 if none):
+    every hypothesis after it descends from that one, so its pairs and those of the poses before
+    it no longer change."""
+    single = np.flatnonzero(kept_count[first:stop] == 1)
+    return first + int(single[-1]) if single.size else first - 1
+
+
+def _backtrack(history, first, last):
+    """The pairs and slip flags of poses first..last along the ancestors of pose last's best
+    hypothesis (poses before first are settled)."""
     count, parent, slipped_flag, pair_start, pairs, _ = history
-    chosen, slipped = [None] * n, np.zeros(n, np.bool_)
+    chosen, slipped = [None] * (last - first + 1), np.zeros(last - first + 1, np.bool_)
     index = 0
-    for k in range(n - 1, -1, -1):
-        chosen[k] = pairs[pair_start[k, index]:pair_start[k, index + 1]]
-        slipped[k] = slipped_flag[k, index]
+    for k in range(last, first - 1, -1):
+        chosen[k - first] = pairs[pair_start[k, index]:pair_start[k, index + 1]].copy()
+        slipped[k - first] = slipped_flag[k, index]
         index = parent[k, index]
-    sizes = np.array([c.shape[0] for c in chosen], dtype=np.int64)
-    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), np.concatenate(chosen or [np.zeros((0, 2), np.int64)]), slipped
+    return chosen, slipped
 
 
 class PoseFailure(Exception):
@@ -123,12 +245,16 @@ def _at_pose(counters, kernel, *args):
 
 
 class _Progress:
-    """Blocks of poses between progress reports; with the beam, the search and the filter each
-    count for half of the bar."""
+    """Blocks of poses between progress reports (at most ``most`` poses each); with the beam, the
+    search and the filter each count for half of the bar."""
 
-    def __init__(self, n: int, callback: Optional[ProgressCallback], *, halves: int):
+    def __init__(self, n: int, callback: Optional[ProgressCallback], *, halves: int, most: Optional[int] = None):
         self.n, self.callback, self.halves, self.pass_ = n, callback, halves, 0
         self.stride = max(1, n // (PROGRESS_STEPS // halves)) if callback else max(n, 1)
+        if most is not None:
+            self.stride = min(self.stride, most)
+        # the filter's count while the search goes on, where it runs in a thread of its own
+        self.filtered: Callable[[], int] = lambda: 0
 
     def blocks(self):
         for first in range(0, self.n, self.stride):
@@ -137,4 +263,10 @@ class _Progress:
 
     def done(self, last: int) -> None:
         if self.callback is not None:
-            self.callback(min(self.n, (self.pass_ * self.n + last) // self.halves), self.n)
+            done = self.pass_ * self.n + last + (self.filtered() if self.pass_ == 0 else 0)
+            self.callback(min(self.n, done // self.halves), self.n)
+
+    def done_both(self, filtered: int) -> None:
+        """The search is over and the filter's thread has filtered poses up to ``filtered``."""
+        if self.callback is not None:
+            self.callback(min(self.n, (self.n + filtered) // self.halves), self.n)

@@ -230,6 +230,84 @@ def test_compiled_beam_equals_the_numpy_one_on_simulated_worlds(kind):
 
 
 
+def test_the_filter_thread_gives_the_result_of_one_pass_after_the_other():
+    """With ``parallel``, the compiled beam hands each stretch of poses it has settled (narrowed to
+    one hypothesis) to the filter's thread: the same states, pairs, NIS and slips, bit for bit, on
+    a world whose slip (a jump put on one edge) and clutter keep several hypotheses alive, and a
+    progress bar that only grows and ends at the last pose."""
+    import dataclasses
+
+    import camloc
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=300, trajectory="smooth3d", landmarks=1500, region=11, clutter_fraction=0.1),
+                       seed=5)
+    jumped = dataset.odom_translation.copy()
+    jumped[150] += np.array([0.6, -0.5, 0.0])
+    dataset = dataclasses.replace(dataset, odom_translation=jumped)
+    runs, reports = {}, {}
+    for parallel in (False, True):
+        reports[parallel] = []
+        runs[parallel] = camloc.localize(dataset, parallel=parallel, engine="compiled",
+                                         on_progress=lambda done, total, seen=reports[parallel]: seen.append((done, total)))
+    sequential, threaded = runs[False], runs[True]
+    assert threaded.summary["timing"]["replay_thread"] and not sequential.summary["timing"]["replay_thread"]
+    assert threaded.summary["slip_poses"] == sequential.summary["slip_poses"] and sequential.summary["slip_poses"]
+    np.testing.assert_array_equal(threaded.filter_state, sequential.filter_state)
+    np.testing.assert_array_equal(threaded.filter_cov, sequential.filter_cov)
+    np.testing.assert_array_equal(threaded.associations.landmark, sequential.associations.landmark)
+    np.testing.assert_array_equal(threaded.nis, sequential.nis)
+    for seen in reports.values():
+        done = [d for d, _ in seen]
+        assert done == sorted(done) and done[-1] == dataset.num_poses and {t for _, t in seen} == {dataset.num_poses}
+
+
+def test_poses_settle_only_through_the_last_pose_the_beam_kept_one_hypothesis_at():
+    """Poses 0-4 kept 1, 2, 1, 3, 2 hypotheses: the beam's best at pose 3 or 4 may still lose to
+    another, so only poses 0-2 are settled; their pairs are read along the parent links (pose 2's
+    one hypothesis grew from pose 1's second, not its best)."""
+    from camloc.loop import _backtrack, settled_through
+
+    kept = np.array([1, 2, 1, 3, 2])
+    assert settled_through(kept, 0, 5) == 2 and settled_through(kept, 3, 5) == 2 and settled_through(kept, 0, 2) == 0
+    parent = np.array([[0, 0], [0, 0], [1, 0], [0, 0], [0, 0]])
+    slipped = np.array([[False, False], [False, True], [False, False], [False, False], [False, False]])
+    # pose 0: pairs (0, 10); pose 1: best (1, 11), second (1, 12); pose 2: (2, 13)
+    pairs = np.array([[0, 10], [1, 11], [1, 12], [2, 13]])
+    pair_start = np.array([[0, 1, 1], [1, 2, 3], [3, 4, 4], [4, 4, 4], [4, 4, 4]])
+    chosen, slip = _backtrack((kept, parent, slipped, pair_start, pairs, None), 0, 2)
+    assert [c.tolist() for c in chosen] == [[[0, 10]], [[1, 12]], [[2, 13]]] and slip.tolist() == [False, True, False]
+
+
+def test_a_failure_in_the_filter_thread_is_raised_once_the_beam_is_done_and_stops_the_filter():
+    """A stretch that fails in the filter's thread is raised by ``finish`` (after the beam, as when
+    the two run one after the other), and the stretches after it are never filtered."""
+    from camloc.loop import PoseFailure, _Progress, _Replay
+
+    class Stretches:
+        filtered = 0
+
+        def __init__(self):
+            self.ran = []
+
+        def set_pairs(self, first, pairs, slipped):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+        def poses(self, first, last, pair_obs=None, pair_landmark=None):
+            if first == 10:
+                raise PoseFailure(13, "a covariance is no longer positive definite")
+            self.ran.append((first, last))
+            self.filtered = last
+
+    stretches = Stretches()
+    with _Replay(stretches, concurrent=True) as replay:
+        for last in (10, 20, 30):
+            replay.settle(last, [], np.zeros(0, np.bool_))
+        with pytest.raises(PoseFailure) as failure:
+            replay.finish(_Progress(30, None, halves=2))
+    assert failure.value.k == 13 and stretches.ran == [(0, 10)]
+
+
 def test_the_engine_is_chosen_by_size_and_method_and_can_be_forced():
     import camloc
     from camloc.errors import ConfigError
