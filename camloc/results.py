@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import io
 import json
 import math
 import os
@@ -310,9 +309,9 @@ def tum_text(stamps: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> str:
     xyz : (N, 3) positions, metres.
     quat_xyzw : (N, 4) orientations, scalar last.
     """
-    rows = np.column_stack([np.asarray(stamps, dtype=float), xyz, quat_xyzw])
+    rows = np.column_stack([np.asarray(stamps, dtype=float), xyz, quat_xyzw]).astype(float).tolist()
     lines = ["# " + " ".join(TUM_FIELDS)]
-    lines += [" ".join(_num(value) for value in row) for row in rows]
+    lines += [" ".join(map(repr, row)) for row in rows]      # Python floats: repr as in _num
     return "\n".join(lines) + "\n"
 
 
@@ -413,24 +412,22 @@ def associations_text(associations: Associations) -> str:
 
     ``landmark`` and ``mahalanobis`` are empty cells for a rejected observation.
     """
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(ASSOCIATIONS_HEADER)
+    # Numbers and empty cells only, so no cell needs CSV quoting; each column becomes text at once,
+    # through tolist()'s Python ints and floats (a 200k-row file: 1.4 -> 0.4 s).
     a = associations
-    for k in range(a.pose_id.shape[0]):
-        accepted = int(a.landmark[k]) != UNASSOCIATED
-        distance = float(a.mahalanobis[k])
-        writer.writerow(
-            [
-                int(a.pose_id[k]),
-                int(a.camera[k]),
-                *(_num(value) for value in a.uvd[k]),
-                int(a.landmark[k]) if accepted else "",
-                int(a.true_landmark[k]),
-                _num(distance) if accepted and math.isfinite(distance) else "",
-            ]
-        )
-    return buffer.getvalue()
+    landmark = a.landmark.astype(np.int64).tolist()
+    distance = np.asarray(a.mahalanobis, dtype=float).tolist()
+    uvd = np.asarray(a.uvd, dtype=float)
+    columns = [
+        map(str, a.pose_id.astype(np.int64).tolist()),
+        map(str, a.camera.astype(np.int64).tolist()),
+        *(map(repr, uvd[:, i].tolist()) for i in range(3)),
+        (str(value) if value != UNASSOCIATED else "" for value in landmark),
+        map(str, a.true_landmark.astype(np.int64).tolist()),
+        (repr(d) if value != UNASSOCIATED and math.isfinite(d) else "" for value, d in zip(landmark, distance)),
+    ]
+    lines = [",".join(ASSOCIATIONS_HEADER), *map(",".join, zip(*columns))]
+    return "\n".join(lines) + "\n"
 
 
 def read_associations(path: str | Path) -> Associations:
