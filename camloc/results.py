@@ -34,9 +34,11 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
 import zipfile
@@ -449,6 +451,9 @@ def _read_associations_with_lines(path: str | Path) -> tuple[Associations, list[
     if not lines or lines[0].strip() != expected_header:
         found = lines[0].strip() if lines else "an empty file"
         raise DatasetError(path, 1, f"expected the header '{expected_header}', found '{found}'")
+    fast = _read_associations_fast(lines)
+    if fast is not None:
+        return fast
     columns: dict[str, list] = {name: [] for name in ASSOCIATIONS_HEADER}
     row_lines: list[int] = []
     for number, fields in enumerate(csv.reader(lines[1:]), start=2):
@@ -474,6 +479,41 @@ def _read_associations_with_lines(path: str | Path) -> tuple[Associations, list[
 
 _INT_COLUMNS = ("pose", "camera", "landmark", "true_landmark")
 _OPTIONAL_COLUMNS = ("landmark", "mahalanobis")
+
+# A file as associations_text writes it: rows of eight cells, only landmark and mahalanobis ever
+# empty, in characters a number or an id is written with.
+_WRITTEN_ROW = r"[^,\n]+,[^,\n]+,[^,\n]+,[^,\n]+,[^,\n]+,[^,\n]*,[^,\n]+,[^,\n]*"
+_WRITTEN_BODY = re.compile(f"(?:{_WRITTEN_ROW}\n)*(?:{_WRITTEN_ROW})?")
+_NOT_WRITTEN = str.maketrans("", "", "0123456789+-.eE,\n")
+_ASSOCIATIONS_DTYPE = [("pose", np.int64), ("camera", np.int64), ("u", float), ("v", float), ("depth", float),
+                       ("landmark", np.int64), ("true_landmark", np.int64), ("mahalanobis", float)]
+
+
+def _read_associations_fast(lines: list[str]) -> tuple[Associations, list[int]] | None:
+    """``_read_associations_with_lines`` for a file laid out as camloc writes it (its header
+    already checked), by np.loadtxt; None for anything else (a blank line, a quote, a space, nan,
+    an empty required cell, an id beyond 64 bits, a number beyond a double's range...), which the
+    line-by-line reader then reads or names the line of. A 200k-row file: 1.4 -> 0.6 s."""
+    body = "\n".join(lines[1:])
+    if not body or body.translate(_NOT_WRITTEN) or not _WRITTEN_BODY.fullmatch(body):
+        return None
+    # the only empty cells left are a rejected observation's landmark (between two others) and
+    # mahalanobis (last): the values the line-by-line reader gives them
+    body = body.replace(",,", f",{UNASSOCIATED},").replace(",\n", ",nan\n")
+    if body.endswith(","):
+        body += "nan"
+    try:
+        table = np.loadtxt(io.StringIO(body), delimiter=",", dtype=_ASSOCIATIONS_DTYPE, comments=None, ndmin=1)
+    except (ValueError, OverflowError):
+        return None
+    uvd = np.column_stack([table["u"], table["v"], table["depth"]])
+    if not np.isfinite(uvd).all() or np.isinf(table["mahalanobis"]).any():    # beyond a double's range
+        return None
+    associations = Associations(
+        pose_id=table["pose"].copy(), camera=table["camera"].copy(), uvd=uvd, landmark=table["landmark"].copy(),
+        true_landmark=table["true_landmark"].copy(), mahalanobis=table["mahalanobis"].copy(),
+    )
+    return associations, list(range(2, 2 + table.shape[0]))
 
 
 def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | None:

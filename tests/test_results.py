@@ -514,3 +514,30 @@ def test_a_format_1_folder_loads_its_trajectories_from_the_tum_files(tmp_path, s
     _rewrite_states(run_dir, format_version=np.array(1), estimate_xyz=np.zeros_like(run.estimate_xyz),
                     truth_xyz=run.truth_xyz)
     np.testing.assert_array_equal(load_run(run_dir).estimate_xyz, run.estimate_xyz)
+
+
+def test_associations_read_back_exactly_as_written_and_as_hand_edited(tmp_path):
+    """What associations_text writes reads back bit for bit (rejected rows, an accepted pair whose
+    distance was not finite, -0.0, 1e-300, ids near 2^62), and a hand-edited copy of it (a blank
+    line, signs, upper-case exponents, spaces around cells) reads back the same values."""
+    associations = results.Associations(
+        pose_id=np.array([10, 10, 11, 4611686018427387904], dtype=np.int64),
+        camera=np.array([0, 1, 0, 2], dtype=np.int64),
+        uvd=np.array([[320.5, -0.0, 1.25], [1e-300, 240.0, 2.0], [0.1, 0.2, 123456789.123456789], [5.0, 6.0, 7.0]]),
+        landmark=np.array([7, results.UNASSOCIATED, 9, 4611686018427387905], dtype=np.int64),
+        true_landmark=np.array([7, 8, -3, 4611686018427387905], dtype=np.int64),
+        mahalanobis=np.array([0.5, np.nan, np.nan, 1.0 / 3.0]),
+    )
+    written = tmp_path / "associations.csv"
+    written.write_text(results.associations_text(associations))
+    edited = tmp_path / "edited.csv"
+    header, *rows = written.read_text().splitlines()
+    rows[0] = " +10 , 0 ,3.205E+2, -0.0,1.25,+7,7,0.5"
+    edited.write_text("\n".join([header, rows[0], "", *rows[1:]]) + "\n")
+    for path in (written, edited):
+        read = results.read_associations(path)
+        for name in ("pose_id", "camera", "uvd", "landmark", "true_landmark", "mahalanobis"):
+            expected, found = getattr(associations, name), getattr(read, name)
+            assert found.dtype == expected.dtype, (path.name, name)
+            np.testing.assert_array_equal(found, expected, err_msg=f"{path.name}: {name}")
+        assert np.signbit(read.uvd[0, 1])
