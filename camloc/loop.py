@@ -159,7 +159,7 @@ class _Replay:
             return
         for future in self.pending:
             future.result()
-            progress.done_both(self.replay.filtered)
+            progress.done(self.replay.filtered)
 
 
 def search_beam(scene, settings, x0, P0, progress, settle):
@@ -262,11 +262,7 @@ class _Progress:
         self.pass_ += 1
 
     def done(self, last: int) -> None:
+        """Poses up to ``last`` done in this pass (the search's, then the filter's)."""
         if self.callback is not None:
             done = self.pass_ * self.n + last + (self.filtered() if self.pass_ == 0 else 0)
             self.callback(min(self.n, done // self.halves), self.n)
-
-    def done_both(self, filtered: int) -> None:
-        """The search is over and the filter's thread has filtered poses up to ``filtered``."""
-        if self.callback is not None:
-            self.callback(min(self.n, (self.n + filtered) // self.halves), self.n)

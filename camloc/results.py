@@ -297,11 +297,6 @@ def dumps_json(obj: Any) -> str:
 # TUM trajectories
 
 
-def _num(value: float) -> str:
-    # repr is the shortest text that reads back to the same double: full precision, no noise.
-    return repr(float(value))
-
-
 def tum_text(stamps: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> str:
     """TUM text, one line ``timestamp x y z qx qy qz qw`` per pose, after a ``#`` header.
 
@@ -313,7 +308,8 @@ def tum_text(stamps: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> str:
     """
     rows = np.column_stack([np.asarray(stamps, dtype=float), xyz, quat_xyzw]).astype(float).tolist()
     lines = ["# " + " ".join(TUM_FIELDS)]
-    lines += [" ".join(map(repr, row)) for row in rows]      # Python floats: repr as in _num
+    # repr of a Python float is the shortest text that reads back to the same double
+    lines += [" ".join(map(repr, row)) for row in rows]
     return "\n".join(lines) + "\n"
 
 
@@ -415,7 +411,7 @@ def associations_text(associations: Associations) -> str:
     ``landmark`` and ``mahalanobis`` are empty cells for a rejected observation.
     """
     # Numbers and empty cells only, so no cell needs CSV quoting; each column becomes text at once,
-    # through tolist()'s Python ints and floats (a 200k-row file: 1.4 -> 0.4 s).
+    # through tolist()'s Python ints and floats, each float as its repr (as in tum_text).
     a = associations
     landmark = a.landmark.astype(np.int64).tolist()
     distance = np.asarray(a.mahalanobis, dtype=float).tolist()
