@@ -75,19 +75,30 @@ def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
 def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
     """``observe`` for pairs whose cameras differ: landmark (p, 3) seen by camera pair_camera (p,)
     (rows of camera_R (C, 3, 3), camera_t (C, 3), camera_K (C, 4))."""
+    p = landmark_xyz.shape[0]
+    z_hat, H = np.empty((p, 3)), np.empty((p, 3, 6))
+    observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H,
+                       np.empty((camera_R.shape[0], 3, 3)))
+    return z_hat, H
+
+
+@jit
+def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position):
+    """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, 6), with d_position (C, 3, 3) as
+    scratch: an iterated update predicts its pairs at every step into the same buffers."""
     R = euler_to_matrix(x[3], x[4], x[5])
     E = euler_rate(x[3], x[4])
     t = x[0:3].copy()
-    p = landmark_xyz.shape[0]
-    z_hat = np.empty((p, 3))
-    H = np.empty((p, 3, 6))
-    d_position = np.empty((camera_R.shape[0], 3, 3))
     for c in range(camera_R.shape[0]):
-        d_position[c] = -mm(camera_R[c].T, R.T)
-    for i in range(p):
+        for a in range(3):                                   # -R_rc' R'
+            for b in range(3):
+                s = 0.0
+                for q in range(3):
+                    s += camera_R[c, q, a] * R[b, q]
+                d_position[c, a, b] = -s
+    for i in range(landmark_xyz.shape[0]):
         c = pair_camera[i]
         observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c])
-    return z_hat, H
 
 
 @jit

@@ -9,37 +9,261 @@ information to the prior's, a 6x6 system whatever the number of pairs:
     P+ = A (P + P Lambda P) A'                                      (Joseph form, I - K H = A)
     ln det S - ln det R = ln det (I + P Lambda)                     (determinant lemma)
 
+With one or two pairs (3p <= 6 rows) the textbook form is used instead: S = H P H' + R is no
+larger than the state's information and better conditioned when the noise is tiny.
+
 Iterations (Bell & Cathey 1993): ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with K_i
 at x_i; the covariance uses the last linearization. The numpy twin is ``camloc.ekf.update``.
+
+Each step writes into arrays its caller owns (the ``*_into`` kernels): an iterated update
+allocates its scratch once and every linearization reuses it, where fresh temporaries per step
+cost more than the 6x6 arithmetic. The allocating kernels (``information_gain``,
+``covariance_gain``, ...) are the same steps for the callers that need one result.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.camera import back_project, observe_pairs
+from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.rotation import difference, retract
-from camloc.kernels.small import mm, mv, solve
+from camloc.kernels.small import mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
 
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
 
 
+# ---------------------------------------------------------------------------------------------
+# Small dense systems, factored once and solved as often as needed
+
 @jit
-def information_gain(P, H, R_inverse):
-    """(R^-1 H (p, 3, 6), Lambda (6, 6), I + P Lambda (6, 6), A P (6, 6)) of pairs with
-    Jacobians H (p, 3, 6) and noise information R_inverse (p, 3, 3)."""
-    p = H.shape[0]
-    R_inverse_H = np.zeros((p, 3, 6))
-    information = np.zeros((6, 6))
+def lu_factor(M, pivots):
+    """Factor M (n, n) in place by Gaussian elimination with partial pivoting: U on and above the
+    diagonal, the multipliers below it, pivots[col] the row swapped with col. Raises
+    FloatingPointError where M is singular. ``lu_solve`` then repeats ``small.solve``'s arithmetic."""
+    n = M.shape[0]
+    for col in range(n):
+        pivot, best = col, abs(M[col, col])
+        for r in range(col + 1, n):
+            if abs(M[r, col]) > best:
+                pivot, best = r, abs(M[r, col])
+        if not best > 0.0:
+            raise FloatingPointError("a singular matrix in a filter step")
+        pivots[col] = pivot
+        if pivot != col:
+            for j in range(n):
+                M[col, j], M[pivot, j] = M[pivot, j], M[col, j]
+        inverse_pivot = 1.0 / M[col, col]
+        for r in range(col + 1, n):
+            factor = M[r, col] * inverse_pivot
+            M[r, col] = factor
+            if factor != 0.0:
+                for j in range(col + 1, n):
+                    M[r, j] -= factor * M[col, j]
+
+
+@jit
+def lu_solve(M, pivots, B):
+    """B (n, k) <- A^-1 B in place, with A factored into (M, pivots) by ``lu_factor``."""
+    n, k = B.shape
+    for col in range(n):                 # the rows in their final order: the multipliers moved with them
+        pivot = pivots[col]
+        if pivot != col:
+            for j in range(k):
+                B[col, j], B[pivot, j] = B[pivot, j], B[col, j]
+    for col in range(n):
+        for r in range(col + 1, n):
+            factor = M[r, col]
+            if factor != 0.0:
+                for j in range(k):
+                    B[r, j] -= factor * B[col, j]
+    for col in range(n - 1, -1, -1):
+        for j in range(k):
+            s = B[col, j]
+            for q in range(col + 1, n):
+                s -= M[col, q] * B[q, j]
+            B[col, j] = s / M[col, col]
+
+
+@jit
+def lu_log_det(M, pivots):
+    """(sign, ln |det A|) of A factored into (M, pivots) by ``lu_factor``."""
+    sign, total = 1.0, 0.0
+    for i in range(M.shape[0]):
+        if pivots[i] != i:
+            sign = -sign
+        if M[i, i] < 0.0:
+            sign = -sign
+        total += math.log(abs(M[i, i]))
+    return sign, total
+
+
+@jit
+def cholesky_into(S, L):
+    """The lower Cholesky factor L (m, m) of a symmetric S (m, m); raises FloatingPointError
+    where S is not positive definite."""
+    m = S.shape[0]
+    for j in range(m):
+        s = S[j, j]
+        for q in range(j):
+            s -= L[j, q] * L[j, q]
+        if not s > 0.0:
+            raise FloatingPointError("innovation covariance is not positive definite")
+        L[j, j] = math.sqrt(s)
+        for i in range(j):
+            L[i, j] = 0.0
+        for i in range(j + 1, m):
+            s = S[i, j]
+            for q in range(j):
+                s -= L[i, q] * L[j, q]
+            L[i, j] = s / L[j, j]
+
+
+@jit
+def cho_solve_into(L, b):
+    """b (m,) <- S^-1 b in place, L the lower Cholesky factor of S."""
+    m = b.size
+    for i in range(m):
+        s = b[i]
+        for j in range(i):
+            s -= L[i, j] * b[j]
+        b[i] = s / L[i, i]
+    for i in range(m - 1, -1, -1):
+        s = b[i]
+        for j in range(i + 1, m):
+            s -= L[j, i] * b[j]
+        b[i] = s / L[i, i]
+
+
+@jit
+def cho_solve(L, B):
+    """S^-1 B from the lower Cholesky factor L of S (m, m); B (m, k)."""
+    X = np.ascontiguousarray(B.T).copy()
+    for c in range(X.shape[0]):
+        cho_solve_into(L, X[c])
+    return np.ascontiguousarray(X.T)
+
+
+# ---------------------------------------------------------------------------------------------
+# The steps of an update
+
+@jit
+def stacked_quadratic(L, y, scratch):
+    """v' S^-1 v of the innovations y (p, 3) stacked as v (3p,), L the lower Cholesky factor of S;
+    scratch (3p,)."""
+    p = y.shape[0]
     for i in range(p):
         for a in range(3):
-            for b in range(3):
-                r = R_inverse[i, a, b]
-                for c in range(6):
-                    R_inverse_H[i, a, c] += r * H[i, b, c]
+            scratch[3 * i + a] = y[i, a]
+    cho_solve_into(L, scratch)
+    total = 0.0
+    for i in range(p):
+        for a in range(3):
+            total += y[i, a] * scratch[3 * i + a]
+    return total
+
+
+@jit
+def innovation_system_into(P, H, R, PHt, S):
+    """P H' (6, 3p) and S = H P H' + R (3p, 3p) of pairs with Jacobians H (p, 3, 6) and noise R
+    (p, 3, 3), S symmetric."""
+    p = H.shape[0]
+    m = 3 * p
+    for c in range(6):
+        for r in range(m):
+            s = 0.0
+            for d in range(6):
+                s += P[c, d] * H[r // 3, r % 3, d]
+            PHt[c, r] = s
+    for r in range(m):
+        i, a = r // 3, r % 3
+        for q in range(r, m):
+            s = 0.0
+            for c in range(6):
+                s += H[i, a, c] * PHt[c, q]
+            if q // 3 == i:
+                s += 0.5 * (R[i, a, q % 3] + R[i, q % 3, a])
+            S[r, q] = s
+            S[q, r] = s
+
+
+@jit
+def gain_into(P, H, R, PHt, S, L, K):
+    """The textbook gain K = P H' S^-1 (6, 3p), with S = H P H' + R and its lower Cholesky
+    factor L (3p, 3p), of pairs with Jacobians H (p, 3, 6) and noise R (p, 3, 3)."""
+    innovation_system_into(P, H, R, PHt, S)
+    cholesky_into(S, L)
+    for c in range(6):
+        K[c, :] = PHt[c, :]
+        cho_solve_into(L, K[c])                                     # S symmetric: row c of P H' S^-1
+
+
+@jit
+def covariance_gain(P, H, R):
+    """``gain_into`` with fresh arrays: (K (6, 3p), S (3p, 3p), L, H stacked (3p, 6))."""
+    m = 3 * H.shape[0]
+    PHt, S, L, K = np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), np.empty((6, m))
+    gain_into(P, H, R, PHt, S, L, K)
+    return K, S, L, np.ascontiguousarray(H).reshape(m, 6).copy()
+
+
+@jit
+def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
+    """Joseph form (I - K H) P (I - K H)' + K R K' into out (6, 6), its upper triangle mirrored;
+    H (p, 3, 6) stacked as K's columns; I_KH and scratch (6, 6)."""
+    p = H.shape[0]
+    for c in range(6):
+        for d in range(6):
+            s = 0.0
+            for r in range(3 * p):
+                s += K[c, r] * H[r // 3, r % 3, d]
+            I_KH[c, d] = (1.0 if c == d else 0.0) - s
+    for c in range(6):
+        for d in range(6):
+            s = 0.0
+            for q in range(6):
+                s += I_KH[c, q] * P[q, d]
+            scratch[c, d] = s
+    for c in range(6):
+        for d in range(c, 6):
+            s = 0.0
+            for q in range(6):
+                s += scratch[c, q] * I_KH[d, q]
+            for i in range(p):
+                for a in range(3):
+                    k_ca = K[c, 3 * i + a]
+                    for b in range(3):
+                        s += k_ca * R[i, a, b] * K[d, 3 * i + b]
+            out[c, d] = s
+            out[d, c] = s
+
+
+@jit
+def covariance_posterior(P, K, Hs, R):
+    """Joseph form (I - K H) P (I - K H)' + K R K' of stacked Jacobians Hs (3p, 6)."""
+    out = np.empty((6, 6))
+    covariance_posterior_into(P, np.ascontiguousarray(K), np.ascontiguousarray(Hs).reshape(R.shape[0], 3, 6), R, out,
+                              np.empty((6, 6)), np.empty((6, 6)))
+    return out
+
+
+@jit
+def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
+    """Of pairs with Jacobians H (p, 3, 6) and noise information R_inverse (p, 3, 3): R^-1 H
+    (p, 3, 6), Lambda (6, 6), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
+    A P = (I + P Lambda)^-1 P (6, 6), symmetrized."""
+    p = H.shape[0]
+    for c in range(6):
+        for d in range(6):
+            information[c, d] = 0.0
+    for i in range(p):
+        for a in range(3):
+            for c in range(6):
+                R_inverse_H[i, a, c] = R_inverse[i, a, 0] * H[i, 0, c] + R_inverse[i, a, 1] * H[i, 1, c] + R_inverse[i, a, 2] * H[i, 2, c]
         for a in range(3):
             for c in range(6):
                 h = H[i, a, c]
@@ -48,74 +272,49 @@ def information_gain(P, H, R_inverse):
     for c in range(6):
         for d in range(c):
             information[c, d] = information[d, c]
-    I_P_information = np.eye(6) + mm(P, information)
-    if not np.all(np.isfinite(I_P_information)):
+    finite = True
+    for c in range(6):
+        for d in range(6):
+            s = 0.0
+            for q in range(6):
+                s += P[c, q] * information[q, d]
+            M[c, d] = (1.0 if c == d else 0.0) + s
+            finite = finite and np.isfinite(M[c, d])
+            AP[c, d] = P[c, d]
+    if not finite:
         raise FloatingPointError("innovation covariance is not positive definite")
-    posterior = solve(I_P_information, P)
-    return R_inverse_H, information, I_P_information, 0.5 * (posterior + posterior.T)
+    lu_factor(M, pivots)
+    lu_solve(M, pivots, AP)
+    for c in range(6):
+        for d in range(c):
+            AP[c, d] = AP[d, c] = 0.5 * (AP[c, d] + AP[d, c])
 
 
 @jit
-def cho_solve(L, B):
-    """S^-1 B from the lower Cholesky factor L of S (m, m); B (m, k)."""
-    m, k = B.shape
-    X = B.copy()
-    for c in range(k):
-        for i in range(m):
-            s = X[i, c]
-            for j in range(i):
-                s -= L[i, j] * X[j, c]
-            X[i, c] = s / L[i, i]
-        for i in range(m - 1, -1, -1):
-            s = X[i, c]
-            for j in range(i + 1, m):
-                s -= L[j, i] * X[j, c]
-            X[i, c] = s / L[i, i]
-    return X
+def information_gain(P, H, R_inverse):
+    """``information_into`` with fresh arrays: (R^-1 H (p, 3, 6), Lambda (6, 6), I + P Lambda
+    (6, 6), A P (6, 6))."""
+    R_inverse_H, information = np.empty(H.shape), np.empty((6, 6))
+    M, pivots, AP = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6))
+    information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
+    return R_inverse_H, information, np.eye(6) + mm(P, information), AP
 
 
 @jit
-def covariance_gain(P, H, R):
-    """The textbook gain for few pairs (3p <= 6 rows, where the (m, m) innovation covariance is
-    no larger than the state's information and better conditioned when the noise is tiny):
-    (K = P H' S^-1 (6, m), S = H P H' + R (m, m), its Cholesky factor L, H stacked (m, 6))."""
-    p = H.shape[0]
-    m = 3 * p
-    Hs = np.ascontiguousarray(H).reshape(m, 6)
-    S = mm(mm(Hs, P), Hs.T)
-    for i in range(p):
-        S[3 * i:3 * i + 3, 3 * i:3 * i + 3] += R[i]
-    S = 0.5 * (S + S.T)
-    L = np.linalg.cholesky(S)
-    K = cho_solve(L, mm(Hs, P)).T.copy()
-    return K, S, L, Hs
-
-
-@jit
-def covariance_posterior(P, K, Hs, R):
-    """Joseph form (I - K H) P (I - K H)' + K R K'."""
-    I_KH = np.eye(6) - mm(K, Hs)
-    out = mm(mm(I_KH, P), I_KH.T)
-    p = R.shape[0]
-    for i in range(p):
-        Ki = np.ascontiguousarray(K[:, 3 * i:3 * i + 3])
-        out += mm(mm(Ki, R[i]), Ki.T)
-    return 0.5 * (out + out.T)
-
-
-@jit
-def stacked(y):
-    return np.ascontiguousarray(y).reshape(-1)
-
-
-@jit
-def gradient(R_inverse_H, y):
+def gradient_into(R_inverse_H, y, g):
     """g = sum H_i' R_i^-1 y_i (6,) for innovations y (p, 3)."""
-    g = np.zeros(6)
+    for c in range(6):
+        g[c] = 0.0
     for i in range(y.shape[0]):
         for a in range(3):
             for c in range(6):
                 g[c] += R_inverse_H[i, a, c] * y[i, a]
+
+
+@jit
+def gradient(R_inverse_H, y):
+    g = np.empty(6)
+    gradient_into(R_inverse_H, y, g)
     return g
 
 
@@ -131,18 +330,68 @@ def block_quadratic(y, R_inverse):
 
 
 @jit
+def plain_step_into(AP, g, step):
+    """step = A P g (6,), and g' A P g."""
+    total = 0.0
+    for c in range(6):
+        s = 0.0
+        for d in range(6):
+            s += AP[c, d] * g[d]
+        step[c] = s
+        total += g[c] * s
+    return total
+
+
+@jit
+def gain_step_into(K, y, step):
+    """step = K v (6,), v the innovations y (p, 3) stacked."""
+    for c in range(6):
+        s = 0.0
+        for i in range(y.shape[0]):
+            for a in range(3):
+                s += K[c, 3 * i + a] * y[i, a]
+        step[c] = s
+
+
+@jit
 def normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain):
     """y' S^-1 y = y' R^-1 y - g' A P g."""
-    g = gradient(R_inverse_H, y)
-    return block_quadratic(y, R_inverse) - g @ mv(posterior_plain, g)
+    return block_quadratic(y, R_inverse) - plain_step_into(posterior_plain, gradient(R_inverse_H, y), np.empty(6))
+
+
+@jit
+def posterior_covariance_into(P, information, M, pivots, out, scratch):
+    """A (P + P Lambda P) A' into out (6, 6), symmetric positive definite by construction; I + P
+    Lambda factored into (M, pivots); scratch (6, 6)."""
+    for c in range(6):                                              # P Lambda
+        for d in range(6):
+            s = 0.0
+            for q in range(6):
+                s += P[c, q] * information[q, d]
+            scratch[c, d] = s
+    for c in range(6):                                              # P + P Lambda P
+        for d in range(6):
+            s = 0.0
+            for q in range(6):
+                s += scratch[c, q] * P[q, d]
+            out[c, d] = P[c, d] + s
+    lu_solve(M, pivots, out)                                        # A (P + P Lambda P)
+    for c in range(6):
+        for d in range(c):
+            out[c, d], out[d, c] = out[d, c], out[c, d]
+    lu_solve(M, pivots, out)                                        # A (A (P + P Lambda P))' = (... A')'
+    for c in range(6):
+        for d in range(c):
+            out[c, d] = out[d, c] = 0.5 * (out[c, d] + out[d, c])
 
 
 @jit
 def posterior_covariance(P, information, I_P_information):
     """A (P + P Lambda P) A', symmetric positive definite by construction."""
-    spread = solve(I_P_information, P + mm(mm(P, information), P))
-    out = solve(I_P_information, np.ascontiguousarray(spread.T)).T
-    return 0.5 * (out + out.T)
+    M, pivots, out = I_P_information.copy(), np.empty(6, np.int64), np.empty((6, 6))
+    lu_factor(M, pivots)
+    posterior_covariance_into(P, information, M, pivots, out, np.empty((6, 6)))
+    return out
 
 
 @jit
@@ -150,38 +399,72 @@ def innovation_cost(P, H, R, R_inverse, y):
     """``y' S^-1 y + ln det S - ln det R`` of stacked innovations y (p, 3) with Jacobians H and
     noise R, R_inverse (p, 3, 3): twice the negative log-likelihood relative to the noise's own
     spread (the beam's units)."""
-    if y.shape[0] <= 2:
-        K, S, L, Hs = covariance_gain(P, H, R)
-        v = stacked(y)
+    p = y.shape[0]
+    m = 3 * p
+    if p <= 2:
+        PHt, S, L = np.empty((6, m)), np.empty((m, m)), np.empty((m, m))
+        innovation_system_into(P, H, R, PHt, S)
+        cholesky_into(S, L)
         log_det = 0.0
-        for i in range(L.shape[0]):
-            log_det += 2.0 * np.log(L[i, i])
-        for i in range(R.shape[0]):
+        for i in range(m):
+            log_det += 2.0 * math.log(L[i, i])
+        for i in range(p):
             log_det -= log_det_3x3(R[i])
-        return v @ cho_solve(L, v.reshape(-1, 1)).ravel() + log_det
-    R_inverse_H, _, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
-    sign, log_det = np.linalg.slogdet(I_P_information)
+        return stacked_quadratic(L, y, np.empty(m)) + log_det
+    R_inverse_H, information = np.empty((p, 3, 6)), np.empty((6, 6))
+    M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
+    information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
+    sign, log_det = lu_log_det(M, pivots)
     if sign <= 0.0:
         raise FloatingPointError("innovation covariance is not positive definite")
-    return normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain) + log_det
+    gradient_into(R_inverse_H, y, g)
+    return block_quadratic(y, R_inverse) - plain_step_into(AP, g, np.empty(6)) + log_det
 
 
 @jit
 def correction(P, H, R, R_inverse, y):
     """K y of one EKF update."""
-    if y.shape[0] <= 2:
-        return mv(covariance_gain(P, H, R)[0], stacked(y))
-    R_inverse_H, _, _, posterior_plain = information_gain(P, H, R_inverse)
-    return mv(posterior_plain, gradient(R_inverse_H, y))
+    p = y.shape[0]
+    m = 3 * p
+    step = np.empty(6)
+    if p <= 2:
+        K = np.empty((6, m))
+        gain_into(P, H, R, np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), K)
+        gain_step_into(K, y, step)
+        return step
+    R_inverse_H, information = np.empty((p, 3, 6)), np.empty((6, 6))
+    M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
+    information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
+    gradient_into(R_inverse_H, y, g)
+    plain_step_into(AP, g, step)
+    return step
+
+
+@jit
+def prior_quadratic(P, d, M, pivots, b):
+    """d' P^-1 d for d (6,); M (6, 6), pivots (6,) and b (6, 1) scratch."""
+    for c in range(6):
+        b[c, 0] = d[c]
+        for q in range(6):
+            M[c, q] = P[c, q]
+    lu_factor(M, pivots)
+    lu_solve(M, pivots, b)
+    total = 0.0
+    for c in range(6):
+        total += d[c] * b[c, 0]
+    return total
 
 
 @jit
 def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
     """The MAP cost ``d' P^-1 d + r' R^-1 r`` of the posterior x_post: d its correction from the
     prior x, r the residual ``z - h(x_post)``; chi^2 with 3p degrees of freedom at the MAP."""
-    moved = difference(x_post, x)
-    z_hat, _ = observe_pairs(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
-    return moved @ solve(P, moved).ravel() + block_quadratic(z - z_hat, R_inverse)
+    p = z.shape[0]
+    z_hat, H = np.empty((p, 3)), np.empty((p, 3, 6))
+    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H,
+                       np.empty((camera_R.shape[0], 3, 3)))
+    return prior_quadratic(P, difference(x_post, x), np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 1))) \
+        + block_quadratic(z - z_hat, R_inverse)
 
 
 @jit
@@ -195,49 +478,65 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
 
     Returns (x+ (6,), P+ (6, 6), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
     prior)."""
+    p = z.shape[0]
+    m = 3 * p
+    few = p <= 2                                                     # S (3p x 3p) no larger than 6x6
+    # every linearization's scratch, allocated once
+    R_inverse_H, information = np.empty((p, 3, 6)), np.empty((6, 6))
+    M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
+    PHt, S, L, K = np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), np.empty((6, m))
+    z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, 6)), np.empty((p, 3))
+    d_position = np.empty((camera_R.shape[0], 3, 3))
+    delta, step = np.empty(6), np.empty(6)
+
     y_prior = z - z_hat
-    few = z.shape[0] <= 2                                            # S (3p x 3p) no larger than 6x6
-    m = 3 * z.shape[0]
-    K, L, Hs = np.zeros((6, m)), np.zeros((m, m)), np.zeros((m, 6))
-    information, I_P_information = np.zeros((6, 6)), np.eye(6)
     if few:
-        K, S, L, Hs = covariance_gain(P, H, R)
-        v = stacked(y_prior)
-        nis = v @ cho_solve(L, v.reshape(-1, 1)).ravel()               # NIS = y' S^-1 y
-        delta = mv(K, v)
+        gain_into(P, H, R, PHt, S, L, K)
+        nis = stacked_quadratic(L, y_prior, np.empty(m))             # NIS = y' S^-1 y
+        gain_step_into(K, y_prior, delta)
     else:
-        R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H, R_inverse)
-        nis = normalized_innovation(y_prior, R_inverse, R_inverse_H, posterior_plain)
-        delta = mv(posterior_plain, gradient(R_inverse_H, y_prior))   # K y
+        information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
+        gradient_into(R_inverse_H, y_prior, g)
+        nis = block_quadratic(y_prior, R_inverse) - plain_step_into(AP, g, delta)   # K y = A P g
     x_i = retract(x, delta)                                          # x+ = x [+] K y
     if start.size and iterations >= 2:
         x_i, delta = start.copy(), difference(start, x)
+    H_last = H                                                       # the linearization of the gain
     for _ in range(iterations - 1):
-        z_hat_i, H_i = observe_pairs(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+        observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position)
         moved = difference(x_i, x)
-        r = z - z_hat_i
-        for i in range(r.shape[0]):                                  # z - h(x_i) + H_i (x_i [-] x)
+        for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
             for a in range(3):
+                s = z[i, a] - z_hat_i[i, a]
                 for b in range(6):
-                    r[i, a] += H_i[i, a, b] * moved[b]
+                    s += H_i[i, a, b] * moved[b]
+                r[i, a] = s
         if few:
-            K, S, L, Hs = covariance_gain(P, H_i, R)
-            step = mv(K, stacked(r))
+            gain_into(P, H_i, R, PHt, S, L, K)
+            gain_step_into(K, r, step)
         else:
-            R_inverse_H, information, I_P_information, posterior_plain = information_gain(P, H_i, R_inverse)
-            step = mv(posterior_plain, gradient(R_inverse_H, r))
+            information_into(P, H_i, R_inverse, R_inverse_H, information, M, pivots, AP)
+            gradient_into(R_inverse_H, r, g)
+            plain_step_into(AP, g, step)
+        H_last = H_i
         x_i = retract(x, step)
         change = 0.0
         for b in range(6):
             change = max(change, abs(step[b] - delta[b]))
+            delta[b] = step[b]
         if change < CONVERGED:
             break                                                    # the linearization no longer moves
-        delta = step
+    P_post = np.empty((6, 6))
     if few:
-        P_post = covariance_posterior(P, K, Hs, R)
+        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((6, 6)), np.empty((6, 6)))
     else:
-        P_post = posterior_covariance(P, information, I_P_information)
-    cost = posterior_cost(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((6, 6)))
+    # the MAP cost at x+, predicted into the iterations' buffers (H_last is read above)
+    observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position)
+    for i in range(p):
+        for a in range(3):
+            r[i, a] = z[i, a] - z_hat_i[i, a]
+    cost = prior_quadratic(P, difference(x_i, x), M, pivots, np.empty((6, 1))) + block_quadratic(r, R_inverse)
     return x_i, P_post, nis, cost, y_prior
 
 
