@@ -703,11 +703,11 @@ def test_a_pair_is_judged_in_pixels_or_as_a_point_whichever_costs_less(rng):
     scene = _scene(camera_K=INTRINSICS[None].copy(), obs_camera=np.zeros(n, np.int64), z=z, R_assoc=R, point=point,
                    point_cov=point_cov, log_det_R=np.linalg.slogdet(R)[1], log_det_point_cov=np.linalg.slogdet(point_cov)[1])
     y, Hc = np.zeros((n, 3)), np.zeros((n, 3, 6))
-    branches = set()
+    branches, d2_both = set(), []
     for o in range(n):
         q = (o + 1) % n if o % 3 == 0 else o          # some observations against another landmark
         spread_q = sym3.spread(H, q, P)
-        d2, cost, in_point = beam.pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, o)
+        d2, cost, in_point = beam.pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, o, np.inf)
         A = H[q] @ P @ H[q].T
         S_pixels, y_pixels = A + R[o], z[o] - z_hat[q]
         d2_pixels = y_pixels @ np.linalg.solve(S_pixels, y_pixels)
@@ -722,4 +722,17 @@ def test_a_pair_is_judged_in_pixels_or_as_a_point_whichever_costs_less(rng):
         np.testing.assert_allclose(y[o], expected[2], rtol=RTOL, atol=1e-12)
         np.testing.assert_allclose(Hc[o], expected[3], rtol=RTOL, atol=1e-12)
         branches.add(bool(in_point))
+        d2_both.append((d2_pixels, d2_point))
     assert branches == {True, False}                  # both coordinates were chosen somewhere
+    # with a gate, a pair beyond it in both coordinates is rejected unpriced, any other priced as before
+    gate = float(np.median(np.min(d2_both, axis=1)))
+    outcomes = set()
+    for o in range(n):
+        q = (o + 1) % n if o % 3 == 0 else o
+        spread_q = sym3.spread(H, q, P)
+        ungated = beam.pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, o, np.inf)
+        gated = beam.pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, o, gate)
+        beyond = min(d2_both[o]) > gate
+        assert gated == ((np.inf, np.inf, False) if beyond else ungated)
+        outcomes.add(beyond)
+    assert outcomes == {True, False}

@@ -12,13 +12,15 @@ it was explained from a slip's widened prior, and its pairs at this pose (n, cap
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
-from camloc.kernels.camera import camera_pose, observe
+from camloc.kernels.camera import camera_pose, camera_position_jacobian, observe, observe_into
 from camloc.kernels.motion import predict
-from camloc.kernels.rotation import difference
-from camloc.kernels.sym3 import mahalanobis_components, spread
+from camloc.kernels.rotation import difference, euler_rate, euler_to_matrix
+from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import visible
 
@@ -88,27 +90,33 @@ def point_spread(spread_q, j00, j02, j11, j12):
 
 
 @jit
-def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n):
+def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
     """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
     prediction q (z_hat[q] (3,), H[q] (3, 6), ``spread_q`` the upper triangle of H[q] P H[q]'
     (``sym3.spread``): one per prediction, whatever the observation) under P, in the measured
     (u, v, depth) or in the camera-frame point they back-project to, whichever is likelier (a
     point is linear in the robot's position; pixels can fit better where the spread is
     rotation); writes the innovation y[n] (3,) and its Jacobian Hc[n] (3, 6) in the chosen
-    coordinates."""
+    coordinates. (inf, inf, False), nothing written, where d^2 exceeds ``gate`` in both: most
+    pairs a screen lets through, whose logarithms need not be paid for."""
     K = scene.camera_K[scene.obs_camera[o]]
     p0, p1, p2, j00, j02, j11, j12 = as_point(z_hat, q, K)
     a00, a01, a02, a11, a12, a22 = spread_q                                # H P H'
-    R, C = scene.R_assoc[o], scene.point_cov[o]
-    d2_pixels, log_det_pixels = mahalanobis_components(
-        a00 + R[0, 0], a01 + R[0, 1], a02 + R[0, 2], a11 + R[1, 1], a12 + R[1, 2], a22 + R[2, 2],
+    R, C = scene.R_assoc, scene.point_cov
+    quadratic_pixels, det_pixels = quadratic_and_det(
+        a00 + R[o, 0, 0], a01 + R[o, 0, 1], a02 + R[o, 0, 2], a11 + R[o, 1, 1], a12 + R[o, 1, 2], a22 + R[o, 2, 2],
         scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], scene.z[o, 2] - z_hat[q, 2])
     b00, b01, b02, b11, b12, b22 = point_spread(spread_q, j00, j02, j11, j12)
     p0, p1, p2 = scene.point[o, 0] - p0, scene.point[o, 1] - p1, scene.point[o, 2] - p2
-    d2_point, log_det_point = mahalanobis_components(
-        b00 + C[0, 0], b01 + C[0, 1], b02 + C[0, 2], b11 + C[1, 1], b12 + C[1, 2], b22 + C[2, 2], p0, p1, p2)
-    cost_pixels = d2_pixels + log_det_pixels - scene.log_det_R[o]
-    cost_point = d2_point + log_det_point - scene.log_det_point_cov[o]
+    quadratic_point, det_point = quadratic_and_det(
+        b00 + C[o, 0, 0], b01 + C[o, 0, 1], b02 + C[o, 0, 2], b11 + C[o, 1, 1], b12 + C[o, 1, 2], b22 + C[o, 2, 2], p0, p1, p2)
+    # as sym3.mahalanobis_components: a spread rounding left without a positive determinant fits nothing
+    d2_pixels = quadratic_pixels / det_pixels if det_pixels > 0.0 else np.inf
+    d2_point = quadratic_point / det_point if det_point > 0.0 else np.inf
+    if not (d2_pixels <= gate or d2_point <= gate):
+        return np.inf, np.inf, False
+    cost_pixels = d2_pixels + math.log(det_pixels) - scene.log_det_R[o] if det_pixels > 0.0 else np.inf
+    cost_point = d2_point + math.log(det_point) - scene.log_det_point_cov[o] if det_point > 0.0 else np.inf
     if cost_point < cost_pixels:
         y[n, 0], y[n, 1], y[n, 2] = p0, p1, p2
         for i in range(6):
@@ -145,15 +153,18 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     z_hat, H = np.empty((total, 3)), np.empty((total, 3, 6))
     p_hat, spread_pixels, spread_point = np.empty((total, 3)), np.empty(total), np.empty(total)
     spreads = np.empty((total, 6))
+    R, E, t = euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
+    d_position = np.empty((3, 3))
     at = 0
     for g in range(cameras.size):
         c, f = cameras[g], found[g]
-        zc, Hc = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[f])
-        K = scene.camera_K[c]
+        R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
+        camera_position_jacobian(R, R_rc, d_position)
         for q in range(f.size):
-            cand[at], cand_camera[at], z_hat[at], H[at] = f[q], c, zc[q], Hc[q]
-            p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(zc, q, K)
-            spread_q = spread(Hc, q, P)
+            cand[at], cand_camera[at] = f[q], c
+            observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f[q], z_hat, H, at, d_position)
+            p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(z_hat, at, K)
+            spread_q = spread(H, at, P)
             spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
             # the screen's bound on every pair with this prediction: the traces of its spreads
             b00, _, _, b11, _, b22 = point_spread(spread_q, j00, j02, j11, j12)
@@ -179,7 +190,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
                 e_point += (scene.point[o, a] - p_hat[q, a]) ** 2
             if e_pixels > pool_gate * (spread_pixels[q] + tr_R) and e_point > pool_gate * (spread_point[q] + tr_point):
                 continue
-            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread_row(spreads, q), ys, Hcs, n)
+            d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread_row(spreads, q), ys, Hcs, n, pool_gate)
             if not d2 <= pool_gate:
                 continue
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
@@ -214,7 +225,7 @@ def condition(scene, settings, x, P, o, pool, taken):
     ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6))
     z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[pool])
     for q in range(g):
-        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread(H, q, P), ys, Hcs, q)
+        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread(H, q, P), ys, Hcs, q, settings.gate)
         cost[q] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
         in_point[q] = point
     return cost, z_hat, H, ys, Hcs, in_point

@@ -62,7 +62,8 @@ def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     R = euler_to_matrix(x[3], x[4], x[5])
     E = euler_rate(x[3], x[4])
     t = x[0:3].copy()
-    d_position = -mm(R_rc.T, R.T)
+    d_position = np.empty((3, 3))
+    camera_position_jacobian(R, R_rc, d_position)
     m = landmark_xyz.shape[0]
     z_hat = np.empty((m, 3))
     H = np.empty((m, 3, 6))
@@ -90,15 +91,22 @@ def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_
     E = euler_rate(x[3], x[4])
     t = x[0:3].copy()
     for c in range(camera_R.shape[0]):
-        for a in range(3):                                   # -R_rc' R'
-            for b in range(3):
-                s = 0.0
-                for q in range(3):
-                    s += camera_R[c, q, a] * R[b, q]
-                d_position[c, a, b] = -s
+        camera_position_jacobian(R, camera_R[c], d_position[c])
     for i in range(landmark_xyz.shape[0]):
         c = pair_camera[i]
         observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c])
+
+
+@jit
+def camera_position_jacobian(R, R_rc, d_position):
+    """d_position (3, 3) = -R_rc' R', the derivative of the camera-frame point by the robot's
+    position (rotation R) for a camera mounted with rotation R_rc."""
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for q in range(3):
+                s += R_rc[q, a] * R[b, q]
+            d_position[a, b] = -s
 
 
 @jit

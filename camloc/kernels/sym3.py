@@ -63,19 +63,23 @@ def log_det(S):
 
 @jit
 def spread(H, i, P):
-    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6)."""
+    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6):
+    a column of H[i] P at a time, then its products with H[i]'s rows (144 products, not 324)."""
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    for k in range(6):
-        for j in range(6):
-            p = P[k, j]
-            h0, h1, h2 = H[i, 0, j], H[i, 1, j], H[i, 2, j]
-            g0, g1, g2 = H[i, 0, k] * p, H[i, 1, k] * p, H[i, 2, k] * p
-            a00 += g0 * h0
-            a01 += g0 * h1
-            a02 += g0 * h2
-            a11 += g1 * h1
-            a12 += g1 * h2
-            a22 += g2 * h2
+    for c in range(6):
+        g0 = g1 = g2 = 0.0
+        for k in range(6):
+            p = P[k, c]
+            g0 += H[i, 0, k] * p
+            g1 += H[i, 1, k] * p
+            g2 += H[i, 2, k] * p
+        h0, h1, h2 = H[i, 0, c], H[i, 1, c], H[i, 2, c]
+        a00 += g0 * h0
+        a01 += g0 * h1
+        a02 += g0 * h2
+        a11 += g1 * h1
+        a12 += g1 * h2
+        a22 += g2 * h2
     return a00, a01, a02, a11, a12, a22
 
 
