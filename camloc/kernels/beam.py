@@ -35,11 +35,22 @@ def new_generation(n, cap):
 
 
 @jit
+def put_state(gen, j, x, P):
+    """Hypothesis j's state x (6,) and covariance P (6, 6). Entry by entry, as the copies below:
+    numpy's row assignment compiles to general broadcasting code in every kernel that copies."""
+    for a in range(6):
+        gen[0][j, a] = x[a]
+        for b in range(6):
+            gen[1][j, a, b] = P[a, b]
+
+
+@jit
 def copy_hypothesis(src, i, dst, j):
     """dst[j] = src[i], every field."""
-    dst[0][j], dst[1][j], dst[2][j], dst[3][j] = src[0][i], src[1][i], src[2][i], src[3][i]
-    dst[4][j], dst[5][j], dst[6][j] = src[4][i], src[5][i], src[6][i]
-    dst[7][j, :src[6][i]] = src[7][i, :src[6][i]]
+    put_state(dst, j, src[0][i], src[1][i])
+    dst[2][j], dst[3][j], dst[4][j], dst[5][j], dst[6][j] = src[2][i], src[3][i], src[4][i], src[5][i], src[6][i]
+    for q in range(src[6][i]):
+        dst[7][j, q, 0], dst[7][j, q, 1] = src[7][i, q, 0], src[7][i, q, 1]
 
 
 @jit
@@ -48,7 +59,8 @@ def carry(gen, indices):
     pairs are in the history)."""
     out = new_generation(indices.size, 1)
     for j in range(indices.size):
-        out[0][j], out[1][j], out[2][j] = gen[0][indices[j]], gen[1][indices[j]], gen[2][indices[j]]
+        put_state(out, j, gen[0][indices[j]], gen[1][indices[j]])
+        out[2][j] = gen[2][indices[j]]
     return out
 
 
@@ -194,7 +206,10 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             if not d2 <= pool_gate:
                 continue
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
-            zh[n], Hs[n] = z_hat[q], H[q]
+            for a in range(3):
+                zh[n, a] = z_hat[q, a]
+                for b in range(6):
+                    Hs[n, a, b] = H[q, a, b]
             n += 1
         start[r + 1] = n
     return start, lm[:n].copy(), cost[:n].copy(), zh[:n].copy(), Hs[:n].copy(), ys[:n].copy(), Hcs[:n].copy(), in_point[:n].copy()
@@ -305,10 +320,11 @@ def after_clear(scene, settings, gen, h, obs, cap):
                                    scene.R_assoc_inverse, no_start)[:2]
             R, R_inverse = np.empty((taken.size, 3, 3)), np.empty((taken.size, 3, 3))
             for t in range(taken.size):
-                if in_point[options[t]]:
-                    R[t], R_inverse[t] = scene.point_cov[o[t]], scene.point_cov_inverse[o[t]]
-                else:
-                    R[t], R_inverse[t] = scene.R_assoc[o[t]], scene.R_assoc_inverse[o[t]]
+                point = in_point[options[t]]
+                for a in range(3):
+                    for b in range(3):
+                        R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
+                        R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
             # the joint cost of the pairs, each in the coordinates its option chose, at the prior
             child[2][0] += innovation_cost(P, Hcs[options], R, R_inverse, ys[options])
             for t in range(taken.size):
@@ -321,7 +337,7 @@ def after_clear(scene, settings, gen, h, obs, cap):
                 part = slice(start[i], start[i + 1])
                 cost[part], zh[part], Hs[part], ys[part], Hcs[part], in_point[part] = condition(
                     scene, settings, x, P, obs[i], lm[part], taken_by(child, 0))
-    child[0][0], child[1][0] = x, P
+    put_state(child, 0, x, P)
     counts = np.empty(pending.size, np.int64)
     for k in range(pending.size):
         counts[k] = np.isfinite(cost[start[pending[k]]:start[pending[k] + 1]]).sum()
@@ -354,7 +370,7 @@ def settle(scene, settings, gen, c, parents, pending):
     p = source[c]
     x, P = updated(scene, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
                    z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
-    gen[0][c], gen[1][c] = x, P
+    put_state(gen, c, x, P)
     waiting[c] = False
 
 
@@ -537,7 +553,11 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, rest, children, at, c
         children[6][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, True
         pending[0][at], pending[1][at], pending[2][at] = p, o, landmarks[j]
-        pending[3][at], pending[4][at], pending[5][at] = z_hat[j], H[j], True
+        for a in range(3):
+            pending[3][at, a] = z_hat[j, a]
+            for b in range(6):
+                pending[4][at, a, b] = H[j, a, b]
+        pending[5][at] = True
         at += 1
     return at
 
@@ -551,7 +571,8 @@ def predicted(scene, beam, n, k):
     each remembering which it grew from, no pairs yet."""
     out = new_generation(n, 1)
     for h in range(n):
-        out[0][h], out[1][h] = predict(beam[0][h], beam[1][h], scene.T_increment[k - 1], scene.odom_cov[k - 1])
+        x, P = predict(beam[0][h], beam[1][h], scene.T_increment[k - 1], scene.odom_cov[k - 1])
+        put_state(out, h, x, P)
         out[2][h], out[3][h] = beam[2][h], h
     return out
 
@@ -571,7 +592,8 @@ def commit(history, k, gen, kept):
         h = kept[q]
         parent[k, q], slipped[k, q] = gen[3][h], gen[5][h]
         pair_start[k, q] = used[0]
-        pairs[used[0]:used[0] + gen[6][h]] = gen[7][h, :gen[6][h]]
+        for i in range(gen[6][h]):
+            pairs[used[0] + i, 0], pairs[used[0] + i, 1] = gen[7][h, i, 0], gen[7][h, i, 1]
         used[0] += gen[6][h]
         pair_start[k, q + 1] = used[0]
     return True

@@ -12,35 +12,65 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.rotation import euler_rate, euler_rate_inverse, euler_to_matrix, hat, matrix_to_euler
-from camloc.kernels.small import mm, mtm, mv
+from camloc.kernels.rotation import euler_rate, euler_rate_inverse, euler_to_matrix, matrix_to_euler
 
 
 @jit
 def motion(x, T_increment):
-    """(x' (6,), F (6, 6), G (6, 6)) of the Euler state x composed with T_increment (4, 4)."""
+    """(x' (6,), F (6, 6), G (6, 6)) of the Euler state x composed with T_increment (4, 4).
+    Written as loops over entries: numpy's block assignments and products compile to much more
+    code than this arithmetic, in every kernel that predicts."""
     R = euler_to_matrix(x[3], x[4], x[5])
-    dR = np.ascontiguousarray(T_increment[:3, :3])
-    dt = np.ascontiguousarray(T_increment[:3, 3])
-    R_next = mm(R, dR)
+    R_next = np.empty((3, 3))                         # R dR
+    for a in range(3):
+        for b in range(3):
+            R_next[a, b] = R[a, 0] * T_increment[0, b] + R[a, 1] * T_increment[1, b] + R[a, 2] * T_increment[2, b]
     rpy_next = matrix_to_euler(R_next)
     x_next = np.empty(6)
-    x_next[0:3] = x[0:3] + mv(R, dt)
-    x_next[3:6] = rpy_next
+    for a in range(3):                                # t' = t + R dt
+        x_next[a] = x[a] + R[a, 0] * T_increment[0, 3] + R[a, 1] * T_increment[1, 3] + R[a, 2] * T_increment[2, 3]
+        x_next[3 + a] = rpy_next[a]
     E = euler_rate(x[3], x[4])
     E_next_inverse = euler_rate_inverse(rpy_next[0], rpy_next[1])
-    F = np.eye(6)
-    F[0:3, 3:6] = -mm(mm(R, hat(dt)), E)              # a body rotation E d of R moves t' by -R [dt]x E d
-    F[3:6, 3:6] = mm(E_next_inverse, mtm(dR, E))      # R Exp(E d) dR = R' Exp(dR' E d)
+    d0, d1, d2 = T_increment[0, 3], T_increment[1, 3], T_increment[2, 3]
+    F = np.zeros((6, 6))
     G = np.zeros((6, 6))
-    G[0:3, 0:3] = R_next                              # t' = t + R dt + R dR w_t
-    G[3:6, 3:6] = E_next_inverse                      # R' Exp(w_theta)
+    for a in range(3):
+        F[a, a] = 1.0
+        # R [dt]x, row a: a body rotation E d of R moves t' by -R [dt]x E d
+        m0 = R[a, 1] * d2 - R[a, 2] * d1
+        m1 = R[a, 2] * d0 - R[a, 0] * d2
+        m2 = R[a, 0] * d1 - R[a, 1] * d0
+        for b in range(3):
+            F[a, 3 + b] = -(m0 * E[0, b] + m1 * E[1, b] + m2 * E[2, b])
+            # R Exp(E d) dR = R' Exp(dR' E d): E'^-1 dR' E
+            s = 0.0
+            for q in range(3):
+                s += E_next_inverse[a, q] * (T_increment[0, q] * E[0, b] + T_increment[1, q] * E[1, b] + T_increment[2, q] * E[2, b])
+            F[3 + a, 3 + b] = s
+            G[a, b] = R_next[a, b]                    # t' = t + R dt + R dR w_t
+            G[3 + a, 3 + b] = E_next_inverse[a, b]    # R' Exp(w_theta)
     return x_next, F, G
 
 
 @jit
 def predict(x, P, T_increment, Q):
-    """(x', P'): ``x' = f(x, dT)``, ``P' = F P F' + G Q G'`` (symmetrized)."""
+    """(x', P'): ``x' = f(x, dT)``, ``P' = F P F' + G Q G'`` (symmetric: its upper triangle mirrored)."""
     x_next, F, G = motion(x, T_increment)
-    P_next = mm(mm(F, P), F.T) + mm(mm(G, Q), G.T)
-    return x_next, 0.5 * (P_next + P_next.T)
+    FP, GQ = np.empty((6, 6)), np.empty((6, 6))
+    for a in range(6):
+        for b in range(6):
+            s = t = 0.0
+            for q in range(6):
+                s += F[a, q] * P[q, b]
+                t += G[a, q] * Q[q, b]
+            FP[a, b], GQ[a, b] = s, t
+    P_next = np.empty((6, 6))
+    for a in range(6):
+        for b in range(a, 6):
+            s = 0.0
+            for q in range(6):
+                s += FP[a, q] * F[b, q] + GQ[a, q] * G[b, q]
+            P_next[a, b] = s
+            P_next[b, a] = s
+    return x_next, P_next

@@ -75,7 +75,9 @@ def wrap_angle(a):
 @jit
 def retract(x, delta):
     """The Euler state x (6,) moved by the error delta (6,): ``x + delta``, roll and yaw wrapped."""
-    out = x + delta
+    out = np.empty(6)
+    for i in range(6):
+        out[i] = x[i] + delta[i]
     out[3] = wrap_angle(out[3])
     out[5] = wrap_angle(out[5])
     return out
@@ -84,7 +86,7 @@ def retract(x, delta):
 @jit
 def difference(a, b):
     """The error (6,) from b to a: ``a - b`` with the three angle differences wrapped."""
-    d = a - b
-    for i in range(3, 6):
-        d[i] = wrap_angle(d[i])
+    d = np.empty(6)
+    for i in range(6):
+        d[i] = a[i] - b[i] if i < 3 else wrap_angle(a[i] - b[i])
     return d

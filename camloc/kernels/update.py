@@ -576,10 +576,12 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     landmark_xyz = np.empty((p, 3))
     pair_camera = np.empty(p, np.int64)
     for i in range(p):
-        z[i] = scene.z[obs[i]]
-        R[i], R_inverse[i] = noise[obs[i]], noise_inverse[obs[i]]
-        landmark_xyz[i] = scene.landmark_xyz[landmarks[i]]
-        pair_camera[i] = scene.obs_camera[obs[i]]
+        o = obs[i]
+        for a in range(3):
+            z[i, a], landmark_xyz[i, a] = scene.z[o, a], scene.landmark_xyz[landmarks[i], a]
+            for b in range(3):
+                R[i, a, b], R_inverse[i, a, b] = noise[o, a, b], noise_inverse[o, a, b]
+        pair_camera[i] = scene.obs_camera[o]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = np.empty(0)
     best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)
