@@ -287,6 +287,13 @@ def test_observing_pairs_is_observing_each_through_its_own_camera(rng):
     np.testing.assert_allclose(H, numeric, rtol=1e-6, atol=1e-6)
 
 
+def test_the_cameras_of_observations_are_numpy_unique_of_their_cameras(rng):
+    obs_camera = rng.integers(0, 5, 40).astype(np.int64)
+    for size in (0, 1, 7, 40):
+        obs = rng.choice(40, size, replace=False).astype(np.int64)
+        np.testing.assert_array_equal(camera.cameras_of(obs_camera, obs, 5), np.unique(obs_camera[obs]))
+
+
 def test_back_projection_inverts_the_projection_with_its_jacobian(rng):
     p_camera = np.column_stack([rng.uniform(-1, 1, (6, 2)), rng.uniform(0.5, 4.0, 6)])
     uvd = models.project_points(p_camera, tuple(INTRINSICS))

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
-from camloc.kernels.camera import camera_pose, camera_position_jacobian, observe, observe_into
+from camloc.kernels.camera import camera_pose, cameras_of, camera_position_jacobian, observe, observe_into
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference, euler_rate, euler_to_matrix
 from camloc.kernels.sym3 import quadratic_and_det, spread
@@ -152,7 +152,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``)."""
     m = obs.size
     pool_gate = settings.pool_gate_factor * settings.gate
-    cameras = np.unique(scene.obs_camera[obs])
+    cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     # every camera's candidates, their predictions and spreads, concatenated
     found = []
     for c in cameras:
@@ -163,7 +163,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
         total += f.size
     cand, cand_camera = np.empty(total, np.int64), np.empty(total, np.int64)
     z_hat, H = np.empty((total, 3)), np.empty((total, 3, 6))
-    p_hat, spread_pixels, spread_point = np.empty((total, 3)), np.empty(total), np.empty(total)
+    p_hat, diagonal_pixels, diagonal_point = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
     spreads = np.empty((total, 6))
     R, E, t = euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
     d_position = np.empty((3, 3))
@@ -178,9 +178,10 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(z_hat, at, K)
             spread_q = spread(H, at, P)
             spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
-            # the screen's bound on every pair with this prediction: the traces of its spreads
+            # the screen's bound on every pair with this prediction: the diagonals of its spreads
             b00, _, _, b11, _, b22 = point_spread(spread_q, j00, j02, j11, j12)
-            spread_pixels[at], spread_point[at] = spread_q[0] + spread_q[3] + spread_q[5], b00 + b11 + b22
+            diagonal_pixels[at, 0], diagonal_pixels[at, 1], diagonal_pixels[at, 2] = spread_q[0], spread_q[3], spread_q[5]
+            diagonal_point[at, 0], diagonal_point[at, 1], diagonal_point[at, 2] = b00, b11, b22
             at += 1
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
@@ -190,17 +191,18 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     for r in range(m):
         o = obs[r]
         c = scene.obs_camera[o]
-        tr_R = scene.R_assoc[o, 0, 0] + scene.R_assoc[o, 1, 1] + scene.R_assoc[o, 2, 2]
-        tr_point = scene.point_cov[o, 0, 0] + scene.point_cov[o, 1, 1] + scene.point_cov[o, 2, 2]
         for q in range(total):
             if cand_camera[q] != c:
                 continue
-            # y' S^-1 y >= |y|^2 / trace S: most of a dense view's pairs are surely beyond the pool
-            e_pixels = e_point = 0.0
+            # y' S^-1 y >= y_a^2 / S_aa on every axis a: most of a dense view's pairs are surely
+            # beyond the pool on one axis in both coordinates (depth, often)
+            beyond_pixels = beyond_point = False
             for a in range(3):
-                e_pixels += (scene.z[o, a] - z_hat[q, a]) ** 2
-                e_point += (scene.point[o, a] - p_hat[q, a]) ** 2
-            if e_pixels > pool_gate * (spread_pixels[q] + tr_R) and e_point > pool_gate * (spread_point[q] + tr_point):
+                e = scene.z[o, a] - z_hat[q, a]
+                beyond_pixels |= e * e > pool_gate * (diagonal_pixels[q, a] + scene.R_assoc[o, a, a])
+                e = scene.point[o, a] - p_hat[q, a]
+                beyond_point |= e * e > pool_gate * (diagonal_point[q, a] + scene.point_cov[o, a, a])
+            if beyond_pixels and beyond_point:
                 continue
             d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread_row(spreads, q), ys, Hcs, n, pool_gate)
             if not d2 <= pool_gate:

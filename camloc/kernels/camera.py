@@ -110,6 +110,22 @@ def camera_position_jacobian(R, R_rc, d_position):
 
 
 @jit
+def cameras_of(obs_camera, obs, n_cameras):
+    """The cameras (ascending) that made the observations obs: np.unique of their cameras, by a
+    table of the few cameras rather than a sort (whose code every caller would link)."""
+    seen = np.zeros(n_cameras, np.bool_)
+    for o in obs:
+        seen[obs_camera[o]] = True
+    out = np.empty(seen.sum(), np.int64)
+    count = 0
+    for c in range(n_cameras):
+        if seen[c]:
+            out[count] = c
+            count += 1
+    return out
+
+
+@jit
 def back_project(z, intrinsics):
     """A measurement (3,) of u, v, depth as a camera-frame point p (3,), and d p / d z (3, 3)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]

@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.camera import camera_pose, observe, observe_pairs
+from camloc.kernels.camera import camera_pose, cameras_of, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
 from camloc.kernels.small import check_covariance, mm, mtm, solve
@@ -46,7 +46,7 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     alternative and more than ``recheck_steal_margin`` over a rival taking their landmark, each
     observation of the pose (obs (m,)) judged by the posterior of the other pairs."""
     keep = np.ones(pair_obs.size, np.bool_)
-    cameras = np.unique(scene.obs_camera[obs])
+    cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     information = np.zeros((cameras.size, 6, 6))
     groups = []
     for g in range(cameras.size):
