@@ -117,7 +117,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     crowded = np.argsort(-agreement, kind="stable")[: SLIP_CANDIDATES // 4]
     crowded = crowded[agreement[crowded] >= 3]
     candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])
-    pair_in_point = in_point[gated]
+    pair_in_point, pair_z_hat, pair_H = in_point[gated], z_hat[gated], H[gated]
     o = obs[pair_obs]
     noise = np.where(pair_in_point[:, None, None], scene.point_cov[o], scene.R_assoc[o])
     ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
@@ -126,8 +126,8 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
         i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
         seeded = kb.gather(h, np.array([0]), 1 + obs.size)
-        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), z_hat[gated][seed:seed + 1],
-                                             H[gated][seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
+        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
+                                             pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1
