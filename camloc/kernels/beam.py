@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
-from camloc.kernels.camera import camera_pose, cameras_of, camera_position_jacobian, observe, observe_into
+from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference, euler_rate, euler_to_matrix
 from camloc.kernels.sym3 import quadratic_and_det, spread
@@ -230,21 +230,33 @@ def is_taken(landmark, taken):
     return False
 
 
-@inlined
-def condition(scene, settings, x, P, o, pool, taken):
+@jit
+def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, at):
     """The options of observation o over its pool (g,) under a hypothesis (x, P) conditioned on
-    some of the pose's pairs, less the landmarks it has taken: (cost, z_hat, H, y, Hc, in_point).
-    The pool is kept; its predictions are made again (moving the old ones to first order is not
-    enough: a pair's correction moves a landmark a metre away by pixels more than that)."""
-    g = pool.size
+    some of the pose's pairs, less the landmarks it has taken, written into rows at..at + g - 1 of
+    cost, z_hat, H, ys, Hcs and in_point. The pool is kept; its predictions are made again (moving
+    the old ones to first order is not enough: a pair's correction moves a landmark a metre away
+    by pixels more than that)."""
     c = scene.obs_camera[o]
+    R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
+    R, E, t = euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
+    d_position = np.empty((3, 3))
+    camera_position_jacobian(R, R_rc, d_position)
+    for q in range(pool.size):
+        r = at + q
+        observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool[q], z_hat, H, r, d_position)
+        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, settings.gate)
+        cost[r] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
+        in_point[r] = point
+
+
+@jit
+def condition(scene, settings, x, P, o, pool, taken):
+    """``condition_into`` with fresh arrays: (cost, z_hat, H, y, Hc, in_point) of the pool's g landmarks."""
+    g = pool.size
     cost, in_point = np.empty(g), np.empty(g, np.bool_)
-    ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6))
-    z_hat, H = observe(x, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[pool])
-    for q in range(g):
-        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread(H, q, P), ys, Hcs, q, settings.gate)
-        cost[q] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
-        in_point[q] = point
+    z_hat, H, ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6)), np.empty((g, 3)), np.empty((g, 3, 6))
+    condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, 0)
     return cost, z_hat, H, ys, Hcs, in_point
 
 
@@ -336,9 +348,8 @@ def after_clear(scene, settings, gen, h, obs, cap):
         pending = pending[~clear]
         for i in pending:
             if start[i + 1] > start[i]:
-                part = slice(start[i], start[i + 1])
-                cost[part], zh[part], Hs[part], ys[part], Hcs[part], in_point[part] = condition(
-                    scene, settings, x, P, obs[i], lm[part], taken_by(child, 0))
+                condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, 0), cost, zh, Hs, ys, Hcs,
+                               in_point, start[i])
     put_state(child, 0, x, P)
     counts = np.empty(pending.size, np.int64)
     for k in range(pending.size):
