@@ -315,45 +315,70 @@ def after_clear(scene, settings, gen, h, obs, cap):
     child = new_generation(1, cap)
     copy_hypothesis(gen, h, child, 0)
     x, P = gen[0][h].copy(), gen[1][h].copy()
-    pending = np.arange(obs.size)
+    pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
+    n_pending = obs.size
     no_start = np.empty(0)                       # ``updated``'s start: none
-    while pending.size:
-        choice = clear_choices(settings, scene.null_cost[obs[pending]], start, lm, cost, pending)
-        clear = choice != AMBIGUOUS
-        if not clear.any():
+    while n_pending:
+        positions = pending[:n_pending]
+        null_cost = np.empty(n_pending)
+        for k in range(n_pending):
+            null_cost[k] = scene.null_cost[obs[positions[k]]]
+        choice = clear_choices(settings, null_cost, start, lm, cost, positions)
+        n_taken, n_clear = 0, 0
+        for k in range(n_pending):
+            n_taken += choice[k] >= 0
+            n_clear += choice[k] != AMBIGUOUS
+        if n_clear == 0:
             break
-        taken = pending[choice >= 0]
-        options = choice[choice >= 0]
-        for k in range(pending.size):
+        # the clear ones leave: unassigned, or taken in one stacked update; the others stay, in order
+        options, o = np.empty(n_taken, np.int64), np.empty(n_taken, np.int64)
+        t = rest = 0
+        for k in range(n_pending):
             if choice[k] == UNASSIGNED:
-                child[2][0] += scene.null_cost[obs[pending[k]]]
+                child[2][0] += null_cost[k]
                 child[4][0] += 1
-        if taken.size:
-            o, landmarks = obs[taken], lm[options]
-            x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, zh[options], Hs[options], scene.R_assoc,
-                                   scene.R_assoc_inverse, no_start)[:2]
-            R, R_inverse = np.empty((taken.size, 3, 3)), np.empty((taken.size, 3, 3))
-            for t in range(taken.size):
-                point = in_point[options[t]]
+            elif choice[k] >= 0:
+                options[t], o[t] = choice[k], obs[positions[k]]
+                t += 1
+            else:
+                pending[rest] = positions[k]     # rest <= k: positions[k] is read before its slot is reused
+                rest += 1
+        n_pending = rest
+        if n_taken:
+            landmarks = np.empty(n_taken, np.int64)
+            z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, 6)), np.empty((n_taken, 3)), np.empty((n_taken, 3, 6))
+            R, R_inverse = np.empty((n_taken, 3, 3)), np.empty((n_taken, 3, 3))
+            for t in range(n_taken):
+                j = options[t]
+                landmarks[t] = lm[j]
+                point = in_point[j]
                 for a in range(3):
+                    z_hat[t, a], y[t, a] = zh[j, a], ys[j, a]
+                    for b in range(6):
+                        H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
                     for b in range(3):
                         R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                         R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
+            x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
+                                   no_start)[:2]
             # the joint cost of the pairs, each in the coordinates its option chose, at the prior
-            child[2][0] += innovation_cost(P, Hcs[options], R, R_inverse, ys[options])
-            for t in range(taken.size):
+            child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
+            for t in range(n_taken):
                 child[7][0, child[6][0], 0], child[7][0, child[6][0], 1] = o[t], landmarks[t]
                 child[6][0] += 1
             x, P = x_new, P_new
-        pending = pending[~clear]
-        for i in pending:
+        for k in range(n_pending):
+            i = pending[k]
             if start[i + 1] > start[i]:
                 condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, 0), cost, zh, Hs, ys, Hcs,
                                in_point, start[i])
+    pending = pending[:n_pending]
     put_state(child, 0, x, P)
     counts = np.empty(pending.size, np.int64)
     for k in range(pending.size):
-        counts[k] = np.isfinite(cost[start[pending[k]]:start[pending[k] + 1]]).sum()
+        counts[k] = 0
+        for j in range(start[pending[k]], start[pending[k] + 1]):
+            counts[k] += np.isfinite(cost[j])
     order = pending[np.argsort(counts, kind="mergesort")]
     least = np.zeros(obs.size)
     for i in order:
