@@ -364,22 +364,43 @@ def test_cholesky_factor_and_stacked_quadratic(rng, m):
         update.cholesky_into(S, L)
 
 
+def _gain_kernel(P, H, R):
+    """update.gain_into with fresh arrays: (K (6, 3p), S (3p, 3p), L)."""
+    m = 3 * H.shape[0]
+    PHt, S, L, K = np.empty((6, m)), np.empty((m, m)), np.full((m, m), np.nan), np.empty((6, m))
+    update.gain_into(P, H, R, PHt, S, L, K)
+    return K, S, L
+
+
+def _information_kernel(P, H, R_inverse):
+    """update.information_into with fresh arrays: (R^-1 H, Lambda, (M, pivots) the factors of
+    I + P Lambda, A P)."""
+    R_inverse_H, information, AP = np.empty(H.shape), np.empty((6, 6)), np.empty((6, 6))
+    M, pivots = np.empty((6, 6)), np.empty(6, np.int64)
+    update.information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
+    return R_inverse_H, information, M, pivots, AP
+
+
 @pytest.mark.parametrize("p", [1, 2])
 def test_kalman_gain_is_p_h_transpose_s_inverse(rng, p):
     H, R, _, _ = _pairs(rng, p)
     P = _random_spd(rng, 6, 0.2)
-    K, S, L, Hs = update.covariance_gain(P, H, R)
-    ref_S, ref_K, ref_Hs = _textbook(P, H, R)
-    np.testing.assert_array_equal(Hs, ref_Hs)
+    K, S, L = _gain_kernel(P, H, R)
+    ref_S, ref_K, _ = _textbook(P, H, R)
     np.testing.assert_allclose(S, ref_S, rtol=RTOL, atol=1e-14)
+    np.testing.assert_array_equal(S, S.T)
     np.testing.assert_allclose(K, ref_K, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(L @ L.T, ref_S, rtol=RTOL, atol=1e-14)
     np.testing.assert_array_equal(L, np.tril(L))
 
 
 def test_cholesky_solve_is_s_inverse_b(rng):
-    S, B = _random_spd(rng, 9), rng.normal(size=(9, 2))
-    np.testing.assert_allclose(update.cho_solve(np.linalg.cholesky(S), B), np.linalg.solve(S, B), rtol=RTOL, atol=1e-14)
+    S, b = _random_spd(rng, 9), rng.normal(size=9)
+    L = np.empty((9, 9))
+    update.cholesky_into(S, L)
+    got = b.copy()
+    update.cho_solve_into(L, got)
+    np.testing.assert_allclose(got, np.linalg.solve(S, b), rtol=RTOL, atol=1e-14)
 
 
 def test_joseph_posterior_is_its_formula_for_any_gain_and_p_minus_k_s_k_transpose_for_the_optimal_one(rng):
@@ -388,11 +409,17 @@ def test_joseph_posterior_is_its_formula_for_any_gain_and_p_minus_k_s_k_transpos
     S, K_optimal, Hs = _textbook(P, H, R)
     R_full = ekf.block_diagonal(R)
     K_any = np.ascontiguousarray(K_optimal + rng.normal(0, 0.05, K_optimal.shape))
+
+    def joseph(K):
+        out = np.empty((6, 6))
+        update.covariance_posterior_into(P, np.ascontiguousarray(K), H, R, out, np.empty((6, 6)), np.empty((6, 6)))
+        return out
+
     I_KH = np.eye(6) - K_any @ Hs
-    np.testing.assert_allclose(update.covariance_posterior(P, K_any, Hs, R), I_KH @ P @ I_KH.T + K_any @ R_full @ K_any.T,
-                               rtol=RTOL, atol=1e-14)
-    got = update.covariance_posterior(P, np.ascontiguousarray(K_optimal), Hs, R)
+    np.testing.assert_allclose(joseph(K_any), I_KH @ P @ I_KH.T + K_any @ R_full @ K_any.T, rtol=RTOL, atol=1e-14)
+    got = joseph(K_optimal)
     np.testing.assert_allclose(got, P - K_optimal @ S @ K_optimal.T, rtol=RTOL, atol=1e-13)
+    np.testing.assert_array_equal(got, got.T)
 
 
 def _information(P, H, R_inverse):
@@ -403,29 +430,41 @@ def _information(P, H, R_inverse):
 
 
 @pytest.mark.parametrize("p", [3, 7])
-def test_information_gain_gives_the_covariance_form_posterior(rng, p):
+def test_information_step_gives_the_covariance_form_posterior(rng, p):
     H, R, R_inverse, _ = _pairs(rng, p)
     P = _random_spd(rng, 6, 0.2)
-    R_inverse_H, information, I_P_information, posterior_plain = update.information_gain(P, H, R_inverse)
+    R_inverse_H, information, M, pivots, posterior_plain = _information_kernel(P, H, R_inverse)
     ref_R_inverse_H, ref_information, ref_I_P_information = _information(P, H, R_inverse)
     np.testing.assert_allclose(R_inverse_H, ref_R_inverse_H, rtol=RTOL, atol=1e-14)
     np.testing.assert_allclose(information, ref_information, rtol=RTOL, atol=1e-13)
-    np.testing.assert_allclose(I_P_information, ref_I_P_information, rtol=RTOL, atol=1e-13)
+    B = rng.normal(size=(6, 2))                        # (M, pivots) factor I + P Lambda
+    X = B.copy()
+    update.lu_solve(M, pivots, X)
+    np.testing.assert_allclose(X, np.linalg.solve(ref_I_P_information, B), rtol=RTOL, atol=1e-13)
     S, K, Hs = _textbook(P, H, R)
     # A P = (P^-1 + Lambda)^-1 = P - K S K' (the covariance form, with the (3p, 3p) S)
     np.testing.assert_allclose(posterior_plain, P - K @ S @ K.T, rtol=RTOL, atol=1e-13)
     np.testing.assert_allclose(posterior_plain, np.linalg.inv(np.linalg.inv(P) + ref_information), rtol=RTOL, atol=1e-14)
+    np.testing.assert_array_equal(posterior_plain, posterior_plain.T)
+
+
+def test_a_non_finite_information_is_refused(rng):
+    H, _, R_inverse, _ = _pairs(rng, 3)
+    H[1, 0, 2] = np.inf
+    with pytest.raises(FloatingPointError, match="positive definite"):
+        _information_kernel(_random_spd(rng, 6, 0.2), H, R_inverse)
 
 
 @pytest.mark.parametrize("p", [3, 7])
 def test_information_form_joseph_posterior_is_the_covariance_form_one(rng, p):
     H, R, R_inverse, _ = _pairs(rng, p)
     P = _random_spd(rng, 6, 0.2)
-    _, information, I_P_information = _information(P, H, R_inverse)
+    _, information, M, pivots, _ = _information_kernel(P, H, R_inverse)
     S, K, Hs = _textbook(P, H, R)
     I_KH = np.eye(6) - K @ Hs
     joseph = I_KH @ P @ I_KH.T + K @ ekf.block_diagonal(R) @ K.T
-    got = update.posterior_covariance(P, information, I_P_information)
+    got = np.empty((6, 6))
+    update.posterior_covariance_into(P, information, M, pivots, got, np.empty((6, 6)))
     np.testing.assert_allclose(got, joseph, rtol=RTOL, atol=1e-13)
     np.testing.assert_array_equal(got, got.T)
 
@@ -449,54 +488,49 @@ def test_innovation_cost_is_nis_plus_log_det_s_minus_log_det_r(rng, p):
 
 
 def test_normalized_innovation_is_y_s_inverse_y_by_woodbury(rng):
+    # y' S^-1 y = y' R^-1 y - g' A P g, the information form's NIS; K y = A P g its correction
     H, R, R_inverse, y = _pairs(rng, 5)
     P = _random_spd(rng, 6, 0.2)
-    R_inverse_H, information, I_P_information = _information(P, H, R_inverse)
-    posterior_plain = np.linalg.solve(I_P_information, P)                # A P
-    S, _, _ = _textbook(P, H, R)
+    R_inverse_H, _, _, _, posterior_plain = _information_kernel(P, H, R_inverse)
+    g, step = np.empty(6), np.empty(6)
+    update.gradient_into(R_inverse_H, y, g)
+    nis = update.block_quadratic(y, R_inverse) - update.plain_step_into(posterior_plain, g, step)
+    S, K, _ = _textbook(P, H, R)
     v = y.reshape(-1)
-    np.testing.assert_allclose(update.normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain),
-                               v @ np.linalg.solve(S, v), rtol=RTOL)
+    np.testing.assert_allclose(nis, v @ np.linalg.solve(S, v), rtol=RTOL)
+    np.testing.assert_allclose(step, K @ v, rtol=RTOL, atol=1e-13)
 
 
 def test_block_sums_are_the_stacked_products(rng):
     H, _, R_inverse, y = _pairs(rng, 4)
     v, R_inverse_full = y.reshape(-1), ekf.block_diagonal(R_inverse)
     np.testing.assert_allclose(update.block_quadratic(y, R_inverse), v @ R_inverse_full @ v, rtol=RTOL)
-    np.testing.assert_allclose(update.gradient(R_inverse @ H, y), H.reshape(-1, 6).T @ R_inverse_full @ v, rtol=RTOL, atol=1e-13)
+    g = np.full(6, np.nan)
+    update.gradient_into(R_inverse @ H, y, g)
+    np.testing.assert_allclose(g, H.reshape(-1, 6).T @ R_inverse_full @ v, rtol=RTOL, atol=1e-13)
+    K = rng.normal(size=(6, 12))
+    step = np.empty(6)
+    update.gain_step_into(K, y, step)
+    np.testing.assert_allclose(step, K @ v, rtol=RTOL, atol=1e-13)
 
 
-def test_posterior_cost_is_the_prior_term_plus_the_residual_term(rng):
-    camera_R, camera_t, camera_K, mounts = _two_cameras()
-    x = _random_state(rng)
-    x[5] = np.pi - 0.01
-    step = rng.normal(0, 0.05, 6)
-    step[5] = 0.03                                    # the posterior's yaw wraps: its correction must not
-    x_post = rotation.retract(x, step)
-    assert x_post[5] < 0.0
-    pair_camera = np.array([0, 1, 0], dtype=np.int64)
-    p_camera = np.column_stack([rng.uniform(-1, 1, (3, 2)), rng.uniform(1, 4, 3)])
-    landmarks = np.stack([geometry.transform_points(geometry.pose_from_euler(x) @ mounts[c], p_camera[i])
-                          for i, c in enumerate(pair_camera)])
-    R = _pixel_noise(rng, 3)
-    z = np.stack([models.observe(x, mounts[c], tuple(camera_K[c]), landmarks[i:i + 1])[0][0] for i, c in enumerate(pair_camera)])
-    z += rng.normal(0, 1, z.shape) * [2.0, 2.0, 0.05]
-    P = _random_spd(rng, 6, 0.05)
-    got = update.posterior_cost(x_post, x, P, z, _inverse(R), landmarks, pair_camera, camera_R, camera_t, camera_K)
-    moved = np.r_[x_post[:3] - x[:3], geometry.wrap_angle(x_post[3:] - x[3:])]
-    residual = [z[i] - models.observe(x_post, mounts[c], tuple(camera_K[c]), landmarks[i:i + 1])[0][0]
-                for i, c in enumerate(pair_camera)]
-    expected = moved @ np.linalg.solve(P, moved) + sum(r @ np.linalg.solve(Ri, r) for r, Ri in zip(residual, R))
-    np.testing.assert_allclose(got, expected, rtol=RTOL)
+def test_prior_quadratic_is_the_mahalanobis_distance_of_a_correction(rng):
+    P, d = _random_spd(rng, 6, 0.05), rng.normal(0, 0.1, 6)
+    got = update.prior_quadratic(P, d, np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 1)))
+    np.testing.assert_allclose(got, d @ np.linalg.solve(P, d), rtol=RTOL)
 
 
 @pytest.mark.parametrize("p", [2, 5])
-def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(rng, p):
+@pytest.mark.parametrize("across_the_wrap", [False, True])
+def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(rng, p, across_the_wrap):
     # Gauss-Newton on the MAP cost (camloc.ekf.update with the numpy camera model, the Euler
-    # state's retraction and difference), from a prior 0.05 m and 0.05 rad off the truth
+    # state's retraction and difference), from a prior 0.05 m and 0.05 rad off the truth; across
+    # the wrap, the prior's yaw is just below pi and the truth's just above (-pi + 0.01)
     camera_R, camera_t, camera_K, mounts = _two_cameras()
     truth = _random_state(rng)
     x = rotation.retract(truth, rng.normal(0, 0.05, 6))
+    if across_the_wrap:
+        truth[5], x[5] = -np.pi + 0.01, np.pi - 0.02
     pair_camera = (np.arange(p) % 2).astype(np.int64)
     p_camera = np.column_stack([rng.uniform(-1, 1, (p, 2)), rng.uniform(1, 4, p)])
     landmarks = np.stack([geometry.transform_points(geometry.pose_from_euler(truth) @ mounts[c], p_camera[i])
@@ -521,6 +555,8 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
     np.testing.assert_allclose(P_post, ref.cov, rtol=RTOL, atol=1e-16)
     np.testing.assert_allclose([nis, cost], [ref.nis, ref.map_cost], rtol=RTOL)
     assert np.max(np.abs(rotation.difference(x_post, x))) > 1e-3    # the update moved the state
+    if across_the_wrap:
+        assert x_post[5] < 0.0 < x[5]                                # its correction wrapped
 
 
 @pytest.mark.parametrize("p", [1, 4])

@@ -17,8 +17,7 @@ at x_i; the covariance uses the last linearization. The numpy twin is ``camloc.e
 
 Each step writes into arrays its caller owns (the ``*_into`` kernels): an iterated update
 allocates its scratch once and every linearization reuses it, where fresh temporaries per step
-cost more than the 6x6 arithmetic. The allocating kernels (``information_gain``,
-``covariance_gain``, ...) are the same steps for the callers that need one result.
+cost more than the 6x6 arithmetic.
 """
 
 from __future__ import annotations
@@ -140,18 +139,6 @@ def cho_solve_into(L, b):
 
 
 @jit
-def cho_solve(L, B):
-    """S^-1 B from the lower Cholesky factor L of S (m, m); B (m, k)."""
-    X = np.ascontiguousarray(B.T).copy()
-    for c in range(X.shape[0]):
-        cho_solve_into(L, X[c])
-    return np.ascontiguousarray(X.T)
-
-
-# ---------------------------------------------------------------------------------------------
-# The steps of an update
-
-@jit
 def stacked_quadratic(L, y, scratch):
     """v' S^-1 v of the innovations y (p, 3) stacked as v (3p,), L the lower Cholesky factor of S;
     scratch (3p,)."""
@@ -203,15 +190,6 @@ def gain_into(P, H, R, PHt, S, L, K):
 
 
 @jit
-def covariance_gain(P, H, R):
-    """``gain_into`` with fresh arrays: (K (6, 3p), S (3p, 3p), L, H stacked (3p, 6))."""
-    m = 3 * H.shape[0]
-    PHt, S, L, K = np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), np.empty((6, m))
-    gain_into(P, H, R, PHt, S, L, K)
-    return K, S, L, np.ascontiguousarray(H).reshape(m, 6).copy()
-
-
-@jit
 def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
     """Joseph form (I - K H) P (I - K H)' + K R K' into out (6, 6), its upper triangle mirrored;
     H (p, 3, 6) stacked as K's columns; I_KH and scratch (6, 6)."""
@@ -240,15 +218,6 @@ def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
                         s += k_ca * R[i, a, b] * K[d, 3 * i + b]
             out[c, d] = s
             out[d, c] = s
-
-
-@jit
-def covariance_posterior(P, K, Hs, R):
-    """Joseph form (I - K H) P (I - K H)' + K R K' of stacked Jacobians Hs (3p, 6)."""
-    out = np.empty((6, 6))
-    covariance_posterior_into(P, np.ascontiguousarray(K), np.ascontiguousarray(Hs).reshape(R.shape[0], 3, 6), R, out,
-                              np.empty((6, 6)), np.empty((6, 6)))
-    return out
 
 
 @jit
@@ -291,16 +260,6 @@ def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
 
 
 @jit
-def information_gain(P, H, R_inverse):
-    """``information_into`` with fresh arrays: (R^-1 H (p, 3, 6), Lambda (6, 6), I + P Lambda
-    (6, 6), A P (6, 6))."""
-    R_inverse_H, information = np.empty(H.shape), np.empty((6, 6))
-    M, pivots, AP = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6))
-    information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
-    return R_inverse_H, information, np.eye(6) + mm(P, information), AP
-
-
-@jit
 def gradient_into(R_inverse_H, y, g):
     """g = sum H_i' R_i^-1 y_i (6,) for innovations y (p, 3)."""
     for c in range(6):
@@ -309,13 +268,6 @@ def gradient_into(R_inverse_H, y, g):
         for a in range(3):
             for c in range(6):
                 g[c] += R_inverse_H[i, a, c] * y[i, a]
-
-
-@jit
-def gradient(R_inverse_H, y):
-    g = np.empty(6)
-    gradient_into(R_inverse_H, y, g)
-    return g
 
 
 @jit
@@ -354,12 +306,6 @@ def gain_step_into(K, y, step):
 
 
 @jit
-def normalized_innovation(y, R_inverse, R_inverse_H, posterior_plain):
-    """y' S^-1 y = y' R^-1 y - g' A P g."""
-    return block_quadratic(y, R_inverse) - plain_step_into(posterior_plain, gradient(R_inverse_H, y), np.empty(6))
-
-
-@jit
 def posterior_covariance_into(P, information, M, pivots, out, scratch):
     """A (P + P Lambda P) A' into out (6, 6), symmetric positive definite by construction; I + P
     Lambda factored into (M, pivots); scratch (6, 6)."""
@@ -383,15 +329,6 @@ def posterior_covariance_into(P, information, M, pivots, out, scratch):
     for c in range(6):
         for d in range(c):
             out[c, d] = out[d, c] = 0.5 * (out[c, d] + out[d, c])
-
-
-@jit
-def posterior_covariance(P, information, I_P_information):
-    """A (P + P Lambda P) A', symmetric positive definite by construction."""
-    M, pivots, out = I_P_information.copy(), np.empty(6, np.int64), np.empty((6, 6))
-    lu_factor(M, pivots)
-    posterior_covariance_into(P, information, M, pivots, out, np.empty((6, 6)))
-    return out
 
 
 @jit
@@ -453,18 +390,6 @@ def prior_quadratic(P, d, M, pivots, b):
     for c in range(6):
         total += d[c] * b[c, 0]
     return total
-
-
-@jit
-def posterior_cost(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
-    """The MAP cost ``d' P^-1 d + r' R^-1 r`` of the posterior x_post: d its correction from the
-    prior x, r the residual ``z - h(x_post)``; chi^2 with 3p degrees of freedom at the MAP."""
-    p = z.shape[0]
-    z_hat, H = np.empty((p, 3)), np.empty((p, 3, 6))
-    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H,
-                       np.empty((camera_R.shape[0], 3, 3)))
-    return prior_quadratic(P, difference(x_post, x), np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 1))) \
-        + block_quadratic(z - z_hat, R_inverse)
 
 
 @jit
