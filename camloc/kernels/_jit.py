@@ -25,4 +25,6 @@ jit = partial(numba.njit, **OPTIONS)
 # callers: numba compiles every other function on its own, with the code of everything it calls
 # optimized and generated once more, so that a deep call tree costs its depth times its size
 # to compile. Inlining the middle of the tree (the beam's steps) cut the first compile 140 -> 120 s.
+# A step called from several places (the beam's settle and options_of) is a plain ``jit`` again:
+# inlined, its body was copied into every site (``explain_all`` 12-13 -> 8 s of its own to compile).
 inlined = partial(numba.njit, inline="always", **OPTIONS)

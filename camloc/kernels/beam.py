@@ -397,7 +397,7 @@ def same_state(gen, a, b, merge_sigma):
     return True
 
 
-@inlined
+@jit
 def settle(scene, settings, gen, c, parents, pending):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
@@ -540,7 +540,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
         step += 1
 
 
-@inlined
+@jit
 def options_of(scene, settings, gen, p, obs, opt, i, moved):
     """The options of observation i under partial p: those of its root's base state, or made
     again under p's own where it has paired something since."""
