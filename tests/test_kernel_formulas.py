@@ -121,6 +121,23 @@ def test_solve_is_the_inverse_times_the_right_hand_side(rng):
         small.solve(singular, B)
 
 
+def test_lu_factor_solves_as_small_solve_does_and_gives_the_log_determinant(rng):
+    for _ in range(5):
+        A = (rng.normal(size=(6, 6)) + 6.0 * np.eye(6))[rng.permutation(6)]    # must pivot
+        B = rng.normal(size=(6, 3))
+        M, pivots = A.copy(), np.empty(6, np.int64)
+        small.lu_factor(M, pivots)
+        X = B.copy()
+        small.lu_solve(M, pivots, X)
+        np.testing.assert_allclose(X, np.linalg.solve(A, B), rtol=RTOL, atol=1e-14)
+        np.testing.assert_array_equal(X, small.solve(A, B))        # the same arithmetic, in two steps
+        np.testing.assert_allclose(small.lu_log_det(M, pivots), np.linalg.slogdet(A), rtol=RTOL)
+    singular = rng.normal(size=(6, 6))
+    singular[:, 2] = 0.0
+    with pytest.raises(FloatingPointError, match="singular"):
+        small.lu_factor(singular, np.empty(6, np.int64))
+
+
 def test_a_covariance_check_passes_a_covariance(rng):
     P = _random_spd(rng, 6, 0.1)
     small.check_covariance(P)
@@ -333,23 +350,6 @@ def _textbook(P, H, R):
     return S, np.linalg.solve(S, Hs @ P).T, Hs
 
 
-def test_lu_factor_solves_as_small_solve_does_and_gives_the_log_determinant(rng):
-    for _ in range(5):
-        A = (rng.normal(size=(6, 6)) + 6.0 * np.eye(6))[rng.permutation(6)]    # must pivot
-        B = rng.normal(size=(6, 3))
-        M, pivots = A.copy(), np.empty(6, np.int64)
-        update.lu_factor(M, pivots)
-        X = B.copy()
-        update.lu_solve(M, pivots, X)
-        np.testing.assert_allclose(X, np.linalg.solve(A, B), rtol=RTOL, atol=1e-14)
-        np.testing.assert_array_equal(X, small.solve(A, B))        # the same arithmetic, in two steps
-        np.testing.assert_allclose(update.lu_log_det(M, pivots), np.linalg.slogdet(A), rtol=RTOL)
-    singular = rng.normal(size=(6, 6))
-    singular[:, 2] = 0.0
-    with pytest.raises(FloatingPointError, match="singular"):
-        update.lu_factor(singular, np.empty(6, np.int64))
-
-
 @pytest.mark.parametrize("m", [3, 6])
 def test_cholesky_factor_and_stacked_quadratic(rng, m):
     S = _random_spd(rng, m)
@@ -439,7 +439,7 @@ def test_information_step_gives_the_covariance_form_posterior(rng, p):
     np.testing.assert_allclose(information, ref_information, rtol=RTOL, atol=1e-13)
     B = rng.normal(size=(6, 2))                        # (M, pivots) factor I + P Lambda
     X = B.copy()
-    update.lu_solve(M, pivots, X)
+    small.lu_solve(M, pivots, X)
     np.testing.assert_allclose(X, np.linalg.solve(ref_I_P_information, B), rtol=RTOL, atol=1e-13)
     S, K, Hs = _textbook(P, H, R)
     # A P = (P^-1 + Lambda)^-1 = P - K S K' (the covariance form, with the (3p, 3p) S)

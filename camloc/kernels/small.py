@@ -1,7 +1,11 @@
-"""Products of small matrices as plain loops: ``@`` on 3x3 and 6x6 operands goes through BLAS,
-whose call costs more than the arithmetic (the twins are numpy's own products)."""
+"""Products and solves of small matrices as plain loops: ``@`` on 3x3 and 6x6 operands goes
+through BLAS and ``np.linalg.solve`` through LAPACK, whose calls cost more than the arithmetic (the
+twins are numpy's own). ``solve`` is ``lu_factor`` then ``lu_solve``, which callers that solve
+with one matrix several times use themselves."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -49,15 +53,11 @@ def mv(A, v):
 
 
 @jit
-def solve(A, B):
-    """A^-1 B for a small square A (n, n) and B (n, k) or (n,), by Gaussian elimination with
-    partial pivoting (LAPACK's call costs more than a 6x6 system); raises FloatingPointError where
-    A is singular."""
-    n = A.shape[0]
-    M = A.copy()
-    vector = B.ndim == 1
-    X = B.reshape(n, -1).copy() if not vector else B.copy().reshape(n, 1)
-    k = X.shape[1]
+def lu_factor(M, pivots):
+    """Factor M (n, n) in place by Gaussian elimination with partial pivoting: U on and above the
+    diagonal, the multipliers below it, pivots[col] the row swapped with col. Raises
+    FloatingPointError where M is singular."""
+    n = M.shape[0]
     for col in range(n):
         pivot, best = col, abs(M[col, col])
         for r in range(col + 1, n):
@@ -65,25 +65,65 @@ def solve(A, B):
                 pivot, best = r, abs(M[r, col])
         if not best > 0.0:
             raise FloatingPointError("a singular matrix in a filter step")
+        pivots[col] = pivot
         if pivot != col:
             for j in range(n):
                 M[col, j], M[pivot, j] = M[pivot, j], M[col, j]
-            for j in range(k):
-                X[col, j], X[pivot, j] = X[pivot, j], X[col, j]
         inverse_pivot = 1.0 / M[col, col]
         for r in range(col + 1, n):
             factor = M[r, col] * inverse_pivot
+            M[r, col] = factor
             if factor != 0.0:
-                for j in range(col, n):
+                for j in range(col + 1, n):
                     M[r, j] -= factor * M[col, j]
+
+
+@jit
+def lu_solve(M, pivots, B):
+    """B (n, k) <- A^-1 B in place, with A factored into (M, pivots) by ``lu_factor``."""
+    n, k = B.shape
+    for col in range(n):                 # the rows in their final order: the multipliers moved with them
+        pivot = pivots[col]
+        if pivot != col:
+            for j in range(k):
+                B[col, j], B[pivot, j] = B[pivot, j], B[col, j]
+    for col in range(n):
+        for r in range(col + 1, n):
+            factor = M[r, col]
+            if factor != 0.0:
                 for j in range(k):
-                    X[r, j] -= factor * X[col, j]
+                    B[r, j] -= factor * B[col, j]
     for col in range(n - 1, -1, -1):
         for j in range(k):
-            s = X[col, j]
+            s = B[col, j]
             for q in range(col + 1, n):
-                s -= M[col, q] * X[q, j]
-            X[col, j] = s / M[col, col]
+                s -= M[col, q] * B[q, j]
+            B[col, j] = s / M[col, col]
+
+
+@jit
+def lu_log_det(M, pivots):
+    """(sign, ln |det A|) of A factored into (M, pivots) by ``lu_factor``."""
+    sign, total = 1.0, 0.0
+    for i in range(M.shape[0]):
+        if pivots[i] != i:
+            sign = -sign
+        if M[i, i] < 0.0:
+            sign = -sign
+        total += math.log(abs(M[i, i]))
+    return sign, total
+
+
+@jit
+def solve(A, B):
+    """A^-1 B for a small square A (n, n) and B (n, k) or (n,) (the result (n, k) or (n, 1)), by
+    Gaussian elimination with partial pivoting (LAPACK's call costs more than a 6x6 system);
+    raises FloatingPointError where A is singular."""
+    n = A.shape[0]
+    M, pivots = A.copy(), np.empty(n, np.int64)
+    lu_factor(M, pivots)
+    X = B.reshape(n, -1).copy() if B.ndim != 1 else B.copy().reshape(n, 1)
+    lu_solve(M, pivots, X)
     return X
 
 

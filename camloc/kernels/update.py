@@ -29,7 +29,7 @@ import numpy as np
 from camloc.kernels._jit import jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.rotation import difference, retract
-from camloc.kernels.small import mm
+from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
 
 # Iterated updates stop when the correction changes by less than this (metres / radians).
@@ -37,69 +37,7 @@ CONVERGED = 1e-6
 
 
 # ---------------------------------------------------------------------------------------------
-# Small dense systems, factored once and solved as often as needed
-
-@jit
-def lu_factor(M, pivots):
-    """Factor M (n, n) in place by Gaussian elimination with partial pivoting: U on and above the
-    diagonal, the multipliers below it, pivots[col] the row swapped with col. Raises
-    FloatingPointError where M is singular. ``lu_solve`` then repeats ``small.solve``'s arithmetic."""
-    n = M.shape[0]
-    for col in range(n):
-        pivot, best = col, abs(M[col, col])
-        for r in range(col + 1, n):
-            if abs(M[r, col]) > best:
-                pivot, best = r, abs(M[r, col])
-        if not best > 0.0:
-            raise FloatingPointError("a singular matrix in a filter step")
-        pivots[col] = pivot
-        if pivot != col:
-            for j in range(n):
-                M[col, j], M[pivot, j] = M[pivot, j], M[col, j]
-        inverse_pivot = 1.0 / M[col, col]
-        for r in range(col + 1, n):
-            factor = M[r, col] * inverse_pivot
-            M[r, col] = factor
-            if factor != 0.0:
-                for j in range(col + 1, n):
-                    M[r, j] -= factor * M[col, j]
-
-
-@jit
-def lu_solve(M, pivots, B):
-    """B (n, k) <- A^-1 B in place, with A factored into (M, pivots) by ``lu_factor``."""
-    n, k = B.shape
-    for col in range(n):                 # the rows in their final order: the multipliers moved with them
-        pivot = pivots[col]
-        if pivot != col:
-            for j in range(k):
-                B[col, j], B[pivot, j] = B[pivot, j], B[col, j]
-    for col in range(n):
-        for r in range(col + 1, n):
-            factor = M[r, col]
-            if factor != 0.0:
-                for j in range(k):
-                    B[r, j] -= factor * B[col, j]
-    for col in range(n - 1, -1, -1):
-        for j in range(k):
-            s = B[col, j]
-            for q in range(col + 1, n):
-                s -= M[col, q] * B[q, j]
-            B[col, j] = s / M[col, col]
-
-
-@jit
-def lu_log_det(M, pivots):
-    """(sign, ln |det A|) of A factored into (M, pivots) by ``lu_factor``."""
-    sign, total = 1.0, 0.0
-    for i in range(M.shape[0]):
-        if pivots[i] != i:
-            sign = -sign
-        if M[i, i] < 0.0:
-            sign = -sign
-        total += math.log(abs(M[i, i]))
-    return sign, total
-
+# Cholesky factors of a few pairs' innovation covariance (the LU steps are in ``small``)
 
 @jit
 def cholesky_into(S, L):
