@@ -17,9 +17,9 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
-from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into
+from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
-from camloc.kernels.rotation import difference, euler_rate, euler_to_matrix
+from camloc.kernels.rotation import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import visible
@@ -165,7 +165,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     z_hat, H = np.empty((total, 3)), np.empty((total, 3, 6))
     p_hat, diagonal_pixels, diagonal_point = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
     spreads = np.empty((total, 6))
-    R, E, t = euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
+    R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     at = 0
     for g in range(cameras.size):
@@ -239,7 +239,7 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     by pixels more than that)."""
     c = scene.obs_camera[o]
     R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
-    R, E, t = euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
+    R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
     for q in range(pool.size):

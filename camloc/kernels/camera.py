@@ -17,6 +17,13 @@ from camloc.kernels.small import mm, mv
 
 
 @jit
+def robot_frame(x):
+    """What ``observe_into`` needs of the Euler state x: its rotation R (3, 3), rate matrix E
+    (3, 3) and position t (3,)."""
+    return euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
+
+
+@jit
 def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position):
     """Write the prediction z_hat[i] (3,) of landmark landmarks[j] (3,) and its Jacobian H[i]
     (3, 6) with respect to the Euler state (rotation R, Euler rate matrix E, position t);
@@ -59,9 +66,7 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
 def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     """Predicted measurements z_hat (m, 3) of landmarks (m, 3) from the Euler state x through
     the camera mounted at (R_rc, t_rc) with intrinsics (fx, fy, cx, cy), and H (m, 3, 6)."""
-    R = euler_to_matrix(x[3], x[4], x[5])
-    E = euler_rate(x[3], x[4])
-    t = x[0:3].copy()
+    R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
     m = landmark_xyz.shape[0]
@@ -87,9 +92,7 @@ def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
 def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position):
     """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, 6), with d_position (C, 3, 3) as
     scratch: an iterated update predicts its pairs at every step into the same buffers."""
-    R = euler_to_matrix(x[3], x[4], x[5])
-    E = euler_rate(x[3], x[4])
-    t = x[0:3].copy()
+    R, E, t = robot_frame(x)
     for c in range(camera_R.shape[0]):
         camera_position_jacobian(R, camera_R[c], d_position[c])
     for i in range(landmark_xyz.shape[0]):
