@@ -232,14 +232,6 @@ def test_euler_rate_is_the_body_frame_derivative_of_the_rotation(rng):
         np.testing.assert_allclose(E_inverse @ E, np.eye(3), atol=1e-14)
 
 
-def test_hat_is_the_cross_product_matrix(rng):
-    v, w = rng.normal(size=3), rng.normal(size=3)
-    K = rotation.hat(v)
-    np.testing.assert_allclose(K @ w, np.cross(v, w), rtol=RTOL, atol=1e-15)
-    np.testing.assert_array_equal(K, -K.T)
-    np.testing.assert_array_equal(K, geometry.hat(v))
-
-
 def test_wrap_angle_keeps_the_angle_modulo_two_pi_in_minus_pi_to_pi(rng):
     for a in np.r_[rng.uniform(-20.0, 20.0, 50), -np.pi, np.pi, 0.0, 3 * np.pi]:
         wrapped = rotation.wrap_angle(a)

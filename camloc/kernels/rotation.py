@@ -57,16 +57,6 @@ def euler_rate_inverse(roll, pitch):
 
 
 @jit
-def hat(v):
-    """[v]x (3, 3), the cross-product matrix: ``hat(v) @ w == cross(v, w)``."""
-    K = np.zeros((3, 3))
-    K[0, 1], K[0, 2] = -v[2], v[1]
-    K[1, 0], K[1, 2] = v[2], -v[0]
-    K[2, 0], K[2, 1] = -v[1], v[0]
-    return K
-
-
-@jit
 def wrap_angle(a):
     """a wrapped into [-pi, pi)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
