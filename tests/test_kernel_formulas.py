@@ -29,7 +29,11 @@ import numpy as np
 import pytest
 
 from camloc import association, ekf, filters, geometry, models
-from camloc.kernels import beam, camera, filtering, motion, recheck, rotation, seeds, small, sym3, update, view
+from camloc.kernels import _jit, beam, camera, filtering, motion, recheck, rotation, seeds, small, sym3, update, view
+
+# the steps as Python calls them: most are compiled without numba's Python wrapper (``_jit.jit``)
+beam, camera, filtering, motion, recheck, rotation, seeds, small, sym3, update, view = (
+    _jit.FromPython(module) for module in (beam, camera, filtering, motion, recheck, rotation, seeds, small, sym3, update, view))
 from camloc.kernels.types import SceneArrays
 from camloc.sym3 import UPPER
 

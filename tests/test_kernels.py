@@ -14,8 +14,12 @@ import pytest
 
 import camloc.kernels
 from camloc import association, ekf, geometry, models
-from camloc.kernels import camera, motion, recheck, rotation, seeds, sym3, update, view
+from camloc.kernels import _jit, camera, motion, recheck, rotation, seeds, sym3, update, view
 from camloc.kernels._jit import OPTIONS
+
+# the steps as Python calls them: most are compiled without numba's Python wrapper (``_jit.jit``)
+camera, motion, recheck, rotation, seeds, sym3, update, view = (
+    _jit.FromPython(module) for module in (camera, motion, recheck, rotation, seeds, sym3, update, view))
 
 DATA = Path(__file__).resolve().parents[1] / "camloc" / "data"
 
@@ -33,7 +37,7 @@ def test_every_kernel_carries_the_shared_options():
     from numba.core.caching import NullCache
     from numba.core.registry import CPUDispatcher
 
-    found = 0
+    found = entries = 0
     for info in pkgutil.iter_modules(camloc.kernels.__path__):
         module = importlib.import_module(f"camloc.kernels.{info.name}")
         for name, value in vars(module).items():
@@ -42,7 +46,52 @@ def test_every_kernel_carries_the_shared_options():
                 assert not isinstance(value._cache, NullCache), f"{module.__name__}.{name} is not cached"
                 for key in ("nogil", "error_model"):
                     assert value.targetoptions[key] == OPTIONS[key], f"{module.__name__}.{name}: {key}"
-    assert found >= 30
+                entries += not value.targetoptions.get("no_cpython_wrapper", False)
+    assert found >= 30 and 10 <= entries < found / 2   # most are steps that only compiled code calls
+
+
+def test_what_python_calls_is_an_entry_point():
+    # a step compiled without numba's Python wrapper cannot be called from Python: every kernel that
+    # camloc's Python code (the loop, the slip search, the scene) names must be an entry point
+    import ast
+
+    from numba.core.registry import CPUDispatcher
+
+    kernels = {}
+    for info in pkgutil.iter_modules(camloc.kernels.__path__):
+        module = importlib.import_module(f"camloc.kernels.{info.name}")
+        kernels.update({name: value for name, value in vars(module).items() if isinstance(value, CPUDispatcher)})
+    package = Path(camloc.__file__).parent
+    named = set()
+    for path in package.rglob("*.py"):
+        if "kernels" in path.relative_to(package).parts:
+            continue
+        tree = ast.parse(path.read_text())
+        aliases = set()                                   # the kernel modules it imports, by their local names
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("camloc.kernels"):
+                for alias in node.names:
+                    named.add(alias.name)
+                    aliases.add(alias.asname or alias.name)
+        named |= {node.attr for node in ast.walk(tree)
+                  if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases}
+    called = sorted(name for name in named if name in kernels)
+    assert {"run_poses", "filter_poses", "explain_all", "options_for", "updated"} <= set(called)
+    for name in called:
+        assert not kernels[name].targetoptions.get("no_cpython_wrapper", False), f"{name} is called from Python"
+
+
+def test_a_step_without_the_python_wrapper_is_callable_through_from_python(rng):
+    from camloc.kernels import sym3 as compiled_only
+
+    assert compiled_only.spread.targetoptions["no_cpython_wrapper"]
+    H, P = rng.normal(size=(2, 3, 6)), _random_spd(rng, 6)
+    twin = _jit.from_python(compiled_only.spread)
+    assert twin is _jit.from_python(compiled_only.spread)          # compiled once
+    assert twin.py_func.__qualname__ != compiled_only.spread.py_func.__qualname__   # cached apart
+    spread = H[1] @ P @ H[1].T
+    np.testing.assert_allclose(twin(H, 1, P), spread[np.triu_indices(3)], rtol=1e-12)
+    assert _jit.from_python(update.updated) is update.updated      # an entry point is itself
 
 
 def test_rotations_match_geometry(rng):

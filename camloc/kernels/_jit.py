@@ -1,6 +1,7 @@
-"""The one place the kernels' numba options live: every kernel is ``@jit``, never a bare
-``numba.njit``, so that caching and the error model are never retyped (``tests/test_kernels.py``
-checks that every compiled function of this package carries them).
+"""The one place the kernels' numba options live: every kernel is ``@jit`` (called only from
+compiled code) or ``@entry`` (called from Python too), never a bare ``numba.njit``, so that caching
+and the error model are never retyped (``tests/test_kernels.py`` checks that every compiled
+function of this package carries them).
 
 ``cache=True`` writes the compiled code beside the source, or, where that folder is not writable
 (a system-wide install), in numba's per-user cache directory (``NUMBA_CACHE_DIR`` overrides both).
@@ -8,6 +9,7 @@ checks that every compiled function of this package carries them).
 
 from __future__ import annotations
 
+import types
 from functools import partial
 
 import numba
@@ -19,7 +21,15 @@ CACHE_FOLDER = check_cache()
 
 OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
 
-jit = partial(numba.njit, **OPTIONS)
+# A kernel that Python calls (the loop's entry points and the slip search's steps, ``camloc.loop``
+# and ``camloc.seeds``): numba gives it a wrapper that unboxes Python's arguments.
+entry = partial(numba.njit, **OPTIONS)
+
+# A step called only from compiled code, without that wrapper: the wrapper of a function taking the
+# scene unboxes its 31 arrays, and compiling it took longer than most steps' own code (0.33 s
+# against 0.06 s a function). Dropping it from the 80 steps cut the first compile by about a sixth.
+# Python (a test checking one step) calls one through ``from_python``.
+jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTIONS)
 
 # A step of a larger kernel, called only from compiled code, whose body numba copies into its
 # callers: numba compiles every other function on its own, with the code of everything it calls
@@ -28,3 +38,35 @@ jit = partial(numba.njit, **OPTIONS)
 # A step called from several places (the beam's settle and options_of) is a plain ``jit`` again:
 # inlined, its body was copied into every site (``explain_all`` 12-13 -> 8 s of its own to compile).
 inlined = partial(numba.njit, inline="always", **OPTIONS)
+
+_FROM_PYTHON: dict = {}
+
+
+def from_python(kernel):
+    """``kernel`` callable from Python: itself where it has numba's wrapper (``entry``, ``inlined``),
+    else the same function compiled once more with it (cached apart from the step's own code,
+    which calls the same compiled steps). For tests and notebooks that check one step at a time."""
+    if not kernel.targetoptions.get("no_cpython_wrapper", False):
+        return kernel
+    if kernel not in _FROM_PYTHON:
+        function = kernel.py_func
+        twin = types.FunctionType(function.__code__, function.__globals__, function.__name__, function.__defaults__,
+                                  function.__closure__)
+        # numba names a cache file by the function's qualified name: the twin must not share the step's
+        twin.__qualname__ = function.__qualname__ + "__from_python"
+        twin.__module__ = function.__module__
+        twin.__doc__ = function.__doc__
+        _FROM_PYTHON[kernel] = entry(twin)
+    return _FROM_PYTHON[kernel]
+
+
+class FromPython:
+    """A kernel module whose every compiled function is callable from Python (``from_python``);
+    its other names (constants, plain functions) are the module's own."""
+
+    def __init__(self, module: types.ModuleType):
+        self._module = module
+
+    def __getattr__(self, name: str):
+        value = getattr(self._module, name)
+        return from_python(value) if isinstance(value, numba.core.registry.CPUDispatcher) else value

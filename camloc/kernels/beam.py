@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import inlined, jit
+from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
@@ -28,7 +28,7 @@ AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
 
 
-@jit
+@entry
 def new_generation(n, cap):
     return (np.empty((n, 6)), np.empty((n, 6, 6)), np.empty(n), np.full(n, -1, np.int64), np.zeros(n, np.int64),
             np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
@@ -44,7 +44,7 @@ def put_state(gen, j, x, P):
             gen[1][j, a, b] = P[a, b]
 
 
-@jit
+@entry
 def copy_hypothesis(src, i, dst, j):
     """dst[j] = src[i], every field."""
     put_state(dst, j, src[0][i], src[1][i])
@@ -53,7 +53,7 @@ def copy_hypothesis(src, i, dst, j):
         dst[7][j, q, 0], dst[7][j, q, 1] = src[7][i, q, 0], src[7][i, q, 1]
 
 
-@jit
+@entry
 def carry(gen, indices):
     """The hypotheses at indices as the next pose's beam: states, covariances and costs (their
     pairs are in the history)."""
@@ -64,7 +64,7 @@ def carry(gen, indices):
     return out
 
 
-@jit
+@entry
 def gather(gen, indices, cap):
     out = new_generation(indices.size, cap)
     for j in range(indices.size):
@@ -143,7 +143,7 @@ def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
     return d2_pixels, cost_pixels, False
 
 
-@jit
+@entry
 def options_for(scene, settings, x, P, obs, margin, max_angle):
     """What each observation (obs (m,)) may be under (x, P): its pool of landmarks within
     ``pool_gate_factor`` gates, with their costs (inf outside the gate), predictions, innovations
@@ -386,7 +386,7 @@ def after_clear(scene, settings, gen, h, obs, cap):
     return child, opt, order, least
 
 
-@jit
+@entry
 def same_state(gen, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
     every axis (the cheaper is kept)."""
@@ -446,7 +446,7 @@ def settled(n):
             np.zeros(n, np.bool_))
 
 
-@jit
+@entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
     return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n))
@@ -482,7 +482,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending):
     return kept
 
 
-@jit
+@entry
 def explain_all(scene, settings, parents, n_parents, obs):
     """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,).
 
@@ -615,7 +615,7 @@ def predicted(scene, beam, n, k):
     return out
 
 
-@jit
+@entry
 def commit(history, k, gen, kept):
     """Record pose k's kept hypotheses (parent, slipped, pairs) for the backtrack; False where
     the pair buffer is full (the caller grows it and calls again)."""
@@ -637,7 +637,7 @@ def commit(history, k, gen, kept):
     return True
 
 
-@jit
+@entry
 def run_poses(scene, settings, first, last, beam, n, history, unexplained, counters):
     """The beam from pose first to last - 1, from ``beam`` (n hypotheses after pose first - 1, or
     the start). Per pose: predict every hypothesis, explain the pose's observations, keep the

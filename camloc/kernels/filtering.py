@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import camera_pose, cameras_of, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
@@ -94,7 +94,7 @@ def record_state(states, covs, k, x, P):
             covs[k, a, b] = P[a, b]
 
 
-@jit
+@entry
 def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_obs, pair_landmark, slipped,
                  states, covs, chosen, mahalanobis_distance, update_pose, nis, map_cost, nis_dof, counters):
     """Filter poses first..last-1 from (x, P) (the state after pose first - 1, or the start).

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import entry, jit
 
 
 @jit
@@ -73,7 +73,7 @@ def retract(x, delta):
     return out
 
 
-@jit
+@entry
 def difference(a, b):
     """The error (6,) from b to a: ``a - b`` with the three angle differences wrapped."""
     d = np.empty(6)

@@ -14,11 +14,11 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import entry, jit
 from camloc.kernels.sym3 import inverse_components, log_det as log_det_3x3, mahalanobis, quadratic_and_det, spread
 
 
-@jit
+@entry
 def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, seeds, gate):
     """(M,) the approximate cost of explaining a pose's m observations given each seed pair
     (seeds (M,) indices of pairs) is right. Pairs: innovation y (N, 3), Jacobian H (N, 3, 6),
@@ -135,7 +135,7 @@ def conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bou
         quadratic[q], det[q] = quadratic_and_det(a, b_, c, d, e, f, r0, r1, r2)
 
 
-@jit
+@entry
 def shift_agreement(shifts, radius):
     """(N,) how many of the shifts (N, 3) lie within ``radius`` of each, itself included: the
     numpy twin's ``camloc.association.shift_agreement``, by a sweep along x (a pair further apart

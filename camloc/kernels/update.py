@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.rotation import difference, retract
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
@@ -422,7 +422,7 @@ def point_step(scene, x, P, obs, z_hat, H):
     return retract(x, correction(P, Hp, R, R_inverse, y))
 
 
-@jit
+@entry
 def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
     predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)

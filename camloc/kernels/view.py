@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import entry, jit
 
 # Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
 MAX_CELLS_PER_AXIS = 1 << 20
@@ -40,7 +40,7 @@ def build_grid(landmark_xyz: np.ndarray, cell: float):
             np.ascontiguousarray(landmark_xyz[items], dtype=float), dense)
 
 
-@jit
+@entry
 def view_cone_ball(apex, axis, depth, half_angle):
     """The smallest ball (centre (3,), radius) holding a view cone: apex, unit axis, points up to
     ``depth`` along it within ``half_angle`` of it. Up to 45 deg it passes through the apex and
@@ -155,7 +155,7 @@ def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, cos_half_angle, 
     return perp * cos_half_angle - along * sin_half_angle <= h
 
 
-@jit
+@entry
 def widened_view(P, max_angle):
     """(margin metres, half-angle) of a view widened by three standard deviations of the
     position and of the orientation of P, for a prior too wide for the data's own margins."""
