@@ -27,6 +27,12 @@ from camloc.kernels.view import visible
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
 
+# The first hypothesis, a counter's start, or a capacity of one pair, as an argument: numba types a
+# literal 0 or 1 as a value of its own and compiled the callee (with all it calls) once more for it;
+# an int64 is the type the other call sites pass.
+FIRST = np.int64(0)
+ONE = np.int64(1)
+
 
 @entry
 def new_generation(n, cap):
@@ -57,7 +63,7 @@ def copy_hypothesis(src, i, dst, j):
 def carry(gen, indices):
     """The hypotheses at indices as the next pose's beam: states, covariances and costs (their
     pairs are in the history)."""
-    out = new_generation(indices.size, 1)
+    out = new_generation(indices.size, ONE)
     for j in range(indices.size):
         put_state(out, j, gen[0][indices[j]], gen[1][indices[j]])
         out[2][j] = gen[2][indices[j]]
@@ -167,7 +173,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     spreads = np.empty((total, 6))
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
-    at = 0
+    at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
     for g in range(cameras.size):
         c, f = cameras[g], found[g]
         R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
@@ -187,7 +193,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     start = np.zeros(m + 1, np.int64)
     lm, cost, in_point = np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.bool_)
     zh, Hs, ys, Hcs = np.empty((cap, 3)), np.empty((cap, 3, 6)), np.empty((cap, 3)), np.empty((cap, 3, 6))
-    n = 0
+    n = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
     for r in range(m):
         o = obs[r]
         c = scene.obs_camera[o]
@@ -256,7 +262,7 @@ def condition(scene, settings, x, P, o, pool, taken):
     g = pool.size
     cost, in_point = np.empty(g), np.empty(g, np.bool_)
     z_hat, H, ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6)), np.empty((g, 3)), np.empty((g, 3, 6))
-    condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, 0)
+    condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, FIRST)
     return cost, z_hat, H, ys, Hcs, in_point
 
 
@@ -312,8 +318,8 @@ def after_clear(scene, settings, gen, h, obs, cap):
     the least each can cost)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
-    child = new_generation(1, cap)
-    copy_hypothesis(gen, h, child, 0)
+    child = new_generation(ONE, cap)
+    copy_hypothesis(gen, h, child, FIRST)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
     n_pending = obs.size
@@ -370,10 +376,10 @@ def after_clear(scene, settings, gen, h, obs, cap):
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
-                condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, 0), cost, zh, Hs, ys, Hcs,
+                condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
                                in_point, start[i])
     pending = pending[:n_pending]
-    put_state(child, 0, x, P)
+    put_state(child, FIRST, x, P)
     counts = np.empty(pending.size, np.int64)
     for k in range(pending.size):
         counts[k] = 0
@@ -501,7 +507,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
     moved = np.zeros(n_parents, np.bool_)
     for h in range(n_parents):
         child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap)
-        copy_hypothesis(child, 0, gen, h)
+        copy_hypothesis(child, FIRST, gen, h)
         options.append(opt)
         orders.append(order)
         leasts.append(least)
@@ -515,7 +521,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
-        total = 0
+        total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
             total += 1 if step >= orders[root[p]].size else branch_count(scene, settings, gen, p, obs, options[root[p]],
                                                                               orders[root[p]][step], moved[p])
@@ -523,7 +529,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
         c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
         pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
                    np.zeros((total, 3, 6)), np.zeros(total, np.bool_))
-        at = 0
+        at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
             r = root[p]
             if step >= orders[r].size:
@@ -607,7 +613,7 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, rest, children, at, c
 def predicted(scene, beam, n, k):
     """The beam's first n hypotheses predicted to pose k (k > 0) with its odometry: same costs,
     each remembering which it grew from, no pairs yet."""
-    out = new_generation(n, 1)
+    out = new_generation(n, ONE)
     for h in range(n):
         x, P = predict(beam[0][h], beam[1][h], scene.T_increment[k - 1], scene.odom_cov[k - 1])
         put_state(out, h, x, P)
