@@ -7,7 +7,7 @@
 - ``calls``: Python-level calls per pose (cProfile's count over one warm call on the first 1,000
   poses): what is left of the interpreter in the loop.
 - ``compile``: the first run after an install: ``camloc run`` on the first 1,000 poses in a child
-  process with an empty ``NUMBA_CACHE_DIR``, its wall time and peak memory (about 70 s here;
+  process with an empty ``NUMBA_CACHE_DIR``, its wall time and peak memory (one to two minutes;
   ``--skip-compile`` leaves it out).
 
     nice python benchmarks/core.py [--quick] [--calls 3] [--skip-compile] [--json]
@@ -62,7 +62,7 @@ def main() -> None:
     if args.skip_compile:
         say("compile: skipped (--skip-compile)")
     else:
-        say(f"compile: camloc run {first_path.name} with an empty NUMBA_CACHE_DIR (about 70 s here) ...")
+        say(f"compile: camloc run {first_path.name} with an empty NUMBA_CACHE_DIR (one to two minutes) ...")
         report["compile"] = first_compile(first_path, timeout=args.timeout)
 
     say(f"done; {_bench.machine_load()}")

@@ -302,7 +302,7 @@ def localize(
         dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
         which ran.
     on_compile : called once before the compiled loop starts when its kernels are not yet in
-        numba's cache (the first run after an install compiles them: about a minute).
+        numba's cache (the first run after an install compiles them: a minute or two).
     """
     config = config or LocalizerConfig()
     config.validate()

@@ -202,4 +202,4 @@ def run(
 
 
 def _say_compiling() -> None:
-    err_console.print("compiling camloc's kernels: once after an install, about a minute", highlight=False)
+    err_console.print("compiling camloc's kernels: once after an install, a minute or two", highlight=False)

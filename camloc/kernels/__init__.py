@@ -88,7 +88,7 @@ def check_cache() -> Path | None:
 
 def cache_is_warm() -> bool:
     """Whether the main kernels are already compiled in numba's cache (the first run after an
-    install compiles them, once: about a minute); True where that cannot be told."""
+    install compiles them, once: a minute or two); True where that cannot be told."""
     try:
         from camloc.kernels import beam, filtering
 
