@@ -380,9 +380,9 @@ def after_clear(scene, settings, gen, h, obs, cap):
                                in_point, start[i])
     pending = pending[:n_pending]
     put_state(child, FIRST, x, P)
-    counts = np.empty(pending.size, np.int64)
+    counts = np.empty(pending.size)             # float: the merge sort the other kernels compile
     for k in range(pending.size):
-        counts[k] = 0
+        counts[k] = 0.0
         for j in range(start[pending[k]], start[pending[k] + 1]):
             counts[k] += np.isfinite(cost[j])
     order = pending[np.argsort(counts, kind="mergesort")]

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import entry, jit
+from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.camera import camera_pose, cameras_of, observe, observe_pairs
 from camloc.kernels.motion import predict
 from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
@@ -20,7 +20,7 @@ from camloc.kernels.view import visible
 GIVEN, ORACLE = 0, 1
 
 
-@jit
+@inlined
 def oracle_pairs(scene, settings, x, P, obs):
     """The file's landmark of each observation (obs (m,)) where it is in the map and the pair
     passes the gate at (x, P): a gross outlier keeps its true id but is no evidence to take."""
@@ -40,7 +40,7 @@ def pair_distance(R, o, z, z_hat, H, i, P):
     return innovation_mahalanobis(H, i, P, R, o, z[o, 0] - z_hat[i, 0], z[o, 1] - z_hat[i, 1], z[o, 2] - z_hat[i, 2])[0]
 
 
-@jit
+@inlined
 def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     """Which of a pose's pairs (p,) keep more than ``recheck_margin`` over their nearest
     alternative and more than ``recheck_steal_margin`` over a rival taking their landmark, each
@@ -115,7 +115,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             obs, landmarks = oracle_pairs(scene, settings, x, P, obs_k)
         else:                                                                       # in observation order
             given_obs = pair_obs[pair_start[k]:pair_start[k + 1]]
-            order = np.argsort(given_obs, kind="mergesort")
+            order = np.argsort(given_obs.astype(np.float64), kind="mergesort")   # float: the beam's merge sort
             obs, landmarks = given_obs[order], pair_landmark[pair_start[k]:pair_start[k + 1]][order]
         start = no_start
         if method == GIVEN and slipped[k]:

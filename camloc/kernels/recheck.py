@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import inlined, jit
 from camloc.kernels.small import mm, mtm, mv, solve
 from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, mahalanobis_components, spread
 
 
-@jit
+@inlined
 def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, information, gate):
     """Costs (n, m) ``d^2 + ln det S - ln det R`` of n observations (z (n, 3), R, R^-1 (n, 3, 3),
     ln det R (n,)) against m candidates (z_hat (m, 3), H (m, 3, 6)) at the posterior, each judged
@@ -79,7 +79,7 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
     return cost
 
 
-@jit
+@inlined
 def assignment_margins(cost, null_cost, chosen):
     """(row (n,), steal (n,)): how much costlier the nearest single change that undoes each chosen
     pair is. row: the observation takes another landmark or none; steal: another observation takes
