@@ -27,7 +27,7 @@ entry = partial(numba.njit, **OPTIONS)
 
 # A step called only from compiled code, without that wrapper: the wrapper of a function taking the
 # scene unboxes its 31 arrays, and compiling it took longer than most steps' own code (0.33 s
-# against 0.06 s a function). Dropping it from the 80 steps cut the first compile by about a tenth.
+# against 0.06 s a function). Dropping it from the 74 steps cut the first compile by about a tenth.
 # Python (a test checking one step) calls one through ``from_python``.
 jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTIONS)
 
