@@ -13,6 +13,7 @@ import types
 from functools import partial
 
 import numba
+import numpy as np
 
 from camloc.kernels import check_cache
 
@@ -20,6 +21,12 @@ from camloc.kernels import check_cache
 CACHE_FOLDER = check_cache()
 
 OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
+
+# A first index, a counter's start, or a capacity of one, as a kernel's argument: numba types a
+# literal 0 or 1 as a value of its own and compiles the callee (with all it calls) once more for it;
+# an int64 is the type the other call sites pass.
+FIRST = np.int64(0)
+ONE = np.int64(1)
 
 # A kernel that Python calls (the loop's entry points and the slip search's steps, ``camloc.loop``
 # and ``camloc.seeds``): numba gives it a wrapper that unboxes Python's arguments.

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import entry, inlined, jit
+from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
@@ -26,12 +26,6 @@ from camloc.kernels.view import visible
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
-
-# The first hypothesis, a counter's start, or a capacity of one pair, as an argument: numba types a
-# literal 0 or 1 as a value of its own and compiled the callee (with all it calls) once more for it;
-# an int64 is the type the other call sites pass.
-FIRST = np.int64(0)
-ONE = np.int64(1)
 
 
 @entry

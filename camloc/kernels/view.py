@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import entry, jit
+from camloc.kernels._jit import FIRST, entry, jit
 
 # Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
 MAX_CELLS_PER_AXIS = 1 << 20
@@ -69,7 +69,7 @@ def visible(scene, R_wc, centre, max_angle, margin):
     ball, radius = view_cone_ball(apex, axis, reach, max_angle)
     cone = (math.tan(max_angle), math.cos(max_angle), math.sin(max_angle))
     found = np.empty(256, np.int64)
-    count = np.int64(0)       # not a literal 0: numba would compile cone_members once more for it
+    count = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
     cell, origin, dims = scene.grid_cell[0], scene.grid_origin, scene.grid_dims
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
