@@ -64,7 +64,10 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
                         chosen[r] = j
             if chosen[r] >= 0:
                 Hc = H[chosen[r]]
-                information[g] += mtm(Hc, mm(scene.R_assoc_inverse[mine[r]], Hc))
+                pair_information = mtm(Hc, mm(scene.R_assoc_inverse[mine[r]], Hc))
+                for a in range(6):
+                    for b in range(6):
+                        information[g, a, b] += pair_information[a, b]
         groups.append((mine, z_hat, H, chosen))
     prior_information = solve(P_prior, np.eye(6))
     for g in range(cameras.size):

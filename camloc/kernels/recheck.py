@@ -31,8 +31,11 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
     for i in range(n):
         if chosen[i] >= 0:
             Hc = H[chosen[i]]
-            pair_information[i] = mtm(Hc, mm(R_inverse[i], Hc))
-            total += pair_information[i]
+            information_i = mtm(Hc, mm(R_inverse[i], Hc))
+            for a in range(6):
+                for b in range(6):
+                    pair_information[i, a, b] = information_i[a, b]
+            total += information_i
     cost = np.full((n, m), np.inf)
     # Every L_i >= information, so each S is at most H_j information^-1 H_j' + r_max I (r_max: the
     # largest eigenvalue of any R_i): d^2 under that bound is a lower bound, and the pairs it puts

@@ -123,7 +123,8 @@ def gain_into(P, H, R, PHt, S, L, K):
     innovation_system_into(P, H, R, PHt, S)
     cholesky_into(S, L)
     for c in range(6):
-        K[c, :] = PHt[c, :]
+        for r in range(PHt.shape[1]):
+            K[c, r] = PHt[c, r]
         cho_solve_into(L, K[c])                                     # S symmetric: row c of P H' S^-1
 
 
@@ -416,9 +417,13 @@ def point_step(scene, x, P, obs, z_hat, H):
     for i in range(p):
         o = obs[i]
         p_hat, J = back_project(z_hat[i], scene.camera_K[scene.obs_camera[o]])
-        Hp[i] = mm(J, H[i])
-        y[i] = scene.point[o] - p_hat
-        R[i], R_inverse[i] = scene.point_cov[o], scene.point_cov_inverse[o]
+        JH = mm(J, H[i])
+        for a in range(3):
+            y[i, a] = scene.point[o, a] - p_hat[a]
+            for b in range(3):
+                R[i, a, b], R_inverse[i, a, b] = scene.point_cov[o, a, b], scene.point_cov_inverse[o, a, b]
+            for b in range(6):
+                Hp[i, a, b] = JH[a, b]
     return retract(x, correction(P, Hp, R, R_inverse, y))
 
 

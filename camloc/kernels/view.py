@@ -62,7 +62,7 @@ def visible(scene, R_wc, centre, max_angle, margin):
     (min_depth, max_depth) and within ``max_angle`` of the optical axis; with ``margin`` metres
     the camera's position may be off, every landmark that close to the view too."""
     min_depth, max_depth = scene.view_limits[0], scene.view_limits[1]
-    axis = np.ascontiguousarray(R_wc[:, 2])
+    axis = R_wc[:, 2].copy()
     back = margin / math.sin(max_angle) if margin > 0.0 else 0.0
     apex = centre - back * axis
     reach = max_depth + margin + back
@@ -106,7 +106,8 @@ def visible(scene, R_wc, centre, max_angle, margin):
             continue
         if count + (stop - first) > found.size:
             grown = np.empty(2 * (count + stop - first), np.int64)
-            grown[:count] = found[:count]
+            for i in range(count):
+                grown[i] = found[i]
             found = grown
         count = cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth - margin, max_depth + margin, back,
                              cone[0], found, count)
