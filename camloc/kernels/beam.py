@@ -36,8 +36,8 @@ def new_generation(n, cap):
 
 @jit
 def put_state(gen, j, x, P):
-    """Hypothesis j's state x (6,) and covariance P (6, 6). Entry by entry, as the copies below:
-    numpy's row assignment compiles to general broadcasting code in every kernel that copies."""
+    """Hypothesis j's state x (6,) and covariance P (6, 6), entry by entry (as every copy into a
+    slice: see ``_jit``)."""
     for a in range(6):
         gen[0][j, a] = x[a]
         for b in range(6):

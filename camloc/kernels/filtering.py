@@ -90,7 +90,7 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
 
 @jit
 def record_state(states, covs, k, x, P):
-    """states[k] = x, covs[k] = P, entry by entry (lighter code than numpy's row assignment)."""
+    """states[k] = x, covs[k] = P, entry by entry (as every copy into a slice: see ``_jit``)."""
     for a in range(6):
         states[k, a] = x[a]
         for b in range(6):
