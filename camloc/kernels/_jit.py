@@ -30,7 +30,7 @@ ONE = np.int64(1)
 
 # Kernels copy an array into a slice or row entry by entry (``put_state``), never ``a[i] = b`` with
 # an array b: numba compiles that assignment with a formatter of its shape-mismatch message (string
-# joins and copies, about 3,000 LLVM instructions), linked into every kernel that reaches it. Five
+# joins and copies, about 3,000 LLVM instructions), linked into every kernel that reaches it. Seven
 # such lines had put it into 23 of 283 compiled modules; without them the first compile is ~8% shorter.
 
 # A kernel that Python calls (the loop's entry points and the slip search's steps, ``camloc.loop``
