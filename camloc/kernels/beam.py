@@ -1,7 +1,7 @@
 """The beam over association hypotheses, compiled: the hypotheses of a pose are arrays, and a
 pose's work is one call. The reasoning (why a beam, the costs, the seeds of a slip, why two
 explanations per seed) is in ``docs/beam.md``; the numpy reference it was checked against is
-``camloc.reference.beam``.
+``camloc.beam`` (``BeamSearch``).
 
 A generation of hypotheses is a tuple of arrays (``new_generation``): states X (n, 6), covariances
 P (n, 6, 6), costs (n,) (twice the negative log-likelihood of all they explain), the index of the
