@@ -49,3 +49,16 @@ def test_the_scan_finds_references_and_the_check_rejects_a_wrong_one():
 def test_every_reference_resolves():
     unresolved = [f"{where}:{line}: `{name}`" for where, line, name in references() if not resolves(name)]
     assert not unresolved, "names that point to nothing in camloc:\n" + "\n".join(unresolved)
+
+
+LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+
+
+def test_every_relative_link_of_the_documents_exists():
+    documents = sorted(ROOT.glob("*.md")) + sorted(p for folder in SOURCES + ("tests",) for p in (ROOT / folder).rglob("*.md"))
+    links = [(path, number, target) for path in documents
+             for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+             for target in LINK.findall(line) if "://" not in target and not target.startswith("mailto:")]
+    assert len(links) > 20
+    broken = [f"{path.relative_to(ROOT)}:{number}: {target}" for path, number, target in links if not (path.parent / target).exists()]
+    assert not broken, "links to nothing:\n" + "\n".join(broken)
