@@ -104,6 +104,23 @@ def test_rotations_match_geometry(rng):
         np.testing.assert_allclose(rotation.euler_rate_inverse(rpy[0], rpy[1]), geometry.euler_rate_matrix_inverse(rpy), atol=1e-12)
 
 
+def test_buffers_written_again_hold_only_the_last_state(rng):
+    # an iterated update predicts every linearization into the same buffers: nothing of the state
+    # before may remain (the rate matrix's zeros included)
+    frame = (np.full((3, 3), np.nan), np.full((3, 3), np.nan), np.full(3, np.nan))
+    moved, retracted = np.full(6, np.nan), np.full(6, np.nan)
+    for _ in range(5):
+        x, delta = _random_state(rng), rng.normal(0, 0.5, 6)
+        camera.robot_frame_into(x, frame)
+        np.testing.assert_allclose(frame[0], geometry.euler_to_matrix(x[3:]), atol=1e-14)
+        np.testing.assert_allclose(frame[1], geometry.euler_rate_matrix(x[3:]), atol=1e-15)
+        np.testing.assert_array_equal(frame[2], x[:3])
+        rotation.retract_into(x, delta, retracted)
+        rotation.difference_into(retracted, x, moved)
+        np.testing.assert_array_equal(retracted, rotation.retract(x, delta))
+        np.testing.assert_allclose(moved, delta, atol=1e-12)
+
+
 def test_motion_matches_the_numpy_model_and_finite_differences(rng):
     for _ in range(10):
         x = _random_state(rng)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
-from camloc.kernels.rotation import euler_rate, euler_to_matrix
+from camloc.kernels.rotation import euler_rate_into, euler_to_matrix, euler_to_matrix_into
 from camloc.kernels.small import mm, mv
 
 
@@ -20,7 +20,19 @@ from camloc.kernels.small import mm, mv
 def robot_frame(x):
     """What ``observe_into`` needs of the Euler state x: its rotation R (3, 3), rate matrix E
     (3, 3) and position t (3,)."""
-    return euler_to_matrix(x[3], x[4], x[5]), euler_rate(x[3], x[4]), x[0:3].copy()
+    frame = (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    robot_frame_into(x, frame)
+    return frame
+
+
+@jit
+def robot_frame_into(x, frame):
+    """``robot_frame`` written into frame, (R, E, t) arrays of its shapes: an iterated update
+    predicts its pairs at every step, each time from a new state, into the same buffers."""
+    R, E, t = frame
+    euler_to_matrix_into(x[3], x[4], x[5], R)
+    euler_rate_into(x[3], x[4], E)
+    t[0], t[1], t[2] = x[0], x[1], x[2]
 
 
 @jit
@@ -84,15 +96,17 @@ def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
     p = landmark_xyz.shape[0]
     z_hat, H = np.empty((p, 3)), np.empty((p, 3, 6))
     observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H,
-                       np.empty((camera_R.shape[0], 3, 3)))
+                       np.empty((camera_R.shape[0], 3, 3)), robot_frame(x))
     return z_hat, H
 
 
 @jit
-def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position):
-    """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, 6), with d_position (C, 3, 3) as
-    scratch: an iterated update predicts its pairs at every step into the same buffers."""
-    R, E, t = robot_frame(x)
+def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame):
+    """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, 6), with d_position (C, 3, 3) and
+    frame (``robot_frame_into``'s) as scratch: an iterated update predicts its pairs at every
+    step into the same buffers."""
+    robot_frame_into(x, frame)
+    R, E, t = frame
     for c in range(camera_R.shape[0]):
         camera_position_jacobian(R, camera_R[c], d_position[c])
     for i in range(landmark_xyz.shape[0]):

@@ -28,7 +28,7 @@ import numpy as np
 
 from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
-from camloc.kernels.rotation import difference, retract
+from camloc.kernels.rotation import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
 
@@ -350,8 +350,8 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
     PHt, S, L, K = np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), np.empty((6, m))
     z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, 6)), np.empty((p, 3))
-    d_position = np.empty((camera_R.shape[0], 3, 3))
-    delta, step = np.empty(6), np.empty(6)
+    d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    delta, step, moved, x_i = np.empty(6), np.empty(6), np.empty(6), np.empty(6)
 
     y_prior = z - z_hat
     if few:
@@ -362,13 +362,15 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
         gradient_into(R_inverse_H, y_prior, g)
         nis = block_quadratic(y_prior, R_inverse) - plain_step_into(AP, g, delta)   # K y = A P g
-    x_i = retract(x, delta)                                          # x+ = x [+] K y
+    retract_into(x, delta, x_i)                                      # x+ = x [+] K y
     if start.size and iterations >= 2:
-        x_i, delta = start.copy(), difference(start, x)
+        for b in range(6):
+            x_i[b] = start[b]
+        difference_into(start, x, delta)
     H_last = H                                                       # the linearization of the gain
     for _ in range(iterations - 1):
-        observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position)
-        moved = difference(x_i, x)
+        observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
+        difference_into(x_i, x, moved)
         for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
             for a in range(3):
                 s = z[i, a] - z_hat_i[i, a]
@@ -383,7 +385,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             gradient_into(R_inverse_H, r, g)
             plain_step_into(AP, g, step)
         H_last = H_i
-        x_i = retract(x, step)
+        retract_into(x, step, x_i)
         change = 0.0
         for b in range(6):
             change = max(change, abs(step[b] - delta[b]))
@@ -396,11 +398,12 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     else:
         posterior_covariance_into(P, information, M, pivots, P_post, np.empty((6, 6)))
     # the MAP cost at x+, predicted into the iterations' buffers (H_last is read above)
-    observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position)
+    observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
     for i in range(p):
         for a in range(3):
             r[i, a] = z[i, a] - z_hat_i[i, a]
-    cost = prior_quadratic(P, difference(x_i, x), M, pivots, np.empty((6, 1))) + block_quadratic(r, R_inverse)
+    difference_into(x_i, x, moved)
+    cost = prior_quadratic(P, moved, M, pivots, np.empty((6, 1))) + block_quadratic(r, R_inverse)
     return x_i, P_post, nis, cost, y_prior
 
 
