@@ -331,6 +331,8 @@ def _value_reason(layout: _Layout, name: str, value: float) -> str | None:
 # What an id looks like, and the ids that fit in int64 (the run folder's readers share both).
 INTEGER = re.compile(r"[+-]?[0-9]+")
 INT64_RANGE = (-(2**63), 2**63 - 1)
+# A pose's id is its timestamp in the TUM files (a float): beyond 2^53 two ids could read back as one.
+EXACT_TIMESTAMP_ID = 2**53
 
 
 def _raise_first_malformed_line(path: Path, layout: _Layout, lines: _Lines) -> None:
@@ -497,6 +499,11 @@ def _build_pose_vertices(path: Path, table: _Table,
                          messages: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ids = table.ids[:, 0].copy()
     _check_unique(path, ids, table.lines, "pose vertex id")
+    beyond = np.flatnonzero(np.abs(ids) > EXACT_TIMESTAMP_ID)
+    if beyond.size:
+        row = int(beyond[0])
+        raise DatasetError(path, int(table.lines[row]), f"{TAG_POSE} id: expected a pose id within +-2^53 "
+                           f"({EXACT_TIMESTAMP_ID}), which the trajectory files' timestamps hold exactly, found {ids[row]}")
     quat = _unit_quaternions(path, TAG_POSE, table.values[:, 3:7], table.lines, messages)
     return ids, table.values[:, 0:3].copy(), quat
 

@@ -9,6 +9,7 @@ observations with the map, update with every accepted pair stacked, record.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import MISSING, asdict, dataclass, field, fields, is_dataclass, replace
@@ -27,6 +28,14 @@ from camloc.results import UNASSOCIATED, Associations, RunResult
 from camloc.tails import chi2_quantile
 
 ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
+# What the oracle ignores (it takes the file's ids, gated): the re-check, the candidate view and
+# the null cost, which belong to the methods that search for the pairs. They are accepted with it
+# (a study compares each method with the oracle under the same options) and the run says so.
+IGNORED_BY_ORACLE = ("null_cost", "recheck", "view")
+# The largest beam: its history holds width hypotheses per pose.
+MAX_BEAM_WIDTH = 1024
+# The largest covariance factor of a slip's hypothesis: sigma x 100.
+MAX_SLIP_INFLATION = 1e4
 COSTS = ("nll", "mahalanobis", "euclidean")
 
 ProgressCallback = Callable[[int, int], None]
@@ -120,7 +129,8 @@ class RecheckOptions:
 
 @dataclass(frozen=True)
 class ViewOptions:
-    """Which map landmarks are candidates for a camera's observations (every association).
+    """Which map landmarks are candidates for a camera's observations (every association but
+    "oracle", which takes the file's ids).
 
     Attributes
     ----------
@@ -203,22 +213,28 @@ class LocalizerConfig:
              f"must be one of {', '.join(ASSOCIATION_METHODS)}, got {self.association!r}"),
             ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= 50, f"must be an integer in 1..50, got {self.iterations}"),
             ("gate", 0.0 < self.gate < 1.0, f"must be a probability in (0, 1), got {self.gate}"),
-            ("null_cost", self.null_cost is None or self.null_cost > 0.0, f"must be > 0, got {self.null_cost}"),
+            ("null_cost", self.null_cost is None or _finite(self.null_cost) and self.null_cost > 0.0,
+             f"must be a finite number > 0, got {self.null_cost}"),
             ("initial_sigma_xyz", 0.0 < self.initial_sigma_xyz <= MAX_COORDINATE,
              f"must be in (0, {MAX_COORDINATE:.0e}] m, got {self.initial_sigma_xyz}"),
             ("initial_sigma_deg", 0.0 < self.initial_sigma_deg <= MAX_SIGMA_DEG,
              f"must be in (0, {MAX_SIGMA_DEG:.0e}] deg, got {self.initial_sigma_deg}"),
-            ("beam.width", _is_integer(beam.width) and beam.width >= 1, f"must be an integer >= 1, got {beam.width}"),
-            ("beam.delta", beam.delta > 0.0, f"must be > 0, got {beam.delta}"),
-            ("beam.branch_delta", beam.branch_delta > 0.0, f"must be > 0, got {beam.branch_delta}"),
-            ("beam.slip_inflation", beam.slip_inflation >= 1.0, f"must be >= 1, got {beam.slip_inflation}"),
-            ("beam.slip_cost", beam.slip_cost >= 0.0, f"must be >= 0, got {beam.slip_cost}"),
+            ("beam.width", _is_integer(beam.width) and 1 <= beam.width <= MAX_BEAM_WIDTH,
+             f"must be an integer in 1..{MAX_BEAM_WIDTH}, got {beam.width}"),
+            ("beam.delta", _finite(beam.delta) and beam.delta > 0.0, f"must be a finite number > 0, got {beam.delta}"),
+            ("beam.branch_delta", _finite(beam.branch_delta) and beam.branch_delta > 0.0,
+             f"must be a finite number > 0, got {beam.branch_delta}"),
+            ("beam.slip_inflation", 1.0 <= beam.slip_inflation <= MAX_SLIP_INFLATION,
+             f"must be in [1, {MAX_SLIP_INFLATION:g}], got {beam.slip_inflation}"),
+            ("beam.slip_cost", _finite(beam.slip_cost) and beam.slip_cost >= 0.0, f"must be a finite number >= 0, got {beam.slip_cost}"),
             ("best_friends.cost", best_friends.cost in COSTS, f"must be one of {', '.join(COSTS)}, got {best_friends.cost!r}"),
-            ("best_friends.margin", best_friends.margin >= 0.0, f"must be >= 0, got {best_friends.margin}"),
+            ("best_friends.margin", _finite(best_friends.margin) and best_friends.margin >= 0.0,
+             f"must be a finite number >= 0, got {best_friends.margin}"),
             ("jcbb.max_nodes", _is_integer(self.jcbb.max_nodes) and self.jcbb.max_nodes >= 1,
              f"must be an integer >= 1, got {self.jcbb.max_nodes}"),
-            ("recheck.margin", recheck.margin >= 0.0, f"must be >= 0, got {recheck.margin}"),
-            ("recheck.steal_margin", recheck.steal_margin >= 0.0, f"must be >= 0, got {recheck.steal_margin}"),
+            ("recheck.margin", _finite(recheck.margin) and recheck.margin >= 0.0, f"must be a finite number >= 0, got {recheck.margin}"),
+            ("recheck.steal_margin", _finite(recheck.steal_margin) and recheck.steal_margin >= 0.0,
+             f"must be a finite number >= 0, got {recheck.steal_margin}"),
             ("view.min_depth", view.min_depth is None or 0.0 <= view.min_depth <= MAX_COORDINATE,
              f"must be in [0, {MAX_COORDINATE:.0e}] m, got {view.min_depth}"),
             ("view.max_depth", view.max_depth is None or (view.min_depth or 0.0) < view.max_depth <= MAX_COORDINATE,
@@ -259,6 +275,22 @@ def option_value(config: LocalizerConfig, path: str):
     for name in path.split("."):
         value = getattr(value, name)
     return value
+
+
+def ignored_options(config: LocalizerConfig) -> list[str]:
+    """The options set (to other than their defaults) that the selected association ignores: with
+    the oracle, those of ``IGNORED_BY_ORACLE``."""
+    if config.association != "oracle":
+        return []
+    paths = []
+    for name in IGNORED_BY_ORACLE:
+        default = getattr(_DEFAULT_CONFIG, name)
+        paths += [f"{name}.{f.name}" for f in fields(default)] if is_dataclass(default) else [name]
+    return [path for path in paths if option_value(config, path) != option_value(_DEFAULT_CONFIG, path)]
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
 
 
 def _is_integer(value) -> bool:
@@ -751,6 +783,9 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
         },
         "warnings": list(ds.warnings) + list(warnings),
     }
+    ignored = ignored_options(config)
+    if ignored:
+        summary["warnings"].append(f"association oracle takes the file's landmark ids and ignores {', '.join(ignored)}")
     if slip_pose_ids:
         summary["warnings"].append(
             f"{len(slip_pose_ids)} pose(s) were explained as odometry slips (prior covariance widened "

@@ -247,6 +247,9 @@ def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[by
             staged.append((_temporary_sibling(path), path))
             with _open_for_writing(staged[-1][0], binary=True) as handle:
                 write(path, handle)
+        for _, path in staged:  # what a rename would fail on, before the first one
+            if path.is_dir():
+                raise CamlocError(f"{path}: is a folder; refusing to write a file in its place")
         for tmp, path in staged:
             os.replace(tmp, path)
     except BaseException:
@@ -698,7 +701,11 @@ def _move_into_place(tmp: Path, run_dir: Path) -> None:
         os.rename(tmp, run_dir)
         return
     old = Path(tempfile.mkdtemp(dir=run_dir.parent, prefix=f".{run_dir.name}.old-"))
-    os.rename(run_dir, old / run_dir.name)
+    try:
+        os.rename(run_dir, old / run_dir.name)
+    except BaseException:
+        shutil.rmtree(old, ignore_errors=True)
+        raise
     try:
         os.rename(tmp, run_dir)
     except BaseException:

@@ -78,6 +78,14 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
         except CamlocError as error:
             print_error(str(error))
             raise typer.Exit(EXIT_BAD_INPUT) from None
+        except OSError as error:
+            # the machine refused (a folder not writable, a file where a folder goes, a full
+            # disk): the file and the reason, as for bad input; outputs stay whole or absent
+            print_error(describe_os_error(error))
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+        except MemoryError:
+            print_error("not enough memory for this command and its options (a very large count or size?)")
+            raise typer.Exit(EXIT_BAD_INPUT) from None
         except UsageError as error:
             _usage_error(error, ctx)
         except KeyboardInterrupt:
@@ -85,6 +93,15 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
             # half-written; say so rather than print a traceback or nothing.
             err_console.print("interrupted", style="yellow", highlight=False)
             raise typer.Exit(EXIT_INTERRUPTED) from None
+
+
+def describe_os_error(error: OSError) -> str:
+    """``<file>: <reason>`` of an error of the file system (both files of a rename)."""
+    reason = error.strerror or str(error)
+    files = [str(name) for name in (error.filename, error.filename2) if name is not None]
+    if len(files) == 2:
+        return f"cannot move {files[0]} to {files[1]}: {reason}"
+    return f"{files[0]}: {reason}" if files else reason
 
 
 def _usage_error(error: UsageError, ctx: typer.Context) -> None:

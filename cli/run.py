@@ -45,7 +45,7 @@ BEAM = escape("Beam: --association beam; [beam] in a config file")
 BEST_FRIENDS = escape("Best friends: --association best-friends (cost and margin also seed jcbb); [best-friends] in a config file")
 JCBB = escape("JCBB: --association jcbb; [jcbb] in a config file")
 RECHECK = escape("Re-check: every association but oracle; [recheck] in a config file")
-VIEW = escape("Candidate landmarks: every association; [view] in a config file")
+VIEW = escape("Candidate landmarks: every association but oracle; [view] in a config file")
 
 
 def run(
@@ -83,7 +83,8 @@ def run(
         "localizer.gate", "--gate"
     ),
     null_cost: Optional[float] = typer.Option(
-        None, help="Cost of leaving an observation unassigned, for the beam and the re-check. Default: from the "
+        None, help="Cost of leaving an observation unassigned, for the beam and the re-check (every association "
+        "but oracle). Default: from the "
         "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
     ),
     initial_sigma_xyz: Optional[float] = library_option(

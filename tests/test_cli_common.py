@@ -151,6 +151,39 @@ def test_run_refuses_an_existing_run_folder_unless_forced_and_keeps_the_users_fi
     assert [p.name for p in other.iterdir()] == ["chapter.tex"]
 
 
+def test_a_file_system_refusal_is_one_line_and_leaves_the_old_run_and_nothing_else(tmp_path, world, synthetic_run, monkeypatch):
+    # a run folder that cannot be moved aside (read-only parent, as a user other than root finds it)
+    import os
+
+    from camloc import results
+
+    dataset, _ = world
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir()}
+    real_rename = os.rename
+
+    def refusing(source, target):
+        if ".old-" in str(target):
+            raise PermissionError(13, "Permission denied", str(source), None, str(target))
+        return real_rename(source, target)
+
+    monkeypatch.setattr(results.os, "rename", refusing)
+    assert_one_error_line(invoke("run", dataset, "-o", run_dir, "--force"), f"cannot move {run_dir} to ")
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no .run.old-* or .run.tmp-* left
+
+
+def test_running_out_of_memory_is_one_line(tmp_path, monkeypatch):
+    import camloc.simulate
+
+    def too_big(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(camloc.simulate, "simulate", too_big)
+    assert_one_error_line(invoke("simulate", "-o", tmp_path / "w.g2o", "--landmarks", "100000000000"), "not enough memory")
+    assert not any(tmp_path.iterdir())
+
+
 # --------------------------------------------------------------------------------------------
 # --quiet, and run and eval agreeing
 

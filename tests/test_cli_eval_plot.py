@@ -249,6 +249,16 @@ def test_plot_writes_every_figure_or_none(run_dir, monkeypatch):
     assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
 
 
+def test_plot_refuses_a_folder_where_a_figure_goes_and_replaces_no_figure(run_dir):
+    invoke("plot", run_dir)
+    (run_dir / "fig-errors.png").unlink()
+    (run_dir / "fig-errors.png").mkdir()
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    outcome = invoke("plot", run_dir, "--dpi", "60")
+    assert_bad_input(outcome, f"{run_dir / 'fig-errors.png'}: is a folder; refusing to write a file in its place")
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
+
+
 def test_eval_of_tum_files_with_huge_quaternions_a_bom_or_huge_coordinates(tmp_path, run_dir):
     reference = run_dir / "groundtruth.tum"
     lines = reference.read_text().splitlines()

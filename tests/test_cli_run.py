@@ -73,7 +73,7 @@ def test_config_file_is_applied_and_the_command_line_wins(tmp_path, small_datase
     (["--iterations", "0"], "error: --iterations must be an integer in 1..50, got 0"),
     (["--gate", "1.5"], "error: --gate must be a probability in (0, 1), got 1.5"),
     (["--association", "psychic"], "association"),
-    (["--beam-width", "0"], "error: --beam-width must be an integer >= 1, got 0"),
+    (["--beam-width", "0"], "error: --beam-width must be an integer in 1..1024, got 0"),
     (["--max-depth", "0.5", "--min-depth", "1"], "error: --max-depth must be above the minimum depth (1 m)"),
     # an option of a method that is not selected
     (["--jcbb-max-nodes", "10"], "error: --jcbb-max-nodes applies only with association jcbb; the selected association is beam"),

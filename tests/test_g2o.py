@@ -234,6 +234,9 @@ BAD_LINES = [
      ["field landmark", "integer id", "'one'"]),
     ("exponent-id", with_line(5, "VERTEX_SE3:QUAT 1e1 0 0 0 0 0 0 1"), 5, ["integer id", "'1e1'"]),
     ("id-beyond-64-bits", with_line(3, "VERTEX_TRACKXYZ 99999999999999999999 1.0 2.0 3.0"), 3, ["64 bits"]),
+    # a pose's id is its timestamp in the run's TUM files: beyond 2^53 neighbours would read back as one
+    ("pose-id-beyond-exact-timestamps", with_line(7, "VERTEX_SE3:QUAT 9007199254740993 2 0 0 0 0 0 1"), 7,
+     ["within +-2^53", "found 9007199254740993"]),
     # Two bad lines of different tags: the earlier one in the file is reported.
     ("earliest-of-two-bad-lines", with_lines({4: "VERTEX_TRACKXYZ 2 4.0 5.0", 11: "EDGE_PROJECT_DEPTH 1 2"}), 4,
      ["VERTEX_TRACKXYZ", "expects 4", "found 3"]),

@@ -2,6 +2,7 @@
 and that the default never reads the file's landmark ids."""
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -206,6 +207,40 @@ def test_an_option_of_another_method_at_its_default_and_a_shared_one_are_accepte
     jcbb.validate()  # best friends' cost and margin pick the pairs that seed jcbb
     LocalizerConfig(association="oracle", recheck=RecheckOptions(enabled=False), null_cost=5.0).validate()
     LocalizerConfig(association="oracle", beam=BeamOptions(width=LocalizerConfig().beam.width)).validate()
+
+
+def test_the_oracle_run_says_which_options_it_ignores():
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=30), seed=2)
+    config = LocalizerConfig(association="oracle", recheck=RecheckOptions(margin=100.0), null_cost=0.001,
+                             view=ViewOptions(max_depth=0.6))
+    plain = localize(dataset, LocalizerConfig(association="oracle"))
+    result = localize(dataset, config)
+    np.testing.assert_array_equal(result.filter_state, plain.filter_state)  # ignored indeed
+    assert ("association oracle takes the file's landmark ids and ignores null_cost, recheck.margin, view.max_depth"
+            in result.summary["warnings"])
+    assert not any("ignores" in w for w in plain.summary["warnings"])
+    assert not any("ignores" in w for w in localize(dataset, LocalizerConfig(null_cost=5.0)).summary["warnings"])
+
+
+@pytest.mark.parametrize("option, value, reason", [
+    ("null_cost", float("inf"), "must be a finite number > 0"),
+    ("beam", "delta=inf", "must be a finite number > 0"),
+    ("beam", "slip_inflation=1e300", "must be in [1, 10000]"),
+    ("beam", "width=100000000000", "must be an integer in 1..1024"),
+    ("recheck", "margin=inf", "must be a finite number >= 0"),
+    ("best_friends", "margin=nan", "must be a finite number >= 0"),
+])
+def test_infinite_and_huge_option_values_are_refused(option, value, reason):
+    # infinities were recorded as null in summary.json (for null_cost: "from the data"), so the
+    # recorded options did not repeat the run; a huge width or inflation ran out of memory or range
+    groups = {"beam": BeamOptions, "recheck": RecheckOptions, "best_friends": BestFriendsOptions}
+    if option in groups:
+        name, text = value.split("=")
+        config = LocalizerConfig(**{option: groups[option](**{name: float(text)})})
+    else:
+        config = LocalizerConfig(**{option: value})
+    with pytest.raises(ConfigError, match=re.escape(reason)):
+        config.validate()
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -107,7 +107,7 @@ def test_bad_spec_through_the_command_line_exits_2_without_a_traceback(tmp_path)
     spec.write_text("seeds = 2\n[run]\nbeam-width = 0\n")
     result = invoke("sweep", spec, "-o", tmp_path / "out")
     assert result.exit_code == 2
-    assert "bad.toml: [run] beam-width = 0: --beam-width must be an integer >= 1" in result.output
+    assert "bad.toml: [run] beam-width = 0: --beam-width must be an integer in 1..1024" in result.output
     assert "Traceback" not in result.output and not (tmp_path / "out").exists()
     assert invoke("sweep", tmp_path / "missing.toml", "-o", tmp_path / "out").exit_code == 2
 
