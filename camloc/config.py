@@ -59,6 +59,8 @@ def read_toml(path: str | Path, *, what: str = "config file") -> dict[str, Any]:
     """The document of a TOML file; ConfigError naming it (and ``what`` it should be) for a missing
     file, a folder or bad TOML."""
     path = Path(path)
+    if path.is_char_device() or path.is_block_device():  # /dev/zero would be read forever
+        raise ConfigError(f"{path}: is a device, expected a TOML {what}")
     try:
         with path.open("rb") as handle:
             return tomllib.load(handle)

@@ -221,16 +221,30 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     )
 
 
+# Files a user may hand over for a g2o file, told apart by their first bytes.
+COMPRESSED_OR_WIDE = (
+    (b"\x1f\x8b", "gzip-compressed; decompress it first (gunzip)"),
+    (b"PK\x03\x04", "a zip archive; extract the g2o file first"),
+    (b"\xff\xfe", "UTF-16 text; save it as UTF-8"),
+    (b"\xfe\xff", "UTF-16 text; save it as UTF-8"),
+)
+
+
 def _read_text(path: Path) -> str:
     """The file's text; a missing file, a directory or a binary file is a DatasetError."""
     if path.is_dir():
         raise DatasetError(path, None, "expected a g2o file, found a directory")
+    if path.is_char_device() or path.is_block_device():  # /dev/zero would be read forever (a pipe is fine)
+        raise DatasetError(path, None, "expected a g2o file, found a device")
     try:
         data = path.read_bytes()
     except FileNotFoundError:
         raise DatasetError(path, None, "no such file") from None
     except OSError as error:
         raise DatasetError(path, None, f"cannot be read: {error.strerror or error}") from None
+    for magic, kind in COMPRESSED_OR_WIDE:
+        if data.startswith(magic):
+            raise DatasetError(path, 1, f"not a text g2o file: {kind}")
     nul = data.find(b"\0")
     if nul >= 0:
         raise DatasetError(path, data.count(b"\n", 0, nul) + 1, "not a text g2o file: found a NUL byte")
@@ -704,6 +718,8 @@ def _format_dataset(dataset: Dataset) -> list[str]:
 
 def _write_atomically(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all: a temporary sibling, then ``os.replace``."""
+    if path.is_dir():  # a file cannot replace a folder
+        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         # os.open with mode 0o666 lets the umask decide the permissions, as a plain open() would.

@@ -208,6 +208,8 @@ def refuse_existing(path: str | Path, *, force: bool) -> None:
 
 def _temporary_sibling(path: Path) -> Path:
     """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
+    if path.is_dir():  # a file cannot replace a folder, even with --force
+        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
     make_folder(path.parent)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

@@ -199,7 +199,9 @@ def run(
 
         console.print(render_run_summary(result.summary, written))
         for warning in result.summary.get("warnings", []):
-            err_console.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
+            # one line each, named by the dataset as errors are (a log or grep keeps it whole)
+            err_console.print(f"[yellow]warning:[/] {escape(str(dataset_path))}: {escape(warning)}", highlight=False,
+                              soft_wrap=True)
 
 
 def _say_compiling() -> None:

@@ -184,6 +184,37 @@ def test_running_out_of_memory_is_one_line(tmp_path, monkeypatch):
     assert not any(tmp_path.iterdir())
 
 
+def test_a_folder_given_for_a_file_is_refused_even_with_force(tmp_path, world):
+    _, run_dir = world
+    folder, named_like_a_figure = tmp_path / "figures", tmp_path / "report.pdf"
+    folder.mkdir()
+    named_like_a_figure.mkdir()
+    for args in (["simulate", "-o", folder, "--poses", "5", "--force"], ["plot", run_dir, "-o", named_like_a_figure, "--force"]):
+        assert_one_error_line(invoke(*args), "is a folder; expected the path of a file to write")
+    assert not any(folder.iterdir()) and not any(named_like_a_figure.iterdir())
+
+
+def test_run_prints_each_warning_on_one_line_named_by_the_dataset(tmp_path, world):
+    dataset, _ = world
+    odd = tmp_path / "odd.g2o"
+    odd.write_text(dataset.read_text() + "VERTEX_XY 9 1.0 2.0 a record g2o knows and camloc does not read\n")
+    outcome = invoke("run", odd, "-o", tmp_path / "r")
+    assert outcome.exit_code == 0, outcome.output
+    lines = [line for line in outcome.stderr.splitlines() if line.startswith("warning:")]
+    assert lines and all(line.startswith(f"warning: {odd}: ") for line in lines), outcome.stderr
+    assert any("VERTEX_XY" in line and "skipped 1 record" in line for line in lines), outcome.stderr
+
+
+def test_a_device_is_not_read_as_a_config_file(tmp_path, world):
+    import os
+
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero here")
+    dataset, _ = world
+    assert_one_error_line(invoke("run", dataset, "-o", tmp_path / "r", "--config", "/dev/zero"),
+                          "/dev/zero: is a device, expected a TOML config file", status=2)
+
+
 # --------------------------------------------------------------------------------------------
 # --quiet, and run and eval agreeing
 

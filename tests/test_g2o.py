@@ -297,6 +297,23 @@ def test_binary_files_are_not_text_g2o_files(tmp_path):
     assert caught.value.line == 3
 
 
+def test_compressed_wide_and_device_files_say_what_they_are(tmp_path):
+    import gzip
+    import os
+
+    text = "\n".join(VALID) + "\n"
+    cases = {"data.g2o.gz": (gzip.compress(text.encode()), "gzip-compressed; decompress it first"),
+             "utf16.g2o": (text.encode("utf-16"), "UTF-16 text; save it as UTF-8")}
+    for name, (data, words) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(DatasetError, match=words) as caught:
+            read_g2o(tmp_path / name)
+        assert caught.value.line == 1
+    if os.path.exists("/dev/zero"):  # read whole, it never ends
+        with pytest.raises(DatasetError, match="expected a g2o file, found a device"):
+            read_g2o("/dev/zero")
+
+
 # --------------------------------------------------------------------------------------------
 # Warnings
 # --------------------------------------------------------------------------------------------
