@@ -717,8 +717,9 @@ def _move_into_place(tmp: Path, run_dir: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def load_run(run_dir: str | Path) -> RunResult:
-    """Read a run folder written by ``save_run`` back into a ``RunResult``.
+def load_run(run_dir: str | Path, *, smoothed: bool = True) -> RunResult:
+    """Read a run folder written by ``save_run`` back into a ``RunResult``; without ``smoothed``,
+    leave out its ``smoothed.tum`` (the smoother replaces it, whatever it holds).
 
     The trajectories come from the TUM files (``estimate.tum``, ``odometry.tum``; the ground
     truth from ``groundtruth.tum`` and the smoothed path from ``smoothed.tum`` when they are
@@ -750,6 +751,8 @@ def load_run(run_dir: str | Path) -> RunResult:
     arrays = _read_states(run_dir / STATES_NPZ)
     for name, (xyz, quat) in _TUM_ARRAYS.items():
         optional = name in (GROUNDTRUTH_TUM, SMOOTHED_TUM)
+        if name == SMOOTHED_TUM and not smoothed:
+            continue
         if not (optional and not (run_dir / name).exists()):
             hint = "smooth the run again" if name == SMOOTHED_TUM else "run 'camloc run' again"
             arrays[xyz], arrays[quat] = read_run_tum(run_dir / name, arrays["pose_ids"], hint=hint)

@@ -54,7 +54,7 @@ def smooth(
     config = smoother.SmootherConfig(**{name: value for name, value in given.items() if value is not None})
     config.validate()
     started = time.perf_counter()
-    run = load_run(run_dir)
+    run = load_run(run_dir, smoothed=False)  # a damaged smoothed.tum is what smoothing again mends
     dataset_path = dataset if dataset is not None else _recorded_dataset(run_dir, run.summary, run.dataset)
     with warnings.catch_warnings():
         # 'camloc run' already reported the reader's warnings about this file.

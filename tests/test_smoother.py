@@ -622,6 +622,21 @@ def test_cli_smooth_of_a_corrupt_run_folder_names_the_file(tmp_path, cli_run):
         assert sorted(p.name for p in copy.iterdir()) == before
 
 
+def test_cli_smooth_mends_a_damaged_smoothed_path(tmp_path, cli_run):
+    # smoothing again is what eval's message asks for; a damaged smoothed.tum must not stop it
+    _, run_dir = cli_run
+    copy = tmp_path / "damaged"
+    shutil.copytree(run_dir, copy)
+    assert invoke("smooth", copy, "--quiet").exit_code == 0
+    good = (copy / SMOOTHED_TUM).read_text()
+    (copy / SMOOTHED_TUM).write_text(good[: len(good) // 2])
+    assert_bad_input(invoke("eval", copy), "smooth the run again")
+    outcome = invoke("smooth", copy, "--quiet")
+    assert outcome.exit_code == 0, outcome.output
+    assert (copy / SMOOTHED_TUM).read_text() == good
+    assert invoke("eval", copy, "--quiet").exit_code == 0
+
+
 def _zero_first_estimate_quaternion(path: Path) -> None:
     lines = path.read_text().splitlines()
     lines[1] = " ".join(lines[1].split()[:4] + ["0", "0", "0", "0"])
