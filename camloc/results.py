@@ -249,9 +249,6 @@ def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[by
             staged.append((_temporary_sibling(path), path))
             with _open_for_writing(staged[-1][0], binary=True) as handle:
                 write(path, handle)
-        for _, path in staged:  # what a rename would fail on, before the first one
-            if path.is_dir():
-                raise CamlocError(f"{path}: is a folder; refusing to write a file in its place")
         for tmp, path in staged:
             os.replace(tmp, path)
     except BaseException:
@@ -759,6 +756,7 @@ def load_run(run_dir: str | Path, *, smoothed: bool = True) -> RunResult:
     summary = _read_summary(run_dir / SUMMARY_JSON)
     associations, row_lines = _read_associations_with_lines(run_dir / ASSOCIATIONS_CSV)
     _check_association_poses(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["pose_ids"])
+    _check_association_landmarks(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["map_landmark_ids"])
     arrays.setdefault("truth_xyz", None)
     arrays.setdefault("truth_quat_xyzw", None)
     result = RunResult(dataset=arrays.pop("dataset"), associations=associations, summary=summary, **arrays)
@@ -840,6 +838,9 @@ def _read_states(path: Path) -> dict[str, Any]:
         with np.load(path, allow_pickle=False) as npz:
             stored = {name: npz[name] for name in npz.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+        if "pickle" in str(error):  # numpy's own message suggests loading it unsafely: camloc never writes one
+            raise DatasetError(path, None, "expected a numpy .npz archive of plain arrays, found pickled Python objects "
+                                           "(not loaded; camloc never writes them)") from None
         raise DatasetError(path, None, f"expected a numpy .npz archive, found an unreadable file ({error})") from None
     if not isinstance(stored, dict) or "format_version" not in stored:
         raise DatasetError(path, None, "expected a camloc states archive, found no format_version")
@@ -1014,6 +1015,21 @@ def _check_association_poses(path: Path, associations: Associations, row_lines: 
             path, row_lines[row], f"inconsistent run folder: pose {associations.pose_id[row]} is not one of the "
             f"run's {len(pose_ids)} poses in {STATES_NPZ} ({pose_ids[0]}..{pose_ids[-1]})"
         )
+
+
+def _check_association_landmarks(path: Path, associations: Associations, row_lines: list[int], map_ids: np.ndarray) -> None:
+    """Every chosen landmark of ``associations.csv`` must be in the run's map, with a Mahalanobis
+    distance that is not negative."""
+    chosen = associations.landmark != UNASSOCIATED
+    unknown = chosen & ~np.isin(associations.landmark, map_ids)
+    if np.any(unknown):
+        row = int(np.argmax(unknown))
+        raise DatasetError(path, row_lines[row], f"inconsistent run folder: landmark {associations.landmark[row]} is not in "
+                                                 f"the run's map in {STATES_NPZ} ({len(map_ids)} landmarks)")
+    negative = chosen & (associations.mahalanobis < 0.0)
+    if np.any(negative):
+        row = int(np.argmax(negative))
+        raise DatasetError(path, row_lines[row], f"expected a Mahalanobis distance >= 0, found {float(associations.mahalanobis[row])!r}")
 
 
 def _read_summary(path: Path) -> dict:

@@ -255,7 +255,7 @@ def test_plot_refuses_a_folder_where_a_figure_goes_and_replaces_no_figure(run_di
     (run_dir / "fig-errors.png").mkdir()
     before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
     outcome = invoke("plot", run_dir, "--dpi", "60")
-    assert_bad_input(outcome, f"{run_dir / 'fig-errors.png'}: is a folder; refusing to write a file in its place")
+    assert_bad_input(outcome, f"{run_dir / 'fig-errors.png'}: is a folder; expected the path of a file to write")
     assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
 
 

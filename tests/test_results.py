@@ -302,6 +302,14 @@ def test_load_run_of_a_corrupt_archive(tmp_path, synthetic_run):
         load_run(run_dir)
 
 
+def test_load_run_of_an_archive_of_pickled_objects_does_not_suggest_loading_it(tmp_path, synthetic_run):
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    np.savez(run_dir / "states.npz", format_version=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(DatasetError) as caught:
+        load_run(run_dir)
+    assert "found pickled Python objects (not loaded" in str(caught.value) and "allow_pickle" not in str(caught.value)
+
+
 def test_load_run_of_an_archive_missing_an_array(tmp_path, synthetic_run):
     run_dir = save_run(tmp_path / "run", synthetic_run())
     with np.load(run_dir / "states.npz") as npz:
@@ -364,6 +372,11 @@ def test_load_run_accepts_files_with_a_byte_order_mark(tmp_path, synthetic_run):
         (lambda lines: lines[:1] + ["99999,0,0.5,0.5,1,100,100,1.0"] + lines[2:], 2,
          "inconsistent run folder: pose 99999 is not one of the run's 40 poses in states.npz (1000..1039)"),
         (lambda lines: lines[:3] + ["", "99999,0,0.5,0.5,1,100,100,1.0"] + lines[4:], 5, "pose 99999 is not one of"),
+        # a landmark the run's map does not have, or a negative distance: scored as a wrong pair before
+        (lambda lines: lines[:1] + ["1001,0,0.5,0.5,1,123456,57,1.0"] + lines[2:], 2,
+         "inconsistent run folder: landmark 123456 is not in the run's map in states.npz (30 landmarks)"),
+        (lambda lines: lines[:1] + ["1001,0,0.5,0.5,1,100,100,-50.5"] + lines[2:], 2,
+         "expected a Mahalanobis distance >= 0, found -50.5"),
     ],
 )
 def test_load_run_of_a_bad_associations_csv_names_the_line(tmp_path, synthetic_run, edit, line, fragment):
