@@ -698,6 +698,22 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
             k = int(np.flatnonzero(ours != theirs)[0])
             found = f"pose {k} is {ours[k]} in the run but {theirs[k]} in the dataset"
         raise CamlocError(f"run and dataset {dataset.source} do not match: {found}; {hint}")
+    run_ids, run_xyz = np.asarray(run.map_landmark_ids), np.asarray(run.map_landmark_xyz)
+    if run_ids.shape != dataset.landmark_ids.shape or not np.array_equal(run_ids, dataset.landmark_ids):
+        raise CamlocError(f"run and dataset {dataset.source} do not match: the run's map has {len(run_ids)} landmarks "
+                          f"({_id_range(run_ids)}), the dataset's {len(dataset.landmark_ids)} ({_id_range(dataset.landmark_ids)}); {hint}")
+    moved = ~np.all(np.isclose(run_xyz, dataset.landmark_xyz, rtol=1e-9, atol=1e-9), axis=1)
+    if np.any(moved):
+        j = int(np.flatnonzero(moved)[0])
+        raise CamlocError(f"run and dataset {dataset.source} do not match: landmark {run_ids[j]} is at {_triple(run_xyz[j])} "
+                          f"in the run but {_triple(dataset.landmark_xyz[j])} in the dataset; {hint}")
+    odometry = odometry_positions(dataset)
+    # composed in another order by each engine: equal to a micrometre, where an edited edge moves metres
+    apart = ~np.all(np.isclose(np.asarray(run.odometry_xyz), odometry, rtol=1e-6, atol=1e-6), axis=1)
+    if np.any(apart):
+        k = int(np.flatnonzero(apart)[0])
+        raise CamlocError(f"run and dataset {dataset.source} do not match: odometry reaches {_triple(odometry[k])} at pose "
+                          f"{ours[k]} in the dataset but {_triple(run.odometry_xyz[k])} in the run; {hint}")
     a = run.associations
     if len(a.pose_id) != dataset.num_observations:
         raise CamlocError(
@@ -717,6 +733,17 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
             f"{dataset.pose_ids[dataset.obs_pose_index[k]]}, camera {dataset.obs_camera[k]}, uvd "
             f"{_triple(dataset.obs_uvd[k])} in the dataset; {hint}"
         )
+
+
+def odometry_positions(dataset: Dataset) -> np.ndarray:
+    """(N, 3) the positions odometry alone reaches from the start pose."""
+    T = np.array(dataset.T_world_start, dtype=float)
+    out = np.empty((dataset.num_poses, 3))
+    for k in range(dataset.num_poses):
+        if k > 0:
+            T = T @ dataset.T_odometry[k - 1]
+        out[k] = T[:3, 3]
+    return out
 
 
 def _id_range(ids: np.ndarray) -> str:

@@ -346,8 +346,12 @@ def test_a_dataset_with_other_poses_is_refused(small_world):
 def test_a_dataset_with_other_observations_is_refused(small_world):
     dataset, run, _ = small_world
     other = simulate(SimulationConfig(trajectory="smooth3d", poses=30), seed=12)
-    with pytest.raises(CamlocError, match="do not match: .*observation"):
+    with pytest.raises(CamlocError, match="do not match: the run's map has 44 landmarks"):
         smoother.problem_from_run(other, run)
+    with pytest.raises(CamlocError, match="do not match: .*observation"):
+        smoother.problem_from_run(dataclasses.replace(other, landmark_ids=dataset.landmark_ids, landmark_xyz=dataset.landmark_xyz,
+                                                      start_xyz=dataset.start_xyz, start_quat_xyzw=dataset.start_quat_xyzw,
+                                                      odom_translation=dataset.odom_translation, odom_quat_xyzw=dataset.odom_quat_xyzw), run)
     uvd = dataset.obs_uvd.copy()
     uvd[7, 1] += 0.01
     with pytest.raises(CamlocError, match=r"observation 8 \(associations.csv line 9\)"):
@@ -358,8 +362,22 @@ def test_associations_with_landmarks_missing_from_the_map_are_refused(small_worl
     dataset, run, _ = small_world
     keep = dataset.landmark_ids != run.associations.landmark[np.flatnonzero(run.associations.landmark >= 0)[0]]
     smaller = dataclasses.replace(dataset, landmark_ids=dataset.landmark_ids[keep], landmark_xyz=dataset.landmark_xyz[keep])
-    with pytest.raises(CamlocError, match="which the dataset's map .* does not have"):
+    with pytest.raises(CamlocError, match="the run's map has 44 landmarks .*, the dataset's 43"):
         smoother.problem_from_run(smaller, run)
+
+
+def test_a_dataset_with_a_moved_landmark_or_another_odometry_edge_is_refused(small_world):
+    # the same poses and observations, but not the data the run was made from
+    dataset, run, _ = small_world
+    moved = dataset.landmark_xyz.copy()
+    moved[5] += [5.0, 0.0, 0.0]
+    with pytest.raises(CamlocError, match=f"landmark {dataset.landmark_ids[5]} is at"):
+        smoother.problem_from_run(dataclasses.replace(dataset, landmark_xyz=moved), run)
+    translation = dataset.odom_translation.copy()
+    translation[10] += [0.0, 0.3, 0.0]
+    with pytest.raises(CamlocError, match=f"odometry reaches .* at pose {dataset.pose_ids[11]} in the dataset"):
+        smoother.problem_from_run(dataclasses.replace(dataset, odom_translation=translation), run)
+    smoother.problem_from_run(dataset, run)  # its own dataset passes
 
 
 def _cut_chain(problem, edge: int, *, keep_observations_after: int):
