@@ -563,7 +563,8 @@ def write_tables(out_dir: str | Path, spec: SweepSpec, cells: list[Cell], result
 @dataclass(frozen=True)
 class SweepOutcome:
     """What a sweep did: ``cells`` in all, ``resumed`` rows found in the folder, ``ran`` now,
-    ``failed`` rows in all, and the summary."""
+    ``failed`` rows in all, the summary, and the error of the first failed row in cell order
+    (empty when none failed)."""
 
     folder: str
     cells: int
@@ -571,6 +572,7 @@ class SweepOutcome:
     ran: int
     failed: int
     summary: list[dict[str, Any]]
+    first_error: str = ""
 
 
 RowCallback = Callable[[int, int, Mapping[str, str]], None]
@@ -624,7 +626,8 @@ def run_sweep(
         source.close()  # stop the workers before the last write
         summary = write_tables(out_dir, spec, cells, results)
     failed = sum(r["status"] != "ok" for r in results.values())
-    return SweepOutcome(str(out_dir), len(cells), resumed, len(results) - resumed, failed, summary)
+    first_error = next((results[c.key]["error"] for c in cells if c.key in results and results[c.key]["status"] != "ok"), "")
+    return SweepOutcome(str(out_dir), len(cells), resumed, len(results) - resumed, failed, summary, first_error)
 
 
 def default_workers() -> int:

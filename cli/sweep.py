@@ -12,6 +12,7 @@ from rich.markup import escape
 from camloc.cli.common import console, err_console, json_option, quiet_option
 
 EXIT_INTERRUPTED = 130
+EXIT_ALL_FAILED = 1  # no run gave a result: a script must not take the empty study for one
 
 
 def sweep(
@@ -51,3 +52,8 @@ def sweep(
         typer.echo(dumps_json(vars(outcome)), nl=False)
     elif not quiet:
         console.print(render_summary(spec, outcome))
+    if outcome.failed and not quiet:
+        err_console.print(f"[yellow]warning:[/] {outcome.failed} of {outcome.cells} runs failed (each row of runs.csv says why); "
+                          f"the first: {escape(outcome.first_error)}", highlight=False, soft_wrap=True)
+    if outcome.failed == outcome.cells:
+        raise typer.Exit(EXIT_ALL_FAILED)

@@ -84,7 +84,21 @@ def worlds(tmp_path_factory):
 
 def test_the_doc_lists_every_command_that_prints_json():
     assert set(DOCUMENTED) == {"camloc run", "camloc eval", "camloc eval --est --ref", "camloc smooth",
-                               "camloc info", "camloc simulate"}
+                               "camloc info", "camloc simulate", "camloc sweep"}
+
+
+def test_sweep_prints_the_documented_keys(worlds):
+    folder, with_truth, _ = worlds
+    spec = folder / "sweep.toml"
+    spec.write_text(f'datasets = ["{with_truth.name}"]\n[run]\nassociation = ["oracle", "beam"]\n')
+    outcome = invoke_json("sweep", spec, "-o", folder / "sweep", "--workers", "1")
+    check_against_doc(outcome, "camloc sweep")
+    assert outcome["cells"] == 2 and outcome["failed"] == 0 and outcome["first_error"] == ""
+    from camloc.sweep import SUMMARY_COLUMNS
+
+    documented = next(line for line in DOC.read_text(encoding="utf-8").splitlines() if line.startswith("| `summary` | array"))
+    assert all(f"`{column}`" in documented for column in SUMMARY_COLUMNS)
+    assert set(SUMMARY_COLUMNS) <= set(outcome["summary"][0])
 
 
 @pytest.mark.parametrize("truth", [True, False], ids=["ground-truth", "no-ground-truth"])

@@ -147,6 +147,20 @@ def test_a_failing_dataset_is_a_row_and_the_sweep_goes_on(tmp_path):
     assert rows[0]["status"] == "ok" and float(rows[0]["ate_rmse"]) > 0
     assert rows[1]["status"] == "failed" and "b.g2o:1:" in rows[1]["error"] and rows[1]["ate_rmse"] == ""
     assert outcome["summary"][0]["runs"] == 2 and outcome["summary"][0]["failures"] == 1
+    assert "b.g2o:1:" in outcome["first_error"]
+    tables = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1")  # resumed: the warning again
+    assert tables.exit_code == 0
+    assert "warning: 1 of 2 runs failed" in tables.stderr and "the first: " in tables.stderr and "b.g2o:1:" in tables.stderr
+
+
+def test_a_sweep_whose_every_run_failed_exits_1(tmp_path):
+    (tmp_path / "bad.g2o").write_text("VERTEX_TRACKXYZ 0 1 2\n")
+    spec = tmp_path / "files.toml"
+    spec.write_text('datasets = ["bad.g2o"]\n[run]\nassociation = "oracle"\n')
+    result = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1")
+    assert result.exit_code == 1
+    assert "warning: 1 of 1 runs failed" in result.stderr and "bad.g2o:1:" in result.stderr
+    assert "Traceback" not in result.output
 
 
 # ------------------------------------------------------------------------------- local sweeps
