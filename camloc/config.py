@@ -62,8 +62,8 @@ def read_toml(path: str | Path, *, what: str = "config file") -> dict[str, Any]:
     if path.is_char_device() or path.is_block_device():  # /dev/zero would be read forever
         raise ConfigError(f"{path}: is a device, expected a TOML {what}")
     try:
-        with path.open("rb") as handle:
-            return tomllib.load(handle)
+        # a byte order mark, as some Windows editors write, is not TOML but says nothing either
+        return tomllib.loads(path.read_bytes().decode("utf-8").removeprefix("\ufeff"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: {what} not found") from None
     except IsADirectoryError:

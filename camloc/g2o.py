@@ -493,6 +493,12 @@ def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, 
         raise DatasetError(path, int(table.lines[row]), f"{TAG_CAMERA} {ids[row]}: expected non-zero focal lengths fx fy "
                                                         f"(at least {MIN_FOCAL_LENGTH:g} in magnitude), "
                                                         f"found fx={table.values[row, 7]:g} fy={table.values[row, 8]:g}")
+    negative = np.flatnonzero((table.values[:, 7] < 0.0) | (table.values[:, 8] < 0.0))
+    if negative.size:  # legal (an image axis flipped), but more often a sign lost in a conversion
+        row = int(negative[0])
+        messages.append(f"line {table.lines[row]}: {negative.size} {TAG_CAMERA} record(s) with a negative focal length "
+                        f"(camera {ids[row]}: fx={table.values[row, 7]:g} fy={table.values[row, 8]:g}); kept as written, "
+                        "which flips that image axis")
     quat = _unit_quaternions(path, TAG_CAMERA, table.values[:, 3:7], table.lines, messages)
     return {
         int(camera_id): Camera(id=int(camera_id), translation=values[0:3].copy(), quat_xyzw=q,

@@ -546,7 +546,6 @@ class _Localizer:
     def _step(self, k: int) -> None:
         if k > 0:
             self._predict(k - 1)                       # x <- x (+) odometry increment
-        self._warn_near_singularity(k)
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
         slipped = self.beam_slipped is not None and bool(self.beam_slipped[k])
         start = None
@@ -573,6 +572,7 @@ class _Localizer:
         if obs.size:
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = result.state, result.cov
+        self._warn_near_singularity(k)                 # by the estimate, as the compiled loop's warning
         self.states[k], self.covs[k] = self.filter.stored(self.x), self.P
         self.poses[k] = self.filter.pose(self.x)
         self.odometry_poses[k] = self.T_odometry

@@ -103,3 +103,15 @@ def test_config_file_errors_name_the_file_and_the_option(document, message):
     with pytest.raises(ConfigError) as error:
         make_config(parse_config(document, source="f.toml"))
     assert message in str(error.value)
+
+
+def test_a_config_file_with_a_byte_order_mark_is_read(tmp_path):
+    from camloc.config import read_config_file
+
+    path = tmp_path / "options.toml"
+    path.write_bytes("\ufeffgate = 0.95\n[beam]\nwidth = 8\n".encode("utf-8"))
+    config = make_config(read_config_file(path))
+    assert (config.gate, config.beam.width) == (0.95, 8)
+    path.write_bytes(b"\xff\xfegate")  # UTF-16: not UTF-8, named as bad TOML rather than a traceback
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        read_config_file(path)

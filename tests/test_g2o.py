@@ -297,6 +297,16 @@ def test_binary_files_are_not_text_g2o_files(tmp_path):
     assert caught.value.line == 3
 
 
+def test_a_negative_focal_length_is_kept_with_one_warning(tmp_path):
+    path = write_file(tmp_path, with_line(2, "PARAMS_CAMERACALIB 0 0 0 0.3 0.5 -0.5 0.5 -0.5 -1 1 0.5 0.5"))
+    with pytest.warns(G2oWarning, match=r"line 2: 1 PARAMS_CAMERACALIB record\(s\) with a negative focal length \(camera 0: fx=-1 fy=1\)"):
+        dataset = read_g2o(path)
+    assert dataset.cameras[0].fx == -1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", G2oWarning)
+        read_g2o(write_file(tmp_path, VALID, "plain.g2o"))  # positive focal lengths: no warning
+
+
 def test_compressed_wide_and_device_files_say_what_they_are(tmp_path):
     import gzip
     import os
