@@ -521,6 +521,10 @@ class BeamSearch:
         """h after its stacked updates with the clear observations (see ``_explain_all``), with
         the ambiguous rest in the order to branch on them (fewest gated options first)."""
         options = self._options(h, obs)
+        taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)  # a seeded explanation's seed pair
+        if taken.size:
+            for o in options:
+                o.costs = np.where(_member(o.landmarks, taken), np.inf, o.costs)
         child, pending = h, np.arange(obs.size)
         while pending.size:
             choice = self._clear_choices(obs[pending], [options[i] for i in pending])

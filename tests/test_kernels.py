@@ -334,6 +334,50 @@ def test_the_filter_thread_gives_the_result_of_one_pass_after_the_other():
         assert done == sorted(done) and done[-1] == dataset.num_poses and {t for _, t in seen} == {dataset.num_poses}
 
 
+def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
+    """A slip's search grows explanations from a seed pair. A second detection of the seed's
+    landmark (a clutter detection beside it) is clear to the pose's explanation, as the landmark
+    is its only gated option; it must be left unassigned, not paired with the landmark the seed
+    took (one landmark, one observation a pose). Both engines."""
+    import dataclasses
+
+    from camloc.beam import BeamSearch
+    from camloc.kernels import beam as kb
+    from camloc.localizer import LocalizerConfig, _Localizer
+    from camloc.scene import build_scene, build_settings
+    from camloc.simulate import SimulationConfig, simulate
+    from camloc.tails import chi2_quantile
+
+    dataset = simulate(SimulationConfig(poses=20), seed=3)
+    k = 10
+    first = int(np.flatnonzero((dataset.obs_pose_index == k) & (dataset.obs_true_landmark >= 0))[0])
+    lm = int(np.flatnonzero(dataset.landmark_ids == dataset.obs_true_landmark[first])[0])
+    twin = dict(obs_pose_index=k, obs_camera=dataset.obs_camera[first], obs_uvd=dataset.obs_uvd[first] + [1e-3, 0.0, 0.0],
+                obs_info=dataset.obs_info[first], obs_cov=dataset.obs_cov[first], obs_true_landmark=10_000)
+    dataset = dataclasses.replace(dataset, **{name: np.append(getattr(dataset, name), [value], axis=0) for name, value in twin.items()})
+    second = dataset.num_observations - 1
+    config = LocalizerConfig()
+    x = np.r_[dataset.truth_xyz[k], geometry.matrix_to_euler(geometry.quat_to_matrix(dataset.truth_quat_xyzw[k]))]
+    P = np.diag(np.r_[np.full(3, 0.01**2), np.full(3, np.radians(0.5) ** 2)])
+
+    scene = build_scene(dataset, config)
+    settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
+    seeded = kb.new_generation(1, 2)
+    seeded[0][0], seeded[1][0], seeded[2][0] = x, P, 0.0
+    seeded[7][0, 0] = (first, lm)
+    seeded[6][0] = 1
+    children, count = kb.explain_all(scene, settings, seeded, 1, np.array([second]))
+    taken = [tuple(children[7][c, q]) for c in range(count) for q in range(children[6][c])]
+    assert count >= 1 and (second, lm) not in taken and children[4][np.argmin(children[2][:count])] == 1
+
+    from camloc.beam import _Hypothesis
+
+    localizer = _Localizer(dataset, config)
+    explained = BeamSearch(localizer, localizer.beam_settings())._explain(_Hypothesis(x, P, 0.0, 0, ((first, lm),)), np.array([second]))
+    assert explained and all((second, lm) not in h.pairs for h in explained)
+    assert min(explained, key=lambda h: h.cost).unassigned == 1
+
+
 def test_poses_settle_only_through_the_last_pose_the_beam_kept_one_hypothesis_at():
     """Poses 0-4 kept 1, 2, 1, 3, 2 hypotheses: the beam's best at pose 3 or 4 may still lose to
     another, so only poses 0-2 are settled; their pairs are read along the parent links (pose 2's

@@ -312,6 +312,10 @@ def after_clear(scene, settings, gen, h, obs, cap):
     the least each can cost)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    taken = taken_by(gen, h)                     # a seeded explanation's seed pair: its landmark is not free
+    for j in range(lm.size):
+        if is_taken(lm[j], taken):
+            cost[j] = np.inf
     child = new_generation(ONE, cap)
     copy_hypothesis(gen, h, child, FIRST)
     x, P = gen[0][h].copy(), gen[1][h].copy()
