@@ -108,6 +108,8 @@ def _usage_error(error: UsageError, ctx: typer.Context) -> None:
     """A bad option or argument: one line and where to look, instead of click's usage block and
     framed panel; exit status 2."""
     where = error.ctx.command_path if error.ctx is not None else ctx.command_path
+    if error.ctx is None and ctx.invoked_subcommand:  # an option's missing value: its command's help
+        where = f"{ctx.command_path} {ctx.invoked_subcommand}"
     print_error(f"{error.format_message()} (see '{where} --help')")
     raise typer.Exit(EXIT_BAD_INPUT) from None
 

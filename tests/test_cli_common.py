@@ -46,6 +46,7 @@ def world(tmp_path_factory):
 @pytest.mark.parametrize("args, fragment", [
     (["run", "--iterations", "x"], "Invalid value for '--iterations'"),
     (["run", "--warp"], "No such option: --warp"),
+    (["run", "--gate"], "Option '--gate' requires an argument"),  # pointed to 'camloc --help'
     (["eval", "--delta", "0"], "Invalid value for '--delta'"),
     (["plot", "RUN", "--dpi", "10"], "Invalid value for '--dpi'"),
     (["info"], "Missing argument 'DATASET'"),
