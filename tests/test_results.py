@@ -294,6 +294,21 @@ def test_load_run_of_a_folder_missing_files(tmp_path, synthetic_run):
         load_run(run_dir)
 
 
+def test_a_run_scored_against_ground_truth_needs_its_ground_truth_file(tmp_path, synthetic_run):
+    # eval said "no ground truth in the run" once groundtruth.tum was deleted, while summary.json
+    # held the run's errors against it
+    import dataclasses
+
+    run = synthetic_run()
+    scored = save_run(tmp_path / "scored", dataclasses.replace(run, summary={**run.summary, "estimate": {"ate": {"rmse": 0.1}}}))
+    (scored / "groundtruth.tum").unlink()
+    with pytest.raises(DatasetError, match="groundtruth.tum: missing, but summary.json scores the run against ground truth"):
+        load_run(scored)
+    plain = save_run(tmp_path / "plain", run)  # a summary without scores: the truth is optional
+    (plain / "groundtruth.tum").unlink()
+    assert load_run(plain).truth_xyz is None
+
+
 def test_load_run_of_a_corrupt_archive(tmp_path, synthetic_run):
     run_dir = save_run(tmp_path / "run", synthetic_run())
     data = (run_dir / "states.npz").read_bytes()
