@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
 from camloc.bundled import bundled_dataset
+from camloc.ekf import FilterDivergedError
 from camloc.localizer import LocalizerConfig, ProgressCallback, localize
 from camloc.results import RunResult
 
@@ -54,7 +55,10 @@ def run_dataset(
     started = time.perf_counter()
     dataset = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
-    result = localize(dataset, config, on_progress=on_progress, on_compile=on_compile)
+    try:
+        result = localize(dataset, config, on_progress=on_progress, on_compile=on_compile)
+    except FilterDivergedError as error:  # "pose N: ...": which file's pose, as a reader's error says
+        raise FilterDivergedError(f"{dataset_path}: {error}") from None
     summary = dict(result.summary)
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))

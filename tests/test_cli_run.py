@@ -165,7 +165,7 @@ def test_a_file_whose_information_the_filter_cannot_use_is_one_line_naming_a_pos
     bad.write_text("\n".join(lines) + "\n")
     result = invoke("run", bad, "-o", tmp_path / "never")
     assert result.exit_code == 2
-    assert "error: pose " in result.output and "Traceback" not in result.output
+    assert f"error: {bad}: pose " in result.output and "Traceback" not in result.output  # the file, then its pose
     assert not (tmp_path / "never").exists()
 
 
