@@ -193,18 +193,44 @@ def _datasets(value: Any, base_dir: str, where) -> tuple[str, ...]:
     return tuple(found)
 
 
+def applicable(run_options: dict[str, Scalar]) -> dict[str, Scalar]:
+    """A cell's run options less those of association methods other than the cell's own: in a
+    sweep over methods, each method's options are for its own cells (``[run] association = ["beam",
+    "oracle"]`` with ``beam-width = 8`` runs the beam at width 8 beside the oracle)."""
+    from camloc.localizer import LocalizerConfig, option_methods
+    from camloc.options import RUN_OPTIONS
+
+    association = run_options.get("association", LocalizerConfig().association)
+    methods = option_methods()
+    return {name: value for name, value in run_options.items()
+            if association in methods.get(RUN_OPTIONS.get(name, ""), (association,))}
+
+
 def _check_cells(spec: SweepSpec, where) -> None:
-    """Build every simulate cell's and run cell's config once, so bad values fail before running."""
+    """Build every simulate cell's and run cell's config once, so bad values fail before running;
+    a method's option where no cell runs that method is refused, as ``camloc run`` refuses it."""
     from camloc.options import run_config
     from camloc.simulate import simulation_config
 
     for key, table, build in (("simulate", spec.simulate, simulation_config), ("run", spec.run, run_config)):
+        unused = {name for name, _ in table} if key == "run" else set()
         for options in _product(table):
+            cell = ", ".join(f"{k} = {_toml(v)}" for k, v in options.items())
             try:
+                if key == "run":
+                    kept = applicable(options)
+                    unused -= set(kept)
+                    options = kept
                 build(options)
             except ConfigError as error:
-                cell = ", ".join(f"{k} = {_toml(v)}" for k, v in options.items())
                 raise where(f"[{key}] {cell}: {error}") from None
+        if unused:
+            from camloc.localizer import option_methods
+            from camloc.options import RUN_OPTIONS
+
+            name = sorted(unused)[0]
+            methods = option_methods()[RUN_OPTIONS[name]]
+            raise where(f"[run] {name}: applies only with association {' or '.join(methods)}, which no cell selects")
 
 
 def _product(table: tuple[tuple[str, tuple[Scalar, ...]], ...]) -> list[dict[str, Scalar]]:
@@ -321,7 +347,7 @@ def _localize_and_score(cell: Cell) -> dict:
         dataset = simulate(simulation_config(dict(cell.simulate)), seed=cell.seed)
     # parallel=False: the sweep already fills the cores (and a Dask worker's daemonic process may
     # not start one); the result is the same either way.
-    result = camloc.localize(dataset, run_config(dict(cell.run)), parallel=False)
+    result = camloc.localize(dataset, run_config(applicable(dict(cell.run))), parallel=False)
     return evaluate(result)
 
 

@@ -83,8 +83,8 @@ def test_spec_expands_to_the_product_in_cell_order(spec_file):
     ({"seeds": 2, "simulate": {"clutter_fraction": 0.1}}, "did you mean clutter-fraction?"),
     ({"seeds": 2, "run": {"association": ["beam", "telepathy"]}}, "[run] association = \"telepathy\": --association must be one of"),
     ({"seeds": 2, "run": {"gate": "wide"}}, "[run] gate = \"wide\": --gate must be a number, got 'wide'"),
-    ({"seeds": 2, "run": {"association": ["beam", "jcbb"], "jcbb-max-nodes": 10}},
-     "[run] association = \"beam\", jcbb-max-nodes = 10: --jcbb-max-nodes applies only with association jcbb"),
+    ({"seeds": 2, "run": {"association": ["beam", "oracle"], "jcbb-max-nodes": 10}},
+     "[run] jcbb-max-nodes: applies only with association jcbb, which no cell selects"),
     ({"seeds": 2, "run": {"batch": True}}, "batch (write sequential = false)"),
     ({"seeds": 2, "simulte": {}}, "unknown key 'simulte' (did you mean simulate?)"),
     ({"seeds": 2, "run": {"association": []}}, "empty product: [run] association = [] gives no cells"),
@@ -151,6 +151,28 @@ def test_a_failing_dataset_is_a_row_and_the_sweep_goes_on(tmp_path):
     tables = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1")  # resumed: the warning again
     assert tables.exit_code == 0
     assert "warning: 1 of 2 runs failed" in tables.stderr and "the first: " in tables.stderr and "b.g2o:1:" in tables.stderr
+
+
+def test_a_methods_options_are_for_its_own_cells_beside_the_oracle(tmp_path):
+    # beam-width beside association = ["beam", "oracle"] was refused for the oracle's cells, so a
+    # tuned beam could not be compared with the oracle in one sweep
+    import camloc
+    from camloc.localizer import BeamOptions, LocalizerConfig
+    from camloc.metrics import evaluate
+
+    dataset = simulate(SimulationConfig(poses=30, clutter_fraction=0.3), seed=1)
+    write_g2o(dataset, tmp_path / "a.g2o")
+    spec = tmp_path / "tuned.toml"
+    spec.write_text('datasets = ["a.g2o"]\n[run]\nassociation = ["beam", "oracle"]\nbeam-width = 1\n')
+    result = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1", "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["failed"] == 0
+    rows = {row["association"]: float(row["ate_rmse"]) for row in rows_of(tmp_path / "out")}
+    dataset = camloc.load(tmp_path / "a.g2o")
+    for association, config in (("beam", LocalizerConfig(beam=BeamOptions(width=1))), ("oracle", LocalizerConfig(association="oracle"))):
+        assert rows[association] == pytest.approx(evaluate(camloc.localize(dataset, config, parallel=False))["estimate"]["ate"]["rmse"])
+    default_width = evaluate(camloc.localize(dataset, LocalizerConfig(), parallel=False))["estimate"]["ate"]["rmse"]
+    assert rows["beam"] != pytest.approx(default_width)  # the width was applied (this world tells 1 from 16)
 
 
 def test_a_sweep_whose_every_run_failed_exits_1(tmp_path):
