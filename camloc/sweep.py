@@ -36,7 +36,7 @@ import math
 import multiprocessing
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Optional
 
@@ -317,21 +317,37 @@ def expand(spec: SweepSpec) -> list[Cell]:
 
 
 def run_cell(cell: Cell) -> dict[str, Any]:
-    """Make the cell's world, localize it and score it: its ``RESULT_COLUMNS`` as Python values.
+    """Make the cell's world, localize it and score it: its ``RESULT_COLUMNS`` as Python values,
+    and ``warnings``, the text of the warnings its run raised (not written to ``runs.csv``).
 
     Any error of the run (a file that does not read, a filter that fails) becomes a row with
     status ``failed`` and the error's one-line text; only interruptions propagate. ``seconds`` is
     the cell's own wall time (world, localization, metrics) in the process that ran it.
     """
+    import warnings
+
     started = time.perf_counter()
+    noted: list[str] = []
     try:
-        row = {"status": "ok", "error": "", **headline_metrics(_localize_and_score(cell))}
+        # the reader's warnings go back with the row (a worker's own stderr would print them as
+        # Python warnings, with a source line, once per cell); run_sweep gathers them
+        from camloc.g2o import G2oWarning
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", G2oWarning)
+            metrics = _localize_and_score(cell)
+        noted = [str(w.message) for w in caught if issubclass(w.category, G2oWarning)]
+        for w in caught:  # anything else (a library's) as it would have been shown
+            if not issubclass(w.category, G2oWarning):
+                warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+        row = {"status": "ok", "error": "", **headline_metrics(metrics)}
         if row["ate_rmse"] is not None and not math.isfinite(row["ate_rmse"]):
             row.update(status="failed", error=f"the estimate diverged (ate_rmse {row['ate_rmse']})")
     except Exception as error:  # noqa: BLE001 (a cell's failure is its row; the sweep goes on)
         message = str(error) if isinstance(error, CamlocError) else f"{type(error).__name__}: {error}"
         row = {"status": "failed", "error": " ".join(message.split()), **dict.fromkeys(METRIC_COLUMNS)}
     row["seconds"] = time.perf_counter() - started
+    row["warnings"] = noted
     return row
 
 
@@ -589,8 +605,8 @@ def write_tables(out_dir: str | Path, spec: SweepSpec, cells: list[Cell], result
 @dataclass(frozen=True)
 class SweepOutcome:
     """What a sweep did: ``cells`` in all, ``resumed`` rows found in the folder, ``ran`` now,
-    ``failed`` rows in all, the summary, and the error of the first failed row in cell order
-    (empty when none failed)."""
+    ``failed`` rows in all, the summary, the error of the first failed row in cell order
+    (empty when none failed), and the dataset reader's warnings of the runs made now, each once."""
 
     folder: str
     cells: int
@@ -599,6 +615,7 @@ class SweepOutcome:
     failed: int
     summary: list[dict[str, Any]]
     first_error: str = ""
+    warnings: list[str] = field(default_factory=list)
 
 
 RowCallback = Callable[[int, int, Mapping[str, str]], None]
@@ -640,9 +657,11 @@ def run_sweep(
     todo = [cell for cell in cells if cell.key not in results]
     source = dask_results(todo, client) if client is not None else local_results(todo, workers)
     last_flush = time.monotonic()
+    noted: dict[str, None] = {}  # the runs' warnings, each once, in the order first met
     try:
         for cell, result in source:
             results[cell.key] = format_result(result)
+            noted.update(dict.fromkeys(result.get("warnings", ())))
             if on_row is not None:
                 on_row(len(results), len(cells), results[cell.key])
             if time.monotonic() - last_flush >= FLUSH_SECONDS:
@@ -653,7 +672,7 @@ def run_sweep(
         summary = write_tables(out_dir, spec, cells, results)
     failed = sum(r["status"] != "ok" for r in results.values())
     first_error = next((results[c.key]["error"] for c in cells if c.key in results and results[c.key]["status"] != "ok"), "")
-    return SweepOutcome(str(out_dir), len(cells), resumed, len(results) - resumed, failed, summary, first_error)
+    return SweepOutcome(str(out_dir), len(cells), resumed, len(results) - resumed, failed, summary, first_error, list(noted))
 
 
 def default_workers() -> int:

@@ -52,6 +52,9 @@ def sweep(
         typer.echo(dumps_json(vars(outcome)), nl=False)
     elif not quiet:
         console.print(render_summary(spec, outcome))
+    if not quiet:
+        for warning in outcome.warnings:  # one line each, as every command prints its warnings
+            err_console.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False, soft_wrap=True)
     if outcome.failed and not quiet:
         err_console.print(f"[yellow]warning:[/] {outcome.failed} of {outcome.cells} runs failed (each row of runs.csv says why); "
                           f"the first: {escape(outcome.first_error)}", highlight=False, soft_wrap=True)

@@ -125,7 +125,7 @@ def test_spec_changes_say_what_changed():
 def test_a_cell_is_deterministic_and_reports_its_metrics(spec_file):
     cell = expand(read_spec(spec_file))[0]
     first, second = run_cell(cell), run_cell(cell)
-    assert list(first) == list(RESULT_COLUMNS)
+    assert list(first) == [*RESULT_COLUMNS, "warnings"] and first["warnings"] == []
     assert first["status"] == "ok" and first["error"] == ""
     assert 0.0 < first["ate_rmse"] < 0.5 and 0.9 <= first["precision"] <= 1.0 and first["nees_mean"] > 0
     assert {k: v for k, v in first.items() if k != "seconds"} == {k: v for k, v in second.items() if k != "seconds"}
@@ -173,6 +173,21 @@ def test_a_methods_options_are_for_its_own_cells_beside_the_oracle(tmp_path):
         assert rows[association] == pytest.approx(evaluate(camloc.localize(dataset, config, parallel=False))["estimate"]["ate"]["rmse"])
     default_width = evaluate(camloc.localize(dataset, LocalizerConfig(), parallel=False))["estimate"]["ate"]["rmse"]
     assert rows["beam"] != pytest.approx(default_width)  # the width was applied (this world tells 1 from 16)
+
+
+def test_a_runs_warnings_are_printed_once_each_on_one_line(tmp_path):
+    # each worker printed the reader's warning as a Python warning, with a source line, per cell
+    write_g2o(simulate(SimulationConfig(poses=30), seed=1), tmp_path / "a.g2o")
+    odd = tmp_path / "a.g2o"
+    odd.write_text(odd.read_text() + "VERTEX_XY 9 1.0 2.0\n")
+    spec = tmp_path / "odd.toml"
+    spec.write_text('datasets = ["a.g2o"]\n[run]\nassociation = ["beam", "oracle"]\n')
+    result = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1")
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.stderr.splitlines() if "VERTEX_XY" in line]
+    assert len(lines) == 1 and lines[0].startswith(f"warning: {odd}: line ") and "G2oWarning" not in result.stderr
+    outcome = json.loads(invoke("sweep", spec, "-o", tmp_path / "again", "--workers", "1", "--json").stdout)
+    assert [w for w in outcome["warnings"] if "VERTEX_XY" in w] == [lines[0].removeprefix("warning: ")]
 
 
 def test_a_sweep_whose_every_run_failed_exits_1(tmp_path):
