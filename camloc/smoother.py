@@ -64,6 +64,7 @@ from scipy.sparse.linalg import LinearOperator, onenormest, splu
 
 from camloc import geometry
 from camloc.dataset import Dataset
+from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.results import UNASSOCIATED, RunResult
 
@@ -733,17 +734,6 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
             f"{dataset.pose_ids[dataset.obs_pose_index[k]]}, camera {dataset.obs_camera[k]}, uvd "
             f"{_triple(dataset.obs_uvd[k])} in the dataset; {hint}"
         )
-
-
-def odometry_positions(dataset: Dataset) -> np.ndarray:
-    """(N, 3) the positions odometry alone reaches from the start pose."""
-    T = np.array(dataset.T_world_start, dtype=float)
-    out = np.empty((dataset.num_poses, 3))
-    for k in range(dataset.num_poses):
-        if k > 0:
-            T = T @ dataset.T_odometry[k - 1]
-        out[k] = T[:3, 3]
-    return out
 
 
 def _id_range(ids: np.ndarray) -> str:
