@@ -754,7 +754,7 @@ def load_run(run_dir: str | Path, *, smoothed: bool = True) -> RunResult:
             hint = "smooth the run again" if name == SMOOTHED_TUM else "run 'camloc run' again"
             arrays[xyz], arrays[quat] = read_run_tum(run_dir / name, arrays["pose_ids"], hint=hint)
     summary = _read_summary(run_dir / SUMMARY_JSON)
-    if arrays.get("truth_xyz") is None and isinstance(summary, dict) and summary.get("estimate") is not None:
+    if arrays.get("truth_xyz") is None and summary.get("estimate") is not None:
         # the run was scored against ground truth (summary.json): its file went missing, not the truth
         raise DatasetError(run_dir / GROUNDTRUTH_TUM, None, f"missing, but {SUMMARY_JSON} scores the run against ground truth; "
                                                           "restore it or run 'camloc run' again")
