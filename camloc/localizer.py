@@ -17,7 +17,7 @@ from typing import Callable, ClassVar, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, models
+from camloc import association, associators, ekf, geometry, models, warmup
 from camloc.associators import AssociationScene, CameraModel
 from camloc.beam import BeamSearch, BeamSettings, BeamStatistics
 from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
@@ -316,6 +316,7 @@ def localize(
     parallel: Optional[bool] = None,
     engine: str = "auto",
     on_compile: Optional[Callable[[], None]] = None,
+    on_background_compile: Optional[Callable[[bool], None]] = None,
 ) -> RunResult:
     """Localize every pose of ``dataset`` against its landmark map.
 
@@ -335,6 +336,13 @@ def localize(
         which ran.
     on_compile : called once before the compiled loop starts when its kernels are not yet in
         numba's cache (the first run after an install compiles them: a minute or two).
+    on_background_compile : given, a run that "auto" would give to the compiled loop while its
+        kernels are not yet compiled, of at most ``warmup.BACKGROUND_COMPILE_MAX_POSES`` poses,
+        runs in numpy instead (the same result, sooner than the compile) and has the kernels
+        compiled in a detached background process for the runs after it (``camloc.warmup``);
+        called with whether this call started that process (False: an earlier one is running).
+        ``summary["timing"]["background_compile"]`` says so. Where that process cannot run, the
+        kernels compile in the foreground as without it. ``camloc run`` passes it.
     """
     config = config or LocalizerConfig()
     config.validate()
@@ -344,12 +352,38 @@ def localize(
     if engine == "compiled" and not compilable:
         raise ConfigError(f"the compiled loop runs the euler filter with {' or '.join(COMPILED_ASSOCIATIONS)} association; "
                           f"filter {config.filter!r} with association {config.association!r} runs in numpy")
-    if engine == "compiled" or (engine == "auto" and compilable and dataset.num_poses >= COMPILED_MIN_POSES):
+    use_compiled = engine == "compiled" or (engine == "auto" and compilable and dataset.num_poses >= COMPILED_MIN_POSES)
+    background = None  # the state of the background compile this run leaves the kernels to
+    if use_compiled:
         from camloc.kernels import cache_is_warm
 
-        if on_compile is not None and not cache_is_warm():
-            on_compile()
-        return _localize_compiled(dataset, config, on_progress, parallel if parallel is not None else _cpus() >= 2)
+        # a background compile caches its first kernels before its last: cold until it is done
+        if not cache_is_warm() or warmup.compiling():
+            if engine == "auto" and on_background_compile is not None:
+                background = _compile_in_background(dataset)
+            if background is not None:
+                on_background_compile(background == warmup.STARTED)
+                use_compiled = False
+            elif on_compile is not None:
+                on_compile()
+    if use_compiled:
+        result = _localize_compiled(dataset, config, on_progress, parallel if parallel is not None else _cpus() >= 2)
+    else:
+        result = _localize_numpy(dataset, config, on_progress, parallel)
+    result.summary["timing"]["background_compile"] = background is not None
+    return result
+
+
+def _compile_in_background(dataset: Dataset) -> Optional[str]:
+    """``warmup.STARTED`` or ``warmup.RUNNING`` where this run goes to numpy while the kernels
+    compile in the background; None where it compiles them first."""
+    if dataset.num_poses > warmup.BACKGROUND_COMPILE_MAX_POSES:
+        return None
+    return warmup.start_background_compile()
+
+
+def _localize_numpy(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback],
+                    parallel: Optional[bool]) -> RunResult:
     localizer = _Localizer(dataset, config)
     started = time.perf_counter()
     n = dataset.num_poses

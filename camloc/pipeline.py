@@ -29,6 +29,7 @@ def run_dataset(
     force: bool = False,
     on_progress: Optional[ProgressCallback] = None,
     on_compile: Optional[Callable[[], None]] = None,
+    on_background_compile: Optional[Callable[[bool], None]] = None,
 ) -> tuple[RunResult, Path | None]:
     """Read, localize, evaluate and (when ``output_dir`` is given) save atomically.
 
@@ -56,7 +57,8 @@ def run_dataset(
     dataset = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
     try:
-        result = localize(dataset, config, on_progress=on_progress, on_compile=on_compile)
+        result = localize(dataset, config, on_progress=on_progress, on_compile=on_compile,
+                          on_background_compile=on_background_compile)
     except FilterDivergedError as error:  # "pose N: ...": which file's pose, as a reader's error says
         raise FilterDivergedError(f"{dataset_path}: {error}") from None
     summary = dict(result.summary)

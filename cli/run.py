@@ -190,7 +190,9 @@ def run(
         # The reader's warnings are part of the summary, printed once below.
         warnings.simplefilter("ignore", G2oWarning)
         result, written = run_dataset(dataset_path, config, output_dir, force=force, on_progress=on_progress,
-                                      on_compile=None if quiet or json_output else _say_compiling)
+                                      on_compile=None if quiet or json_output else _say_compiling,
+                                      on_background_compile=_say_compiling_in_background if not (quiet or json_output)
+                                      else lambda started: None)
 
     if echo_json(result.summary, enabled=json_output):
         return
@@ -206,3 +208,9 @@ def run(
 
 def _say_compiling() -> None:
     err_console.print("compiling camloc's kernels: once after an install, a minute or two", highlight=False)
+
+
+def _say_compiling_in_background(started: bool) -> None:
+    what = "compiling camloc's kernels in the background (once after an install, a minute or two)" if started else \
+        "camloc's kernels are still compiling in the background"
+    err_console.print(f"{what}; this run uses the numpy engine, which gives the same result", highlight=False)

@@ -1,0 +1,167 @@
+"""The first compile of camloc's kernels, in a detached background process.
+
+After an install numba compiles the kernels once and caches them: a minute or two on a 2-core
+machine (``docs/performance.md``). A run of up to ``BACKGROUND_COMPILE_MAX_POSES`` poses takes
+less than that in the numpy engine, which gives the same result, so ``camloc run`` does not make its
+user wait: with a cold cache it localizes in numpy and starts this module's compile, at the lowest
+priority, for the runs after it (``localize(on_background_compile=...)``).
+
+One compile at a time: the process holds a lock file in the kernels' cache folder, and the cache
+counts as cold while it is there (``localize`` asks ``compiling``). A compile that failed leaves
+its error in the lock: until the lock is stale, runs compile in the foreground (where the error, if
+it recurs, is reported) rather than start it again.
+
+    python -m camloc.warmup LOCK     # what the background process runs (LOCK is removed at the end)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+# Up to this many poses a cold run localizes in numpy and compiles in the background. On this
+# project's 2-core machine the compile takes 80-90 s, and the numpy beam 5 ms a pose at 10
+# observations a pose (9 ms beside the compile), 50 ms on a world of frequent slip searches: 2,000
+# poses take 10-20 s as a rule, and about what the compile takes at worst.
+BACKGROUND_COMPILE_MAX_POSES = 2000
+
+# Set to 0 to compile in the foreground, as a run did before (the tests do; so may a container's build).
+ENVIRONMENT_SWITCH = "CAMLOC_BACKGROUND_COMPILE"
+
+LOCK_NAME = "camloc-compiling.lock"
+
+# A lock older than this belongs to a compile that died, or failed long enough ago to try again.
+STALE_SECONDS = 1800.0
+
+STARTED, RUNNING, FAILED = "started", "running", "failed"
+
+
+def cache_folder() -> Optional[Path]:
+    """Where numba caches the kernels; None where it cannot cache them."""
+    from camloc.kernels._jit import CACHE_FOLDER
+
+    return CACHE_FOLDER
+
+
+def lock_state(folder: Optional[Path] = None) -> Optional[str]:
+    """``RUNNING`` while a background compile holds the lock in ``folder`` (the kernels' cache
+    folder), ``FAILED`` where its lock says it failed, None without a lock younger than
+    ``STALE_SECONDS``."""
+    folder = folder if folder is not None else cache_folder()
+    if folder is None:
+        return None
+    lock = folder / LOCK_NAME
+    try:
+        if time.time() - lock.stat().st_mtime >= STALE_SECONDS:
+            return None
+        return FAILED if lock.read_text().startswith(FAILED) else RUNNING
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def compiling(folder: Optional[Path] = None) -> bool:
+    """Whether a background compile is running now."""
+    return lock_state(folder) == RUNNING
+
+
+def start_background_compile(folder: Optional[Path] = None) -> Optional[str]:
+    """Start compiling the kernels in a detached, lowest-priority process, unless one is running.
+
+    Returns
+    -------
+    ``STARTED``, ``RUNNING`` (another run started it), or None where it cannot run: switched off
+    (``CAMLOC_BACKGROUND_COMPILE=0``), no cache folder (numba would not keep what it compiled), a
+    recent background compile failed, the lock cannot be written or the process not started. None
+    means: compile in the foreground.
+    """
+    if os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0":
+        return None
+    folder = folder if folder is not None else cache_folder()
+    if folder is None:
+        return None
+    state = lock_state(folder)
+    if state is not None:
+        return RUNNING if state == RUNNING else None
+    lock = folder / LOCK_NAME
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        lock.unlink(missing_ok=True)  # stale
+        descriptor = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:  # another run took it between the check and here
+        return RUNNING
+    except OSError:
+        return None
+    with os.fdopen(descriptor, "w") as handle:
+        handle.write(f"compiling since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+    try:
+        _spawn([sys.executable, "-m", "camloc.warmup", str(lock)], _environment())
+    except OSError:
+        lock.unlink(missing_ok=True)
+        return None
+    return STARTED
+
+
+def _environment() -> dict[str, str]:
+    """This process's environment, with the folder this camloc was imported from first on the
+    path: the process must compile these kernels, whatever ``sys.path`` a notebook set up."""
+    here = str(Path(__file__).resolve().parents[1])
+    paths = [here] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p and p != here]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+
+
+def _spawn(command: list[str], environment: dict[str, str]) -> None:
+    """Run ``command`` detached from this process: its own session, no terminal, outliving it."""
+    detached = {"start_new_session": True} if os.name == "posix" else {
+        "creationflags": subprocess.DETACHED_PROCESS | subprocess.CREATE_NEW_PROCESS_GROUP}
+    subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                     close_fds=True, env=environment, **detached)
+
+
+def compile_kernels() -> list[int]:
+    """Compile, and so cache, every kernel a compiled run calls: localize a bundled clutter world
+    whose odometry slips on one edge (the slip search's kernels run only where a pose needs them),
+    with the beam (the filter in a second thread, and after it) and with the oracle. Returns the
+    pose ids the beam explained as slips (the search ran there)."""
+    import numpy as np
+
+    from camloc.bundled import bundled_dataset
+    from camloc.g2o import read_g2o
+    from camloc.localizer import LocalizerConfig, localize
+
+    dataset = read_g2o(bundled_dataset("smooth3d-clutter"))
+    slipped = dataset.odom_translation.copy()
+    slipped[60] += np.array([0.6, -0.5, 0.0])
+    dataset = dataclasses.replace(dataset, odom_translation=slipped)
+    for parallel in (True, False):
+        beam = localize(dataset, LocalizerConfig(association="beam"), engine="compiled", parallel=parallel)
+    localize(dataset, LocalizerConfig(association="oracle"), engine="compiled")
+    return beam.summary["slip_poses"]
+
+
+def main(argv: list[str]) -> int:
+    """The background process: compile at the lowest priority, then remove the lock ``argv[1]``;
+    on failure, leave the error in it (no new start until it is stale)."""
+    lock = Path(argv[1])
+    try:
+        os.nice(19)
+    except (AttributeError, OSError):  # not on this system: the compile still runs
+        pass
+    try:
+        compile_kernels()
+    except Exception as error:  # whatever it was, the foreground compile of a later run will say it
+        try:
+            lock.write_text(f"{FAILED} at {time.strftime('%Y-%m-%d %H:%M:%S')}: {type(error).__name__}: {error}\n")
+        except OSError:
+            pass
+        return 1
+    lock.unlink(missing_ok=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))

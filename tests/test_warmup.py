@@ -1,0 +1,152 @@
+"""The first compile in the background (camloc.warmup): a cold run of a few thousand poses at most
+goes to numpy and leaves the kernels compiling in a detached process, once; otherwise, or where
+that process cannot run, the kernels compile in the foreground as before."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+import camloc
+import camloc.kernels
+from camloc import warmup
+from camloc.localizer import COMPILED_MIN_POSES
+from camloc.simulate import SimulationConfig, simulate
+
+
+@pytest.fixture(scope="module")
+def medium_world():
+    """Enough poses for "auto" to choose the compiled loop, few enough for the background compile."""
+    dataset = simulate(SimulationConfig(poses=COMPILED_MIN_POSES), seed=5)
+    assert COMPILED_MIN_POSES <= dataset.num_poses <= warmup.BACKGROUND_COMPILE_MAX_POSES
+    return dataset
+
+
+@pytest.fixture
+def cold_cache(tmp_path, monkeypatch):
+    """A cache that looks cold, a lock folder of the test's own, the switch on, and a process
+    launcher that records its command instead of starting it."""
+    monkeypatch.setenv(warmup.ENVIRONMENT_SWITCH, "1")
+    monkeypatch.setattr(warmup, "cache_folder", lambda: tmp_path)
+    monkeypatch.setattr(camloc.kernels, "cache_is_warm", lambda: False)
+    spawned = []
+    monkeypatch.setattr(warmup, "_spawn", lambda command, environment: spawned.append(command))
+    return tmp_path, spawned
+
+
+def _localize(dataset, **kwargs):
+    told = {"foreground": 0, "background": []}
+    result = camloc.localize(dataset, on_compile=lambda: told.__setitem__("foreground", told["foreground"] + 1),
+                             on_background_compile=told["background"].append, **kwargs)
+    return result, told
+
+
+def test_a_cold_run_goes_to_numpy_and_starts_one_background_compile(medium_world, cold_cache):
+    folder, spawned = cold_cache
+    first, told = _localize(medium_world)
+    assert first.summary["timing"]["engine"] == "numpy"
+    assert first.summary["timing"]["background_compile"] is True
+    assert told == {"foreground": 0, "background": [True]}
+    lock = folder / warmup.LOCK_NAME
+    assert spawned == [[sys.executable, "-m", "camloc.warmup", str(lock)]]
+    # the process imports this camloc, whatever the path it is started with
+    assert warmup._environment()["PYTHONPATH"].split(os.pathsep)[0] == str(Path(camloc.__file__).resolve().parents[1])
+    assert lock.read_text().startswith("compiling since")
+    assert warmup.compiling(folder)
+    # a second run while it compiles: numpy again, and no second compile
+    second, told = _localize(medium_world)
+    assert second.summary["timing"]["engine"] == "numpy"
+    assert told == {"foreground": 0, "background": [False]}
+    assert len(spawned) == 1
+    assert (second.associations.landmark == first.associations.landmark).all()
+
+
+def test_a_run_compiles_in_the_foreground_where_the_background_cannot_serve(medium_world, cold_cache, monkeypatch):
+    folder, spawned = cold_cache
+    # a forced engine is honoured
+    forced, told = _localize(medium_world, engine="compiled")
+    assert (forced.summary["timing"]["engine"], told) == ("compiled", {"foreground": 1, "background": []})
+    assert forced.summary["timing"]["background_compile"] is False
+    # a dataset the numpy engine would take longer over than the compile
+    monkeypatch.setattr(warmup, "BACKGROUND_COMPILE_MAX_POSES", medium_world.num_poses - 1)
+    large, told = _localize(medium_world)
+    assert (large.summary["timing"]["engine"], told) == ("compiled", {"foreground": 1, "background": []})
+    assert spawned == []
+
+
+@pytest.mark.parametrize("reason", ["switched off", "failed recently", "cannot start"])
+def test_where_the_background_compile_cannot_run_the_kernels_compile_first(reason, cold_cache, monkeypatch):
+    folder, spawned = cold_cache
+    if reason == "switched off":
+        monkeypatch.setenv(warmup.ENVIRONMENT_SWITCH, "0")
+    elif reason == "failed recently":
+        (folder / warmup.LOCK_NAME).write_text("failed at 2026-12-02 12:00:00: RuntimeError: out of memory\n")
+        assert warmup.lock_state(folder) == warmup.FAILED and not warmup.compiling(folder)
+    else:
+        def refuse(command, environment):
+            raise OSError("no such file")
+        monkeypatch.setattr(warmup, "_spawn", refuse)
+    assert warmup.start_background_compile(folder) is None
+    if reason == "cannot start":
+        assert not (folder / warmup.LOCK_NAME).exists()      # no lock left to hold off the next run
+    assert spawned == []
+
+
+def test_a_stale_lock_is_taken_over(cold_cache):
+    import time
+
+    folder, spawned = cold_cache
+    lock = folder / warmup.LOCK_NAME
+    lock.write_text("compiling since 2026-12-01 08:00:00\n")
+    old = time.time() - warmup.STALE_SECONDS - 1
+    os.utime(lock, (old, old))
+    assert warmup.lock_state(folder) is None
+    assert warmup.start_background_compile(folder) == warmup.STARTED
+    assert len(spawned) == 1 and warmup.compiling(folder)
+
+
+@pytest.mark.parametrize("fails", [False, True])
+def test_the_background_process_removes_its_lock_or_leaves_its_error_there(fails, tmp_path, monkeypatch):
+    lock = tmp_path / warmup.LOCK_NAME
+    lock.write_text("compiling since now\n")
+
+    def compile_kernels():
+        if fails:
+            raise RuntimeError("LLVM ran out of memory")
+    monkeypatch.setattr(warmup, "compile_kernels", compile_kernels)
+    assert warmup.main(["camloc.warmup", str(lock)]) == (1 if fails else 0)
+    if fails:
+        assert "RuntimeError: LLVM ran out of memory" in lock.read_text()
+        assert warmup.lock_state(tmp_path) == warmup.FAILED
+    else:
+        assert not lock.exists() and warmup.lock_state(tmp_path) is None
+
+
+def test_the_background_compile_runs_every_kernel_a_run_calls():
+    # the slip search's kernels are called only where a pose needs it: the warm-up world must slip
+    slips = warmup.compile_kernels()
+    assert slips, "the warm-up world's beam never ran its slip search"
+    assert camloc.kernels.cache_is_warm()
+
+
+def test_camloc_run_says_that_it_compiles_in_the_background(tmp_path, cold_cache, medium_world):
+    from typer.testing import CliRunner
+
+    from camloc.cli.app import app
+    from camloc.g2o import write_g2o
+
+    path = tmp_path / "medium.g2o"
+    write_g2o(medium_world, path)
+    outcome = CliRunner().invoke(app, ["run", str(path), "-o", str(tmp_path / "run")])
+    assert outcome.exit_code == 0, outcome.output
+    assert "compiling camloc's kernels in the background" in " ".join(outcome.output.split())
+    assert "this run uses the numpy engine" in " ".join(outcome.output.split())
+    outcome = CliRunner().invoke(app, ["run", str(path), "-o", str(tmp_path / "again"), "--json"])
+    assert outcome.exit_code == 0, outcome.output
+    import json
+
+    summary = json.loads(outcome.output)
+    assert summary["timing"]["engine"] == "numpy" and summary["timing"]["background_compile"] is True
