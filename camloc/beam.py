@@ -32,7 +32,7 @@ Keeping it fast (most poses are not ambiguous):
   (``BeamSearch._explain_all``), instead of beam_width each.
 
 Robustness to odometry slips: when the best hypothesis leaves most of a pose's observations
-unassigned (at least three observations, more than half of them, and more than the recent poses'
+unassigned (at least two observations, more than half of them, and more than the recent poses'
 share of unassigned observations makes likely: clutter), the pose is explained again from
 that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
 ``slip_cost``, grown from each of a few seed pairs in turn (one right pair pins the pose, and the
@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 import numpy as np
 
 from camloc import association, ekf, geometry, models
+from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
 from camloc.tails import binomial_tail, chi2_quantile
 
 if TYPE_CHECKING:
@@ -353,7 +354,7 @@ class BeamSearch:
             raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
         best = min(children, key=lambda c: c.cost)
         seeded: list[list[_Hypothesis]] = []
-        if obs.size >= 3 and 2 * best.unassigned > obs.size:
+        if obs.size >= SLIP_MIN_OBSERVATIONS and 2 * best.unassigned > obs.size:
             origin = beam[0]
             if self._unusually_unexplained(best.unassigned, obs.size):
                 slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,

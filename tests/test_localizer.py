@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 
+import camloc.beam
 from camloc import geometry
 from camloc.ekf import FilterDivergedError
 from camloc.dataset import Dataset
@@ -341,6 +342,19 @@ def test_beam_recovers_from_a_slip_where_a_third_of_the_detections_are_clutter()
     slip_searches = statistics.slip_search_poses
     assert 101 in slip_searches, slip_searches  # odometry edge 100 leads to pose 101
     assert len(slip_searches) < dataset.num_poses / 5  # 30; at every pose leaving half unassigned: 43
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_beam_recovers_from_a_slip_where_every_pose_sees_two_landmarks(seed, monkeypatch):
+    # The real file's density: poses see two or three landmarks. A slip's search at a pose of two
+    # observations (both unassigned) finds the slip; from three, as before, it never ran there.
+    dataset = _with_a_jump(simulate(SimulationConfig(poses=200, max_observations_per_pose=2), seed=seed), (0.8, 0.0, 0.0))
+    found = localize_both(dataset)
+    assert any(1101 <= pose <= 1103 for pose in found.summary["slip_poses"]), found.summary["slip_poses"]
+    monkeypatch.setattr(camloc.beam, "SLIP_MIN_OBSERVATIONS", 3)  # the numpy beam as it was
+    missed = localize(dataset, engine="numpy", parallel=False)
+    assert missed.summary["slip_poses"] == []
+    assert position_rmse(found, dataset) < 0.85 * position_rmse(missed, dataset)
 
 
 def test_the_slip_search_runs_where_a_pose_explains_less_than_this_data_usually_lets_it():

@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
+from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
@@ -662,7 +663,7 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
-            if obs.size >= 3 and 2 * children[4][best] > obs.size:
+            if obs.size >= SLIP_MIN_OBSERVATIONS and 2 * children[4][best] > obs.size:
                 return SLIP, k, parents, n, children, count
             kept = prune(scene, settings, children, count)
         if not commit(history, k, children, kept):

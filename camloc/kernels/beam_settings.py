@@ -6,6 +6,9 @@ MERGE_SIGMA = 0.3
 PARTIAL_BUDGET = 64
 # A conditioned hypothesis re-gates an observation among the landmarks within this many gates before.
 POOL_GATE_FACTOR = 2.0
+# The slip's search runs at a pose of at least this many observations, most of them unassigned: two
+# detections with depth pin the position and two of the three rotation axes, with the prior the third.
+SLIP_MIN_OBSERVATIONS = 2
 # The slip's search: pairs ranked as first pairs, seeds explained in full, explanations kept per seed.
 SLIP_CANDIDATES = 256
 SLIP_SEEDS = 8
