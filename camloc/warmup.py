@@ -6,8 +6,9 @@ less than that in the numpy engine, which gives the same result, so ``camloc run
 user wait: with a cold cache it localizes in numpy and starts this module's compile, at the lowest
 priority, for the runs after it (``localize(on_background_compile=...)``).
 
-One compile at a time: the process holds a lock file in the kernels' cache folder, and the cache
-counts as cold while it is there (``localize`` asks ``compiling``). A compile that failed leaves
+One compile at a time: the process holds a lock file in the kernels' cache folder, with its pid,
+and the cache counts as cold while it is there (``localize`` asks ``compiling``); the lock of a
+process that has gone (killed, or lost to a reboot) is taken over. A compile that failed leaves
 its error in the lock: until the lock is stale, runs compile in the foreground (where the error, if
 it recurs, is reported) rather than start it again.
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import subprocess
 import sys
 import time
@@ -51,7 +53,7 @@ def cache_folder() -> Optional[Path]:
 def lock_state(folder: Optional[Path] = None) -> Optional[str]:
     """``RUNNING`` while a background compile holds the lock in ``folder`` (the kernels' cache
     folder), ``FAILED`` where its lock says it failed, None without a lock younger than
-    ``STALE_SECONDS``."""
+    ``STALE_SECONDS`` or where the process the lock names has gone."""
     folder = folder if folder is not None else cache_folder()
     if folder is None:
         return None
@@ -59,9 +61,27 @@ def lock_state(folder: Optional[Path] = None) -> Optional[str]:
     try:
         if time.time() - lock.stat().st_mtime >= STALE_SECONDS:
             return None
-        return FAILED if lock.read_text().startswith(FAILED) else RUNNING
+        text = lock.read_text()
     except (OSError, UnicodeDecodeError):
         return None
+    if text.startswith(FAILED):
+        return FAILED
+    pid = re.search(r"\bpid (\d+)", text)
+    return None if pid and not _alive(int(pid.group(1))) else RUNNING
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (a compile killed, or lost to a reboot, leaves its lock);
+    True where that cannot be told."""
+    if os.name != "posix":
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: it exists
+        return True
+    return True
 
 
 def compiling(folder: Optional[Path] = None) -> bool:
@@ -150,6 +170,10 @@ def main(argv: list[str]) -> int:
     try:
         os.nice(19)
     except (AttributeError, OSError):  # not on this system: the compile still runs
+        pass
+    try:
+        lock.write_text(f"compiling since {time.strftime('%Y-%m-%d %H:%M:%S')} pid {os.getpid()}\n")
+    except OSError:
         pass
     try:
         compile_kernels()

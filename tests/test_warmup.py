@@ -108,12 +108,27 @@ def test_a_stale_lock_is_taken_over(cold_cache):
     assert len(spawned) == 1 and warmup.compiling(folder)
 
 
+def test_the_lock_of_a_compile_that_was_killed_is_taken_over(cold_cache):
+    import subprocess
+
+    folder, spawned = cold_cache
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True)
+    (folder / warmup.LOCK_NAME).write_text(f"compiling since 2026-12-02 12:00:00 pid {gone.stdout.strip()}\n")
+    if os.name == "posix":
+        assert warmup.lock_state(folder) is None
+        assert warmup.start_background_compile(folder) == warmup.STARTED and len(spawned) == 1
+    (folder / warmup.LOCK_NAME).write_text(f"compiling since 2026-12-02 12:00:00 pid {os.getpid()}\n")
+    assert warmup.compiling(folder)                         # a process that is there holds it
+
+
 @pytest.mark.parametrize("fails", [False, True])
 def test_the_background_process_removes_its_lock_or_leaves_its_error_there(fails, tmp_path, monkeypatch):
     lock = tmp_path / warmup.LOCK_NAME
     lock.write_text("compiling since now\n")
 
     def compile_kernels():
+        assert f"pid {os.getpid()}" in lock.read_text()     # the lock names the compiling process
+        assert warmup.compiling(tmp_path)
         if fails:
             raise RuntimeError("LLVM ran out of memory")
     monkeypatch.setattr(warmup, "compile_kernels", compile_kernels)
