@@ -165,6 +165,8 @@ def run(
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
     The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all. Prints the trajectory error of the EKF and of odometry alone, the associations and the speed.
+
+    The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset of up to 2,000 poses it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
     from camloc.config import read_config_file
     from camloc.options import RUN_OPTIONS, run_config

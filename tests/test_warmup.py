@@ -165,3 +165,15 @@ def test_camloc_run_says_that_it_compiles_in_the_background(tmp_path, cold_cache
 
     summary = json.loads(outcome.output)
     assert summary["timing"]["engine"] == "numpy" and summary["timing"]["background_compile"] is True
+
+
+def test_the_readme_and_the_help_state_the_limit_the_code_uses():
+    from typer.testing import CliRunner
+
+    from camloc.cli.app import app
+
+    limit = f"{warmup.BACKGROUND_COMPILE_MAX_POSES:,} poses"
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert limit in " ".join(readme.split())
+    help_text = " ".join(CliRunner().invoke(app, ["run", "--help"]).output.split())
+    assert limit in help_text and warmup.ENVIRONMENT_SWITCH in help_text
