@@ -8,9 +8,12 @@
   poses): what is left of the interpreter in the loop.
 - ``compile``: the first run after an install: ``camloc run`` on the first 1,000 poses in a child
   process with an empty ``NUMBA_CACHE_DIR``, its wall time and peak memory (one to two minutes;
-  ``--skip-compile`` leaves it out), twice: compiling first (``CAMLOC_BACKGROUND_COMPILE=0``), and
-  as a user meets it, in numpy while the kernels compile in the background (``camloc.warmup``):
-  that run's wall, when the background compile ended, and the wall and engine of the run after it.
+  ``--skip-compile`` leaves it out), three times: compiling first in one process
+  (``CAMLOC_BACKGROUND_COMPILE=0``); compiling first with the filter's kernels in a second process,
+  as a run of more than 2,000 poses does (``camloc.localize(engine="compiled")`` in the child; its
+  peak is the first process's); and as a user meets it, in numpy while the kernels compile in the
+  background (``camloc.warmup``): that run's wall, when the background compile ended, and the
+  wall and engine of the run after it.
 
     nice python benchmarks/core.py [--quick] [--calls 3] [--skip-compile] [--json]
 
@@ -50,7 +53,7 @@ def main() -> None:
     world_path = _bench.simulated(cache, plan.world, seed=plan.seed)
     first_path = world_path if plan.world["poses"] <= 1000 else _bench.first_poses(cache, world_path, 1000)
     report: dict = {"world": world_path.name, "poses": None, "warm": {}, "calls_per_pose": {}, "compile": None,
-                    "compile_in_background": None}
+                    "compile_two_processes": None, "compile_in_background": None}
 
     world = camloc.load(world_path)
     report["poses"] = world.num_poses
@@ -67,6 +70,8 @@ def main() -> None:
     else:
         say(f"compile: camloc run {first_path.name} with an empty NUMBA_CACHE_DIR, compiling first (one to two minutes) ...")
         report["compile"] = first_compile(first_path, timeout=args.timeout)
+        say("compile: the same, the filter's kernels compiling in a second process (about a minute) ...")
+        report["compile_two_processes"] = first_compile(first_path, timeout=args.timeout, second_process=True)
         say("compile: the same, compiling in the background (one to two minutes) ...")
         report["compile_in_background"] = first_run_in_background(first_path, timeout=args.timeout)
 
@@ -100,12 +105,17 @@ def calls_per_pose(dataset, method: str) -> float:
     return pstats.Stats(profile).total_calls / dataset.num_poses
 
 
-def first_compile(path: Path, *, timeout: float) -> dict:
+def first_compile(path: Path, *, timeout: float, second_process: bool = False) -> dict:
     """Wall time and peak memory of ``camloc run`` compiling every kernel it needs from nothing
-    (spawned through ``_bench.timed_command``, so that the peak is the child's own)."""
+    (spawned through ``_bench.timed_command``, so that the peak is the child's own); with
+    ``second_process``, of ``camloc.localize(engine="compiled")``, which compiles first whatever the
+    dataset's size, with the filter's kernels compiling in a second process (not in the peak)."""
     with tempfile.TemporaryDirectory(prefix="camloc-core-") as scratch, _environment(
-            NUMBA_CACHE_DIR=str(Path(scratch) / "numba"), CAMLOC_BACKGROUND_COMPILE="0"):
+            NUMBA_CACHE_DIR=str(Path(scratch) / "numba"), CAMLOC_BACKGROUND_COMPILE="1" if second_process else "0"):
         command = _bench.camloc_command() + ["run", str(path), "-o", str(Path(scratch) / "run"), "--quiet"]
+        if second_process:
+            command = [sys.executable, "-c", "import sys, camloc; camloc.localize(camloc.load(sys.argv[1]), engine='compiled')",
+                       str(path)]
         seconds, peak_mb, status = _bench.timed_command(command, timeout=timeout)
     if status != 0:
         raise _bench.BenchError(f"camloc run exited {status} while compiling")
@@ -180,6 +190,9 @@ def print_report(report: dict) -> None:
                       f"Python-level calls per pose {report['calls_per_pose'][method]:.1f}")
     if report["compile"] is not None:
         console.print(f"first run, compiling first: {report['compile']['seconds']:.1f} s, peak {report['compile']['peak_mb']:.0f} MB")
+        two = report["compile_two_processes"]
+        console.print(f"first run, compiling first with the filter in a second process: {two['seconds']:.1f} s, "
+                      f"peak {two['peak_mb']:.0f} MB (the first process)")
         background = report["compile_in_background"]
         console.print(f"first run, compiling in the background: {background['first_seconds']:.1f} s in numpy; the compile ended "
                       f"{background['compiled_after_seconds']:.0f} s after its start; the next run {background['second_seconds']:.1f} s "

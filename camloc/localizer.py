@@ -328,7 +328,9 @@ def localize(
     parallel : with the beam, run the filter that replays its association while the beam goes on:
         the compiled loop in a second thread (``camloc.loop``), the numpy beam in a second process
         (``camloc.replay``); the result is the same either way. None: with two CPUs (and, for the
-        numpy beam's process, at least ``PARALLEL_MIN_POSES`` poses).
+        numpy beam's process, at least ``PARALLEL_MIN_POSES`` poses). Where the compiled beam's
+        kernels are not yet compiled, a parallel run compiles the filter's in a second process
+        (``camloc.warmup.start_filter_compile``); False keeps the compile to this process too.
     engine : "compiled" (the loop over numba kernels, ``camloc.loop``: the Euler filter with beam
         or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
         loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
@@ -354,11 +356,14 @@ def localize(
                           f"filter {config.filter!r} with association {config.association!r} runs in numpy")
     use_compiled = engine == "compiled" or (engine == "auto" and compilable and dataset.num_poses >= COMPILED_MIN_POSES)
     background = None  # the state of the background compile this run leaves the kernels to
+    filter_compile = None  # the process compiling the filter's kernels while this one compiles the beam's
+    warm = True
     if use_compiled:
         from camloc.kernels import cache_is_warm
 
         # a background compile caches its first kernels before its last: cold until it is done
-        if not cache_is_warm() or warmup.compiling():
+        warm = cache_is_warm()
+        if not warm or warmup.compiling():
             if engine == "auto" and on_background_compile is not None:
                 background = _compile_in_background(dataset)
             if background is not None:
@@ -366,8 +371,13 @@ def localize(
                 use_compiled = False
             elif on_compile is not None:
                 on_compile()
+    concurrent = parallel if parallel is not None else _cpus() >= 2
+    if use_compiled and not warm and config.association == "beam" and concurrent:
+        # a first compile: the filter's kernels in a second process (parallel=False keeps to one core)
+        filter_compile = warmup.start_filter_compile()
     if use_compiled:
-        result = _localize_compiled(dataset, config, on_progress, parallel if parallel is not None else _cpus() >= 2)
+        result = _localize_compiled(dataset, config, on_progress, concurrent,
+                                    filter_ready=(lambda: warmup.wait_for(filter_compile)) if filter_compile else None)
     else:
         result = _localize_numpy(dataset, config, on_progress, parallel)
     result.summary["timing"]["background_compile"] = background is not None
@@ -411,7 +421,7 @@ COMPILED_ASSOCIATIONS = ("beam", "oracle")
 
 
 def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback],
-                       concurrent: bool) -> RunResult:
+                       concurrent: bool, filter_ready: Optional[Callable[[], None]] = None) -> RunResult:
     from camloc.loop import PoseFailure, run_compiled
     from camloc.scene import candidate_range
 
@@ -421,7 +431,8 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
     started = time.perf_counter()
     try:
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
-            dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2), concurrent=concurrent)
+            dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2), concurrent=concurrent,
+            filter_ready=filter_ready)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
         raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k])) from None

@@ -34,16 +34,18 @@ SEGMENT_POSES = 256
 
 
 def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None, *, initial_x, initial_P,
-                 concurrent: bool = False):
+                 concurrent: bool = False, filter_ready: Optional[Callable[[], None]] = None):
     """Localize every pose of ``dataset``; returns the arrays ``camloc.localizer`` assembles into
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
     observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices).
-    ``concurrent``: with the beam, filter the settled poses in a second thread (same result)."""
+    ``concurrent``: with the beam, filter the settled poses in a second thread (same result).
+    ``filter_ready``: with the beam, called once before the filter's first stretch (a first
+    compile waits there for the process compiling the filter's kernels: ``camloc.warmup``)."""
     scene = build_scene(dataset, config)
     settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
     n = dataset.num_poses
     if config.association == "beam":
-        replay = _Filter(scene, settings, GIVEN, initial_x, initial_P)
+        replay = _Filter(scene, settings, GIVEN, initial_x, initial_P, ready=filter_ready)
         progress = _Progress(n, on_progress, halves=2, most=SEGMENT_POSES if concurrent else None)
         if concurrent:
             progress.filtered = lambda: replay.filtered
@@ -63,8 +65,9 @@ class _Filter:
     """The filter's pass (``filter_poses``), stretch by stretch in pose order, and its outputs.
     With the beam (GIVEN), the pairs of each stretch are set (``set_pairs``) before it runs."""
 
-    def __init__(self, scene, settings, method, initial_x, initial_P):
+    def __init__(self, scene, settings, method, initial_x, initial_P, ready: Optional[Callable[[], None]] = None):
         n, K = scene.pose_obs_start.size - 1, scene.z.shape[0]
+        self.ready = ready    # called before the first stretch
         self.scene, self.settings, self.method = scene, settings, method
         self.x, self.P = initial_x.copy(), initial_P.copy()
         self.states, self.covs = np.zeros((n, 6)), np.zeros((n, 6, 6))
@@ -98,6 +101,9 @@ class _Filter:
         """Filter poses first..last - 1, from the state after pose first - 1."""
         pair_obs = self.pair_obs if pair_obs is None else pair_obs
         pair_landmark = self.pair_landmark if pair_landmark is None else pair_landmark
+        if self.ready is not None:
+            ready, self.ready = self.ready, None
+            ready()
         self.x, self.P = _at_pose(self.counters, filter_poses, self.scene, self.settings, self.method, first, last, self.x,
                                   self.P, self.pair_start, pair_obs, pair_landmark, self.slipped, self.states, self.covs,
                                   self.chosen, self.distance, self.update_pose, self.nis, self.map_cost, self.dof,

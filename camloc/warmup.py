@@ -12,7 +12,16 @@ process that has gone (killed, or lost to a reboot) is taken over. A compile tha
 its error in the lock: until the lock is stale, runs compile in the foreground (where the error, if
 it recurs, is reported) rather than start it again.
 
-    python -m camloc.warmup LOCK     # what the background process runs (LOCK is removed at the end)
+A compile uses both cores: the filter's kernels compile in a second process (``python -m
+camloc.warmup --filter``, ``start_filter_compile``), then the few of the beam's that the first
+reaches last, while the beam's compile in the first, which waits for that process before its first
+call of the filter and loads from the cache what the second has compiled (89-109 s -> 56-69 s on this
+project's 2-core machine). numba writes its cache files by
+renaming, so the two processes can cache kernels they share; each loads what the other has
+cached by the time it needs it.
+
+    python -m camloc.warmup LOCK       # what the background process runs (LOCK is removed at the end)
+    python -m camloc.warmup --filter   # the filter's kernels, for a compile in another process
 """
 
 from __future__ import annotations
@@ -41,6 +50,13 @@ LOCK_NAME = "camloc-compiling.lock"
 STALE_SECONDS = 1800.0
 
 STARTED, RUNNING, FAILED = "started", "running", "failed"
+
+# The argument of ``python -m camloc.warmup`` that compiles the filter's kernels only.
+FILTER_ONLY = "--filter"
+
+# A compile of the filter's kernels takes 35 s on this project's 2-core machine; one that has not
+# ended after this long is stopped, and the run compiles what it still needs itself.
+FILTER_COMPILE_TIMEOUT = 600.0
 
 
 def cache_folder() -> Optional[Path]:
@@ -126,6 +142,38 @@ def start_background_compile(folder: Optional[Path] = None) -> Optional[str]:
     return STARTED
 
 
+def start_filter_compile() -> Optional[subprocess.Popen]:
+    """Start compiling the filter's kernels (``filter_poses`` and what it calls) in a second
+    process, for a compile of the beam's kernels going on in this one; None where it cannot run
+    (switched off with ``CAMLOC_BACKGROUND_COMPILE=0``, no cache folder, no process). The caller
+    waits for it (``wait_for``) before it first calls the filter."""
+    if os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0" or cache_folder() is None:
+        return None
+    try:
+        return _start([sys.executable, "-m", "camloc.warmup", FILTER_ONLY], _environment())
+    except OSError:
+        return None
+
+
+def wait_for(process: Optional[subprocess.Popen]) -> None:
+    """Wait for a process of ``start_filter_compile``; one that has not ended after
+    ``FILTER_COMPILE_TIMEOUT`` seconds is stopped. Either way the caller then calls the filter,
+    which loads its kernels from the cache, or compiles what is not there."""
+    if process is None:
+        return
+    try:
+        process.wait(timeout=FILTER_COMPILE_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def _start(command: list[str], environment: dict[str, str]) -> subprocess.Popen:
+    """Run ``command`` as this process's child, without its terminal streams."""
+    return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            close_fds=True, env=environment)
+
+
 def _environment() -> dict[str, str]:
     """This process's environment, with the folder this camloc was imported from first on the
     path: the process must compile these kernels, whatever ``sys.path`` a notebook set up."""
@@ -163,9 +211,54 @@ def compile_kernels() -> list[int]:
     return beam.summary["slip_poses"]
 
 
+def compile_filter_kernels() -> None:
+    """The second process's share of a first compile, cached for the first process to load: the
+    filter's kernels (a bundled world localized with the oracle association, which runs only the
+    filter), then the beam's kernels that the first process, compiling the beam, reaches last
+    (``late_beam_kernels``)."""
+    from camloc.bundled import bundled_dataset
+    from camloc.g2o import read_g2o
+    from camloc.localizer import LocalizerConfig, localize
+
+    dataset = read_g2o(bundled_dataset("smooth3d-clutter"))
+    localize(dataset, LocalizerConfig(association="oracle"), engine="compiled")
+    late_beam_kernels(dataset, LocalizerConfig())
+
+
+def late_beam_kernels(dataset, config) -> list:
+    """Compile the beam's kernels that a first compile of the beam reaches last, each called once
+    on small arguments of the types a run passes: ``prune`` (called after ``explain_all``, whose
+    tree takes most of the compile) and the slip search's ``widened_view``, ``shift_agreement``
+    and ``seeded_explanation_costs`` (called from Python once ``run_poses`` has compiled). About
+    10 s of a first compile (``docs/performance.md``). Returns the kernels."""
+    import numpy as np
+
+    from camloc.kernels import beam as kb
+    from camloc.kernels import seeds as ranking
+    from camloc.kernels.view import widened_view
+    from camloc.scene import build_scene, build_settings
+    from camloc.tails import chi2_quantile
+
+    scene = build_scene(dataset, config)
+    settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
+    one = kb.new_generation(1, 1)
+    one[1][0] = np.eye(6)
+    P = one[1][0]
+    kb.prune(scene, settings, one, 1)
+    widened_view(P, scene.view_limits[2])
+    ranking.shift_agreement(np.zeros((2, 3)), 1.0)
+    ranking.seeded_explanation_costs(np.zeros((1, 3)), np.zeros((1, 3, 6)), np.eye(3)[None].copy(), P, np.zeros(1, np.int64),
+                                     np.zeros(1, np.int64), np.ones(1), np.zeros(1, np.int64), settings.gate)
+    return [kb.prune, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs]
+
+
 def main(argv: list[str]) -> int:
     """The background process: compile at the lowest priority, then remove the lock ``argv[1]``;
-    on failure, leave the error in it (no new start until it is stale)."""
+    on failure, leave the error in it (no new start until it is stale). With ``--filter``, the
+    filter's kernels only, for a compile going on in the process that started this one."""
+    if argv[1:] == [FILTER_ONLY]:
+        compile_filter_kernels()
+        return 0
     lock = Path(argv[1])
     try:
         os.nice(19)

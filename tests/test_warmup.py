@@ -8,10 +8,12 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import camloc
 import camloc.kernels
+import camloc.localizer
 from camloc import warmup
 from camloc.localizer import COMPILED_MIN_POSES
 from camloc.simulate import SimulationConfig, simulate
@@ -34,7 +36,26 @@ def cold_cache(tmp_path, monkeypatch):
     monkeypatch.setattr(camloc.kernels, "cache_is_warm", lambda: False)
     spawned = []
     monkeypatch.setattr(warmup, "_spawn", lambda command, environment: spawned.append(command))
+    monkeypatch.setattr(warmup, "_start", lambda command, environment: FakeProcess(command))
     return tmp_path, spawned
+
+
+class FakeProcess:
+    """What ``warmup._start`` returns, recording its command and each wait (into ``events``)."""
+
+    def __init__(self, command, events=None, hangs=False):
+        self.command, self.events, self.hangs, self.killed = command, events if events is not None else [], hangs, False
+
+    def wait(self, timeout=None):
+        import subprocess
+
+        self.events.append(("wait", timeout))
+        if self.hangs and not self.killed:
+            raise subprocess.TimeoutExpired(self.command, timeout)
+        return 0
+
+    def kill(self):
+        self.killed = True
 
 
 def _localize(dataset, **kwargs):
@@ -177,3 +198,108 @@ def test_the_readme_and_the_help_state_the_limit_the_code_uses():
     assert limit in " ".join(readme.split())
     help_text = " ".join(CliRunner().invoke(app, ["run", "--help"]).output.split())
     assert limit in help_text and warmup.ENVIRONMENT_SWITCH in help_text
+
+
+@pytest.mark.parametrize("parallel", [True, None])
+def test_a_first_compile_of_the_beam_compiles_the_filter_in_a_second_process_and_waits_for_it(
+        parallel, medium_world, cold_cache, monkeypatch):
+    import camloc.loop
+
+    events = []
+    monkeypatch.setattr(warmup, "_start", lambda command, environment: FakeProcess(command, events))
+    monkeypatch.setattr(camloc.localizer, "_cpus", lambda: 2)
+    real_filter = camloc.loop.filter_poses
+
+    def filter_poses(*args):
+        events.append("filter")
+        return real_filter(*args)
+    monkeypatch.setattr(camloc.loop, "filter_poses", filter_poses)
+    result = camloc.localize(medium_world, engine="compiled", parallel=parallel)
+    # one wait, before the filter's first stretch, without a time limit short of a compile's
+    assert events[0] == ("wait", warmup.FILTER_COMPILE_TIMEOUT) and events.count(events[0]) == 1
+    assert events.count("filter") >= 1
+    assert events[1:] == ["filter"] * (len(events) - 1)
+    monkeypatch.setenv(warmup.ENVIRONMENT_SWITCH, "0")          # no second process: the same result
+    events.clear()
+    alone = camloc.localize(medium_world, engine="compiled", parallel=parallel)
+    assert ("wait", warmup.FILTER_COMPILE_TIMEOUT) not in events
+    assert (alone.associations.landmark == result.associations.landmark).all()
+    assert np.array_equal(alone.filter_state, result.filter_state)
+
+
+def test_the_filter_compiles_alone_where_a_second_process_would_not_help(medium_world, cold_cache, monkeypatch):
+    started = []
+    monkeypatch.setattr(warmup, "_start", lambda command, environment: started.append(command) or FakeProcess(command))
+    monkeypatch.setattr(camloc.localizer, "_cpus", lambda: 2)
+    camloc.localize(medium_world, camloc.LocalizerConfig(association="oracle"), engine="compiled")  # only the filter compiles
+    monkeypatch.setattr(camloc.kernels, "cache_is_warm", lambda: True)
+    camloc.localize(medium_world, engine="compiled")                                                 # nothing compiles
+    monkeypatch.setattr(camloc.kernels, "cache_is_warm", lambda: False)
+    monkeypatch.setattr(camloc.localizer, "_cpus", lambda: 1)
+    camloc.localize(medium_world, engine="compiled")                                                 # one core
+    monkeypatch.setattr(camloc.localizer, "_cpus", lambda: 2)
+    camloc.localize(medium_world, engine="compiled", parallel=False)                                # asked for one
+    assert started == []
+    camloc.localize(medium_world, engine="compiled")
+    assert started == [[sys.executable, "-m", "camloc.warmup", warmup.FILTER_ONLY]]
+
+
+@pytest.mark.parametrize("reason", ["switched off", "no cache folder", "cannot start"])
+def test_where_the_second_process_cannot_run_the_filter_compiles_in_the_run(reason, cold_cache, monkeypatch):
+    if reason == "switched off":
+        monkeypatch.setenv(warmup.ENVIRONMENT_SWITCH, "0")
+    elif reason == "no cache folder":
+        monkeypatch.setattr(warmup, "cache_folder", lambda: None)
+    else:
+        def refuse(command, environment):
+            raise OSError("no such file")
+        monkeypatch.setattr(warmup, "_start", refuse)
+    assert warmup.start_filter_compile() is None
+    warmup.wait_for(None)                                    # nothing to wait for
+
+
+def test_a_filter_compile_that_hangs_is_stopped():
+    events = []
+    hung = FakeProcess(["python"], events, hangs=True)
+    warmup.wait_for(hung)
+    assert hung.killed and events == [("wait", warmup.FILTER_COMPILE_TIMEOUT), ("wait", None)]
+
+
+def test_the_filter_compile_process_compiles_the_filter_without_a_lock(tmp_path, monkeypatch):
+    compiled = []
+    monkeypatch.setattr(warmup, "compile_filter_kernels", lambda: compiled.append(True))
+    monkeypatch.setattr(warmup, "cache_folder", lambda: tmp_path)
+    assert warmup.main(["camloc.warmup", warmup.FILTER_ONLY]) == 0
+    assert compiled == [True] and list(tmp_path.iterdir()) == []
+
+
+def test_the_filter_compile_command_runs():
+    import subprocess
+
+    # as the run starts it: this camloc, the bundled world with the oracle (from the cache where the
+    # suite has compiled the filter already)
+    done = subprocess.run([sys.executable, "-m", "camloc.warmup", warmup.FILTER_ONLY], env=warmup._environment(),
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+
+
+def test_the_late_kernels_are_compiled_for_the_arguments_a_run_passes():
+    import subprocess
+
+    # in a fresh process: the kernels' signatures after the second process's share, and after a run
+    # that calls every one of them (the slip search included) from the beam and from Python
+    code = (
+        "import camloc\n"
+        "from camloc import warmup\n"
+        "from camloc.bundled import bundled_dataset\n"
+        "from camloc.g2o import read_g2o\n"
+        "kernels = warmup.late_beam_kernels(read_g2o(bundled_dataset('smooth3d-clutter')), camloc.LocalizerConfig())\n"
+        "before = [sorted(map(str, k.signatures)) for k in kernels]\n"
+        "assert warmup.compile_kernels(), 'no slip search ran'\n"
+        "after = [sorted(map(str, k.signatures)) for k in kernels]\n"
+        "print(before == after, [len(s) for s in after])\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], env=warmup._environment(), capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split()[0] == "True", done.stdout
+    assert done.stdout.split(None, 1)[1].strip() == "[1, 1, 1, 1]"
