@@ -21,7 +21,7 @@ renaming, so the two processes can cache kernels they share; each loads what the
 cached by the time it needs it.
 
     python -m camloc.warmup LOCK       # what the background process runs (LOCK is removed at the end)
-    python -m camloc.warmup --filter   # the filter's kernels, for a compile in another process
+    python -m camloc.warmup --filter   # the second process's share of a first compile
 """
 
 from __future__ import annotations
@@ -51,11 +51,12 @@ STALE_SECONDS = 1800.0
 
 STARTED, RUNNING, FAILED = "started", "running", "failed"
 
-# The argument of ``python -m camloc.warmup`` that compiles the filter's kernels only.
+# The argument of ``python -m camloc.warmup`` that compiles a second process's share of a first
+# compile: the filter's kernels, then the beam's that the first process reaches last.
 FILTER_ONLY = "--filter"
 
-# A compile of the filter's kernels takes 35 s on this project's 2-core machine; one that has not
-# ended after this long is stopped, and the run compiles what it still needs itself.
+# That share takes 35-55 s on this project's 2-core machine; a process that has not ended after
+# this long is stopped, and the run compiles what it still needs itself.
 FILTER_COMPILE_TIMEOUT = 600.0
 
 
@@ -255,7 +256,8 @@ def late_beam_kernels(dataset, config) -> list:
 def main(argv: list[str]) -> int:
     """The background process: compile at the lowest priority, then remove the lock ``argv[1]``;
     on failure, leave the error in it (no new start until it is stale). With ``--filter``, the
-    filter's kernels only, for a compile going on in the process that started this one."""
+    second process's share of a compile going on in the process that started this one
+    (``compile_filter_kernels``), without a lock."""
     if argv[1:] == [FILTER_ONLY]:
         compile_filter_kernels()
         return 0

@@ -113,7 +113,7 @@ def conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bou
     screen, and the loop runs as vector arithmetic."""
     # The seed's values in locals: read from arrays inside the loop, where the stores to bound,
     # quadratic and det might overwrite them for all LLVM knows, they kept the loop from being
-    # vectorized (33 against 9 ns a pair, the same numbers)
+    # vectorized in the process that compiled it (33 against 9 ns a pair; the same numbers)
     c0, c1, c2, c3, c4, c5 = correction[0], correction[1], correction[2], correction[3], correction[4], correction[5]
     u00, u01, u02 = U[0, 0], U[0, 1], U[0, 2]
     u10, u11, u12 = U[1, 0], U[1, 1], U[1, 2]
