@@ -23,7 +23,6 @@ import numpy as np
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
-from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -42,7 +41,7 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     ``filter_ready``: with the beam, called once before the filter's first stretch (a first
     compile waits there for the process compiling the filter's kernels: ``camloc.warmup``)."""
     scene = build_scene(dataset, config)
-    settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
+    settings = build_settings(config)
     n = dataset.num_poses
     if config.association == "beam":
         replay = _Filter(scene, settings, GIVEN, initial_x, initial_P, ready=filter_ready)

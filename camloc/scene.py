@@ -101,10 +101,12 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
 
 
-def build_settings(config, gate: float) -> Settings:
-    """The kernels' settings of a ``LocalizerConfig`` (gate: its chi^2 quantile)."""
+def build_settings(config) -> Settings:
+    """The kernels' settings of a ``LocalizerConfig`` (its gate, a probability, as the chi^2
+    quantile of a pair's 3 dof)."""
     from camloc.kernels.beam_settings import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
+    gate = chi2_quantile(3, 1.0 - config.gate)
     return Settings(
         int(config.iterations), float(gate), bool(config.recheck.enabled), float(config.recheck.margin),
         float(config.recheck.steal_margin), float(config.beam.slip_inflation), int(config.beam.width),

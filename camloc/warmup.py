@@ -238,10 +238,9 @@ def late_beam_kernels(dataset, config) -> list:
     from camloc.kernels import seeds as ranking
     from camloc.kernels.view import widened_view
     from camloc.scene import build_scene, build_settings
-    from camloc.tails import chi2_quantile
 
     scene = build_scene(dataset, config)
-    settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
+    settings = build_settings(config)
     one = kb.new_generation(1, 1)
     one[1][0] = np.eye(6)
     P = one[1][0]

@@ -346,7 +346,6 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     from camloc.localizer import LocalizerConfig, _Localizer
     from camloc.scene import build_scene, build_settings
     from camloc.simulate import SimulationConfig, simulate
-    from camloc.tails import chi2_quantile
 
     dataset = simulate(SimulationConfig(poses=20), seed=3)
     k = 10
@@ -361,7 +360,7 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     P = np.diag(np.r_[np.full(3, 0.01**2), np.full(3, np.radians(0.5) ** 2)])
 
     scene = build_scene(dataset, config)
-    settings = build_settings(config, float(chi2_quantile(3, 1.0 - config.gate)))
+    settings = build_settings(config)
     seeded = kb.new_generation(1, 2)
     seeded[0][0], seeded[1][0], seeded[2][0] = x, P, 0.0
     seeded[7][0, 0] = (first, lm)
