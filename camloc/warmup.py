@@ -116,7 +116,7 @@ def start_background_compile(folder: Optional[Path] = None) -> Optional[str]:
     recent background compile failed, the lock cannot be written or the process not started. None
     means: compile in the foreground.
     """
-    if os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0":
+    if switched_off():
         return None
     folder = folder if folder is not None else cache_folder()
     if folder is None:
@@ -143,12 +143,17 @@ def start_background_compile(folder: Optional[Path] = None) -> Optional[str]:
     return STARTED
 
 
+def switched_off() -> bool:
+    """Whether ``CAMLOC_BACKGROUND_COMPILE=0`` keeps every compile to the run's own process."""
+    return os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0"
+
+
 def start_filter_compile() -> Optional[subprocess.Popen]:
     """Start compiling the filter's kernels (``filter_poses`` and what it calls) in a second
     process, for a compile of the beam's kernels going on in this one; None where it cannot run
     (switched off with ``CAMLOC_BACKGROUND_COMPILE=0``, no cache folder, no process). The caller
     waits for it (``wait_for``) before it first calls the filter."""
-    if os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0" or cache_folder() is None:
+    if switched_off() or cache_folder() is None:
         return None
     try:
         return _start([sys.executable, "-m", "camloc.warmup", FILTER_ONLY], _environment())
@@ -169,10 +174,11 @@ def wait_for(process: Optional[subprocess.Popen]) -> None:
         process.wait()
 
 
-def _start(command: list[str], environment: dict[str, str]) -> subprocess.Popen:
-    """Run ``command`` as this process's child, without its terminal streams."""
+def _start(command: list[str], environment: dict[str, str], **options) -> subprocess.Popen:
+    """Run ``command`` as this process's child, without its terminal streams (``options``: more
+    of ``subprocess.Popen``'s)."""
     return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            close_fds=True, env=environment)
+                            close_fds=True, env=environment, **options)
 
 
 def _environment() -> dict[str, str]:
@@ -187,8 +193,7 @@ def _spawn(command: list[str], environment: dict[str, str]) -> None:
     """Run ``command`` detached from this process: its own session, no terminal, outliving it."""
     detached = {"start_new_session": True} if os.name == "posix" else {
         "creationflags": subprocess.DETACHED_PROCESS | subprocess.CREATE_NEW_PROCESS_GROUP}
-    subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                     close_fds=True, env=environment, **detached)
+    _start(command, environment, **detached)
 
 
 def compile_kernels() -> list[int]:

@@ -13,14 +13,13 @@ import pytest
 os.environ["CAMLOC_BACKGROUND_COMPILE"] = "0"
 
 
-
 @pytest.fixture(scope="session", autouse=True)
 def compiled_kernels():
     """Where the kernels are not yet cached (a fresh clone, as in CI), compile them before the first
     test, as a first run does on two cores (the filter's kernels in a second process: about a minute
     rather than one and a half), instead of in one process in whichever test first calls them."""
-    from camloc.kernels import cache_is_warm
     from camloc import warmup
+    from camloc.kernels import cache_is_warm
 
     if not cache_is_warm():
         os.environ[warmup.ENVIRONMENT_SWITCH] = "1"
