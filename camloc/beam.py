@@ -356,13 +356,17 @@ class BeamSearch:
         seeded: list[list[_Hypothesis]] = []
         if obs.size >= SLIP_MIN_OBSERVATIONS and 2 * best.unassigned > obs.size:
             origin = beam[0]
-            if self._unusually_unexplained(best.unassigned, obs.size):
+            self.statistics.seeded_search_poses.append(k)
+            seeded.append(self._explain_from_seeds(origin, obs, slipped=False))  # noisy odometry, not a slip
+            # a slip is the explanation of last resort: its search (the costliest, under the
+            # widest prior) runs only where the pose stays unusually unexplained after the plain one's
+            best_with_seeds = min(children + seeded[0], key=lambda c: c.cost)
+            if (self._unusually_unexplained(best.unassigned, obs.size)
+                    and self._unusually_unexplained(best_with_seeds.unassigned, obs.size)):
                 slipped = _Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                       origin.cost + self.settings.slip_cost, origin.parent)
                 self.statistics.slip_search_poses.append(k)
-                seeded.append(self._explain_from_seeds(slipped, obs))
-            self.statistics.seeded_search_poses.append(k)
-            seeded.append(self._explain_from_seeds(origin, obs, slipped=False))  # noisy odometry, not a slip
+                seeded.insert(0, self._explain_from_seeds(slipped, obs))
         kept = self._prune(children + [c for group in seeded for c in group])
         for group in seeded:
             kept = self._with_a_seeded_one(kept, group)

@@ -37,23 +37,37 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
     """The kept hypotheses of a pose whose best explanation (of ``children``) left most of its
     observations unassigned: the children, and the explanations grown from seeds under the
     beam's best prediction (``parents``' first), as it is and, where leaving that many
-    unassigned is unusual for this data, widened as after an odometry slip. Returns (the
-    generation they are in, the kept indices)."""
-    best = int(np.argmin(children[2][:count]))
+    unassigned is unusual for this data even with those, widened as after an odometry slip.
+    Returns (the generation they are in, the kept indices)."""
     origin = kb.gather(parents, np.array([0]), 1)
-    groups = []
-    if unusually_unexplained(int(children[4][best]), obs.size, unexplained):
+    plain = from_seeds(scene, settings, origin, obs, slipped=False)  # noisy odometry, not a slip
+    groups = [plain]
+    # a slip is the explanation of last resort: its search (the costliest, under the widest prior)
+    # runs only where the pose stays unusually unexplained after the plain prediction's
+    if (unusually_unexplained(unassigned_by_best([(children, count)]), obs.size, unexplained)
+            and unusually_unexplained(unassigned_by_best([(children, count), plain]), obs.size, unexplained)):
         slipped = kb.gather(parents, np.array([0]), 1)
         slipped[1][0] *= settings.slip_inflation
         slipped[2][0] += settings.slip_cost
-        groups.append(from_seeds(scene, settings, slipped, obs, slipped=True))
-    groups.append(from_seeds(scene, settings, origin, obs, slipped=False))  # noisy odometry, not a slip
+        groups.insert(0, from_seeds(scene, settings, slipped, obs, slipped=True))
     everything, sizes = concatenated([(children, count)] + groups)
     kept = list(kb.prune(scene, settings, everything, sizes.sum()))
     offsets = np.cumsum(sizes)
     for g in range(len(groups)):
         kept = with_a_seeded_one(scene, settings, everything, kept, range(offsets[g], offsets[g + 1]))
     return everything, np.asarray(kept, dtype=np.int64)
+
+
+def unassigned_by_best(generations) -> int:
+    """How many of the pose's observations the cheapest hypothesis of [(generation, count), ...]
+    leaves unassigned (the first of equal costs)."""
+    best_cost, unassigned = np.inf, 0
+    for gen, n in generations:
+        if n:
+            i = int(np.argmin(gen[2][:n]))
+            if gen[2][i] < best_cost:
+                best_cost, unassigned = float(gen[2][i]), int(gen[4][i])
+    return unassigned
 
 
 def concatenated(generations):

@@ -456,6 +456,19 @@ def test_beam_explains_a_large_odometry_error_from_a_seed_pair_without_a_slip():
     assert not localize_both(dataset).summary["slip_poses"]
 
 
+def test_the_slip_is_searched_only_where_the_plain_prediction_s_seeds_leave_the_pose_unexplained():
+    # An 8-sigma jump on edge 100: the slip's search (the widest prior, the costliest search)
+    # runs at pose 101 and finds the slip. At the later poses where noisy odometry in the dense map
+    # left most observations unassigned, the seeded search under the plain prediction explained
+    # them, and the slip was not searched as well (until 2026-12-02 it was, at every such pose).
+    dataset = _dense_run_with_a_jump((0.6, -0.5, 0.0))
+    result, statistics = beam_run(dataset)
+    assert statistics.slip_search_poses == [101]
+    assert set(statistics.seeded_search_poses) > {101}
+    assert result.summary["slip_poses"] == [int(dataset.pose_ids[101])]
+    assert localize_both(dataset).summary["slip_poses"] == result.summary["slip_poses"]
+
+
 @pytest.mark.parametrize("association", ["beam", "oracle"])
 def test_a_covariance_breakdown_names_the_pose(association, numpy_localizer):
     # Observations claiming a standard deviation of 1e-150 make a stacked innovation covariance
