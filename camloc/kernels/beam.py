@@ -102,7 +102,7 @@ def point_spread(spread_q, j00, j02, j11, j12):
     return b00, b01, b02, b11, b12, a22
 
 
-@jit
+@inlined
 def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
     """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
     prediction q (z_hat[q] (3,), H[q] (3, 6), ``spread_q`` the upper triangle of H[q] P H[q]'

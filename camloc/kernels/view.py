@@ -109,14 +109,15 @@ def visible(scene, R_wc, centre, max_angle, margin):
             for i in range(count):
                 grown[i] = found[i]
             found = grown
-        count = cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth - margin, max_depth + margin, back,
-                             cone[0], found, count)
+        count = cone_members(scene.grid_xyz, scene.grid_items, first, stop, R_wc, centre, ball, radius, min_depth - margin,
+                             max_depth + margin, back, cone[0], found, count)
     return np.sort(found[:count])
 
 
 @jit
-def cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth, max_depth, back, tan, found, count):
-    """Append the landmarks first..stop-1 of the grid's order that lie in the ball and the view
+def cone_members(grid_xyz, grid_items, first, stop, R_wc, centre, ball, radius, min_depth, max_depth, back, tan, found, count):
+    """Append the landmarks first..stop-1 of the grid's order (``scene.grid_xyz``, ``grid_items``)
+    that lie in the ball and the view
     (depth within (min_depth, max_depth), within the cone widened ``back`` metres behind the
     camera) to found (room for all of them) from ``count``; returns the new count. Without
     branches: which side of each test a landmark falls on is a coin toss the CPU would guess
@@ -124,7 +125,7 @@ def cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth, max_
     b0, b1, b2, c0, c1, c2 = ball[0], ball[1], ball[2], centre[0], centre[1], centre[2]
     r2 = radius * radius
     for s in range(first, stop):
-        l0, l1, l2 = scene.grid_xyz[s, 0], scene.grid_xyz[s, 1], scene.grid_xyz[s, 2]
+        l0, l1, l2 = grid_xyz[s, 0], grid_xyz[s, 1], grid_xyz[s, 2]
         d0, d1, d2 = l0 - b0, l1 - b1, l2 - b2
         v0, v1, v2 = l0 - c0, l1 - c1, l2 - c2
         px = R_wc[0, 0] * v0 + R_wc[1, 0] * v1 + R_wc[2, 0] * v2
@@ -133,7 +134,7 @@ def cone_members(scene, first, stop, R_wc, centre, ball, radius, min_depth, max_
         cone_radius = (depth + back) * tan
         inside = ((d0 * d0 + d1 * d1 + d2 * d2 <= r2) & (depth > min_depth) & (depth < max_depth) & (cone_radius >= 0.0)
                   & (px * px + py * py <= cone_radius * cone_radius))
-        found[count] = scene.grid_items[s]
+        found[count] = grid_items[s]
         count += inside
     return count
 
