@@ -84,13 +84,12 @@ def test_what_python_calls_is_an_entry_point():
 def test_a_step_without_the_python_wrapper_is_callable_through_from_python(rng):
     from camloc.kernels import sym3 as compiled_only
 
-    assert compiled_only.spread.targetoptions["no_cpython_wrapper"]
-    H, P = rng.normal(size=(2, 3, 6)), _random_spd(rng, 6)
-    twin = _jit.from_python(compiled_only.spread)
-    assert twin is _jit.from_python(compiled_only.spread)          # compiled once
-    assert twin.py_func.__qualname__ != compiled_only.spread.py_func.__qualname__   # cached apart
-    spread = H[1] @ P @ H[1].T
-    np.testing.assert_allclose(twin(H, 1, P), spread[np.triu_indices(3)], rtol=1e-12)
+    assert compiled_only.log_det.targetoptions["no_cpython_wrapper"]
+    S = _random_spd(rng, 3)
+    twin = _jit.from_python(compiled_only.log_det)
+    assert twin is _jit.from_python(compiled_only.log_det)          # compiled once
+    assert twin.py_func.__qualname__ != compiled_only.log_det.py_func.__qualname__   # cached apart
+    np.testing.assert_allclose(twin(S), np.linalg.slogdet(S)[1], rtol=1e-12)
     assert _jit.from_python(update.updated) is update.updated      # an entry point is itself
 
 

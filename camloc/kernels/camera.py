@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import inlined, jit
 from camloc.kernels.rotation import euler_rate_into, euler_to_matrix, euler_to_matrix_into
 from camloc.kernels.small import mm, mv
 
@@ -35,7 +35,7 @@ def robot_frame_into(x, frame):
     t[0], t[1], t[2] = x[0], x[1], x[2]
 
 
-@jit
+@inlined
 def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position):
     """Write the prediction z_hat[i] (3,) of landmark landmarks[j] (3,) and its Jacobian H[i]
     (3, 6) with respect to the Euler state (rotation R, Euler rate matrix E, position t);

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import inlined, jit
 
 
 @jit
@@ -61,7 +61,7 @@ def log_det(S):
     return math.log(det) if det > 0.0 else np.inf
 
 
-@jit
+@inlined
 def spread(H, i, P):
     """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6):
     a column of H[i] P at a time, then its products with H[i]'s rows (144 products, not 324)."""
