@@ -215,7 +215,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
                     Hs[n, a, b] = H[q, a, b]
             n += 1
         start[r + 1] = n
-    return start, lm[:n].copy(), cost[:n].copy(), zh[:n].copy(), Hs[:n].copy(), ys[:n].copy(), Hcs[:n].copy(), in_point[:n].copy()
+    return start, lm[:n], cost[:n], zh[:n], Hs[:n], ys[:n], Hcs[:n], in_point[:n]
 
 
 @jit
