@@ -237,7 +237,7 @@ def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, camera: np.ndarray) -> n
         span = np.ptp(uvd[mine], axis=0)
         sigma = np.sqrt(np.median(np.diagonal(cov[mine], axis1=1, axis2=2), axis=0))
         log_volume = np.log(np.maximum(span, 6.0 * sigma)).sum()  # a few sigmas at least
-        cost[mine] = 2.0 * log_volume - np.linalg.slogdet(2.0 * np.pi * cov[mine])[1]
+        cost[mine] = 2.0 * log_volume - (3.0 * np.log(2.0 * np.pi) + sym3.log_abs_det(cov[mine]))  # ln det(2 pi R)
     return cost
 
 

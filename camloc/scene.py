@@ -96,8 +96,8 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
         null_cost = association.clutter_null_cost(dataset.obs_uvd, cov, dataset.obs_camera)
     else:
         null_cost = np.full(K, float(config.null_cost))
-    log_det = np.linalg.slogdet(cov)[1] if K else np.zeros(0)
-    log_det_point_cov = np.linalg.slogdet(point_cov)[1] if K else np.zeros(0)
+    log_det = sym3.log_abs_det(cov) if K else np.zeros(0)
+    log_det_point_cov = sym3.log_abs_det(point_cov) if K else np.zeros(0)
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
 
 

@@ -37,3 +37,21 @@ def test_inverse_of_matrices_whose_determinant_leaves_the_float_range(rng, scale
 
 def test_inverse_of_a_singular_matrix_is_not_finite():
     assert not np.all(np.isfinite(sym3.inverse(np.zeros((1, 3, 3)))))
+
+
+@pytest.mark.parametrize("scales", [(1.0, 1.0, 1.0), (1e3, 1e3, 1e6), (1e-2, 1e4, 3.0), (1e-200, 1e-200, 1e-200), (1e200, 1e200, 1e200)])
+def test_log_abs_det_matches_lapack(rng, scales):
+    # observation covariances as files give them, and some whose determinant leaves the float range
+    D = np.diag(np.sqrt(scales))
+    B = rng.normal(size=(500, 3, 3))
+    S = D @ (B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(3)) @ D
+    np.testing.assert_allclose(sym3.log_abs_det(S), np.linalg.slogdet(S)[1], rtol=1e-12, atol=1e-9)
+    lower_garbage = S.copy()
+    lower_garbage[:, 1, 0] = lower_garbage[:, 2, 0] = lower_garbage[:, 2, 1] = np.nan
+    assert np.array_equal(sym3.log_abs_det(lower_garbage), sym3.log_abs_det(S))
+
+
+def test_log_abs_det_of_indefinite_and_singular_matrices():
+    indefinite = np.diag([2.0, -3.0, 0.5])[None]
+    np.testing.assert_allclose(sym3.log_abs_det(indefinite), [np.log(3.0)])
+    assert sym3.log_abs_det(np.zeros((2, 3, 3))).tolist() == [-np.inf, -np.inf]
