@@ -6,6 +6,7 @@ kernels take (``camloc.kernels.types.SceneArrays``)."""
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,12 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     """The run's fixed arrays for ``dataset`` under ``config`` (a ``LocalizerConfig``)."""
     from camloc.kernels.view import build_grid, view_cone_ball  # numba: imported where the compiled loop runs
 
+    # numba's start in a fresh process (its registries, then a first kernel: about 0.5 s) goes on in
+    # a thread while the observations' arrays are computed, whose numpy loops release the GIL; in a
+    # process that has loaded the kernel there is nothing to start
+    numba_start = threading.Thread(target=_load_first_kernel, args=(view_cone_ball,), name="camloc-numba-start")
+    if not view_cone_ball.signatures:
+        numba_start.start()
     camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
     cameras = [dataset.cameras[int(c)] for c in camera_ids]
     camera_K = np.array([(c.fx, c.fy, c.cx, c.cy) for c in cameras], dtype=float).reshape(-1, 4)
@@ -34,6 +41,8 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
     view = np.array(candidate_range(dataset, config))
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
+    if numba_start.ident is not None:
+        numba_start.join()
     # cells of half the view's ball: a query visits about 4^3 of them, where cells of the ball's
     # size hold six times the ball's volume in their 3^3
     grid = build_grid(dataset.landmark_xyz, 0.5 * view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), view[1], view[2])[1])
@@ -51,6 +60,14 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
         np.ascontiguousarray(dataset.odom_cov, dtype=float).reshape(-1, 6, 6),
         view, chi2_quantile(3 * np.maximum(np.arange(most_pairs + 2), 1), 0.001),
     )
+
+
+def _load_first_kernel(view_cone_ball) -> None:
+    """Call a kernel once, with arguments of the types ``build_scene`` passes it."""
+    try:
+        view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), np.float64(1.0), np.float64(0.5))
+    except Exception:  # noqa: BLE001 (build_scene's own call of it raises the error where it is reported)
+        pass
 
 
 @dataclass(frozen=True)

@@ -442,6 +442,38 @@ def test_the_engine_is_chosen_by_size_and_method_and_can_be_forced():
         camloc.localize(small, engine="gpu")
 
 
+def test_numba_starts_in_a_thread_of_its_own_while_a_fresh_process_builds_its_first_scene():
+    # about 0.5 s of a fresh process's start (numba's registries, a first kernel) overlaps the
+    # observations' numpy work; once the kernel is loaded, no thread is started, and the scene is
+    # the same either way
+    import subprocess
+    import sys
+
+    code = """
+import threading, numpy as np
+import camloc
+from camloc.scene import build_scene
+started = []
+start = threading.Thread.start
+threading.Thread.start = lambda self: (started.append(self.name), start(self))[1]
+dataset, config = camloc.load(camloc.bundled_dataset("grid-small")), camloc.LocalizerConfig()
+first = build_scene(dataset, config)
+second = build_scene(dataset, config)
+print(started, all(np.array_equal(a, b) for a, b in zip(first, second)))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "['camloc-numba-start'] True"
+
+
+def test_the_numba_start_thread_leaves_a_kernel_s_error_to_the_scene_s_own_call():
+    from camloc.scene import _load_first_kernel
+
+    def failing(*args):
+        raise RuntimeError("a kernel that does not load")
+
+    assert _load_first_kernel(failing) is None
+
+
 def test_a_cold_cache_is_told_apart_from_a_warm_one(tmp_path):
     # the first run after an install says that it compiles: cache_is_warm must see an empty cache
     # (it read a name numba 0.68 no longer has, fell back to "warm", and the notice never showed)
