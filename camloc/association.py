@@ -220,7 +220,7 @@ def noise_floored(
     return floored, sym3.inverse(floored)
 
 
-def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, camera: np.ndarray) -> np.ndarray:
+def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, log_det_cov: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """Cost (K,) of explaining each observation as clutter rather than as a landmark.
 
     Clutter is taken as uniform over the box the camera's measurements span, of volume V, so in
@@ -229,7 +229,8 @@ def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, camera: np.ndarray) -> n
 
     Parameters
     ----------
-    uvd : (K, 3) measurements; cov : (K, 3, 3) their covariances; camera : (K,) camera ids.
+    uvd : (K, 3) measurements; cov : (K, 3, 3) their covariances and log_det_cov (K,) ln det of
+    each (``sym3.log_abs_det``); camera : (K,) camera ids.
     """
     cost = np.zeros(uvd.shape[0])
     for camera_id in np.unique(camera):
@@ -237,7 +238,7 @@ def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, camera: np.ndarray) -> n
         span = np.ptp(uvd[mine], axis=0)
         sigma = np.sqrt(np.median(np.diagonal(cov[mine], axis1=1, axis2=2), axis=0))
         log_volume = np.log(np.maximum(span, 6.0 * sigma)).sum()  # a few sigmas at least
-        cost[mine] = 2.0 * log_volume - (3.0 * np.log(2.0 * np.pi) + sym3.log_abs_det(cov[mine]))  # ln det(2 pi R)
+        cost[mine] = 2.0 * log_volume - (3.0 * np.log(2.0 * np.pi) + log_det_cov[mine])  # ln det(2 pi R)
     return cost
 
 

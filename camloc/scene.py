@@ -27,8 +27,9 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     # numba's start in a fresh process (its registries, then a first kernel: about 0.5 s) goes on in
     # a thread while the observations' arrays are computed, whose numpy loops release the GIL; in a
     # process that has loaded the kernel there is nothing to start
-    numba_start = threading.Thread(target=_load_first_kernel, args=(view_cone_ball,), name="camloc-numba-start")
+    numba_start = None
     if not view_cone_ball.signatures:
+        numba_start = threading.Thread(target=_load_first_kernel, args=(view_cone_ball,), name="camloc-numba-start")
         numba_start.start()
     camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
     cameras = [dataset.cameras[int(c)] for c in camera_ids]
@@ -41,7 +42,7 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
     view = np.array(candidate_range(dataset, config))
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
-    if numba_start.ident is not None:
+    if numba_start is not None:
         numba_start.join()
     # cells of half the view's ball: a query visits about 4^3 of them, where cells of the ball's
     # size hold six times the ball's volume in their 3^3
@@ -109,11 +110,11 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     for start in range(0, K, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
         part = slice(start, start + POINT_CHUNK)
         point[part], point_cov[part] = models.measured_points(dataset.obs_uvd[part], cov[part], intrinsics[part].T)
+    log_det = sym3.log_abs_det(cov) if K else np.zeros(0)
     if config.null_cost is None:
-        null_cost = association.clutter_null_cost(dataset.obs_uvd, cov, dataset.obs_camera)
+        null_cost = association.clutter_null_cost(dataset.obs_uvd, cov, log_det, dataset.obs_camera)
     else:
         null_cost = np.full(K, float(config.null_cost))
-    log_det = sym3.log_abs_det(cov) if K else np.zeros(0)
     log_det_point_cov = sym3.log_abs_det(point_cov) if K else np.zeros(0)
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
 
