@@ -387,7 +387,7 @@ def _has_rival(rows, T_world_camera, intrinsics, dataset, tree, true_index, sigm
     ``sigmas``. Rivals are looked up in a ball around the back-projected measurement that holds
     every point whose prediction can be that close; the exact test follows."""
     fx, fy, cx, cy = intrinsics
-    uvd = dataset.obs_uvd[rows]
+    uvd = dataset.obs_z[rows]
     depth = uvd[:, 2]
     p_camera = np.column_stack([(uvd[:, 0] - cx) / fx * depth, (uvd[:, 1] - cy) / fy * depth, depth])
     p_world = np.einsum("nij,nj->ni", T_world_camera[:, :3, :3], p_camera) + T_world_camera[:, :3, 3]

@@ -115,7 +115,7 @@ def bare_ekf(dataset, pairs: Pairs) -> dict[str, float]:
     x, P = start(dataset)
     tree = cKDTree(dataset.landmark_xyz)
     increments, Q = dataset.T_odometry, dataset.odom_cov
-    view = 1.25 * float(dataset.obs_uvd[:, 2].max())
+    view = 1.25 * float(dataset.obs_z[:, 2].max())
     clock = time.perf_counter
     spent = dict(predict=0.0, observe=0.0, update=0.0, query=0.0)
     for k in range(dataset.num_poses):
@@ -132,7 +132,7 @@ def bare_ekf(dataset, pairs: Pairs) -> dict[str, float]:
             t2 = clock()
             R_inverse_H = dataset.obs_info[obs] @ H
             information = np.einsum("mji,mjk->ik", H, R_inverse_H)
-            gradient = np.einsum("mji,mj->i", R_inverse_H, dataset.obs_uvd[obs] - z_hat)
+            gradient = np.einsum("mji,mj->i", R_inverse_H, dataset.obs_z[obs] - z_hat)
             posterior = np.linalg.solve(np.eye(6) + P @ information, P)
             x, P = x + posterior @ gradient, 0.5 * (posterior + posterior.T)
             t3 = clock()
@@ -200,7 +200,7 @@ def window_pass(x: np.ndarray, P: np.ndarray, linearization: np.ndarray, increme
     information = np.zeros((w, 6, 6))
     np.add.at(information, pose, np.einsum("mji,mjk->mik", H, R_inverse_H))
     gradient = np.zeros((w, 6))
-    np.add.at(gradient, pose, np.einsum("mji,mj->mi", R_inverse_H, dataset.obs_uvd[obs] - z_hat))
+    np.add.at(gradient, pose, np.einsum("mji,mj->mi", R_inverse_H, dataset.obs_z[obs] - z_hat))
     observed = np.zeros(w, dtype=bool)
     observed[pose] = True
     states, covs = np.empty((w, 6)), np.empty((w, 6, 6))

@@ -52,7 +52,7 @@ def make_dataset(rng: np.random.Generator, *, num_poses: int, obs_per_pose: floa
         odom_cov=odometry_cov_from_info(odom_info),
         obs_pose_index=np.repeat(np.arange(num_poses, dtype=np.int64), counts),
         obs_camera=np.zeros(num_obs, dtype=np.int64),
-        obs_uvd=rng.uniform([-0.5, 0.0, 0.3], [1.5, 1.5, 2.0], (num_obs, 3)),
+        obs_z=rng.uniform([-0.5, 0.0, 0.3], [1.5, 1.5, 2.0], (num_obs, 3)),
         obs_info=obs_info,
         obs_cov=observation_cov_from_info(obs_info),
         obs_true_landmark=rng.integers(0, num_landmarks, num_obs),

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import sym3
+from camloc import measurement, sym3
 
 # Up to this many points a scan finds those within a ball as quickly as a k-d tree does, and
 # scipy.spatial, whose import is 0.2 s (a fifth of ``camloc run`` on a small file), stays unloaded.
@@ -191,7 +191,7 @@ NOISE_FLOOR = 1e-3
 
 
 def noise_floored(
-    uvd: np.ndarray, cov: np.ndarray, info: np.ndarray, fx: np.ndarray, fy: np.ndarray,
+    uvd: np.ndarray, cov: np.ndarray, info: np.ndarray, fx: np.ndarray, fy: np.ndarray, kinds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observation covariances (K, 3, 3) and their inverses as association judges them: those
     that claim to be exact (standard deviations of u, v and depth all below ``EXACT_CLAIM`` x
@@ -207,12 +207,17 @@ def noise_floored(
     such data). Only association uses the floor: the filter still weighs each pair by the
     file's own noise, and stays as exact as the data.
 
-    uvd : (K, 3); cov, info : (K, 3, 3) the file's covariances and information; fx, fy : (K,)
-    each observation's camera's focal lengths.
+    uvd : (K, 3) the measurements (``camloc.measurement``'s layout: the third row is the depth, its
+    inverse, or inert); cov, info : (K, 3, 3) the file's covariances and information; fx, fy :
+    (K,) each observation's camera's focal lengths; kinds : (K,) the measurements' kinds (None:
+    depth). The third row is judged relative to itself (depth, or inverse depth); an inert row
+    (a pixel's) is never floored.
     """
     scale = np.column_stack([np.abs(fx), np.abs(fy), np.abs(uvd[:, 2])]) if uvd.size else np.zeros((0, 3))
     variance = np.diagonal(cov, axis1=1, axis2=2)
-    exact = np.all(variance < (EXACT_CLAIM * scale) ** 2, axis=1)
+    inert = measurement.inert_rows(kinds) if kinds is not None else np.zeros(variance.shape, bool)
+    scale = np.where(inert, 0.0, scale)  # the floor adds nothing there
+    exact = np.all((variance < (EXACT_CLAIM * scale) ** 2) | inert, axis=1)
     if not np.any(exact):
         return cov, info
     floored = cov.copy()
@@ -220,25 +225,32 @@ def noise_floored(
     return floored, sym3.inverse(floored)
 
 
-def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, log_det_cov: np.ndarray, camera: np.ndarray) -> np.ndarray:
+def clutter_null_cost(uvd: np.ndarray, cov: np.ndarray, log_det_cov: np.ndarray, camera: np.ndarray,
+                      kinds: np.ndarray | None = None) -> np.ndarray:
     """Cost (K,) of explaining each observation as clutter rather than as a landmark.
 
-    Clutter is taken as uniform over the box the camera's measurements span, of volume V, so in
-    the units of a pair's cost ``d^2 + ln det S - ln det R`` (twice the negative log-likelihood,
-    less ``ln det 2 pi R``) an unassigned observation costs ``2 ln V - ln det(2 pi R)``.
+    Clutter is taken as uniform over the box a sensor's measurements span in their dof
+    dimensions (an image area for a pixel, a volume of (u, v, depth) or (u, v, 1/depth)), of
+    measure V, so in the units of a pair's cost ``d^2 + ln det S - ln det R`` (twice the negative
+    log-likelihood, less ``ln det 2 pi R`` over the dof rows) an unassigned observation costs
+    ``2 ln V - ln det(2 pi R)``. (The inert row of ``camloc.measurement``'s layout has unit
+    variance: it adds nothing to ln det R.)
 
     Parameters
     ----------
     uvd : (K, 3) measurements; cov : (K, 3, 3) their covariances and log_det_cov (K,) ln det of
-    each (``sym3.log_abs_det``); camera : (K,) camera ids.
+    each (``sym3.log_abs_det``); camera : (K,) camera ids; kinds : (K,) their kinds (None: depth).
     """
     cost = np.zeros(uvd.shape[0])
+    kinds = np.zeros(uvd.shape[0], np.int64) if kinds is None else np.asarray(kinds, np.int64)
     for camera_id in np.unique(camera):
-        mine = camera == camera_id
-        span = np.ptp(uvd[mine], axis=0)
-        sigma = np.sqrt(np.median(np.diagonal(cov[mine], axis1=1, axis2=2), axis=0))
-        log_volume = np.log(np.maximum(span, 6.0 * sigma)).sum()  # a few sigmas at least
-        cost[mine] = 2.0 * log_volume - (3.0 * np.log(2.0 * np.pi) + log_det_cov[mine])  # ln det(2 pi R)
+        for kind in np.unique(kinds[camera == camera_id]):
+            mine = (camera == camera_id) & (kinds == kind)
+            dof = measurement.KINDS[int(kind)].dof
+            span = np.ptp(uvd[mine, :dof], axis=0)
+            sigma = np.sqrt(np.median(np.diagonal(cov[mine], axis1=1, axis2=2)[:, :dof], axis=0))
+            log_volume = np.log(np.maximum(span, 6.0 * sigma)).sum()  # a few sigmas at least
+            cost[mine] = 2.0 * log_volume - (dof * np.log(2.0 * np.pi) + log_det_cov[mine])  # ln det(2 pi R)
     return cost
 
 

@@ -29,8 +29,9 @@ from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
-from camloc import association
+from camloc import association, measurement
 from camloc.jcbb import jcbb
+from camloc.sensors import CameraModel
 
 if TYPE_CHECKING:
     from camloc.dataset import Dataset
@@ -39,28 +40,20 @@ if TYPE_CHECKING:
 Pairs = tuple[np.ndarray, np.ndarray]
 
 
-@dataclass(frozen=True)
-class CameraModel:
-    """A camera as the filter's measurement model takes it: ``T_robot_camera`` (4, 4) and
-    ``intrinsics`` (fx, fy, cx, cy)."""
-
-    T_robot_camera: np.ndarray
-    intrinsics: tuple[float, float, float, float]
-
-
 @dataclass(frozen=True, eq=False)
 class AssociationScene:
     """What the per-pose association methods read of a run, built once by the localizer.
 
     Attributes
     ----------
-    dataset : the dataset (its observations ``obs_uvd``, ``obs_camera`` and map ``landmark_xyz``).
+    dataset : the dataset (its observations ``obs_z`` and map ``landmark_xyz``).
     filter : the state's parametrization (``camloc.filters``): its measurement model and pose.
-    cameras : camera id -> ``CameraModel``.
+    cameras : sensor index -> ``CameraModel`` (``sensors_of``).
+    obs_sensor : (K,) each observation's sensor.
     map_index : ``association.PointIndex`` over ``dataset.landmark_xyz``; None for an empty map.
     min_depth, max_depth : candidate landmarks' depth range, metres.
     max_angle : candidates within this angle of the optical axis, radians.
-    gate : chi^2 quantile (3 dof) a pair's d^2 must not exceed.
+    obs_gate : (K,) the chi^2 quantile a pair's d^2 must not exceed, at each observation's dof.
     association_cov : (K, 3, 3) each observation's covariance as association judges it
         (``association.noise_floored``; the filter's update keeps the file's own).
     true_landmark_row : (K,) the map row of each observation's landmark by the file's ids, -1 where
@@ -73,11 +66,12 @@ class AssociationScene:
     dataset: Dataset
     filter: EulerFilter | SE3Filter
     cameras: dict[int, CameraModel]
+    obs_sensor: np.ndarray
     map_index: Optional[association.PointIndex]
     min_depth: float
     max_depth: float
     max_angle: float
-    gate: float
+    obs_gate: np.ndarray
     association_cov: np.ndarray
     true_landmark_row: np.ndarray
     conditioned: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -102,7 +96,7 @@ class AssociationScene:
         """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
         state x, and their Jacobians (m, 3, n)."""
         camera = self.cameras[int(camera_id)]
-        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks])
+        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks], camera.kind)
 
     def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The landmarks camera ``camera_id`` may see from state x (``visible``): (candidates (m,),
@@ -122,12 +116,12 @@ def oracle(scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarra
     index = scene.true_landmark_row[obs]
     obs, index = obs[index >= 0], index[index >= 0]
     keep = np.zeros(obs.size, dtype=bool)
-    for camera_id in np.unique(scene.dataset.obs_camera[obs]):
-        mine = scene.dataset.obs_camera[obs] == camera_id
+    for camera_id in np.unique(scene.obs_sensor[obs]):
+        mine = scene.obs_sensor[obs] == camera_id
         z_hat, H = scene.observe(x, camera_id, index[mine])
         S = H @ P @ np.swapaxes(H, 1, 2) + scene.association_cov[obs[mine]]
-        d2, _ = association.mahalanobis_3x3(S, scene.dataset.obs_uvd[obs[mine]] - z_hat)
-        keep[mine] = d2 <= scene.gate
+        d2, _ = association.mahalanobis_3x3(S, scene.dataset.obs_z[obs[mine]] - z_hat)
+        keep[mine] = d2 <= scene.obs_gate[obs[mine]]
     return obs[keep], index[keep]
 
 
@@ -184,19 +178,19 @@ def best_friends_pairs(
     margin over its closest rival)."""
     ds = scene.dataset
     rows_all, landmarks_all, gaps_all = [], [], []
-    for camera_id in np.unique(ds.obs_camera[obs]):
-        rows_c = np.flatnonzero(ds.obs_camera[obs] == camera_id)
+    for camera_id in np.unique(scene.obs_sensor[obs]):
+        rows_c = np.flatnonzero(scene.obs_sensor[obs] == camera_id)
         candidates, z_hat, H, HPH = scene.predictions(x, P, camera_id)
         free = ~np.isin(candidates, taken)
         candidates, z_hat, HPH = candidates[free], z_hat[free], HPH[free]
         if candidates.size == 0:
             continue
-        z = ds.obs_uvd[obs[rows_c]]
+        z = ds.obs_z[obs[rows_c]]
         d2, nll = association.pair_statistics(z, scene.association_cov[obs[rows_c]], z_hat, HPH)
         pair_cost = {"nll": nll, "mahalanobis": d2}.get(cost)
         if pair_cost is None:
             pair_cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
-        r, c, gap = association.best_friends(pair_cost, d2, gate=scene.gate, margin=margin)
+        r, c, gap = association.best_friends(pair_cost, d2, gate=float(scene.obs_gate[obs[rows_c[0]]]), margin=margin)
         rows_all.append(rows_c[r])
         landmarks_all.append(candidates[c])
         gaps_all.append(gap)
@@ -228,27 +222,27 @@ class Jcbb:
     def __call__(self, scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray) -> Pairs:
         ds = scene.dataset
         cands, z_hats, Hs, blocks = [], [], [], []
-        for camera_id in np.unique(ds.obs_camera[obs]):
+        for camera_id in np.unique(scene.obs_sensor[obs]):
             c = scene.visible(x, camera_id)
             z_hat, H = scene.observe(x, camera_id, c)
-            cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((ds.obs_camera[obs] == camera_id, c.size))
+            cands.append(c), z_hats.append(z_hat), Hs.append(H), blocks.append((scene.obs_sensor[obs] == camera_id, c.size))
         candidates = np.concatenate(cands)
         if candidates.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
-        y_all = ds.obs_uvd[obs][:, None, :] - z_hat[None, :, :]
+        y_all = ds.obs_z[obs][:, None, :] - z_hat[None, :, :]
         HPH = H @ P @ np.swapaxes(H, 1, 2)
-        d2, _ = association.pair_statistics(ds.obs_uvd[obs], scene.association_cov[obs], z_hat, HPH)
+        d2, _ = association.pair_statistics(ds.obs_z[obs], scene.association_cov[obs], z_hat, HPH)
         same_camera = np.zeros(d2.shape, dtype=bool)
         start = 0
         for mine, size in blocks:
             same_camera[mine, start : start + size] = True
             start += size
-        compatible = (d2 <= scene.gate) & same_camera
+        compatible = (d2 <= scene.obs_gate[obs][:, None]) & same_camera
         rows, landmarks, _ = best_friends_pairs(scene, x, P, obs, taken=np.zeros(0, np.int64), cost=self.seed_cost, margin=self.seed_margin)
         column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
         seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
-        result = jcbb(y_all, H, P, scene.association_cov[obs], compatible,
+        result = jcbb(y_all, H, P, scene.association_cov[obs], compatible, dof=measurement.dof_of(ds.obs_kind[obs]),
                       probability=self.probability, max_nodes=self.max_nodes, seed=seed)
         if not result.exhaustive:
             self.poses_cut_short += 1

@@ -65,7 +65,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 
 import numpy as np
 
-from camloc import association, ekf, geometry, models
+from camloc import association, ekf, geometry, measurement, models
 from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
 from camloc.tails import binomial_tail, chi2_quantile
 
@@ -239,7 +239,9 @@ class BeamContext(Protocol):
     dataset: Dataset
     filter: EulerFilter | SE3Filter
     map_index: Optional[association.PointIndex]  # over dataset.landmark_xyz; None for an empty map
-    cameras: dict[int, CameraModel]
+    cameras: dict[int, CameraModel]      # by sensor (``sensors.sensors_of``)
+    obs_sensor: np.ndarray               # (K,) each observation's sensor
+    obs_gate: np.ndarray                 # (K,) each observation's chi^2 gate, at its dof
     obs_of_pose: list[np.ndarray]        # each pose's observations (indices into the dataset's)
     T_increments: np.ndarray             # (N - 1, 4, 4) the odometry increments
     null_cost: np.ndarray                # (K,) cost of leaving each observation unassigned
@@ -274,6 +276,9 @@ class BeamSearch:
         self.point, self.point_cov = context.point, context.point_cov  # every observation in its camera's frame
         self.log_det_point_cov = context.log_det_point_cov
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
+        # which observations have a point (``measurement.judged_as_point``; a pixel is a ray)
+        ranged_sensor = np.array([bool(measurement.judged_as_point(c.kind)) for _, c in sorted(context.cameras.items())], bool)
+        self._ranged = ranged_sensor[context.obs_sensor] if context.obs_sensor.size else np.zeros(0, bool)
         self.history: list[list[_Hypothesis]] = []  # each pose's beam; during a pose, those before it
         self.statistics = BeamStatistics()
         self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
@@ -438,14 +443,19 @@ class BeamSearch:
         candidates = np.argsort(pair_cost, kind="stable")[: self.settings.slip_candidates]
         # and the pairs whose implied shift of the robot most others share: a right pair's own
         # cost under a wide prior may rank it far down
-        agreement = association.shift_agreement(self._implied_shifts(h, obs, pair_obs, pair_landmark), self._agreement_radius(obs))
+        # (a pixel is a ray: it implies no one shift; only pairs judged as points vote)
+        ranged = self._ranged[obs[pair_obs]]
+        agreement = np.zeros(pair_obs.size, np.int64)
+        if ranged.any():
+            agreement[ranged] = association.shift_agreement(
+                self._implied_shifts(h, obs, pair_obs[ranged], pair_landmark[ranged]), self._agreement_radius(obs[self._ranged[obs]]))
         crowded = np.argsort(-agreement, kind="stable")[: self.settings.slip_candidates // 4]
         crowded = crowded[agreement[crowded] >= 3]  # fewer than three agreeing pairs is no crowd
         candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])
         ranked = association.seeded_explanation_costs(
             np.concatenate([o.y for o in options])[gated], np.concatenate([o.Hc for o in options])[gated],
             np.concatenate([o.Rc for o in options])[gated], h.P,
-            pair_obs, pair_landmark, self.null_cost[obs], candidates, gate=self.settings.gate,
+            pair_obs, pair_landmark, self.null_cost[obs], candidates, gate=self.ctx.obs_gate[obs[pair_obs]],
         )
         children: list[_Hypothesis] = []
         for seed in candidates[np.argsort(ranked, kind="stable")[: self.settings.slip_seeds]]:
@@ -476,7 +486,7 @@ class BeamSearch:
         ds = self.ctx.dataset
         T_world_robot = self.ctx.filter.pose(h.x)
         measured_world = np.empty((pair_obs.size, 3))
-        cameras = ds.obs_camera[obs][pair_obs]
+        cameras = self.ctx.obs_sensor[obs][pair_obs]
         for camera_id in np.unique(cameras):
             mine = cameras == camera_id
             T_world_camera = T_world_robot @ self.ctx.cameras[int(camera_id)].T_robot_camera
@@ -570,10 +580,11 @@ class BeamSearch:
         ``widened_view``, among the landmarks within three standard deviations of h's view."""
         ds = self.ctx.dataset
         out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
-        cameras = ds.obs_camera[obs]
-        pool_gate = POOL_GATE_FACTOR * self.settings.gate
+        cameras = self.ctx.obs_sensor[obs]
         for camera_id in np.unique(cameras):
             rows = np.flatnonzero(cameras == camera_id)
+            gate = float(self.ctx.obs_gate[obs[rows[0]]])  # a sensor's observations share their dof
+            pool_gate = POOL_GATE_FACTOR * gate
             candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
             if candidates.size == 0:
                 for r in rows:
@@ -587,7 +598,7 @@ class BeamSearch:
             d2, costs, in_point = self._in_best_coordinates(o[j], z_hat[g], p_hat, HPH, JHPHJ)
             pool = d2 <= pool_gate  # each observation's pool
             j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
-            costs = np.where(d2 <= self.settings.gate, costs, np.inf)
+            costs = np.where(d2 <= gate, costs, np.inf)
             y, Hc, Rc = self._chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
             bounds = np.searchsorted(j, np.arange(rows.size + 1))
             for k, r in enumerate(rows):
@@ -601,9 +612,14 @@ class BeamSearch:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Predictions (z_hat (m, 3), H (m, 3, n)) of camera camera_id under covariance P, also
         as camera-frame points: (p_hat (m, 3), their Jacobian Hp (m, 3, n), the spread of the
-        predictions H P H' (m, 3, 3) and of the points Hp P Hp' (m, 3, 3))."""
-        p_hat, J = models.back_project(z_hat, self.ctx.cameras[int(camera_id)].intrinsics)
+        predictions H P H' (m, 3, 3) and of the points Hp P Hp' (m, 3, 3)). A sensor that does not
+        measure range has no point: zeros, a singular spread, which fits nothing
+        (``_in_best_coordinates`` keeps its pixels)."""
+        camera = self.ctx.cameras[int(camera_id)]
         HPH = H @ P @ np.swapaxes(H, -1, -2)
+        if not measurement.judged_as_point(camera.kind):
+            return np.zeros_like(z_hat), np.zeros_like(H), HPH, np.zeros_like(HPH)
+        p_hat, J = models.back_project(z_hat, camera.intrinsics, camera.kind)
         return p_hat, J @ H, HPH, J @ HPH @ np.swapaxes(J, -1, -2)
 
     def _plausible_pairs(self, o: np.ndarray, z_hat: np.ndarray, spread: tuple, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -617,10 +633,10 @@ class BeamSearch:
         p_hat, _, HPH, JHPHJ = spread
         spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(self.R[o], axis1=1, axis2=2)[:, None]
         spread_point = np.trace(JHPHJ, axis1=1, axis2=2)[None, :] + np.trace(self.point_cov[o], axis1=1, axis2=2)[:, None]
-        y_pixels = ds.obs_uvd[o][:, None, :] - z_hat[None, :, :]
+        y_pixels = ds.obs_z[o][:, None, :] - z_hat[None, :, :]
         y_point = self.point[o][:, None, :] - p_hat[None, :, :]
         near = ((np.einsum("ijk,ijk->ij", y_pixels, y_pixels) <= limit * spread_pixels)
-                | (np.einsum("ijk,ijk->ij", y_point, y_point) <= limit * spread_point))
+                | ((np.einsum("ijk,ijk->ij", y_point, y_point) <= limit * spread_point) & self._ranged[o][:, None]))
         return np.nonzero(near)
 
     def _in_best_coordinates(
@@ -641,7 +657,7 @@ class BeamSearch:
         Returns d^2 and the cost of each pair, and whether it is judged as a point.
         """
         ds = self.ctx.dataset
-        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], ds.obs_uvd[o] - z_hat)
+        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], ds.obs_z[o] - z_hat)
         d2_point, log_det_point = association.mahalanobis_3x3(JHPHJ + self.point_cov[o], self.point[o] - p_hat)
         cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
         cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
@@ -656,7 +672,7 @@ class BeamSearch:
         coordinates ``_in_best_coordinates`` chose for it."""
         ds = self.ctx.dataset
         point = in_point[:, None]
-        y = np.where(point, self.point[o] - p_hat, ds.obs_uvd[o] - z_hat)
+        y = np.where(point, self.point[o] - p_hat, ds.obs_z[o] - z_hat)
         Hc = np.where(point[:, :, None], Hp, H)
         Rc = np.where(point[:, :, None], self.point_cov[o], self.R[o])
         return y, Hc, Rc
@@ -670,7 +686,7 @@ class BeamSearch:
         ds = self.ctx.dataset
         taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
         out = list(options)
-        cameras = ds.obs_camera[obs]
+        cameras = self.ctx.obs_sensor[obs]
         for camera_id in np.unique(cameras):
             rows = [r for r in np.flatnonzero(cameras == camera_id) if options[r].landmarks.size]
             if not rows:
@@ -681,7 +697,7 @@ class BeamSearch:
             owner = np.repeat(obs[rows], sizes)
             p_hat, Hp, HPH, JHPHJ = self._spread(h.P, camera_id, z_hat, H)
             d2, costs, in_point = self._in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)
-            costs = np.where((d2 <= self.settings.gate) & ~_member(landmarks, taken), costs, np.inf)
+            costs = np.where((d2 <= self.ctx.obs_gate[owner]) & ~_member(landmarks, taken), costs, np.inf)
             y, Hc, Rc = self._chosen(in_point, owner, z_hat, H, p_hat, Hp)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
                 part = slice(start, stop)

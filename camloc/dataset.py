@@ -63,8 +63,12 @@ class Dataset:
     odom_cov : (N-1, 6, 6) covariance of (translation, rotation vector).
     obs_pose_index : (K,) int64 index into ``pose_ids`` of the observing pose.
     obs_camera : (K,) int64 camera id.
-    obs_uvd : (K, 3) measured u, v, depth.
-    obs_info : (K, 3, 3) information as in the file; obs_cov its inverse.
+    obs_z : (K, 3) the measurements, in ``camloc.measurement``'s layout: (u, v, depth), (u, v, 0)
+        or (u, v, 1/depth) by ``obs_kind``.
+    obs_info : (K, 3, 3) information as in the file (a pixel's inert third row: unit information,
+        ``camloc.measurement``); obs_cov its inverse.
+    obs_kind : (K,) int64 each observation's kind (``camloc.measurement``: DEPTH, PIXEL or
+        DISPARITY), by the record that gave it.
     obs_true_landmark : (K,) int64 landmark id written in the file. Localizers must not read it;
         evaluators may, to score the association. Ids absent from the map are clutter.
     tag_counts : number of records per tag, unknown tags included.
@@ -86,12 +90,19 @@ class Dataset:
     odom_cov: np.ndarray
     obs_pose_index: np.ndarray
     obs_camera: np.ndarray
-    obs_uvd: np.ndarray
+    obs_z: np.ndarray
     obs_info: np.ndarray
     obs_cov: np.ndarray
     obs_true_landmark: np.ndarray
+    obs_kind: np.ndarray = None  # type: ignore[assignment]  (None: every observation is DEPTH)
     tag_counts: dict[str, int] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.obs_kind is None:  # a dataset built by hand of depth observations only
+            object.__setattr__(self, "obs_kind", np.zeros(self.obs_z.shape[0], dtype=np.int64))
+        if len(self.obs_kind) != self.obs_z.shape[0]:
+            raise ValueError(f"obs_kind has {len(self.obs_kind)} entries for {self.obs_z.shape[0]} observations")
 
     @property
     def num_poses(self) -> int:
@@ -99,7 +110,7 @@ class Dataset:
 
     @property
     def num_observations(self) -> int:
-        return int(self.obs_uvd.shape[0])
+        return int(self.obs_z.shape[0])
 
     @property
     def has_ground_truth(self) -> bool:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from camloc import geometry
+from camloc import geometry, measurement
 from camloc.dataset import Dataset
 from camloc.g2o import KNOWN_TAGS
 
@@ -34,7 +34,9 @@ def summarize_dataset(dataset: Dataset) -> dict[str, Any]:
       over edges of the standard deviations in ``odom_cov`` (rotation-vector parametrization);
       None without edges.
     - ``observation_noise``: ``sigma_u``, ``sigma_v``, ``sigma_depth``, medians over observations
-      of the standard deviations in ``obs_cov``; None without observations.
+      of the standard deviations in ``obs_cov`` (depth: over depth observations); None without.
+    - ``observation_kinds``: observations of each measurement kind (``camloc.measurement``):
+      ``depth``, ``pixel``, ``disparity``.
     - ``observations_per_pose``: ``min``, ``median``, ``max``, ``poses_without``.
     - ``landmarks_never_observed``: ``count`` and ``ids`` of map landmarks no observation's true
       id names.
@@ -56,7 +58,9 @@ def summarize_dataset(dataset: Dataset) -> dict[str, Any]:
         "cameras": [_camera_summary(camera) for camera in dataset.cameras.values()],
         "trajectory": _trajectory_summary(dataset),
         "odometry_noise": _odometry_noise(dataset.odom_cov),
-        "observation_noise": _observation_noise(dataset.obs_cov),
+        "observation_noise": _observation_noise(dataset.obs_cov, dataset.obs_kind),
+        "observation_kinds": {kind.name: int(np.count_nonzero(dataset.obs_kind == kind.code))
+                              for kind in measurement.KINDS.values()},
         "observations_per_pose": _observations_per_pose(dataset),
         "landmarks_never_observed": _ids_summary(np.setdiff1d(dataset.landmark_ids, dataset.obs_true_landmark)),
         "unmapped_observations": _unmapped_observations(dataset),
@@ -114,9 +118,13 @@ def _odometry_noise(odom_cov: np.ndarray) -> dict[str, Any]:
     return {"sigma_translation_m": sigmas[:3].tolist(), "sigma_rotation_deg": np.degrees(sigmas[3:]).tolist()}
 
 
-def _observation_noise(obs_cov: np.ndarray) -> dict[str, Any]:
+def _observation_noise(obs_cov: np.ndarray, kinds: np.ndarray) -> dict[str, Any]:
+    """Median sigmas of u, v (every observation) and of depth (depth observations only: a pixel's
+    third row is inert, a disparity's is an inverse depth)."""
     sigmas = _median_sigmas(obs_cov)
     values = [None, None, None] if sigmas is None else sigmas.tolist()
+    depth = _median_sigmas(obs_cov[kinds == measurement.DEPTH])
+    values[2] = None if depth is None else float(depth[2])
     return dict(zip(("sigma_u", "sigma_v", "sigma_depth"), values))
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from camloc import geometry, models
+from camloc.measurement import DEPTH
 
 SINGULARITY_WARNING_DEG = 80.0
 
@@ -34,8 +35,8 @@ class EulerFilter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return models.motion(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz):
-        return models.observe(x, T_robot_camera, intrinsics, landmark_xyz)
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH):
+        return models.observe(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """``x + delta`` with roll and yaw wrapped into [-pi, pi)."""
@@ -86,8 +87,8 @@ class SE3Filter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return models.motion_se3(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz):
-        return models.observe_se3(x, T_robot_camera, intrinsics, landmark_xyz)
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH):
+        return models.observe_se3(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return geometry.retract_right(x, delta)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camloc import geometry, sym3
+from camloc import geometry, measurement, sym3
 from camloc.dataset import Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -68,7 +68,10 @@ TAG_CAMERA = "PARAMS_CAMERACALIB"
 TAG_LANDMARK = "VERTEX_TRACKXYZ"
 TAG_POSE = "VERTEX_SE3:QUAT"
 TAG_ODOMETRY = "EDGE_SE3:QUAT"
-TAG_OBSERVATION = "EDGE_PROJECT_DEPTH"
+TAG_OBSERVATION = measurement.KINDS[measurement.DEPTH].tag              # EDGE_PROJECT_DEPTH
+TAG_OBSERVATION_UV = measurement.KINDS[measurement.PIXEL].tag           # EDGE_PROJECT_UV
+TAG_OBSERVATION_DISPARITY = measurement.KINDS[measurement.DISPARITY].tag  # EDGE_PROJECT_DISPARITY
+OBSERVATION_TAGS = (TAG_OBSERVATION, TAG_OBSERVATION_UV, TAG_OBSERVATION_DISPARITY)
 
 # Quaternions this close to unit length are kept bit for bit (so that write -> read is exact);
 # further than _QUAT_WARN_TOL they are normalized with a warning, below _QUAT_ZERO_TOL refused.
@@ -124,7 +127,15 @@ _ODOMETRY = _Layout(TAG_ODOMETRY, ("from", "to", "dx", "dy", "dz", "qx", "qy", "
                     "from to dx dy dz qx qy qz qw + 21 information numbers", ("dx", "dy", "dz"))
 _OBSERVATION = _Layout(TAG_OBSERVATION, ("pose", "landmark", "camera", "u", "v", "depth") + _upper_names(3), 3,
                        "pose landmark camera u v depth + 6 information numbers", ("depth",), ("u", "v"))
-_LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, _OBSERVATION)}
+_OBSERVATION_UV = _Layout(TAG_OBSERVATION_UV, ("pose", "landmark", "camera", "u", "v") + _upper_names(2), 3,
+                          "pose landmark camera u v + 3 information numbers", (), ("u", "v"))
+_OBSERVATION_DISPARITY = _Layout(
+    TAG_OBSERVATION_DISPARITY, ("pose", "landmark", "camera", "u", "v", "inverse_depth") + _upper_names(3), 3,
+    "pose landmark camera u v 1/depth + 6 information numbers", (), ("u", "v", "inverse_depth"))
+# each observation record's layout by its measurement kind (camloc.measurement)
+_OBSERVATION_LAYOUTS = {measurement.DEPTH: _OBSERVATION, measurement.PIXEL: _OBSERVATION_UV,
+                        measurement.DISPARITY: _OBSERVATION_DISPARITY}
+_LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, *_OBSERVATION_LAYOUTS.values())}
 KNOWN_TAGS = tuple(_LAYOUTS)
 
 
@@ -191,7 +202,7 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry)
     _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[TAG_POSE].lines)
     truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages)
-    observations = _build_observations(path, tables[TAG_OBSERVATION], pose_ids, cameras, messages)
+    observations = _build_all_observations(path, tables, pose_ids, cameras, messages)
 
     for message in messages:
         warnings.warn(f"{path}: {message}", G2oWarning, stacklevel=2)
@@ -212,10 +223,11 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         odom_cov=odometry["cov"][edge_order],
         obs_pose_index=observations["pose_index"],
         obs_camera=observations["camera"],
-        obs_uvd=observations["uvd"],
+        obs_z=observations["z"],
         obs_info=observations["info"],
         obs_cov=observations["cov"],
         obs_true_landmark=observations["landmark"],
+        obs_kind=observations["kind"],
         tag_counts={tag: len(lines.numbers) for tag, lines in groups.items()},
         warnings=tuple(messages),
     )
@@ -542,13 +554,27 @@ def _build_odometry(path: Path, table: _Table, messages: list[str]) -> dict[str,
     }
 
 
-def _build_observations(path: Path, table: _Table, pose_ids: np.ndarray,
+def _build_all_observations(path: Path, tables: dict[str, _Table], pose_ids: np.ndarray,
+                            cameras: dict[int, Camera], messages: list[str]) -> dict[str, np.ndarray]:
+    """The observations of every kind (``_OBSERVATION_LAYOUTS``) in file order."""
+    parts = [_build_observations(path, tables[layout.tag], layout, kind, pose_ids, cameras, messages)
+             for kind, layout in _OBSERVATION_LAYOUTS.items()]
+    order = np.argsort(np.concatenate([part.pop("line") for part in parts]), kind="stable")
+    return {name: np.concatenate([part[name] for part in parts])[order] for name in parts[0]}
+
+
+def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, pose_ids: np.ndarray,
                         cameras: dict[int, Camera], messages: list[str]) -> dict[str, np.ndarray]:
-    """Observations in file order, their pose as an index into the chain ``pose_ids``."""
-    behind = np.flatnonzero(table.values[:, 2] <= 0.0)
-    if behind.size:  # kept, as clutter is: no landmark in front of the camera fits them
-        messages.append(f"line {table.lines[behind[0]]}: {behind.size} {TAG_OBSERVATION} record(s) with depth <= 0, "
-                        "where only landmarks in front of the camera (depth > 0) can be seen; no landmark will fit them")
+    """Observations of one record kind in file order, their pose as an index into the chain
+    ``pose_ids``, their measurement and information in ``camloc.measurement``'s padded layout."""
+    tag = layout.tag
+    dof = measurement.KINDS[kind].dof
+    if measurement.KINDS[kind].measures_range:
+        behind = np.flatnonzero(table.values[:, 2] <= 0.0)
+        if behind.size:  # kept, as clutter is: no landmark in front of the camera fits them
+            what = "depth" if kind == measurement.DEPTH else "inverse depth"
+            messages.append(f"line {table.lines[behind[0]]}: {behind.size} {tag} record(s) with {what} <= 0, "
+                            "where only landmarks in front of the camera (depth > 0) can be seen; no landmark will fit them")
     pose, landmark, camera = table.ids[:, 0], table.ids[:, 1].copy(), table.ids[:, 2].copy()
     sorter = np.argsort(pose_ids)
     slot = np.minimum(np.searchsorted(pose_ids, pose, sorter=sorter), pose_ids.size - 1)
@@ -557,20 +583,22 @@ def _build_observations(path: Path, table: _Table, pose_ids: np.ndarray,
     if unknown.size:
         row = unknown[0]
         raise DatasetError(path, int(table.lines[row]),
-                           f"{TAG_OBSERVATION} from pose {pose[row]}: expected a pose of the odometry chain, "
+                           f"{tag} from pose {pose[row]}: expected a pose of the odometry chain, "
                            f"found an id that no {TAG_POSE} or {TAG_ODOMETRY} defines")
     camera_ids = np.array(sorted(cameras), dtype=np.int64)
     unknown = np.flatnonzero(~np.isin(camera, camera_ids))
     if unknown.size:
         row = unknown[0]
         raise DatasetError(path, int(table.lines[row]),
-                           f"{TAG_OBSERVATION} through camera {camera[row]}: expected a {TAG_CAMERA} id "
+                           f"{tag} through camera {camera[row]}: expected a {TAG_CAMERA} id "
                            f"({', '.join(map(str, camera_ids))}), found an unknown camera")
-    info = _info_from_upper(table.values[:, 3:9], 3)
-    _check_positive_definite(path, TAG_OBSERVATION, info, table.lines)
+    info = measurement.padded_information(table.values[:, dof:], kind)
+    _check_positive_definite(path, tag, info, table.lines)
+    z = np.zeros((table.values.shape[0], measurement.MAX_DIM))
+    z[:, :dof] = table.values[:, :dof]
     return {"pose_index": pose_index.astype(np.int64), "camera": camera, "landmark": landmark,
-            "uvd": table.values[:, 0:3].copy(), "info": info,
-            "cov": _covariances(path, TAG_OBSERVATION, info, table.lines, observation_cov_from_info)}
+            "z": z, "info": info, "cov": _covariances(path, tag, info, table.lines, observation_cov_from_info),
+            "kind": np.full(table.values.shape[0], kind, dtype=np.int64), "line": table.lines}
 
 
 # --- the pose chain -------------------------------------------------------------------------
@@ -704,12 +732,9 @@ def _format_dataset(dataset: Dataset) -> list[str]:
         lines += _records(TAG_POSE, dataset.pose_ids[:1], np.hstack([dataset.start_xyz, dataset.start_quat_xyzw])[None])
 
     odom_upper = dataset.odom_info[(slice(None), *np.triu_indices(6))]  # (N-1, 21), row by row
-    obs_upper = dataset.obs_info[(slice(None), *np.triu_indices(3))]  # (K, 6)
     edges = _records(TAG_ODOMETRY, np.stack([dataset.pose_ids[:-1], dataset.pose_ids[1:]], axis=1), np.hstack(
         [dataset.odom_translation, dataset.odom_quat_xyzw, odom_upper]))
-    observations = _records(TAG_OBSERVATION, np.stack(
-        [dataset.pose_ids[dataset.obs_pose_index], dataset.obs_true_landmark, dataset.obs_camera], axis=1),
-        np.hstack([dataset.obs_uvd, obs_upper]))
+    observations = _observation_records(dataset)
     if np.all(np.diff(dataset.obs_pose_index) >= 0):
         # Interleave: the observations of pose k come right after the edge that reaches it.
         bounds = np.searchsorted(dataset.obs_pose_index, np.arange(dataset.num_poses + 1)).tolist()
@@ -719,6 +744,19 @@ def _format_dataset(dataset: Dataset) -> list[str]:
             lines += observations[bounds[k + 1]:bounds[k + 2]]
     else:
         lines += edges + observations
+    return lines
+
+
+def _observation_records(dataset: Dataset) -> list[str]:
+    """One line per observation, in dataset order, each with its kind's tag and layout."""
+    ids = np.stack([dataset.pose_ids[dataset.obs_pose_index], dataset.obs_true_landmark, dataset.obs_camera], axis=1)
+    lines: list[str] = [""] * dataset.num_observations
+    for kind, layout in _OBSERVATION_LAYOUTS.items():
+        rows = np.flatnonzero(dataset.obs_kind == kind)
+        dof = measurement.KINDS[kind].dof
+        values = np.hstack([dataset.obs_z[rows, :dof], measurement.upper_triangle(dataset.obs_info[rows], kind)])
+        for row, line in zip(rows.tolist(), _records(layout.tag, ids[rows], values)):
+            lines[row] = line
     return lines
 
 

@@ -74,6 +74,7 @@ def jcbb(
     probability: float = 0.99,
     max_nodes: int = 2000,
     seed: list[tuple[int, int]] | None = None,
+    dof: np.ndarray | None = None,
 ) -> JcbbResult:
     """The largest jointly compatible set of pairs.
 
@@ -82,17 +83,24 @@ def jcbb(
     y_all : (n, m, 3) innovation of observation i against candidate j.
     H : (m, 3, s) Jacobians of the candidates' predictions; P : (s, s) state covariance.
     R_obs : (n, 3, 3) observation covariances.
-    compatible : (n, m) individual compatibility (each pair's own 3-dof gate).
+    compatible : (n, m) individual compatibility (each pair's own gate, at its observation's dof).
     probability : of the joint chi^2 test.
     max_nodes : bound on the number of joint tests.
     seed : a set of pairs to test first (best friends): when it is jointly compatible and pairs
         every observation, nothing can beat it and the search is skipped.
+    dof : (n,) each observation's degrees of freedom (``camloc.measurement``: its rows beyond
+        them are inert); None: 3 each.
     """
     n = compatible.shape[0]
-    bounds = chi2_quantile(3 * np.arange(1, n + 1), 1.0 - probability)  # chi^2 quantiles, 3k dof
+    dof = np.full(n, 3, dtype=np.int64) if dof is None else np.asarray(dof, dtype=np.int64)
+    bounds = chi2_quantile(np.arange(1, 3 * n + 1), 1.0 - probability)  # chi^2 quantiles by total dof
+
+    def bound(pairs: list) -> float:
+        return float(bounds[sum(int(dof[i]) for i, _ in pairs) - 1])
+
     if seed and len(seed) == n:
         nis = joint_nis(seed, y_all, H, P, R_obs)
-        if nis <= bounds[n - 1]:
+        if nis <= bound(seed):
             assignment = np.full(n, -1, dtype=np.int64)
             for i, j in seed:
                 assignment[i] = j
@@ -125,7 +133,7 @@ def jcbb(
             nodes += 1
             trial = pairs + [(i, int(j))]
             trial_nis = joint_nis(trial, y_all, H, P, R_obs)
-            if trial_nis <= bounds[len(trial) - 1]:
+            if trial_nis <= bound(trial):
                 search(depth + 1, trial, used | {int(j)}, trial_nis)
         # leave observation i unpaired, if pairing all the rest could still beat the best set
         if len(pairs) + (n - depth - 1) > len(best["pairs"]):

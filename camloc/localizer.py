@@ -17,8 +17,10 @@ from typing import Callable, ClassVar, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, models, warmup
-from camloc.associators import AssociationScene, CameraModel
+from camloc import association, associators, ekf, geometry, measurement, models, warmup
+from camloc.associators import AssociationScene
+from camloc.sensors import sensors_of
+from camloc.measurement import observation_gates
 from camloc.beam import BeamSearch, BeamSettings, BeamStatistics
 from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
@@ -503,17 +505,17 @@ class _Localizer:
         self.dataset = dataset
         self.config = config
         self.filter = make_filter(config.filter)
-        self.cameras = {
-            cid: CameraModel(cam.T_robot_camera, (cam.fx, cam.fy, cam.cx, cam.cy))
-            for cid, cam in dataset.cameras.items()
-        }
-        self.single_camera = int(next(iter(dataset.cameras))) if len(dataset.cameras) == 1 else None
+        # a sensor is a camera and the kind of its measurements (camloc.measurement)
+        self.cameras, self.obs_sensor = sensors_of(dataset)
+        self.single_camera = 0 if len(self.cameras) == 1 else None
+        self.obs_dof = measurement.dof_of(dataset.obs_kind)
         self.map_index = association.PointIndex(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
         from camloc.scene import candidate_range, landmark_rows, observation_noise
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
-        self.gate = float(chi2_quantile(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof
+        self.gate = float(chi2_quantile(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof (a depth pair's)
+        self.obs_gate = observation_gates(dataset.obs_kind, 1.0 - config.gate)  # each observation's, at its dof
         # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
         noise = observation_noise(dataset, config)
@@ -527,8 +529,9 @@ class _Localizer:
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
         self.T_increments = dataset.T_odometry
         self.scene = AssociationScene(  # what the per-pose association methods read
-            dataset=dataset, filter=self.filter, cameras=self.cameras, map_index=self.map_index, min_depth=self.min_depth,
-            max_depth=self.max_depth, max_angle=self.max_angle, gate=self.gate, association_cov=self.association_cov,
+            dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle=self.max_angle, obs_gate=self.obs_gate,
+            association_cov=self.association_cov,
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned,
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)
@@ -653,8 +656,8 @@ class _Localizer:
         chosen_landmark = dict(zip(pair_obs.tolist(), pair_landmarks.tolist()))
         groups = []
         pair_information = {}
-        for camera_id in np.unique(ds.obs_camera[obs]):
-            mine = obs[ds.obs_camera[obs] == camera_id]
+        for camera_id in np.unique(self.obs_sensor[obs]):
+            mine = obs[self.obs_sensor[obs] == camera_id]
             candidates = self.visible(x_post, camera_id)
             z_hat, H = self.observe(x_post, camera_id, candidates)
             column_of = {int(c): j for j, c in enumerate(candidates.tolist())}
@@ -668,7 +671,8 @@ class _Localizer:
             if z_hat.shape[0] == 0:
                 continue
             information = prior_information + sum(v for c, v in pair_information.items() if c != camera_id)
-            cost = association.leave_one_out_costs(ds.obs_uvd[mine], self.association_cov[mine], z_hat, H, chosen, information=information, gate=self.gate)
+            cost = association.leave_one_out_costs(ds.obs_z[mine], self.association_cov[mine], z_hat, H, chosen, information=information,
+                                                   gate=float(self.obs_gate[mine[0]]))
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
             for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
                 if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin):
@@ -702,12 +706,12 @@ class _Localizer:
         (``association_cov``): the scratch filters that decide an association, not the estimate.
         ``start``: a state near the posterior, when the caller knows one; the iterations also run
         from it, and the posterior with the lower MAP cost is kept."""
-        z = self.dataset.obs_uvd[obs].reshape(-1)
+        z = self.dataset.obs_z[obs].reshape(-1)
         if for_association:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
         else:  # the blocks of a block-diagonal covariance (ekf.update)
             R, R_inverse = self.dataset.obs_cov[obs], self.dataset.obs_info[obs]
-        cameras = self.dataset.obs_camera[obs]
+        cameras = self.obs_sensor[obs]
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
             groups = [(self.cameras[self.single_camera], slice(None))]
         else:
@@ -717,12 +721,12 @@ class _Localizer:
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if len(groups) == 1:
                 camera = groups[0][0]
-                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz)
+                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind)
                 return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
             z_hat = np.empty((obs.size, 3))
             H = np.empty((obs.size, 3, 6))
             for camera, mask in groups:
-                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask])
+                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask], camera.kind)
             return z_hat.reshape(-1), H.reshape(-1, 6)
 
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
@@ -732,7 +736,7 @@ class _Localizer:
         if self.config.iterations < 2:
             return result
         starts = [] if start is None else [start]
-        if result.nis > self._nis_bound(z.size):
+        if result.nis > self._nis_bound(int(self.obs_dof[obs].sum())):
             # An innovation this unlikely under the prior's linearization: with a wide prior (after
             # a slip, or odometry much noisier than the landmarks' spacing) Gauss-Newton in (u, v,
             # depth) from the prior can stall far from the MAP estimate. Iterate also from one
@@ -750,14 +754,20 @@ class _Localizer:
         return replace(best, map_cost=float("nan"))
 
     def _point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """x after one EKF update with the pairs' measurements as camera-frame points."""
+        """x after one EKF update with the pairs' measurements as camera-frame points (those
+        ``measurement.judged_as_point``; the others, a pixel's ray, as they are)."""
         z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
-        p_hat, Hp = np.empty_like(z_hat), np.empty_like(H)
+        y = self.dataset.obs_z[obs] - z_hat
+        Hp, R = H.copy(), self.association_cov[obs].copy()
         for camera, mask in groups:
-            p_hat[mask], J = models.back_project(z_hat[mask], camera.intrinsics)
-            Hp[mask] = J @ H[mask]
-        Hp = Hp.reshape(3 * obs.size, -1)
-        return self.filter.retract(x, ekf.correction(P, Hp, self.point_cov[obs], (self.point[obs] - p_hat).reshape(-1)))
+            if not measurement.judged_as_point(camera.kind):
+                continue
+            mine = np.arange(obs.size)[mask]
+            p_hat, J = models.back_project(z_hat[mine], camera.intrinsics, camera.kind)
+            Hp[mine] = J @ H[mine]
+            y[mine] = self.point[obs[mine]] - p_hat
+            R[mine] = self.point_cov[obs[mine]]
+        return self.filter.retract(x, ekf.correction(P, Hp.reshape(3 * obs.size, -1), R, y.reshape(-1)))
 
     def _nis_bound(self, dof: int) -> float:
         """The 99.9% quantile of chi^2 with dof degrees of freedom."""
@@ -774,7 +784,7 @@ class _Localizer:
         self.update_pose_ids.append(int(self.dataset.pose_ids[k]))
         self.nis.append(recorded_nis(result.nis, result.map_cost, self.config.iterations))
         self.map_costs.append(result.map_cost)
-        self.nis_dof.append(3 * obs.size)
+        self.nis_dof.append(int(self.obs_dof[obs].sum()))
 
     def _warn_near_singularity(self, k: int) -> None:
         pitch = self.filter.near_singularity(self.x)
@@ -807,7 +817,7 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
     estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)
     odometry_xyz, odometry_quat = geometry.pose_to_quat(odometry_poses)
     associations = Associations(
-        pose_id=ds.pose_ids[ds.obs_pose_index], camera=ds.obs_camera.copy(), uvd=ds.obs_uvd.copy(),
+        pose_id=ds.pose_ids[ds.obs_pose_index], camera=ds.obs_camera.copy(), uvd=ds.obs_z.copy(),
         landmark=chosen_landmark, true_landmark=ds.obs_true_landmark.copy(), mahalanobis=mahalanobis,
     )
     accepted = int(np.count_nonzero(chosen_landmark != UNASSOCIATED))

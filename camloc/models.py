@@ -8,10 +8,12 @@ Control    u = dT = (dt, dR): the odometry increment, the next pose in the frame
 Motion     T_{k+1} = T_k dT Exp(w), with w = (w_t, w_theta) ~ N(0, Q) the increment's noise as a
            right perturbation (translation, rotation vector); Q comes from the edge's information in
            g2o's parametrization (``camloc.g2o.odometry_cov_from_info``).
-Measure    z = (u, v, depth) of a landmark l through camera (R_c, t_c) on the robot:
+Measure    z of a landmark l through camera (R_c, t_c) on the robot:
               p_robot  = R^T (l - t)
               p_camera = R_c^T (p_robot - t_c)
-              z = (fx p.x / p.z + cx, fy p.y / p.z + cy, p.z) + n,  n ~ N(0, R_obs)
+              z = h_kind(p_camera) + n,  n ~ N(0, R_obs)
+           with h_kind the measurement kind's (``camloc.measurement``: (u, v, depth), (u, v) or
+           (u, v, 1/depth), in one padded 3-row layout).
 Jacobians  F = dx'/dx and G = dx'/dw of the motion, H = dz/dx of the measurement, derived through
            the body-frame perturbation ``R(rpy + d) = R Exp(E(rpy) d)`` (``geometry.euler_rate_matrix``).
            Every one is checked against central finite differences in tests/test_models.py.
@@ -32,7 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import geometry
+from camloc import geometry, measurement
+from camloc.measurement import DEPTH
 
 
 def motion(state: np.ndarray, T_increment: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -81,49 +84,34 @@ def camera_points(
     return p_robot, p_camera
 
 
-def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float]) -> np.ndarray:
-    """Camera-frame points (M, 3) -> measurements (M, 3) of u, v, depth. Depth must be non-zero."""
-    fx, fy, cx, cy = intrinsics
-    z = p_camera[:, 2]
-    uvd = np.empty_like(p_camera)
-    uvd[:, 0] = fx * p_camera[:, 0] / z + cx
-    uvd[:, 1] = fy * p_camera[:, 1] / z + cy
-    uvd[:, 2] = z
-    return uvd
+def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH) -> np.ndarray:
+    """Camera-frame points (M, 3) -> measurements (M, 3) of ``kind`` (``camloc.measurement``):
+    u, v and depth, inverse depth or the inert 0. Depth must be non-zero."""
+    return measurement.project(p_camera, intrinsics, kind)
 
 
-def back_project(uvd: np.ndarray, intrinsics: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Measurements (M, 3) of u, v, depth -> camera-frame points (M, 3), the inverse of
-    ``project_points``, and its Jacobian d p_camera / d(u, v, depth), (M, 3, 3). The intrinsics
+def back_project(uvd: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH) -> tuple[np.ndarray, np.ndarray]:
+    """Measurements (M, 3) of a kind that measures range -> camera-frame points (M, 3), the
+    inverse of ``project_points``, and its Jacobian d p_camera / d z, (M, 3, 3). The intrinsics
     fx, fy, cx, cy may each be an (M,) array: a camera per measurement."""
-    fx, fy, cx, cy = intrinsics
-    x_over_z = (uvd[:, 0] - cx) / fx
-    y_over_z = (uvd[:, 1] - cy) / fy
-    depth = uvd[:, 2]
-    p_camera = np.stack([x_over_z * depth, y_over_z * depth, depth], axis=1)
-    J = np.zeros((uvd.shape[0], 3, 3))
-    J[:, 0, 0] = depth / fx
-    J[:, 0, 2] = x_over_z
-    J[:, 1, 1] = depth / fy
-    J[:, 1, 2] = y_over_z
-    J[:, 2, 2] = 1.0
-    return p_camera, J
+    return measurement.back_project(uvd, intrinsics, kind)
 
 
-# Back-projection needs a positive depth; a measurement at or behind the camera keeps a tiny one,
-# which makes it fit no landmark in front of the camera.
-MIN_POINT_DEPTH = 1e-6
+MIN_POINT_DEPTH = measurement.MIN_POINT_DEPTH
 
 
 def measured_points(
-    uvd: np.ndarray, cov: np.ndarray, intrinsics: tuple[float, float, float, float]
+    z: np.ndarray, cov: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Measurements (M, 3) with covariances (M, 3, 3) as camera-frame points (M, 3) with
-    covariances (M, 3, 3), to first order in the measurement noise. In these coordinates a
-    landmark's prediction is linear in the robot's position, so a wide prior's linearization
-    holds where that of (u, v, depth) does not."""
-    uvd = np.column_stack([uvd[:, :2], np.maximum(uvd[:, 2], MIN_POINT_DEPTH)])
-    points, J = back_project(uvd, intrinsics)
+    """Measurements (M, 3) of a kind that measures range, with covariances (M, 3, 3), as
+    camera-frame points (M, 3) with covariances (M, 3, 3), to first order in the measurement
+    noise. In these coordinates a landmark's prediction is linear in the robot's position, so a
+    wide prior's linearization holds where that of the measurement does not."""
+    depth = np.maximum(measurement.depth_of(z, kind), MIN_POINT_DEPTH)
+    as_depth = np.column_stack([z[:, :2], depth])
+    points, J = measurement.back_project(as_depth, intrinsics, measurement.DEPTH)
+    if kind == measurement.DISPARITY:  # the depth row's derivative by inverse depth: -depth^2
+        J[:, :, 2] *= (-depth * depth)[:, None]
     return points, J @ cov @ np.swapaxes(J, 1, 2)
 
 
@@ -132,6 +120,7 @@ def observe(
     T_robot_camera: np.ndarray,
     intrinsics: tuple[float, float, float, float],
     landmark_xyz: np.ndarray,
+    kind: int = DEPTH,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Predicted measurements of landmarks and their Jacobians with respect to the state.
 
@@ -141,16 +130,17 @@ def observe(
     T_robot_camera : (4, 4) camera mount.
     intrinsics : fx, fy, cx, cy.
     landmark_xyz : (M, 3) landmarks in the world frame, in front of the camera.
+    kind : the measurement's kind (``camloc.measurement``): depth, pixel or disparity.
 
     Returns
     -------
-    z_hat : (M, 3) predicted u, v, depth.
+    z_hat : (M, 3) predicted measurements, in ``camloc.measurement``'s padded layout.
     H : (M, 3, 6) d z_hat / d state.
     """
     R = geometry.euler_to_matrix(state[3:6])
     p_robot = (landmark_xyz - state[0:3]) @ R               # rows of R^T (l - t)
     p_camera = (p_robot - T_robot_camera[:3, 3]) @ T_robot_camera[:3, :3]
-    z_hat = project_points(p_camera, intrinsics)
+    z_hat = project_points(p_camera, intrinsics, kind)
 
     R_c_T = T_robot_camera[:3, :3].T
     E = geometry.euler_rate_matrix(state[3:6])
@@ -159,21 +149,13 @@ def observe(
     dprobot_dstate[:, :, 0:3] = -R.T
     dprobot_dstate[:, :, 3:6] = geometry.hat(p_robot) @ E
     dpcam_dstate = R_c_T @ dprobot_dstate
-    H = projection_jacobian(p_camera, intrinsics) @ dpcam_dstate
+    H = projection_jacobian(p_camera, intrinsics, kind) @ dpcam_dstate
     return z_hat, H
 
 
-def projection_jacobian(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float]) -> np.ndarray:
-    """d(u, v, depth) / d p_camera, (M, 3, 3)."""
-    fx, fy, _, _ = intrinsics
-    x, y, z = p_camera[:, 0], p_camera[:, 1], p_camera[:, 2]
-    J = np.zeros((p_camera.shape[0], 3, 3))
-    J[:, 0, 0] = fx / z
-    J[:, 0, 2] = -fx * x / z**2
-    J[:, 1, 1] = fy / z
-    J[:, 1, 2] = -fy * y / z**2
-    J[:, 2, 2] = 1.0
-    return J
+def projection_jacobian(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH) -> np.ndarray:
+    """d z / d p_camera, (M, 3, 3), of ``project_points``."""
+    return measurement.projection_jacobian(p_camera, intrinsics, kind)
 
 
 def motion_se3(T: np.ndarray, T_increment: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -204,13 +186,14 @@ def observe_se3(
     T_robot_camera: np.ndarray,
     intrinsics: tuple[float, float, float, float],
     landmark_xyz: np.ndarray,
+    kind: int = DEPTH,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted measurements (M, 3) and their Jacobians (M, 3, 6) with respect to the right
-    perturbation (dt, dtheta) of T_world_robot."""
+    """Predicted measurements (M, 3) of ``kind`` and their Jacobians (M, 3, 6) with respect to
+    the right perturbation (dt, dtheta) of T_world_robot."""
     p_robot, p_camera = camera_points(T_world_robot, T_robot_camera, landmark_xyz)
-    z_hat = project_points(p_camera, intrinsics)
+    z_hat = project_points(p_camera, intrinsics, kind)
     dprobot = np.empty((landmark_xyz.shape[0], 3, 6))
     dprobot[:, :, 0:3] = -np.eye(3)
     dprobot[:, :, 3:6] = geometry.hat(p_robot)
-    H = projection_jacobian(p_camera, intrinsics) @ (T_robot_camera[:3, :3].T @ dprobot)
+    H = projection_jacobian(p_camera, intrinsics, kind) @ (T_robot_camera[:3, :3].T @ dprobot)
     return z_hat, H

@@ -11,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from camloc import association, models, sym3
+from camloc import association, measurement, models, sym3
+from camloc.sensors import sensors_of
+from camloc.measurement import observation_gates
 from camloc.dataset import Dataset
 from camloc.kernels.types import SceneArrays, Settings
 from camloc.tails import chi2_quantile
@@ -31,10 +33,11 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     if not view_cone_ball.signatures:
         numba_start = threading.Thread(target=_load_first_kernel, args=(view_cone_ball,), name="camloc-numba-start")
         numba_start.start()
-    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
-    cameras = [dataset.cameras[int(c)] for c in camera_ids]
-    camera_K = np.array([(c.fx, c.fy, c.cx, c.cy) for c in cameras], dtype=float).reshape(-1, 4)
-    obs_camera = np.searchsorted(camera_ids, dataset.obs_camera).astype(np.int64)
+    # a row of the camera tables per sensor: a camera and the kind of its measurements, the kind
+    # in the intrinsics' fifth column, where the kernels' camera model reads it
+    sensors, obs_camera = sensors_of(dataset)
+    cameras = [sensors[i] for i in range(len(sensors))]
+    camera_K = np.array([(*c.intrinsics, float(c.kind)) for c in cameras], dtype=float).reshape(-1, 5)
     K = dataset.num_observations
     noise = observation_noise(dataset, config)
     true_index = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
@@ -52,14 +55,15 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
         np.ascontiguousarray([c.T_robot_camera[:3, :3] for c in cameras], dtype=float).reshape(-1, 3, 3),
         np.ascontiguousarray([c.T_robot_camera[:3, 3] for c in cameras], dtype=float).reshape(-1, 3),
         camera_K, obs_camera,
-        np.ascontiguousarray(dataset.obs_uvd, dtype=float),
+        np.ascontiguousarray(dataset.obs_z, dtype=float),
         np.ascontiguousarray(dataset.obs_cov, dtype=float), np.ascontiguousarray(dataset.obs_info, dtype=float),
         np.ascontiguousarray(noise.cov), np.ascontiguousarray(noise.info), noise.log_det,
-        noise.point, noise.point_cov, sym3.inverse(noise.point_cov) if K else np.zeros((0, 3, 3)), noise.log_det_point_cov,
+        noise.point, noise.point_cov, point_cov_inverse(noise, dataset.obs_kind), noise.log_det_point_cov,
         np.ascontiguousarray(noise.null_cost, dtype=float), true_index, pose_obs, pose_obs_start,
         np.ascontiguousarray(dataset.T_odometry, dtype=float).reshape(-1, 4, 4),
         np.ascontiguousarray(dataset.odom_cov, dtype=float).reshape(-1, 6, 6),
-        view, chi2_quantile(3 * np.maximum(np.arange(most_pairs + 2), 1), 0.001),
+        view, chi2_quantile(np.maximum(np.arange(measurement.MAX_DIM * (most_pairs + 1) + 1), 1), 0.001),
+        observation_gates(dataset.obs_kind, 1.0 - config.gate), measurement.dof_of(dataset.obs_kind),
     )
 
 
@@ -99,29 +103,51 @@ def landmark_rows(landmark_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
 
 def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     """The ``ObservationNoise`` of ``dataset``'s observations under ``config`` (its ``null_cost``,
-    or clutter uniform over the measured volume where that is None)."""
+    or clutter uniform over the measured volume where that is None). An observation whose sensor
+    measures no range (a pixel: a ray) has no point: its point and point covariance are zeros
+    (a singular spread, which fits nothing; its pair is judged in its own coordinates), as is a
+    disparity's (``measurement.judged_as_point``)."""
     camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
     camera_K = np.array([(dataset.cameras[int(c)].fx, dataset.cameras[int(c)].fy, dataset.cameras[int(c)].cx,
                           dataset.cameras[int(c)].cy) for c in camera_ids], dtype=float).reshape(-1, 4)
     K = dataset.num_observations
     intrinsics = camera_K[np.searchsorted(camera_ids, dataset.obs_camera)] if K else camera_K[:0]
-    cov, info = association.noise_floored(dataset.obs_uvd, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1])
+    cov, info = association.noise_floored(dataset.obs_z, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1],
+                                          dataset.obs_kind)
     point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
-    for start in range(0, K, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
-        part = slice(start, start + POINT_CHUNK)
-        point[part], point_cov[part] = models.measured_points(dataset.obs_uvd[part], cov[part], intrinsics[part].T)
+    for kind in np.unique(dataset.obs_kind):
+        if not measurement.judged_as_point(kind):
+            continue
+        rows = np.flatnonzero(dataset.obs_kind == kind)
+        for start in range(0, rows.size, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
+            part = rows[start:start + POINT_CHUNK]
+            point[part], point_cov[part] = models.measured_points(dataset.obs_z[part], cov[part], intrinsics[part].T, int(kind))
     log_det = sym3.log_abs_det(cov) if K else np.zeros(0)
     if config.null_cost is None:
-        null_cost = association.clutter_null_cost(dataset.obs_uvd, cov, log_det, dataset.obs_camera)
+        null_cost = association.clutter_null_cost(dataset.obs_z, cov, log_det, dataset.obs_camera, dataset.obs_kind)
     else:
         null_cost = np.full(K, float(config.null_cost))
-    log_det_point_cov = sym3.log_abs_det(point_cov) if K else np.zeros(0)
+    ranged = measurement.judged_as_point(dataset.obs_kind)
+    log_det_point_cov = np.zeros(K)
+    if ranged.any():
+        log_det_point_cov[ranged] = sym3.log_abs_det(point_cov[ranged])
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
+
+
+def point_cov_inverse(noise: ObservationNoise, kinds: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) the inverses of the observations' point covariances; zeros where there is no
+    point (a sensor that measures no range)."""
+    inverse = np.zeros_like(noise.point_cov)
+    ranged = measurement.judged_as_point(kinds)
+    if ranged.any():
+        inverse[ranged] = sym3.inverse(noise.point_cov[ranged])
+    return inverse
 
 
 def build_settings(config) -> Settings:
     """The kernels' settings of a ``LocalizerConfig`` (its gate, a probability, as the chi^2
-    quantile of a pair's 3 dof)."""
+    quantile of a depth pair's 3 dof; each observation's own, at its dof, is the scene's
+    ``obs_gate``)."""
     from camloc.kernels.beam_settings import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
     gate = chi2_quantile(3, 1.0 - config.gate)
@@ -135,21 +161,59 @@ def build_settings(config) -> Settings:
 
 def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset:
-    depth up to 1.25 x the largest measured + 0.5 m, the widest observed ray + 10 deg (at most 89)."""
-    depth = dataset.obs_uvd[:, 2]
+    depth up to 1.25 x the largest measured + 0.5 m, the widest observed ray + 10 deg (at most 89).
+    A pixel measures no depth: in a file where no observation measures range, the largest depth
+    is estimated from the map instead (``pixel_reach``)."""
+    ranged = measurement.measures_range(dataset.obs_kind)
+    measured = [measurement.depth_of(dataset.obs_z[dataset.obs_kind == kind], int(kind))
+                for kind in np.unique(dataset.obs_kind[ranged])]
+    depth = np.concatenate(measured) if measured else np.zeros(0)
     view = config.view
     min_depth = view.min_depth if view.min_depth is not None else 0.0
     max_depth = view.max_depth
+    max_angle = float(np.radians(view.max_angle_deg)) if view.max_angle_deg is not None else _widest_ray(dataset)
     if max_depth is None:
-        max_depth = 1.25 * float(depth.max()) + 0.5 if depth.size else 10.0
-    if view.max_angle_deg is not None:
-        return min_depth, max_depth, float(np.radians(view.max_angle_deg))
-    if depth.size == 0:
-        return min_depth, max_depth, float(np.radians(60.0))
-    tan = np.zeros((depth.size, 2))
+        if depth.size:
+            max_depth = 1.25 * float(depth.max()) + 0.5
+        elif dataset.num_observations:
+            max_depth = 1.25 * pixel_reach(dataset, max_angle) + 0.5
+        else:
+            max_depth = 10.0
+    return min_depth, max_depth, max_angle
+
+
+# The k-th nearest neighbour that measures the map's local density (``pixel_reach``).
+DENSITY_NEIGHBOURS = 8
+
+
+def pixel_reach(dataset: Dataset, max_angle: float) -> float:
+    """The depth within which a camera's view cone holds, in the map's median local density, as
+    many landmarks as its busiest tenth of poses report (pixel-only files: no depth says how far
+    a camera sees, and a ray through a dense map meets many landmarks; a view that reaches too
+    far lets far ones along the ray pass the gate). The cone of half-angle a to depth r holds
+    ``rho pi tan^2(a) r^3 / 3`` landmarks."""
+    L = dataset.landmark_xyz.shape[0]
+    if L <= DENSITY_NEIGHBOURS:
+        return float(np.linalg.norm(np.ptp(dataset.landmark_xyz, axis=0))) if L else 10.0
+    from scipy.spatial import cKDTree
+
+    distance = cKDTree(dataset.landmark_xyz).query(dataset.landmark_xyz, DENSITY_NEIGHBOURS + 1)[0][:, -1]
+    radius = float(np.median(distance))
+    density = DENSITY_NEIGHBOURS / (4.0 / 3.0 * np.pi * max(radius, 1e-9) ** 3)
+    per_view = np.bincount(dataset.obs_pose_index * (int(dataset.obs_camera.max()) + 1) + dataset.obs_camera)
+    busy = float(np.quantile(per_view[per_view > 0], 0.9))
+    tan = np.tan(min(max_angle, np.radians(80.0)))
+    return float((3.0 * busy / (density * np.pi * tan * tan)) ** (1.0 / 3.0))
+
+
+def _widest_ray(dataset: Dataset) -> float:
+    """The widest observed ray's angle to its camera's axis + 10 deg (at most 89), radians."""
+    if dataset.num_observations == 0:
+        return float(np.radians(60.0))
+    tan = np.zeros((dataset.num_observations, 2))
     for camera_id, camera in dataset.cameras.items():
         mine = dataset.obs_camera == camera_id
-        tan[mine, 0] = (dataset.obs_uvd[mine, 0] - camera.cx) / camera.fx
-        tan[mine, 1] = (dataset.obs_uvd[mine, 1] - camera.cy) / camera.fy
+        tan[mine, 0] = (dataset.obs_z[mine, 0] - camera.cx) / camera.fx
+        tan[mine, 1] = (dataset.obs_z[mine, 1] - camera.cy) / camera.fy
     widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))
-    return min_depth, max_depth, float(np.radians(min(widest + 10.0, 89.0)))
+    return float(np.radians(min(widest + 10.0, 89.0)))

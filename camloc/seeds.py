@@ -20,6 +20,7 @@ from camloc.kernels.beam_settings import SEED_EXPLANATIONS, SLIP_CANDIDATES, SLI
 from camloc.kernels.rotation import difference
 from camloc.kernels.update import updated
 from camloc.kernels.view import widened_view
+from camloc.measurement import DEPTH
 from camloc.tails import binomial_tail, chi2_quantile
 
 # The slip's search runs where a pose's best explanation leaves an unusual share of its observations
@@ -127,7 +128,13 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     candidates = np.argsort(pair_cost, kind="stable")[:SLIP_CANDIDATES]
     # and the pairs whose implied shift of the robot most others share: a right pair's own cost
     # under a wide prior may rank it far down
-    agreement = ranking.shift_agreement(implied_shifts(scene, x, obs, pair_obs, pair_landmark), agreement_radius(scene, obs))
+    # (a pixel is a ray: it implies no one shift; only pairs judged as points vote)
+    as_point = scene.camera_K[scene.obs_camera[obs[pair_obs]], 4] == DEPTH
+    agreement = np.zeros(pair_obs.size, np.int64)
+    if as_point.any():
+        pointed = obs[scene.camera_K[scene.obs_camera[obs], 4] == DEPTH]
+        agreement[as_point] = ranking.shift_agreement(implied_shifts(scene, x, obs, pair_obs[as_point], pair_landmark[as_point]),
+                                                      agreement_radius(scene, pointed))
     crowded = np.argsort(-agreement, kind="stable")[: SLIP_CANDIDATES // 4]
     crowded = crowded[agreement[crowded] >= 3]
     candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])
@@ -135,7 +142,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     o = obs[pair_obs]
     noise = np.where(pair_in_point[:, None, None], scene.point_cov[o], scene.R_assoc[o])
     ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
-                                              scene.null_cost[obs], candidates.astype(np.int64), settings.gate)
+                                              scene.null_cost[obs], candidates.astype(np.int64), scene.obs_gate[o])
     explained = []
     for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
         i, lm = int(pair_obs[seed]), int(pair_landmark[seed])

@@ -50,7 +50,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
-from camloc import geometry, models
+from camloc import geometry, measurement, models
 from camloc.dataset import Camera, Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import observation_cov_from_info, odometry_cov_from_info, odometry_info_from_cov
@@ -101,6 +101,9 @@ class SimulationConfig:
     cameras : number of cameras, 1..4 (ids 0..3: forward, backward, left, right).
     intrinsics : ``normalized`` (fx=fy=1, cx=cy=0.5, unclipped image) or ``pixel`` (fx=fy=525,
         cx=319.5, cy=239.5, 640x480 image).
+    measurement : what the cameras measure (``camloc.measurement``): ``depth`` (u, v, depth),
+        ``pixel`` (u, v only: a monocular camera) or ``disparity`` (u, v, 1/depth); one name for
+        every camera, or a comma-separated list of one per camera (``depth,pixel``).
     range_kind : what ``min_range``/``max_range`` bound: ``distance`` from the camera centre
         (the real file's rule) or ``depth`` (camera z).
     min_range, max_range : visible range, metres: 0.5 and 2.0 like the real file.
@@ -115,7 +118,8 @@ class SimulationConfig:
         i.e. information 10000 on g2o's quaternion vector part).
     odometry_sigma_scale : multiplies both odometry sigmas; 0 gives exact odometry.
     observation_sigma_uv : std of u and v; None: 1/sqrt(1000) normalized, 1 px for pixel cameras.
-    observation_sigma_depth : std of depth, metres (1/sqrt(1000)).
+    observation_sigma_depth : std of depth, metres (1/sqrt(1000)); of a disparity camera's
+        inverse depth, in 1/m, the same number.
     observation_sigma_scale : multiplies the observation sigmas; 0 gives exact observations.
     """
 
@@ -127,6 +131,7 @@ class SimulationConfig:
     max_tilt_deg: float | None = None
     cameras: int = 1
     intrinsics: str = "normalized"
+    measurement: str = "depth"
     range_kind: str = "distance"
     min_range: float = 0.5
     max_range: float = 2.0
@@ -147,6 +152,10 @@ class SimulationConfig:
         _require(self.trajectory in TRAJECTORIES, "trajectory", f"one of {', '.join(TRAJECTORIES)}", self.trajectory)
         _require(self.intrinsics in INTRINSICS, "intrinsics", f"one of {', '.join(INTRINSICS)}", self.intrinsics)
         _require(self.range_kind in RANGE_KINDS, "range_kind", f"one of {', '.join(RANGE_KINDS)}", self.range_kind)
+        names = [name.strip() for name in str(self.measurement).split(",")]
+        _require(all(name in measurement.KIND_BY_NAME for name in names), "measurement",
+                 f"one of {', '.join(measurement.KIND_BY_NAME)}, or a comma-separated list of one per camera", self.measurement)
+        _require(len(names) in (1, self.cameras), "measurement", f"one kind, or one per camera ({self.cameras})", self.measurement)
         _require(self.poses >= 2, "poses", "at least 2", self.poses)
         _require(self.landmarks is None or self.landmarks >= 0, "landmarks", "a count >= 0", self.landmarks)
         _require(not (self.dense and self.landmarks is not None), "dense",
@@ -177,6 +186,12 @@ class SimulationConfig:
         }
         for name, (value, bound, unit) in scaled.items():
             _require(value <= bound, name, f"at most {bound:g} {unit} (times its scale)", value)
+
+    def camera_kinds(self) -> list[int]:
+        """The measurement kind of each camera (``camloc.measurement`` codes)."""
+        names = [name.strip() for name in str(self.measurement).split(",")]
+        names = names * self.cameras if len(names) == 1 else names
+        return [measurement.KIND_BY_NAME[name].code for name in names]
 
     @property
     def region_side_m(self) -> float:
@@ -252,6 +267,7 @@ class CameraSpec:
 
     camera: Camera
     image_size: tuple[int, int] | None
+    kind: int = measurement.DEPTH  # what its observations measure (``camloc.measurement``)
 
 
 @dataclass(frozen=True)
@@ -296,9 +312,11 @@ def simulate_labelled(config: SimulationConfig, *, seed: int) -> Simulation:
     # Odometry: the true increments with noise drawn from the information written.
     odom_T, odom_info = noisy_odometry(T_world_robot, config, rng_odom)
     # Detections: visible landmarks, measured with noise, kept inside the image, capped per pose.
-    obs_info = observation_info(config)
     obs = detect(T_world_robot, specs, landmark_xyz, config, rng_detect)
-    obs = dataclasses.replace(obs, uvd=add_observation_noise(obs.uvd, obs_info, config, rng_noise))
+    kind_of_camera = {spec.camera.id: spec.kind for spec in specs}
+    obs_kind = np.array([kind_of_camera[int(c)] for c in obs.camera], dtype=np.int64)
+    obs_info = observation_info(config, obs_kind)
+    obs = dataclasses.replace(obs, uvd=add_observation_noise(as_measured(obs.uvd, obs_kind), obs_info, config, rng_noise, obs_kind))
     obs = obs.select(inside_images(obs.uvd, obs.camera, specs))
     obs = obs.select(cap_per_pose(obs.pose_index, config.max_observations_per_pose, rng_detect))
     # Spurious data: outliers replace some measurements, clutter adds detections of nothing.
@@ -309,7 +327,8 @@ def simulate_labelled(config: SimulationConfig, *, seed: int) -> Simulation:
 
     truth_xyz, truth_quat = geometry.pose_to_quat(T_world_robot)
     odom_xyz, odom_quat = geometry.pose_to_quat(odom_T)
-    obs_info_all = np.broadcast_to(obs_info, (obs.count, 3, 3)).copy()
+    obs_kind = np.array([kind_of_camera[int(c)] for c in obs.camera], dtype=np.int64)
+    obs_info_all = observation_info(config, obs_kind)
     dataset = Dataset(
         source=describe(config, seed),
         cameras={spec.camera.id: spec.camera for spec in specs},
@@ -326,16 +345,17 @@ def simulate_labelled(config: SimulationConfig, *, seed: int) -> Simulation:
         odom_cov=odometry_cov_from_info(odom_info),
         obs_pose_index=obs.pose_index,
         obs_camera=obs.camera,
-        obs_uvd=obs.uvd,
+        obs_z=obs.uvd,
         obs_info=obs_info_all,
         obs_cov=observation_cov_from_info(obs_info_all),
         obs_true_landmark=obs.landmark,
+        obs_kind=obs_kind,
         tag_counts={
             "PARAMS_CAMERACALIB": len(specs),
             "VERTEX_TRACKXYZ": landmark_xyz.shape[0],
             "VERTEX_SE3:QUAT": T_world_robot.shape[0],
             "EDGE_SE3:QUAT": T_world_robot.shape[0] - 1,
-            "EDGE_PROJECT_DEPTH": obs.count,
+            **{measurement.KINDS[int(kind)].tag: int(np.count_nonzero(obs_kind == kind)) for kind in np.unique(obs_kind)},
         },
     )
     return Simulation(dataset=dataset, is_outlier=obs.is_outlier, is_clutter=obs.is_clutter)
@@ -506,7 +526,8 @@ def make_cameras(config: SimulationConfig) -> list[CameraSpec]:
         (fx, fy, cx, cy), image = PIXEL_INTRINSICS, PIXEL_IMAGE_SIZE
     else:
         (fx, fy, cx, cy), image = (1.0, 1.0, 0.5, 0.5), None
-    specs = [CameraSpec(Camera(0, REAL_MOUNT_TRANSLATION.copy(), REAL_MOUNT_QUAT_XYZW.copy(), fx, fy, cx, cy), image)]
+    kinds = config.camera_kinds()
+    specs = [CameraSpec(Camera(0, REAL_MOUNT_TRANSLATION.copy(), REAL_MOUNT_QUAT_XYZW.copy(), fx, fy, cx, cy), image, kinds[0])]
     R_forward = geometry.quat_to_matrix(REAL_MOUNT_QUAT_XYZW)
     for camera_id, yaw in enumerate(EXTRA_CAMERA_YAWS[: config.cameras - 1], start=1):
         # The mounts are quarter turns: rounding drops cos(pi/2) = 6e-17 so they are exact.
@@ -514,7 +535,7 @@ def make_cameras(config: SimulationConfig) -> list[CameraSpec]:
         offset = np.round(EXTRA_CAMERA_OFFSET_M * np.array([math.cos(yaw), math.sin(yaw), 0.0]), 12)
         quat = geometry.matrix_to_quat(R_robot_camera) + 0.0  # + 0.0 turns -0.0 into 0.0 for the file
         camera = Camera(camera_id, REAL_MOUNT_TRANSLATION + offset + 0.0, quat, fx, fy, cx, cy)
-        specs.append(CameraSpec(camera, image))
+        specs.append(CameraSpec(camera, image, kinds[camera_id]))
     return specs
 
 
@@ -687,24 +708,52 @@ def noisy_odometry(
 
 
 def observation_sigmas(config: SimulationConfig) -> np.ndarray:
-    """(3,) std of u, v (image units) and depth (metres), the scale applied."""
+    """(3,) std of u, v (image units) and depth (metres; a disparity camera's inverse depth in
+    1/m: the same number), the scale applied."""
     sigma_uv = config.observation_sigma_uv
     if sigma_uv is None:
         sigma_uv = PIXEL_SIGMA_UV if config.intrinsics == "pixel" else REAL_OBS_SIGMA
     return config.observation_sigma_scale * np.array([sigma_uv, sigma_uv, config.observation_sigma_depth])
 
 
-def observation_info(config: SimulationConfig) -> np.ndarray:
-    """(3, 3) information of (u, v, depth) as written to the file (finite for zero sigmas)."""
-    return _rounded(np.diag(1.0 / np.maximum(observation_sigmas(config), SIGMA_FLOOR) ** 2))
+def observation_info(config: SimulationConfig, kinds: np.ndarray | None = None) -> np.ndarray:
+    """(3, 3) information of (u, v, depth) as written to the file (finite for zero sigmas); with
+    ``kinds`` (K,), (K, 3, 3) for observations of those kinds (a pixel's inert third row: unit
+    information, ``camloc.measurement``)."""
+    info = _rounded(np.diag(1.0 / np.maximum(observation_sigmas(config), SIGMA_FLOOR) ** 2))
+    if kinds is None:
+        return info
+    out = np.broadcast_to(info, (len(kinds), 3, 3)).copy()
+    inert = measurement.inert_rows(kinds)[:, 2]
+    out[inert, 2, :] = 0.0
+    out[inert, :, 2] = 0.0
+    out[inert, 2, 2] = 1.0
+    return out
+
+
+def as_measured(uvd: np.ndarray, kinds: np.ndarray) -> np.ndarray:
+    """(u, v, depth) (K, 3) as each observation's kind measures it (K,): the depth row kept, made
+    the inverse depth, or the inert 0 of a pixel."""
+    z = uvd.copy()
+    z[kinds == measurement.PIXEL, 2] = 0.0
+    disparity = kinds == measurement.DISPARITY
+    z[disparity, 2] = 1.0 / uvd[disparity, 2]
+    return z
 
 
 def add_observation_noise(
-    uvd_true: np.ndarray, info: np.ndarray, config: SimulationConfig, rng: np.random.Generator
+    z_true: np.ndarray, info: np.ndarray, config: SimulationConfig, rng: np.random.Generator,
+    kinds: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Measurements (K, 3): the truth plus N(0, info^-1) noise, none where a sigma is zero."""
-    std = np.where(observation_sigmas(config) > 0.0, np.sqrt(np.diag(observation_cov_from_info(info))), 0.0)
-    return uvd_true + rng.standard_normal(uvd_true.shape) * std
+    """Measurements (K, 3): the truth plus N(0, info^-1) noise (info (3, 3), or (K, 3, 3) per
+    observation), none where a sigma is zero and none on an inert row of the kinds (K,) given
+    (a pixel's third)."""
+    info = np.broadcast_to(info, (len(z_true), 3, 3))
+    diagonal = np.diagonal(observation_cov_from_info(info), axis1=1, axis2=2) if len(z_true) else np.zeros((0, 3))
+    std = np.where(observation_sigmas(config)[None, :] > 0.0, np.sqrt(diagonal), 0.0)
+    if kinds is not None:
+        std[measurement.inert_rows(kinds)] = 0.0
+    return z_true + rng.standard_normal(z_true.shape) * std
 
 
 # ------------------------------------------------------------------------------------ detection
@@ -764,7 +813,7 @@ def random_measurements(
         mine = np.flatnonzero(camera_id == spec.camera.id)
         if len(mine):
             p_camera = sample_visible_points(spec, len(mine), config, rng)
-            out[mine] = _project(p_camera, spec, np.ones(len(mine), dtype=bool))
+            out[mine] = as_measured(_project(p_camera, spec, np.ones(len(mine), dtype=bool)), np.full(len(mine), spec.kind))
     return out
 
 

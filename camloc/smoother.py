@@ -62,7 +62,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import LinearOperator, onenormest, splu
 
-from camloc import geometry
+from camloc import geometry, measurement
 from camloc.dataset import Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
@@ -130,9 +130,11 @@ class SmoothingProblem:
     obs_T_robot_camera : (M, 4, 4) camera mount of each observation.
     obs_intrinsics : (M, 4) fx, fy, cx, cy.
     obs_landmark_xyz : (M, 3) the associated landmark, world frame, metres.
-    obs_uvd : (M, 3) measured u, v, depth.
+    obs_z : (M, 3) the measurements (``camloc.measurement``'s layout: u, v, then depth, inverse
+        depth or a pixel's inert 0).
     obs_whiten : (M, 3, 3) ``L^-1`` of the observation covariance.
     obs_row : (M,) int64 index of each observation in the dataset (for messages and reports).
+    obs_kind : (M,) int64 each measurement's kind (``camloc.measurement``); None: depth.
     """
 
     pose_ids: np.ndarray
@@ -145,9 +147,10 @@ class SmoothingProblem:
     obs_T_robot_camera: np.ndarray
     obs_intrinsics: np.ndarray
     obs_landmark_xyz: np.ndarray
-    obs_uvd: np.ndarray
+    obs_z: np.ndarray
     obs_whiten: np.ndarray
     obs_row: np.ndarray
+    obs_kind: np.ndarray | None = None
 
     @property
     def num_poses(self) -> int:
@@ -260,6 +263,7 @@ def observation_residuals(
     intrinsics: np.ndarray,
     landmark_xyz: np.ndarray,
     z_uvd: np.ndarray,
+    kinds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observation residuals ``z - h(T, l)`` and their Jacobians, one observation a row.
 
@@ -269,11 +273,12 @@ def observation_residuals(
     T_robot_camera : (M, 4, 4) camera mounts.
     intrinsics : (M, 4) fx, fy, cx, cy.
     landmark_xyz : (M, 3) landmarks, world frame.
-    z_uvd : (M, 3) measured u, v, depth.
+    z_uvd : (M, 3) measurements (``camloc.measurement``'s layout).
+    kinds : (M,) their kinds; None: depth.
 
     Returns
     -------
-    r : (M, 3) residuals of u, v, depth.
+    r : (M, 3) residuals (a pixel's inert third row: 0).
     J : (M, 3, 6) dr / d(dt, dtheta) of the right perturbation of the pose.
     depth : (M,) predicted depth (the model has no projection where it is not positive).
     """
@@ -282,14 +287,11 @@ def observation_residuals(
     # The same arithmetic as models.camera_points, one pose and camera per row.
     p_robot = np.einsum("nji,nj->ni", R, landmark_xyz - t)
     p_camera = np.einsum("nij,nj->ni", R_c_T, p_robot - T_robot_camera[:, :3, 3])
-    fx, fy, cx, cy = intrinsics.T
-    x, y, depth = p_camera.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z_hat = np.column_stack([fx * x / depth + cx, fy * y / depth + cy, depth])
-        P = np.zeros((len(depth), 3, 3))
-        P[:, 0, 0], P[:, 0, 2] = fx / depth, -fx * x / depth**2
-        P[:, 1, 1], P[:, 1, 2] = fy / depth, -fy * y / depth**2
-        P[:, 2, 2] = 1.0
+    depth = p_camera[:, 2]
+    kinds = measurement.DEPTH if kinds is None else kinds
+    with np.errstate(divide="ignore", invalid="ignore"):  # the measurement model, camloc.measurement's
+        z_hat = measurement.project(p_camera, intrinsics.T, kinds)
+        P = measurement.projection_jacobian(p_camera, intrinsics.T, kinds)
     dp_robot = np.empty((len(depth), 3, 6))
     dp_robot[:, :, 0:3] = -np.eye(3)  # R^T (l - t - R dt) = p_robot - dt
     dp_robot[:, :, 3:6] = geometry.hat(p_robot)  # Exp(-dth) p_robot ~= p_robot + [p_robot]x dth
@@ -346,7 +348,7 @@ def linearize(problem: SmoothingProblem, T: np.ndarray) -> Linearization:
     p = problem
     r_odom, J_from, J_to = odometry_residuals(T[p.odom_from], T[p.odom_to], p.T_odometry)
     r_obs, J_obs, _ = observation_residuals(T[p.obs_pose], p.obs_T_robot_camera, p.obs_intrinsics,
-                                            p.obs_landmark_xyz, p.obs_uvd)
+                                            p.obs_landmark_xyz, p.obs_z, p.obs_kind)
     # Whitening: r_w = L^-1 r and J_w = L^-1 J.
     r_odom = np.einsum("nij,nj->ni", p.odom_whiten, r_odom)
     r_obs = np.einsum("nij,nj->ni", p.obs_whiten, r_obs)
@@ -612,7 +614,7 @@ def smooth(
 def _without_unprojectable(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, int]:
     """The problem without observations whose landmark is behind the camera at poses T."""
     _, _, depth = observation_residuals(T[problem.obs_pose], problem.obs_T_robot_camera, problem.obs_intrinsics,
-                                        problem.obs_landmark_xyz, problem.obs_uvd)
+                                        problem.obs_landmark_xyz, problem.obs_z, problem.obs_kind)
     keep = depth > MIN_DEPTH
     if np.all(keep):
         return problem, 0
@@ -626,7 +628,8 @@ def _select_observations(problem: SmoothingProblem, keep: np.ndarray) -> Smoothi
         obs_T_robot_camera=problem.obs_T_robot_camera[keep],
         obs_intrinsics=problem.obs_intrinsics[keep],
         obs_landmark_xyz=problem.obs_landmark_xyz[keep],
-        obs_uvd=problem.obs_uvd[keep],
+        obs_z=problem.obs_z[keep],
+        obs_kind=problem.obs_kind[keep] if problem.obs_kind is not None else None,
         obs_whiten=problem.obs_whiten[keep],
         obs_row=problem.obs_row[keep],
     )
@@ -674,7 +677,8 @@ def problem_from_run(dataset: Dataset, run: RunResult) -> SmoothingProblem:
         obs_T_robot_camera=np.array([mounts[int(c)] for c in cameras]).reshape(-1, 4, 4),
         obs_intrinsics=np.array([intrinsics[int(c)] for c in cameras], dtype=float).reshape(-1, 4),
         obs_landmark_xyz=dataset.landmark_xyz[order][position].reshape(-1, 3),
-        obs_uvd=dataset.obs_uvd[rows],
+        obs_z=dataset.obs_z[rows],
+        obs_kind=np.asarray(dataset.obs_kind[rows], dtype=np.int64),
         obs_whiten=whitening(dataset.obs_cov[rows]),
         obs_row=rows.astype(np.int64),
     )
@@ -724,7 +728,7 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
     same = (
         (a.pose_id == dataset.pose_ids[dataset.obs_pose_index])
         & (a.camera == dataset.obs_camera)
-        & np.all(np.isclose(a.uvd, dataset.obs_uvd, rtol=1e-9, atol=1e-12), axis=1)
+        & np.all(np.isclose(a.uvd, dataset.obs_z, rtol=1e-9, atol=1e-12), axis=1)
     )
     if not np.all(same):
         k = int(np.flatnonzero(~same)[0])
@@ -732,7 +736,7 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
             f"run and dataset {dataset.source} do not match: observation {k + 1} (associations.csv line {k + 2}) is "
             f"pose {a.pose_id[k]}, camera {a.camera[k]}, uvd {_triple(a.uvd[k])} in the run but pose "
             f"{dataset.pose_ids[dataset.obs_pose_index[k]]}, camera {dataset.obs_camera[k]}, uvd "
-            f"{_triple(dataset.obs_uvd[k])} in the dataset; {hint}"
+            f"{_triple(dataset.obs_z[k])} in the dataset; {hint}"
         )
 
 

@@ -73,6 +73,8 @@ def _statistics_table(summary: Mapping[str, Any]) -> Table:
         ("odometry sigma rotation [deg]", _triple(odometry["sigma_rotation_deg"], ".4g")),
         ("observation sigma u v depth", "  ".join(_fmt(observation[key], ".4g")
                                                   for key in ("sigma_u", "sigma_v", "sigma_depth"))),
+        ("observations by kind", ", ".join(f"{count} {name}" for name, count in summary["observation_kinds"].items() if count)
+                                 or "none"),
         ("observations per pose", f"min {per_pose['min']}, median {per_pose['median']:g}, max {per_pose['max']}; "
                                   f"{per_pose['poses_without']} pose(s) with none"),
         ("landmarks never observed", f"{never['count']}" + (f": {_ids(never['ids'])}" if never["count"] else "")),

@@ -78,6 +78,13 @@ def simulate(
         "fx=fy=525, cx=319.5, cy=239.5, only detections inside the 640x480 image.",
         "simulation.intrinsics"
     ),
+    measurement: Optional[str] = library_option(
+        "What the cameras measure: depth (u, v, depth: EDGE_PROJECT_DEPTH), pixel (u, v "
+        "only, a monocular camera: EDGE_PROJECT_UV) or disparity (u, v, 1/depth: "
+        "EDGE_PROJECT_DISPARITY); one for every camera, or one per camera, comma-separated "
+        "(depth,pixel).",
+        "simulation.measurement"
+    ),
     range_kind: Optional[RangeKindChoice] = library_option(
         "What --min-range/--max-range bound: distance from the camera centre (the real "
         "file's rule) or depth (camera z).",

@@ -64,7 +64,7 @@ def posterior_costs(dataset, result) -> np.ndarray:
                 z_hat[mine], H[mine] = euler.observe(state, c.T_robot_camera, (c.fx, c.fy, c.cx, c.cy), landmarks[mine])
             return z_hat.reshape(-1), H.reshape(-1, 6)
 
-        costs.append(ekf.posterior_cost(result.filter_state[k], x_prior, P_prior, dataset.obs_uvd[obs].reshape(-1),
+        costs.append(ekf.posterior_cost(result.filter_state[k], x_prior, P_prior, dataset.obs_z[obs].reshape(-1),
                                         dataset.obs_cov[obs], measure, euler.difference))
     return np.array(costs)
 

@@ -84,7 +84,7 @@ def test_valid_file_is_read_in_chain_order(tmp_path):
     np.testing.assert_array_equal(dataset.odom_translation[:, 0], [1.1, 0.9])
     np.testing.assert_array_equal(dataset.obs_pose_index, [1, 2, 2])
     np.testing.assert_array_equal(dataset.obs_true_landmark, [1, 2, 77])
-    np.testing.assert_array_equal(dataset.obs_uvd[1], [0.4, 0.6, 2.0])
+    np.testing.assert_array_equal(dataset.obs_z[1], [0.4, 0.6, 2.0])
     np.testing.assert_allclose(dataset.odom_cov[0].diagonal(), [0.01] * 3 + [4e-4] * 3)
     np.testing.assert_allclose(dataset.obs_cov[2], np.eye(3) * 1e-3)
     assert dataset.tag_counts == {"PARAMS_CAMERACALIB": 1, "VERTEX_TRACKXYZ": 2, "VERTEX_SE3:QUAT": 3,
@@ -134,7 +134,7 @@ def test_comments_blank_lines_tabs_crlf_and_leading_blanks_are_accepted(tmp_path
     path.write_bytes(("\r\n".join(messy)).encode())
     clean = read_g2o(write_file(tmp_path, VALID))
     dataset = read_g2o(path)
-    for name in ("pose_ids", "odom_translation", "odom_info", "obs_uvd", "obs_info", "landmark_xyz"):
+    for name in ("pose_ids", "odom_translation", "odom_info", "obs_z", "obs_info", "landmark_xyz"):
         np.testing.assert_array_equal(getattr(dataset, name), getattr(clean, name))
 
 
@@ -142,7 +142,7 @@ def test_carriage_returns_alone_end_lines_as_classic_mac_os_wrote_them(tmp_path)
     path = tmp_path / "mac.g2o"
     path.write_bytes(("\r".join(VALID) + "\r").encode())
     dataset = read_quietly(path)
-    np.testing.assert_array_equal(dataset.obs_uvd, read_quietly(write_file(tmp_path, VALID)).obs_uvd)
+    np.testing.assert_array_equal(dataset.obs_z, read_quietly(write_file(tmp_path, VALID)).obs_z)
     path.write_bytes("\r".join(with_line(4, "VERTEX_TRACKXYZ 2 4.0 5.0")).encode())
     with pytest.raises(DatasetError) as caught:
         read_quietly(path)
@@ -439,7 +439,7 @@ def make_dataset(rng, *, num_poses=6, num_obs=15, with_truth=True, sorted_obs=Tr
         odom_cov=odometry_cov_from_info(odom_info),
         obs_pose_index=pose_index,
         obs_camera=rng.choice([3, 5], num_obs),
-        obs_uvd=np.column_stack([rng.uniform(-0.5, 1.5, (num_obs, 2)), rng.uniform(0.3, 2.0, num_obs)]),  # in front of the camera
+        obs_z=np.column_stack([rng.uniform(-0.5, 1.5, (num_obs, 2)), rng.uniform(0.3, 2.0, num_obs)]),  # in front of the camera
         obs_info=obs_info,
         obs_cov=observation_cov_from_info(obs_info),
         obs_true_landmark=rng.choice([4, 8, 15, 16, 23, 42, 99], num_obs),

@@ -50,7 +50,7 @@ def square_dataset(*, with_truth: bool) -> Dataset:
         odom_cov=odometry_cov_from_info(odom_info),
         obs_pose_index=np.array([0, 0, 2, 2, 2], dtype=np.int64),
         obs_camera=np.full(5, 2, dtype=np.int64),
-        obs_uvd=np.array([[300.0, 200.0, 1.5]] * 5),
+        obs_z=np.array([[300.0, 200.0, 1.5]] * 5),
         obs_info=obs_info,
         obs_cov=observation_cov_from_info(obs_info),
         obs_true_landmark=np.array([7, 9, 7, 50, 50], dtype=np.int64),
@@ -99,9 +99,9 @@ def test_summary_without_edges_or_observations():
     empty = Dataset(**{**dataset.__dict__, "pose_ids": dataset.pose_ids[:1], "odom_translation": np.zeros((0, 3)),
                        "odom_quat_xyzw": np.zeros((0, 4)), "odom_info": np.zeros((0, 6, 6)),
                        "odom_cov": np.zeros((0, 6, 6)), "obs_pose_index": np.zeros(0, np.int64),
-                       "obs_camera": np.zeros(0, np.int64), "obs_uvd": np.zeros((0, 3)),
+                       "obs_camera": np.zeros(0, np.int64), "obs_z": np.zeros((0, 3)),
                        "obs_info": np.zeros((0, 3, 3)), "obs_cov": np.zeros((0, 3, 3)),
-                       "obs_true_landmark": np.zeros(0, np.int64)})
+                       "obs_true_landmark": np.zeros(0, np.int64), "obs_kind": np.zeros(0, np.int64)})
     summary = summarize_dataset(empty)
     assert summary["odometry_noise"] == {"sigma_translation_m": None, "sigma_rotation_deg": None}
     assert summary["observation_noise"] == {"sigma_u": None, "sigma_v": None, "sigma_depth": None}
@@ -148,7 +148,7 @@ def test_info_json(square_file):
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert list(summary) == ["dataset", "counts", "tag_counts", "unknown_tags", "cameras", "trajectory",
-                             "odometry_noise", "observation_noise", "observations_per_pose",
+                             "odometry_noise", "observation_noise", "observation_kinds", "observations_per_pose",
                              "landmarks_never_observed", "unmapped_observations", "warnings"]
     assert summary["counts"] == {"poses": 5, "odometry_edges": 4, "landmarks": 3, "observations": 5, "cameras": 1}
     assert summary["tag_counts"]["FIX"] == 2

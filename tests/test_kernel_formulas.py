@@ -28,7 +28,7 @@ import math
 import numpy as np
 import pytest
 
-from camloc import association, ekf, filters, geometry, models
+from camloc import association, ekf, filters, geometry, measurement, models
 from camloc.kernels import _jit, beam, camera, filtering, motion, recheck, rotation, seeds, small, sym3, update, view
 
 # the steps as Python calls them: most are compiled without numba's Python wrapper (``_jit.jit``)
@@ -46,7 +46,7 @@ STEP = 1e-6
 
 # A camera whose axes are not the robot's (x right, y down, z forward) and not centred on it.
 T_ROBOT_CAMERA = geometry.pose_from_euler(np.array([0.1, -0.05, 0.3, -np.pi / 2, 0.1, -np.pi / 2]))
-INTRINSICS = np.array([520.0, 510.0, 320.0, 240.0])
+INTRINSICS = np.array([520.0, 510.0, 320.0, 240.0, measurement.DEPTH])  # fx fy cx cy, and the kind (camloc.measurement)
 
 
 def _random_state(rng):
@@ -273,25 +273,69 @@ def test_camera_pose_is_the_robot_pose_composed_with_the_mount(rng):
         np.testing.assert_allclose(centre, T_wc[:3, 3], rtol=RTOL, atol=1e-15)
 
 
-def _two_cameras():
-    """Mounts (2, 3, 3), (2, 3), intrinsics (2, 4) and poses (2, 4, 4): the test camera and a second,
-    turned and with other intrinsics."""
-    second = geometry.pose_from_euler(np.array([-0.2, 0.1, 0.25, -np.pi / 2 + 0.2, -0.1, -np.pi / 2 - 0.3]))
-    mounts = np.stack([T_ROBOT_CAMERA, second])
-    K = np.array([INTRINSICS, [600.0, 600.0, 300.0, 250.0]])
-    return np.ascontiguousarray(mounts[:, :3, :3]), np.ascontiguousarray(mounts[:, :3, 3]), K, mounts
-
-
-def test_observing_pairs_is_observing_each_through_its_own_camera(rng):
-    camera_R, camera_t, camera_K, mounts = _two_cameras()
+def _pairs_in_view(rng, mounts):
+    """A random state, and five landmarks in front of the cameras of pair_camera: (x, pair_camera,
+    their camera-frame points, landmarks)."""
     x = _random_state(rng)
     pair_camera = np.array([0, 1, 1, 0, 1], dtype=np.int64)
     p_camera = np.column_stack([rng.uniform(-1, 1, (5, 2)), rng.uniform(1, 4, 5)])
     landmarks = np.stack([geometry.transform_points(geometry.pose_from_euler(x) @ mounts[c], p_camera[i])
                           for i, c in enumerate(pair_camera)])
+    return x, pair_camera, p_camera, landmarks
+
+
+def _two_cameras():
+    """Mounts (2, 3, 3), (2, 3), intrinsics (2, 4) and poses (2, 4, 4): the test camera and a second,
+    turned and with other intrinsics."""
+    second = geometry.pose_from_euler(np.array([-0.2, 0.1, 0.25, -np.pi / 2 + 0.2, -0.1, -np.pi / 2 - 0.3]))
+    mounts = np.stack([T_ROBOT_CAMERA, second])
+    K = np.array([INTRINSICS, [600.0, 600.0, 300.0, 250.0, measurement.DEPTH]])
+    return np.ascontiguousarray(mounts[:, :3, :3]), np.ascontiguousarray(mounts[:, :3, 3]), K, mounts
+
+
+@pytest.mark.parametrize("kinds", [(measurement.PIXEL, measurement.PIXEL), (measurement.DISPARITY, measurement.PIXEL),
+                                   (measurement.DEPTH, measurement.DISPARITY)])
+def test_observing_pairs_of_every_measurement_kind_is_its_numpy_model(rng, kinds):
+    """The kernel's camera model reads the sensor's kind from its intrinsics' fifth column: each
+    pair's prediction and Jacobian are numpy's (``models.observe``) for that kind, the inert row
+    of a pixel is zero, and H matches central differences."""
+    camera_R, camera_t, camera_K, mounts = _two_cameras()
+    camera_K[:, 4] = kinds
+    x, pair_camera, p_camera, landmarks = _pairs_in_view(rng, mounts)
     z_hat, H = camera.observe_pairs(x, landmarks, pair_camera, camera_R, camera_t, camera_K)
     for i, c in enumerate(pair_camera):
-        ref_z, ref_H = models.observe(x, mounts[c], tuple(camera_K[c]), landmarks[i:i + 1])
+        ref_z, ref_H = models.observe(x, mounts[c], tuple(camera_K[c][:4]), landmarks[i:i + 1], int(camera_K[c][4]))
+        np.testing.assert_allclose(z_hat[i], ref_z[0], rtol=RTOL, atol=1e-15)
+        np.testing.assert_allclose(H[i], ref_H[0], rtol=RTOL, atol=1e-9)
+        kind = int(camera_K[c][4])
+        third = {measurement.DEPTH: p_camera[i, 2], measurement.DISPARITY: 1.0 / p_camera[i, 2], measurement.PIXEL: 0.0}[kind]
+        assert z_hat[i, 2] == pytest.approx(third, rel=1e-12, abs=0.0)
+        if kind == measurement.PIXEL:
+            assert not H[i, 2].any()  # the inert row
+    numeric = _central_difference(lambda s: camera.observe_pairs(s, landmarks, pair_camera, camera_R, camera_t, camera_K)[0], x)
+    np.testing.assert_allclose(H, numeric, rtol=1e-6, atol=1e-6)
+
+
+def test_back_projecting_a_disparity_is_numpy_s_and_its_jacobian_is_the_derivative(rng):
+    K = INTRINSICS.copy()
+    K[4] = measurement.DISPARITY
+    p_camera = np.column_stack([rng.uniform(-1, 1, (4, 2)), rng.uniform(0.5, 4.0, 4)])
+    z = models.project_points(p_camera, tuple(K[:4]), measurement.DISPARITY)
+    ref_points, ref_J = models.back_project(z, tuple(K[:4]), measurement.DISPARITY)
+    np.testing.assert_allclose(ref_points, p_camera, rtol=1e-12)
+    for i in range(4):
+        p, J = camera.back_project(z[i], K)
+        np.testing.assert_allclose(p, ref_points[i], rtol=RTOL)
+        np.testing.assert_allclose(J, ref_J[i], rtol=RTOL)
+        np.testing.assert_allclose(J, _central_difference(lambda w: camera.back_project(w, K)[0], z[i]), rtol=1e-6, atol=1e-8)
+
+
+def test_observing_pairs_is_observing_each_through_its_own_camera(rng):
+    camera_R, camera_t, camera_K, mounts = _two_cameras()
+    x, pair_camera, p_camera, landmarks = _pairs_in_view(rng, mounts)
+    z_hat, H = camera.observe_pairs(x, landmarks, pair_camera, camera_R, camera_t, camera_K)
+    for i, c in enumerate(pair_camera):
+        ref_z, ref_H = models.observe(x, mounts[c], tuple(camera_K[c][:4]), landmarks[i:i + 1])
         np.testing.assert_allclose(z_hat[i], ref_z[0], rtol=RTOL)
         np.testing.assert_allclose(H[i], ref_H[0], rtol=RTOL, atol=1e-9)   # entries that cancel to near zero
     np.testing.assert_allclose(z_hat[:, 2], p_camera[:, 2], rtol=RTOL)
@@ -309,8 +353,8 @@ def test_the_cameras_of_observations_are_numpy_unique_of_their_cameras(rng):
 
 def test_back_projection_inverts_the_projection_with_its_jacobian(rng):
     p_camera = np.column_stack([rng.uniform(-1, 1, (6, 2)), rng.uniform(0.5, 4.0, 6)])
-    uvd = models.project_points(p_camera, tuple(INTRINSICS))
-    ref_points, ref_J = models.back_project(uvd, tuple(INTRINSICS))
+    uvd = models.project_points(p_camera, tuple(INTRINSICS[:4]))
+    ref_points, ref_J = models.back_project(uvd, tuple(INTRINSICS[:4]))
     for i in range(6):
         p, J = camera.back_project(uvd[i], INTRINSICS)
         np.testing.assert_allclose(p, p_camera[i], rtol=RTOL, atol=1e-14)
@@ -534,7 +578,7 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
     R = _pixel_noise(rng, p)
 
     def measure(state):
-        predictions = [models.observe(state, mounts[c], tuple(camera_K[c]), landmarks[i:i + 1]) for i, c in enumerate(pair_camera)]
+        predictions = [models.observe(state, mounts[c], tuple(camera_K[c][:4]), landmarks[i:i + 1]) for i, c in enumerate(pair_camera)]
         return (np.concatenate([z for z, _ in predictions]).reshape(-1),
                 np.concatenate([H for _, H in predictions]).reshape(-1, 6))
 
@@ -559,17 +603,18 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
 def test_point_step_is_one_update_with_the_measurements_as_camera_frame_points(rng, p):
     # the measurements back-projected (observation o as scene.point[o] with scene.point_cov[o]),
     # predictions back-projected the same way with H carried through d p / d z
-    K_obs = np.array([INTRINSICS, [600.0, 600.0, 300.0, 250.0]])
+    K_obs = np.array([INTRINSICS, [600.0, 600.0, 300.0, 250.0, measurement.DEPTH]])
     obs_camera = np.array([1, 0, 0, 1, 1, 0], dtype=np.int64)
     point = np.column_stack([rng.uniform(-1, 1, (6, 2)), rng.uniform(1, 4, 6)])
     point_cov = np.stack([_random_spd(rng, 3, 0.05) for _ in range(6)])
-    scene = _scene(camera_K=K_obs, obs_camera=obs_camera, point=point, point_cov=point_cov, point_cov_inverse=_inverse(point_cov))
+    scene = _scene(camera_K=K_obs, obs_camera=obs_camera, point=point, point_cov=point_cov, point_cov_inverse=_inverse(point_cov),
+                   z=np.zeros((6, 3)), R_assoc=np.zeros((6, 3, 3)), R_assoc_inverse=np.zeros((6, 3, 3)))
     obs = rng.choice(6, p, replace=False).astype(np.int64)
     x, P = _random_state(rng), _random_spd(rng, 6, 0.1)
-    z_hat = models.project_points(point[obs] + rng.normal(0, 0.1, (p, 3)), tuple(INTRINSICS))   # any (u, v, depth)
+    z_hat = models.project_points(point[obs] + rng.normal(0, 0.1, (p, 3)), tuple(INTRINSICS[:4]))   # any (u, v, depth)
     H = rng.normal(0, 100, (p, 3, 6))
     got = update.point_step(scene, x, P, obs, z_hat, H)
-    p_hat, J = models.back_project(z_hat, K_obs[obs_camera[obs]].T)
+    p_hat, J = models.back_project(z_hat, K_obs[obs_camera[obs]][:, :4].T)
     S, K, _ = _textbook(P, J @ H, point_cov[obs])
     expected = x + K @ (point[obs] - p_hat).reshape(-1)
     expected[[3, 5]] = geometry.wrap_angle(expected[[3, 5]])
@@ -700,8 +745,8 @@ def test_conditioned_costs_are_those_under_the_schur_complement(rng):
 # beam: a pair's cost in the coordinates where its linearization explains it best
 
 def test_as_point_is_the_back_projection_with_its_jacobian(rng):
-    z_hat = models.project_points(np.column_stack([rng.uniform(-1, 1, (4, 2)), rng.uniform(0.5, 4.0, 4)]), tuple(INTRINSICS))
-    ref_points, ref_J = models.back_project(z_hat, tuple(INTRINSICS))
+    z_hat = models.project_points(np.column_stack([rng.uniform(-1, 1, (4, 2)), rng.uniform(0.5, 4.0, 4)]), tuple(INTRINSICS[:4]))
+    ref_points, ref_J = models.back_project(z_hat, tuple(INTRINSICS[:4]))
     for q in range(4):
         p0, p1, p2, j00, j02, j11, j12 = beam.as_point(z_hat, q, INTRINSICS)
         J = np.array([[j00, 0.0, j02], [0.0, j11, j12], [0.0, 0.0, 1.0]])
@@ -735,10 +780,10 @@ def test_a_pair_is_judged_in_pixels_or_as_a_point_whichever_costs_less(rng):
     n = 12
     p_camera = np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.uniform(0.5, 4.0, n)])
     landmarks = geometry.transform_points(geometry.pose_from_euler(x) @ T_ROBOT_CAMERA, p_camera)
-    z_hat, H = models.observe(x, T_ROBOT_CAMERA, tuple(INTRINSICS), landmarks)
+    z_hat, H = models.observe(x, T_ROBOT_CAMERA, tuple(INTRINSICS[:4]), landmarks)
     R = _pixel_noise(rng, n)
     z = z_hat + rng.normal(0, 1, (n, 3)) * rng.uniform(1, 30, (n, 1)) * [2.0, 2.0, 0.05]
-    point, point_cov = models.measured_points(z, R, tuple(INTRINSICS))
+    point, point_cov = models.measured_points(z, R, tuple(INTRINSICS[:4]))
     scene = _scene(camera_K=INTRINSICS[None].copy(), obs_camera=np.zeros(n, np.int64), z=z, R_assoc=R, point=point,
                    point_cov=point_cov, log_det_R=np.linalg.slogdet(R)[1], log_det_point_cov=np.linalg.slogdet(point_cov)[1])
     y, Hc = np.zeros((n, 3)), np.zeros((n, 3, 6))
@@ -751,7 +796,7 @@ def test_a_pair_is_judged_in_pixels_or_as_a_point_whichever_costs_less(rng):
         S_pixels, y_pixels = A + R[o], z[o] - z_hat[q]
         d2_pixels = y_pixels @ np.linalg.solve(S_pixels, y_pixels)
         cost_pixels = d2_pixels + np.linalg.slogdet(S_pixels)[1] - np.linalg.slogdet(R[o])[1]
-        p_hat, J = models.back_project(z_hat[q:q + 1], tuple(INTRINSICS))
+        p_hat, J = models.back_project(z_hat[q:q + 1], tuple(INTRINSICS[:4]))
         S_point, y_point = J[0] @ A @ J[0].T + point_cov[o], point[o] - p_hat[0]
         d2_point = y_point @ np.linalg.solve(S_point, y_point)
         cost_point = d2_point + np.linalg.slogdet(S_point)[1] - np.linalg.slogdet(point_cov[o])[1]

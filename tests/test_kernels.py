@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import camloc.kernels
-from camloc import association, ekf, geometry, models
+from camloc import association, ekf, geometry, measurement, models
 from camloc.kernels import _jit, camera, motion, recheck, rotation, seeds, sym3, update, view
 from camloc.kernels._jit import OPTIONS
 
@@ -139,13 +139,13 @@ def test_motion_matches_the_numpy_model_and_finite_differences(rng):
 
 def test_observe_matches_the_numpy_model_and_finite_differences(rng):
     T_rc = geometry.pose_from_euler(np.array([0.1, -0.05, 0.3, -np.pi / 2, 0.1, -np.pi / 2]))
-    K = np.array([520.0, 510.0, 320.0, 240.0])
+    K = np.array([520.0, 510.0, 320.0, 240.0, measurement.DEPTH])  # fx fy cx cy, the sensor's kind
     for _ in range(10):
         x = _random_state(rng)
         T_wc = geometry.pose_from_euler(x) @ T_rc
         points = geometry.transform_points(T_wc, np.column_stack([rng.uniform(-1, 1, (8, 2)), rng.uniform(1, 4, 8)]))
         z_hat, H = camera.observe(x, T_rc[:3, :3].copy(), T_rc[:3, 3].copy(), K, points)
-        ref_z, ref_H = models.observe(x, T_rc, tuple(K), points)
+        ref_z, ref_H = models.observe(x, T_rc, tuple(K[:4]), points)
         np.testing.assert_allclose(z_hat, ref_z, rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(H, ref_H, rtol=1e-10, atol=1e-8)
         eps = 1e-6
@@ -219,7 +219,7 @@ def test_seed_ranking_matches_numpy(rng):
     null = rng.uniform(8, 12, m)
     chosen = np.arange(0, N, 3)
     ref = association.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null, chosen, gate=11.34)
-    got = seeds.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null, chosen, 11.34)
+    got = seeds.seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null, chosen, np.full(pair_obs.size, 11.34))
     np.testing.assert_allclose(got, ref, rtol=1e-9)
 
 
@@ -350,8 +350,9 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     k = 10
     first = int(np.flatnonzero((dataset.obs_pose_index == k) & (dataset.obs_true_landmark >= 0))[0])
     lm = int(np.flatnonzero(dataset.landmark_ids == dataset.obs_true_landmark[first])[0])
-    twin = dict(obs_pose_index=k, obs_camera=dataset.obs_camera[first], obs_uvd=dataset.obs_uvd[first] + [1e-3, 0.0, 0.0],
-                obs_info=dataset.obs_info[first], obs_cov=dataset.obs_cov[first], obs_true_landmark=10_000)
+    twin = dict(obs_pose_index=k, obs_camera=dataset.obs_camera[first], obs_z=dataset.obs_z[first] + [1e-3, 0.0, 0.0],
+                obs_info=dataset.obs_info[first], obs_cov=dataset.obs_cov[first], obs_true_landmark=10_000,
+                obs_kind=dataset.obs_kind[first])
     dataset = dataclasses.replace(dataset, **{name: np.append(getattr(dataset, name), [value], axis=0) for name, value in twin.items()})
     second = dataset.num_observations - 1
     config = LocalizerConfig()

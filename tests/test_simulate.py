@@ -71,7 +71,7 @@ def test_noise_streams_are_independent_of_the_clutter_and_detection_options():
 def test_zero_noise_reproduces_the_models_exactly(trajectory):
     dataset = simulate(SimulationConfig(trajectory=trajectory, cameras=3, **EXACT), seed=11)
     assert dataset.num_observations > 200
-    np.testing.assert_allclose(dataset.obs_uvd, _predicted(dataset), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dataset.obs_z, _predicted(dataset), rtol=0, atol=1e-12)
     T_true = dataset.T_world_truth
     np.testing.assert_allclose(dataset.T_odometry, geometry.relative_se3(T_true[:-1], T_true[1:]), atol=1e-12)
     # Exact data is still written with a finite, very large information.
@@ -115,7 +115,7 @@ def test_odometry_sigma_scale_scales_the_noise_and_the_information():
 
 def test_observation_noise_matches_the_written_information():
     dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=600, dense=True), seed=3)
-    residual = dataset.obs_uvd - _predicted(dataset)
+    residual = dataset.obs_z - _predicted(dataset)
     assert len(residual) > 3000
     std = residual.std(axis=0)
     np.testing.assert_allclose(std, 1.0 / math.sqrt(1000.0), rtol=0.1)
@@ -125,7 +125,7 @@ def test_observation_noise_matches_the_written_information():
 def test_explicit_observation_sigmas():
     config = SimulationConfig(poses=600, dense=True, observation_sigma_uv=0.01, observation_sigma_depth=0.05)
     dataset = simulate(config, seed=8)
-    std = (dataset.obs_uvd - _predicted(dataset)).std(axis=0)
+    std = (dataset.obs_z - _predicted(dataset)).std(axis=0)
     np.testing.assert_allclose(std, [0.01, 0.01, 0.05], rtol=0.1)
     np.testing.assert_allclose(np.diag(dataset.obs_info[0]), [1e4, 1e4, 400.0])
 
@@ -193,7 +193,7 @@ def test_default_grid_sees_like_the_real_file():
     assert per_pose[0] == 0 and 1 <= np.count_nonzero(per_pose == 0) <= 20
     assert 60 < dataset.landmark_ids.size < 250  # the real file: 144
     assert set(dataset.obs_true_landmark.tolist()) == set(dataset.landmark_ids.tolist())  # all seen
-    u = dataset.obs_uvd[:, 0]
+    u = dataset.obs_z[:, 0]
     assert -0.6 < u.min() < -0.3 and 1.3 < u.max() < 1.6  # the real file: -0.51..1.51
     landmark_height = dataset.landmark_xyz[:, 2]
     assert np.abs(landmark_height).max() <= sim.GRID_FLOOR_BAND_M
@@ -218,7 +218,7 @@ def test_pixel_intrinsics_two_cameras_depth_range():
     config = SimulationConfig(trajectory="aerial", poses=200, intrinsics="pixel", cameras=2,
                               range_kind="depth", min_range=0.4, max_range=3.0)
     dataset = simulate(config, seed=12)
-    u, v, depth = dataset.obs_uvd.T
+    u, v, depth = dataset.obs_z.T
     assert np.all((u >= -0.5) & (u <= 639.5) & (v >= -0.5) & (v <= 479.5))
     true_depth = _predicted(dataset)[:, 2]
     assert np.all((true_depth >= 0.4) & (true_depth <= 3.0))
@@ -236,7 +236,7 @@ def test_distance_range_bounds_the_distance_from_the_camera():
     distance = []
     for j in range(dataset.num_observations):
         camera = dataset.cameras[int(dataset.obs_camera[j])]
-        u, v, depth = dataset.obs_uvd[j]
+        u, v, depth = dataset.obs_z[j]
         ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
         distance.append(depth * np.linalg.norm(ray))
         assert np.hypot(ray[0], ray[1]) <= 1.0 + 1e-9  # the 45 deg cone
@@ -256,21 +256,21 @@ def test_clutter_and_outlier_fractions():
     assert len(np.unique(dataset.obs_true_landmark[~real])) == np.count_nonzero(~real)
     assert not np.any(np.isin(dataset.obs_true_landmark, dataset.pose_ids))
     # Outliers are far from their landmark's prediction, the other detections are not.
-    residual = (dataset.obs_uvd[real] - _predicted_rows(dataset, real)) * math.sqrt(1000.0)
+    residual = (dataset.obs_z[real] - _predicted_rows(dataset, real)) * math.sqrt(1000.0)
     far = np.einsum("ij,ij->i", residual, residual) > 40.0  # chi2(3) > 40: p ~ 1e-8
     outlier = labelled.is_outlier[real]
     assert not np.any(far[~outlier])
     assert far[outlier].mean() > 0.9
     # Clutter lies in the visible range: depth 0.5 cos(45 deg)..2.0, u within the 45 deg cone.
-    assert np.all((dataset.obs_uvd[~real, 2] > 0.35) & (dataset.obs_uvd[~real, 2] <= 2.0))
-    assert np.all(np.abs(dataset.obs_uvd[~real, 0] - 0.5) <= 1.0)
+    assert np.all((dataset.obs_z[~real, 2] > 0.35) & (dataset.obs_z[~real, 2] <= 2.0))
+    assert np.all(np.abs(dataset.obs_z[~real, 0] - 0.5) <= 1.0)
 
 
 def _predicted_rows(dataset, rows: np.ndarray) -> np.ndarray:
     keep = np.flatnonzero(rows)
     sub = dataclasses.replace(dataset, obs_pose_index=dataset.obs_pose_index[keep],
-                              obs_camera=dataset.obs_camera[keep], obs_uvd=dataset.obs_uvd[keep],
-                              obs_true_landmark=dataset.obs_true_landmark[keep])
+                              obs_camera=dataset.obs_camera[keep], obs_z=dataset.obs_z[keep],
+                              obs_true_landmark=dataset.obs_true_landmark[keep], obs_kind=dataset.obs_kind[keep])
     return _predicted(sub)
 
 

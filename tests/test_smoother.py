@@ -352,10 +352,10 @@ def test_a_dataset_with_other_observations_is_refused(small_world):
         smoother.problem_from_run(dataclasses.replace(other, landmark_ids=dataset.landmark_ids, landmark_xyz=dataset.landmark_xyz,
                                                       start_xyz=dataset.start_xyz, start_quat_xyzw=dataset.start_quat_xyzw,
                                                       odom_translation=dataset.odom_translation, odom_quat_xyzw=dataset.odom_quat_xyzw), run)
-    uvd = dataset.obs_uvd.copy()
+    uvd = dataset.obs_z.copy()
     uvd[7, 1] += 0.01
     with pytest.raises(CamlocError, match=r"observation 8 \(associations.csv line 9\)"):
-        smoother.problem_from_run(dataclasses.replace(dataset, obs_uvd=uvd), run)
+        smoother.problem_from_run(dataclasses.replace(dataset, obs_z=uvd), run)
 
 
 def test_associations_with_landmarks_missing_from_the_map_are_refused(small_world):

@@ -24,6 +24,7 @@ from camloc.kernels.rotation import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import visible
+from camloc.measurement import DEPTH
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -85,7 +86,11 @@ def spread_row(spreads, q):
 def as_point(z_hat, q, K):
     """The camera-frame point prediction q (z_hat[q] of u, v, depth) back-projects to through
     intrinsics K, and the nonzero entries (j00, j02, j11, j12) of its Jacobian by (u, v, depth),
-    J = [[j00, 0, j02], [0, j11, j12], [0, 0, 1]]: (p0, p1, p2, j00, j02, j11, j12)."""
+    J = [[j00, 0, j02], [0, j11, j12], [0, 0, 1]]: (p0, p1, p2, j00, j02, j11, j12). A sensor
+    whose pairs are not judged as points (``measurement.judged_as_point``: not depth) gives
+    zeros, a point of no spread, which fits nothing."""
+    if K[4] != DEPTH:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     x_over_z, y_over_z, depth = (z_hat[q, 0] - K[2]) / K[0], (z_hat[q, 1] - K[3]) / K[1], z_hat[q, 2]
     return x_over_z * depth, y_over_z * depth, depth, depth / K[0], x_over_z, depth / K[1], y_over_z
 
@@ -152,7 +157,6 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     cost, z_hat (g, 3), H (g, 3, 6), y (g, 3), Hc (g, 3, 6), in_point). Among the landmarks in the
     view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``)."""
     m = obs.size
-    pool_gate = settings.pool_gate_factor * settings.gate
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     # every camera's candidates, their predictions and spreads, concatenated
     found = []
@@ -192,12 +196,16 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     for r in range(m):
         o = obs[r]
         c = scene.obs_camera[o]
+        gate = scene.obs_gate[o]
+        pool_gate = settings.pool_gate_factor * gate
+        as_points = scene.camera_K[c, 4] == DEPTH
         for q in range(total):
             if cand_camera[q] != c:
                 continue
             # y' S^-1 y >= y_a^2 / S_aa on every axis a: most of a dense view's pairs are surely
-            # beyond the pool on one axis in both coordinates (depth, often)
-            beyond_pixels = beyond_point = False
+            # beyond the pool on one axis in both coordinates (depth, often); a sensor without
+            # points is judged in its own coordinates alone
+            beyond_pixels, beyond_point = False, not as_points
             for a in range(3):
                 e = scene.z[o, a] - z_hat[q, a]
                 beyond_pixels |= e * e > pool_gate * (diagonal_pixels[q, a] + scene.R_assoc[o, a, a])
@@ -208,7 +216,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread_row(spreads, q), ys, Hcs, n, pool_gate)
             if not d2 <= pool_gate:
                 continue
-            lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= settings.gate else np.inf, point
+            lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= gate else np.inf, point
             for a in range(3):
                 zh[n, a] = z_hat[q, a]
                 for b in range(6):
@@ -246,8 +254,8 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     for q in range(pool.size):
         r = at + q
         observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool[q], z_hat, H, r, d_position)
-        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, settings.gate)
-        cost[r] = pair_cost if d2 <= settings.gate and not is_taken(pool[q], taken) else np.inf
+        d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, scene.obs_gate[o])
+        cost[r] = pair_cost if d2 <= scene.obs_gate[o] and not is_taken(pool[q], taken) else np.inf
         in_point[r] = point
 
 

@@ -2,7 +2,10 @@
 
     p_robot  = R' (l - t)                 the landmark in the robot frame
     p_camera = R_c' (p_robot - t_c)       in the camera frame
-    z = (fx p.x / p.z + cx, fy p.y / p.z + cy, p.z)
+    z = (fx p.x / p.z + cx, fy p.y / p.z + cy, third)
+
+with ``third`` by the sensor's kind (``camloc.measurement``, the fifth column of its intrinsics):
+p.z (depth), 1 / p.z (disparity) or the inert 0 of a pixel, whose Jacobian row is 0.
 
 H = dz/dx through ``d p_robot / dt = -R'`` and ``d p_robot / d rpy = [p_robot]x E(rpy)``.
 """
@@ -12,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
+from camloc.measurement import DEPTH, DISPARITY
 from camloc.kernels.rotation import euler_rate_into, euler_to_matrix, euler_to_matrix_into
 from camloc.kernels.small import mm, mv
 
@@ -42,7 +46,7 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
     d_position = -R_rc' R', the derivative of the camera-frame point by the position. Scalar code
     on whole arrays and indices: this runs for every candidate of every hypothesis, where a
     temporary array or a row view (counting references) costs more than the arithmetic."""
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    fx, fy, cx, cy, kind = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4]
     d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
     r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
     r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
@@ -54,8 +58,14 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
     inverse_depth = 1.0 / pz
     z_hat[i, 0] = fx * px * inverse_depth + cx
     z_hat[i, 1] = fy * py * inverse_depth + cy
-    z_hat[i, 2] = pz
-    # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, 1]]
+    # the third row: depth (d/dz 1), inverse depth (d/dz -1/z^2) or a pixel's inert 0
+    if kind == DEPTH:
+        z_hat[i, 2], third = pz, 1.0
+    elif kind == DISPARITY:
+        z_hat[i, 2], third = inverse_depth, -inverse_depth * inverse_depth
+    else:
+        z_hat[i, 2], third = 0.0, 0.0
+    # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
     u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
     v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
     for c in range(3):
@@ -68,16 +78,16 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
         rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
         H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
         H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
-        H[i, 2, c] = d_position[2, c]
+        H[i, 2, c] = third * d_position[2, c]
         H[i, 0, 3 + c] = u_x * rot0 + u_z * rot2
         H[i, 1, 3 + c] = v_y * rot1 + v_z * rot2
-        H[i, 2, 3 + c] = rot2
+        H[i, 2, 3 + c] = third * rot2
 
 
 @jit
 def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     """Predicted measurements z_hat (m, 3) of landmarks (m, 3) from the Euler state x through
-    the camera mounted at (R_rc, t_rc) with intrinsics (fx, fy, cx, cy), and H (m, 3, 6)."""
+    the sensor mounted at (R_rc, t_rc) with intrinsics (fx, fy, cx, cy, kind), and H (m, 3, 6)."""
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
@@ -144,15 +154,21 @@ def cameras_of(obs_camera, obs, n_cameras):
 
 @jit
 def back_project(z, intrinsics):
-    """A measurement (3,) of u, v, depth as a camera-frame point p (3,), and d p / d z (3, 3)."""
+    """A measurement (3,) of a sensor that measures range (intrinsics (fx, fy, cx, cy, kind):
+    depth or disparity) as a camera-frame point p (3,), and d p / d z (3, 3)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    x_over_z, y_over_z, depth = (z[0] - cx) / fx, (z[1] - cy) / fy, z[2]
+    x_over_z, y_over_z = (z[0] - cx) / fx, (z[1] - cy) / fy
+    if intrinsics[4] == DISPARITY:
+        depth = 1.0 / z[2]
+        d_depth = -depth * depth  # d depth / d (1 / depth)
+    else:
+        depth, d_depth = z[2], 1.0
     p = np.empty(3)
     p[0], p[1], p[2] = x_over_z * depth, y_over_z * depth, depth
     J = np.zeros((3, 3))
-    J[0, 0], J[0, 2] = depth / fx, x_over_z
-    J[1, 1], J[1, 2] = depth / fy, y_over_z
-    J[2, 2] = 1.0
+    J[0, 0], J[0, 2] = depth / fx, x_over_z * d_depth
+    J[1, 1], J[1, 2] = depth / fy, y_over_z * d_depth
+    J[2, 2] = d_depth
     return p, J
 
 

@@ -30,7 +30,7 @@ def oracle_pairs(scene, settings, x, P, obs):
                              scene.camera_K)
     keep = np.zeros(mapped.size, np.bool_)
     for r in range(mapped.size):
-        keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= settings.gate
+        keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
     return mapped[keep], landmarks[keep]
 
 
@@ -79,7 +79,7 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
             if g2 != g:
                 others += information[g2]
         cost = leave_one_out_costs(scene.z[mine], scene.R_assoc[mine], scene.R_assoc_inverse[mine], scene.log_det_R[mine],
-                                   z_hat, H, chosen, others, settings.gate)
+                                   z_hat, H, chosen, others, scene.obs_gate[mine[0]])  # a sensor's observations share their dof
         row, steal = assignment_margins(cost, scene.null_cost[mine], chosen)
         for r in range(mine.size):
             for q in range(pair_obs.size):
@@ -155,7 +155,10 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             # an iterated update's statistic is its MAP cost at the posterior: NIS at the prior's
             # linearization carries the second-order error the iterations removed
             recorded = cost_k if settings.iterations > 1 and np.isfinite(cost_k) else nis_k
-            update_pose[u], nis[u], map_cost[u], nis_dof[u] = k, recorded, cost_k, 3 * obs.size
+            dof = 0
+            for o in obs:
+                dof += scene.obs_dof[o]
+            update_pose[u], nis[u], map_cost[u], nis_dof[u] = k, recorded, cost_k, dof
             counters[0] = u + 1
             x, P = x_post, P_post
         record_state(states, covs, k, x, P)

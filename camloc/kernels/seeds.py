@@ -23,7 +23,7 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
     """(M,) the approximate cost of explaining a pose's m observations given each seed pair
     (seeds (M,) indices of pairs) is right. Pairs: innovation y (N, 3), Jacobian H (N, 3, 6),
     noise R (N, 3, 3) (each in its own coordinates), observation pair_obs (N,) in 0..m-1 and
-    landmark (N,); P the prior covariance; null_cost (m,); gate on a conditioned pair's d^2.
+    landmark (N,); P the prior covariance; null_cost (m,); gate (N,) on each conditioned pair's d^2 (at its observation's dof).
 
     No BLAS call: a matrix product here ran on BLAS's threads, which, on a machine with one other
     busy process, made the whole run twice as slow (benchmarks: ``docs/performance.md``)."""
@@ -89,9 +89,9 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
         # one branch-free pass and the screen only decides which of them count
         conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bound, quadratic, det)
         for q in range(N):
-            if bound[q] > gate or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
+            if bound[q] > gate[q] or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
                 continue
-            if det[q] > 0.0 and quadratic[q] <= gate * det[q]:  # d^2 within the gate: its logarithm only then
+            if det[q] > 0.0 and quadratic[q] <= gate[q] * det[q]:  # d^2 within the gate: its logarithm only then
                 cost = quadratic[q] / det[q] + math.log(det[q]) - log_det_R[q]
                 if cost < best[pair_obs[q]]:
                     best[pair_obs[q]] = cost

@@ -17,10 +17,11 @@ SceneArrays = namedtuple("SceneArrays", [
     "grid_xyz",            # (L, 3) their coordinates in that order (a query reads them in sequence)
     "grid_dense_start",    # (nx ny nz + 1,) int64 offsets by key where the grid is small, else empty
     # cameras
-    "camera_R", "camera_t", "camera_K",   # (C, 3, 3) R_robot_camera, (C, 3) t, (C, 4) fx fy cx cy
+    # a row per sensor: a camera and its measurements' kind (``sensors.sensors_of``)
+    "camera_R", "camera_t", "camera_K",   # (C, 3, 3) R_robot_camera, (C, 3) t, (C, 5) fx fy cx cy kind
     # observations
-    "obs_camera",          # (K,) int64 row of the camera tables
-    "z",                   # (K, 3) u, v, depth
+    "obs_camera",          # (K,) int64 row of the camera (sensor) tables
+    "z",                   # (K, 3) the measurement (``camloc.measurement``'s layout: u, v, depth / 0 / 1/depth)
     "R_file",              # (K, 3, 3) the file's noise: what the estimate weighs pairs by
     "R_file_inverse",      # (K, 3, 3) its information
     "R_assoc",             # (K, 3, 3) the noise association judges pairs by (floored, ``association.noise_floored``)
@@ -39,12 +40,14 @@ SceneArrays = namedtuple("SceneArrays", [
     "odom_cov",            # (N - 1, 6, 6)
     # view limits and consistency bounds
     "view_limits",         # (3,) min_depth, max_depth, max_angle (rad)
-    "nis_bound",           # (P + 1,) the 99.9% chi^2 quantile of 3p degrees of freedom, p pairs
+    "nis_bound",           # (3 P + 4,) the 99.9% chi^2 quantile of d degrees of freedom, by d
+    "obs_gate",            # (K,) the chi^2 gate of each observation's pairs, at its dof
+    "obs_dof",             # (K,) int64 each observation's degrees of freedom
 ])
 
 Settings = namedtuple("Settings", [
     "iterations",           # int: linearizations per update
-    "gate",                 # float: chi^2 gate of a pair (3 dof)
+    "gate",                 # float: chi^2 gate of a depth pair (3 dof); each pair's own is scene.obs_gate
     "recheck",              # bool
     "recheck_margin", "recheck_steal_margin",
     "slip_inflation",

@@ -28,6 +28,7 @@ import numpy as np
 
 from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
+from camloc.measurement import DEPTH
 from camloc.kernels.rotation import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
@@ -419,7 +420,16 @@ def point_step(scene, x, P, obs, z_hat, H):
     R_inverse = np.empty((p, 3, 3))
     for i in range(p):
         o = obs[i]
-        p_hat, J = back_project(z_hat[i], scene.camera_K[scene.obs_camera[o]])
+        K = scene.camera_K[scene.obs_camera[o]]
+        if K[4] != DEPTH:  # no point (``measurement.judged_as_point``): the pair as it is
+            for a in range(3):
+                y[i, a] = scene.z[o, a] - z_hat[i, a]
+                for b in range(3):
+                    R[i, a, b], R_inverse[i, a, b] = scene.R_assoc[o, a, b], scene.R_assoc_inverse[o, a, b]
+                for b in range(6):
+                    Hp[i, a, b] = H[i, a, b]
+            continue
+        p_hat, J = back_project(z_hat[i], K)
         JH = mm(J, H[i])
         for a in range(3):
             y[i, a] = scene.point[o, a] - p_hat[a]
@@ -456,9 +466,12 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = np.empty(0)
     best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)
-    if iterations < 2 or not (start.size or best[2] > scene.nis_bound[p]):
+    dof = 0
+    for o in obs:
+        dof += scene.obs_dof[o]
+    if iterations < 2 or not (start.size or best[2] > scene.nis_bound[dof]):
         return best
-    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[p] else (start, none)
+    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, none)
     for s in starts:
         if s.size:
             again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s)

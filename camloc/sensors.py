@@ -1,0 +1,49 @@
+"""The sensors of a dataset: a camera on the robot and the kind of measurement its observations
+are (``camloc.measurement``). A camera whose file gives observations of two kinds (some with depth,
+some without) is two sensors; both engines group a pose's observations by sensor."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from camloc import measurement
+
+if TYPE_CHECKING:
+    from camloc.dataset import Dataset
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A sensor as the filter's measurement model takes it: a camera (``T_robot_camera`` (4, 4),
+    ``intrinsics`` (fx, fy, cx, cy)) and the kind of measurement its observations are
+    (``camloc.measurement``). A camera whose file gives observations of two kinds is two sensors."""
+
+    T_robot_camera: np.ndarray
+    intrinsics: tuple[float, float, float, float]
+    kind: int = measurement.DEPTH
+    camera_id: int = 0
+
+    @property
+    def dof(self) -> int:
+        return measurement.KINDS[self.kind].dof
+
+
+def sensors_of(dataset: "Dataset") -> tuple[dict[int, CameraModel], np.ndarray]:
+    """The dataset's sensors, (camera, measurement kind) pairs, indexed 0.. in the order of
+    (camera id, kind), and each observation's sensor (K,) int64. Every camera is a sensor (of
+    depth, when it made no observation) so that the table is never empty."""
+    keys = {(int(c), int(k)) for c, k in zip(dataset.obs_camera.tolist(), dataset.obs_kind.tolist())}
+    seen = {c for c, _ in keys}
+    keys |= {(int(c), measurement.DEPTH) for c in dataset.cameras if int(c) not in seen}
+    ordered = sorted(keys)
+    sensors = {}
+    for index, (camera_id, kind) in enumerate(ordered):
+        camera = dataset.cameras[camera_id]
+        sensors[index] = CameraModel(camera.T_robot_camera, (camera.fx, camera.fy, camera.cx, camera.cy), kind, camera_id)
+    code = np.asarray(dataset.obs_camera, np.int64) * len(measurement.KINDS) + np.asarray(dataset.obs_kind, np.int64)
+    table = np.array([c * len(measurement.KINDS) + k for c, k in ordered], dtype=np.int64)
+    obs_sensor = np.searchsorted(table, code).astype(np.int64) if code.size else np.zeros(0, np.int64)
+    return sensors, obs_sensor
