@@ -17,6 +17,8 @@ from typing import Callable
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.collections import PathCollection
+from matplotlib.lines import Line2D
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter
 
@@ -84,93 +86,175 @@ def _trajectory_title(result: RunResult, view: str) -> str:
     return title
 
 
-def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
-    """Top-down (x-y) view of the EKF, odometry, true (and smoothed) paths over the map, metres."""
+def _view_box(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) (3,) of the view: the box holding the estimate, the truth and the smoothed path
+    with a margin of ``VIEW_MARGIN`` of their horizontal span, and a height of at least
+    ``MIN_Z_SPAN`` of it about their middle. Odometry and the map do not set it: odometry's drift
+    (hundreds of metres over 20,000 poses) would shrink the estimate to a blob; they are clipped."""
+    points = np.vstack([xyz for key, xyz in _paths(result).items() if key != "odometry"]
+                       + ([result.truth_xyz] if result.truth_xyz is not None else []))
+    low, high = points.min(axis=0), points.max(axis=0)
+    margin = VIEW_MARGIN * max(float(np.max(high[:2] - low[:2])), 1.0)
+    low, high = low - margin, high + margin
+    middle, height = (low[2] + high[2]) / 2, max(high[2] - low[2], MIN_Z_SPAN * float(np.max(high[:2] - low[:2])))
+    low[2], high[2] = middle - height / 2, middle + height / 2
+    return low, high
+
+
+def _inside(xyz: np.ndarray, low: np.ndarray, high: np.ndarray, dims: int) -> np.ndarray:
+    """(M,) whether each point of ``xyz`` (M, 3) lies in the view box, over its first ``dims`` axes."""
+    return np.all((xyz[:, :dims] >= low[:dims]) & (xyz[:, :dims] <= high[:dims]), axis=1)
+
+
+def _clipped(xyz: np.ndarray, low: np.ndarray, high: np.ndarray, dims: int) -> np.ndarray:
+    """``xyz`` with the points outside the view box set to NaN: the line breaks where it leaves."""
+    return np.where(_inside(xyz, low, high, dims)[:, None], xyz, np.nan)
+
+
+def _odometry_label(result: RunResult, low: np.ndarray, high: np.ndarray, dims: int) -> str:
+    label = _path_labels(result)["odometry"]
+    inside = _inside(result.odometry_xyz, low, high, dims)
+    if inside.all():
+        return label
+    return f"{label},\n{np.count_nonzero(~inside)} of {inside.size} poses outside the view"
+
+
+def path_width(count: int) -> float:
+    """Line width (points) of a path of ``count`` poses: 1.4 up to ``ROLLING_FROM`` poses, thinner
+    beyond (as 1/sqrt of the count, at least 0.5) so that a dense path stays a web, not a smear."""
+    return float(np.clip(1.4 * np.sqrt(ROLLING_FROM / max(count, 1)), 0.5, 1.4))
+
+
+def _map_style(count: int) -> dict:
+    """Scatter style of a map of ``count`` landmarks: small light points, smaller and fainter as
+    they grow more numerous, so that 45,000 landmarks are a grey shade under the paths."""
+    return {"s": float(np.clip(8000.0 / max(count, 1), 0.5, 9.0)), "alpha": float(np.clip(600.0 / max(count, 1) ** 0.75, 0.3, 0.9)),
+            "marker": "o", "color": MAP_COLOR, "linewidths": 0, "rasterized": count > 2000}
+
+
+def _draw_paths(ax: Axes, result: RunResult, xyz_of: Callable[[np.ndarray], np.ndarray], odometry_label: str) -> list:
+    """The paths in their drawing order, bottom first: odometry, the EKF (widest), the smoothed
+    path over it (narrower), the truth on top (narrowest): where they agree, each shows
+    as a border around the next; where they part, each is its own colour. Start and end on top."""
     labels = _path_labels(result)
-    if show_map and len(result.map_landmark_xyz):
-        xyz = result.map_landmark_xyz
-        ax.scatter(xyz[:, 0], xyz[:, 1], s=9, marker="s", color=MAP_COLOR, linewidths=0,
-                   label=f"map ({len(xyz)} landmarks)", zorder=1)
-    if result.truth_xyz is not None:
-        ax.plot(result.truth_xyz[:, 0], result.truth_xyz[:, 1], color=TRUTH_COLOR, label="ground truth",
-                zorder=2, **_STYLE)
-    ax.plot(result.odometry_xyz[:, 0], result.odometry_xyz[:, 1], color=ODOMETRY_COLOR,
-            label=labels["odometry"], zorder=3, **_STYLE)
-    ax.plot(result.estimate_xyz[:, 0], result.estimate_xyz[:, 1], color=ESTIMATE_COLOR,
-            label=labels["estimate"], zorder=4, **_STYLE)
+    width = path_width(len(result.pose_ids))
+    lines = [ax.plot(*xyz_of(result.odometry_xyz), color=ODOMETRY_COLOR, label=odometry_label, linewidth=width, zorder=3)]
+    lines.append(ax.plot(*xyz_of(result.estimate_xyz), color=ESTIMATE_COLOR, label=labels["estimate"],
+                         linewidth=2.6 * width, zorder=4))
     if result.smoothed_xyz is not None:
-        ax.plot(result.smoothed_xyz[:, 0], result.smoothed_xyz[:, 1], color=SMOOTHED_COLOR,
-                label=labels["smoothed"], zorder=4, **_STYLE)
-    start = result.estimate_xyz[0]
-    ax.plot(start[0], start[1], marker="o", color="black", markersize=6, linestyle="none", label="start", zorder=5)
+        lines.append(ax.plot(*xyz_of(result.smoothed_xyz), color=SMOOTHED_COLOR, label=labels["smoothed"],
+                             linewidth=1.2 * width, zorder=5))
+    if result.truth_xyz is not None:
+        lines.append(ax.plot(*xyz_of(result.truth_xyz), color=TRUTH_COLOR, label="ground truth",
+                             linewidth=0.5 * width, zorder=6))
+    for index, marker, name in ((0, "o", "start"), (-1, "s", "end")):
+        ax.plot(*xyz_of(result.estimate_xyz[[index]]), marker=marker, color=START_COLOR, markersize=7,
+                markeredgecolor="white", markeredgewidth=1.0, linestyle="none", label=f"{name} (EKF)", zorder=7)
+    return lines
+
+
+def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
+    """Top-down (x-y) view of the EKF, odometry, true (and smoothed) paths over the map, metres.
+
+    The view holds the estimate, the truth and the smoothed path (``_view_box``); odometry is
+    clipped to it (its legend entry says how many poses fall outside). The truth is drawn last, a
+    thin dark red line through the estimates (``_draw_paths``); start and end are marked; the map
+    is small light points, fainter as it grows (``_map_style``); the legend sits below the axes.
+    """
+    low, high = _view_box(result)
+    if show_map and len(result.map_landmark_xyz):
+        _draw_map_topdown(ax, result.map_landmark_xyz, low, high)
+    _draw_paths(ax, result, lambda xyz: xyz[:, :2].T, _odometry_label(result, low, high, 2))
+    # The view box as the data limits (not fixed limits): the equal aspect widens one side to
+    # fill the axis, and odometry beyond the box is clipped.
+    ax.dataLim.set_points(np.array([low[:2], high[:2]]))
+    ax.margins(0.0)
     ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(_trajectory_title(result, "top-down view"))
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize="small", framealpha=0.85)
+    _legend_below(ax)
     return ax
 
 
-# The 3D box's height is at least this share of its width: a flat path's heights stay readable
-# (the z label says by how much they are stretched).
-MIN_BOX_HEIGHT = 0.25
+# From this many landmarks in view the top-down map is a density image, not points.
+MAP_DENSITY_FROM = 5000
+
+
+def _draw_map_topdown(ax: Axes, map_xyz: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
+    """The map's landmarks: small light points (``_map_style``); from ``MAP_DENSITY_FROM``
+    landmarks, the count of those in the view box per cell (1/150 of its width) as a grey shade,
+    empty cells left white, under a grey square in the legend."""
+    label = f"map ({len(map_xyz)} landmarks)"
+    if len(map_xyz) < MAP_DENSITY_FROM:  # all of them: the axis clips those out of view
+        ax.scatter(map_xyz[:, 0], map_xyz[:, 1], label=label, zorder=1, **_map_style(len(map_xyz)))
+        return
+    xy = map_xyz[_inside(map_xyz, low, high, 2), :2]
+    cell = float(np.max(high[:2] - low[:2])) / 150.0
+    edges = [np.arange(low[axis], high[axis] + cell, cell) for axis in (0, 1)]
+    counts, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=edges)
+    shade = np.ma.masked_equal(counts.T, 0)
+    ax.imshow(shade, origin="lower", extent=(edges[0][0], edges[0][-1], edges[1][0], edges[1][-1]), cmap="Greys",
+              vmin=0.0, vmax=2.5 * max(float(np.percentile(counts[counts > 0], 90)), 1.0), interpolation="nearest",
+              aspect="auto", zorder=1, rasterized=True)
+    ax.fill([], [], color="0.6", label=f"{label[:-1]}, density per {cell:.2g} m cell)")
+
+
+def _legend_below(ax: Axes) -> None:
+    """The legend under the axis (below its x label), in columns, where it hides no data."""
+    legend = ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), ncols=2, fontsize="small", frameon=False,
+                       markerscale=1.0)
+    _readable_handles(legend)
+
+
+def _readable_handles(legend) -> None:
+    """Legend keys drawn readably whatever the data's style: the map's faint points at a visible
+    size, the thin lines of a long run at least 1.5 points wide."""
+    for handle in legend.legend_handles:
+        if isinstance(handle, PathCollection):
+            handle.set_sizes([16.0])
+            handle.set_alpha(1.0)
+        elif isinstance(handle, Line2D) and handle.get_linestyle() != "None":
+            handle.set_linewidth(max(handle.get_linewidth(), 1.5))
+
+
+# The view's height is at least this share of its horizontal span: a flat path is drawn flat, on
+# the same scale as x and y, in a box that is not a sliver.
+MIN_Z_SPAN = 0.2
+VIEW_MARGIN = 0.04
 
 
 def plot_3d(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
     """3D view of the same paths and map; ``ax`` must be a 3D axis (``projection="3d"``).
 
-    x and y share one scale; z is stretched (and its label says so) where the scene is flatter
-    than ``MIN_BOX_HEIGHT`` of its width. Artists keep their ``zorder`` (no depth sorting): the
-    ground truth is a wide pale line under the estimate, visible where they part and as a halo
-    where they agree; the start is a black circle on top.
+    x, y and z share one scale. The view is ``_view_box``'s: it holds the estimate, the truth and
+    the smoothed path, at least ``MIN_Z_SPAN`` of its width tall; odometry and the map are clipped
+    to it (lines break where they leave it). Artists keep their ``zorder`` (no depth sorting), in
+    ``_draw_paths``'s order, truth last. The legend is to the right of the axis.
     """
     ax.computed_zorder = False
-    labels = _path_labels(result)
-    clouds = list(_paths(result).values())
+    low, high = _view_box(result)
     if show_map and len(result.map_landmark_xyz):
-        xyz = result.map_landmark_xyz
-        # a large map is drawn faint, so that it does not bury the paths
-        ax.scatter(*xyz.T, s=6 if len(xyz) < 1000 else 2, marker="s", color=MAP_COLOR, linewidths=0,
-                   alpha=1.0 if len(xyz) < 1000 else 0.35, depthshade=False,
-                   label=f"map ({len(xyz)} landmarks)", zorder=1)
-        clouds.append(xyz)
-    if result.truth_xyz is not None:
-        ax.plot(*result.truth_xyz.T, color=TRUTH_COLOR, label="ground truth", linewidth=4.0, alpha=0.45,
-                solid_capstyle="round", zorder=2)
-        clouds.append(result.truth_xyz)
-    ax.plot(*result.odometry_xyz.T, color=ODOMETRY_COLOR, label=labels["odometry"], zorder=3, **_STYLE)
-    ax.plot(*result.estimate_xyz.T, color=ESTIMATE_COLOR, label=labels["estimate"], zorder=4, **_STYLE)
-    if result.smoothed_xyz is not None:
-        ax.plot(*result.smoothed_xyz.T, color=SMOOTHED_COLOR, label=labels["smoothed"], zorder=5, **_STYLE)
-    ax.plot(*result.estimate_xyz[:1].T, marker="o", color=START_COLOR, markersize=7, linestyle="none",
-            label="start", zorder=6)
-    stretch = _fit_box(ax, np.vstack(clouds))
-    ax.set_xlabel("x [m]", labelpad=10)
-    ax.set_ylabel("y [m]", labelpad=10)
-    ax.set_zlabel("z [m]" if stretch < 1.05 else f"z [m], stretched {stretch:.1f}x", labelpad=8)
+        xyz = result.map_landmark_xyz[_inside(result.map_landmark_xyz, low, high, 3)]
+        ax.scatter(*xyz.T, depthshade=False, label=f"map ({len(result.map_landmark_xyz)} landmarks)", zorder=1,
+                   **_map_style(len(xyz)))
+    _draw_paths(ax, result, lambda xyz: _clipped(xyz, low, high, 3).T, _odometry_label(result, low, high, 3))
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(low[1], high[1])
+    ax.set_zlim(low[2], high[2])
+    ax.set_box_aspect(tuple(high - low), zoom=1.0)
+    ax.set_xlabel("x [m]", labelpad=8)
+    ax.set_ylabel("y [m]", labelpad=8)
+    ax.set_zlabel("z [m]", labelpad=4)
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(nbins=5))
-    ax.zaxis.set_major_locator(MaxNLocator(nbins=4))
+    ax.zaxis.set_major_locator(MaxNLocator(nbins=3))
     ax.set_title(_trajectory_title(result, "3D view"))
-    ax.legend(loc="upper left", fontsize="small", framealpha=0.85)
+    _legend_outside(ax, framealpha=0.85)
+    _readable_handles(ax.get_legend())
     return ax
-
-
-def _fit_box(ax: Axes, points: np.ndarray) -> float:
-    """Limits holding ``points`` (M, 3) with a 3% margin, x and y at one scale; returns how much the
-    box stretches z relative to them (1 when the scene is tall enough)."""
-    low, high = points.min(axis=0), points.max(axis=0)
-    span = np.maximum(high - low, 1e-6)
-    margin = 0.03 * span.max()
-    ax.set_xlim(low[0] - margin, high[0] + margin)
-    ax.set_ylim(low[1] - margin, high[1] + margin)
-    ax.set_zlim(low[2] - margin, high[2] + margin)
-    width = span[:2].max() + 2 * margin
-    extents = np.array([span[0], span[1], span[2]]) + 2 * margin
-    height = max(extents[2], MIN_BOX_HEIGHT * width)
-    ax.set_box_aspect((extents[0], extents[1], height), zoom=0.95)
-    return float(height / extents[2])
 
 
 def _finish_time_axis(ax: Axes, result: RunResult, ylabel: str, title: str) -> None:

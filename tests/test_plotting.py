@@ -164,41 +164,114 @@ def test_library_core_does_not_import_matplotlib():
 # Figures a reader trusts at a glance (issue 21, point 5)
 
 
-def test_3d_view_draws_the_estimate_over_a_visible_truth_from_a_marked_start(result):
+def test_3d_view_draws_the_truth_over_the_estimates_from_a_marked_start_to_a_marked_end(result):
     ax = Figure().add_subplot(projection="3d")
     plotting.plot_3d(ax, result)
     lines = _lines_by_label(ax)
     estimate = next(line for label, line in lines.items() if label.startswith("EKF"))
     truth = lines["ground truth"]
-    # drawn in zorder (no depth sorting), the estimate above a wider truth that shows around it
+    # drawn in zorder (no depth sorting): a thin truth over a wider estimate that shows around it
     assert ax.computed_zorder is False
-    assert estimate.get_zorder() > truth.get_zorder() > ax.collections[0].get_zorder()
-    assert truth.get_linewidth() > 2 * estimate.get_linewidth()
-    start = lines["start"]
-    np.testing.assert_array_equal(np.ravel(start.get_data_3d()), result.estimate_xyz[0])
-    assert start.get_zorder() > estimate.get_zorder() and start.get_marker() == "o"
-    # the limits hold every path and the map
-    points = np.vstack([result.estimate_xyz, result.odometry_xyz, result.truth_xyz, result.map_landmark_xyz])
+    assert truth.get_zorder() > estimate.get_zorder() > ax.collections[0].get_zorder()
+    assert estimate.get_linewidth() > 2 * truth.get_linewidth()
+    for name, index in (("start (EKF)", 0), ("end (EKF)", -1)):
+        np.testing.assert_array_equal(np.ravel(lines[name].get_data_3d()), result.estimate_xyz[index])
+        assert lines[name].get_zorder() > truth.get_zorder()
+    # the limits hold the estimate and the truth
+    points = np.vstack([result.estimate_xyz, result.truth_xyz])
     for axis, (low, high) in enumerate((ax.get_xlim(), ax.get_ylim(), ax.get_zlim())):
         assert low <= points[:, axis].min() and points[:, axis].max() <= high
 
 
-def test_3d_view_stretches_a_flat_scene_and_says_so(result):
+def _drifting(result, drift):
+    """``result`` whose odometry drifts by ``drift`` (3,) metres a pose (odometry's drift over
+    thousands of poses)."""
     import dataclasses
 
-    flat = dataclasses.replace(result, map_landmark_xyz=result.map_landmark_xyz * [1.0, 1.0, 0.0])
-    flat = dataclasses.replace(flat, truth_xyz=flat.truth_xyz * [1, 1, 0], estimate_xyz=flat.estimate_xyz * [1, 1, 0],
-                               odometry_xyz=flat.odometry_xyz * [1, 1, 0])
+    steps = np.arange(len(result.pose_ids))[:, None] * np.asarray(drift, dtype=float)
+    return dataclasses.replace(result, odometry_xyz=result.odometry_xyz + steps)
+
+
+def _flat(result):
+    """``result`` on flat ground, map included, like the real file."""
+    import dataclasses
+
+    flat = [1.0, 1.0, 0.0]
+    return dataclasses.replace(result, truth_xyz=result.truth_xyz * flat, estimate_xyz=result.estimate_xyz * flat,
+                               odometry_xyz=result.odometry_xyz * flat, map_landmark_xyz=result.map_landmark_xyz * flat)
+
+
+def test_path_views_are_set_by_the_estimate_and_truth_and_clip_odometry(result):
+    # odometry's drift (here 30 m a pose, up and sideways) sets neither view; it is clipped to it
+    drifted = _drifting(result, [30.0, 0.0, 30.0])
+    span = np.ptp(np.vstack([result.estimate_xyz, result.truth_xyz]), axis=0)
+    ax = plotting.plot_topdown(Figure().add_subplot(), drifted)
+    ax.apply_aspect()
+    assert np.ptp(ax.get_xlim()) < 3 * span[:2].max() and np.ptp(ax.get_ylim()) < 3 * span[:2].max()
+    ax3 = plotting.plot_3d(Figure().add_subplot(projection="3d"), drifted)
+    limits = np.array([ax3.get_xlim(), ax3.get_ylim(), ax3.get_zlim()])
+    assert np.all(np.ptp(limits, axis=1) < 1.2 * span[:2].max())
+    for view in (ax, ax3):
+        label = next(line.get_label() for line in view.get_lines() if line.get_label().startswith("odometry"))
+        assert f"of {len(result.pose_ids)} poses outside the view" in label
+    odometry = next(line for line in ax3.get_lines() if line.get_label().startswith("odometry"))
+    drawn = np.column_stack(odometry.get_data_3d())
+    drawn = drawn[np.isfinite(drawn).all(axis=1)]
+    assert len(drawn) and np.all((drawn >= limits[:, 0]) & (drawn <= limits[:, 1]))
+
+
+def test_3d_view_of_a_flat_run_is_flat_on_one_scale_and_holds_the_estimate(result):
+    # the real file's shape: flat ground, odometry drifting in z; the z axis is neither set by
+    # the drift nor stretched, and is at least MIN_Z_SPAN of the width tall
+    flat = _drifting(_flat(result), [0.0, 0.0, -0.5])
     ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), flat)
-    width, depth, height = ax.get_box_aspect()
-    assert height == pytest.approx(plotting.MIN_BOX_HEIGHT * max(width, depth))
-    assert "stretched" in ax.get_zlabel()
-    # a scene as tall as it is wide keeps one scale on every axis
-    tall = dataclasses.replace(result, map_landmark_xyz=result.map_landmark_xyz * [1.0, 1.0, 5.0])
-    ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), tall)
-    width, depth, height = ax.get_box_aspect()
+    limits = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+    spans = np.ptp(limits, axis=1)
+    assert spans[2] == pytest.approx(plotting.MIN_Z_SPAN * spans[:2].max())
+    assert limits[2, 0] <= flat.estimate_xyz[:, 2].min() and flat.estimate_xyz[:, 2].max() <= limits[2, 1]
+    np.testing.assert_allclose(np.array(ax.get_box_aspect()) / ax.get_box_aspect()[0], spans / spans[0])
     assert ax.get_zlabel() == "z [m]"
-    assert height / width == pytest.approx(np.ptp(ax.get_zlim()) / np.ptp(ax.get_xlim()))
+    # a tall scene keeps its height, on the same scale
+    import dataclasses
+
+    tall = dataclasses.replace(result, truth_xyz=result.truth_xyz * [1.0, 1.0, 30.0])
+    ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), tall)
+    assert ax.get_zlim()[1] - ax.get_zlim()[0] >= np.ptp(tall.truth_xyz[:, 2])
+
+
+@pytest.mark.parametrize("three_d", [False, True])
+def test_path_legends_hide_no_data(result, three_d):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    size, _ = plotting.FIGURES["3d" if three_d else "topdown"]
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d") if three_d else fig.add_subplot()
+    (plotting.plot_3d if three_d else plotting.plot_topdown)(ax, result)
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    assert not legend.overlaps(ax.get_window_extent())  # outside the axes, let alone the data
+    assert fig.bbox.contains(legend.x0, legend.y0) and fig.bbox.contains(legend.x1, legend.y1)
+
+
+@pytest.mark.parametrize("count", [200, 2_000, 4_000, 20_000])
+def test_a_large_map_stays_a_light_background(result, count):
+    # 7,000 landmarks drawn as 9 pt^2 squares were grey blobs: the map's ink stays under a tenth
+    # of the axis whatever its count; past MAP_DENSITY_FROM it is a density image
+    import dataclasses
+
+    rng = np.random.default_rng(1)
+    big = dataclasses.replace(result, map_landmark_ids=np.arange(count),
+                              map_landmark_xyz=rng.uniform([-3.0, -3.0, 0.0], [3.0, 3.0, 0.2], (count, 3)))
+    fig = Figure(figsize=plotting.FIGURES["topdown"][0])
+    ax = plotting.plot_topdown(fig.add_subplot(), big)
+    if count >= plotting.MAP_DENSITY_FROM:
+        assert not ax.collections and ax.images[0].get_array().sum() == count
+        return
+    points = ax.collections[0]
+    axis_area = np.prod(ax.get_position().size * fig.get_size_inches() * 72.0)
+    assert points.get_sizes()[0] * count <= 0.1 * axis_area
+    assert "map (%d landmarks" % count in points.get_label()
 
 
 def test_error_figure_gives_odometry_its_own_panels(result):
