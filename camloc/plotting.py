@@ -258,12 +258,15 @@ def plot_3d(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
 
 
 def _finish_time_axis(ax: Axes, result: RunResult, ylabel: str, title: str) -> None:
-    ax.set_xlim(result.pose_ids[0] - 0.5, result.pose_ids[-1] + 0.5)
+    step = np.sign(result.pose_ids[-1] - result.pose_ids[0]) or 1
+    ax.set_xlim(result.pose_ids[0] - 0.5 * step, result.pose_ids[-1] + 0.5 * step)
     ax.set_xlabel("pose id")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    # six-digit ids at ten ticks run together in a half-page panel: fewer ticks for longer ids
+    digits = len(str(int(np.max(np.abs(result.pose_ids)))))
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True, nbins=10 if digits <= 3 else (7 if digits == 4 else 5)))
     _legend_outside(ax)
 
 
@@ -308,6 +311,8 @@ def _path_errors(result: RunResult, key: str, *, rotation: bool) -> np.ndarray:
     return metrics.rotation_errors_deg(quat, result.truth_quat_xyzw)
 
 
+# Line widths of the error panels: the smoothed path's over the filter's, narrower.
+ERROR_WIDTHS = {"estimate": 2.2, "smoothed": 1.0}
 _PATH_COLORS = {"estimate": ESTIMATE_COLOR, "odometry": ODOMETRY_COLOR, "smoothed": SMOOTHED_COLOR}
 
 
@@ -316,19 +321,80 @@ def _plot_errors(ax: Axes, result: RunResult, paths: tuple[str, ...], *, rotatio
     if result.truth_xyz is None:
         return _no_truth(ax, what)
     x = result.pose_ids
+    bins = pose_bins(len(x))
+    lowest = []  # per-bin medians, whose smallest sets a long run's log axis
     if "estimate" in paths:
         bound = rotation_sigma_bound_deg(result, sigma=sigma) if rotation else position_sigma_bound(result, sigma=sigma)
         symbol = "rot" if rotation else "xyz"
-        ax.fill_between(x, 0.0, bound, color=ESTIMATE_COLOR, alpha=0.15, linewidth=0,
-                        label=rf"EKF ${sigma:g}\sigma$ ($ {sigma:g}\sqrt{{\mathrm{{tr}}\,P_{{{symbol}}}}}$)")
+        name = rf"EKF ${sigma:g}\sigma$ ($ {sigma:g}\sqrt{{\mathrm{{tr}}\,P_{{{symbol}}}}}$)"
+        if bins is None:
+            ax.fill_between(x, 0.0, bound, color=ESTIMATE_COLOR, alpha=0.15, linewidth=0, label=name)
+        else:  # a band of one-pose spikes is hairlines: the highest and the median bound of each bin
+            _fill_bins(ax, x, bins, np.maximum.reduceat(bound, bins[:-1]), alpha=0.13,
+                       label=rf"EKF ${sigma:g}\sigma$ (highest)")
+            lowest.append(_bin_medians(bound, bins))
+            _fill_bins(ax, x, bins, lowest[-1], alpha=0.3, label=f"{name} (median)")
     drawn = [key for key in paths if key in _paths(result)]
-    for key in drawn:
-        ax.plot(x, _path_errors(result, key, rotation=rotation), color=_PATH_COLORS[key], label=_PATH_NAMES[key], **_STYLE)
-    ax.set_ylim(bottom=0.0)
+    # As the paths' views: the filter's errors wide, the smoother's narrower over them, so that
+    # where they agree the filter's shows as a border
+    for order, key in enumerate(drawn):
+        errors = _path_errors(result, key, rotation=rotation)
+        style = {"color": _PATH_COLORS[key], "zorder": 3 + order}
+        width = ERROR_WIDTHS.get(key, _STYLE["linewidth"])
+        if bins is None:
+            ax.plot(x, errors, label=_PATH_NAMES[key], linewidth=width, **style)
+            continue
+        ax.plot(*_bin_steps(x, bins, np.maximum.reduceat(errors, bins[:-1])), linewidth=0.6, alpha=0.7, **style)
+        lowest.append(_bin_medians(errors, bins))
+        ax.plot(*_bin_steps(x, bins, lowest[-1]), linewidth=width, label=f"{_PATH_NAMES[key]} (median; thin: highest)",
+                **style)
     unit = "deg" if rotation else "m"
     whose = " and ".join(_PATH_NAMES[key] for key in drawn)
-    _finish_time_axis(ax, result, f"{what} [{unit}]", f"{what} of {whose}")
+    title = f"{what} of {whose}"
+    if bins is None:
+        ax.set_ylim(bottom=0.0)
+    else:  # medians of millimetres under spikes of a metre: a log axis shows both
+        positive = np.concatenate(lowest)
+        positive = positive[positive > 0]
+        ax.set_yscale("log")
+        if positive.size:
+            ax.set_ylim(bottom=0.5 * float(positive.min()))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        title += f", per {bins[1] - bins[0]} poses"
+    _finish_time_axis(ax, result, f"{what} [{unit}]", title)
     return ax
+
+
+# Past ROLLING_FROM poses a series is drawn per bin of poses, in at most this many bins: a pose is
+# then narrower than a pixel, and a one-pose spike (of an error, of the 3-sigma bound) a hairline.
+MAX_BINS = 150
+
+
+def pose_bins(count: int) -> np.ndarray | None:
+    """(B + 1,) indices where the bins of a series of ``count`` poses start (the last: ``count``),
+    each of the same number of consecutive poses but the last; None up to ``ROLLING_FROM`` poses,
+    drawn one by one."""
+    if count <= ROLLING_FROM:
+        return None
+    size = -(-count // MAX_BINS)
+    return np.append(np.arange(0, count, size), count)
+
+
+def _bin_medians(values: np.ndarray, bins: np.ndarray) -> np.ndarray:
+    return np.array([np.median(values[a:b]) for a, b in zip(bins[:-1], bins[1:])])
+
+
+def _bin_steps(x: np.ndarray, bins: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A step line at ``values`` (B,) over each bin's poses of ``x``, from the first pose's left
+    edge to the last one's right edge."""
+    step = np.sign(x[-1] - x[0]) if len(x) > 1 else 1
+    edges = np.append(x[bins[:-1]], x[-1] + step) - 0.5 * step
+    return edges, np.append(values, values[-1])
+
+
+def _fill_bins(ax: Axes, x: np.ndarray, bins: np.ndarray, values: np.ndarray, **style) -> None:
+    edges, top = _bin_steps(x, bins, values)
+    ax.fill_between(edges, 0.0, top, step="post", color=ESTIMATE_COLOR, linewidth=0, **style)
 
 
 def plot_position_error(ax: Axes, result: RunResult, *, paths: tuple[str, ...] = FILTER_PATHS, sigma: float = SIGMA) -> Axes:

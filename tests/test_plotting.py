@@ -361,3 +361,67 @@ def test_the_figures_plot_draws_are_the_ones_a_forced_run_replaces():
 
     assert tuple(plotting.FIGURES) == results.FIGURE_NAMES
     assert {f"fig-{name}.png" for name in plotting.FIGURES} <= results.CAMLOC_FILES
+
+
+# --------------------------------------------------------------------------------------------
+# Figures that stay readable at 3,000 poses and beyond (issue 36, point 4)
+
+
+@pytest.fixture
+def long_run(synthetic_run):
+    """3,000 poses, ids from 100,000 (six digits), smoothed: the errors of the smoother a little
+    under the filter's."""
+    import dataclasses
+
+    run = synthetic_run(seed=11, num_poses=3000)
+    return dataclasses.replace(run, pose_ids=run.pose_ids + 99_000,
+                               associations=dataclasses.replace(run.associations, pose_id=run.associations.pose_id + 99_000),
+                               update_pose_ids=run.update_pose_ids + 99_000,
+                               smoothed_xyz=0.5 * (run.estimate_xyz + run.truth_xyz), smoothed_quat_xyzw=run.truth_quat_xyzw)
+
+
+def _drawn(fig):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    fig.canvas.draw()
+    return fig
+
+
+def _overlapping_tick_labels(axis) -> int:
+    extents = [label.get_window_extent() for label in axis.get_ticklabels() if label.get_visible() and label.get_text()]
+    return sum(a.overlaps(b) for i, a in enumerate(extents) for b in extents[i + 1:])
+
+
+@pytest.mark.parametrize("rotation", [False, True])
+def test_a_long_runs_sigma_band_is_a_visible_area_and_keeps_its_highest_value(long_run, rotation):
+    # 3,000 one-pose spikes of the band were sub-pixel hairlines: per bin of poses, each step of
+    # the band is pixels wide, and the highest step is the highest bound
+    fig = _drawn(plotting.draw_errors(Figure(figsize=plotting.FIGURES["errors"][0], layout="constrained"), long_run))
+    ax = fig.axes[2 * rotation]
+    bound = (plotting.rotation_sigma_bound_deg if rotation else plotting.position_sigma_bound)(long_run)
+    highest, median = ax.collections[:2]
+    for band in (highest, median):
+        corners = ax.transData.transform(band.get_paths()[0].vertices)
+        steps = np.diff(np.unique(np.round(corners[:, 0], 6)))
+        assert steps.min() >= 2.0  # pixels
+    assert highest.get_paths()[0].vertices[:, 1].max() == pytest.approx(bound.max())
+    assert np.median(median.get_paths()[0].vertices[:, 1]) < np.median(highest.get_paths()[0].vertices[:, 1])
+    assert ax.get_ylim()[0] > 0 and ax.get_yscale() == "log"  # millimetres under metre spikes
+    assert _overlapping_tick_labels(ax.xaxis) == 0  # six-digit pose ids
+
+
+@pytest.mark.parametrize("poses", [60, 3000])
+def test_the_smoothed_errors_do_not_hide_the_filters(synthetic_run, long_run, poses):
+    # the smoother's line, drawn over the filter's, is narrower: the filter's shows around it
+    import dataclasses
+
+    if poses == 3000:
+        run = long_run
+    else:
+        run = synthetic_run(seed=5, num_poses=poses)
+        run = dataclasses.replace(run, smoothed_xyz=run.truth_xyz, smoothed_quat_xyzw=run.truth_quat_xyzw)
+    ax = plotting.plot_position_error(Figure().add_subplot(), run)
+    lines = {line.get_label().split(" ")[0]: line for line in ax.get_lines() if not line.get_label().startswith("_")}
+    assert lines["smoothed"].get_zorder() > lines["EKF"].get_zorder()
+    assert lines["EKF"].get_linewidth() >= 2 * lines["smoothed"].get_linewidth()
