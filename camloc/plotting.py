@@ -370,11 +370,11 @@ def _plot_errors(ax: Axes, result: RunResult, paths: tuple[str, ...], *, rotatio
 MAX_BINS = 150
 
 
-def pose_bins(count: int) -> np.ndarray | None:
+def pose_bins(count: int, *, start: int | None = None) -> np.ndarray | None:
     """(B + 1,) indices where the bins of a series of ``count`` poses start (the last: ``count``),
-    each of the same number of consecutive poses but the last; None up to ``ROLLING_FROM`` poses,
-    drawn one by one."""
-    if count <= ROLLING_FROM:
+    each of the same number of consecutive poses but the last; None up to ``start`` poses (by
+    default ``ROLLING_FROM``), drawn one by one."""
+    if count <= (ROLLING_FROM if start is None else start):
         return None
     size = -(-count // MAX_BINS)
     return np.append(np.arange(0, count, size), count)
@@ -495,9 +495,10 @@ def plot_nis(ax: Axes, result: RunResult) -> Axes:
     return ax
 
 
-# Above this many poses the association plot stacks areas instead of bars: a bar is an artist of
-# its own, and 20,000 poses' three bars each took matplotlib 50 s to add and draw.
-MAX_BARS = 1000
+# Above this many poses the association plot counts per bin of poses (``pose_bins``): a bar per
+# pose is narrower than a pixel, and a rare outcome (a missed detection, rejected clutter) vanishes
+# in a comb of thousands (each bar an artist, too: 20,000 poses' took matplotlib 50 s).
+MAX_BARS = ROLLING_FROM
 
 
 # Per-pose outcome of the observations, bottom to top of each stack: (mask name, colour).
@@ -507,13 +508,16 @@ ASSOCIATION_CATEGORIES = {
     "missed": MISSED_COLOR,
     "clutter_rejected": CLUTTER_REJECTED_COLOR,
 }
+NO_OBSERVATION_TEXT = "no observation was used: the estimate is odometry alone"
 
 
 def plot_associations(ax: Axes, result: RunResult) -> Axes:
     """Per pose, stacked bars of correct, wrong, missed (a map landmark's detection left
-    unassociated) and clutter rejected (against the file's ids); past ``MAX_BARS`` poses, the same
-    counts as stacked step areas, one artist each. Every pose with a wrong pair also gets a red
-    marker above its stack: at thousands of poses a one-pose bar is narrower than a pixel.
+    unassociated) and clutter rejected (against the file's ids). Past ``MAX_BARS`` poses, each
+    outcome's count per bin of poses (``pose_bins``) as its own step line on a log axis, so that
+    the rare ones stay visible beside thousands of correct pairs. Every pose with a wrong pair also
+    gets a red marker: above its stack, or at the top of the axis for binned counts. A run that
+    used no observation says so (its estimate is odometry alone).
 
     Wrong includes clutter that was accepted.
     """
@@ -531,26 +535,69 @@ def plot_associations(ax: Axes, result: RunResult) -> Axes:
         "missed": f"missed ({scores['missed']}: a map landmark's, left out)",
         "clutter_rejected": f"clutter rejected ({scores['rejected'] - scores['missed']})",
     }
-    bottom = np.zeros(len(result.pose_ids))
-    handles = []
-    for name, color in ASSOCIATION_CATEGORIES.items():
-        top = bottom + counts[name]
-        if len(result.pose_ids) > MAX_BARS:
-            handles.append(ax.fill_between(result.pose_ids, bottom, top, step="mid", color=color, linewidth=0, label=labels[name]))
-        else:
-            handles.append(ax.bar(result.pose_ids, counts[name], bottom=bottom, width=0.85, color=color, linewidth=0, label=labels[name]))
-        bottom = top
-    wrong = counts["wrong"] > 0
-    marks = ax.scatter(result.pose_ids[wrong], bottom[wrong] + 0.06 * max(float(bottom.max()), 1.0) + 0.3, marker="v", s=30,
-               color=WRONG_COLOR, edgecolors="black", linewidths=0.4, zorder=5,
-               label=f"pose with a wrong pair ({int(wrong.sum())})")
-    ax.set_ylim(0.0, max(float(bottom.max()), 1.0) * 1.15 + 0.6)
     precision = "-" if scores["precision"] is None else f"{scores['precision']:.3f}"
     recall = "-" if scores["recall"] is None else f"{scores['recall']:.3f}"
-    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-    _finish_time_axis(ax, result, "observations", f"data association per pose: precision {precision}, recall {recall}")
+    title = f"data association per pose: precision {precision}, recall {recall}"
+    if scores["correct"] + scores["wrong"] == 0:
+        ax.text(0.5, 0.5, NO_OBSERVATION_TEXT, ha="center", va="center", transform=ax.transAxes, color="0.25",
+                fontsize="large", bbox={"facecolor": "white", "edgecolor": "0.6", "alpha": 0.9}, zorder=10)
+        if result.associations.pose_id.size == 0:
+            ax.set_yticks([])
+            ax.set_xlim(result.pose_ids.min() - 0.5, result.pose_ids.max() + 0.5)
+            ax.set_xlabel("pose id")
+            ax.set_title("data association: no observation in the file")
+            return ax
+    wrong = counts["wrong"] > 0
+    bins = pose_bins(len(result.pose_ids), start=MAX_BARS)
+    if bins is None:
+        handles, top = _stacked_bars(ax, result.pose_ids, counts, labels)
+        marks = ax.scatter(result.pose_ids[wrong], top[wrong] + 0.06 * max(float(top.max()), 1.0) + 0.3, marker="v",
+                           s=30, color=WRONG_COLOR, edgecolors="black", linewidths=0.4, zorder=5,
+                           label=f"pose with a wrong pair ({int(wrong.sum())})")
+        ax.set_ylim(0.0, max(float(top.max()), 1.0) * 1.15 + 0.6)
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ylabel = "observations"
+    else:
+        handles = _binned_counts(ax, result.pose_ids, bins, counts, labels)
+        marks = ax.scatter(result.pose_ids[wrong], np.full(int(wrong.sum()), 0.96), marker="v", s=30, color=WRONG_COLOR,
+                           edgecolors="black", linewidths=0.4, zorder=5, transform=ax.get_xaxis_transform(),
+                           label=f"pose with a wrong pair ({int(wrong.sum())})")
+        ylabel = f"observations per {bins[1] - bins[0]} poses"
+        title = title.replace("per pose", f"per {bins[1] - bins[0]} poses")
+    _finish_time_axis(ax, result, ylabel, title)
     _legend_outside(ax, handles=[*handles, marks])  # in stacking order, bottom first
     return ax
+
+
+def _stacked_bars(ax: Axes, x: np.ndarray, counts: dict, labels: dict) -> tuple[list, np.ndarray]:
+    """A bar per pose and outcome, stacked in ``ASSOCIATION_CATEGORIES``' order; returns the
+    bars' containers and the stacks' tops (N,)."""
+    bottom = np.zeros(len(x))
+    handles = []
+    for name, color in ASSOCIATION_CATEGORIES.items():
+        handles.append(ax.bar(x, counts[name], bottom=bottom, width=0.85, color=color, linewidth=0, label=labels[name]))
+        bottom = bottom + counts[name]
+    return handles, bottom
+
+
+def _binned_counts(ax: Axes, x: np.ndarray, bins: np.ndarray, counts: dict, labels: dict) -> list:
+    """Each outcome's count per bin of poses as a step line (no line over a bin without one) on a
+    log axis, correct over a light area of its own; returns the lines."""
+    handles = []
+    highest = 1.0
+    for name, color in ASSOCIATION_CATEGORIES.items():
+        per_bin = np.add.reduceat(counts[name], bins[:-1]).astype(float)
+        highest = max(highest, float(per_bin.max()))
+        edges, values = _bin_steps(x, bins, per_bin)
+        if name == "correct":
+            ax.fill_between(edges, 0.5, np.maximum(values, 0.5), step="post", color=color, alpha=0.25, linewidth=0)
+        line_color = "0.55" if color == CLUTTER_REJECTED_COLOR else color  # the bars' light grey is too faint for a line
+        handles.append(ax.step(edges, np.where(values > 0, values, np.nan), where="post", color=line_color,
+                               linewidth=1.6, label=labels[name])[0])
+    ax.set_yscale("log")
+    ax.set_ylim(0.7, 4.0 * highest)  # room above for the wrong pairs' markers
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    return handles
 
 
 # --------------------------------------------------------------------------------------------

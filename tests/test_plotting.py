@@ -117,25 +117,6 @@ def test_association_bars_follow_pose_ids_that_do_not_increase(result):
     np.testing.assert_array_equal(heights, np.bincount(index, minlength=len(result.pose_ids)))
 
 
-def test_association_areas_of_a_long_run_stack_to_the_observations_of_each_pose(synthetic_run, monkeypatch):
-    # past MAX_BARS poses: three step areas instead of a bar per pose and outcome
-    result = synthetic_run(seed=5, num_poses=30)
-    monkeypatch.setattr(plotting, "MAX_BARS", 10)
-    ax = Figure().add_subplot()
-    plotting.plot_associations(ax, result)
-    assert not ax.patches and len(ax.collections) == 5  # four areas and the wrong pairs' markers
-    index = np.searchsorted(result.pose_ids, result.associations.pose_id)
-    expected = np.bincount(index, minlength=len(result.pose_ids))
-    # the last area's outline: over each pose, its highest level segment is the stack's top
-    outline = ax.collections[3].get_paths()[0].vertices
-    left, right = np.minimum(outline[:-1, 0], outline[1:, 0]), np.maximum(outline[:-1, 0], outline[1:, 0])
-    level = (outline[:-1, 1] == outline[1:, 1]) & (left < right)  # either way round: the outline comes back along the top
-    at_pose = np.array([outline[:-1][level & (left <= pose) & (pose <= right), 1].max() for pose in result.pose_ids])
-    np.testing.assert_array_equal(at_pose, expected)
-    labels = [text.get_text() for text in ax.get_legend().get_texts()]
-    assert labels[0].startswith("correct (")
-
-
 def test_plots_without_truth_say_so(synthetic_run):
     result = synthetic_run(with_truth=False)
     for plot in (plotting.plot_position_error, plotting.plot_rotation_error, plotting.plot_nees):
@@ -425,3 +406,43 @@ def test_the_smoothed_errors_do_not_hide_the_filters(synthetic_run, long_run, po
     lines = {line.get_label().split(" ")[0]: line for line in ax.get_lines() if not line.get_label().startswith("_")}
     assert lines["smoothed"].get_zorder() > lines["EKF"].get_zorder()
     assert lines["EKF"].get_linewidth() >= 2 * lines["smoothed"].get_linewidth()
+
+
+def test_a_long_runs_associations_count_every_outcome_per_bin_visibly(long_run):
+    # a bar per pose was a comb of sub-pixel bars where 2% missed and 10% clutter vanished: past
+    # MAX_BARS poses, each outcome's count per bin is its own line on a log axis
+    fig = _drawn(plotting.draw_associations(Figure(figsize=plotting.FIGURES["associations"][0], layout="constrained"),
+                                            long_run))
+    ax = fig.axes[0]
+    assert ax.get_yscale() == "log"
+    outcomes = metrics.association_outcomes(long_run.associations, long_run.map_landmark_ids)
+    outcomes["clutter_rejected"] = outcomes["rejected"] & ~outcomes["in_map"]
+    lines = ax.get_lines()
+    assert [line.get_label().split(" (")[0] for line in lines] == ["correct", "wrong", "missed", "clutter rejected"]
+    for name, line in zip(plotting.ASSOCIATION_CATEGORIES, lines):
+        edges, values = line.get_xdata(), np.nan_to_num(line.get_ydata()[:-1])
+        assert values.sum() == np.count_nonzero(outcomes[name])  # every observation counted once
+        if values.sum():
+            assert np.nanmax(line.get_ydata()) > ax.get_ylim()[0]  # in view
+        widths = np.diff(ax.transData.transform(np.column_stack([edges, np.ones_like(edges)]))[:, 0])
+        assert widths.min() >= 2.0  # pixels
+    assert "per 20 poses" in ax.get_title() and _overlapping_tick_labels(ax.xaxis) == 0
+    legend = ax.get_legend().get_window_extent()
+    assert not legend.overlaps(ax.get_window_extent())
+
+
+def test_associations_of_a_run_that_used_no_observation_say_why_the_panel_is_empty(result):
+    import dataclasses
+
+    none = dataclasses.replace(result, associations=dataclasses.replace(
+        result.associations, **{field.name: getattr(result.associations, field.name)[:0]
+                                for field in dataclasses.fields(result.associations)}))
+    all_rejected = dataclasses.replace(result, associations=dataclasses.replace(
+        result.associations, landmark=np.full_like(result.associations.landmark, -1)))
+    for run in (none, all_rejected):
+        fig = plotting.draw_associations(Figure(figsize=plotting.FIGURES["associations"][0]), run)
+        texts = [text.get_text() for text in fig.axes[0].texts]
+        assert "no observation was used: the estimate is odometry alone" in texts
+    # a run that used some keeps its bars without the note
+    ax = plotting.plot_associations(Figure().add_subplot(), result)
+    assert not ax.texts
