@@ -20,7 +20,7 @@ from matplotlib.axes import Axes
 from matplotlib.collections import PathCollection
 from matplotlib.lines import Line2D
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 
 from camloc import metrics
 from camloc.results import RunResult
@@ -607,7 +607,13 @@ ORACLE_COLOR = "0.45"
 
 
 def plot_sweep_ate(ax: Axes, groups: list[tuple[str, str | None, list[float]]], *, title: str = "") -> Axes:
-    """Distribution of position RMSE per configuration: a box and every run as a point, log scale.
+    """Distribution of position RMSE per configuration: a box and every run as a point.
+
+    The colour is the association (a legend names each, the oracle's grey included), so labels
+    leave it out: the configurations that differ only in their association share one label,
+    centred under their boxes, between faint separators; labels too long for their room are
+    slanted. The axis is logarithmic over a decade or more (ticks at 1, 2, 5 of each decade when
+    it spans few), linear within one, so that it always has numbers to read.
 
     Parameters
     ----------
@@ -627,17 +633,63 @@ def plot_sweep_ate(ax: Axes, groups: list[tuple[str, str | None, list[float]]], 
     for x, (_, association, values) in zip(positions, groups):
         jitter = (np.arange(len(values)) % 7 - 3) * 0.05
         ax.plot(x + jitter, values, "o", markersize=3, color=palette[association], alpha=0.8)
-    ax.set_xticks(positions, [label for label, _, _ in groups], fontsize="small")
+    _label_configurations(ax, [_without_association(label) for label, _, _ in groups])
     ax.set_xlim(0.4, len(groups) + 0.6)
     if filled:
-        _plain_log_scale(ax)
-        low, high = ax.get_ylim()
-        if high / low < 10.0:  # within a decade every tick needs its number
-            ax.yaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        _readable_value_axis(ax, np.concatenate([v for _, v in filled]))
     ax.set_ylabel("position RMSE [m]")
     ax.set_title(title or "position RMSE per configuration")
     ax.grid(True, axis="y", alpha=0.3, which="both")
+    used = list(dict.fromkeys(a for _, a, values in groups if a is not None))
+    if used:
+        from matplotlib.patches import Patch
+
+        names = {"oracle": "oracle (the file's true ids)"}
+        ax.legend(handles=[Patch(facecolor=palette[a], edgecolor=palette[a], alpha=0.6, label=names.get(a, a))
+                           for a in used], title="association", loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                  borderaxespad=0.0, fontsize="small")
     return ax
+
+
+def _without_association(label: str) -> str:
+    """A configuration's label without its ``association=`` line: the colour says it."""
+    return "\n".join(line for line in label.split("\n") if not line.startswith("association=")) or "all runs"
+
+
+def _label_configurations(ax: Axes, labels: list[str]) -> None:
+    """One tick label per run of equal consecutive ``labels`` (boxes 1, 2, ...), centred under
+    them, with a faint line between runs; slanted when a line of text is wider than its room."""
+    blocks: list[list] = []  # [label, first box, last box]
+    for x, label in enumerate(labels, start=1):
+        if blocks and blocks[-1][0] == label:
+            blocks[-1][2] = x
+        else:
+            blocks.append([label, x, x])
+    ax.set_xticks([(first + last) / 2 for _, first, last in blocks], [label for label, _, _ in blocks], fontsize="small")
+    for _, _, last in blocks[:-1]:
+        ax.axvline(last + 0.5, color="0.8", linewidth=0.8, zorder=0)
+    # room per box in inches against the widest line at the small font (about 0.075 in a character)
+    room = ax.get_position().width * ax.get_figure().get_size_inches()[0] / (len(labels) + 0.2)
+    widest = max(min(last - first + 1, 3) * room / max(len(line), 1)
+                 for label, first, last in blocks for line in label.split("\n"))
+    if widest < 0.075:
+        for tick in ax.get_xticklabels():
+            tick.set(rotation=30, ha="right", rotation_mode="anchor")
+
+
+def _readable_value_axis(ax: Axes, values: np.ndarray) -> None:
+    """A log axis over values spanning a decade or more, with labelled ticks at 1, 2 and 5 of each
+    decade (1 alone past three decades), plain numbers; a linear axis within a decade, where a log
+    axis has one tick label or none."""
+    low, high = float(np.min(values)), float(np.max(values))
+    if low <= 0 or high / low < 10.0:
+        ax.yaxis.set_major_locator(MaxNLocator(nbins=6))
+        return
+    ax.set_yscale("log")
+    subs = (1.0,) if high / low > 1e3 else (1.0, 2.0, 5.0)
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=subs))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
 
 
 # --------------------------------------------------------------------------------------------
@@ -693,6 +745,11 @@ def draw_associations(fig: Figure, result: RunResult) -> Figure:
     return fig
 
 
+def sweep_size(groups: list) -> tuple[float, float]:
+    """Figure size (inches) of ``draw_sweep``: 1.1 inch a configuration, room for the legend."""
+    return (max(8.0, 1.1 * len(groups) + 4.0), 6.0)
+
+
 def draw_sweep(fig: Figure, sweep: tuple[list, str]) -> Figure:
     """A sweep's position RMSE per configuration; ``sweep`` is (groups, title) as
     ``plot_sweep_ate`` takes them."""
@@ -713,8 +770,21 @@ def draw_report(fig: Figure, result: RunResult) -> Figure:
     plot_nees(fig.add_subplot(grid[3, 0]), result)
     plot_nis(fig.add_subplot(grid[3, 1]), result)
     plot_associations(fig.add_subplot(grid[4, :]), result)
-    fig.suptitle(f"{dataset_name(result)}: filter {consistency_title(result)}")
+    fig.suptitle(f"{run_title(result)}\n{consistency_title(result)}", fontsize="x-large")
     return fig
+
+
+def run_title(result: RunResult) -> str:
+    """``"<dataset>: <filter> EKF, <association> association, <N> poses[, smoothed]"``: which
+    run a page shows (the filter and association as the run's configuration names them)."""
+    config = result.summary.get("config", {})
+    parts = [f"{config['filter']} EKF" if "filter" in config else "EKF"]
+    if "association" in config:
+        parts.append(f"{config['association']} association")
+    parts.append(f"{len(result.pose_ids)} poses")
+    if result.smoothed_xyz is not None:
+        parts.append("smoothed")
+    return f"{dataset_name(result)}: {', '.join(parts)}"
 
 
 # name -> (figure size in inches, layout); file names are ``fig-<name>.<format>``.

@@ -446,3 +446,50 @@ def test_associations_of_a_run_that_used_no_observation_say_why_the_panel_is_emp
     # a run that used some keeps its bars without the note
     ax = plotting.plot_associations(Figure().add_subplot(), result)
     assert not ax.texts
+
+
+def test_the_reports_page_title_names_the_run(result):
+    import dataclasses
+
+    run = dataclasses.replace(result, summary={**result.summary, "config": {"filter": "se3", "association": "jcbb"}})
+    title = plotting.draw_report(Figure(figsize=plotting.REPORT_SIZE), run).get_suptitle()
+    assert title.startswith(f"{run.dataset}: se3 EKF, jcbb association, {len(run.pose_ids)} poses")
+    assert "consistency:" in title.splitlines()[1]  # the verdict below it, no longer the page's title
+
+
+def _sweep_groups(values_of) -> list:
+    """Eight configurations as camloc.sweep.ate_groups labels them, the oracle beside each method."""
+    groups = []
+    for clutter in ("0.0", "0.15"):
+        for trajectory in ("grid", "smooth3d"):
+            for association in ("oracle", "beam"):
+                label = f"clutter-fraction={clutter}\ntrajectory={trajectory}\nassociation={association}"
+                groups.append((label, association, values_of(len(groups))))
+    return groups
+
+
+def test_sweep_labels_are_readable_and_a_legend_names_the_oracles_colour():
+    groups = _sweep_groups(lambda n: list(0.05 + 0.01 * np.arange(3) + 0.002 * n))
+    fig = _drawn(plotting.draw_sweep(Figure(figsize=plotting.sweep_size(groups), layout="constrained"), (groups, "study")))
+    ax = fig.axes[0]
+    labels = [tick.get_text() for tick in ax.get_xticklabels()]
+    assert len(labels) == 4 and not any("association=" in label for label in labels)  # the colour says it
+    assert _overlapping_tick_labels(ax.xaxis) == 0
+    legend = ax.get_legend()
+    entries = {text.get_text(): handle for text, handle in zip(legend.get_texts(), legend.legend_handles)}
+    oracle = next(handle for text, handle in entries.items() if text.startswith("oracle"))
+    assert matplotlib.colors.to_hex(oracle.get_facecolor()) == matplotlib.colors.to_hex(plotting.ORACLE_COLOR)
+    assert "beam" in entries
+    assert not legend.get_window_extent().overlaps(ax.get_window_extent())
+
+
+@pytest.mark.parametrize("low, high", [(0.092, 0.097), (0.05, 0.09), (0.03, 0.5), (0.2, 9.0), (0.015, 6.0), (0.01, 40.0), (0.0015, 2.0)])
+def test_the_sweeps_value_axis_always_has_numbers_to_read(low, high):
+    groups = _sweep_groups(lambda n: list(np.geomspace(low, high, 8)[[n, (n + 3) % 8]]))
+    fig = _drawn(plotting.draw_sweep(Figure(figsize=plotting.sweep_size(groups), layout="constrained"), (groups, "")))
+    ax = fig.axes[0]
+    bottom, top = ax.get_ylim()
+    shown = [tick for tick in ax.yaxis.get_majorticklabels() + ax.yaxis.get_minorticklabels()
+             if tick.get_text() and bottom <= tick.get_position()[1] <= top]
+    assert len(shown) >= 3
+    assert _overlapping_tick_labels(ax.yaxis) == 0
