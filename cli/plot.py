@@ -65,8 +65,8 @@ def plot(
     from camloc import plotting
 
     if sweep:
-        size = (max(6.0, 1.1 * len(result[0]) + 2.0), 6.0)
-        layouts = {output or run_dir / f"fig-sweep.{figure_format.value}": (size, plotting.draw_sweep)}
+        layouts = {output or run_dir / f"fig-sweep.{figure_format.value}": (plotting.sweep_size(result[0]),
+                                                                             plotting.draw_sweep)}
     elif output is not None:
         layouts = {output: (plotting.REPORT_SIZE, plotting.draw_report)}
     else:

@@ -117,25 +117,6 @@ def test_association_bars_follow_pose_ids_that_do_not_increase(result):
     np.testing.assert_array_equal(heights, np.bincount(index, minlength=len(result.pose_ids)))
 
 
-def test_association_areas_of_a_long_run_stack_to_the_observations_of_each_pose(synthetic_run, monkeypatch):
-    # past MAX_BARS poses: three step areas instead of a bar per pose and outcome
-    result = synthetic_run(seed=5, num_poses=30)
-    monkeypatch.setattr(plotting, "MAX_BARS", 10)
-    ax = Figure().add_subplot()
-    plotting.plot_associations(ax, result)
-    assert not ax.patches and len(ax.collections) == 5  # four areas and the wrong pairs' markers
-    index = np.searchsorted(result.pose_ids, result.associations.pose_id)
-    expected = np.bincount(index, minlength=len(result.pose_ids))
-    # the last area's outline: over each pose, its highest level segment is the stack's top
-    outline = ax.collections[3].get_paths()[0].vertices
-    left, right = np.minimum(outline[:-1, 0], outline[1:, 0]), np.maximum(outline[:-1, 0], outline[1:, 0])
-    level = (outline[:-1, 1] == outline[1:, 1]) & (left < right)  # either way round: the outline comes back along the top
-    at_pose = np.array([outline[:-1][level & (left <= pose) & (pose <= right), 1].max() for pose in result.pose_ids])
-    np.testing.assert_array_equal(at_pose, expected)
-    labels = [text.get_text() for text in ax.get_legend().get_texts()]
-    assert labels[0].startswith("correct (")
-
-
 def test_plots_without_truth_say_so(synthetic_run):
     result = synthetic_run(with_truth=False)
     for plot in (plotting.plot_position_error, plotting.plot_rotation_error, plotting.plot_nees):
@@ -164,41 +145,114 @@ def test_library_core_does_not_import_matplotlib():
 # Figures a reader trusts at a glance (issue 21, point 5)
 
 
-def test_3d_view_draws_the_estimate_over_a_visible_truth_from_a_marked_start(result):
+def test_3d_view_draws_the_truth_over_the_estimates_from_a_marked_start_to_a_marked_end(result):
     ax = Figure().add_subplot(projection="3d")
     plotting.plot_3d(ax, result)
     lines = _lines_by_label(ax)
     estimate = next(line for label, line in lines.items() if label.startswith("EKF"))
     truth = lines["ground truth"]
-    # drawn in zorder (no depth sorting), the estimate above a wider truth that shows around it
+    # drawn in zorder (no depth sorting): a thin truth over a wider estimate that shows around it
     assert ax.computed_zorder is False
-    assert estimate.get_zorder() > truth.get_zorder() > ax.collections[0].get_zorder()
-    assert truth.get_linewidth() > 2 * estimate.get_linewidth()
-    start = lines["start"]
-    np.testing.assert_array_equal(np.ravel(start.get_data_3d()), result.estimate_xyz[0])
-    assert start.get_zorder() > estimate.get_zorder() and start.get_marker() == "o"
-    # the limits hold every path and the map
-    points = np.vstack([result.estimate_xyz, result.odometry_xyz, result.truth_xyz, result.map_landmark_xyz])
+    assert truth.get_zorder() > estimate.get_zorder() > ax.collections[0].get_zorder()
+    assert estimate.get_linewidth() > 2 * truth.get_linewidth()
+    for name, index in (("start (EKF)", 0), ("end (EKF)", -1)):
+        np.testing.assert_array_equal(np.ravel(lines[name].get_data_3d()), result.estimate_xyz[index])
+        assert lines[name].get_zorder() > truth.get_zorder()
+    # the limits hold the estimate and the truth
+    points = np.vstack([result.estimate_xyz, result.truth_xyz])
     for axis, (low, high) in enumerate((ax.get_xlim(), ax.get_ylim(), ax.get_zlim())):
         assert low <= points[:, axis].min() and points[:, axis].max() <= high
 
 
-def test_3d_view_stretches_a_flat_scene_and_says_so(result):
+def _drifting(result, drift):
+    """``result`` whose odometry drifts by ``drift`` (3,) metres a pose (odometry's drift over
+    thousands of poses)."""
     import dataclasses
 
-    flat = dataclasses.replace(result, map_landmark_xyz=result.map_landmark_xyz * [1.0, 1.0, 0.0])
-    flat = dataclasses.replace(flat, truth_xyz=flat.truth_xyz * [1, 1, 0], estimate_xyz=flat.estimate_xyz * [1, 1, 0],
-                               odometry_xyz=flat.odometry_xyz * [1, 1, 0])
+    steps = np.arange(len(result.pose_ids))[:, None] * np.asarray(drift, dtype=float)
+    return dataclasses.replace(result, odometry_xyz=result.odometry_xyz + steps)
+
+
+def _flat(result):
+    """``result`` on flat ground, map included, like the real file."""
+    import dataclasses
+
+    flat = [1.0, 1.0, 0.0]
+    return dataclasses.replace(result, truth_xyz=result.truth_xyz * flat, estimate_xyz=result.estimate_xyz * flat,
+                               odometry_xyz=result.odometry_xyz * flat, map_landmark_xyz=result.map_landmark_xyz * flat)
+
+
+def test_path_views_are_set_by_the_estimate_and_truth_and_clip_odometry(result):
+    # odometry's drift (here 30 m a pose, up and sideways) sets neither view; it is clipped to it
+    drifted = _drifting(result, [30.0, 0.0, 30.0])
+    span = np.ptp(np.vstack([result.estimate_xyz, result.truth_xyz]), axis=0)
+    ax = plotting.plot_topdown(Figure().add_subplot(), drifted)
+    ax.apply_aspect()
+    assert np.ptp(ax.get_xlim()) < 3 * span[:2].max() and np.ptp(ax.get_ylim()) < 3 * span[:2].max()
+    ax3 = plotting.plot_3d(Figure().add_subplot(projection="3d"), drifted)
+    limits = np.array([ax3.get_xlim(), ax3.get_ylim(), ax3.get_zlim()])
+    assert np.all(np.ptp(limits, axis=1) < 1.2 * span[:2].max())
+    for view in (ax, ax3):
+        label = next(line.get_label() for line in view.get_lines() if line.get_label().startswith("odometry"))
+        assert f"of {len(result.pose_ids)} poses outside the view" in label
+    odometry = next(line for line in ax3.get_lines() if line.get_label().startswith("odometry"))
+    drawn = np.column_stack(odometry.get_data_3d())
+    drawn = drawn[np.isfinite(drawn).all(axis=1)]
+    assert len(drawn) and np.all((drawn >= limits[:, 0]) & (drawn <= limits[:, 1]))
+
+
+def test_3d_view_of_a_flat_run_is_flat_on_one_scale_and_holds_the_estimate(result):
+    # the real file's shape: flat ground, odometry drifting in z; the z axis is neither set by
+    # the drift nor stretched, and is at least MIN_Z_SPAN of the width tall
+    flat = _drifting(_flat(result), [0.0, 0.0, -0.5])
     ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), flat)
-    width, depth, height = ax.get_box_aspect()
-    assert height == pytest.approx(plotting.MIN_BOX_HEIGHT * max(width, depth))
-    assert "stretched" in ax.get_zlabel()
-    # a scene as tall as it is wide keeps one scale on every axis
-    tall = dataclasses.replace(result, map_landmark_xyz=result.map_landmark_xyz * [1.0, 1.0, 5.0])
-    ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), tall)
-    width, depth, height = ax.get_box_aspect()
+    limits = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+    spans = np.ptp(limits, axis=1)
+    assert spans[2] == pytest.approx(plotting.MIN_Z_SPAN * spans[:2].max())
+    assert limits[2, 0] <= flat.estimate_xyz[:, 2].min() and flat.estimate_xyz[:, 2].max() <= limits[2, 1]
+    np.testing.assert_allclose(np.array(ax.get_box_aspect()) / ax.get_box_aspect()[0], spans / spans[0])
     assert ax.get_zlabel() == "z [m]"
-    assert height / width == pytest.approx(np.ptp(ax.get_zlim()) / np.ptp(ax.get_xlim()))
+    # a tall scene keeps its height, on the same scale
+    import dataclasses
+
+    tall = dataclasses.replace(result, truth_xyz=result.truth_xyz * [1.0, 1.0, 30.0])
+    ax = plotting.plot_3d(Figure().add_subplot(projection="3d"), tall)
+    assert ax.get_zlim()[1] - ax.get_zlim()[0] >= np.ptp(tall.truth_xyz[:, 2])
+
+
+@pytest.mark.parametrize("three_d", [False, True])
+def test_path_legends_hide_no_data(result, three_d):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    size, _ = plotting.FIGURES["3d" if three_d else "topdown"]
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d") if three_d else fig.add_subplot()
+    (plotting.plot_3d if three_d else plotting.plot_topdown)(ax, result)
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    assert not legend.overlaps(ax.get_window_extent())  # outside the axes, let alone the data
+    assert fig.bbox.contains(legend.x0, legend.y0) and fig.bbox.contains(legend.x1, legend.y1)
+
+
+@pytest.mark.parametrize("count", [200, 2_000, 4_000, 20_000])
+def test_a_large_map_stays_a_light_background(result, count):
+    # 7,000 landmarks drawn as 9 pt^2 squares were grey blobs: the map's ink stays under a tenth
+    # of the axis whatever its count; past MAP_DENSITY_FROM it is a density image
+    import dataclasses
+
+    rng = np.random.default_rng(1)
+    big = dataclasses.replace(result, map_landmark_ids=np.arange(count),
+                              map_landmark_xyz=rng.uniform([-3.0, -3.0, 0.0], [3.0, 3.0, 0.2], (count, 3)))
+    fig = Figure(figsize=plotting.FIGURES["topdown"][0])
+    ax = plotting.plot_topdown(fig.add_subplot(), big)
+    if count >= plotting.MAP_DENSITY_FROM:
+        assert not ax.collections and ax.images[0].get_array().sum() == count
+        return
+    points = ax.collections[0]
+    axis_area = np.prod(ax.get_position().size * fig.get_size_inches() * 72.0)
+    assert points.get_sizes()[0] * count <= 0.1 * axis_area
+    assert "map (%d landmarks" % count in points.get_label()
 
 
 def test_error_figure_gives_odometry_its_own_panels(result):
@@ -288,3 +342,154 @@ def test_the_figures_plot_draws_are_the_ones_a_forced_run_replaces():
 
     assert tuple(plotting.FIGURES) == results.FIGURE_NAMES
     assert {f"fig-{name}.png" for name in plotting.FIGURES} <= results.CAMLOC_FILES
+
+
+# --------------------------------------------------------------------------------------------
+# Figures that stay readable at 3,000 poses and beyond (issue 36, point 4)
+
+
+@pytest.fixture
+def long_run(synthetic_run):
+    """3,000 poses, ids from 100,000 (six digits), smoothed: the errors of the smoother a little
+    under the filter's."""
+    import dataclasses
+
+    run = synthetic_run(seed=11, num_poses=3000)
+    return dataclasses.replace(run, pose_ids=run.pose_ids + 99_000,
+                               associations=dataclasses.replace(run.associations, pose_id=run.associations.pose_id + 99_000),
+                               update_pose_ids=run.update_pose_ids + 99_000,
+                               smoothed_xyz=0.5 * (run.estimate_xyz + run.truth_xyz), smoothed_quat_xyzw=run.truth_quat_xyzw)
+
+
+def _drawn(fig):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    fig.canvas.draw()
+    return fig
+
+
+def _overlapping_tick_labels(axis) -> int:
+    extents = [label.get_window_extent() for label in axis.get_ticklabels() if label.get_visible() and label.get_text()]
+    return sum(a.overlaps(b) for i, a in enumerate(extents) for b in extents[i + 1:])
+
+
+@pytest.mark.parametrize("rotation", [False, True])
+def test_a_long_runs_sigma_band_is_a_visible_area_and_keeps_its_highest_value(long_run, rotation):
+    # 3,000 one-pose spikes of the band were sub-pixel hairlines: per bin of poses, each step of
+    # the band is pixels wide, and the highest step is the highest bound
+    fig = _drawn(plotting.draw_errors(Figure(figsize=plotting.FIGURES["errors"][0], layout="constrained"), long_run))
+    ax = fig.axes[2 * rotation]
+    bound = (plotting.rotation_sigma_bound_deg if rotation else plotting.position_sigma_bound)(long_run)
+    highest, median = ax.collections[:2]
+    for band in (highest, median):
+        corners = ax.transData.transform(band.get_paths()[0].vertices)
+        steps = np.diff(np.unique(np.round(corners[:, 0], 6)))
+        assert steps.min() >= 2.0  # pixels
+    assert highest.get_paths()[0].vertices[:, 1].max() == pytest.approx(bound.max())
+    assert np.median(median.get_paths()[0].vertices[:, 1]) < np.median(highest.get_paths()[0].vertices[:, 1])
+    assert ax.get_ylim()[0] > 0 and ax.get_yscale() == "log"  # millimetres under metre spikes
+    assert _overlapping_tick_labels(ax.xaxis) == 0  # six-digit pose ids
+
+
+@pytest.mark.parametrize("poses", [60, 3000])
+def test_the_smoothed_errors_do_not_hide_the_filters(synthetic_run, long_run, poses):
+    # the smoother's line, drawn over the filter's, is narrower: the filter's shows around it
+    import dataclasses
+
+    if poses == 3000:
+        run = long_run
+    else:
+        run = synthetic_run(seed=5, num_poses=poses)
+        run = dataclasses.replace(run, smoothed_xyz=run.truth_xyz, smoothed_quat_xyzw=run.truth_quat_xyzw)
+    ax = plotting.plot_position_error(Figure().add_subplot(), run)
+    lines = {line.get_label().split(" ")[0]: line for line in ax.get_lines() if not line.get_label().startswith("_")}
+    assert lines["smoothed"].get_zorder() > lines["EKF"].get_zorder()
+    assert lines["EKF"].get_linewidth() >= 2 * lines["smoothed"].get_linewidth()
+
+
+def test_a_long_runs_associations_count_every_outcome_per_bin_visibly(long_run):
+    # a bar per pose was a comb of sub-pixel bars where 2% missed and 10% clutter vanished: past
+    # MAX_BARS poses, each outcome's count per bin is its own line on a log axis
+    fig = _drawn(plotting.draw_associations(Figure(figsize=plotting.FIGURES["associations"][0], layout="constrained"),
+                                            long_run))
+    ax = fig.axes[0]
+    assert ax.get_yscale() == "log"
+    outcomes = metrics.association_outcomes(long_run.associations, long_run.map_landmark_ids)
+    outcomes["clutter_rejected"] = outcomes["rejected"] & ~outcomes["in_map"]
+    lines = ax.get_lines()
+    assert [line.get_label().split(" (")[0] for line in lines] == ["correct", "wrong", "missed", "clutter rejected"]
+    for name, line in zip(plotting.ASSOCIATION_CATEGORIES, lines):
+        edges, values = line.get_xdata(), np.nan_to_num(line.get_ydata()[:-1])
+        assert values.sum() == np.count_nonzero(outcomes[name])  # every observation counted once
+        if values.sum():
+            assert np.nanmax(line.get_ydata()) > ax.get_ylim()[0]  # in view
+        widths = np.diff(ax.transData.transform(np.column_stack([edges, np.ones_like(edges)]))[:, 0])
+        assert widths.min() >= 2.0  # pixels
+    assert "per 20 poses" in ax.get_title() and _overlapping_tick_labels(ax.xaxis) == 0
+    legend = ax.get_legend().get_window_extent()
+    assert not legend.overlaps(ax.get_window_extent())
+
+
+def test_associations_of_a_run_that_used_no_observation_say_why_the_panel_is_empty(result):
+    import dataclasses
+
+    none = dataclasses.replace(result, associations=dataclasses.replace(
+        result.associations, **{field.name: getattr(result.associations, field.name)[:0]
+                                for field in dataclasses.fields(result.associations)}))
+    all_rejected = dataclasses.replace(result, associations=dataclasses.replace(
+        result.associations, landmark=np.full_like(result.associations.landmark, -1)))
+    for run in (none, all_rejected):
+        fig = plotting.draw_associations(Figure(figsize=plotting.FIGURES["associations"][0]), run)
+        texts = [text.get_text() for text in fig.axes[0].texts]
+        assert "no observation was used: the estimate is odometry alone" in texts
+    # a run that used some keeps its bars without the note
+    ax = plotting.plot_associations(Figure().add_subplot(), result)
+    assert not ax.texts
+
+
+def test_the_reports_page_title_names_the_run(result):
+    import dataclasses
+
+    run = dataclasses.replace(result, summary={**result.summary, "config": {"filter": "se3", "association": "jcbb"}})
+    title = plotting.draw_report(Figure(figsize=plotting.REPORT_SIZE), run).get_suptitle()
+    assert title.startswith(f"{run.dataset}: se3 EKF, jcbb association, {len(run.pose_ids)} poses")
+    assert "consistency:" in title.splitlines()[1]  # the verdict below it, no longer the page's title
+
+
+def _sweep_groups(values_of) -> list:
+    """Eight configurations as camloc.sweep.ate_groups labels them, the oracle beside each method."""
+    groups = []
+    for clutter in ("0.0", "0.15"):
+        for trajectory in ("grid", "smooth3d"):
+            for association in ("oracle", "beam"):
+                label = f"clutter-fraction={clutter}\ntrajectory={trajectory}\nassociation={association}"
+                groups.append((label, association, values_of(len(groups))))
+    return groups
+
+
+def test_sweep_labels_are_readable_and_a_legend_names_the_oracles_colour():
+    groups = _sweep_groups(lambda n: list(0.05 + 0.01 * np.arange(3) + 0.002 * n))
+    fig = _drawn(plotting.draw_sweep(Figure(figsize=plotting.sweep_size(groups), layout="constrained"), (groups, "study")))
+    ax = fig.axes[0]
+    labels = [tick.get_text() for tick in ax.get_xticklabels()]
+    assert len(labels) == 4 and not any("association=" in label for label in labels)  # the colour says it
+    assert _overlapping_tick_labels(ax.xaxis) == 0
+    legend = ax.get_legend()
+    entries = {text.get_text(): handle for text, handle in zip(legend.get_texts(), legend.legend_handles)}
+    oracle = next(handle for text, handle in entries.items() if text.startswith("oracle"))
+    assert matplotlib.colors.to_hex(oracle.get_facecolor()) == matplotlib.colors.to_hex(plotting.ORACLE_COLOR)
+    assert "beam" in entries
+    assert not legend.get_window_extent().overlaps(ax.get_window_extent())
+
+
+@pytest.mark.parametrize("low, high", [(0.092, 0.097), (0.05, 0.09), (0.03, 0.5), (0.2, 9.0), (0.015, 6.0), (0.01, 40.0), (0.0015, 2.0)])
+def test_the_sweeps_value_axis_always_has_numbers_to_read(low, high):
+    groups = _sweep_groups(lambda n: list(np.geomspace(low, high, 8)[[n, (n + 3) % 8]]))
+    fig = _drawn(plotting.draw_sweep(Figure(figsize=plotting.sweep_size(groups), layout="constrained"), (groups, "")))
+    ax = fig.axes[0]
+    bottom, top = ax.get_ylim()
+    shown = [tick for tick in ax.yaxis.get_majorticklabels() + ax.yaxis.get_minorticklabels()
+             if tick.get_text() and bottom <= tick.get_position()[1] <= top]
+    assert len(shown) >= 3
+    assert _overlapping_tick_labels(ax.yaxis) == 0
