@@ -36,6 +36,19 @@ def print_error(message: str) -> None:
     err_console.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
 
 
+def print_warnings(warnings: Any, source: Any = None) -> None:
+    """``warning: [<source>: ]<message>`` on stderr, one line each (a log or grep keeps it whole).
+
+    Every command prints its warnings this way, under ``--quiet`` too: quiet silences progress and
+    tables, not what a script run quietly must still be told (the estimate is odometry alone, the
+    map looks incomplete). Under ``--json`` they are in the object instead (its ``warnings``), so
+    the commands do not call this then.
+    """
+    where = f"{escape(str(source))}: " if source is not None else ""
+    for warning in warnings:
+        err_console.print(f"[yellow]warning:[/] {where}{escape(str(warning))}", highlight=False, soft_wrap=True)
+
+
 class _FlagsWithoutValueType:
     """Flags listed in ``--help`` without a value type: typer shows ``<bool>``, a value the flag
     refuses (``--json true`` is an error)."""
@@ -170,7 +183,8 @@ def library_option(text: str, source: str, *names: str, **limits: Any) -> Any:
 
 
 def quiet_option() -> Any:
-    return typer.Option(False, "--quiet", "-q", help=with_default("Print nothing but errors."), show_default=False)
+    return typer.Option(False, "--quiet", "-q", help=with_default(
+        "Print no progress and no tables: only warnings and errors, on stderr."), show_default=False)
 
 
 def json_option(what: str, *, instead: str = "tables") -> Any:

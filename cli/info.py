@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from camloc.cli.common import console, dataset_argument, echo_json, json_option, quiet_option
+from camloc.cli.common import console, dataset_argument, echo_json, json_option, print_warnings, quiet_option
 
 
 def info(
@@ -27,7 +27,10 @@ def info(
         # The reader's warnings are part of the summary; printing them twice would be noise.
         warnings.simplefilter("ignore", G2oWarning)
         summary = summarize_dataset(read_g2o(dataset))
-    if echo_json(summary, enabled=json_output) or quiet:
+    if echo_json(summary, enabled=json_output):
+        return  # the warnings are the object's "warnings"
+    if quiet:
+        print_warnings(summary["warnings"], dataset)  # the table lists them; without it, stderr does
         return
     from camloc.cli.info_render import render_dataset_summary
 

@@ -17,6 +17,7 @@ from camloc.cli.common import (
     force_option,
     json_option,
     library_option,
+    print_warnings,
     quiet_option,
 )
 
@@ -164,7 +165,7 @@ def run(
 ) -> None:
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
-    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all. Prints the trajectory error of the EKF and of odometry alone, the associations and the speed.
+    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
 
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset of up to 2,000 poses it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
@@ -197,15 +198,12 @@ def run(
                                       else lambda started: None)
 
     if echo_json(result.summary, enabled=json_output):
-        return
+        return  # the warnings are the object's "warnings"
     if not quiet:
         from camloc.cli.run_render import render_run_summary
 
         console.print(render_run_summary(result.summary, written))
-        for warning in result.summary.get("warnings", []):
-            # one line each, named by the dataset as errors are (a log or grep keeps it whole)
-            err_console.print(f"[yellow]warning:[/] {escape(str(dataset_path))}: {escape(warning)}", highlight=False,
-                              soft_wrap=True)
+    print_warnings(result.summary.get("warnings", []), dataset_path)  # named by the dataset, as errors are
 
 
 def _say_compiling() -> None:

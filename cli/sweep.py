@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from camloc.cli.common import console, err_console, json_option, quiet_option
+from camloc.cli.common import console, err_console, json_option, print_warnings, quiet_option
 
 EXIT_INTERRUPTED = 130
 EXIT_ALL_FAILED = 1  # no run gave a result: a script must not take the empty study for one
@@ -52,11 +52,10 @@ def sweep(
         typer.echo(dumps_json(vars(outcome)), nl=False)
     elif not quiet:
         console.print(render_summary(spec, outcome))
-    if not quiet:
-        for warning in outcome.warnings:  # one line each, as every command prints its warnings
-            err_console.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False, soft_wrap=True)
-    if outcome.failed and not quiet:
-        err_console.print(f"[yellow]warning:[/] {outcome.failed} of {outcome.cells} runs failed (each row of runs.csv says why); "
-                          f"the first: {escape(outcome.first_error)}", highlight=False, soft_wrap=True)
+    if not json_output:  # the object holds them: its warnings, failed and first_error
+        print_warnings(outcome.warnings)
+    if outcome.failed and not json_output:
+        print_warnings([f"{outcome.failed} of {outcome.cells} runs failed (each row of runs.csv says why); "
+                        f"the first: {outcome.first_error}"])
     if outcome.failed == outcome.cells:
         raise typer.Exit(EXIT_ALL_FAILED)
