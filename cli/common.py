@@ -18,13 +18,13 @@ try:  # typer 0.2x carries its own copy of click
 except ImportError:  # older typer runs on click itself
     from click.exceptions import UsageError
 
+from camloc.cli import EXIT_INTERRUPTED, caused_by_interrupt, command_settled
 from camloc.errors import CamlocError
 
 console = Console()
 err_console = Console(stderr=True)
 
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for a job stopped by Ctrl-C
 
 # The placeholders of the two kinds of input, the same in every command's usage line and help.
 DATASET = "DATASET"
@@ -87,25 +87,41 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
 
     def invoke(self, ctx: typer.Context) -> Any:
         try:
+            return self._invoke(ctx)
+        finally:
+            command_settled()
+
+    def _invoke(self, ctx: typer.Context) -> Any:
+        try:
             return super().invoke(ctx)
-        except CamlocError as error:
-            print_error(str(error))
-            raise typer.Exit(EXIT_BAD_INPUT) from None
-        except OSError as error:
-            # the machine refused (a folder not writable, a file where a folder goes, a full
-            # disk): the file and the reason, as for bad input; outputs stay whole or absent
-            print_error(describe_os_error(error))
-            raise typer.Exit(EXIT_BAD_INPUT) from None
-        except MemoryError:
-            print_error("not enough memory for this command and its options (a very large count or size?)")
-            raise typer.Exit(EXIT_BAD_INPUT) from None
-        except UsageError as error:
-            _usage_error(error, ctx)
-        except KeyboardInterrupt:
-            # Outputs are written whole or not at all, so an interrupted command leaves nothing
-            # half-written; say so rather than print a traceback or nothing.
-            err_console.print("interrupted", style="yellow", highlight=False)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except typer.Exit:
+            raise  # a command's own exit status (sweep's 130 after its own message)
+        except BaseException as error:
+            # Ctrl-C first, whatever it became on its way out: inside a numba kernel it surfaces
+            # as a SystemError whose cause is the KeyboardInterrupt
+            if caused_by_interrupt(error):
+                say_interrupted()
+                raise typer.Exit(EXIT_INTERRUPTED) from None
+            if isinstance(error, CamlocError):
+                print_error(str(error))
+                raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, OSError):
+                # the machine refused (a folder not writable, a file where a folder goes, a full
+                # disk): the file and the reason, as for bad input; outputs stay whole or absent
+                print_error(describe_os_error(error))
+                raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, MemoryError):
+                print_error("not enough memory for this command and its options (a very large count or size?)")
+                raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, UsageError):
+                _usage_error(error, ctx)
+            raise
+
+
+def say_interrupted() -> None:
+    """The one line of an interrupted command. Outputs are written whole or not at all, so it
+    leaves nothing half-written; say so rather than print a traceback or nothing."""
+    err_console.print("interrupted", style="yellow", highlight=False)
 
 
 def describe_os_error(error: OSError) -> str:

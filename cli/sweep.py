@@ -9,9 +9,9 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
+from camloc.cli import EXIT_INTERRUPTED, caused_by_interrupt
 from camloc.cli.common import console, err_console, json_option, print_warnings, quiet_option
 
-EXIT_INTERRUPTED = 130
 EXIT_ALL_FAILED = 1  # no run gave a result: a script must not take the empty study for one
 
 
@@ -44,7 +44,9 @@ def sweep(
     try:
         with cell_progress(enabled=not (json_output or quiet), description=f"sweeping {spec_file.name}") as on_row:
             outcome = run_sweep(spec, output, workers=workers, scheduler=scheduler, on_row=on_row)
-    except KeyboardInterrupt:
+    except BaseException as error:
+        if not caused_by_interrupt(error):
+            raise
         err_console.print(f"[yellow]interrupted:[/] the finished rows are in {escape(str(output))}; run the same "
                           "command again to go on", highlight=False, soft_wrap=True)
         raise typer.Exit(EXIT_INTERRUPTED) from None

@@ -71,17 +71,46 @@ def test_a_bad_option_is_one_short_line_and_exit_2_in_every_command(tmp_path, mo
     (["info", "{dataset}"], "camloc.dataset_summary.summarize_dataset"),
     (["simulate", "-o", "{tmp}/s.g2o"], "camloc.simulate.simulate_labelled"),
 ])
-def test_ctrl_c_says_interrupted_and_exits_130(tmp_path, monkeypatch, world, args, target):
+@pytest.mark.parametrize("inside_numba", [False, True], ids=["plain", "inside-numba"])
+def test_ctrl_c_says_interrupted_and_exits_130(tmp_path, monkeypatch, world, args, target, inside_numba):
     dataset, run_dir = world
 
     def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
+        if not inside_numba:
+            raise KeyboardInterrupt
+        # what a Ctrl-C inside a compiled kernel becomes: SystemErrors, one per level of
+        # compiled calls, the KeyboardInterrupt their first cause
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as error:
+                raise SystemError("<function _numba_unpickle> returned a result with an exception set") from error
+        except SystemError as error:
+            raise SystemError("CPUDispatcher(<function run_poses>) returned a result with an exception set") from error
 
     monkeypatch.setattr(target, interrupted)
     outcome = invoke(*(arg.format(dataset=dataset, run_dir=run_dir, tmp=tmp_path) for arg in args))
     assert outcome.exit_code == 130
     assert outcome.stderr == "interrupted\n"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_only_an_interrupt_in_the_chain_counts_as_one():
+    from camloc.cli import caused_by_interrupt
+
+    def chained(cause, *, suppress=False):
+        try:
+            raise cause
+        except BaseException:
+            try:
+                raise (SystemError("wrapped") if not suppress else ValueError("new")) from (cause if not suppress else None)
+            except BaseException as error:
+                return error
+
+    assert caused_by_interrupt(KeyboardInterrupt()) and caused_by_interrupt(chained(KeyboardInterrupt()))
+    assert not caused_by_interrupt(chained(ValueError("bad")))
+    assert not caused_by_interrupt(chained(KeyboardInterrupt(), suppress=True))  # 'from None' cuts the chain
+    assert not caused_by_interrupt(None)
 
 
 def test_eval_plot_and_smooth_of_a_dataset_file_say_what_it_is(world):
