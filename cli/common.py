@@ -63,7 +63,13 @@ class _FlagsWithoutValueType:
 
 class CamlocCommand(_FlagsWithoutValueType, TyperCommand):
     """Every camloc command (``app.command(name, cls=CamlocCommand)``): its options' defaults are
-    written into their help when ``--help`` is shown (``with_default``)."""
+    written into their help when ``--help`` is shown (``with_default``), and its usage line names
+    arguments the usual way, ``NAME`` and ``[NAME]`` when optional."""
+
+    def collect_usage_pieces(self, ctx: typer.Context) -> list[str]:
+        # typer writes a required argument {NAME}, which reads as a set of choices
+        return [piece[1:-1] if piece.startswith("{") and piece.endswith("}") else piece
+                for piece in super().collect_usage_pieces(ctx)]
 
     def format_help(self, ctx: typer.Context, formatter: Any) -> Any:
         for param in self.get_params(ctx):
@@ -139,8 +145,23 @@ def _usage_error(error: UsageError, ctx: typer.Context) -> None:
     where = error.ctx.command_path if error.ctx is not None else ctx.command_path
     if error.ctx is None and ctx.invoked_subcommand:  # an option's missing value: its command's help
         where = f"{ctx.command_path} {ctx.invoked_subcommand}"
-    print_error(f"{error.format_message()} (see '{where} --help')")
+    print_error(f"{plain_usage_message(error.format_message())} (see '{where} --help')")
     raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+# How typer (through pydantic) words a value that is none of an option's choices.
+_NOT_A_CHOICE = re.compile(r"Value error, (?P<value>.+) is not one of (?P<choices>.+?)\.?$")
+
+
+def plain_usage_message(message: str) -> str:
+    """A bad option's message in camloc's words: ``expected one of none, se3, sim3, found 'foo'``
+    rather than pydantic's ``Value error, 'foo' is not one of 'none', 'se3', 'sim3'.``, the same for
+    every option with choices."""
+    match = _NOT_A_CHOICE.search(message)
+    if match is not None:
+        choices = ", ".join(choice.strip().strip("'") for choice in match["choices"].split(","))
+        message = f"{message[:match.start()]}expected one of {choices}, found {match['value']}"
+    return message.replace("Value error, ", "")
 
 
 # The library's option classes whose defaults the help shows ("{localizer.iterations}"); they are

@@ -43,10 +43,10 @@ class CostChoice(str, Enum):
 # The help's panels: each method's own options, then the options of every method but oracle and of
 # all; their config file's table in brackets (camloc.options).
 BEAM = escape("Beam: --association beam; [beam] in a config file")
-BEST_FRIENDS = escape("Best friends: --association best-friends (cost and margin also seed jcbb); [best-friends] in a config file")
+BEST_FRIENDS = escape("Best friends (and jcbb's seed): [best-friends] in a config file")
 JCBB = escape("JCBB: --association jcbb; [jcbb] in a config file")
 RECHECK = escape("Re-check: every association but oracle; [recheck] in a config file")
-VIEW = escape("Candidate landmarks: every association but oracle; [view] in a config file")
+VIEW = escape("Candidate landmarks: all associations but oracle; [view] in a config file")
 
 
 def run(
@@ -84,8 +84,8 @@ def run(
         "localizer.gate", "--gate"
     ),
     null_cost: Optional[float] = typer.Option(
-        None, help="Cost of leaving an observation unassigned, for the beam and the re-check (every association "
-        "but oracle). Default: from the "
+        None, help="Cost of calling an observation clutter instead of pairing it (beam and re-check), in cost units "
+        "(2 x negative log-likelihood: +2 = e times less likely; docs/association.md). Default: from the "
         "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
     ),
     initial_sigma_xyz: Optional[float] = library_option(
@@ -101,19 +101,22 @@ def run(
         "localizer.beam.width", rich_help_panel=BEAM
     ),
     beam_delta: Optional[float] = library_option(
-        "Drop hypotheses this much costlier than the best (2 x log-likelihood ratio).",
+        "Drop hypotheses this much costlier than the best, in cost units (2 x log-likelihood ratio; docs/beam.md).",
         "localizer.beam.delta", rich_help_panel=BEAM
     ),
     branch_delta: Optional[float] = library_option(
-        "Explore only an observation's options within this cost of its best.",
+        "Explore only the options of an observation within this many cost units (2 x log-likelihood ratio) of its "
+        "best (docs/beam.md).",
         "localizer.beam.branch_delta", rich_help_panel=BEAM
     ),
     slip_inflation: Optional[float] = library_option(
-        "Covariance factor of the odometry-slip hypothesis.",
+        "Slip (odometry that jumped): the factor on the predicted covariance when a pose is explained as one "
+        "(docs/beam.md).",
         "localizer.beam.slip_inflation", rich_help_panel=BEAM
     ),
     slip_cost: Optional[float] = library_option(
-        "Extra cost of the odometry-slip hypothesis.",
+        "Slip (odometry that jumped): the extra cost, in cost units (2 x log-likelihood ratio), of explaining a pose "
+        "as one (docs/beam.md).",
         "localizer.beam.slip_cost", rich_help_panel=BEAM
     ),
     cost: Optional[CostChoice] = library_option(
@@ -121,7 +124,8 @@ def run(
         "localizer.best_friends.cost", rich_help_panel=BEST_FRIENDS
     ),
     margin: Optional[float] = library_option(
-        "Lonely-best-friends margin in cost units: reject a pair whose closest rival is within it.",
+        "Reject a pair whose closest rival is within this many cost units (2 x log-likelihood ratio; "
+        "docs/association.md).",
         "localizer.best_friends.margin", rich_help_panel=BEST_FRIENDS
     ),
     sequential: Optional[bool] = library_option(
@@ -140,12 +144,12 @@ def run(
     ),
     recheck_margin: Optional[float] = library_option(
         "Drop a pair when leaving its observation unassigned or pairing it with another landmark costs no "
-        "more than this.",
+        "more than this, in cost units (2 x log-likelihood ratio; docs/association.md).",
         "localizer.recheck.margin", rich_help_panel=RECHECK
     ),
     recheck_steal_margin: Optional[float] = library_option(
         "Drop a pair when another observation of the pose could take its landmark for no more than this "
-        "extra cost (two detections fit one landmark).",
+        "many extra cost units (2 x log-likelihood ratio: 6 = 20 times; docs/association.md).",
         "localizer.recheck.steal_margin", rich_help_panel=RECHECK
     ),
     min_depth: Optional[float] = typer.Option(

@@ -16,7 +16,7 @@ EXIT_ALL_FAILED = 1  # no run gave a result: a script must not take the empty st
 
 
 def sweep(
-    spec_file: Path = typer.Argument(..., help="The sweep spec (TOML): seeds or datasets, \\[simulate] and \\[run] "
+    spec_file: Path = typer.Argument(..., metavar="SPEC_FILE", help="The sweep spec (TOML): seeds or datasets, \\[simulate] and \\[run] "
                                      "options by their command-line names; a list is one value per cell.",
                                      show_default=False),
     output: Path = typer.Option(..., "--output", "-o", help="The sweep folder: spec.json, runs.csv and summary.csv. "
