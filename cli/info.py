@@ -8,7 +8,8 @@ from camloc.cli.common import console, dataset_argument, echo_json, json_option,
 
 
 def info(
-    dataset: Path = dataset_argument("The g2o dataset to summarize."),
+    dataset: Path = dataset_argument("The g2o dataset to summarize, or the name of a bundled one (grid-small, "
+                                     "smooth3d-clutter, pixel-2cam)."),
     json_output: bool = json_option("the summary"),
     quiet: bool = quiet_option(),
 ) -> None:
@@ -20,13 +21,14 @@ def info(
     """
     import warnings
 
+    from camloc.bundled import resolve_dataset
     from camloc.dataset_summary import summarize_dataset
     from camloc.g2o import G2oWarning, read_g2o
 
     with warnings.catch_warnings():
         # The reader's warnings are part of the summary; printing them twice would be noise.
         warnings.simplefilter("ignore", G2oWarning)
-        summary = summarize_dataset(read_g2o(dataset))
+        summary = summarize_dataset(read_g2o(resolve_dataset(dataset)))
     if echo_json(summary, enabled=json_output):
         return  # the warnings are the object's "warnings"
     if quiet:

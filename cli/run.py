@@ -51,7 +51,8 @@ VIEW = escape("Candidate landmarks: all associations but oracle; [view] in a con
 
 def run(
     dataset: Optional[Path] = dataset_argument(
-        "g2o dataset to localize. Default: the bundled grid-small.g2o.", required=False
+        "g2o dataset to localize, or the name of a bundled one (grid-small, smooth3d-clutter, pixel-2cam). "
+        "Default: the bundled grid-small.g2o.", required=False
     ),
     output: Optional[Path] = typer.Option(
         None, "--output", "-o", help="Run folder to write (missing parent folders are created); an existing "
@@ -173,6 +174,7 @@ def run(
 
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset of up to 2,000 poses it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
+    from camloc.bundled import resolve_dataset
     from camloc.config import read_config_file
     from camloc.options import RUN_OPTIONS, run_config
     from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
@@ -182,7 +184,7 @@ def run(
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name.replace("_", "-") in RUN_OPTIONS}
     config = run_config(options, read_config_file(config_file) if config_file else None)
-    dataset_path = dataset if dataset is not None else DEFAULT_DATASET
+    dataset_path = resolve_dataset(dataset) if dataset is not None else DEFAULT_DATASET
     output_dir = output if output is not None else default_output_dir(dataset_path)
 
     from camloc.cli.progress import pose_progress
