@@ -36,3 +36,14 @@ def bundled_dataset(name: str = DEFAULT_DATASET_NAME) -> Path:
     if stem not in BUNDLED_DATASETS:
         raise ConfigError(f"expected a bundled dataset ({', '.join(BUNDLED_DATASETS)}), found {name!r}")
     return Path(str(resources.files("camloc").joinpath("data", f"{stem}.g2o")))
+
+
+def resolve_dataset(given: str | Path) -> Path:
+    """A dataset argument as a path: ``given`` itself when it names a file, else the bundled
+    dataset of that name (``camloc run pixel-2cam`` from an installed camloc, where
+    ``camloc/data/`` is not beside the working directory), else ``given`` unchanged (the reader
+    then says the file is missing)."""
+    path = Path(given)
+    if not path.exists() and path.parent == Path(".") and path.name.removesuffix(".g2o") in BUNDLED_DATASETS:
+        return bundled_dataset(path.name)
+    return path

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from camloc import geometry
+from camloc.diagnostics import estimate_name
 from camloc.errors import CamlocError, ConfigError
 from camloc.tails import chi2_quantile
 
@@ -672,18 +673,21 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
     Returns
     -------
     A JSON-serializable dict with the same keys for every run (``docs/json.md``): ``dataset``,
-    ``counts`` (``poses``), ``align``, ``delta``, ``notes`` (list); ``estimate`` and ``odometry``
+    ``estimate_name`` (what made the estimate, ``diagnostics.estimate_name``: ``iterated EKF
+    (euler)``, or ``odometry alone (no update)``), ``counts`` (``poses``), ``align``, ``delta``, ``notes`` (list); ``estimate`` and ``odometry``
     (each as ``trajectory_metrics``), ``improvement`` (odometry / estimate ATE and rotation RMSE)
     and ``nees`` (``nees_summary`` of ``run_nees``: the given start pose is left out), each None
     without ground truth; ``smoothed`` (``trajectory_metrics``), None unless the run was smoothed
     (``RunResult.smoothed_xyz``, from ``camloc smooth``) and has ground truth; ``association``
     (``association_scores``) ``nis`` (``nis_summary``) and
-    ``consistency`` (``consistency_verdict`` of NEES and NIS: the run's one verdict).
+    ``consistency`` (``consistency_verdict`` of NEES and NIS: the run's one verdict;
+    ``undetermined`` when the filter made no update, whatever odometry's NEES).
     """
     if align not in ALIGN_METHODS:
         raise ConfigError(f"alignment must be one of {', '.join(ALIGN_METHODS)}, found {align!r}")
     out: dict = {
         "dataset": result.dataset,
+        "estimate_name": estimate_name({**result.summary, "counts": {"updates": int(result.nis.size)}}),
         "counts": {"poses": int(len(result.pose_ids))},
         "align": align,
         "delta": int(delta),
@@ -718,5 +722,12 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
         out["notes"].append("no ground truth in the run: trajectory errors, improvement and NEES are not computed")
     out["association"] = association_scores(result.associations, result.map_landmark_ids)
     out["nis"] = nis_summary(result.nis, result.nis_dof)
-    out["consistency"] = consistency_verdict(out.get("nees"), out["nis"])
+    if result.nis.size == 0:
+        # Without an update the estimate is odometry alone: a consistent NEES would speak for
+        # odometry's covariance, not for the filter, which was never tested.
+        out["consistency"] = {"verdict": "undetermined", "verdict_line": "undetermined: the filter made no update, "
+                              "so its estimate is odometry alone and the filter's consistency was not tested"}
+        out["notes"].append("the filter made no update: the estimate is odometry alone")
+    else:
+        out["consistency"] = consistency_verdict(out.get("nees"), out["nis"])
     return out

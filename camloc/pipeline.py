@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
 from camloc.bundled import bundled_dataset
+from camloc.diagnostics import run_warnings
 from camloc.ekf import FilterDivergedError
 from camloc.localizer import LocalizerConfig, ProgressCallback, localize
 from camloc.results import RunResult
@@ -63,6 +64,9 @@ def run_dataset(
         raise FilterDivergedError(f"{dataset_path}: {error}") from None
     summary = dict(result.summary)
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
+    # What the numbers do not say by themselves (odometry alone, an incomplete map): said once,
+    # in the summary's warnings, which the command line prints and summary.json keeps.
+    summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"])]
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None

@@ -44,8 +44,10 @@ _register_commands()
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point (``camloc.cli.main``, which also ends a Ctrl-C outside a command)."""
+    from camloc.cli import main as cli_main
+
+    cli_main()
 
 
 if __name__ == "__main__":

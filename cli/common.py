@@ -18,13 +18,13 @@ try:  # typer 0.2x carries its own copy of click
 except ImportError:  # older typer runs on click itself
     from click.exceptions import UsageError
 
+from camloc.cli import EXIT_INTERRUPTED, caused_by_interrupt, command_settled
 from camloc.errors import CamlocError
 
 console = Console()
 err_console = Console(stderr=True)
 
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for a job stopped by Ctrl-C
 
 # The placeholders of the two kinds of input, the same in every command's usage line and help.
 DATASET = "DATASET"
@@ -34,6 +34,19 @@ RUN_DIR = "RUN_DIR"
 def print_error(message: str) -> None:
     """``error: <message>`` on stderr, one line however long (paths stay whole and copyable)."""
     err_console.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
+
+
+def print_warnings(warnings: Any, source: Any = None) -> None:
+    """``warning: [<source>: ]<message>`` on stderr, one line each (a log or grep keeps it whole).
+
+    Every command prints its warnings this way, under ``--quiet`` too: quiet silences progress and
+    tables, not what a script run quietly must still be told (the estimate is odometry alone, the
+    map looks incomplete). Under ``--json`` they are in the object instead (its ``warnings``), so
+    the commands do not call this then.
+    """
+    where = f"{escape(str(source))}: " if source is not None else ""
+    for warning in warnings:
+        err_console.print(f"[yellow]warning:[/] {where}{escape(str(warning))}", highlight=False, soft_wrap=True)
 
 
 class _FlagsWithoutValueType:
@@ -50,7 +63,13 @@ class _FlagsWithoutValueType:
 
 class CamlocCommand(_FlagsWithoutValueType, TyperCommand):
     """Every camloc command (``app.command(name, cls=CamlocCommand)``): its options' defaults are
-    written into their help when ``--help`` is shown (``with_default``)."""
+    written into their help when ``--help`` is shown (``with_default``), and its usage line names
+    arguments the usual way, ``NAME`` and ``[NAME]`` when optional."""
+
+    def collect_usage_pieces(self, ctx: typer.Context) -> list[str]:
+        # typer writes a required argument {NAME}, which reads as a set of choices
+        return [piece[1:-1] if piece.startswith("{") and piece.endswith("}") else piece
+                for piece in super().collect_usage_pieces(ctx)]
 
     def format_help(self, ctx: typer.Context, formatter: Any) -> Any:
         for param in self.get_params(ctx):
@@ -74,25 +93,41 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
 
     def invoke(self, ctx: typer.Context) -> Any:
         try:
+            return self._invoke(ctx)
+        finally:
+            command_settled()
+
+    def _invoke(self, ctx: typer.Context) -> Any:
+        try:
             return super().invoke(ctx)
-        except CamlocError as error:
-            print_error(str(error))
-            raise typer.Exit(EXIT_BAD_INPUT) from None
-        except OSError as error:
-            # the machine refused (a folder not writable, a file where a folder goes, a full
-            # disk): the file and the reason, as for bad input; outputs stay whole or absent
-            print_error(describe_os_error(error))
-            raise typer.Exit(EXIT_BAD_INPUT) from None
-        except MemoryError:
-            print_error("not enough memory for this command and its options (a very large count or size?)")
-            raise typer.Exit(EXIT_BAD_INPUT) from None
-        except UsageError as error:
-            _usage_error(error, ctx)
-        except KeyboardInterrupt:
-            # Outputs are written whole or not at all, so an interrupted command leaves nothing
-            # half-written; say so rather than print a traceback or nothing.
-            err_console.print("interrupted", style="yellow", highlight=False)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except typer.Exit:
+            raise  # a command's own exit status (sweep's 130 after its own message)
+        except BaseException as error:
+            # Ctrl-C first, whatever it became on its way out: inside a numba kernel it surfaces
+            # as a SystemError whose cause is the KeyboardInterrupt
+            if caused_by_interrupt(error):
+                say_interrupted()
+                raise typer.Exit(EXIT_INTERRUPTED) from None
+            if isinstance(error, CamlocError):
+                print_error(str(error))
+                raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, OSError):
+                # the machine refused (a folder not writable, a file where a folder goes, a full
+                # disk): the file and the reason, as for bad input; outputs stay whole or absent
+                print_error(describe_os_error(error))
+                raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, MemoryError):
+                print_error("not enough memory for this command and its options (a very large count or size?)")
+                raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, UsageError):
+                _usage_error(error, ctx)
+            raise
+
+
+def say_interrupted() -> None:
+    """The one line of an interrupted command. Outputs are written whole or not at all, so it
+    leaves nothing half-written; say so rather than print a traceback or nothing."""
+    err_console.print("interrupted", style="yellow", highlight=False)
 
 
 def describe_os_error(error: OSError) -> str:
@@ -110,8 +145,23 @@ def _usage_error(error: UsageError, ctx: typer.Context) -> None:
     where = error.ctx.command_path if error.ctx is not None else ctx.command_path
     if error.ctx is None and ctx.invoked_subcommand:  # an option's missing value: its command's help
         where = f"{ctx.command_path} {ctx.invoked_subcommand}"
-    print_error(f"{error.format_message()} (see '{where} --help')")
+    print_error(f"{plain_usage_message(error.format_message())} (see '{where} --help')")
     raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+# How typer (through pydantic) words a value that is none of an option's choices.
+_NOT_A_CHOICE = re.compile(r"Value error, (?P<value>.+) is not one of (?P<choices>.+?)\.?$")
+
+
+def plain_usage_message(message: str) -> str:
+    """A bad option's message in camloc's words: ``expected one of none, se3, sim3, found 'foo'``
+    rather than pydantic's ``Value error, 'foo' is not one of 'none', 'se3', 'sim3'.``, the same for
+    every option with choices."""
+    match = _NOT_A_CHOICE.search(message)
+    if match is not None:
+        choices = ", ".join(choice.strip().strip("'") for choice in match["choices"].split(","))
+        message = f"{message[:match.start()]}expected one of {choices}, found {match['value']}"
+    return message.replace("Value error, ", "")
 
 
 # The library's option classes whose defaults the help shows ("{localizer.iterations}"); they are
@@ -170,7 +220,8 @@ def library_option(text: str, source: str, *names: str, **limits: Any) -> Any:
 
 
 def quiet_option() -> Any:
-    return typer.Option(False, "--quiet", "-q", help=with_default("Print nothing but errors."), show_default=False)
+    return typer.Option(False, "--quiet", "-q", help=with_default(
+        "Print no progress and no tables: only warnings and errors, on stderr."), show_default=False)
 
 
 def json_option(what: str, *, instead: str = "tables") -> Any:

@@ -47,7 +47,7 @@ def evaluate_command(
     json_output: bool = json_option("the metrics"),
     quiet: bool = quiet_option(),
 ) -> None:
-    """Evaluate a run: trajectory error (ATE, rotation, RPE) of the EKF and of odometry alone side by side, data association scores, and filter consistency (NEES, NIS) with a verdict.
+    """Evaluate a run: trajectory error (ATE, rotation, RPE) of the filter and of odometry alone side by side, data association scores, and filter consistency (NEES, NIS) with a verdict.
 
     The trajectories are read from the run folder's TUM files, so an edited one is scored as it is. With --est A.tum --ref B.tum instead of RUN_DIR, only the trajectory metrics of A against B, poses paired by timestamp. The numbers follow evo's definitions (evo_ape -r trans_part / angle_deg, evo_rpe --delta_unit f).
     """

@@ -50,21 +50,23 @@ def _interval(bounds: Optional[list]) -> str:
     return "-" if bounds is None else f"[{bounds[0]:.3f}, {bounds[1]:.3f}]"
 
 
-def _trajectory_table(blocks: Mapping[str, Mapping], title: str, *, ratio: Optional[tuple[str, str]] = None) -> Table:
-    """Rows of trajectory metrics, one column per block (e.g. EKF, odometry), plus a ratio column.
+def _trajectory_table(blocks: Mapping[str, Mapping], title: str, *, ratio: Optional[tuple[str, str]] = None,
+                      ratio_title: Optional[str] = None) -> Table:
+    """Rows of trajectory metrics, one column per block (e.g. the filter, odometry), plus a ratio column.
 
     ``ratio = (numerator, denominator)`` names two blocks; by default, with exactly two blocks,
-    the second over the first.
+    the second over the first. ``ratio_title`` heads its column (default ``numerator /
+    denominator``; a filter's long name would squeeze the table at 80 columns).
     """
     table = Table(title=title, title_justify="left", min_width=len(title))
     table.add_column("metric")
     for name in blocks:
-        table.add_column(name, justify="right")
+        table.add_column(escape(name), justify="right")
     if ratio is None and len(blocks) == 2:
         first_name, second_name = blocks
         ratio = (second_name, first_name)
     if ratio is not None:
-        table.add_column(f"{ratio[0]} / {ratio[1]}", justify="right", style="bold")
+        table.add_column(escape(ratio_title or f"{ratio[0]} / {ratio[1]}"), justify="right", style="bold")
     for label, keys, spec in _TRAJECTORY_ROWS:
         values = {name: _get(block, *keys) for name, block in blocks.items()}
         cells = [_fmt(value, spec) for value in values.values()]
@@ -134,15 +136,16 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
         Text(f"camloc eval: {Path(str(report['dataset'])).name} ({report['counts']['poses']} poses)", style="bold")
     ]
     if report["estimate"] is not None:
-        blocks = {"EKF": report["estimate"], "odometry": report["odometry"]}
-        ratio = None
+        name = str(report.get("estimate_name") or "filter")  # what ran, never odometry under a filter's name
+        blocks = {name: report["estimate"], "odometry": report["odometry"]}
+        ratio, ratio_title = ("odometry", name), "odometry /\nfilter"
         if report["smoothed"] is not None:
             # Three paths: the ratio worth a column is what smoothing gained over the filter.
             blocks["smoothed"] = report["smoothed"]
-            ratio = ("smoothed", "EKF")
+            ratio, ratio_title = ("smoothed", name), "smoothed /\nfilter"
         parts.append(_trajectory_table(
             blocks, f"trajectory error vs ground truth (align {report['align']}, RPE delta {report['delta']})",
-            ratio=ratio,
+            ratio=ratio, ratio_title=ratio_title,
         ))
         if report["align"] != "none":
             parts.append(_alignment_table(blocks))

@@ -17,6 +17,7 @@ from camloc.cli.common import (
     force_option,
     json_option,
     library_option,
+    print_warnings,
     quiet_option,
 )
 
@@ -42,15 +43,16 @@ class CostChoice(str, Enum):
 # The help's panels: each method's own options, then the options of every method but oracle and of
 # all; their config file's table in brackets (camloc.options).
 BEAM = escape("Beam: --association beam; [beam] in a config file")
-BEST_FRIENDS = escape("Best friends: --association best-friends (cost and margin also seed jcbb); [best-friends] in a config file")
+BEST_FRIENDS = escape("Best friends (and jcbb's seed): [best-friends] in a config file")
 JCBB = escape("JCBB: --association jcbb; [jcbb] in a config file")
 RECHECK = escape("Re-check: every association but oracle; [recheck] in a config file")
-VIEW = escape("Candidate landmarks: every association but oracle; [view] in a config file")
+VIEW = escape("Candidate landmarks: all associations but oracle; [view] in a config file")
 
 
 def run(
     dataset: Optional[Path] = dataset_argument(
-        "g2o dataset to localize. Default: the bundled grid-small.g2o.", required=False
+        "g2o dataset to localize, or the name of a bundled one (grid-small, smooth3d-clutter, pixel-2cam). "
+        "Default: the bundled grid-small.g2o.", required=False
     ),
     output: Optional[Path] = typer.Option(
         None, "--output", "-o", help="Run folder to write (missing parent folders are created); an existing "
@@ -83,8 +85,8 @@ def run(
         "localizer.gate", "--gate"
     ),
     null_cost: Optional[float] = typer.Option(
-        None, help="Cost of leaving an observation unassigned, for the beam and the re-check (every association "
-        "but oracle). Default: from the "
+        None, help="Cost of calling an observation clutter instead of pairing it (beam and re-check), in cost units "
+        "(2 x negative log-likelihood: +2 = e times less likely; docs/association.md). Default: from the "
         "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
     ),
     initial_sigma_xyz: Optional[float] = library_option(
@@ -100,19 +102,22 @@ def run(
         "localizer.beam.width", rich_help_panel=BEAM
     ),
     beam_delta: Optional[float] = library_option(
-        "Drop hypotheses this much costlier than the best (2 x log-likelihood ratio).",
+        "Drop hypotheses this much costlier than the best, in cost units (2 x log-likelihood ratio; docs/beam.md).",
         "localizer.beam.delta", rich_help_panel=BEAM
     ),
     branch_delta: Optional[float] = library_option(
-        "Explore only an observation's options within this cost of its best.",
+        "Explore only the options of an observation within this many cost units (2 x log-likelihood ratio) of its "
+        "best (docs/beam.md).",
         "localizer.beam.branch_delta", rich_help_panel=BEAM
     ),
     slip_inflation: Optional[float] = library_option(
-        "Covariance factor of the odometry-slip hypothesis.",
+        "Slip (odometry that jumped): the factor on the predicted covariance when a pose is explained as one "
+        "(docs/beam.md).",
         "localizer.beam.slip_inflation", rich_help_panel=BEAM
     ),
     slip_cost: Optional[float] = library_option(
-        "Extra cost of the odometry-slip hypothesis.",
+        "Slip (odometry that jumped): the extra cost, in cost units (2 x log-likelihood ratio), of explaining a pose "
+        "as one (docs/beam.md).",
         "localizer.beam.slip_cost", rich_help_panel=BEAM
     ),
     cost: Optional[CostChoice] = library_option(
@@ -120,7 +125,8 @@ def run(
         "localizer.best_friends.cost", rich_help_panel=BEST_FRIENDS
     ),
     margin: Optional[float] = library_option(
-        "Lonely-best-friends margin in cost units: reject a pair whose closest rival is within it.",
+        "Reject a pair whose closest rival is within this many cost units (2 x log-likelihood ratio; "
+        "docs/association.md).",
         "localizer.best_friends.margin", rich_help_panel=BEST_FRIENDS
     ),
     sequential: Optional[bool] = library_option(
@@ -139,12 +145,12 @@ def run(
     ),
     recheck_margin: Optional[float] = library_option(
         "Drop a pair when leaving its observation unassigned or pairing it with another landmark costs no "
-        "more than this.",
+        "more than this, in cost units (2 x log-likelihood ratio; docs/association.md).",
         "localizer.recheck.margin", rich_help_panel=RECHECK
     ),
     recheck_steal_margin: Optional[float] = library_option(
         "Drop a pair when another observation of the pose could take its landmark for no more than this "
-        "extra cost (two detections fit one landmark).",
+        "many extra cost units (2 x log-likelihood ratio: 6 = 20 times; docs/association.md).",
         "localizer.recheck.steal_margin", rich_help_panel=RECHECK
     ),
     min_depth: Optional[float] = typer.Option(
@@ -164,10 +170,11 @@ def run(
 ) -> None:
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
-    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all. Prints the trajectory error of the EKF and of odometry alone, the associations and the speed.
+    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
 
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset of up to 2,000 poses it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
+    from camloc.bundled import resolve_dataset
     from camloc.config import read_config_file
     from camloc.options import RUN_OPTIONS, run_config
     from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
@@ -177,7 +184,7 @@ def run(
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name.replace("_", "-") in RUN_OPTIONS}
     config = run_config(options, read_config_file(config_file) if config_file else None)
-    dataset_path = dataset if dataset is not None else DEFAULT_DATASET
+    dataset_path = resolve_dataset(dataset) if dataset is not None else DEFAULT_DATASET
     output_dir = output if output is not None else default_output_dir(dataset_path)
 
     from camloc.cli.progress import pose_progress
@@ -197,15 +204,12 @@ def run(
                                       else lambda started: None)
 
     if echo_json(result.summary, enabled=json_output):
-        return
+        return  # the warnings are the object's "warnings"
     if not quiet:
         from camloc.cli.run_render import render_run_summary
 
         console.print(render_run_summary(result.summary, written))
-        for warning in result.summary.get("warnings", []):
-            # one line each, named by the dataset as errors are (a log or grep keeps it whole)
-            err_console.print(f"[yellow]warning:[/] {escape(str(dataset_path))}: {escape(warning)}", highlight=False,
-                              soft_wrap=True)
+    print_warnings(result.summary.get("warnings", []), dataset_path)  # named by the dataset, as errors are
 
 
 def _say_compiling() -> None:

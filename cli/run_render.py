@@ -25,14 +25,16 @@ def _fmt(value: Any, spec: str) -> str:
 
 
 def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Group:
-    """The end-of-run table: trajectory error of the EKF and of odometry alone, rotation error,
-    associations and speed (the summary holds the metrics of ``camloc eval`` under its keys)."""
+    """The end-of-run table: trajectory error of the filter (named by what ran: ``iterated EKF
+    (euler)``, or ``odometry alone (no update)`` when it made no update) and of odometry alone,
+    rotation error, associations and speed (the summary holds the metrics of ``camloc eval``
+    under its keys)."""
     counts = summary["counts"]
     timing = summary["timing"]
     table = Table(title=f"camloc run: {escape(Path(str(summary['dataset'])).name)}", title_justify="left")
     table.add_column("", style="bold")
     label = escape
-    table.add_column("EKF", justify="right")
+    table.add_column(escape(str(summary.get("estimate_name", "filter"))), justify="right")
     table.add_column("odometry only", justify="right")
     if summary.get("estimate") is not None:
         table.add_row(label("position RMSE [m]"), _fmt(_get(summary, "estimate.ate.rmse"), ".4f"), _fmt(_get(summary, "odometry.ate.rmse"), ".4f"))

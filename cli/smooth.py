@@ -15,6 +15,7 @@ from camloc.cli.common import (
     err_console,
     json_option,
     library_option,
+    print_warnings,
     quiet_option,
     run_dir_argument,
 )
@@ -42,11 +43,12 @@ def smooth(
 ) -> None:
     """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
 
-    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the EKF and odometry. Prints position and rotation RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
+    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
     """
     import warnings
 
     from camloc import smoother
+    from camloc.diagnostics import estimate_name
     from camloc.g2o import G2oWarning, read_g2o
     from camloc.results import load_run, write_smoothed
 
@@ -70,9 +72,13 @@ def smooth(
     report["dataset"] = str(dataset_path)
     report["timing"] = {"read_seconds": read_seconds, **report["timing"]}
     report["smoothed_file"] = str(written)
-    if echo_json(report, enabled=json_output) or quiet:
-        return
-    console.print(render_smoothing(report))
+    report["estimate_name"] = estimate_name(run.summary)
+    if echo_json(report, enabled=json_output):
+        return  # "converged": false says it
+    if not quiet:
+        console.print(render_smoothing(report))
+    if not report["converged"]:
+        print_warnings(["stopped at --max-iterations before the steps became tiny"], run_dir)
 
 
 def _recorded_dataset(run_dir: Path, summary: Mapping[str, Any], fallback: str) -> Path:
@@ -112,7 +118,8 @@ def render_smoothing(report: Mapping[str, Any]):
                         style="bold")]
     if report["estimate"] is not None:
         table = Table(title="error vs ground truth (no alignment)", title_justify="left")
-        for column in ("", "EKF", "smoothed", "smoothed / EKF"):
+        name = escape(str(report.get("estimate_name") or "filter"))
+        for column in ("", name, "smoothed", "smoothed / filter"):
             table.add_column(column, justify="right" if column else "left")
         for label, (block, key), spec in (("position RMSE [m]", ("ate", "rmse"), ".4f"),
                                           ("rotation RMSE [deg]", ("rotation", "rmse_deg"), ".3f")):
@@ -145,7 +152,5 @@ def render_smoothing(report: Mapping[str, Any]):
     if report["dropped_observations"]:
         parts.append(Text(f"note: {report['dropped_observations']} accepted observation(s) left out: their landmark "
         "is behind the camera at the filter's poses", style="yellow"))
-    if not report["converged"]:
-        parts.append(Text("warning: stopped at --max-iterations before the steps became tiny", style="yellow"))
     parts.append(Text(f"wrote {report['smoothed_file']}"))
     return Group(*parts)

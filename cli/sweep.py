@@ -9,14 +9,14 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from camloc.cli.common import console, err_console, json_option, quiet_option
+from camloc.cli import EXIT_INTERRUPTED, caused_by_interrupt
+from camloc.cli.common import console, err_console, json_option, print_warnings, quiet_option
 
-EXIT_INTERRUPTED = 130
 EXIT_ALL_FAILED = 1  # no run gave a result: a script must not take the empty study for one
 
 
 def sweep(
-    spec_file: Path = typer.Argument(..., help="The sweep spec (TOML): seeds or datasets, \\[simulate] and \\[run] "
+    spec_file: Path = typer.Argument(..., metavar="SPEC_FILE", help="The sweep spec (TOML): seeds or datasets, \\[simulate] and \\[run] "
                                      "options by their command-line names; a list is one value per cell.",
                                      show_default=False),
     output: Path = typer.Option(..., "--output", "-o", help="The sweep folder: spec.json, runs.csv and summary.csv. "
@@ -44,7 +44,9 @@ def sweep(
     try:
         with cell_progress(enabled=not (json_output or quiet), description=f"sweeping {spec_file.name}") as on_row:
             outcome = run_sweep(spec, output, workers=workers, scheduler=scheduler, on_row=on_row)
-    except KeyboardInterrupt:
+    except BaseException as error:
+        if not caused_by_interrupt(error):
+            raise
         err_console.print(f"[yellow]interrupted:[/] the finished rows are in {escape(str(output))}; run the same "
                           "command again to go on", highlight=False, soft_wrap=True)
         raise typer.Exit(EXIT_INTERRUPTED) from None
@@ -52,11 +54,10 @@ def sweep(
         typer.echo(dumps_json(vars(outcome)), nl=False)
     elif not quiet:
         console.print(render_summary(spec, outcome))
-    if not quiet:
-        for warning in outcome.warnings:  # one line each, as every command prints its warnings
-            err_console.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False, soft_wrap=True)
-    if outcome.failed and not quiet:
-        err_console.print(f"[yellow]warning:[/] {outcome.failed} of {outcome.cells} runs failed (each row of runs.csv says why); "
-                          f"the first: {escape(outcome.first_error)}", highlight=False, soft_wrap=True)
+    if not json_output:  # the object holds them: its warnings, failed and first_error
+        print_warnings(outcome.warnings)
+    if outcome.failed and not json_output:
+        print_warnings([f"{outcome.failed} of {outcome.cells} runs failed (each row of runs.csv says why); "
+                        f"the first: {outcome.first_error}"])
     if outcome.failed == outcome.cells:
         raise typer.Exit(EXIT_ALL_FAILED)

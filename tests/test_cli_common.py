@@ -71,17 +71,46 @@ def test_a_bad_option_is_one_short_line_and_exit_2_in_every_command(tmp_path, mo
     (["info", "{dataset}"], "camloc.dataset_summary.summarize_dataset"),
     (["simulate", "-o", "{tmp}/s.g2o"], "camloc.simulate.simulate_labelled"),
 ])
-def test_ctrl_c_says_interrupted_and_exits_130(tmp_path, monkeypatch, world, args, target):
+@pytest.mark.parametrize("inside_numba", [False, True], ids=["plain", "inside-numba"])
+def test_ctrl_c_says_interrupted_and_exits_130(tmp_path, monkeypatch, world, args, target, inside_numba):
     dataset, run_dir = world
 
     def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
+        if not inside_numba:
+            raise KeyboardInterrupt
+        # what a Ctrl-C inside a compiled kernel becomes: SystemErrors, one per level of
+        # compiled calls, the KeyboardInterrupt their first cause
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as error:
+                raise SystemError("<function _numba_unpickle> returned a result with an exception set") from error
+        except SystemError as error:
+            raise SystemError("CPUDispatcher(<function run_poses>) returned a result with an exception set") from error
 
     monkeypatch.setattr(target, interrupted)
     outcome = invoke(*(arg.format(dataset=dataset, run_dir=run_dir, tmp=tmp_path) for arg in args))
     assert outcome.exit_code == 130
     assert outcome.stderr == "interrupted\n"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_only_an_interrupt_in_the_chain_counts_as_one():
+    from camloc.cli import caused_by_interrupt
+
+    def chained(cause, *, suppress=False):
+        try:
+            raise cause
+        except BaseException:
+            try:
+                raise (SystemError("wrapped") if not suppress else ValueError("new")) from (cause if not suppress else None)
+            except BaseException as error:
+                return error
+
+    assert caused_by_interrupt(KeyboardInterrupt()) and caused_by_interrupt(chained(KeyboardInterrupt()))
+    assert not caused_by_interrupt(chained(ValueError("bad")))
+    assert not caused_by_interrupt(chained(KeyboardInterrupt(), suppress=True))  # 'from None' cuts the chain
+    assert not caused_by_interrupt(None)
 
 
 def test_eval_plot_and_smooth_of_a_dataset_file_say_what_it_is(world):
@@ -261,8 +290,7 @@ def test_help_states_every_default_the_same_way_and_no_bool_value(name):
     outcome = invoke(name, "--help", env={"COLUMNS": "300"})
     assert outcome.exit_code == 0
     text = outcome.stdout
-    assert "<bool>" not in text and "[default:" not in text and "{" not in text.replace("{DATASET}", "").replace(
-        "{RUN_DIR}", "")
+    assert "<bool>" not in text and "[default:" not in text and "{" not in text  # usage: RUN_DIR, [RUN_DIR], never {RUN_DIR}
     for param in _command(name).params:
         if isinstance(param, typer.core.TyperArgument):
             assert param.metavar in ("DATASET", "RUN_DIR"), param.name
@@ -285,3 +313,86 @@ def test_help_defaults_are_the_codes_defaults():
     assert "Default: --recheck." in run and "Default: --sequential." in run
     assert f"(at least 2). Default: {SimulationConfig().poses}." in simulate_help
     assert f"least squares. Default: {SmootherConfig().huber!r}." in smooth
+
+
+# Options a user cannot act on without knowing what a cost unit or a slip is (issue 36).
+COST_OPTIONS = ("--null-cost", "--beam-delta", "--branch-delta", "--slip-inflation", "--slip-cost", "--margin",
+                "--recheck-margin", "--recheck-steal-margin")
+
+
+def test_every_cost_option_gives_its_unit_and_the_design_doc():
+    params = {param.opts[0]: param for param in _command("run").params}
+    for flag in COST_OPTIONS:
+        text = params[flag].help
+        assert "docs/beam.md" in text or "docs/association.md" in text, flag
+        assert "cost units" in text or "factor" in text, flag
+        if "cost units" in text:
+            assert "log-likelihood" in text, flag  # what a cost unit is
+    assert "Slip (odometry that jumped)" in params["--slip-cost"].help
+
+
+ALL_COMMANDS = (*COMMANDS, "sweep")
+
+
+@pytest.mark.parametrize("columns", ["80", "110"])
+@pytest.mark.parametrize("name", ALL_COMMANDS)
+def test_help_shows_every_panel_title_whole_and_usage_without_braces(name, columns):
+    outcome = invoke(name, "--help", env={"COLUMNS": columns})
+    assert outcome.exit_code == 0
+    titles = {param.rich_help_panel for param in _command(name).params if getattr(param, "rich_help_panel", None)}
+    heads = [line for line in outcome.stdout.splitlines() if line.startswith("╭─ ")]
+    for title in titles:
+        assert any(head.startswith(f"╭─ {title.replace(chr(92), '')} ─") for head in heads), (title, heads)
+    usage = next(line for line in outcome.stdout.splitlines() if "Usage:" in line)
+    assert "{" not in usage and "}" not in usage, usage
+
+
+# Placeholders that let each command reach its options' parsing.
+_POSITIONALS = {"run": [], "eval": ["RUN"], "plot": ["RUN"], "info": ["DATA.g2o"], "simulate": ["-o", "x.g2o"],
+                "smooth": ["RUN"], "sweep": ["SPEC.toml", "-o", "out"]}
+
+
+def _choice_options():
+    import enum
+    import typing
+
+    for name in ALL_COMMANDS:
+        command = _command(name)
+        hints = typing.get_type_hints(command.callback)
+        for param in command.params:
+            hint = hints.get(param.name)
+            kinds = [k for k in (typing.get_args(hint) or (hint,)) if isinstance(k, type) and issubclass(k, enum.Enum)]
+            if kinds and param.opts[0].startswith("--"):
+                yield name, param.opts[0], [choice.value for choice in kinds[0]]
+
+
+CHOICE_OPTIONS = list(_choice_options())
+
+
+def test_every_option_with_choices_is_found():
+    assert {"--align", "--filter", "--association", "--cost", "--format", "--trajectory", "--intrinsics"} <= {
+        flag for _, flag, _ in CHOICE_OPTIONS}
+
+
+@pytest.mark.parametrize("name, flag, choices", CHOICE_OPTIONS, ids=[f"{n} {f}" for n, f, _ in CHOICE_OPTIONS])
+def test_a_value_that_is_none_of_the_choices_is_one_line_listing_them(tmp_path, monkeypatch, name, flag, choices):
+    monkeypatch.chdir(tmp_path)
+    outcome = invoke(name, *_POSITIONALS[name], flag, "bogus")
+    assert_one_error_line(outcome, f"Invalid value for '{flag}': expected one of {', '.join(choices)}, found 'bogus'")
+    assert "Value error" not in outcome.stderr
+
+
+def test_the_sweep_table_keeps_every_column_at_80_columns(tmp_path):
+    spec = tmp_path / "study.toml"
+    spec.write_text('seeds = 1\n[simulate]\nposes = 8\ntrajectory = ["grid", "smooth3d"]\nclutter-fraction = [0.0, 0.15]\n'
+                    '[run]\nassociation = ["beam", "oracle"]\n')
+    outcome = invoke("sweep", spec, "-o", tmp_path / "out", "--workers", "1", env={"COLUMNS": "80"})
+    assert outcome.exit_code == 0, outcome.output
+    lines = outcome.stdout.splitlines()
+    header = " ".join(lines[next(i for i, line in enumerate(lines) if "───" in line) - 2:][:2])
+    for column in ("trajectory", "clutter-", "fraction", "ok", "median", "p90", "worst", "/oracle"):
+        assert column in header, (column, header)
+    assert header.count("/oracle") == 2 and header.count("worst") == 2
+    rows = [line for line in lines if line.lstrip().startswith(("grid", "smooth3d"))]
+    assert len(rows) == 8 and all(len(line.rstrip()) <= 80 for line in lines)
+    assert all(line.split()[2] in ("beam", "oracle") for line in rows)  # values whole, never folded

@@ -44,7 +44,7 @@ def test_eval_prints_tables_with_both_paths_and_the_verdict(run_dir):
     outcome = invoke("eval", run_dir)
     assert outcome.exit_code == 0, outcome.output
     report = metrics.evaluate(load_run(run_dir))
-    for text in ("ATE rmse [m]", "EKF", "odometry", "precision", "NEES, 6 dof", "verdict:",
+    for text in ("ATE rmse [m]", report["estimate_name"], "odometry", "precision", "NEES, 6 dof", "verdict:",
                  f"{report['estimate']['ate']['rmse']:.4f}", f"{report['odometry']['ate']['rmse']:.4f}",
                  f"{report['association']['precision']:.3f}", report["nees"]["verdict"],
                  f"verdict: {report['consistency']['verdict']}: "):

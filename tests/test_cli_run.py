@@ -222,3 +222,18 @@ def test_a_small_run_never_imports_scipy(tmp_path):
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
     assert (tmp_path / "out" / "summary.json").is_file()
+
+
+def test_a_bundled_dataset_is_reached_by_its_name_from_anywhere(tmp_path, monkeypatch):
+    # after 'pip install .', camloc/data/ is inside site-packages, not beside the user
+    from camloc.bundled import BUNDLED_DATASETS, bundled_dataset
+
+    monkeypatch.chdir(tmp_path)
+    outcome = invoke("run", "pixel-2cam", "--json")
+    assert outcome.exit_code == 0, outcome.output
+    assert json.loads(outcome.stdout)["dataset"] == str(bundled_dataset("pixel-2cam"))
+    assert (tmp_path / "runs" / "pixel-2cam" / "summary.json").is_file()
+    for name in BUNDLED_DATASETS:
+        assert invoke("info", name, "--quiet").exit_code == 0, name
+    (tmp_path / "grid-small.g2o").write_text("VERTEX_TRACKXYZ 0 1 2\n")  # a file of that name wins
+    assert invoke("info", "grid-small.g2o", "--quiet").exit_code == 2

@@ -1,0 +1,78 @@
+"""What a run's numbers do not say by themselves: which filter made the estimate, whether it made
+any update at all, and whether the map looks incomplete. Pure functions of a run's summary
+(``summary.json``'s ``config`` and ``counts``), computed after the run, so that every command
+words them the same way.
+
+A complete map leaves few observations unexplained: the gate and the re-check reject 1.4% of the
+real course file's observations and 1.7-2.8% of the bundled clutter-free worlds'; clutter adds
+its own share (``smooth3d-clutter.g2o``: 12% clutter and outliers, 14% rejected). The test of an
+incomplete map is a one-sided binomial test against ``REFERENCE_REJECTED_SHARE``: if every
+observation were rejected independently at that rate, seeing as many rejections as the run did
+would have a probability below ``INCOMPLETE_MAP_PROBABILITY``. The rate allows clutter up to about
+a sixth of the detections; heavier clutter is reported too, and the warning says so. The test
+never reads the file's landmark ids (as localization never does, the oracle aside).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+from camloc.tails import binomial_tail
+
+# The share of observations a complete map and ordinary clutter leave rejected (see above).
+REFERENCE_REJECTED_SHARE = 0.2
+# Below this binomial tail, the rejections are more than that rate explains.
+INCOMPLETE_MAP_PROBABILITY = 1e-3
+# The estimate's name when the filter made no update.
+ODOMETRY_ALONE = "odometry alone (no update)"
+
+
+def filter_name(config: Mapping[str, Any]) -> str:
+    """The filter a configuration runs, as tables name it: ``iterated EKF (euler)``, ``EKF (se3)``.
+
+    ``config`` is ``dataclasses.asdict(LocalizerConfig)`` (``summary["config"]``); an incomplete
+    one (a run folder edited by hand) gives ``filter``.
+    """
+    state, iterations = config.get("filter"), config.get("iterations")
+    if not isinstance(state, str) or not isinstance(iterations, int):
+        return "filter"
+    return f"{'iterated EKF' if iterations > 1 else 'EKF'} ({state})"
+
+
+def estimate_name(summary: Mapping[str, Any]) -> str:
+    """What made a run's estimate: its filter (``filter_name``), or ``ODOMETRY_ALONE`` when the
+    filter made no update (``counts.updates`` is 0), so that a table never shows odometry under
+    the filter's name."""
+    counts = summary.get("counts") if isinstance(summary.get("counts"), Mapping) else {}
+    if counts.get("updates") == 0:
+        return ODOMETRY_ALONE
+    config = summary.get("config")
+    return filter_name(config) if isinstance(config, Mapping) else "filter"
+
+
+def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJECTED_SHARE) -> float:
+    """``P(X >= rejected)`` for X ~ Binomial(observations, rate): how likely that many rejections
+    are if each observation were rejected independently at ``rate``."""
+    if rejected <= 0:
+        return 1.0
+    return min(1.0, float(binomial_tail(rejected - 1, observations, rate)))  # its rounding can pass 1
+
+
+def run_warnings(counts: Mapping[str, int]) -> list[str]:
+    """The warnings a run's counts call for (``summary["counts"]``: ``observations``, ``rejected``,
+    ``updates``), each one line: the estimate is odometry alone, or the map looks incomplete."""
+    observations, rejected, updates = counts["observations"], counts["rejected"], counts["updates"]
+    found = []
+    if observations == 0:
+        found.append("no observation camloc can use (the reader's warnings say what it skipped): the estimate "
+                      "is odometry alone, not corrected by the camera")
+    elif updates == 0:
+        found.append(f"all {observations} observations were rejected, so the filter made no update: the estimate "
+                      "is odometry alone, not corrected by the camera")
+    if observations and rejection_tail(rejected, observations) < INCOMPLETE_MAP_PROBABILITY:
+        found.append(
+            f"{rejected} of {observations} observations ({rejected / observations:.0%}) were rejected, far more than "
+            f"a complete map and ordinary clutter leave (at most about {REFERENCE_REJECTED_SHARE:.0%}): the map may "
+            "lack landmarks the camera sees, or the detections are heavily cluttered; 'camloc info' on the dataset "
+            "counts the observations of ids absent from the map")
+    return found

@@ -1,0 +1,145 @@
+"""A run says what its numbers do not: which filter ran, that an estimate without an update is
+odometry alone, and that a map looks incomplete (``camloc.diagnostics``), in the tables, in
+``summary.json`` and on stderr, also under ``--quiet``."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from camloc.cli.app import app
+from camloc.diagnostics import (
+    ODOMETRY_ALONE,
+    estimate_name,
+    filter_name,
+    rejection_tail,
+    run_warnings,
+)
+from camloc.g2o import write_g2o
+from camloc.simulate import SimulationConfig, simulate
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    path = tmp_path_factory.mktemp("diagnostics") / "world.g2o"
+    write_g2o(simulate(SimulationConfig(trajectory="grid", poses=60), seed=4), path)
+    return path
+
+
+def _with_lines(source, target, keep):
+    target.write_text("".join(line for line in source.read_text().splitlines(keepends=True) if keep(line)))
+    return target
+
+
+# --------------------------------------------------------------------------------------------
+# The pure functions
+
+
+def test_the_filter_is_named_by_its_state_and_its_iterations():
+    assert filter_name({"filter": "euler", "iterations": 3}) == "iterated EKF (euler)"
+    assert filter_name({"filter": "se3", "iterations": 1}) == "EKF (se3)"
+    assert filter_name({}) == "filter"  # an edited summary.json: no claim
+    assert estimate_name({"config": {"filter": "euler", "iterations": 2}, "counts": {"updates": 5}}) == "iterated EKF (euler)"
+    assert estimate_name({"config": {"filter": "euler", "iterations": 2}, "counts": {"updates": 0}}) == ODOMETRY_ALONE
+
+
+def test_no_observation_or_no_update_is_called_odometry_alone():
+    (none,) = run_warnings({"observations": 0, "rejected": 0, "updates": 0})
+    assert "odometry alone" in none
+    found = run_warnings({"observations": 12, "rejected": 12, "updates": 0})
+    assert any("all 12 observations were rejected" in w and "odometry alone" in w for w in found)
+    assert run_warnings({"observations": 12, "rejected": 1, "updates": 9}) == []
+
+
+@pytest.mark.parametrize("rejected, observations, warned", [
+    (5, 362, False),     # the real file, complete map: 1.4%
+    (112, 801, False),   # smooth3d-clutter.g2o: 12% clutter and outliers, 14% rejected
+    (184, 362, True),    # the real file with half its map removed: 51%
+    (6, 10, False),      # 60% of ten observations is not evidence
+    (2300, 10000, True),  # 23% of many is
+])
+def test_a_map_looks_incomplete_only_when_the_rejections_are_far_above_the_reference_rate(rejected, observations, warned):
+    found = run_warnings({"observations": observations, "rejected": rejected, "updates": 1})
+    assert any("the map may lack landmarks" in w for w in found) == warned
+    assert 0.0 <= rejection_tail(rejected, observations) <= 1.0
+
+
+# --------------------------------------------------------------------------------------------
+# End to end
+
+
+def test_a_file_without_usable_observations_is_odometry_alone_everywhere(tmp_path, world):
+    unknown = _with_lines(world, tmp_path / "unknown.g2o", lambda line: True)
+    unknown.write_text(unknown.read_text().replace("EDGE_PROJECT_DEPTH", "EDGE_PROJECT_XYZ"))
+    run_dir = tmp_path / "run"
+    outcome = invoke("run", unknown, "-o", run_dir)
+    assert outcome.exit_code == 0, outcome.output
+    header = next(line for line in outcome.stdout.splitlines() if "odometry only" in line)
+    assert ODOMETRY_ALONE in header and "EKF" not in header
+    assert any(line.startswith(f"warning: {unknown}: no observation camloc can use") for line in outcome.stderr.splitlines())
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["estimate_name"] == ODOMETRY_ALONE
+    assert any("odometry alone" in warning for warning in summary["warnings"])
+
+    evaluation = invoke("eval", run_dir, "--json")
+    report = json.loads(evaluation.stdout)
+    # odometry's NEES has a verdict (the real file's is "consistent"), which is not the filter's
+    assert report["nees"]["verdict"] != "undetermined" and report["consistency"]["verdict"] == "undetermined"
+    assert report["estimate_name"] == ODOMETRY_ALONE
+    table = invoke("eval", run_dir)
+    assert "verdict: undetermined: the filter made no update" in " ".join(table.stdout.split())
+
+
+def test_quiet_silences_the_table_but_not_the_warnings(tmp_path, world):
+    unknown = tmp_path / "unknown.g2o"
+    unknown.write_text(world.read_text().replace("EDGE_PROJECT_DEPTH", "EDGE_PROJECT_XYZ"))
+    outcome = invoke("run", unknown, "-o", tmp_path / "quiet", "--quiet")
+    assert outcome.exit_code == 0 and outcome.stdout == "", outcome.output
+    lines = outcome.stderr.splitlines()
+    assert lines and all(line.startswith(f"warning: {unknown}: ") for line in lines), outcome.stderr
+    assert any("odometry alone" in line for line in lines)
+    as_json = invoke("run", unknown, "-o", tmp_path / "json", "--json")  # the warnings are in the object
+    assert as_json.stderr == "" and any("odometry alone" in w for w in json.loads(as_json.stdout)["warnings"])
+    info = invoke("info", unknown, "--quiet")
+    assert info.stdout == "" and "unknown tag 'EDGE_PROJECT_XYZ'" in info.stderr
+
+
+def test_a_map_missing_half_its_landmarks_is_reported_by_the_run(tmp_path, world):
+    seen = iter(range(10**9))
+    half = _with_lines(world, tmp_path / "half.g2o",
+                       lambda line: not line.startswith("VERTEX_TRACKXYZ") or next(seen) % 2 == 0)
+    outcome = invoke("run", half, "-o", tmp_path / "run", "--quiet")
+    assert outcome.exit_code == 0, outcome.output
+    assert "the map may lack landmarks" in outcome.stderr and "camloc info" in outcome.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert any("the map may lack landmarks" in warning for warning in summary["warnings"])
+
+    whole = invoke("run", world, "-o", tmp_path / "whole", "--quiet")
+    assert whole.exit_code == 0 and whole.output == ""  # a complete map: nothing to say
+
+
+def test_the_real_file_with_half_its_map_is_reported(tmp_path, real_dataset_path):
+    seen = iter(range(10**9))
+    half = _with_lines(real_dataset_path, tmp_path / "half.g2o",
+                       lambda line: not line.startswith("VERTEX_TRACKXYZ") or next(seen) % 2 == 0)
+    outcome = invoke("run", half, "-o", tmp_path / "run", "--json")
+    assert outcome.exit_code == 0, outcome.output
+    summary = json.loads(outcome.stdout)
+    assert summary["counts"]["rejected"] > 150
+    assert any("the map may lack landmarks" in warning for warning in summary["warnings"])
+
+
+@pytest.mark.parametrize("args, name", [([], "iterated EKF (euler)"), (["--iterations", "1", "--filter", "se3"], "EKF (se3)")])
+def test_the_tables_name_the_filter_that_ran(tmp_path, world, args, name):
+    run_dir = tmp_path / "run"
+    outcome = invoke("run", world, "-o", run_dir, *args)
+    assert outcome.exit_code == 0, outcome.output
+    assert name in next(line for line in outcome.stdout.splitlines() if "odometry only" in line)
+    evaluation = invoke("eval", run_dir)
+    assert name in next(line for line in evaluation.stdout.splitlines() if "odometry" in line and "metric" in line)
