@@ -35,15 +35,18 @@ def sensors_of(dataset: "Dataset") -> tuple[dict[int, CameraModel], np.ndarray]:
     """The dataset's sensors, (camera, measurement kind) pairs, indexed 0.. in the order of
     (camera id, kind), and each observation's sensor (K,) int64. Every camera is a sensor (of
     depth, when it made no observation) so that the table is never empty."""
-    keys = {(int(c), int(k)) for c, k in zip(dataset.obs_camera.tolist(), dataset.obs_kind.tolist())}
+    kinds = len(measurement.KINDS)
+    code = np.asarray(dataset.obs_camera, np.int64) * kinds + np.asarray(dataset.obs_kind, np.int64)
+    observed, obs_sensor = np.unique(code, return_inverse=True)  # sorted by (camera id, kind)
+    keys = [(int(c) // kinds, int(c) % kinds) for c in observed]
     seen = {c for c, _ in keys}
-    keys |= {(int(c), measurement.DEPTH) for c in dataset.cameras if int(c) not in seen}
-    ordered = sorted(keys)
+    unobserved = [(int(c), measurement.DEPTH) for c in sorted(dataset.cameras) if int(c) not in seen]
+    ordered = sorted(keys + unobserved)
     sensors = {}
     for index, (camera_id, kind) in enumerate(ordered):
         camera = dataset.cameras[camera_id]
         sensors[index] = CameraModel(camera.T_robot_camera, (camera.fx, camera.fy, camera.cx, camera.cy), kind, camera_id)
-    code = np.asarray(dataset.obs_camera, np.int64) * len(measurement.KINDS) + np.asarray(dataset.obs_kind, np.int64)
-    table = np.array([c * len(measurement.KINDS) + k for c, k in ordered], dtype=np.int64)
-    obs_sensor = np.searchsorted(table, code).astype(np.int64) if code.size else np.zeros(0, np.int64)
+    # rows of the observed sensors among all of them (the unobserved cameras interleave by id)
+    row_of = np.array([ordered.index(key) for key in keys], dtype=np.int64)
+    obs_sensor = row_of[obs_sensor].astype(np.int64) if code.size else np.zeros(0, np.int64)
     return sensors, obs_sensor
