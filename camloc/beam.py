@@ -87,7 +87,6 @@ class BeamSettings:
     beam_width : hypotheses kept after each pose.
     beam_delta : drop hypotheses this much costlier than the best.
     branch_delta : options of an observation this much costlier than its best are not explored.
-    gate : chi^2 gate on a pair's d^2.
     merge_sigma : hypotheses whose states differ by less than this many standard deviations on
         every axis are merged (the cheaper kept).
     slip_inflation, slip_cost : covariance factor and cost of the odometry-slip hypothesis.
@@ -107,7 +106,6 @@ class BeamSettings:
     beam_width: int = 16
     beam_delta: float = 14.0
     branch_delta: float = 8.0
-    gate: float = 11.34
     merge_sigma: float = 0.3
     slip_inflation: float = 25.0
     slip_cost: float = 10.0
@@ -277,8 +275,7 @@ class BeamSearch:
         self.log_det_point_cov = context.log_det_point_cov
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
         # which observations have a point (``measurement.judged_as_point``; a pixel is a ray)
-        ranged_sensor = np.array([bool(measurement.judged_as_point(c.kind)) for _, c in sorted(context.cameras.items())], bool)
-        self._ranged = ranged_sensor[context.obs_sensor] if context.obs_sensor.size else np.zeros(0, bool)
+        self._ranged = measurement.judged_as_point(context.dataset.obs_kind)
         self.history: list[list[_Hypothesis]] = []  # each pose's beam; during a pose, those before it
         self.statistics = BeamStatistics()
         self.unexplained: list[tuple[int, int]] = []  # (unassigned, observations) of each pose's best explanation
@@ -578,7 +575,6 @@ class BeamSearch:
     def _options(self, h: _Hypothesis, obs: np.ndarray, *, widened_view: bool = False) -> list[_Options]:
         """Gated landmarks of every observation under h, computed in one batch per camera; with
         ``widened_view``, among the landmarks within three standard deviations of h's view."""
-        ds = self.ctx.dataset
         out: list[_Options] = [None] * obs.size  # type: ignore[list-item]
         cameras = self.ctx.obs_sensor[obs]
         for camera_id in np.unique(cameras):
@@ -683,7 +679,6 @@ class BeamSearch:
         batch per camera, less the landmarks h has taken. (Moving the old predictions to first
         order is not enough: with landmarks a metre away, a pair's correction moves the
         predictions by pixels more than the linear term says.)"""
-        ds = self.ctx.dataset
         taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
         out = list(options)
         cameras = self.ctx.obs_sensor[obs]

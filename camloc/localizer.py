@@ -431,10 +431,11 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
     x0 = euler.initial(dataset.T_world_start)
     sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
     started = time.perf_counter()
+    view_range = candidate_range(dataset, config)
     try:
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
             dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2), concurrent=concurrent,
-            filter_ready=filter_ready)
+            filter_ready=filter_ready, view_range=view_range)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
         raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k])) from None
@@ -457,7 +458,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
     return build_result(
         dataset, config, euler, states, covs, geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
         dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
-        slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=candidate_range(dataset, config),
+        slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=view_range,
         timing={"filter_seconds": seconds, "engine": "compiled", "replay_process": False, "replay_process_peak_mb": None,
                 "replay_thread": concurrent and config.association == "beam"},
     )
@@ -514,7 +515,6 @@ class _Localizer:
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
-        self.gate = float(chi2_quantile(3, 1.0 - config.gate))  # chi^2 quantile, 3 dof (a depth pair's)
         self.obs_gate = observation_gates(dataset.obs_kind, 1.0 - config.gate)  # each observation's, at its dof
         # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
@@ -567,7 +567,7 @@ class _Localizer:
         c = self.config
         return BeamSettings(
             beam_width=c.beam.width, beam_delta=c.beam.delta, branch_delta=c.beam.branch_delta,
-            gate=self.gate, slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost,
+            slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost,
         )
 
     def search_beam(

@@ -129,9 +129,8 @@ def depth_of(z: np.ndarray, kind: int) -> np.ndarray:
     """The depth (M,) measurements (M, MAX_DIM) of a kind that measures range give."""
     if kind == DEPTH:
         return z[:, 2].copy()
-    if kind == DISPARITY:
-        with np.errstate(divide="ignore"):
-            return np.where(z[:, 2] > 0.0, 1.0 / np.where(z[:, 2] > 0.0, z[:, 2], 1.0), -1.0)
+    if kind == DISPARITY:  # a non-positive inverse depth is behind the camera: depth -1
+        return np.divide(1.0, z[:, 2], out=np.full(z.shape[0], -1.0), where=z[:, 2] > 0.0)
     raise ValueError(f"a {KINDS[kind].name} measurement gives no depth")
 
 

@@ -101,17 +101,15 @@ MIN_POINT_DEPTH = measurement.MIN_POINT_DEPTH
 
 
 def measured_points(
-    z: np.ndarray, cov: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH,
+    uvd: np.ndarray, cov: np.ndarray, intrinsics: tuple[float, float, float, float]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Measurements (M, 3) of a kind that measures range, with covariances (M, 3, 3), as
-    camera-frame points (M, 3) with covariances (M, 3, 3), to first order in the measurement
-    noise. In these coordinates a landmark's prediction is linear in the robot's position, so a
-    wide prior's linearization holds where that of the measurement does not."""
-    depth = np.maximum(measurement.depth_of(z, kind), MIN_POINT_DEPTH)
-    as_depth = np.column_stack([z[:, :2], depth])
-    points, J = measurement.back_project(as_depth, intrinsics, measurement.DEPTH)
-    if kind == measurement.DISPARITY:  # the depth row's derivative by inverse depth: -depth^2
-        J[:, :, 2] *= (-depth * depth)[:, None]
+    """Depth measurements (M, 3) with covariances (M, 3, 3) as camera-frame points (M, 3) with
+    covariances (M, 3, 3), to first order in the measurement noise. In these coordinates a
+    landmark's prediction is linear in the robot's position, so a wide prior's linearization
+    holds where that of (u, v, depth) does not. (Only depth measurements are judged as points:
+    ``measurement.judged_as_point``.)"""
+    uvd = np.column_stack([uvd[:, :2], np.maximum(uvd[:, 2], MIN_POINT_DEPTH)])
+    points, J = back_project(uvd, intrinsics)
     return points, J @ cov @ np.swapaxes(J, 1, 2)
 
 

@@ -22,8 +22,10 @@ from camloc.tails import chi2_quantile
 POINT_CHUNK = 32768
 
 
-def build_scene(dataset: Dataset, config) -> SceneArrays:
-    """The run's fixed arrays for ``dataset`` under ``config`` (a ``LocalizerConfig``)."""
+def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float] | None = None) -> SceneArrays:
+    """The run's fixed arrays for ``dataset`` under ``config`` (a ``LocalizerConfig``);
+    ``view_range``: its ``candidate_range``, when the caller has it (a pixel-only file's estimate
+    of it builds a k-d tree of the map)."""
     from camloc.kernels.view import build_grid, view_cone_ball  # numba: imported where the compiled loop runs
 
     # numba's start in a fresh process (its registries, then a first kernel: about 0.5 s) goes on in
@@ -38,12 +40,11 @@ def build_scene(dataset: Dataset, config) -> SceneArrays:
     sensors, obs_camera = sensors_of(dataset)
     cameras = [sensors[i] for i in range(len(sensors))]
     camera_K = np.array([(*c.intrinsics, float(c.kind)) for c in cameras], dtype=float).reshape(-1, 5)
-    K = dataset.num_observations
     noise = observation_noise(dataset, config)
     true_index = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
     pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
-    view = np.array(candidate_range(dataset, config))
+    view = np.array(candidate_range(dataset, config) if view_range is None else view_range)
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
     if numba_start is not None:
         numba_start.join()
@@ -115,13 +116,10 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     cov, info = association.noise_floored(dataset.obs_z, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1],
                                           dataset.obs_kind)
     point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
-    for kind in np.unique(dataset.obs_kind):
-        if not measurement.judged_as_point(kind):
-            continue
-        rows = np.flatnonzero(dataset.obs_kind == kind)
-        for start in range(0, rows.size, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
-            part = rows[start:start + POINT_CHUNK]
-            point[part], point_cov[part] = models.measured_points(dataset.obs_z[part], cov[part], intrinsics[part].T, int(kind))
+    rows = np.flatnonzero(measurement.judged_as_point(dataset.obs_kind))
+    for start in range(0, rows.size, POINT_CHUNK):  # in chunks: (K, 3, 3) temporaries add up
+        part = rows[start:start + POINT_CHUNK]
+        point[part], point_cov[part] = models.measured_points(dataset.obs_z[part], cov[part], intrinsics[part].T)
     log_det = sym3.log_abs_det(cov) if K else np.zeros(0)
     if config.null_cost is None:
         null_cost = association.clutter_null_cost(dataset.obs_z, cov, log_det, dataset.obs_camera, dataset.obs_kind)
@@ -145,14 +143,12 @@ def point_cov_inverse(noise: ObservationNoise, kinds: np.ndarray) -> np.ndarray:
 
 
 def build_settings(config) -> Settings:
-    """The kernels' settings of a ``LocalizerConfig`` (its gate, a probability, as the chi^2
-    quantile of a depth pair's 3 dof; each observation's own, at its dof, is the scene's
-    ``obs_gate``)."""
+    """The kernels' settings of a ``LocalizerConfig`` (its gate is each observation's, at its
+    dof: the scene's ``obs_gate``)."""
     from camloc.kernels.beam_settings import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
-    gate = chi2_quantile(3, 1.0 - config.gate)
     return Settings(
-        int(config.iterations), float(gate), bool(config.recheck.enabled), float(config.recheck.margin),
+        int(config.iterations), bool(config.recheck.enabled), float(config.recheck.margin),
         float(config.recheck.steal_margin), float(config.beam.slip_inflation), int(config.beam.width),
         float(config.beam.delta), float(config.beam.branch_delta), MERGE_SIGMA, float(config.beam.slip_cost),
         PARTIAL_BUDGET, POOL_GATE_FACTOR,

@@ -253,7 +253,7 @@ def late_beam_kernels(dataset, config) -> list:
     widened_view(P, scene.view_limits[2])
     ranking.shift_agreement(np.zeros((2, 3)), 1.0)
     ranking.seeded_explanation_costs(np.zeros((1, 3)), np.zeros((1, 3, 6)), np.eye(3)[None].copy(), P, np.zeros(1, np.int64),
-                                     np.zeros(1, np.int64), np.ones(1), np.zeros(1, np.int64), np.full(1, settings.gate))
+                                     np.zeros(1, np.int64), np.ones(1), np.zeros(1, np.int64), np.ones(1))
     return [kb.prune, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs]
 
 

@@ -37,6 +37,12 @@ def _with_lines(source, target, keep):
     return target
 
 
+def _without_every_other_landmark(source, target):
+    """The file with every second VERTEX_TRACKXYZ removed: half its map."""
+    seen = iter(range(10**9))
+    return _with_lines(source, target, lambda line: not line.startswith("VERTEX_TRACKXYZ") or next(seen) % 2 == 0)
+
+
 # --------------------------------------------------------------------------------------------
 # The pure functions
 
@@ -111,9 +117,7 @@ def test_quiet_silences_the_table_but_not_the_warnings(tmp_path, world):
 
 
 def test_a_map_missing_half_its_landmarks_is_reported_by_the_run(tmp_path, world):
-    seen = iter(range(10**9))
-    half = _with_lines(world, tmp_path / "half.g2o",
-                       lambda line: not line.startswith("VERTEX_TRACKXYZ") or next(seen) % 2 == 0)
+    half = _without_every_other_landmark(world, tmp_path / "half.g2o")
     outcome = invoke("run", half, "-o", tmp_path / "run", "--quiet")
     assert outcome.exit_code == 0, outcome.output
     assert "the map may lack landmarks" in outcome.stderr and "camloc info" in outcome.stderr
@@ -125,9 +129,7 @@ def test_a_map_missing_half_its_landmarks_is_reported_by_the_run(tmp_path, world
 
 
 def test_the_real_file_with_half_its_map_is_reported(tmp_path, real_dataset_path):
-    seen = iter(range(10**9))
-    half = _with_lines(real_dataset_path, tmp_path / "half.g2o",
-                       lambda line: not line.startswith("VERTEX_TRACKXYZ") or next(seen) % 2 == 0)
+    half = _without_every_other_landmark(real_dataset_path, tmp_path / "half.g2o")
     outcome = invoke("run", half, "-o", tmp_path / "run", "--json")
     assert outcome.exit_code == 0, outcome.output
     summary = json.loads(outcome.stdout)

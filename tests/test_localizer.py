@@ -603,7 +603,7 @@ def test_a_right_pair_implies_the_robot_s_true_shift_from_the_prediction():
 
     dataset = simulate(SimulationConfig(poses=30, dense=True, observation_sigma_scale=0.0, cameras=2), seed=5)
     localizer = _Localizer(dataset, LocalizerConfig())
-    search = BeamSearch(localizer, BeamSettings(gate=localizer.gate))
+    search = BeamSearch(localizer, BeamSettings())
     k = int(np.argmax(np.bincount(dataset.obs_pose_index)))
     obs = localizer.obs_of_pose[k]
     landmarks = localizer.true_landmark_row[obs]
@@ -655,7 +655,7 @@ def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
     dataset = simulate(SimulationConfig(poses=40, dense=True, odometry_sigma_scale=3.0), seed=4)
     localizer = _Localizer(dataset, LocalizerConfig())
     search = BeamSearch(localizer, BeamSettings())
-    limit = POOL_GATE_FACTOR * BeamSettings().gate
+    limit = POOL_GATE_FACTOR * float(localizer.obs_gate[0])  # the pool of a depth observation, as _options makes it
     checked = dropped = 0
     for k in range(0, dataset.num_poses, 3):
         x = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))

@@ -147,7 +147,6 @@ def test_a_two_camera_rig_seeing_one_landmark_updates_with_the_hand_derived_four
     equal to the textbook EKF update written out here from the projection's derivative."""
     config = SimulationConfig(poses=3, cameras=2, measurement="pixel", landmarks=4)
     world = simulate(config, seed=3)
-    mounts = [world.cameras[c].T_robot_camera for c in (0, 1)]
     state = np.array([0.2, -0.1, 0.05, 0.02, -0.03, 0.3])
     T_world_robot = geometry.pose_from_euler(state)
     landmark = T_world_robot[:3, :3] @ np.array([1.5, 0.1, 0.2]) + T_world_robot[:3, 3]  # ahead of the robot

@@ -40,7 +40,7 @@ def test_beam_hands_over_every_pose_once_in_order_as_it_is_decided():
     dataset = simulate(CLUTTERED, seed=6)
     localizer = _Localizer(dataset, LocalizerConfig())
     calls = []
-    search = BeamSearch(localizer, BeamSettings(gate=localizer.gate))
+    search = BeamSearch(localizer, BeamSettings())
     poses_seen = []
     chosen, slipped = search.run(
         localizer.x, localizer.P, on_pose=poses_seen.append,

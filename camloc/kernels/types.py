@@ -47,7 +47,6 @@ SceneArrays = namedtuple("SceneArrays", [
 
 Settings = namedtuple("Settings", [
     "iterations",           # int: linearizations per update
-    "gate",                 # float: chi^2 gate of a depth pair (3 dof); each pair's own is scene.obs_gate
     "recheck",              # bool
     "recheck_margin", "recheck_steal_margin",
     "slip_inflation",
