@@ -66,18 +66,16 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 import numpy as np
 
 from camloc import association, ekf, geometry, measurement, models
-from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
-from camloc.tails import binomial_tail, chi2_quantile
+from camloc.constants import (
+    MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, STATE_GATE,
+    UNEXPLAINED_RATE_CAP, UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
+)
+from camloc.tails import binomial_tail
 
 if TYPE_CHECKING:
     from camloc.associators import CameraModel
     from camloc.dataset import Dataset
     from camloc.filters import EulerFilter, SE3Filter
-
-
-# A seeded explanation whose state leaves its prior's 99.9% region is dropped (``BeamSettings.state_gate``,
-# ``BeamSearch._within_prior``): the chi^2 quantile with 6 degrees of freedom.
-STATE_GATE = float(chi2_quantile(6, 0.001))
 
 
 @dataclass(frozen=True)
@@ -106,13 +104,13 @@ class BeamSettings:
     beam_width: int = 16
     beam_delta: float = 14.0
     branch_delta: float = 8.0
-    merge_sigma: float = 0.3
+    merge_sigma: float = MERGE_SIGMA
     slip_inflation: float = 25.0
     slip_cost: float = 10.0
-    slip_candidates: int = 256
-    slip_seeds: int = 8
-    seed_explanations: int = 2
-    partial_budget: int = 64
+    slip_candidates: int = SLIP_CANDIDATES
+    slip_seeds: int = SLIP_SEEDS
+    seed_explanations: int = SEED_EXPLANATIONS
+    partial_budget: int = PARTIAL_BUDGET
     state_gate: float = STATE_GATE
 
 
@@ -214,20 +212,6 @@ class _Partial:
     least: dict                       # position -> the least its explanation costs under base_x
     rest: float                       # sum of least over order
     root: int                         # which parent it grew from
-
-
-# The slip's search runs where a pose's best explanation leaves an unusual share of its observations
-# unassigned for this data (``BeamSearch._unusually_unexplained``).
-UNEXPLAINED_WINDOW = 50
-UNUSUAL_PROBABILITY = 0.01
-UNEXPLAINED_RATE_CAP = 0.6
-UNEXPLAINED_RUN = 3
-
-# A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
-# landmarks that were within this many gates before: its predictions moved by about H dx, with dx
-# drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
-# the same probability; twice the gate (about 99.996% for the default) makes a miss negligible.
-POOL_GATE_FACTOR = 2.0
 
 
 class BeamContext(Protocol):

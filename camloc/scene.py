@@ -145,7 +145,7 @@ def point_cov_inverse(noise: ObservationNoise, kinds: np.ndarray) -> np.ndarray:
 def build_settings(config) -> Settings:
     """The kernels' settings of a ``LocalizerConfig`` (its gate is each observation's, at its
     dof: the scene's ``obs_gate``)."""
-    from camloc.kernels.beam_settings import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
+    from camloc.constants import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
     return Settings(
         int(config.iterations), bool(config.recheck.enabled), float(config.recheck.margin),

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
-from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
+from camloc.constants import SLIP_MIN_OBSERVATIONS
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference

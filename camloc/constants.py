@@ -1,0 +1,43 @@
+"""Fixed constants (not options) that both engines read, defined once: the beam's, read by the
+numpy beam (``camloc.beam``: ``BeamSettings``' defaults), the compiled one's settings
+(``camloc.scene``) and its seed search (``camloc.seeds``, ``camloc.kernels.beam``), and the
+iterated update's (``camloc.ekf``, ``camloc.kernels.update``). Plain Python: no numba import, so
+the numpy engine reads them without loading the kernels. The reason for each beam value is in
+``docs/beam.md``."""
+
+from camloc.tails import chi2_quantile
+
+# Hypotheses whose states differ by less than this many standard deviations on every axis merge.
+MERGE_SIGMA = 0.3
+# Most partial explanations of a pose kept across all the beam's hypotheses, past each one's best.
+PARTIAL_BUDGET = 64
+
+# A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
+# landmarks that were within this many gates before: its predictions moved by about H dx, with dx
+# drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
+# the same probability; twice the gate (about 99.996% for the default) makes a miss negligible.
+POOL_GATE_FACTOR = 2.0
+
+# The slip's search runs at a pose of at least this many observations, most of them unassigned: two
+# detections with depth pin the position and two of the three rotation axes, with the prior the third.
+SLIP_MIN_OBSERVATIONS = 2
+# The slip's search: pairs ranked as first pairs, seeds explained in full, explanations kept per seed.
+SLIP_CANDIDATES = 256
+SLIP_SEEDS = 8
+SEED_EXPLANATIONS = 2
+
+# The slip's search runs where a pose's best explanation leaves an unusual share of its observations
+# unassigned for this data: a binomial tail below UNUSUAL_PROBABILITY at the rate of the last
+# UNEXPLAINED_WINDOW poses' best explanations (at most UNEXPLAINED_RATE_CAP), for the pose alone or
+# pooled with the UNEXPLAINED_RUN - 1 poses before it.
+UNEXPLAINED_WINDOW = 50
+UNUSUAL_PROBABILITY = 0.01
+UNEXPLAINED_RATE_CAP = 0.6
+UNEXPLAINED_RUN = 3
+
+# A seeded explanation whose state leaves its prior's 99.9% region is dropped: the chi^2 quantile
+# with 6 degrees of freedom.
+STATE_GATE = float(chi2_quantile(6, 0.001))
+
+# Iterated updates stop when the correction changes by less than this (metres / radians).
+CONVERGED = 1e-6
