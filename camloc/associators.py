@@ -55,7 +55,7 @@ class AssociationScene:
     max_angle : candidates within this angle of the optical axis, radians.
     obs_gate : (K,) the chi^2 quantile a pair's d^2 must not exceed, at each observation's dof.
     association_cov : (K, 3, 3) each observation's covariance as association judges it
-        (``association.noise_floored``; the filter's update keeps the file's own).
+        (``observation_space.noise_floored``; the filter's update keeps the file's own).
     true_landmark_row : (K,) the map row of each observation's landmark by the file's ids, -1 where
         it has none; read by ``oracle`` only.
     conditioned : ``conditioned(x, P, obs, landmarks) -> (x, P)``: the state conditioned on the

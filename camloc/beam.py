@@ -228,7 +228,7 @@ class BeamContext(Protocol):
     T_increments: np.ndarray             # (N - 1, 4, 4) the odometry increments
     null_cost: np.ndarray                # (K,) cost of leaving each observation unassigned
     association_cov: np.ndarray          # (K, 3, 3) the noise association judges each observation by
-    log_det_R: np.ndarray                # (K,) its ln det     (``association.noise_floored``)
+    log_det_R: np.ndarray                # (K,) its ln det     (``observation_space.noise_floored``)
     point: np.ndarray                    # (K, 3) each observation as a point in its camera's frame,
     point_cov: np.ndarray                # (K, 3, 3) its covariance
     log_det_point_cov: np.ndarray        # (K,) and that covariance's ln det

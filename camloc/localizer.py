@@ -21,6 +21,7 @@ from camloc import association, associators, ekf, geometry, measurement, models,
 from camloc.associators import AssociationScene
 from camloc.sensors import sensors_of
 from camloc.measurement import observation_gates
+from camloc.observation_space import candidate_range, landmark_rows, observation_noise
 from camloc.beam import BeamSearch, BeamSettings, BeamStatistics
 from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
@@ -168,7 +169,7 @@ class LocalizerConfig:
     gate : probability of the chi^2 gate on each pair's innovation, 3 degrees of freedom.
     null_cost : cost of leaving an observation unassigned, read by the beam and by the re-check
         (so by no single method: it is not in a method's group); None: per observation, from the
-        data (``association.clutter_null_cost``: clutter uniform over the measured volume).
+        data (``observation_space.clutter_null_cost``: clutter uniform over the measured volume).
     initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose (metres, degrees).
     beam, best_friends, jcbb : each method's own options (``BeamOptions``, ``BestFriendsOptions``,
         ``JcbbOptions``).
@@ -425,7 +426,6 @@ COMPILED_ASSOCIATIONS = ("beam", "oracle")
 def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback],
                        concurrent: bool, filter_ready: Optional[Callable[[], None]] = None) -> RunResult:
     from camloc.loop import PoseFailure, run_compiled
-    from camloc.scene import candidate_range
 
     euler = make_filter("euler")
     x0 = euler.initial(dataset.T_world_start)
@@ -511,7 +511,6 @@ class _Localizer:
         self.single_camera = 0 if len(self.cameras) == 1 else None
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
         self.map_index = association.PointIndex(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
-        from camloc.scene import candidate_range, landmark_rows, observation_noise
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)

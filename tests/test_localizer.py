@@ -485,7 +485,7 @@ def test_observations_claiming_to_be_exact_in_four_cameras_are_localized_exactly
     # Information 1e12 (the simulator's exact observations) beside odometry of 1e2: rounding left
     # the re-check's bound on S indefinite, and numpy's LinAlgError ended the run at the third pose.
     # Then association judged each pair's linearization error by that noise, gated right pairs out
-    # and got 0.12 m where the data pins every pose (association.noise_floored): now 2e-10 m.
+    # and got 0.12 m where the data pins every pose (observation_space.noise_floored): now 2e-10 m.
     dataset = simulate(SimulationConfig(poses=12, cameras=4, max_range=1.5, detection_probability=0.7,
                                         observation_sigma_scale=0.0), seed=0)
     result = localize(dataset, parallel=False)
@@ -495,7 +495,7 @@ def test_observations_claiming_to_be_exact_in_four_cameras_are_localized_exactly
 
 @pytest.mark.parametrize("kind", [dict(intrinsics="pixel"), dict(trajectory="smooth3d")])
 def test_association_of_noise_free_observations_matches_the_oracle(kind):
-    # before association.noise_floored: recall 0.15 and 0.14 m (pixel camera) and 0.64 and
+    # before observation_space.noise_floored: recall 0.15 and 0.14 m (pixel camera) and 0.64 and
     # 0.12 m (smooth3d), where the oracle gets 0.050 and 0.037 m; on 100 poses with the pixel
     # camera the beam's own filters broke down (a covariance no longer positive definite)
     dataset = simulate(SimulationConfig(poses=40, observation_sigma_scale=0.0, **kind), seed=0 if kind.get("intrinsics") else 2)

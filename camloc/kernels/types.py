@@ -24,7 +24,7 @@ SceneArrays = namedtuple("SceneArrays", [
     "z",                   # (K, 3) the measurement (``camloc.measurement``'s layout: u, v, depth / 0 / 1/depth)
     "R_file",              # (K, 3, 3) the file's noise: what the estimate weighs pairs by
     "R_file_inverse",      # (K, 3, 3) its information
-    "R_assoc",             # (K, 3, 3) the noise association judges pairs by (floored, ``association.noise_floored``)
+    "R_assoc",             # (K, 3, 3) the noise association judges pairs by (floored, ``observation_space.noise_floored``)
     "R_assoc_inverse",     # (K, 3, 3)
     "log_det_R",           # (K,) ln det R_assoc
     "point",               # (K, 3) each observation as a camera-frame point
