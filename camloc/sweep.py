@@ -589,7 +589,7 @@ def is_sweep_folder(path: str | Path) -> bool:
 
 def write_tables(out_dir: str | Path, spec: SweepSpec, cells: list[Cell], results: Mapping) -> list[dict[str, Any]]:
     """Rewrite ``runs.csv`` and ``summary.csv`` together (both or neither); returns the summary."""
-    from camloc.results import write_files_atomic
+    from camloc.atomic_files import write_files_atomic
 
     summary = summarize(spec, cells, results)
     texts = {Path(out_dir) / RUNS_FILE: runs_text(spec, cells, results),

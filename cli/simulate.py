@@ -160,7 +160,7 @@ def simulate(
     Zero sigmas are simulated exactly and written as a large finite information (1e12).
     """
     from camloc.g2o import write_g2o
-    from camloc.results import refuse_existing
+    from camloc.atomic_files import refuse_existing
     from camloc.simulate import SimulationConfig, SimulationOptionError, simulate_labelled, simulation_config
 
     # The options are named after the config's fields: pass on each one given by its command-line
