@@ -209,7 +209,7 @@ def applicable(run_options: dict[str, Scalar]) -> dict[str, Scalar]:
 def _check_cells(spec: SweepSpec, where) -> None:
     """Build every simulate cell's and run cell's config once, so bad values fail before running;
     a method's option where no cell runs that method is refused, as ``camloc run`` refuses it."""
-    from camloc.options import run_config
+    from camloc.config import run_config
     from camloc.simulate import simulation_config
 
     for key, table, build in (("simulate", spec.simulate, simulation_config), ("run", spec.run, run_config)):
@@ -354,7 +354,7 @@ def run_cell(cell: Cell) -> dict[str, Any]:
 def _localize_and_score(cell: Cell) -> dict:
     import camloc
     from camloc.metrics import evaluate
-    from camloc.options import run_config
+    from camloc.config import run_config
     from camloc.simulate import simulate, simulation_config
 
     if cell.path is not None:

@@ -175,8 +175,8 @@ def run(
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset of up to 2,000 poses it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
     from camloc.bundled import resolve_dataset
-    from camloc.config import read_config_file
-    from camloc.options import RUN_OPTIONS, run_config
+    from camloc.config import read_config_file, run_config
+    from camloc.options import RUN_OPTIONS
     from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
 
     # Each localizer option's parameter is named after its command-line flag, so the options pass on
