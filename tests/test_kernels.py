@@ -494,7 +494,7 @@ def test_a_cold_cache_is_told_apart_from_a_warm_one(tmp_path):
 def test_a_changed_kernel_source_clears_the_cache_of_every_kernel(tmp_path):
     # numba checks a cached function against its own file only: a callee changed in another file
     # would leave its callers' cache stale, so any change to the folder clears the folder's cache
-    from camloc.kernels import SOURCE_STAMP, clear_stale_cache
+    from camloc.kernels.stale_cache import SOURCE_STAMP, clear_stale_cache
 
     source, cache = tmp_path / "kernels", tmp_path / "cache"
     source.mkdir()
