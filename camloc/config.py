@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 from camloc.errors import ConfigError
-from camloc.localizer import LocalizerConfig, OptionError, option_value
+from camloc.localizer_config import LocalizerConfig, OptionError, option_value
 from camloc.options import FLAG_OF_PATH, NEGATED_FLAGS, RUN_OPTIONS, accepted_keys, file_name, key_of, localizer_overrides, table_of
 
 # table ("" for top level; "best-friends" and "best_friends" alike) -> key -> option path

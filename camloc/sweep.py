@@ -197,7 +197,7 @@ def applicable(run_options: dict[str, Scalar]) -> dict[str, Scalar]:
     """A cell's run options less those of association methods other than the cell's own: in a
     sweep over methods, each method's options are for its own cells (``[run] association = ["beam",
     "oracle"]`` with ``beam-width = 8`` runs the beam at width 8 beside the oracle)."""
-    from camloc.localizer import LocalizerConfig, option_methods
+    from camloc.localizer_config import LocalizerConfig, option_methods
     from camloc.options import RUN_OPTIONS
 
     association = run_options.get("association", LocalizerConfig().association)
@@ -225,7 +225,7 @@ def _check_cells(spec: SweepSpec, where) -> None:
             except ConfigError as error:
                 raise where(f"[{key}] {cell}: {error}") from None
         if unused:
-            from camloc.localizer import option_methods
+            from camloc.localizer_config import option_methods
             from camloc.options import RUN_OPTIONS
 
             name = sorted(unused)[0]

@@ -13,7 +13,8 @@ from camloc.ekf import FilterDivergedError
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
-from camloc.localizer import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
+from camloc.localizer import localize
+from camloc.localizer_config import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions
 from camloc.metrics import evaluate
 from camloc.simulate import SimulationConfig, simulate
 
