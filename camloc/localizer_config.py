@@ -15,7 +15,7 @@ from typing import ClassVar, Optional
 
 import numpy as np
 
-from camloc.beam import BeamSettings
+from camloc.beam_types import BeamSettings
 from camloc.errors import ConfigError
 from camloc.filters import FILTERS
 from camloc.g2o import MAX_COORDINATE

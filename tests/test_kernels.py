@@ -369,10 +369,10 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     taken = [tuple(children[7][c, q]) for c in range(count) for q in range(children[6][c])]
     assert count >= 1 and (second, lm) not in taken and children[4][np.argmin(children[2][:count])] == 1
 
-    from camloc.beam import _Hypothesis
+    from camloc.beam_types import Hypothesis
 
     localizer = _Localizer(dataset, config)
-    explained = BeamSearch(localizer, localizer.beam_settings())._explain(_Hypothesis(x, P, 0.0, 0, ((first, lm),)), np.array([second]))
+    explained = BeamSearch(localizer, localizer.beam_settings()).expansion.explain(Hypothesis(x, P, 0.0, 0, ((first, lm),)), np.array([second]))
     assert explained and all((second, lm) not in h.pairs for h in explained)
     assert min(explained, key=lambda h: h.cost).unassigned == 1
 
