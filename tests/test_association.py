@@ -322,7 +322,8 @@ def test_noise_floor_raises_observations_that_claim_to_be_exact(rng):
 def test_every_per_pose_method_pairs_rightly_from_the_true_state(association, sequential):
     # each method by its name in the localizer's table, called through the one signature
     # associate(scene, x, P, obs) on every pose of a world without clutter, from the true state
-    from camloc.localizer import PER_POSE_ASSOCIATORS, BestFriendsOptions, LocalizerConfig, _Localizer
+    from camloc.localizer import PER_POSE_ASSOCIATORS, _Localizer
+    from camloc.localizer_config import BestFriendsOptions, LocalizerConfig
     from camloc.simulate import SimulationConfig, simulate
 
     dataset = simulate(SimulationConfig(poses=30, cameras=2), seed=4)
