@@ -10,7 +10,9 @@ import numpy as np
 from camloc import association, geometry
 from camloc.beam_expansion import PoseExpansion
 from camloc.beam_types import BeamContext, BeamSettings, Hypothesis
-from camloc.constants import UNEXPLAINED_RATE_CAP, UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY
+from camloc.constants import (
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
+)
 from camloc.pair_options import PairGating
 from camloc.tails import binomial_tail
 
@@ -149,4 +151,4 @@ class SeededSearch:
         """How close two implied shifts must be to agree: three standard deviations of a measured
         point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
         point_sigma = np.sqrt(np.trace(self.point_cov[obs], axis1=1, axis2=2) / 3.0)
-        return float(3.0 * np.median(point_sigma) + 0.1 * np.median(np.abs(self.point[obs, 2])))
+        return float(AGREEMENT_SIGMAS * np.median(point_sigma) + AGREEMENT_DEPTH_FRACTION * np.median(np.abs(self.point[obs, 2])))

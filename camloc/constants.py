@@ -39,5 +39,17 @@ UNEXPLAINED_RUN = 3
 # with 6 degrees of freedom.
 STATE_GATE = float(chi2_quantile(6, 0.001))
 
+# A view widened for a wide prior (the seeds' search) reaches this many standard deviations of the
+# prior's position (metres) and orientation (angle) further; no view's half-angle passes
+# MAX_HALF_ANGLE_DEG from the optical axis (the widened one, or the one estimated from the data).
+WIDENED_VIEW_SIGMAS = 3.0
+MAX_HALF_ANGLE_DEG = 89.0
+
+# Two shifts of the robot that a pose's pairs imply agree (a Hough vote for the seeds) within
+# AGREEMENT_SIGMAS standard deviations of a measured point, plus AGREEMENT_DEPTH_FRACTION of its
+# depth for the orientation's error (about 6 deg).
+AGREEMENT_SIGMAS = 3.0
+AGREEMENT_DEPTH_FRACTION = 0.1
+
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6

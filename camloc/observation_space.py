@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from camloc import measurement, models, sym3
+from camloc.constants import MAX_HALF_ANGLE_DEG
 from camloc.dataset import Dataset
 
 # Observations are turned into points in chunks: (K, 3, 3) temporaries add up on large files.
@@ -209,4 +210,4 @@ def _widest_ray(dataset: Dataset) -> float:
         tan[mine, 0] = (dataset.obs_z[mine, 0] - camera.cx) / camera.fx
         tan[mine, 1] = (dataset.obs_z[mine, 1] - camera.cy) / camera.fy
     widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))
-    return float(np.radians(min(widest + 10.0, 89.0)))
+    return float(np.radians(min(widest + 10.0, MAX_HALF_ANGLE_DEG)))

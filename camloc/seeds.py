@@ -15,8 +15,8 @@ import numpy as np
 
 from camloc import geometry
 from camloc.constants import (
-    SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP, UNEXPLAINED_RUN, UNEXPLAINED_WINDOW,
-    UNUSUAL_PROBABILITY,
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
+    UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
 )
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
@@ -186,4 +186,4 @@ def agreement_radius(scene, obs) -> float:
     """How close two implied shifts must be to agree: three standard deviations of a measured
     point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
     point_sigma = np.sqrt(np.trace(scene.point_cov[obs], axis1=1, axis2=2) / 3.0)
-    return float(3.0 * np.median(point_sigma) + 0.1 * np.median(np.abs(scene.point[obs, 2])))
+    return float(AGREEMENT_SIGMAS * np.median(point_sigma) + AGREEMENT_DEPTH_FRACTION * np.median(np.abs(scene.point[obs, 2])))
