@@ -152,3 +152,14 @@ def test_the_compiled_engine_does_not_reach_into_the_numpy_one(module):
     # directly or through any module it imports: what both engines need lives in modules of its
     # own (camloc.observation_space, camloc.constants, camloc.measurement, ...)
     assert sorted(m for m in _reachable(module) if _in(m, NUMPY_ENGINE)) == []
+
+
+def test_the_kernels_cache_is_stamped_with_every_module_whose_values_they_compile_in():
+    # numba compiles a global as a constant and checks a cached kernel against its own file only:
+    # each module of the package outside the kernels' folder that a kernel reaches must be in the
+    # digest that clears their cache (``stale_cache.KERNEL_INPUTS``)
+    from camloc.kernels.stale_cache import KERNEL_INPUTS
+
+    kernels = [m for m in MODULES if _in(m, ("camloc.kernels",))]
+    outside = {m for k in kernels for m in _reachable(k) if m.startswith("camloc.") and not _in(m, ("camloc.kernels",))}
+    assert sorted(outside) == sorted("camloc." + name.removesuffix(".py") for name in KERNEL_INPUTS)

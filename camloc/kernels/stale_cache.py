@@ -13,12 +13,20 @@ from pathlib import Path
 # Written in the cache folder: the digest of the kernels' sources its files were compiled from.
 SOURCE_STAMP = "camloc-kernels-source.sha256"
 
+# The files of the package (beside the kernels' folder) whose values the kernels read: numba
+# compiles a global as a constant, so a changed constant must clear the cache too
+# (``tests/test_structure.py`` keeps this list to what the kernels import, transitively).
+KERNEL_INPUTS = ("constants.py", "measurement.py", "tails.py")
+
 
 def source_digest(folder: Path) -> str:
-    """The SHA-256 of every ``*.py`` file of ``folder``, by name order."""
+    """The SHA-256 of every ``*.py`` file of ``folder`` and of the ``KERNEL_INPUTS`` beside it
+    (those that exist), by name order."""
     digest = hashlib.sha256()
-    for path in sorted(folder.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    inputs = sorted(folder.glob("*.py")) + [folder.parent / name for name in KERNEL_INPUTS]
+    for path in inputs:
+        if path.is_file():
+            digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
 
 
