@@ -103,6 +103,9 @@ class BeamSearch:
         before ``run`` returns and covers every pose.
         """
         beam = [Hypothesis(x0, P0, 0.0, -1)]
+        # per pose, the spread of the beam's explanations about the chosen one (``_spread_about``):
+        # what the replayed filter's covariance, which knows one explanation, leaves out
+        self.association_spread = np.zeros((self.ctx.dataset.num_poses,) + P0.shape)
         decided = 0  # poses before this one have been passed to on_decided
         n = self.ctx.dataset.num_poses
         for k in range(n):
@@ -139,15 +142,23 @@ class BeamSearch:
         return k + 1
 
     def _chain(self, k: int, index: int, first: int) -> tuple[list[np.ndarray], np.ndarray]:
-        """The association of poses first..k along the ancestors of hypothesis ``index`` at pose k."""
+        """The association of poses first..k along the ancestors of hypothesis ``index`` at pose k;
+        records each pose's ``association_spread`` about that chain's hypothesis."""
         chosen: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * (k + 1 - first)
         slipped = np.zeros(k + 1 - first, dtype=bool)
         for j in range(k, first - 1, -1):
             h = self.history[j][index]
             chosen[j - first] = np.asarray(h.pairs, dtype=np.int64).reshape(-1, 2)
             slipped[j - first] = h.slipped
+            self.association_spread[j] = self._spread_about(self.history[j], h)
             index = h.parent
         return chosen, slipped
+
+    def _spread_about(self, beam: list[Hypothesis], chosen: Hypothesis) -> np.ndarray:
+        """How far the pose's kept hypotheses, weighted by their likelihood there, spread about
+        the chosen one (``ekf.mixture_spread``): zero where the beam held one explanation."""
+        differences = np.array([self.ctx.filter.difference(h.x, chosen.x) for h in beam])
+        return ekf.mixture_spread(differences, np.array([h.cost for h in beam]))
 
     def _predicted(self, h: Hypothesis, edge: int, parent: int) -> Hypothesis:
         x, F, G = self.ctx.filter.predict(h.x, self.ctx.T_increments[edge])
@@ -162,14 +173,15 @@ class BeamSearch:
             raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
         best = min(children, key=lambda c: c.cost)
         seeded: list[list[Hypothesis]] = []
-        if obs.size >= SLIP_MIN_OBSERVATIONS and 2 * best.unassigned > obs.size:
+        most = obs.size >= SLIP_MIN_OBSERVATIONS and 2 * best.unassigned > obs.size
+        if most or self.seeded.worth_trying(best.unassigned, obs.size):
             origin = beam[0]
             self.statistics.seeded_search_poses.append(k)
             seeded.append(self.seeded.explain_from_seeds(origin, obs, slipped=False))  # noisy odometry, not a slip
             # a slip is the explanation of last resort: its search (the costliest, under the
             # widest prior) runs only where the pose stays unusually unexplained after the plain one's
             best_with_seeds = min(children + seeded[0], key=lambda c: c.cost)
-            if (self.seeded.unusually_unexplained(best.unassigned, obs.size)
+            if (most and self.seeded.unusually_unexplained(best.unassigned, obs.size)
                     and self.seeded.unusually_unexplained(best_with_seeds.unassigned, obs.size)):
                 slipped = Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                      origin.cost + self.settings.slip_cost, origin.parent)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections import Counter
 from functools import partial
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -58,8 +58,11 @@ class PoseExpansion:
                 i, order = p.order[0], p.order[1:]
                 options = p.options[i] if p.h.x is p.base_x else self.gating.conditioned(p.h, obs[i : i + 1], [p.options[i]])[0]
                 rest = p.rest - p.least[i]
+                # the landmark of each observation still to explain that gates only one
+                contested = [gated for gated in (p.options[later].landmarks[np.isfinite(p.options[later].costs)] for later in order)
+                             if gated.size == 1]
                 grown += [Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
-                          for child in self.branches(p.h, int(obs[i]), options)]
+                          for child in self.branches(p.h, int(obs[i]), options, contested)]
             partials = self.prune_partials(grown)
         return [p.h for p in partials]
 
@@ -152,12 +155,19 @@ class PoseExpansion:
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
         return Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
 
-    def branches(self, h: Hypothesis, o: int, options: PairOptions) -> list[Hypothesis]:
+    def branches(self, h: Hypothesis, o: int, options: PairOptions, contested: Sequence[np.ndarray] = ()) -> list[Hypothesis]:
         """Children of h for one observation (``options`` under h): unassigned, or paired with a
-        viable landmark."""
+        viable landmark. ``contested``: the landmarks of the observations still to explain after
+        it that gate only one; where one of its viable landmarks is among them it may also stay
+        unassigned whatever its null cost ("Contested landmarks" in docs/beam.md)."""
         free = ~member(options.landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64))
         null_cost = float(self.null_cost[o])
         pairs, null = self.viable(np.where(free, options.costs, np.inf), null_cost)
+        if not null and any(member(options.landmarks[pairs], later).any() for later in contested):
+            # Another observation gates this landmark alone: branch_delta judges each observation
+            # alone, but the explanation that leaves this one unassigned pairs the landmark with
+            # the other (a clutter detection beside a landmark's own: both near-equal), so keep it.
+            null = True
         out = []
         if null:
             out.append(Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))

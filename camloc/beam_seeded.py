@@ -11,7 +11,8 @@ from camloc import association, geometry
 from camloc.beam_expansion import PoseExpansion
 from camloc.beam_types import BeamContext, BeamSettings, Hypothesis
 from camloc.constants import (
-    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, UNEXPLAINED_RATE_CAP,
+    UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
 )
 from camloc.pair_options import PairGating
 from camloc.tails import binomial_tail
@@ -47,6 +48,11 @@ class SeededSearch:
         if candidate.cost > kept[0].cost + self.settings.beam_delta or any(self.expansion.same_state(candidate, k) for k in kept):
             return kept
         return sorted(kept[:-1] + [candidate], key=lambda c: c.cost)
+
+    def worth_trying(self, unassigned: int, observed: int) -> bool:
+        """Whether a pose whose best explanation leaves at most half its observations unassigned
+        is searched from seeds all the same (``seeds_worth_trying``)."""
+        return seeds_worth_trying(unassigned, observed, np.array(self.unexplained, dtype=np.int64).reshape(-1, 2))
 
     def unusually_unexplained(self, unassigned: int, observed: int) -> bool:
         """Whether leaving ``unassigned`` of a pose's ``observed`` observations unexplained is
@@ -152,3 +158,21 @@ class SeededSearch:
         point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
         point_sigma = np.sqrt(np.trace(self.point_cov[obs], axis1=1, axis2=2) / 3.0)
         return float(AGREEMENT_SIGMAS * np.median(point_sigma) + AGREEMENT_DEPTH_FRACTION * np.median(np.abs(self.point[obs, 2])))
+
+
+def seeds_worth_trying(unassigned: int, observed: int, history: np.ndarray) -> bool:
+    """Whether a pose whose best explanation leaves ``unassigned`` of its ``observed``
+    observations unassigned (at most half) is searched from seeds: at least
+    ``SEEDED_MIN_UNASSIGNED`` are, and that many is less likely than
+    ``SEEDED_UNUSUAL_PROBABILITY`` at the rate of the last poses' best explanations (``history``
+    (h, 2) of unassigned, observed; every pose's until there is one). One wrong pair taken first
+    can pull a hypothesis off the right landmarks of the pose's other observations, which then
+    stay unassigned. The compiled beam's ``kernels.beam.seeds_worth_trying`` is this rule
+    (``tests/test_kernel_formulas.py``)."""
+    if unassigned < SEEDED_MIN_UNASSIGNED:
+        return False
+    recent = history[-UNEXPLAINED_WINDOW:]
+    if recent.shape[0] == 0:
+        return True
+    rate = min(float(recent[:, 0].sum() / recent[:, 1].sum()), UNEXPLAINED_RATE_CAP)
+    return bool(binomial_tail(unassigned - 1, observed, rate) < SEEDED_UNUSUAL_PROBABILITY)  # P(X >= unassigned)

@@ -92,6 +92,20 @@ def block_diagonal(blocks: np.ndarray) -> np.ndarray:
     return out.reshape(p * b, p * b)
 
 
+def mixture_spread(differences: np.ndarray, costs: np.ndarray) -> np.ndarray:
+    """The spread of a Gaussian mixture's means about one estimate: ``sum_i w_i d_i d_i'``, where
+    d_i (m, S) is component i's mean minus the estimate and w_i its weight, ``exp(-cost_i / 2)``
+    normalized (costs are twice the negative log-likelihoods, as the beam's). Added to the
+    estimate's own covariance it gives the mixture's second moment about that estimate (the
+    spread-of-the-means term of PDA and MHT outputs): the covariance of a pose whose
+    association the data leave ambiguous, where the estimate follows one of its explanations."""
+    if differences.shape[0] < 2:
+        return np.zeros((differences.shape[1], differences.shape[1]))
+    w = np.exp(-(costs - costs.min()) / 2.0)
+    w = w / w.sum()
+    return symmetrize((differences * w[:, None]).T @ differences)
+
+
 def predict(P: np.ndarray, F: np.ndarray, G: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Propagated covariance ``P' = F P F' + G Q G'`` (the state itself comes from the model)."""
     return symmetrize(F @ P @ F.T + G @ Q @ G.T)

@@ -163,7 +163,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
     started = time.perf_counter()
     view_range = candidate_range(dataset, config)
     try:
-        states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
+        states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped, spread = run_compiled(
             dataset, config, on_progress, initial_x=x0, initial_P=config.initial_cov(), concurrent=concurrent,
             filter_ready=filter_ready, view_range=view_range)
     except PoseFailure as failure:
@@ -189,6 +189,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
         dataset, config, euler, states, covs, geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
         dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
         slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=view_range,
+        association_spread=spread if config.association == "beam" else None,
         timing={"filter_seconds": seconds, "engine": "compiled", "replay_process": False, "replay_process_peak_mb": None,
                 "replay_thread": concurrent and config.association == "beam"},
     )
@@ -282,6 +283,7 @@ class _Localizer:
         self.P = config.initial_cov()
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
+        self.association_spread: Optional[np.ndarray] = None  # (N, 6, 6) with the beam (search_beam)
         self.beam_slipped: np.ndarray | None = None
         self.beam_statistics: Optional[BeamStatistics] = None  # what the beam did (search_beam)
         self.slip_pose_ids: list[int] = []
@@ -309,6 +311,7 @@ class _Localizer:
         search = BeamSearch(self, settings if settings is not None else self.beam_settings())
         self.beam_statistics = search.statistics
         self.beam_pairs, self.beam_slipped = search.run(self.x, self.P, on_pose=on_pose, on_decided=on_decided)
+        self.association_spread = search.association_spread
         slips = np.flatnonzero(self.beam_slipped)
         self.slip_pose_ids = [int(self.dataset.pose_ids[k]) for k in slips]
 
@@ -455,16 +458,21 @@ class _Localizer:
             warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb.max_nodes} joint tests at {cut_short} pose(s) "
                                         "and kept the best set found"] if cut_short else []),
             slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
+            association_spread=self.association_spread,
             timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": self.replayed_in_parallel,
                     "replay_process_peak_mb": self.replay_peak_mb, "replay_thread": False},
         )
 
 
 def build_result(dataset, config, filter_model, states, covs, poses, odometry_poses, chosen_landmark, mahalanobis,
-                 update_pose_ids, nis, map_costs, nis_dof, *, warnings, slip_pose_ids, candidate_range, timing) -> RunResult:
+                 update_pose_ids, nis, map_costs, nis_dof, *, warnings, slip_pose_ids, candidate_range, timing,
+                 association_spread=None) -> RunResult:
     """The RunResult of a run's records: per pose the filter's stored state (N, S), covariance
     (N, 6, 6), pose and odometry pose (N, 4, 4); per observation the chosen landmark id
-    (UNASSOCIATED for none) and Mahalanobis distance; per update its pose id, NIS, MAP cost, dof."""
+    (UNASSOCIATED for none) and Mahalanobis distance; per update its pose id, NIS, MAP cost, dof.
+    ``association_spread`` (N, 6, 6): with the beam, how far its explanations of each pose spread
+    about the one the filter replayed (``BeamSearch._spread_about``); the estimate's covariance
+    is the filter's plus that, the filter's own stays ``filter_cov``."""
     ds = dataset
     estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)
     odometry_xyz, odometry_quat = geometry.pose_to_quat(odometry_poses)
@@ -510,7 +518,8 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
         )
     return RunResult(
         dataset=ds.source, pose_ids=ds.pose_ids.copy(), estimate_xyz=estimate_xyz, estimate_quat_xyzw=estimate_quat,
-        estimate_cov=filter_model.pose_cov(states, covs), filter_state=states, filter_cov=covs,
+        estimate_cov=filter_model.pose_cov(states, covs if association_spread is None else covs + association_spread),
+        filter_state=states, filter_cov=covs,
         odometry_xyz=odometry_xyz, odometry_quat_xyzw=odometry_quat, truth_xyz=ds.truth_xyz, truth_quat_xyzw=ds.truth_quat_xyzw,
         map_landmark_ids=ds.landmark_ids, map_landmark_xyz=ds.landmark_xyz, associations=associations,
         update_pose_ids=np.asarray(update_pose_ids, dtype=np.int64), nis=np.asarray(nis, dtype=float),

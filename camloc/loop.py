@@ -16,15 +16,20 @@ release the GIL), with the same result as one pass after the other.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 
+from camloc.ekf import mixture_spread
+from camloc.filters import make_filter
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
 
 ProgressCallback = Callable[[int, int], None]
+
+# The compiled loop's filter (its states' difference, for the association spread).
+EULER = make_filter("euler")
 
 # The progress callback is called this many times per run at most (between compiled blocks).
 PROGRESS_STEPS = 200
@@ -36,7 +41,8 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
                  concurrent: bool = False, filter_ready: Optional[Callable[[], None]] = None, view_range=None):
     """Localize every pose of ``dataset``; returns the arrays ``camloc.localizer`` assembles into
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
-    observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices).
+    observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices, association
+    spread per pose (zero without the beam)).
     ``concurrent``: with the beam, filter the settled poses in a second thread (same result).
     ``filter_ready``: with the beam, called once before the filter's first stretch (a first
     compile waits there for the process compiling the filter's kernels: ``camloc.warmup``).
@@ -61,6 +67,21 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     return run.outputs()
 
 
+class CompiledRun(NamedTuple):
+    """What ``run_compiled`` returns (``camloc.localizer`` assembles it into a RunResult)."""
+
+    states: np.ndarray        # (N, 6) Euler states
+    covs: np.ndarray          # (N, 6, 6) the filter's covariances
+    chosen: np.ndarray        # (K,) landmark row of each observation, -1 for none
+    distance: np.ndarray      # (K,) Mahalanobis distance of each pair, NaN for none
+    update_pose: np.ndarray   # (U,) pose index of each update
+    nis: np.ndarray           # (U,)
+    map_cost: np.ndarray      # (U,)
+    dof: np.ndarray           # (U,) NIS degrees of freedom
+    slipped: np.ndarray       # indices of the poses explained as odometry slips
+    spread: np.ndarray        # (N, 6, 6) the beam's association spread (zero without the beam)
+
+
 class _Filter:
     """The filter's pass (``filter_poses``), stretch by stretch in pose order, and its outputs.
     With the beam (GIVEN), the pairs of each stretch are set (``set_pairs``) before it runs."""
@@ -78,11 +99,14 @@ class _Filter:
         # grow by copy, so a stretch handed to the thread keeps reading the arrays it was given
         self.pair_start, self.slipped = np.zeros(n + 1, np.int64), np.zeros(n, np.bool_)
         self.pair_obs, self.pair_landmark = np.zeros(max(64, 2 * K), np.int64), np.zeros(max(64, 2 * K), np.int64)
+        self.spread = np.zeros((n, 6, 6))  # with the beam, how far its explanations of each pose spread (_backtrack)
         self.filtered = 0
 
-    def set_pairs(self, first: int, pairs: list, slipped: np.ndarray):
-        """Pairs ((p, 2) of observation, landmark each) and slip flags of poses first, first + 1, ...;
-        returns the pair arrays the stretch reads."""
+    def set_pairs(self, first: int, pairs: list, slipped: np.ndarray, spread: Optional[np.ndarray] = None):
+        """Pairs ((p, 2) of observation, landmark each), slip flags and association spreads of
+        poses first, first + 1, ...; returns the pair arrays the stretch reads."""
+        if spread is not None:
+            self.spread[first:first + len(pairs)] = spread
         at = self.pair_start[first]
         sizes = np.array([p.shape[0] for p in pairs], dtype=np.int64)
         self.pair_start[first + 1:first + 1 + sizes.size] = at + np.cumsum(sizes)
@@ -112,8 +136,8 @@ class _Filter:
 
     def outputs(self):
         u = int(self.counters[0])
-        return (self.states, self.covs, self.chosen, self.distance, self.update_pose[:u], self.nis[:u], self.map_cost[:u],
-                self.dof[:u], np.flatnonzero(self.slipped))
+        return CompiledRun(self.states, self.covs, self.chosen, self.distance, self.update_pose[:u], self.nis[:u],
+                           self.map_cost[:u], self.dof[:u], np.flatnonzero(self.slipped), self.spread)
 
 
 class _Replay:
@@ -140,10 +164,10 @@ class _Replay:
             self.executor.shutdown(wait=True, cancel_futures=True)
         return False
 
-    def settle(self, last: int, pairs: list, slipped: np.ndarray):
-        """Poses settled..last - 1 are settled, with these pairs and slip flags."""
+    def settle(self, last: int, pairs: list, slipped: np.ndarray, spread: np.ndarray):
+        """Poses settled..last - 1 are settled, with these pairs, slip flags and spreads."""
         first, self.settled = self.settled, last
-        arrays = self.replay.set_pairs(first, pairs, slipped)
+        arrays = self.replay.set_pairs(first, pairs, slipped, spread)
         if self.executor is not None:
             self.pending.append(self.executor.submit(self._run, first, last, *arrays))
 
@@ -169,13 +193,15 @@ class _Replay:
 
 
 def search_beam(scene, settings, x0, P0, progress, settle):
-    """Every pose's pairs as the beam decides them, handed to ``settle(last, pairs, slipped)`` for
-    poses up to last - 1 (pairs: a list of (p, 2) of (observation, landmark), the seed pair first
-    at a slip; slipped (p,)) as soon as the beam has settled them, and for the rest at the end."""
+    """Every pose's pairs as the beam decides them, handed to ``settle(last, pairs, slipped,
+    spread)`` for poses up to last - 1 (pairs: a list of (p, 2) of (observation, landmark), the
+    seed pair first at a slip; slipped (p,); spread (p, 6, 6), ``_backtrack``) as soon as the beam
+    has settled them, and for the rest at the end."""
     n = scene.pose_obs_start.size - 1
     width = settings.beam_width
     history = (np.zeros(n, np.int64), np.zeros((n, width), np.int64), np.zeros((n, width), np.bool_),
-               np.zeros((n, width + 1), np.int64), np.zeros((max(4 * scene.z.shape[0], 64), 2), np.int64), np.zeros(1, np.int64))
+               np.zeros((n, width + 1), np.int64), np.zeros((max(4 * scene.z.shape[0], 64), 2), np.int64), np.zeros(1, np.int64),
+               np.zeros((n, width, 6)), np.zeros((n, width)))
     unexplained = np.zeros((n, 2), np.int64)
     counters = np.zeros(3, np.int64)
     beam = kb.new_generation(1, 1)
@@ -222,16 +248,21 @@ def settled_through(kept_count, first, stop):
 
 
 def _backtrack(history, first, last):
-    """The pairs and slip flags of poses first..last along the ancestors of pose last's best
-    hypothesis (poses before first are settled)."""
-    count, parent, slipped_flag, pair_start, pairs, _ = history
+    """The pairs, slip flags and association spreads (``camloc.beam.BeamSearch._spread_about``)
+    of poses first..last along the ancestors of pose last's best hypothesis (poses before first
+    are settled)."""
+    count, parent, slipped_flag, pair_start, pairs, _, state, cost = history
     chosen, slipped = [None] * (last - first + 1), np.zeros(last - first + 1, np.bool_)
+    spread = np.zeros((last - first + 1, 6, 6))
     index = 0
     for k in range(last, first - 1, -1):
         chosen[k - first] = pairs[pair_start[k, index]:pair_start[k, index + 1]].copy()
         slipped[k - first] = slipped_flag[k, index]
+        if count[k] > 1:
+            differences = np.array([EULER.difference(state[k, h], state[k, index]) for h in range(count[k])])
+            spread[k - first] = mixture_spread(differences, cost[k, :count[k]])
         index = parent[k, index]
-    return chosen, slipped
+    return chosen, slipped, spread
 
 
 class PoseFailure(Exception):

@@ -15,7 +15,7 @@ import numpy as np
 
 from camloc import geometry
 from camloc.constants import (
-    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
     UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
 )
 from camloc.kernels import beam as kb
@@ -29,16 +29,18 @@ from camloc.tails import binomial_tail
 
 def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexplained):
     """The kept hypotheses of a pose whose best explanation (of ``children``) left most of its
-    observations unassigned: the children, and the explanations grown from seeds under the
-    beam's best prediction (``parents``' first), as it is and, where leaving that many
-    unassigned is unusual for this data even with those, widened as after an odometry slip.
+    observations unassigned, or an unusual number of them (``kernels.beam.seeds_worth_trying``):
+    the children, and the explanations grown from seeds under the beam's best prediction
+    (``parents``' first), as it is and, where most were left and leaving that many unassigned is
+    unusual for this data even with those, widened as after an odometry slip.
     Returns (the generation they are in, the kept indices)."""
     origin = kb.gather(parents, np.array([0]), 1)
     plain = from_seeds(scene, settings, origin, obs, slipped=False)  # noisy odometry, not a slip
     groups = [plain]
     # a slip is the explanation of last resort: its search (the costliest, under the widest prior)
     # runs only where the pose stays unusually unexplained after the plain prediction's
-    if (unusually_unexplained(unassigned_by_best([(children, count)]), obs.size, unexplained)
+    most = obs.size >= SLIP_MIN_OBSERVATIONS and 2 * unassigned_by_best([(children, count)]) > obs.size
+    if (most and unusually_unexplained(unassigned_by_best([(children, count)]), obs.size, unexplained)
             and unusually_unexplained(unassigned_by_best([(children, count), plain]), obs.size, unexplained)):
         slipped = kb.gather(parents, np.array([0]), 1)
         slipped[1][0] *= settings.slip_inflation

@@ -244,7 +244,7 @@ def _run_compiled(dataset, config, *, concurrent: bool = False):
     outputs = run_compiled(dataset, config, initial_x=make_filter("euler").initial(dataset.T_world_start),
                            initial_P=config.initial_cov(), concurrent=concurrent,
                            filter_ready=(lambda: wait_for(filter_compile)) if filter_compile else None)
-    return outputs[-1]
+    return outputs.slipped
 
 
 def late_beam_kernels(dataset, config) -> list:

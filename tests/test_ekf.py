@@ -175,3 +175,20 @@ def test_the_information_form_keeps_covariance_symmetric_positive_definite(rng):
         P = ekf.update(np.zeros(6), P, np.zeros(9), blocks, lambda s: (H @ s, H), difference=plain_difference).cov
     assert np.array_equal(P, P.T)
     assert np.all(np.linalg.eigvalsh(P) > 0)
+
+
+def test_the_mixture_spread_is_the_weighted_second_moment_about_the_estimate(rng):
+    # Two components 2 cost units apart (weights 1 : e^-1): about the first, only the second's
+    # offset counts, at its weight; about their weighted mean, the spread is the mixture's
+    # covariance of its means, which sampling the mixture's means by their weights reproduces.
+    d = rng.normal(size=6)
+    two = np.stack([np.zeros(6), d])
+    w = np.exp(-1.0) / (1.0 + np.exp(-1.0))
+    np.testing.assert_allclose(ekf.mixture_spread(two, np.array([10.0, 12.0])), w * np.outer(d, d), atol=1e-15)
+    means = rng.normal(size=(5, 6))
+    costs = rng.uniform(0.0, 6.0, 5)
+    weights = np.exp(-costs / 2) / np.exp(-costs / 2).sum()
+    mean = weights @ means
+    sample = means[rng.choice(5, size=400_000, p=weights)] - mean
+    np.testing.assert_allclose(ekf.mixture_spread(means - mean, costs), sample.T @ sample / sample.shape[0], atol=5e-3)
+    assert not ekf.mixture_spread(means[:1] - mean, costs[:1]).any()  # one component: nothing to add

@@ -23,6 +23,7 @@ matrix and a vector right-hand side, as production calls it): about 35 s on a co
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -820,3 +821,29 @@ def test_a_pair_is_judged_in_pixels_or_as_a_point_whichever_costs_less(rng):
         assert gated == ((np.inf, np.inf, False) if beyond else ungated)
         outcomes.add(beyond)
     assert outcomes == {True, False}
+
+
+def test_the_seeded_search_trigger_is_the_numpy_beam_s_rule_on_every_history():
+    # Generated: every (unassigned, observed) of poses of up to 12 observations, against
+    # histories whose unexplained rate runs from none to past the cap, shorter and longer than
+    # the window, and none at all.
+    from camloc.beam_seeded import seeds_worth_trying
+    from camloc.tails import binomial_tail
+
+    rng = np.random.default_rng(5)
+    histories = [np.zeros((0, 2), np.int64)]
+    for rows, rate in itertools.product((1, 7, 50, 120), (0.0, 0.05, 0.2, 0.5, 0.9)):
+        observed = rng.integers(1, 15, rows)
+        histories.append(np.stack([rng.binomial(observed, rate), observed], axis=1).astype(np.int64))
+    decisions = []
+    for history, observed in itertools.product(histories, range(1, 13)):
+        for unassigned in range(observed + 1):
+            compiled = beam.seeds_worth_trying(np.int64(unassigned), np.int64(observed), history, np.int64(history.shape[0]))
+            assert compiled == seeds_worth_trying(unassigned, observed, history), (unassigned, observed, history[-50:].sum(axis=0))
+            decisions.append(compiled)
+    assert 0.1 < np.mean(decisions) < 0.9  # both answers are tested
+    for n in (1, 5, 12, 40):
+        for u in range(n + 2):
+            for p in (0.0, 0.03, 0.3, 0.6, 1.0):
+                assert beam.binomial_upper_tail(np.int64(u), np.int64(n), p) == pytest.approx(
+                    float(binomial_tail(u - 1, n, p)), rel=1e-9, abs=1e-15)

@@ -380,7 +380,8 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
 def test_poses_settle_only_through_the_last_pose_the_beam_kept_one_hypothesis_at():
     """Poses 0-4 kept 1, 2, 1, 3, 2 hypotheses: the beam's best at pose 3 or 4 may still lose to
     another, so only poses 0-2 are settled; their pairs are read along the parent links (pose 2's
-    one hypothesis grew from pose 1's second, not its best)."""
+    one hypothesis grew from pose 1's second, not its best), and pose 1's association spread is
+    the best's weight times its squared distance from the second."""
     from camloc.loop import _backtrack, settled_through
 
     kept = np.array([1, 2, 1, 3, 2])
@@ -390,8 +391,15 @@ def test_poses_settle_only_through_the_last_pose_the_beam_kept_one_hypothesis_at
     # pose 0: pairs (0, 10); pose 1: best (1, 11), second (1, 12); pose 2: (2, 13)
     pairs = np.array([[0, 10], [1, 11], [1, 12], [2, 13]])
     pair_start = np.array([[0, 1, 1], [1, 2, 3], [3, 4, 4], [4, 4, 4], [4, 4, 4]])
-    chosen, slip = _backtrack((kept, parent, slipped, pair_start, pairs, None), 0, 2)
+    # pose 1's two hypotheses: the best 0.1 m along x from the second, and 2 cost units cheaper
+    state, cost = np.zeros((5, 2, 6)), np.zeros((5, 2))
+    state[1, 0, 0], cost[1] = 0.1, [0.0, 2.0]
+    chosen, slip, spread = _backtrack((kept, parent, slipped, pair_start, pairs, None, state, cost), 0, 2)
     assert [c.tolist() for c in chosen] == [[[0, 10]], [[1, 12]], [[2, 13]]] and slip.tolist() == [False, True, False]
+    # the chosen second's covariance widens by the best's weight, 1 / (1 + e^-1), times 0.1 m squared
+    expected = np.zeros((3, 6, 6))
+    expected[1, 0, 0] = 0.01 / (1.0 + np.exp(-1.0))
+    np.testing.assert_allclose(spread, expected, atol=1e-15)
 
 
 def test_a_failure_in_the_filter_thread_is_raised_once_the_beam_is_done_and_stops_the_filter():
@@ -405,7 +413,7 @@ def test_a_failure_in_the_filter_thread_is_raised_once_the_beam_is_done_and_stop
         def __init__(self):
             self.ran = []
 
-        def set_pairs(self, first, pairs, slipped):
+        def set_pairs(self, first, pairs, slipped, spread=None):
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
 
         def poses(self, first, last, pair_obs=None, pair_landmark=None):
@@ -417,7 +425,7 @@ def test_a_failure_in_the_filter_thread_is_raised_once_the_beam_is_done_and_stop
     stretches = Stretches()
     with _Replay(stretches, concurrent=True) as replay:
         for last in (10, 20, 30):
-            replay.settle(last, [], np.zeros(0, np.bool_))
+            replay.settle(last, [], np.zeros(0, np.bool_), np.zeros((0, 6, 6)))
         with pytest.raises(PoseFailure) as failure:
             replay.finish(_Progress(30, None, halves=2))
     assert failure.value.k == 13 and stretches.ran == [(0, 10)]
@@ -493,7 +501,8 @@ def test_a_cold_cache_is_told_apart_from_a_warm_one(tmp_path):
 
 def test_a_changed_kernel_source_clears_the_cache_of_every_kernel(tmp_path):
     # numba checks a cached function against its own file only: a callee changed in another file
-    # would leave its callers' cache stale, so any change to the folder clears the folder's cache
+    # would leave its callers' cache stale, so any change to the folder clears the folder's cache,
+    # as does a change to a module of constants the kernels read (``KERNEL_INPUTS``)
     from camloc.kernels.stale_cache import SOURCE_STAMP, clear_stale_cache
 
     source, cache = tmp_path / "kernels", tmp_path / "cache"
@@ -511,6 +520,9 @@ def test_a_changed_kernel_source_clears_the_cache_of_every_kernel(tmp_path):
     compiled[0].write_bytes(b"")
     assert not clear_stale_cache(cache, source) and compiled[0].exists()   # same sources: kept
     (source / "sym3.py").write_text("y = 3\n")               # a callee's file changes
+    assert clear_stale_cache(cache, source) and not compiled[0].exists()
+    compiled[0].write_bytes(b"")
+    (tmp_path / "constants.py").write_text("Z = 4\n")        # a constant the kernels read, beside them
     assert clear_stale_cache(cache, source) and not compiled[0].exists()
 
 
@@ -530,3 +542,51 @@ def test_the_numpy_engine_never_imports_numba(tmp_path):
             "print(r.summary['timing']['engine'], 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path)
     assert out.stdout.split() == ["numpy", "False"]
+
+
+def test_a_clutter_detection_beside_a_landmark_s_own_does_not_take_it_first():
+    """Two detections at one pose gate one landmark: a clutter detection two standard deviations
+    off its prediction, listed first, and the landmark's own, exact. Alone, the clutter one's
+    pair is far cheaper than leaving it unassigned, so branch_delta would not keep that option,
+    and taken first it would leave the landmark's own detection unassigned; the explanation that
+    leaves it gives the landmark to its own detection and is cheaper. Both engines."""
+    import dataclasses
+
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import Hypothesis
+    from camloc.kernels import beam as kb
+    from camloc.localizer import LocalizerConfig, _Localizer
+    from camloc.scene import build_scene, build_settings
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=20), seed=3)
+    k = 10
+    own = int(np.flatnonzero((dataset.obs_pose_index == k) & (dataset.obs_true_landmark >= 0))[0])
+    lm = int(np.flatnonzero(dataset.landmark_ids == dataset.obs_true_landmark[own])[0])
+    x = np.r_[dataset.truth_xyz[k], geometry.matrix_to_euler(geometry.quat_to_matrix(dataset.truth_quat_xyzw[k]))]
+    P = np.diag(np.r_[np.full(3, 0.01**2), np.full(3, np.radians(0.5) ** 2)])
+    exact = _Localizer(dataset, LocalizerConfig()).observe(x, int(dataset.obs_camera[own]), np.array([lm]))[0][0]
+    sigma_u = float(np.sqrt(dataset.obs_cov[own][0, 0]))
+    z = dataset.obs_z.copy()
+    z[own] = exact
+    twin = dict(obs_pose_index=k, obs_camera=dataset.obs_camera[own], obs_z=exact + [2.0 * sigma_u, 0.0, 0.0],
+                obs_info=dataset.obs_info[own], obs_cov=dataset.obs_cov[own], obs_true_landmark=10_000, obs_kind=dataset.obs_kind[own])
+    dataset = dataclasses.replace(dataset, obs_z=z)
+    dataset = dataclasses.replace(dataset, **{name: np.insert(getattr(dataset, name), own, [value], axis=0) for name, value in twin.items()})
+    clutter, own = own, own + 1  # the clutter detection comes first
+    config = LocalizerConfig()
+    localizer = _Localizer(dataset, config)
+    search = BeamSearch(localizer, localizer.beam_settings())
+    alone = search.gating.options(Hypothesis(x, P, 0.0, 0), np.array([clutter]))[0]
+    assert alone.costs.min() + config.beam.branch_delta < localizer.null_cost[clutter]  # alone, its pair is clear
+
+    scene, settings = build_scene(dataset, config), build_settings(config)
+    start = kb.new_generation(1, 2)
+    start[0][0], start[1][0], start[2][0] = x, P, 0.0
+    children, count = kb.explain_all(scene, settings, start, 1, np.array([clutter, own]))
+    best = int(np.argmin(children[2][:count]))
+    assert [tuple(pair) for pair in children[7][best, :children[6][best]]] == [(own, lm)] and children[4][best] == 1
+
+    explained = search.expansion.explain(Hypothesis(x, P, 0.0, 0), np.array([clutter, own]))
+    best = min(explained, key=lambda h: h.cost)
+    assert best.pairs == ((own, lm),) and best.unassigned == 1

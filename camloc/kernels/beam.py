@@ -17,7 +17,9 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
-from camloc.constants import SLIP_MIN_OBSERVATIONS
+from camloc.constants import (
+    SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
+)
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
@@ -548,7 +550,8 @@ def explain_all(scene, settings, parents, n_parents, obs):
         total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
             total += 1 if step >= orders[root[p]].size else branch_count(scene, settings, gen, p, obs, options[root[p]],
-                                                                              orders[root[p]][step], moved[p])
+                                                                              orders[root[p]][step], moved[p],
+                                                                              orders[root[p]][step + 1:])
         children = new_generation(total, cap)
         c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
         pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
@@ -562,7 +565,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
                 at += 1
                 continue
             i = orders[r][step]
-            at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], rest[p] - leasts[r][i],
+            at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
                         children, at, c_root, c_rest, c_moved, pending)
         kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending)
         gen = gather(children, kept, cap)
@@ -594,20 +597,43 @@ def viable(gen, p, landmarks, cost, null_cost, branch_delta):
     return cost <= limit, null_cost <= limit
 
 
+@jit
+def contested(opt, later, landmarks, pairs):
+    """Whether a viable landmark of an observation is the only landmark in the gate of one still
+    to explain after it (``later``): then that observation may stay unassigned whatever its null
+    cost, since the explanation that leaves it gives the landmark to the other
+    (``PoseExpansion.branches``)."""
+    start, lm, cost = opt[0], opt[1], opt[2]
+    for i in later:
+        gated, only = 0, -1
+        for g in range(start[i], start[i + 1]):
+            if math.isfinite(cost[g]):
+                gated += 1
+                only = lm[g]
+        if gated != 1:
+            continue
+        for j in range(landmarks.size):
+            if pairs[j] and landmarks[j] == only:
+                return True
+    return False
+
+
 @inlined
-def branch_count(scene, settings, gen, p, obs, opt, i, moved):
+def branch_count(scene, settings, gen, p, obs, opt, i, moved, later):
     landmarks, cost, _, _ = options_of(scene, settings, gen, p, obs, opt, i, moved)
     pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[obs[i]], settings.branch_delta)
+    null = null or contested(opt, later, landmarks, pairs)
     return pairs.sum() + int(null)
 
 
 @inlined
-def branch(scene, settings, gen, p, r, obs, opt, i, moved, rest, children, at, c_root, c_rest, c_moved, pending):
+def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children, at, c_root, c_rest, c_moved, pending):
     """Write the children of partial p for observation i from index ``at``: unassigned, or paired
     with a viable landmark (its state pending); returns the next free index."""
     landmarks, cost, z_hat, H = options_of(scene, settings, gen, p, obs, opt, i, moved)
     o = obs[i]
     pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o], settings.branch_delta)
+    null = null or contested(opt, later, landmarks, pairs)
     if null:
         copy_hypothesis(gen, p, children, at)
         children[2][at] += scene.null_cost[o]
@@ -647,9 +673,9 @@ def predicted(scene, beam, n, k):
 
 @entry
 def commit(history, k, gen, kept):
-    """Record pose k's kept hypotheses (parent, slipped, pairs) for the backtrack; False where
-    the pair buffer is full (the caller grows it and calls again)."""
-    count, parent, slipped, pair_start, pairs, used = history
+    """Record pose k's kept hypotheses (parent, slipped, pairs, state, cost) for the backtrack;
+    False where the pair buffer is full (the caller grows it and calls again)."""
+    count, parent, slipped, pair_start, pairs, used, state, cost = history
     needed = 0
     for h in kept:
         needed += gen[6][h]
@@ -658,13 +684,48 @@ def commit(history, k, gen, kept):
     count[k] = kept.size
     for q in range(kept.size):
         h = kept[q]
-        parent[k, q], slipped[k, q] = gen[3][h], gen[5][h]
+        parent[k, q], slipped[k, q], cost[k, q] = gen[3][h], gen[5][h], gen[2][h]
+        for a in range(6):
+            state[k, q, a] = gen[0][h, a]
         pair_start[k, q] = used[0]
         for i in range(gen[6][h]):
             pairs[used[0] + i, 0], pairs[used[0] + i, 1] = gen[7][h, i, 0], gen[7][h, i, 1]
         used[0] += gen[6][h]
         pair_start[k, q + 1] = used[0]
     return True
+
+
+@jit
+def binomial_upper_tail(u, n, p):
+    """P(X >= u) for X ~ Binomial(n, p), summed term by term (n is a pose's observations)."""
+    if u <= 0:
+        return 1.0
+    if u > n or p <= 0.0:
+        return 0.0
+    if p >= 1.0:
+        return 1.0
+    total = 0.0
+    for j in range(u, n + 1):
+        total += math.exp(math.lgamma(n + 1.0) - math.lgamma(j + 1.0) - math.lgamma(n - j + 1.0)
+                          + j * math.log(p) + (n - j) * math.log1p(-p))
+    return min(total, 1.0)
+
+
+@jit
+def seeds_worth_trying(unassigned, observed, unexplained, count):
+    """``camloc.beam.seeds_worth_trying`` over the first ``count`` rows of ``unexplained`` (the
+    poses' (unassigned, observed) so far)."""
+    if unassigned < SEEDED_MIN_UNASSIGNED:
+        return False
+    first = max(count - UNEXPLAINED_WINDOW, 0)
+    if count == first:
+        return True
+    left = seen = 0
+    for r in range(first, count):
+        left += unexplained[r, 0]
+        seen += unexplained[r, 1]
+    rate = min(left / seen, UNEXPLAINED_RATE_CAP)
+    return binomial_upper_tail(unassigned, observed, rate) < SEEDED_UNUSUAL_PROBABILITY
 
 
 @entry
@@ -688,7 +749,9 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
-            if obs.size >= SLIP_MIN_OBSERVATIONS and 2 * children[4][best] > obs.size:
+            unassigned = children[4][best]
+            if ((obs.size >= SLIP_MIN_OBSERVATIONS and 2 * unassigned > obs.size)
+                    or seeds_worth_trying(unassigned, obs.size, unexplained, counters[2])):
                 return SLIP, k, parents, n, children, count
             kept = prune(scene, settings, children, count)
         if not commit(history, k, children, kept):
