@@ -66,7 +66,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 import numpy as np
 
 from camloc import association, ekf, geometry, measurement, models
-from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
+from camloc.kernels.beam_settings import MISS_COST, SLIP_MIN_OBSERVATIONS
 from camloc.tails import binomial_tail, chi2_quantile
 
 if TYPE_CHECKING:
@@ -101,6 +101,9 @@ class BeamSettings:
     state_gate : a seeded explanation whose state is further than this from its prior (its
         squared Mahalanobis distance, 6 dof) is dropped (``BeamSearch._within_prior``); inf keeps
         every one.
+    miss_cost : what an explanation pays for each landmark near a pixel observation's ray, within
+        the range where a camera surely detects what it sees (``detection_range``), that it
+        leaves unclaimed (``BeamSearch._missed``); 0: no such term.
     """
 
     beam_width: int = 16
@@ -114,6 +117,7 @@ class BeamSettings:
     seed_explanations: int = 2
     partial_budget: int = 64
     state_gate: float = STATE_GATE
+    miss_cost: float = MISS_COST
 
 
 class PartialPruning(NamedTuple):
@@ -248,6 +252,8 @@ class BeamContext(Protocol):
     point: np.ndarray                    # (K, 3) each observation as a point in its camera's frame,
     point_cov: np.ndarray                # (K, 3, 3) its covariance
     log_det_point_cov: np.ndarray        # (K,) and that covariance's ln det
+    detect_range: tuple[float, float]    # distances from a camera within which it surely detects a landmark
+                                         # it sees (``scene.detection_range``; (0, 0): no pixel observations)
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """The landmarks camera ``camera_id`` may see from x; with P, from within three standard
@@ -515,6 +521,7 @@ class BeamSearch:
         ranked by cost plus the least the observations they have still to explain can cost.
         """
         partials = [self._after_clear(h, obs, root) for root, h in enumerate(parents)]
+        expected = [self._expected(h, obs, p.options) for h, p in zip(parents, partials)]
         while any(p.order for p in partials):
             grown: list[_Partial] = []
             for p in partials:
@@ -527,7 +534,42 @@ class BeamSearch:
                 grown += [_Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
                           for child in self._branches(p.h, int(obs[i]), options)]
             partials = self._prune_partials(grown)
-        return [p.h for p in partials]
+        return [self._missed(p.h, expected[p.root], parents[p.root]) for p in partials]
+
+    def _expected(self, h: _Hypothesis, obs: np.ndarray, options: list[_Options]) -> np.ndarray:
+        """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
+        claim: those in the pool of one of its pixel observations (near the ray) whose distance
+        from that observation's camera under h lies within ``detect_range``, where a camera
+        surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
+        apart by their predicted spread, which favours a far one (its prediction is tighter);
+        but a near landmark on the ray would have been detected, and left unclaimed it is a
+        miss (``_missed``)."""
+        low, high = self.ctx.detect_range
+        if self.settings.miss_cost <= 0.0 or high <= 0.0:
+            return np.zeros(0, np.int64)
+        ds = self.ctx.dataset
+        pixel = ~measurement.measures_range(ds.obs_kind[obs])
+        found = []
+        T_world_robot = self.ctx.filter.pose(h.x)
+        for i in np.flatnonzero(pixel):
+            landmarks = options[i].landmarks
+            if landmarks.size == 0:
+                continue
+            centre = T_world_robot[:3, :3] @ self.ctx.cameras[int(self.ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
+            distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
+            found.append(landmarks[(distance >= low) & (distance <= high)])
+        return np.unique(np.concatenate(found)) if found else np.zeros(0, np.int64)
+
+    def _missed(self, h: _Hypothesis, expected: np.ndarray, parent: _Hypothesis) -> _Hypothesis:
+        """h (an explanation grown from ``parent``) charged ``miss_cost`` for each of the
+        ``expected`` landmarks it leaves unclaimed."""
+        if expected.size == 0:
+            return h
+        missed = int((~_member(expected, np.array([lm for _, lm in h.pairs], dtype=np.int64))).sum())
+        if missed and h is parent:  # never the parent's own cost
+            h = _Hypothesis(h.x, h.P, h.cost, h.parent, h.pairs, h.unassigned, h.slipped)
+        h.cost += self.settings.miss_cost * missed
+        return h
 
     def _after_clear(self, h: _Hypothesis, obs: np.ndarray, root: int) -> _Partial:
         """h after its stacked updates with the clear observations (see ``_explain_all``), with

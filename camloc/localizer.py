@@ -511,10 +511,11 @@ class _Localizer:
         self.single_camera = 0 if len(self.cameras) == 1 else None
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
         self.map_index = association.PointIndex(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
-        from camloc.scene import candidate_range, landmark_rows, observation_noise
+        from camloc.scene import candidate_range, detection_range, landmark_rows, observation_noise
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
+        self.detect_range = detection_range(dataset, self.max_angle)  # the beam's miss term
         self.obs_gate = observation_gates(dataset.obs_kind, 1.0 - config.gate)  # each observation's, at its dof
         # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)

@@ -17,14 +17,14 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
-from camloc.kernels.beam_settings import SLIP_MIN_OBSERVATIONS
+from camloc.kernels.beam_settings import MISS_COST, SLIP_MIN_OBSERVATIONS
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import visible
-from camloc.measurement import DEPTH
+from camloc.measurement import DEPTH, PIXEL
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -512,10 +512,12 @@ def explain_all(scene, settings, parents, n_parents, obs):
     root = np.arange(n_parents)
     rest = np.zeros(n_parents)
     moved = np.zeros(n_parents, np.bool_)
+    expected = []
     for h in range(n_parents):
         child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap)
         copy_hypothesis(child, FIRST, gen, h)
         options.append(opt)
+        expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
@@ -525,6 +527,8 @@ def explain_all(scene, settings, parents, n_parents, obs):
         for r in root:
             growing = growing or step < orders[r].size
         if not growing:
+            for c in range(root.size):
+                gen[2][c] += MISS_COST * missed(expected[root[c]], taken_by(gen, c))
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
@@ -551,6 +555,45 @@ def explain_all(scene, settings, parents, n_parents, obs):
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
         step += 1
+
+
+@jit
+def expected_landmarks(scene, x, obs, opt):
+    """The landmarks (distinct, sorted) a pose's explanation grown from a hypothesis at x is
+    expected to claim: those in the pool (``opt``, its options) of one of its pixel observations
+    whose distance from that observation's camera lies within the scene's detection range
+    (``view_limits[3:5]``, ``scene.detection_range``). ``camloc.beam.BeamSearch._expected``."""
+    low, high = scene.view_limits[3], scene.view_limits[4]
+    start, lm = opt[0], opt[1]
+    found = np.empty(lm.size, np.int64)
+    n = 0
+    if MISS_COST <= 0.0 or high <= 0.0:
+        return found[:0]
+    for i in range(obs.size):
+        c = scene.obs_camera[obs[i]]
+        if scene.camera_K[c, 4] != PIXEL:
+            continue
+        centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+        for j in range(start[i], start[i + 1]):
+            d = 0.0
+            for a in range(3):
+                e = scene.landmark_xyz[lm[j], a] - centre[a]
+                d += e * e
+            d = math.sqrt(d)
+            if low <= d <= high:
+                found[n] = lm[j]
+                n += 1
+    return np.unique(found[:n])
+
+
+@jit
+def missed(expected, taken):
+    """How many of the expected landmarks are not taken."""
+    n = 0
+    for landmark in expected:
+        if not is_taken(landmark, taken):
+            n += 1
+    return n
 
 
 @jit

@@ -13,3 +13,6 @@ SLIP_MIN_OBSERVATIONS = 2
 SLIP_CANDIDATES = 256
 SLIP_SEEDS = 8
 SEED_EXPLANATIONS = 2
+# What an explanation pays for each landmark near a pixel observation's ray, surely within its camera's
+# detection range, that it leaves unclaimed (``camloc.beam.BeamSearch._expected``, ``_missed``).
+MISS_COST = 8.0
