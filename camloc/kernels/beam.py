@@ -36,7 +36,7 @@ def new_generation(n, cap):
             np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
 
 
-@jit
+@inlined
 def put_state(gen, j, x, P):
     """Hypothesis j's state x (6,) and covariance P (6, 6), entry by entry (as every copy into a
     slice: see ``_jit``)."""
@@ -46,7 +46,7 @@ def put_state(gen, j, x, P):
             gen[1][j, a, b] = P[a, b]
 
 
-@entry
+@inlined
 def copy_hypothesis(src, i, dst, j):
     """dst[j] = src[i], every field."""
     put_state(dst, j, src[0][i], src[1][i])
@@ -399,7 +399,7 @@ def after_clear(scene, settings, gen, h, obs, cap):
     return child, opt, order, least
 
 
-@entry
+@inlined
 def same_state(gen, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
     every axis (the cheaper is kept)."""
@@ -441,8 +441,12 @@ def prune_indices(scene, settings, gen, candidates, parents, pending):
             break
         merged = False
         for q in range(n):
-            settle(scene, settings, gen, c, parents, pending)
-            settle(scene, settings, gen, kept[q], parents, pending)
+            # (settle's call passes the scene's arrays, each counted on entry and return: made only
+            # where a state is still pending)
+            if pending[5][c]:
+                settle(scene, settings, gen, c, parents, pending)
+            if pending[5][kept[q]]:
+                settle(scene, settings, gen, kept[q], parents, pending)
             if same_state(gen, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
@@ -491,7 +495,8 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending):
         others = ranked[~first][:max(0, settings.partial_budget - first.sum())]
         kept = np.concatenate((ranked[first], others))
     for c in kept:
-        settle(scene, settings, gen, c, parents, pending)
+        if pending[5][c]:
+            settle(scene, settings, gen, c, parents, pending)
     return kept
 
 
@@ -532,10 +537,15 @@ def explain_all(scene, settings, parents, n_parents, obs):
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
+        # room for every child a partial may have: one per landmark of the observation's pool and
+        # the unassigned one (counting the viable ones would make each partial's options twice)
         total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
-            total += 1 if step >= orders[root[p]].size else branch_count(scene, settings, gen, p, obs, options[root[p]],
-                                                                              orders[root[p]][step], moved[p])
+            if step >= orders[root[p]].size:
+                total += 1
+            else:
+                i = orders[root[p]][step]
+                total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
         children = new_generation(total, cap)
         c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
         pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
@@ -551,6 +561,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
             i = orders[r][step]
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], rest[p] - leasts[r][i],
                         children, at, c_root, c_rest, c_moved, pending)
+        c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
         kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending)
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
@@ -618,13 +629,6 @@ def viable(gen, p, landmarks, cost, null_cost, branch_delta):
             cost[j] = np.inf
     limit = least_cost(cost, null_cost) + branch_delta
     return cost <= limit, null_cost <= limit
-
-
-@inlined
-def branch_count(scene, settings, gen, p, obs, opt, i, moved):
-    landmarks, cost, _, _ = options_of(scene, settings, gen, p, obs, opt, i, moved)
-    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[obs[i]], settings.branch_delta)
-    return pairs.sum() + int(null)
 
 
 @inlined
