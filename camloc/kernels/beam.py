@@ -410,7 +410,7 @@ def same_state(gen, a, b, merge_sigma):
     return True
 
 
-@jit
+@inlined
 def settle(scene, settings, gen, c, parents, pending):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
