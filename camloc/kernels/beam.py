@@ -46,7 +46,7 @@ def put_state(gen, j, x, P):
             gen[1][j, a, b] = P[a, b]
 
 
-@inlined
+@entry
 def copy_hypothesis(src, i, dst, j):
     """dst[j] = src[i], every field."""
     put_state(dst, j, src[0][i], src[1][i])
