@@ -214,7 +214,7 @@ def options_for(association: str, options: Mapping[str, Any]) -> dict[str, Any]:
     """``options`` without the ones of association methods other than ``association`` (which
     ``camloc.LocalizerConfig`` refuses)."""
     from camloc.config import parse_config
-    from camloc.localizer import option_methods
+    from camloc.localizer_config import option_methods
 
     methods = option_methods()
 

@@ -22,10 +22,14 @@ def __getattr__(name: str):
         from camloc.g2o import read_g2o
 
         return read_g2o
-    if name in ("localize", "LocalizerConfig", *_OPTION_GROUPS):
-        from camloc import localizer
+    if name == "localize":
+        from camloc.localizer import localize
 
-        return getattr(localizer, name)
+        return localize
+    if name in ("LocalizerConfig", *_OPTION_GROUPS):
+        from camloc import localizer_config
+
+        return getattr(localizer_config, name)
     if name == "bundled_dataset":
         from camloc.bundled import bundled_dataset
 

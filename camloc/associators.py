@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 import numpy as np
 
 from camloc import association, measurement
+from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.jcbb import jcbb
 from camloc.sensors import CameraModel
 
@@ -55,7 +56,7 @@ class AssociationScene:
     max_angle : candidates within this angle of the optical axis, radians.
     obs_gate : (K,) the chi^2 quantile a pair's d^2 must not exceed, at each observation's dof.
     association_cov : (K, 3, 3) each observation's covariance as association judges it
-        (``association.noise_floored``; the filter's update keeps the file's own).
+        (``observation_space.noise_floored``; the filter's update keeps the file's own).
     true_landmark_row : (K,) the map row of each observation's landmark by the file's ids, -1 where
         it has none; read by ``oracle`` only.
     conditioned : ``conditioned(x, P, obs, landmarks) -> (x, P)``: the state conditioned on the
@@ -84,9 +85,9 @@ class AssociationScene:
         camera = self.cameras[int(camera_id)]
         margin, max_angle = 0.0, self.max_angle
         if P is not None:
-            margin = 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
-            widened = max_angle + 3.0 * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1]))
-            max_angle = max(max_angle, min(widened, np.radians(89.0)))  # never narrower than the plain view
+            margin = WIDENED_VIEW_SIGMAS * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
+            widened = max_angle + WIDENED_VIEW_SIGMAS * float(np.sqrt(np.linalg.eigvalsh(P[3:6, 3:6])[-1]))
+            max_angle = max(max_angle, min(widened, np.radians(MAX_HALF_ANGLE_DEG)))  # never narrower than the plain view
         return association.candidate_indices(
             self.map_index, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 from camloc.errors import ConfigError
-from camloc.localizer import LocalizerConfig, OptionError, option_value
-from camloc.options import FLAG_OF_PATH, NEGATED_FLAGS, RUN_OPTIONS, accepted_keys, file_name, key_of, table_of
+from camloc.localizer_config import LocalizerConfig, OptionError, option_value
+from camloc.options import FLAG_OF_PATH, NEGATED_FLAGS, RUN_OPTIONS, accepted_keys, file_name, key_of, localizer_overrides, table_of
 
 # table ("" for top level; "best-friends" and "best_friends" alike) -> key -> option path
 _KEYS: dict[str, dict[str, str]] = {}
@@ -127,6 +127,12 @@ def make_config(config_file: Optional[ConfigFile] = None, overrides: Optional[Ma
     except OptionError as error:
         raise ConfigError(f"{given[error.path][1] if error.path in given else error.path} {error.reason}") from None
     return config
+
+
+def run_config(options: Mapping[str, Any], config_file: Optional[ConfigFile] = None) -> LocalizerConfig:
+    """The validated ``LocalizerConfig`` of run options by command-line name (``camloc.options``'
+    names), over ``config_file`` (or None). Raises ConfigError for a bad name or value."""
+    return make_config(config_file, localizer_overrides(options))
 
 
 def with_options(config: LocalizerConfig, values: Mapping[str, Any]) -> LocalizerConfig:

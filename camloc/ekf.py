@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from camloc.constants import CONVERGED
 from camloc.errors import CamlocError
 
 MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -23,8 +24,6 @@ StateDifference = Callable[[np.ndarray, np.ndarray], np.ndarray]
 Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-# Iterated updates stop when the correction changes by less than this (metres / radians).
-CONVERGED = 1e-6
 
 
 def _add(x: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import geometry, measurement, sym3
+from camloc.atomic_files import make_folder
 from camloc.dataset import Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -699,8 +700,6 @@ def write_g2o(dataset: Dataset, path: str | os.PathLike) -> None:
         covariances are derived from them on reading.
     path : the destination .g2o file.
     """
-    from camloc.results import make_folder  # results reads numbers with this module's rules
-
     path = Path(path)
     make_folder(path.parent)
     try:

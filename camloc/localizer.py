@@ -9,297 +9,29 @@ observations with the map, update with every accepted pair stacked, record.
 
 from __future__ import annotations
 
-import math
 import os
 import time
-from dataclasses import MISSING, asdict, dataclass, field, fields, is_dataclass, replace
-from typing import Callable, ClassVar, Optional
+from dataclasses import asdict
+from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, measurement, models, warmup
+from camloc import association, associators, ekf, geometry, measurement, warmup
 from camloc.associators import AssociationScene
 from camloc.sensors import sensors_of
+from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
-from camloc.beam import BeamSearch, BeamSettings, BeamStatistics
-from camloc.filters import FILTERS, SINGULARITY_WARNING_DEG, make_filter
+from camloc.observation_space import candidate_range, detection_range, landmark_rows, observation_noise
+from camloc.beam import BeamSearch
+from camloc.beam_types import BeamSettings, BeamStatistics
+from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
-from camloc.g2o import MAX_COORDINATE
+from camloc.localizer_config import LocalizerConfig, ignored_options
 from camloc.results import UNASSOCIATED, Associations, RunResult
 from camloc.tails import chi2_quantile
 
-ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
-# What the oracle ignores (it takes the file's ids, gated): the re-check, the candidate view and
-# the null cost, which belong to the methods that search for the pairs. They are accepted with it
-# (a study compares each method with the oracle under the same options) and the run says so.
-IGNORED_BY_ORACLE = ("null_cost", "recheck", "view")
-# The largest beam: its history holds width hypotheses per pose.
-MAX_BEAM_WIDTH = 1024
-# The largest covariance factor of a slip's hypothesis: sigma x 100.
-MAX_SLIP_INFLATION = 1e4
-COSTS = ("nll", "mahalanobis", "euclidean")
-
 ProgressCallback = Callable[[int, int], None]
-
-# Bound on the initial rotation sigma: far beyond any meaningful angle, far from overflow.
-MAX_SIGMA_DEG = 1e6
-
-
-@dataclass(frozen=True)
-class BeamOptions:
-    """The beam's options (``association="beam"``, ``camloc.beam``; costs are 2 x negative
-    log-likelihoods). Defaults: ``camloc.beam.BeamSettings``.
-
-    Attributes
-    ----------
-    width : association hypotheses kept after each pose.
-    delta : drop hypotheses this much costlier than the best.
-    branch_delta : explore only an observation's options within this cost of its best.
-    slip_inflation : covariance factor of the odometry-slip hypothesis (>= 1).
-    slip_cost : extra cost of the odometry-slip hypothesis.
-    """
-
-    METHODS: ClassVar[tuple[str, ...]] = ("beam",)
-
-    width: int = BeamSettings.beam_width
-    delta: float = BeamSettings.beam_delta
-    branch_delta: float = BeamSettings.branch_delta
-    slip_inflation: float = BeamSettings.slip_inflation
-    slip_cost: float = BeamSettings.slip_cost
-
-
-@dataclass(frozen=True)
-class BestFriendsOptions:
-    """Best friends' options (``association="best-friends"``; cost and margin also pick the pairs
-    that seed ``"jcbb"``).
-
-    Attributes
-    ----------
-    cost : pair cost: "nll" (d^2 + ln det S), "mahalanobis" (d^2), "euclidean" (|z - z_hat| in
-        measurement units).
-    margin : lonely-best-friends margin, in cost units: a pair is rejected when a rival in its row
-        or column is less than ``margin`` more expensive.
-    sequential : accept pairs one at a time, most unambiguous first, conditioning the filter on
-        each before looking at the rest (the final update is still one stacked update from the
-        prior); False pairs all observations at once (the original method). Best friends only:
-        jcbb takes its seed in one batch.
-    """
-
-    METHODS: ClassVar[tuple[str, ...]] = ("best-friends", "jcbb")
-
-    cost: str = "nll"
-    margin: float = 1.0
-    sequential: bool = field(default=True, metadata={"methods": ("best-friends",)})
-
-
-@dataclass(frozen=True)
-class JcbbOptions:
-    """Joint compatibility branch and bound's options (``association="jcbb"``, ``camloc.jcbb``).
-
-    Attributes
-    ----------
-    max_nodes : bound on the joint compatibility tests per pose; past it the best set found is kept.
-    """
-
-    METHODS: ClassVar[tuple[str, ...]] = ("jcbb",)
-
-    max_nodes: int = 2000
-
-
-@dataclass(frozen=True)
-class RecheckOptions:
-    """The re-check after each update (every association but "oracle", which ignores it).
-
-    Each accepted pair is judged again by the posterior of the pose's other pairs (its own left
-    out, ``association.leave_one_out_costs``) and the pose updated again without the pairs that do
-    not hold. A pair holds when leaving its observation unassigned or pairing it with another
-    landmark costs more than ``margin``, and handing its landmark to another of the pose's
-    observations costs more than ``steal_margin`` (two detections that fit one landmark about
-    equally well: one of them is clutter, and which is not known).
-
-    Attributes
-    ----------
-    enabled : run the re-check.
-    margin, steal_margin : as above, in cost units (>= 0).
-    """
-
-    enabled: bool = True
-    margin: float = 0.0
-    steal_margin: float = 6.0
-
-
-@dataclass(frozen=True)
-class ViewOptions:
-    """Which map landmarks are candidates for a camera's observations (every association but
-    "oracle", which takes the file's ids).
-
-    Attributes
-    ----------
-    min_depth, max_depth : candidate depth range in metres; None = from the data (0 and
-        1.25 x the largest measured depth + 0.5 m).
-    max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
-        widest observed ray + 10 deg, at most 89 deg).
-    """
-
-    min_depth: Optional[float] = None
-    max_depth: Optional[float] = None
-    max_angle_deg: Optional[float] = None
-
-
-@dataclass(frozen=True)
-class LocalizerConfig:
-    """Every option of the localizer; ``summary.json`` records it (``dataclasses.asdict``) so a run
-    can be repeated.
-
-    The options every run may want are at the top; each method's own options are in its group,
-    and an option of a method that is not selected must keep its default (``validate``).
-    ``camloc.options`` names each option as the command line and config files do.
-
-    Attributes
-    ----------
-    filter : "euler" (state x, y, z, roll, pitch, yaw; singular at pitch +-90 deg) or "se3" (an
-        error-state filter on SE(3), no singularity), see ``camloc.filters``.
-    association : "beam" (a beam of association hypotheses, see ``camloc.beam``), "jcbb" (joint
-        compatibility branch and bound, seeded by best friends), "best-friends" (mutual best
-        match + gates) or "oracle" (the file's landmark ids, gated like any pair: what perfect
-        association gives). Only "oracle" reads the file's landmark ids.
-    iterations : linearizations per update (1 = EKF, more = iterated EKF).
-    gate : probability of the chi^2 gate on each pair's innovation, 3 degrees of freedom.
-    null_cost : cost of leaving an observation unassigned, read by the beam and by the re-check
-        (so by no single method: it is not in a method's group); None: per observation, from the
-        data (``association.clutter_null_cost``: clutter uniform over the measured volume).
-    initial_sigma_xyz, initial_sigma_deg : standard deviation of the start pose (metres, degrees).
-    beam, best_friends, jcbb : each method's own options (``BeamOptions``, ``BestFriendsOptions``,
-        ``JcbbOptions``).
-    recheck : the re-check after each update (``RecheckOptions``).
-    view : the candidate landmarks' depth range and field of view (``ViewOptions``).
-    """
-
-    filter: str = "euler"
-    association: str = "beam"
-    iterations: int = 3
-    gate: float = 0.99
-    null_cost: Optional[float] = None
-    initial_sigma_xyz: float = 0.01
-    initial_sigma_deg: float = 0.5
-    beam: BeamOptions = field(default_factory=BeamOptions)
-    best_friends: BestFriendsOptions = field(default_factory=BestFriendsOptions)
-    jcbb: JcbbOptions = field(default_factory=JcbbOptions)
-    recheck: RecheckOptions = field(default_factory=RecheckOptions)
-    view: ViewOptions = field(default_factory=ViewOptions)
-
-    def validate(self) -> None:
-        """Raise ``OptionError`` naming the first option that is out of range, of a wrong kind, or
-        set (to other than its default) for a method that is not selected."""
-        for path, ok, reason in self._checks():
-            if not ok:
-                raise OptionError(path, reason)
-        for path, methods in option_methods().items():
-            if self.association not in methods and option_value(self, path) != option_value(_DEFAULT_CONFIG, path):
-                raise OptionError(path, f"applies only with association {' or '.join(methods)}; the selected "
-                                        f"association is {self.association}")
-
-    def _checks(self) -> list[tuple[str, bool, str]]:
-        """(option path, holds, what it must be) for every rule of a single option's range."""
-        groups = [(f.name, isinstance(getattr(self, f.name), type(f.default_factory()))) for f in fields(self)
-                  if f.default_factory is not MISSING]
-        wrong = next((name for name, ok in groups if not ok), None)
-        if wrong is not None:  # the checks below read the groups' fields
-            kind = type(getattr(_DEFAULT_CONFIG, wrong)).__name__
-            return [(wrong, False, f"must be a {kind}, got {getattr(self, wrong)!r}")]
-        beam, best_friends, recheck, view = self.beam, self.best_friends, self.recheck, self.view
-        return [
-            ("filter", self.filter in FILTERS, f"must be one of {', '.join(FILTERS)}, got {self.filter!r}"),
-            ("association", self.association in ASSOCIATION_METHODS,
-             f"must be one of {', '.join(ASSOCIATION_METHODS)}, got {self.association!r}"),
-            ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= 50, f"must be an integer in 1..50, got {self.iterations}"),
-            ("gate", 0.0 < self.gate < 1.0, f"must be a probability in (0, 1), got {self.gate}"),
-            ("null_cost", self.null_cost is None or _finite(self.null_cost) and self.null_cost > 0.0,
-             f"must be a finite number > 0, got {self.null_cost}"),
-            ("initial_sigma_xyz", 0.0 < self.initial_sigma_xyz <= MAX_COORDINATE,
-             f"must be in (0, {MAX_COORDINATE:.0e}] m, got {self.initial_sigma_xyz}"),
-            ("initial_sigma_deg", 0.0 < self.initial_sigma_deg <= MAX_SIGMA_DEG,
-             f"must be in (0, {MAX_SIGMA_DEG:.0e}] deg, got {self.initial_sigma_deg}"),
-            ("beam.width", _is_integer(beam.width) and 1 <= beam.width <= MAX_BEAM_WIDTH,
-             f"must be an integer in 1..{MAX_BEAM_WIDTH}, got {beam.width}"),
-            ("beam.delta", _finite(beam.delta) and beam.delta > 0.0, f"must be a finite number > 0, got {beam.delta}"),
-            ("beam.branch_delta", _finite(beam.branch_delta) and beam.branch_delta > 0.0,
-             f"must be a finite number > 0, got {beam.branch_delta}"),
-            ("beam.slip_inflation", 1.0 <= beam.slip_inflation <= MAX_SLIP_INFLATION,
-             f"must be in [1, {MAX_SLIP_INFLATION:g}], got {beam.slip_inflation}"),
-            ("beam.slip_cost", _finite(beam.slip_cost) and beam.slip_cost >= 0.0, f"must be a finite number >= 0, got {beam.slip_cost}"),
-            ("best_friends.cost", best_friends.cost in COSTS, f"must be one of {', '.join(COSTS)}, got {best_friends.cost!r}"),
-            ("best_friends.margin", _finite(best_friends.margin) and best_friends.margin >= 0.0,
-             f"must be a finite number >= 0, got {best_friends.margin}"),
-            ("jcbb.max_nodes", _is_integer(self.jcbb.max_nodes) and self.jcbb.max_nodes >= 1,
-             f"must be an integer >= 1, got {self.jcbb.max_nodes}"),
-            ("recheck.margin", _finite(recheck.margin) and recheck.margin >= 0.0, f"must be a finite number >= 0, got {recheck.margin}"),
-            ("recheck.steal_margin", _finite(recheck.steal_margin) and recheck.steal_margin >= 0.0,
-             f"must be a finite number >= 0, got {recheck.steal_margin}"),
-            ("view.min_depth", view.min_depth is None or 0.0 <= view.min_depth <= MAX_COORDINATE,
-             f"must be in [0, {MAX_COORDINATE:.0e}] m, got {view.min_depth}"),
-            ("view.max_depth", view.max_depth is None or (view.min_depth or 0.0) < view.max_depth <= MAX_COORDINATE,
-             f"must be above the minimum depth ({view.min_depth or 0.0:g} m) and at most {MAX_COORDINATE:.0e} m, got {view.max_depth}"),
-            ("view.max_angle_deg", view.max_angle_deg is None or 0.0 < view.max_angle_deg < 90.0,
-             f"must be in (0, 90) deg, got {view.max_angle_deg}"),
-        ]
-
-
-class OptionError(ConfigError):
-    """An option out of range: ``path`` is its place in ``LocalizerConfig`` (``"beam.width"``),
-    ``reason`` what it must be. The message names the option by its path; ``camloc.config`` names
-    it as the user wrote it (``--beam-width``, ``[beam] width``)."""
-
-    def __init__(self, path: str, reason: str):
-        self.path, self.reason = path, reason
-        super().__init__(f"{path} {reason}")
-
-
-def option_methods() -> dict[str, tuple[str, ...]]:
-    """The options that belong to some association methods only: option path -> those methods.
-    A group's methods are its ``METHODS``; a field's own ``methods`` metadata narrows them."""
-    out = {}
-    for group in fields(LocalizerConfig):
-        options = getattr(_DEFAULT_CONFIG, group.name)
-        if not is_dataclass(options):
-            continue
-        for f in fields(options):
-            methods = f.metadata.get("methods", getattr(options, "METHODS", None))
-            if methods is not None:
-                out[f"{group.name}.{f.name}"] = methods
-    return out
-
-
-def option_value(config: LocalizerConfig, path: str):
-    """The value of option ``path`` (``"iterations"``, ``"beam.width"``)."""
-    value = config
-    for name in path.split("."):
-        value = getattr(value, name)
-    return value
-
-
-def ignored_options(config: LocalizerConfig) -> list[str]:
-    """The options set (to other than their defaults) that the selected association ignores: with
-    the oracle, those of ``IGNORED_BY_ORACLE``."""
-    if config.association != "oracle":
-        return []
-    paths = []
-    for name in IGNORED_BY_ORACLE:
-        default = getattr(_DEFAULT_CONFIG, name)
-        paths += [f"{name}.{f.name}" for f in fields(default)] if is_dataclass(default) else [name]
-    return [path for path in paths if option_value(config, path) != option_value(_DEFAULT_CONFIG, path)]
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
-
-
-def _is_integer(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and float(value).is_integer()
-
-
-_DEFAULT_CONFIG = LocalizerConfig()
 
 
 ENGINES = ("auto", "compiled", "numpy")
@@ -425,16 +157,14 @@ COMPILED_ASSOCIATIONS = ("beam", "oracle")
 def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback],
                        concurrent: bool, filter_ready: Optional[Callable[[], None]] = None) -> RunResult:
     from camloc.loop import PoseFailure, run_compiled
-    from camloc.scene import candidate_range
 
     euler = make_filter("euler")
     x0 = euler.initial(dataset.T_world_start)
-    sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
     started = time.perf_counter()
     view_range = candidate_range(dataset, config)
     try:
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped = run_compiled(
-            dataset, config, on_progress, initial_x=x0, initial_P=np.diag(sigma**2), concurrent=concurrent,
+            dataset, config, on_progress, initial_x=x0, initial_P=config.initial_cov(), concurrent=concurrent,
             filter_ready=filter_ready, view_range=view_range)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
@@ -508,10 +238,8 @@ class _Localizer:
         self.filter = make_filter(config.filter)
         # a sensor is a camera and the kind of its measurements (camloc.measurement)
         self.cameras, self.obs_sensor = sensors_of(dataset)
-        self.single_camera = 0 if len(self.cameras) == 1 else None
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
         self.map_index = association.PointIndex(dataset.landmark_xyz) if len(dataset.landmark_xyz) else None
-        from camloc.scene import candidate_range, detection_range, landmark_rows, observation_noise
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
@@ -520,10 +248,10 @@ class _Localizer:
         # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)
         noise = observation_noise(dataset, config)
-        self.association_cov, self.association_info, self.log_det_R = noise.cov, noise.info, noise.log_det
+        self.association_cov, self.log_det_R = noise.cov, noise.log_det
         self.point, self.point_cov, self.log_det_point_cov = noise.point, noise.point_cov, noise.log_det_point_cov
         self.null_cost = noise.null_cost
-        self.nis_bounds: dict[int, float] = {}
+        self.stacked = StackedUpdate(dataset, self.filter, config.iterations, self.cameras, self.obs_sensor, noise, self.obs_dof)
 
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
@@ -551,9 +279,8 @@ class _Localizer:
         self.warnings: list[str] = []
         self.warned_singularity = False
 
-        sigma = np.r_[np.full(3, config.initial_sigma_xyz), np.full(3, np.radians(config.initial_sigma_deg))]
         self.x = self.filter.initial(dataset.T_world_start)
-        self.P = np.diag(sigma**2)
+        self.P = config.initial_cov()
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
         self.beam_slipped: np.ndarray | None = None
@@ -696,85 +423,10 @@ class _Localizer:
         result = self.updated(x, P, obs, landmarks, for_association=True)
         return result.state, result.cov
 
-    def updated(
-        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
-        at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
-        start: Optional[np.ndarray] = None,
-    ) -> ekf.UpdateResult:
-        """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
-        predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them. With
-        ``for_association``, the pairs weigh by the noise association judges them by
-        (``association_cov``): the scratch filters that decide an association, not the estimate.
-        ``start``: a state near the posterior, when the caller knows one; the iterations also run
-        from it, and the posterior with the lower MAP cost is kept."""
-        z = self.dataset.obs_z[obs].reshape(-1)
-        if for_association:
-            R, R_inverse = self.association_cov[obs], self.association_info[obs]
-        else:  # the blocks of a block-diagonal covariance (ekf.update)
-            R, R_inverse = self.dataset.obs_cov[obs], self.dataset.obs_info[obs]
-        cameras = self.obs_sensor[obs]
-        if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
-            groups = [(self.cameras[self.single_camera], slice(None))]
-        else:
-            groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
-        landmark_xyz = self.dataset.landmark_xyz[landmarks]
-
-        def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            if len(groups) == 1:
-                camera = groups[0][0]
-                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind)
-                return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
-            z_hat = np.empty((obs.size, 3))
-            H = np.empty((obs.size, 3, 6))
-            for camera, mask in groups:
-                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask], camera.kind)
-            return z_hat.reshape(-1), H.reshape(-1, 6)
-
-        prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
-        options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.config.iterations,
-                       at_prior=prior, R_inverse=R_inverse)
-        result = ekf.update(x, P, z, R, measure, map_cost=map_cost, **options)
-        if self.config.iterations < 2:
-            return result
-        starts = [] if start is None else [start]
-        if result.nis > self._nis_bound(int(self.obs_dof[obs].sum())):
-            # An innovation this unlikely under the prior's linearization: with a wide prior (after
-            # a slip, or odometry much noisier than the landmarks' spacing) Gauss-Newton in (u, v,
-            # depth) from the prior can stall far from the MAP estimate. Iterate also from one
-            # update in camera-frame points, where the model is nearly linear in the position.
-            starts.append(self._point_step(x, P, obs, groups, prior))
-        if not starts:
-            return result
-        best, lowest = result, result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference, R_inverse)
-        for state in starts:  # keep whichever posterior the MAP cost prefers
-            alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
-            if alternative.map_cost < lowest:
-                best, lowest = alternative, alternative.map_cost
-        if best is result or map_cost:
-            return best
-        return replace(best, map_cost=float("nan"))
-
-    def _point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """x after one EKF update with the pairs' measurements as camera-frame points (those
-        ``measurement.judged_as_point``; the others, a pixel's ray, as they are)."""
-        z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
-        y = self.dataset.obs_z[obs] - z_hat
-        Hp, R = H.copy(), self.association_cov[obs].copy()
-        for camera, mask in groups:
-            if not measurement.judged_as_point(camera.kind):
-                continue
-            mine = np.arange(obs.size)[mask]
-            p_hat, J = models.back_project(z_hat[mine], camera.intrinsics, camera.kind)
-            Hp[mine] = J @ H[mine]
-            y[mine] = self.point[obs[mine]] - p_hat
-            R[mine] = self.point_cov[obs[mine]]
-        return self.filter.retract(x, ekf.correction(P, Hp.reshape(3 * obs.size, -1), R, y.reshape(-1)))
-
-    def _nis_bound(self, dof: int) -> float:
-        """The 99.9% quantile of chi^2 with dof degrees of freedom."""
-        if dof not in self.nis_bounds:
-            self.nis_bounds[dof] = float(chi2_quantile(dof, 0.001))
-        return self.nis_bounds[dof]
+    def updated(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, **options) -> ekf.UpdateResult:
+        """The stacked (iterated) EKF update of (x, P) with the given pairs (``StackedUpdate.updated``,
+        whose keywords it takes)."""
+        return self.stacked.updated(x, P, obs, landmarks, **options)
 
     def _record_pairs(self, k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult) -> None:
         p = obs.size

@@ -40,7 +40,7 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     ``concurrent``: with the beam, filter the settled poses in a second thread (same result).
     ``filter_ready``: with the beam, called once before the filter's first stretch (a first
     compile waits there for the process compiling the filter's kernels: ``camloc.warmup``).
-    ``view_range``: ``scene.candidate_range`` of the run, when the caller has it."""
+    ``view_range``: ``observation_space.candidate_range`` of the run, when the caller has it."""
     scene = build_scene(dataset, config, view_range)
     settings = build_settings(config)
     n = dataset.num_poses

@@ -95,14 +95,6 @@ def localizer_overrides(options: Mapping[str, Any]) -> dict[str, Any]:
     return {RUN_OPTIONS[name]: value for name, value in options.items() if value is not None}
 
 
-def run_config(options: Mapping[str, Any], config_file=None):
-    """The validated ``LocalizerConfig`` of run options by command-line name, over ``config_file``
-    (a ``camloc.config.ConfigFile``, or None). Raises ConfigError for a bad name or value."""
-    from camloc.config import make_config
-
-    return make_config(config_file, localizer_overrides(options))
-
-
 def _hint(name: str) -> str:
     if name in NEGATED_FLAGS:
         return f"{name} (write {NEGATED_FLAGS[name]} = false)"

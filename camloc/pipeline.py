@@ -10,7 +10,8 @@ from typing import Any, Callable, Mapping, Optional
 from camloc.bundled import bundled_dataset
 from camloc.diagnostics import run_warnings
 from camloc.ekf import FilterDivergedError
-from camloc.localizer import LocalizerConfig, ProgressCallback, localize
+from camloc.localizer import ProgressCallback, localize
+from camloc.localizer_config import LocalizerConfig
 from camloc.results import RunResult
 
 DEFAULT_DATASET = bundled_dataset()

@@ -17,11 +17,11 @@ plot`` score and draw what is on disk, an edited or swapped trajectory included.
 ``format_version`` (2; version 1 also held copies of the poses, which are not read). ``save_run`` builds the folder in a hidden temporary sibling and renames it into place,
 so a failure leaves nothing behind; an existing run folder is replaced only with ``force=True``,
 and then keeps the files that are not camloc's (``CAMLOC_FILES``). The single-file helpers
-(``write_text_atomic``, ``write_json_atomic``, ``atomic_write``) give the same whole-or-nothing
-guarantee to any other output, and ``write_files_atomic`` to a set of files (the figures of
+(``write_json_atomic`` here, ``write_text_atomic`` and ``atomic_write`` of ``camloc.atomic_files``) give the same whole-or-nothing
+guarantee to any other output, and ``atomic_files.write_files_atomic`` to a set of files (the figures of
 ``camloc plot``); ``write_smoothed`` adds ``smoothed.tum`` to an existing run folder that way,
 and ``load_run`` reads it back into ``RunResult.smoothed_xyz`` / ``smoothed_quat_xyzw`` when it
-is there. Every writer creates missing parent folders (``make_folder``).
+is there. Every writer creates missing parent folders (``camloc.atomic_files``, the writers' home).
 
 ``load_run`` checks what it reads as it reads it, one function per file kind (``read_tum``,
 ``read_associations``, ``_check_states``, ``_read_summary``): types, shapes, finite values,
@@ -45,11 +45,12 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Callable, Iterator, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
 from camloc import geometry
+from camloc.atomic_files import make_folder, refuse_existing, write_text_atomic
 from camloc.errors import CamlocError, DatasetError
 from camloc.g2o import INT64_RANGE, INTEGER, MAX_COORDINATE, parse_number
 
@@ -152,110 +153,7 @@ class RunResult:
 
 
 # --------------------------------------------------------------------------------------------
-# Single files, whole or not at all
-
-
-@contextlib.contextmanager
-def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
-    """Open a temporary sibling of ``path`` for writing; it replaces ``path`` only on success.
-
-    The temporary file lives in the same directory so that ``os.replace`` is a rename on one
-    file system; on any exception it is removed and ``path`` keeps its old content (or stays
-    absent).
-
-    Parameters
-    ----------
-    path : the file to (re)write; missing parent folders are created.
-    binary : open in ``"wb"`` instead of ``"w"`` (UTF-8 text, ``"\n"`` newlines).
-    """
-    path = Path(path)
-    tmp = _temporary_sibling(path)
-    try:
-        with _open_for_writing(tmp, binary) as handle:
-            yield handle
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        raise
-
-
-def make_folder(folder: str | Path) -> None:
-    """Create ``folder`` and its missing parents (every command's outputs go through here).
-
-    Raises
-    ------
-    CamlocError : ``cannot create the folder <folder>: <reason>``.
-    """
-    try:
-        Path(folder).mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise CamlocError(f"cannot create the folder {folder}: {error.strerror or error}") from None
-
-
-def refuse_existing(path: str | Path, *, force: bool) -> None:
-    """Refuse to replace an existing ``path`` unless ``force``: a user's file is never overwritten
-    by accident (the course dataset, a figure, a report).
-
-    Raises
-    ------
-    CamlocError : ``<path>: already exists; refusing to replace it without --force``.
-    """
-    path = Path(path)
-    if not force and (path.exists() or path.is_symlink()):
-        raise CamlocError(f"{path}: already exists; refusing to replace it without --force")
-
-
-def _temporary_sibling(path: Path) -> Path:
-    """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
-    if path.is_dir():  # a file cannot replace a folder, even with --force
-        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
-    make_folder(path.parent)
-    try:
-        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    except OSError as error:
-        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
-    os.close(fd)
-    os.chmod(tmp_name, 0o644)
-    return Path(tmp_name)
-
-
-def _open_for_writing(path: Path, binary: bool) -> IO:
-    if binary:
-        return path.open("wb")
-    return path.open("w", encoding="utf-8", newline="")
-
-
-def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` whole or not at all (temporary file + ``os.replace``)."""
-    with atomic_write(path) as handle:
-        handle.write(text)
-
-
-def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[bytes]], None]) -> None:
-    """Write every file of ``paths``, or none of them.
-
-    ``write(path, handle)`` fills each file's hidden temporary sibling (opened ``"wb"``); only
-    when every one of them is complete are they renamed into place, one after the other. On any
-    failure the temporaries are removed and every path keeps its old content (or stays absent).
-
-    Raises
-    ------
-    CamlocError : a folder or a temporary file cannot be created.
-    """
-    staged: list[tuple[Path, Path]] = []
-    try:
-        for path in map(Path, paths):
-            staged.append((_temporary_sibling(path), path))
-            with _open_for_writing(staged[-1][0], binary=True) as handle:
-                write(path, handle)
-        for tmp, path in staged:
-            os.replace(tmp, path)
-    except BaseException:
-        for tmp, _ in staged:
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
-        raise
+# JSON
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> None:

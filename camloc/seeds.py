@@ -14,24 +14,17 @@ from __future__ import annotations
 import numpy as np
 
 from camloc import geometry
+from camloc.constants import (
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
+    UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
+)
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
-from camloc.kernels.beam_settings import SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS
 from camloc.kernels.rotation import difference
 from camloc.kernels.update import updated
 from camloc.kernels.view import widened_view
 from camloc.measurement import DEPTH
-from camloc.tails import binomial_tail, chi2_quantile
-
-# The slip's search runs where a pose's best explanation leaves an unusual share of its observations
-# unassigned for this data: a binomial tail below UNUSUAL_PROBABILITY at the recent poses' rate.
-UNEXPLAINED_WINDOW = 50
-UNUSUAL_PROBABILITY = 0.01
-UNEXPLAINED_RATE_CAP = 0.6
-UNEXPLAINED_RUN = 3
-
-# A seeded explanation whose state leaves its prior's 99.9% region is dropped.
-STATE_GATE = float(chi2_quantile(6, 0.001))
+from camloc.tails import binomial_tail
 
 
 def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexplained):
@@ -193,4 +186,4 @@ def agreement_radius(scene, obs) -> float:
     """How close two implied shifts must be to agree: three standard deviations of a measured
     point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
     point_sigma = np.sqrt(np.trace(scene.point_cov[obs], axis1=1, axis2=2) / 3.0)
-    return float(3.0 * np.median(point_sigma) + 0.1 * np.median(np.abs(scene.point[obs, 2])))
+    return float(AGREEMENT_SIGMAS * np.median(point_sigma) + AGREEMENT_DEPTH_FRACTION * np.median(np.abs(scene.point[obs, 2])))

@@ -197,7 +197,7 @@ def applicable(run_options: dict[str, Scalar]) -> dict[str, Scalar]:
     """A cell's run options less those of association methods other than the cell's own: in a
     sweep over methods, each method's options are for its own cells (``[run] association = ["beam",
     "oracle"]`` with ``beam-width = 8`` runs the beam at width 8 beside the oracle)."""
-    from camloc.localizer import LocalizerConfig, option_methods
+    from camloc.localizer_config import LocalizerConfig, option_methods
     from camloc.options import RUN_OPTIONS
 
     association = run_options.get("association", LocalizerConfig().association)
@@ -209,7 +209,7 @@ def applicable(run_options: dict[str, Scalar]) -> dict[str, Scalar]:
 def _check_cells(spec: SweepSpec, where) -> None:
     """Build every simulate cell's and run cell's config once, so bad values fail before running;
     a method's option where no cell runs that method is refused, as ``camloc run`` refuses it."""
-    from camloc.options import run_config
+    from camloc.config import run_config
     from camloc.simulate import simulation_config
 
     for key, table, build in (("simulate", spec.simulate, simulation_config), ("run", spec.run, run_config)):
@@ -225,7 +225,7 @@ def _check_cells(spec: SweepSpec, where) -> None:
             except ConfigError as error:
                 raise where(f"[{key}] {cell}: {error}") from None
         if unused:
-            from camloc.localizer import option_methods
+            from camloc.localizer_config import option_methods
             from camloc.options import RUN_OPTIONS
 
             name = sorted(unused)[0]
@@ -354,7 +354,7 @@ def run_cell(cell: Cell) -> dict[str, Any]:
 def _localize_and_score(cell: Cell) -> dict:
     import camloc
     from camloc.metrics import evaluate
-    from camloc.options import run_config
+    from camloc.config import run_config
     from camloc.simulate import simulate, simulation_config
 
     if cell.path is not None:
@@ -589,7 +589,7 @@ def is_sweep_folder(path: str | Path) -> bool:
 
 def write_tables(out_dir: str | Path, spec: SweepSpec, cells: list[Cell], results: Mapping) -> list[dict[str, Any]]:
     """Rewrite ``runs.csv`` and ``summary.csv`` together (both or neither); returns the summary."""
-    from camloc.results import write_files_atomic
+    from camloc.atomic_files import write_files_atomic
 
     summary = summarize(spec, cells, results)
     texts = {Path(out_dir) / RUNS_FILE: runs_text(spec, cells, results),

@@ -197,24 +197,24 @@ def _spawn(command: list[str], environment: dict[str, str]) -> None:
 
 
 def compile_kernels() -> list[int]:
-    """Compile, and so cache, every kernel a compiled run calls: localize a bundled clutter world
-    whose odometry slips on one edge (the slip search's kernels run only where a pose needs them),
-    with the beam (the filter in a second thread, and after it) and with the oracle. Returns the
-    pose ids the beam explained as slips (the search ran there)."""
+    """Compile, and so cache, every kernel a compiled run calls: run the compiled loop over a
+    bundled clutter world whose odometry slips on one edge (the slip search's kernels run only
+    where a pose needs them), with the beam (the filter in a second thread, and after it) and with
+    the oracle. Returns the pose ids the beam explained as slips (the search ran there)."""
     import numpy as np
 
     from camloc.bundled import bundled_dataset
     from camloc.g2o import read_g2o
-    from camloc.localizer import LocalizerConfig, localize
+    from camloc.localizer_config import LocalizerConfig
 
     dataset = read_g2o(bundled_dataset("smooth3d-clutter"))
     slipped = dataset.odom_translation.copy()
     slipped[60] += np.array([0.6, -0.5, 0.0])
     dataset = dataclasses.replace(dataset, odom_translation=slipped)
-    for parallel in (True, False):
-        beam = localize(dataset, LocalizerConfig(association="beam"), engine="compiled", parallel=parallel)
-    localize(dataset, LocalizerConfig(association="oracle"), engine="compiled")
-    return beam.summary["slip_poses"]
+    for concurrent in (True, False):
+        slip_poses = _run_compiled(dataset, LocalizerConfig(association="beam"), concurrent=concurrent)
+    _run_compiled(dataset, LocalizerConfig(association="oracle"))
+    return [int(i) for i in dataset.pose_ids[slip_poses]]
 
 
 def compile_filter_kernels() -> None:
@@ -224,11 +224,27 @@ def compile_filter_kernels() -> None:
     (``late_beam_kernels``)."""
     from camloc.bundled import bundled_dataset
     from camloc.g2o import read_g2o
-    from camloc.localizer import LocalizerConfig, localize
+    from camloc.localizer_config import LocalizerConfig
 
     dataset = read_g2o(bundled_dataset("smooth3d-clutter"))
-    localize(dataset, LocalizerConfig(association="oracle"), engine="compiled")
+    _run_compiled(dataset, LocalizerConfig(association="oracle"))
     late_beam_kernels(dataset, LocalizerConfig())
+
+
+def _run_compiled(dataset, config, *, concurrent: bool = False):
+    """The compiled loop over ``dataset`` (``camloc.loop.run_compiled``) from its start pose, as
+    ``localize(engine="compiled")`` runs it, so that it compiles the same kernels: where they are not
+    yet cached, a concurrent run of the beam has the filter's compiled in a second process
+    (``start_filter_compile``). Returns the indices of the poses explained as slips."""
+    from camloc.filters import make_filter
+    from camloc.kernels import cache_is_warm
+    from camloc.loop import run_compiled
+
+    filter_compile = start_filter_compile() if concurrent and config.association == "beam" and not cache_is_warm() else None
+    outputs = run_compiled(dataset, config, initial_x=make_filter("euler").initial(dataset.T_world_start),
+                           initial_P=config.initial_cov(), concurrent=concurrent,
+                           filter_ready=(lambda: wait_for(filter_compile)) if filter_compile else None)
+    return outputs[-1]
 
 
 def late_beam_kernels(dataset, config) -> list:

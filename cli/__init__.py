@@ -6,61 +6,17 @@ Ctrl-C while the commands are still being imported ends like one during a comman
 
 from __future__ import annotations
 
-import signal
-import sys
-from typing import Optional
-
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for a job stopped by Ctrl-C
-
-# Set by ``main``: this process is the console script, whose signal handling is its own (not a
-# test's CliRunner or a program that calls the app).
-_console_script = False
-
-
-def command_settled() -> None:
-    """A command's outcome is settled (outputs written, lines printed, exit status chosen): from
-    now on a Ctrl-C changes nothing, so the console script ignores it. Otherwise one that lands
-    while the interpreter tears down, after it has given SIGINT back its default action, kills
-    the process silently (status -2) after a complete run."""
-    if _console_script:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def caused_by_interrupt(error: Optional[BaseException]) -> bool:
-    """Whether ``error`` is a ``KeyboardInterrupt`` or was raised because of one: its chain (the
-    causes and contexts Python would print, ``raise ... from None`` cutting it) holds one.
-
-    A Ctrl-C that arrives while numba's compiled code runs is not raised as itself: the kernel's
-    dispatcher returns with the interrupt pending and Python raises ``SystemError: CPUDispatcher(...)
-    returned a result with an exception set`` (several of them, one per level of compiled calls),
-    the ``KeyboardInterrupt`` at the bottom of the chain.
-    """
-    seen: set[int] = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
-            return True
-        seen.add(id(error))
-        error = error.__cause__ if error.__cause__ is not None else None if error.__suppress_context__ else error.__context__
-    return False
+from camloc.cli.interrupts import run_console_script
 
 
 def main() -> None:
-    """Console-script entry point: the ``camloc`` app.
+    """Console-script entry point: the ``camloc`` app, whose commands are imported inside
+    ``run_console_script``, so that a Ctrl-C while they are still being imported ends like one
+    during a command."""
+    run_console_script(_load_app)
 
-    A Ctrl-C inside a command ends in ``CamlocGroup.invoke``; one that lands outside it (while
-    the commands are imported, or while the interpreter tidies up after the command) ends here,
-    the same way: one line and exit status 130, never a traceback.
-    """
-    global _console_script
-    _console_script = True
-    try:
-        from camloc.cli.app import app
 
-        app()
-    except SystemExit:
-        raise
-    except BaseException as error:
-        if not caused_by_interrupt(error):
-            raise
-        sys.stderr.write("interrupted\n")
-        sys.exit(EXIT_INTERRUPTED)
+def _load_app():
+    from camloc.cli.app import app
+
+    return app

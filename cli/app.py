@@ -7,6 +7,7 @@ import typer
 
 from camloc import __version__
 from camloc.cli.common import CamlocCommand, CamlocGroup
+from camloc.cli.interrupts import run_console_script
 
 app = typer.Typer(
     name="camloc",
@@ -44,10 +45,9 @@ _register_commands()
 
 
 def main() -> None:
-    """Console-script entry point (``camloc.cli.main``, which also ends a Ctrl-C outside a command)."""
-    from camloc.cli import main as cli_main
-
-    cli_main()
+    """Entry point for ``python -m camloc.cli.app``: the app as the console script runs it
+    (``camloc.cli.main``, which also ends a Ctrl-C outside a command)."""
+    run_console_script(lambda: app)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ try:  # typer 0.2x carries its own copy of click
 except ImportError:  # older typer runs on click itself
     from click.exceptions import UsageError
 
-from camloc.cli import EXIT_INTERRUPTED, caused_by_interrupt, command_settled
+from camloc.cli.interrupts import EXIT_INTERRUPTED, caused_by_interrupt, command_settled
 from camloc.errors import CamlocError
 
 console = Console()

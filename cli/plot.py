@@ -43,7 +43,8 @@ def plot(
 
     For a sweep folder (written by 'camloc sweep'), draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
     """
-    from camloc.results import FIGURE_FORMATS, load_run, refuse_existing, write_files_atomic
+    from camloc.atomic_files import refuse_existing, write_files_atomic
+    from camloc.results import FIGURE_FORMATS, load_run
 
     if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
         raise ConfigError(

@@ -49,124 +49,155 @@ RECHECK = escape("Re-check: every association but oracle; [recheck] in a config 
 VIEW = escape("Candidate landmarks: all associations but oracle; [view] in a config file")
 
 
+# The command's arguments and options, in its signature's order (their help is ``--help``'s text).
+_DATASET = dataset_argument(
+    "g2o dataset to localize, or the name of a bundled one (grid-small, smooth3d-clutter, pixel-2cam). "
+    "Default: the bundled grid-small.g2o.", required=False
+)
+_OUTPUT = typer.Option(
+    None, "--output", "-o", help="Run folder to write (missing parent folders are created); an existing "
+    "run folder is refused unless --force. Default: runs/<dataset name>.", show_default=False
+)
+_FORCE = force_option("the run folder (files in it that are not camloc's are kept)")
+_CONFIG_FILE = typer.Option(
+    None, "--config", help=escape("TOML file of localizer options, named as on the command line: top-level "
+    "ones as they are (gate = 0.95), a group's in its table without the group's prefix ([beam] width = 8 for "
+    "--beam-width 8); options given on the command line win. Default: none."), show_default=False
+)
+_FILTER = library_option(
+    "State parametrization: euler (x, y, z, roll, pitch, yaw; singular "
+    "at pitch +-90 deg) or se3 (error-state filter on SE(3), no singularity).",
+    "localizer.filter", "--filter"
+)
+_ASSOCIATION = library_option(
+    "Data association: beam (a beam of association hypotheses), jcbb (joint "
+    "compatibility branch and bound, seeded by best friends), best-friends (mutual best match with gates) "
+    "or oracle (the file's landmark ids, gated; for comparison). Only oracle reads the file's ids. "
+    "An option of a method that is not selected is refused.",
+    "localizer.association"
+)
+_ITERATIONS = library_option(
+    "Linearizations per update: 1 = EKF, more = iterated EKF.",
+    "localizer.iterations"
+)
+_GATE = library_option(
+    "Chi-square gate probability on each pair's innovation (3 dof).",
+    "localizer.gate", "--gate"
+)
+_NULL_COST = typer.Option(
+    None, help="Cost of calling an observation clutter instead of pairing it (beam and re-check), in cost units "
+    "(2 x negative log-likelihood: +2 = e times less likely; docs/association.md). Default: from the "
+    "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
+)
+_INITIAL_SIGMA_XYZ = library_option(
+    "Standard deviation of the start position, metres.",
+    "localizer.initial_sigma_xyz"
+)
+_INITIAL_SIGMA_DEG = library_option(
+    "Standard deviation of the start orientation, degrees.",
+    "localizer.initial_sigma_deg"
+)
+_BEAM_WIDTH = library_option(
+    "Association hypotheses kept after each pose.",
+    "localizer.beam.width", rich_help_panel=BEAM
+)
+_BEAM_DELTA = library_option(
+    "Drop hypotheses this much costlier than the best, in cost units (2 x log-likelihood ratio; docs/beam.md).",
+    "localizer.beam.delta", rich_help_panel=BEAM
+)
+_BRANCH_DELTA = library_option(
+    "Explore only the options of an observation within this many cost units (2 x log-likelihood ratio) of its "
+    "best (docs/beam.md).",
+    "localizer.beam.branch_delta", rich_help_panel=BEAM
+)
+_SLIP_INFLATION = library_option(
+    "Slip (odometry that jumped): the factor on the predicted covariance when a pose is explained as one "
+    "(docs/beam.md).",
+    "localizer.beam.slip_inflation", rich_help_panel=BEAM
+)
+_SLIP_COST = library_option(
+    "Slip (odometry that jumped): the extra cost, in cost units (2 x log-likelihood ratio), of explaining a pose "
+    "as one (docs/beam.md).",
+    "localizer.beam.slip_cost", rich_help_panel=BEAM
+)
+_COST = library_option(
+    "Pair cost: nll (Mahalanobis + log det S), mahalanobis, euclidean.",
+    "localizer.best_friends.cost", rich_help_panel=BEST_FRIENDS
+)
+_MARGIN = library_option(
+    "Reject a pair whose closest rival is within this many cost units (2 x log-likelihood ratio; "
+    "docs/association.md).",
+    "localizer.best_friends.margin", rich_help_panel=BEST_FRIENDS
+)
+_SEQUENTIAL = library_option(
+    "Accept pairs one at a time, conditioning on each (sequential), or all at once (batch, the original "
+    "method). Best friends only.",
+    "localizer.best_friends.sequential", "--sequential/--batch", rich_help_panel=BEST_FRIENDS
+)
+_JCBB_MAX_NODES = library_option(
+    "Most joint compatibility tests per pose; past it the best set found is kept.",
+    "localizer.jcbb.max_nodes", rich_help_panel=JCBB
+)
+_RECHECK = library_option(
+    "After each update, judge every pair again by the posterior of the pose's other pairs and drop the "
+    "ones that do not hold.",
+    "localizer.recheck.enabled", "--recheck/--no-recheck", rich_help_panel=RECHECK
+)
+_RECHECK_MARGIN = library_option(
+    "Drop a pair when leaving its observation unassigned or pairing it with another landmark costs no "
+    "more than this, in cost units (2 x log-likelihood ratio; docs/association.md).",
+    "localizer.recheck.margin", rich_help_panel=RECHECK
+)
+_RECHECK_STEAL_MARGIN = library_option(
+    "Drop a pair when another observation of the pose could take its landmark for no more than this "
+    "many extra cost units (2 x log-likelihood ratio: 6 = 20 times; docs/association.md).",
+    "localizer.recheck.steal_margin", rich_help_panel=RECHECK
+)
+_MIN_DEPTH = typer.Option(
+    None, help="Nearest candidate landmark depth, metres. Default: 0 (no lower bound).", show_default=False,
+    rich_help_panel=VIEW
+)
+_MAX_DEPTH = typer.Option(
+    None, help="Farthest candidate landmark depth, metres. Default: from the data "
+    "(1.25 x the largest measured depth + 0.5).", show_default=False, rich_help_panel=VIEW
+)
+_MAX_ANGLE = typer.Option(
+    None, help="Candidates within this angle of the optical axis, degrees. Default: from the data "
+    "(widest observed ray + 10).", show_default=False, rich_help_panel=VIEW
+)
+_JSON_OUTPUT = json_option("the run summary (what summary.json holds)")
+_QUIET = quiet_option()
+
+
 def run(
-    dataset: Optional[Path] = dataset_argument(
-        "g2o dataset to localize, or the name of a bundled one (grid-small, smooth3d-clutter, pixel-2cam). "
-        "Default: the bundled grid-small.g2o.", required=False
-    ),
-    output: Optional[Path] = typer.Option(
-        None, "--output", "-o", help="Run folder to write (missing parent folders are created); an existing "
-        "run folder is refused unless --force. Default: runs/<dataset name>.", show_default=False
-    ),
-    force: bool = force_option("the run folder (files in it that are not camloc's are kept)"),
-    config_file: Optional[Path] = typer.Option(
-        None, "--config", help=escape("TOML file of localizer options, named as on the command line: top-level "
-        "ones as they are (gate = 0.95), a group's in its table without the group's prefix ([beam] width = 8 for "
-        "--beam-width 8); options given on the command line win. Default: none."), show_default=False
-    ),
-    filter: Optional[FilterChoice] = library_option(  # noqa: A002 (named after --filter)
-        "State parametrization: euler (x, y, z, roll, pitch, yaw; singular "
-        "at pitch +-90 deg) or se3 (error-state filter on SE(3), no singularity).",
-        "localizer.filter", "--filter"
-    ),
-    association: Optional[AssociationChoice] = library_option(
-        "Data association: beam (a beam of association hypotheses), jcbb (joint "
-        "compatibility branch and bound, seeded by best friends), best-friends (mutual best match with gates) "
-        "or oracle (the file's landmark ids, gated; for comparison). Only oracle reads the file's ids. "
-        "An option of a method that is not selected is refused.",
-        "localizer.association"
-    ),
-    iterations: Optional[int] = library_option(
-        "Linearizations per update: 1 = EKF, more = iterated EKF.",
-        "localizer.iterations"
-    ),
-    gate: Optional[float] = library_option(
-        "Chi-square gate probability on each pair's innovation (3 dof).",
-        "localizer.gate", "--gate"
-    ),
-    null_cost: Optional[float] = typer.Option(
-        None, help="Cost of calling an observation clutter instead of pairing it (beam and re-check), in cost units "
-        "(2 x negative log-likelihood: +2 = e times less likely; docs/association.md). Default: from the "
-        "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
-    ),
-    initial_sigma_xyz: Optional[float] = library_option(
-        "Standard deviation of the start position, metres.",
-        "localizer.initial_sigma_xyz"
-    ),
-    initial_sigma_deg: Optional[float] = library_option(
-        "Standard deviation of the start orientation, degrees.",
-        "localizer.initial_sigma_deg"
-    ),
-    beam_width: Optional[int] = library_option(
-        "Association hypotheses kept after each pose.",
-        "localizer.beam.width", rich_help_panel=BEAM
-    ),
-    beam_delta: Optional[float] = library_option(
-        "Drop hypotheses this much costlier than the best, in cost units (2 x log-likelihood ratio; docs/beam.md).",
-        "localizer.beam.delta", rich_help_panel=BEAM
-    ),
-    branch_delta: Optional[float] = library_option(
-        "Explore only the options of an observation within this many cost units (2 x log-likelihood ratio) of its "
-        "best (docs/beam.md).",
-        "localizer.beam.branch_delta", rich_help_panel=BEAM
-    ),
-    slip_inflation: Optional[float] = library_option(
-        "Slip (odometry that jumped): the factor on the predicted covariance when a pose is explained as one "
-        "(docs/beam.md).",
-        "localizer.beam.slip_inflation", rich_help_panel=BEAM
-    ),
-    slip_cost: Optional[float] = library_option(
-        "Slip (odometry that jumped): the extra cost, in cost units (2 x log-likelihood ratio), of explaining a pose "
-        "as one (docs/beam.md).",
-        "localizer.beam.slip_cost", rich_help_panel=BEAM
-    ),
-    cost: Optional[CostChoice] = library_option(
-        "Pair cost: nll (Mahalanobis + log det S), mahalanobis, euclidean.",
-        "localizer.best_friends.cost", rich_help_panel=BEST_FRIENDS
-    ),
-    margin: Optional[float] = library_option(
-        "Reject a pair whose closest rival is within this many cost units (2 x log-likelihood ratio; "
-        "docs/association.md).",
-        "localizer.best_friends.margin", rich_help_panel=BEST_FRIENDS
-    ),
-    sequential: Optional[bool] = library_option(
-        "Accept pairs one at a time, conditioning on each (sequential), or all at once (batch, the original "
-        "method). Best friends only.",
-        "localizer.best_friends.sequential", "--sequential/--batch", rich_help_panel=BEST_FRIENDS
-    ),
-    jcbb_max_nodes: Optional[int] = library_option(
-        "Most joint compatibility tests per pose; past it the best set found is kept.",
-        "localizer.jcbb.max_nodes", rich_help_panel=JCBB
-    ),
-    recheck: Optional[bool] = library_option(
-        "After each update, judge every pair again by the posterior of the pose's other pairs and drop the "
-        "ones that do not hold.",
-        "localizer.recheck.enabled", "--recheck/--no-recheck", rich_help_panel=RECHECK
-    ),
-    recheck_margin: Optional[float] = library_option(
-        "Drop a pair when leaving its observation unassigned or pairing it with another landmark costs no "
-        "more than this, in cost units (2 x log-likelihood ratio; docs/association.md).",
-        "localizer.recheck.margin", rich_help_panel=RECHECK
-    ),
-    recheck_steal_margin: Optional[float] = library_option(
-        "Drop a pair when another observation of the pose could take its landmark for no more than this "
-        "many extra cost units (2 x log-likelihood ratio: 6 = 20 times; docs/association.md).",
-        "localizer.recheck.steal_margin", rich_help_panel=RECHECK
-    ),
-    min_depth: Optional[float] = typer.Option(
-        None, help="Nearest candidate landmark depth, metres. Default: 0 (no lower bound).", show_default=False,
-        rich_help_panel=VIEW
-    ),
-    max_depth: Optional[float] = typer.Option(
-        None, help="Farthest candidate landmark depth, metres. Default: from the data "
-        "(1.25 x the largest measured depth + 0.5).", show_default=False, rich_help_panel=VIEW
-    ),
-    max_angle: Optional[float] = typer.Option(
-        None, help="Candidates within this angle of the optical axis, degrees. Default: from the data "
-        "(widest observed ray + 10).", show_default=False, rich_help_panel=VIEW
-    ),
-    json_output: bool = json_option("the run summary (what summary.json holds)"),
-    quiet: bool = quiet_option(),
+    dataset: Optional[Path] = _DATASET,
+    output: Optional[Path] = _OUTPUT,
+    force: bool = _FORCE,
+    config_file: Optional[Path] = _CONFIG_FILE,
+    filter: Optional[FilterChoice] = _FILTER,  # noqa: A002 (named after --filter)
+    association: Optional[AssociationChoice] = _ASSOCIATION,
+    iterations: Optional[int] = _ITERATIONS,
+    gate: Optional[float] = _GATE,
+    null_cost: Optional[float] = _NULL_COST,
+    initial_sigma_xyz: Optional[float] = _INITIAL_SIGMA_XYZ,
+    initial_sigma_deg: Optional[float] = _INITIAL_SIGMA_DEG,
+    beam_width: Optional[int] = _BEAM_WIDTH,
+    beam_delta: Optional[float] = _BEAM_DELTA,
+    branch_delta: Optional[float] = _BRANCH_DELTA,
+    slip_inflation: Optional[float] = _SLIP_INFLATION,
+    slip_cost: Optional[float] = _SLIP_COST,
+    cost: Optional[CostChoice] = _COST,
+    margin: Optional[float] = _MARGIN,
+    sequential: Optional[bool] = _SEQUENTIAL,
+    jcbb_max_nodes: Optional[int] = _JCBB_MAX_NODES,
+    recheck: Optional[bool] = _RECHECK,
+    recheck_margin: Optional[float] = _RECHECK_MARGIN,
+    recheck_steal_margin: Optional[float] = _RECHECK_STEAL_MARGIN,
+    min_depth: Optional[float] = _MIN_DEPTH,
+    max_depth: Optional[float] = _MAX_DEPTH,
+    max_angle: Optional[float] = _MAX_ANGLE,
+    json_output: bool = _JSON_OUTPUT,
+    quiet: bool = _QUIET,
 ) -> None:
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
@@ -175,8 +206,8 @@ def run(
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset of up to 2,000 poses it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
     from camloc.bundled import resolve_dataset
-    from camloc.config import read_config_file
-    from camloc.options import RUN_OPTIONS, run_config
+    from camloc.config import read_config_file, run_config
+    from camloc.options import RUN_OPTIONS
     from camloc.pipeline import DEFAULT_DATASET, default_output_dir, run_dataset
 
     # Each localizer option's parameter is named after its command-line flag, so the options pass on

@@ -37,130 +37,162 @@ class RangeKindChoice(str, Enum):
     depth = "depth"
 
 
+# The command's arguments and options, in its signature's order (their help is ``--help``'s text).
+_OUTPUT = typer.Option(..., "--output", "-o", help="The g2o file to write (whole or not at all; missing "
+                       "parent folders are created); an existing file is refused unless --force.",
+                       show_default=False)
+_FORCE = force_option("the --output file")
+_TRAJECTORY = library_option(
+    "grid: 1 m steps and 90 deg turns on flat ground, like the real file; smooth3d: "
+    "smooth 3D motion, roll/pitch up to --max-tilt-deg (default 18); aerial: a flying vehicle looking "
+    "around, roll/pitch up to --max-tilt-deg (default 60).",
+    "simulation.trajectory"
+)
+_POSES = library_option(
+    "Number of poses (at least 2).",
+    "simulation.poses"
+)
+_LANDMARKS = typer.Option(
+    None, help="Number of map landmarks. Default: the real file's density, as many as give 3.62 "
+    "visible landmarks per camera and pose (the real file: 144 for 100 poses).", show_default=False
+)
+_DENSE = library_option(
+    "A dense map: 5x the default density over the same region.",
+    "simulation.dense", "--dense"
+)
+_REGION = typer.Option(
+    None, help="Side of the square region the path stays in, metres. Default: 1.3 x sqrt(poses), "
+    "at least 4 (13 m for 100 poses, like the real file).", show_default=False
+)
+_MAX_TILT_DEG = typer.Option(
+    None, help="Roll and pitch amplitude, degrees, in (0, 90]; 85-90 passes near the Euler "
+    "singularity. Default: 18 for smooth3d, 60 for aerial; grid ignores it.", show_default=False
+)
+_CAMERAS = library_option(
+    "Number of cameras, 1 to 4: ids 0 forward (the "
+    "real mount), 1 backward, 2 left, 3 right.",
+    "simulation.cameras"
+)
+_INTRINSICS = library_option(
+    "normalized: fx=fy=1, cx=cy=0.5, image not clipped (the real file); pixel: "
+    "fx=fy=525, cx=319.5, cy=239.5, only detections inside the 640x480 image.",
+    "simulation.intrinsics"
+)
+_MEASUREMENT = library_option(
+    "What the cameras measure: depth (u, v, depth: EDGE_PROJECT_DEPTH), pixel (u, v "
+    "only, a monocular camera: EDGE_PROJECT_UV) or disparity (u, v, 1/depth: "
+    "EDGE_PROJECT_DISPARITY); one for every camera, or one per camera, comma-separated "
+    "(depth,pixel).",
+    "simulation.measurement"
+)
+_RANGE_KIND = library_option(
+    "What --min-range/--max-range bound: distance from the camera centre (the real "
+    "file's rule) or depth (camera z).",
+    "simulation.range_kind"
+)
+_MIN_RANGE = library_option(
+    "Nearest visible landmark, metres.",
+    "simulation.min_range"
+)
+_MAX_RANGE = library_option(
+    "Farthest visible landmark, metres.",
+    "simulation.max_range"
+)
+_FOV_HALF_ANGLE_DEG = library_option(
+    "Visible cone around the optical axis, degrees, in (0, 90).",
+    "simulation.fov_half_angle_deg"
+)
+_DETECTION_PROBABILITY = library_option(
+    "Chance that a visible landmark is detected, in (0, 1].",
+    "simulation.detection_probability"
+)
+_MAX_OBSERVATIONS_PER_POSE = typer.Option(
+    None, help="Keep at most this many detections per pose (a random subset). Default: no cap.",
+    show_default=False
+)
+_OBSERVE_FIRST_POSE = library_option(
+    "Also detect landmarks from the first pose (the real file "
+    "does not).",
+    "simulation.observe_first_pose", "--observe-first-pose"
+)
+_CLUTTER_FRACTION = library_option(
+    "Fraction of all observations that are clutter (ids absent from the map, random "
+    "measurements in the visible volume), in [0, 1).",
+    "simulation.clutter_fraction"
+)
+_OUTLIER_FRACTION = library_option(
+    "Fraction of real detections whose measurement is replaced by a random one in "
+    "the visible volume, in [0, 1); they keep the true landmark id.",
+    "simulation.outlier_fraction"
+)
+_ODOMETRY_SIGMA_TRANSLATION = library_option(
+    "Odometry translation std per axis, metres (the real file: information 100).",
+    "simulation.odometry_sigma_translation"
+)
+_ODOMETRY_SIGMA_ROTATION = library_option(
+    "Odometry rotation-vector std per axis, radians (the real file: information "
+    "10000 on g2o's quaternion vector part).",
+    "simulation.odometry_sigma_rotation"
+)
+_ODOMETRY_SIGMA_SCALE = library_option(
+    "Multiplies both odometry sigmas; 0: exact odometry.",
+    "simulation.odometry_sigma_scale"
+)
+_OBSERVATION_SIGMA_UV = typer.Option(
+    None, help="Std of u and v, image units. Default: 1/sqrt(1000) = 0.0316 for normalized "
+    "cameras (information 1000, like the real file), 1 pixel for pixel cameras.", show_default=False
+)
+_OBSERVATION_SIGMA_DEPTH = library_option(
+    "Std of the depth, metres (the real file: information 1000, 1/sqrt(1000)).",
+    "simulation.observation_sigma_depth"
+)
+_OBSERVATION_SIGMA_SCALE = library_option(
+    "Multiplies the observation sigmas; 0: exact observations.",
+    "simulation.observation_sigma_scale"
+)
+_SEED = typer.Option(0, min=0, help=with_default("Seed of the random generator; the same seed gives the "
+                                                 "same file."), show_default=False)
+_JSON_OUTPUT = json_option("the summary", instead="a line")
+_QUIET = quiet_option()
+
+
 def simulate(
-    output: Path = typer.Option(..., "--output", "-o", help="The g2o file to write (whole or not at all; missing "
-        "parent folders are created); an existing file is refused unless --force.",
-                                show_default=False),
-    force: bool = force_option("the --output file"),
-    trajectory: Optional[TrajectoryChoice] = library_option(
-        "grid: 1 m steps and 90 deg turns on flat ground, like the real file; smooth3d: "
-        "smooth 3D motion, roll/pitch up to --max-tilt-deg (default 18); aerial: a flying vehicle looking "
-        "around, roll/pitch up to --max-tilt-deg (default 60).",
-        "simulation.trajectory"
-    ),
-    poses: Optional[int] = library_option(
-        "Number of poses (at least 2).",
-        "simulation.poses"
-    ),
-    landmarks: Optional[int] = typer.Option(
-        None, help="Number of map landmarks. Default: the real file's density, as many as give 3.62 "
-        "visible landmarks per camera and pose (the real file: 144 for 100 poses).", show_default=False
-    ),
-    dense: Optional[bool] = library_option(
-        "A dense map: 5x the default density over the same region.",
-        "simulation.dense", "--dense"
-    ),
-    region: Optional[float] = typer.Option(
-        None, help="Side of the square region the path stays in, metres. Default: 1.3 x sqrt(poses), "
-        "at least 4 (13 m for 100 poses, like the real file).", show_default=False
-    ),
-    max_tilt_deg: Optional[float] = typer.Option(
-        None, help="Roll and pitch amplitude, degrees, in (0, 90]; 85-90 passes near the Euler "
-        "singularity. Default: 18 for smooth3d, 60 for aerial; grid ignores it.", show_default=False
-    ),
-    cameras: Optional[int] = library_option(
-        "Number of cameras, 1 to 4: ids 0 forward (the "
-        "real mount), 1 backward, 2 left, 3 right.",
-        "simulation.cameras"
-    ),
-    intrinsics: Optional[IntrinsicsChoice] = library_option(
-        "normalized: fx=fy=1, cx=cy=0.5, image not clipped (the real file); pixel: "
-        "fx=fy=525, cx=319.5, cy=239.5, only detections inside the 640x480 image.",
-        "simulation.intrinsics"
-    ),
-    measurement: Optional[str] = library_option(
-        "What the cameras measure: depth (u, v, depth: EDGE_PROJECT_DEPTH), pixel (u, v "
-        "only, a monocular camera: EDGE_PROJECT_UV) or disparity (u, v, 1/depth: "
-        "EDGE_PROJECT_DISPARITY); one for every camera, or one per camera, comma-separated "
-        "(depth,pixel).",
-        "simulation.measurement"
-    ),
-    range_kind: Optional[RangeKindChoice] = library_option(
-        "What --min-range/--max-range bound: distance from the camera centre (the real "
-        "file's rule) or depth (camera z).",
-        "simulation.range_kind"
-    ),
-    min_range: Optional[float] = library_option(
-        "Nearest visible landmark, metres.",
-        "simulation.min_range"
-    ),
-    max_range: Optional[float] = library_option(
-        "Farthest visible landmark, metres.",
-        "simulation.max_range"
-    ),
-    fov_half_angle_deg: Optional[float] = library_option(
-        "Visible cone around the optical axis, degrees, in (0, 90).",
-        "simulation.fov_half_angle_deg"
-    ),
-    detection_probability: Optional[float] = library_option(
-        "Chance that a visible landmark is detected, in (0, 1].",
-        "simulation.detection_probability"
-    ),
-    max_observations_per_pose: Optional[int] = typer.Option(
-        None, help="Keep at most this many detections per pose (a random subset). Default: no cap.",
-        show_default=False
-    ),
-    observe_first_pose: Optional[bool] = library_option(
-        "Also detect landmarks from the first pose (the real file "
-        "does not).",
-        "simulation.observe_first_pose", "--observe-first-pose"
-    ),
-    clutter_fraction: Optional[float] = library_option(
-        "Fraction of all observations that are clutter (ids absent from the map, random "
-        "measurements in the visible volume), in [0, 1).",
-        "simulation.clutter_fraction"
-    ),
-    outlier_fraction: Optional[float] = library_option(
-        "Fraction of real detections whose measurement is replaced by a random one in "
-        "the visible volume, in [0, 1); they keep the true landmark id.",
-        "simulation.outlier_fraction"
-    ),
-    odometry_sigma_translation: Optional[float] = library_option(
-        "Odometry translation std per axis, metres (the real file: information 100).",
-        "simulation.odometry_sigma_translation"
-    ),
-    odometry_sigma_rotation: Optional[float] = library_option(
-        "Odometry rotation-vector std per axis, radians (the real file: information "
-        "10000 on g2o's quaternion vector part).",
-        "simulation.odometry_sigma_rotation"
-    ),
-    odometry_sigma_scale: Optional[float] = library_option(
-        "Multiplies both odometry sigmas; 0: exact odometry.",
-        "simulation.odometry_sigma_scale"
-    ),
-    observation_sigma_uv: Optional[float] = typer.Option(
-        None, help="Std of u and v, image units. Default: 1/sqrt(1000) = 0.0316 for normalized "
-        "cameras (information 1000, like the real file), 1 pixel for pixel cameras.", show_default=False
-    ),
-    observation_sigma_depth: Optional[float] = library_option(
-        "Std of the depth, metres (the real file: information 1000, 1/sqrt(1000)).",
-        "simulation.observation_sigma_depth"
-    ),
-    observation_sigma_scale: Optional[float] = library_option(
-        "Multiplies the observation sigmas; 0: exact observations.",
-        "simulation.observation_sigma_scale"
-    ),
-    seed: int = typer.Option(0, min=0, help=with_default("Seed of the random generator; the same seed gives the "
-        "same file."), show_default=False),
-    json_output: bool = json_option("the summary", instead="a line"),
-    quiet: bool = quiet_option(),
+    output: Path = _OUTPUT,
+    force: bool = _FORCE,
+    trajectory: Optional[TrajectoryChoice] = _TRAJECTORY,
+    poses: Optional[int] = _POSES,
+    landmarks: Optional[int] = _LANDMARKS,
+    dense: Optional[bool] = _DENSE,
+    region: Optional[float] = _REGION,
+    max_tilt_deg: Optional[float] = _MAX_TILT_DEG,
+    cameras: Optional[int] = _CAMERAS,
+    intrinsics: Optional[IntrinsicsChoice] = _INTRINSICS,
+    measurement: Optional[str] = _MEASUREMENT,
+    range_kind: Optional[RangeKindChoice] = _RANGE_KIND,
+    min_range: Optional[float] = _MIN_RANGE,
+    max_range: Optional[float] = _MAX_RANGE,
+    fov_half_angle_deg: Optional[float] = _FOV_HALF_ANGLE_DEG,
+    detection_probability: Optional[float] = _DETECTION_PROBABILITY,
+    max_observations_per_pose: Optional[int] = _MAX_OBSERVATIONS_PER_POSE,
+    observe_first_pose: Optional[bool] = _OBSERVE_FIRST_POSE,
+    clutter_fraction: Optional[float] = _CLUTTER_FRACTION,
+    outlier_fraction: Optional[float] = _OUTLIER_FRACTION,
+    odometry_sigma_translation: Optional[float] = _ODOMETRY_SIGMA_TRANSLATION,
+    odometry_sigma_rotation: Optional[float] = _ODOMETRY_SIGMA_ROTATION,
+    odometry_sigma_scale: Optional[float] = _ODOMETRY_SIGMA_SCALE,
+    observation_sigma_uv: Optional[float] = _OBSERVATION_SIGMA_UV,
+    observation_sigma_depth: Optional[float] = _OBSERVATION_SIGMA_DEPTH,
+    observation_sigma_scale: Optional[float] = _OBSERVATION_SIGMA_SCALE,
+    seed: int = _SEED,
+    json_output: bool = _JSON_OUTPUT,
+    quiet: bool = _QUIET,
 ) -> None:
     """Simulate a robot, a landmark map, noisy odometry and camera detections; write a g2o file.
 
     Zero sigmas are simulated exactly and written as a large finite information (1e12).
     """
     from camloc.g2o import write_g2o
-    from camloc.results import refuse_existing
+    from camloc.atomic_files import refuse_existing
     from camloc.simulate import SimulationConfig, SimulationOptionError, simulate_labelled, simulation_config
 
     # The options are named after the config's fields: pass on each one given by its command-line

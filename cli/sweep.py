@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from camloc.cli import EXIT_INTERRUPTED, caused_by_interrupt
+from camloc.cli.interrupts import EXIT_INTERRUPTED, caused_by_interrupt
 from camloc.cli.common import console, err_console, json_option, print_warnings, quiet_option
 
 EXIT_ALL_FAILED = 1  # no run gave a result: a script must not take the empty study for one

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from camloc import association, geometry
+from camloc import association, geometry, observation_space
 
 
 def test_candidates_match_a_brute_force_scan(rng):
@@ -301,7 +301,7 @@ def test_noise_floor_leaves_real_sensors_noise_as_it_is(rng):
     uvd = np.column_stack([rng.uniform(0, 640, 50), rng.uniform(0, 480, 50), rng.uniform(0.5, 4.0, 50)])
     cov = np.broadcast_to(np.diag([0.05**2, 0.05**2, 1e-4**2]), (50, 3, 3)).copy()  # 0.05 px, 0.1 mm: precise, not exact
     info = np.linalg.inv(cov)
-    floored_cov, floored_info = association.noise_floored(uvd, cov, info, np.full(50, 525.0), np.full(50, 525.0))
+    floored_cov, floored_info = observation_space.noise_floored(uvd, cov, info, np.full(50, 525.0), np.full(50, 525.0))
     assert floored_cov is cov and floored_info is info
 
 
@@ -311,8 +311,8 @@ def test_noise_floor_raises_observations_that_claim_to_be_exact(rng):
     cov = np.broadcast_to(np.eye(3) * 1e-12, (4, 3, 3)).copy()
     cov[3] = np.diag([1.0, 1.0, 1e-3])
     fx, fy = np.full(4, 500.0), np.full(4, 400.0)
-    floored_cov, floored_info = association.noise_floored(uvd, cov, np.linalg.inv(cov), fx, fy)
-    expected = (association.NOISE_FLOOR * np.column_stack([fx, fy, uvd[:, 2]])) ** 2
+    floored_cov, floored_info = observation_space.noise_floored(uvd, cov, np.linalg.inv(cov), fx, fy)
+    expected = (observation_space.NOISE_FLOOR * np.column_stack([fx, fy, uvd[:, 2]])) ** 2
     np.testing.assert_allclose(np.diagonal(floored_cov[:3], axis1=1, axis2=2), expected[:3], rtol=1e-12)  # raised to the floor
     np.testing.assert_array_equal(floored_cov[3], cov[3])
     np.testing.assert_allclose(floored_info @ floored_cov, np.broadcast_to(np.eye(3), (4, 3, 3)), atol=1e-9)
@@ -322,7 +322,8 @@ def test_noise_floor_raises_observations_that_claim_to_be_exact(rng):
 def test_every_per_pose_method_pairs_rightly_from_the_true_state(association, sequential):
     # each method by its name in the localizer's table, called through the one signature
     # associate(scene, x, P, obs) on every pose of a world without clutter, from the true state
-    from camloc.localizer import PER_POSE_ASSOCIATORS, BestFriendsOptions, LocalizerConfig, _Localizer
+    from camloc.localizer import PER_POSE_ASSOCIATORS, _Localizer
+    from camloc.localizer_config import BestFriendsOptions, LocalizerConfig
     from camloc.simulate import SimulationConfig, simulate
 
     dataset = simulate(SimulationConfig(poses=30, cameras=2), seed=4)

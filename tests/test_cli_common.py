@@ -96,7 +96,7 @@ def test_ctrl_c_says_interrupted_and_exits_130(tmp_path, monkeypatch, world, arg
 
 
 def test_only_an_interrupt_in_the_chain_counts_as_one():
-    from camloc.cli import caused_by_interrupt
+    from camloc.cli.interrupts import caused_by_interrupt
 
     def chained(cause, *, suppress=False):
         try:

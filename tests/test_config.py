@@ -8,10 +8,10 @@ import dataclasses
 
 import pytest
 
-from camloc.config import make_config, parse_config
+from camloc.config import make_config, parse_config, run_config
 from camloc.errors import ConfigError
-from camloc.localizer import LocalizerConfig, option_methods, option_value
-from camloc.options import RUN_OPTIONS, file_name, run_config
+from camloc.localizer_config import LocalizerConfig, option_methods, option_value
+from camloc.options import RUN_OPTIONS, file_name
 
 # A valid value other than the default for every option of camloc run.
 CHANGED = {

@@ -371,10 +371,10 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     taken = [tuple(children[7][c, q]) for c in range(count) for q in range(children[6][c])]
     assert count >= 1 and (second, lm) not in taken and children[4][np.argmin(children[2][:count])] == 1
 
-    from camloc.beam import _Hypothesis
+    from camloc.beam_types import Hypothesis
 
     localizer = _Localizer(dataset, config)
-    explained = BeamSearch(localizer, localizer.beam_settings())._explain(_Hypothesis(x, P, 0.0, 0, ((first, lm),)), np.array([second]))
+    explained = BeamSearch(localizer, localizer.beam_settings()).expansion.explain(Hypothesis(x, P, 0.0, 0, ((first, lm),)), np.array([second]))
     assert explained and all((second, lm) not in h.pairs for h in explained)
     assert min(explained, key=lambda h: h.cost).unassigned == 1
 
@@ -496,7 +496,7 @@ def test_a_cold_cache_is_told_apart_from_a_warm_one(tmp_path):
 def test_a_changed_kernel_source_clears_the_cache_of_every_kernel(tmp_path):
     # numba checks a cached function against its own file only: a callee changed in another file
     # would leave its callers' cache stale, so any change to the folder clears the folder's cache
-    from camloc.kernels import SOURCE_STAMP, clear_stale_cache
+    from camloc.kernels.stale_cache import SOURCE_STAMP, clear_stale_cache
 
     source, cache = tmp_path / "kernels", tmp_path / "cache"
     source.mkdir()

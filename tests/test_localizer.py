@@ -13,7 +13,8 @@ from camloc.ekf import FilterDivergedError
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
-from camloc.localizer import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions, localize
+from camloc.localizer import localize
+from camloc.localizer_config import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions
 from camloc.metrics import evaluate
 from camloc.simulate import SimulationConfig, simulate
 
@@ -358,38 +359,40 @@ def test_beam_recovers_from_a_slip_where_every_pose_sees_two_landmarks(seed, mon
 
 
 def test_the_slip_search_runs_where_a_pose_explains_less_than_this_data_usually_lets_it():
-    from camloc.beam import BeamSearch, BeamSettings
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import BeamSettings
     from camloc.localizer import _Localizer
 
     search = BeamSearch(_Localizer(simulate(SimulationConfig(poses=5), seed=0), LocalizerConfig()), BeamSettings())
-    assert search._unusually_unexplained(6, 10)        # nothing learnt yet: more than half is enough
-    search.unexplained = [(8, 20)] * 50                 # 40% of the observations left unassigned
-    assert not search._unusually_unexplained(11, 20)   # P(X >= 11 | 20, 0.4) = 0.13: usual here
-    assert search._unusually_unexplained(18, 20)       # about 1e-5
-    search.unexplained = [(8, 20)] * 48 + [(3, 3)] * 2  # a slip two poses ago, three observations a pose
-    assert search._unusually_unexplained(3, 3)         # alone 0.4^3 = 6%; the three poses pooled 0.03%
-    search.unexplained = [(4, 4)] * 50                  # nothing explained for 50 poses: lost, not clutter
-    assert search._unusually_unexplained(4, 4)         # the rate is capped at 0.6: 0.6^12 = 0.2% pooled
-    search.unexplained = [(11, 20)] * 50                # 55% unexplained: heavy clutter
-    assert not search._unusually_unexplained(3, 4)     # one pose of four says nothing
+    assert search.seeded.unusually_unexplained(6, 10)        # nothing learnt yet: more than half is enough
+    search.seeded.unexplained = [(8, 20)] * 50                 # 40% of the observations left unassigned
+    assert not search.seeded.unusually_unexplained(11, 20)   # P(X >= 11 | 20, 0.4) = 0.13: usual here
+    assert search.seeded.unusually_unexplained(18, 20)       # about 1e-5
+    search.seeded.unexplained = [(8, 20)] * 48 + [(3, 3)] * 2  # a slip two poses ago, three observations a pose
+    assert search.seeded.unusually_unexplained(3, 3)         # alone 0.4^3 = 6%; the three poses pooled 0.03%
+    search.seeded.unexplained = [(4, 4)] * 50                  # nothing explained for 50 poses: lost, not clutter
+    assert search.seeded.unusually_unexplained(4, 4)         # the rate is capped at 0.6: 0.6^12 = 0.2% pooled
+    search.seeded.unexplained = [(11, 20)] * 50                # 55% unexplained: heavy clutter
+    assert not search.seeded.unusually_unexplained(3, 4)     # one pose of four says nothing
 
 
 def test_a_seeded_explanation_crowded_out_of_a_full_beam_takes_its_last_place():
-    from camloc.beam import BeamSearch, BeamSettings, _Hypothesis
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import BeamSettings, Hypothesis
     from camloc.localizer import _Localizer
 
     search = BeamSearch(_Localizer(simulate(SimulationConfig(poses=5), seed=0), LocalizerConfig()), BeamSettings(beam_width=4))
     P = 0.01 * np.eye(6)
-    copies = [_Hypothesis(np.r_[0.1 * i, 0.0, 0.0, 0.0, 0.0, 0.0], P, 10.0 + i, 0) for i in range(4)]  # one wrong alignment, four ways
-    far = _Hypothesis(np.r_[0.0, 2.0, 0.0, 0.0, 0.0, 0.0], P, 19.0, 0, slipped=True)  # the slip's explanation, 9 costlier
-    kept = search._with_a_seeded_one(list(copies), [far])
+    copies = [Hypothesis(np.r_[0.1 * i, 0.0, 0.0, 0.0, 0.0, 0.0], P, 10.0 + i, 0) for i in range(4)]  # one wrong alignment, four ways
+    far = Hypothesis(np.r_[0.0, 2.0, 0.0, 0.0, 0.0, 0.0], P, 19.0, 0, slipped=True)  # the slip's explanation, 9 costlier
+    kept = search.seeded.with_a_seeded_one(list(copies), [far])
     assert kept == copies[:3] + [far]  # sorted by cost, the best unchanged
-    assert search._with_a_seeded_one(list(copies), [far, copies[3]]) == copies  # a seeded one is kept already
-    assert search._with_a_seeded_one(copies[:3], [far]) == copies[:3]  # room was left: it was pruned on its own
-    too_costly = _Hypothesis(far.x, P, 10.0 + BeamSettings.beam_delta + 0.1, 0)
-    assert search._with_a_seeded_one(list(copies), [too_costly]) == copies
-    a_copy = _Hypothesis(copies[1].x + 1e-4, P, 19.0, 0)
-    assert search._with_a_seeded_one(list(copies), [a_copy]) == copies
+    assert search.seeded.with_a_seeded_one(list(copies), [far, copies[3]]) == copies  # a seeded one is kept already
+    assert search.seeded.with_a_seeded_one(copies[:3], [far]) == copies[:3]  # room was left: it was pruned on its own
+    too_costly = Hypothesis(far.x, P, 10.0 + BeamSettings.beam_delta + 0.1, 0)
+    assert search.seeded.with_a_seeded_one(list(copies), [too_costly]) == copies
+    a_copy = Hypothesis(copies[1].x + 1e-4, P, 19.0, 0)
+    assert search.seeded.with_a_seeded_one(list(copies), [a_copy]) == copies
 
 
 def test_beam_recovers_where_a_wrong_alignment_s_copies_crowded_out_the_slip_s_explanation():
@@ -485,7 +488,7 @@ def test_observations_claiming_to_be_exact_in_four_cameras_are_localized_exactly
     # Information 1e12 (the simulator's exact observations) beside odometry of 1e2: rounding left
     # the re-check's bound on S indefinite, and numpy's LinAlgError ended the run at the third pose.
     # Then association judged each pair's linearization error by that noise, gated right pairs out
-    # and got 0.12 m where the data pins every pose (association.noise_floored): now 2e-10 m.
+    # and got 0.12 m where the data pins every pose (observation_space.noise_floored): now 2e-10 m.
     dataset = simulate(SimulationConfig(poses=12, cameras=4, max_range=1.5, detection_probability=0.7,
                                         observation_sigma_scale=0.0), seed=0)
     result = localize(dataset, parallel=False)
@@ -495,7 +498,7 @@ def test_observations_claiming_to_be_exact_in_four_cameras_are_localized_exactly
 
 @pytest.mark.parametrize("kind", [dict(intrinsics="pixel"), dict(trajectory="smooth3d")])
 def test_association_of_noise_free_observations_matches_the_oracle(kind):
-    # before association.noise_floored: recall 0.15 and 0.14 m (pixel camera) and 0.64 and
+    # before observation_space.noise_floored: recall 0.15 and 0.14 m (pixel camera) and 0.64 and
     # 0.12 m (smooth3d), where the oracle gets 0.050 and 0.037 m; on 100 poses with the pixel
     # camera the beam's own filters broke down (a covariance no longer positive definite)
     dataset = simulate(SimulationConfig(poses=40, observation_sigma_scale=0.0, **kind), seed=0 if kind.get("intrinsics") else 2)
@@ -527,7 +530,7 @@ def test_a_factorization_numpy_refuses_is_reported_as_a_breakdown_at_its_pose(mo
 def test_beam_shares_a_budget_of_partial_explanations_where_every_observation_is_ambiguous():
     # 3x measurement noise in a dense map: every observation gates several landmarks and the beam
     # is full, so each hypothesis growing its own beam would keep beam_width^2 partial explanations.
-    from camloc.beam import BeamSettings
+    from camloc.beam_types import BeamSettings
 
     dataset = simulate(SimulationConfig(poses=12, dense=True, observation_sigma_scale=3.0), seed=0)
     result, statistics = beam_run(dataset)
@@ -563,7 +566,7 @@ def test_an_update_from_a_far_prior_reaches_the_pose_its_pairs_pin(monkeypatch, 
     prior = truth + np.r_[offset, 0.0, 0.0, 0.0]
     P = np.diag([0.3**2] * 3 + [0.05**2] * 3)
     restarted = localizer.updated(prior, P, obs, landmarks, map_cost=True)
-    monkeypatch.setattr(localizer, "_nis_bound", lambda dof: np.inf)  # never restart
+    monkeypatch.setattr(localizer.stacked, "nis_bound", lambda dof: np.inf)  # never restart
     plain = localizer.updated(prior, P, obs, landmarks, map_cost=True)
     assert np.linalg.norm(restarted.state[:3] - truth[:3]) < 0.03
     assert restarted.map_cost <= plain.map_cost + 1e-9
@@ -576,7 +579,7 @@ def test_an_update_given_a_start_keeps_the_posterior_the_map_cost_prefers(monkey
     localizer, obs, landmarks, truth = _busiest_pose_of_a_dense_world()
     prior = truth + np.r_[0.6, -0.6, 0.0, 0.0, 0.0, 0.0]
     P = np.diag([0.3**2] * 3 + [0.05**2] * 3)
-    monkeypatch.setattr(localizer, "_nis_bound", lambda dof: np.inf)  # no restart of its own
+    monkeypatch.setattr(localizer.stacked, "nis_bound", lambda dof: np.inf)  # no restart of its own
     plain = localizer.updated(prior, P, obs, landmarks, map_cost=True)
     started = localizer.updated(prior, P, obs, landmarks, map_cost=True, start=truth + np.r_[0.05, 0.0, 0.0, 0.0, 0.0, 0.0])
     misled = localizer.updated(prior, P, obs, landmarks, map_cost=True, start=truth + np.r_[3.0, 3.0, 0.0, 0.0, 0.0, 0.0])
@@ -598,7 +601,8 @@ def test_beam_keeps_up_with_the_oracle_when_odometry_noise_rivals_the_landmark_s
 
 
 def test_a_right_pair_implies_the_robot_s_true_shift_from_the_prediction():
-    from camloc.beam import BeamSearch, BeamSettings, _Hypothesis
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import BeamSettings, Hypothesis
     from camloc.localizer import _Localizer
 
     dataset = simulate(SimulationConfig(poses=30, dense=True, observation_sigma_scale=0.0, cameras=2), seed=5)
@@ -610,8 +614,8 @@ def test_a_right_pair_implies_the_robot_s_true_shift_from_the_prediction():
     assert (landmarks >= 0).all()  # every observation's landmark is in the map
     truth = localizer.filter.initial(geometry.pose_from_quat(dataset.truth_xyz[k], dataset.truth_quat_xyzw[k]))
     offset = np.array([0.5, -0.3, 0.2])
-    predicted = _Hypothesis(truth + np.r_[offset, 0.0, 0.0, 0.0], np.eye(6), 0.0, -1)
-    shifts = search._implied_shifts(predicted, obs, np.arange(obs.size), landmarks)
+    predicted = Hypothesis(truth + np.r_[offset, 0.0, 0.0, 0.0], np.eye(6), 0.0, -1)
+    shifts = search.seeded.implied_shifts(predicted, obs, np.arange(obs.size), landmarks)
     assert len(np.unique(dataset.obs_camera[obs])) == 2
     np.testing.assert_allclose(shifts, np.broadcast_to(-offset, shifts.shape), atol=1e-9)
 
@@ -649,7 +653,9 @@ def _assert_widened_holds_plain(localizer, dataset, P, *, strictly):
 def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
     # The beam computes d^2 only for the pairs |y|^2 / trace(S) does not already put beyond the
     # pool's gate; every pair within it, in either coordinates, must be among them.
-    from camloc.beam import POOL_GATE_FACTOR, BeamSearch, BeamSettings
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import BeamSettings
+    from camloc.constants import POOL_GATE_FACTOR
     from camloc.localizer import _Localizer
 
     dataset = simulate(SimulationConfig(poses=40, dense=True, odometry_sigma_scale=3.0), seed=4)
@@ -666,10 +672,10 @@ def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
         if o.size == 0 or candidates.size == 0:
             continue
         z_hat, H = localizer.observe(x, 0, candidates)
-        spread = search._spread(P, 0, z_hat, H)
-        rows, columns = search._plausible_pairs(o, z_hat, spread, limit)
+        spread = search.gating.spread(P, 0, z_hat, H)
+        rows, columns = search.gating.plausible_pairs(o, z_hat, spread, limit)
         j, g = (a.ravel() for a in np.meshgrid(np.arange(o.size), np.arange(candidates.size), indexing="ij"))
-        d2, _, _ = search._in_best_coordinates(o[j], z_hat[g], spread[0][g], spread[2][g], spread[3][g])
+        d2, _, _ = search.gating.in_best_coordinates(o[j], z_hat[g], spread[0][g], spread[2][g], spread[3][g])
         within = set(zip(j[d2 <= limit].tolist(), g[d2 <= limit].tolist()))
         assert within <= set(zip(rows.tolist(), columns.tolist()))
         checked, dropped = checked + len(within), dropped + j.size - rows.size
@@ -679,10 +685,10 @@ def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
 
 
 def test_a_child_s_state_is_computed_once_and_only_when_read():
-    from camloc.beam import _Hypothesis
+    from camloc.beam_types import Hypothesis
 
     calls = []
-    child = _Hypothesis(None, None, 1.5, 0, ((3, 7),), pending=lambda: calls.append(1) or (np.ones(6), 2.0 * np.eye(6)))
+    child = Hypothesis(None, None, 1.5, 0, ((3, 7),), pending=lambda: calls.append(1) or (np.ones(6), 2.0 * np.eye(6)))
     assert child.cost == 1.5 and child.pairs == ((3, 7),) and not calls
     assert np.array_equal(child.x, np.ones(6)) and np.array_equal(child.P, 2.0 * np.eye(6))
     assert np.array_equal(child.x, np.ones(6)) and len(calls) == 1

@@ -9,7 +9,8 @@ import pytest
 
 pytestmark = pytest.mark.usefixtures("numpy_localizer")  # the replay process serves the numpy localizer
 
-from camloc.beam import BeamSearch, BeamSettings
+from camloc.beam import BeamSearch
+from camloc.beam_types import BeamSettings
 from camloc.localizer import LocalizerConfig, _Localizer, localize
 from camloc.replay import _replay
 from camloc.simulate import SimulationConfig, simulate

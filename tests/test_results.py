@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from camloc import geometry, results
+from camloc import atomic_files, geometry, results
 from camloc.errors import CamlocError, DatasetError
 from camloc.results import load_run, read_tum, save_run, write_tum
 
@@ -100,9 +100,9 @@ def test_read_tum_of_a_missing_file(tmp_path):
 
 def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
     path = tmp_path / "out.txt"
-    results.write_text_atomic(path, "old\n")
+    atomic_files.write_text_atomic(path, "old\n")
     with pytest.raises(RuntimeError):
-        with results.atomic_write(path) as handle:
+        with atomic_files.atomic_write(path) as handle:
             handle.write("half of the new")
             raise RuntimeError("disk full")
     assert path.read_text() == "old\n"
@@ -125,22 +125,22 @@ def test_write_files_atomic_writes_all_or_none(tmp_path):
         handle.write(b"new " + path.name.encode())
 
     with pytest.raises(RuntimeError):
-        results.write_files_atomic([tmp_path / "a.png", tmp_path / "b.png", tmp_path / "c.png"], write)
+        atomic_files.write_files_atomic([tmp_path / "a.png", tmp_path / "b.png", tmp_path / "c.png"], write)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]  # no b.png, no temporaries
     assert old.read_bytes() == b"old a"
 
-    results.write_files_atomic([tmp_path / "a.png", tmp_path / "b.png"], write)
+    atomic_files.write_files_atomic([tmp_path / "a.png", tmp_path / "b.png"], write)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]
     assert old.read_bytes() == b"new a.png"
     assert oct((tmp_path / "b.png").stat().st_mode & 0o777) == oct(0o644)
 
 
 def test_atomic_writes_create_missing_folders_or_say_they_cannot(tmp_path):
-    results.write_text_atomic(tmp_path / "new" / "deeper" / "x.txt", "x")
+    atomic_files.write_text_atomic(tmp_path / "new" / "deeper" / "x.txt", "x")
     assert (tmp_path / "new" / "deeper" / "x.txt").read_text() == "x"
     (tmp_path / "a-file").write_text("")
     with pytest.raises(CamlocError, match=f"cannot create the folder {tmp_path / 'a-file' / 'sub'}: "):
-        results.write_text_atomic(tmp_path / "a-file" / "sub" / "x.txt", "x")
+        atomic_files.write_text_atomic(tmp_path / "a-file" / "sub" / "x.txt", "x")
 
 
 # --------------------------------------------------------------------------------------------

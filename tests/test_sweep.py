@@ -157,7 +157,7 @@ def test_a_methods_options_are_for_its_own_cells_beside_the_oracle(tmp_path):
     # beam-width beside association = ["beam", "oracle"] was refused for the oracle's cells, so a
     # tuned beam could not be compared with the oracle in one sweep
     import camloc
-    from camloc.localizer import BeamOptions, LocalizerConfig
+    from camloc.localizer_config import BeamOptions, LocalizerConfig
     from camloc.metrics import evaluate
 
     dataset = simulate(SimulationConfig(poses=30, clutter_fraction=0.3), seed=1)

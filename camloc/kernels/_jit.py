@@ -15,7 +15,7 @@ from functools import partial
 import numba
 import numpy as np
 
-from camloc.kernels import check_cache
+from camloc.kernels.stale_cache import check_cache
 
 # numba's cache of these kernels, cleared first where any kernel's source changed since it was written
 CACHE_FOLDER = check_cache()

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
-from camloc.kernels.beam_settings import MISS_COST, SLIP_MIN_OBSERVATIONS
+from camloc.constants import MISS_COST, SLIP_MIN_OBSERVATIONS
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import difference
@@ -330,7 +330,6 @@ def after_clear(scene, settings, gen, h, obs, cap):
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
     n_pending = obs.size
-    no_start = np.empty(0)                       # ``updated``'s start: none
     while n_pending:
         positions = pending[:n_pending]
         null_cost = np.empty(n_pending)
@@ -358,35 +357,53 @@ def after_clear(scene, settings, gen, h, obs, cap):
                 rest += 1
         n_pending = rest
         if n_taken:
-            landmarks = np.empty(n_taken, np.int64)
-            z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, 6)), np.empty((n_taken, 3)), np.empty((n_taken, 3, 6))
-            R, R_inverse = np.empty((n_taken, 3, 3)), np.empty((n_taken, 3, 3))
-            for t in range(n_taken):
-                j = options[t]
-                landmarks[t] = lm[j]
-                point = in_point[j]
-                for a in range(3):
-                    z_hat[t, a], y[t, a] = zh[j, a], ys[j, a]
-                    for b in range(6):
-                        H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
-                    for b in range(3):
-                        R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
-                        R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
-            x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
-                                   no_start)[:2]
-            # the joint cost of the pairs, each in the coordinates its option chose, at the prior
-            child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
-            for t in range(n_taken):
-                child[7][0, child[6][0], 0], child[7][0, child[6][0], 1] = o[t], landmarks[t]
-                child[6][0] += 1
-            x, P = x_new, P_new
+            x, P = take_clear_pairs(scene, settings, child, x, P, o, options, opt)
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
                 condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
                                in_point, start[i])
-    pending = pending[:n_pending]
     put_state(child, FIRST, x, P)
+    order, least = branch_order(scene, obs, pending[:n_pending], start, cost)
+    return child, opt, order, least
+
+
+@inlined
+def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
+    """(x, P) updated with the clear pairs of observations o (their chosen options of ``opt``), in
+    one stacked update; their joint cost, each pair in the coordinates its option chose, and the
+    pairs themselves are added to ``child`` (a generation of one)."""
+    start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    n_taken = o.size
+    no_start = np.empty(0)                       # ``updated``'s start: none
+    landmarks = np.empty(n_taken, np.int64)
+    z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, 6)), np.empty((n_taken, 3)), np.empty((n_taken, 3, 6))
+    R, R_inverse = np.empty((n_taken, 3, 3)), np.empty((n_taken, 3, 3))
+    for t in range(n_taken):
+        j = options[t]
+        landmarks[t] = lm[j]
+        point = in_point[j]
+        for a in range(3):
+            z_hat[t, a], y[t, a] = zh[j, a], ys[j, a]
+            for b in range(6):
+                H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
+            for b in range(3):
+                R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
+                R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
+    x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
+                           no_start)[:2]
+    # the joint cost of the pairs, each in the coordinates its option chose, at the prior
+    child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
+    for t in range(n_taken):
+        child[7][0, child[6][0], 0], child[7][0, child[6][0], 1] = o[t], landmarks[t]
+        child[6][0] += 1
+    return x_new, P_new
+
+
+@inlined
+def branch_order(scene, obs, pending, start, cost):
+    """The ambiguous observations (positions ``pending``) in the order to branch on them, fewest
+    gated options first, and the least each can cost (obs.size,)."""
     counts = np.empty(pending.size)             # float: the merge sort the other kernels compile
     for k in range(pending.size):
         counts[k] = 0.0
@@ -396,7 +413,7 @@ def after_clear(scene, settings, gen, h, obs, cap):
     least = np.zeros(obs.size)
     for i in order:
         least[i] = least_cost(cost[start[i]:start[i + 1]], scene.null_cost[obs[i]])
-    return child, opt, order, least
+    return order, least
 
 
 @inlined
@@ -573,7 +590,7 @@ def expected_landmarks(scene, x, obs, opt):
     """The landmarks (distinct, sorted) a pose's explanation grown from a hypothesis at x is
     expected to claim: those in the pool (``opt``, its options) of one of its pixel observations
     whose distance from that observation's camera lies within the scene's detection range
-    (``view_limits[3:5]``, ``scene.detection_range``). ``camloc.beam.BeamSearch._expected``."""
+    (``view_limits[3:5]``, ``observation_space.detection_range``). ``camloc.beam_expansion.PoseExpansion.expected``."""
     low, high = scene.view_limits[3], scene.view_limits[4]
     start, lm = opt[0], opt[1]
     found = np.empty(lm.size, np.int64)

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import entry, jit
+from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.sym3 import inverse_components, log_det as log_det_3x3, mahalanobis, quadratic_and_det, spread
 
 
@@ -28,11 +28,47 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
     No BLAS call: a matrix product here ran on BLAS's threads, which, on a machine with one other
     busy process, made the whole run twice as slow (benchmarks: ``docs/performance.md``)."""
     N, m = y.shape[0], null_cost.size
+    S, log_det_R, HP, H_rows, y_rows, S_rows, S_inverse_rows = pair_spreads(y, H, R, P)
+    out = np.empty(seeds.size)
+    best = np.empty(m)
+    bound, quadratic, det = np.empty(N), np.empty(N), np.empty(N)
+    correction = np.empty(6)
+    U = np.empty((6, 3))
+    for k in range(seeds.size):
+        s = seeds[k]
+        conditioning_on(S, HP, y, s, U, correction)
+        for i in range(m):
+            best[i] = null_cost[i]
+        # S|s <= S, so d^2 under S is a lower bound and screens the pairs (as the numpy twin does);
+        # under a slip's wide prior most pass it, so every pair's conditioned cost is computed in
+        # one branch-free pass and the screen only decides which of them count
+        conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bound, quadratic, det)
+        for q in range(N):
+            if bound[q] > gate[q] or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
+                continue
+            if det[q] > 0.0 and quadratic[q] <= gate[q] * det[q]:  # d^2 within the gate: its logarithm only then
+                cost = quadratic[q] / det[q] + math.log(det[q]) - log_det_R[q]
+                if cost < best[pair_obs[q]]:
+                    best[pair_obs[q]] = cost
+        best[pair_obs[s]] = 0.0
+        d2_seed, log_det_seed = mahalanobis(S[s], y[s])
+        total = d2_seed + log_det_seed - log_det_R[s]
+        for i in range(m):
+            total += best[i]
+        out[k] = total
+    return out
+
+
+@jit
+def pair_spreads(y, H, R, P):
+    """Every pair's innovation covariance S = H P H' + R (N, 3, 3), ln det R (N,) and H P
+    (N, 3, 6); and every pair's Jacobian, innovation, S and S^-1 by component, each a row over the
+    pairs ((18, N), (3, N), (6, N), (6, N)): the costs under one seed are then one loop the
+    compiler turns into vector arithmetic (``conditioned_costs``)."""
+    N = y.shape[0]
     S = np.empty((N, 3, 3))
     log_det_R = np.empty(N)
     HP = np.empty((N, 3, 6))
-    # every pair's Jacobian, innovation, S and S^-1 by component, each a row over the pairs: the
-    # costs under one seed are then one loop the compiler turns into vector arithmetic
     H_rows = np.empty((18, N))
     y_rows = np.empty((3, N))
     S_rows = np.empty((6, N))
@@ -60,48 +96,27 @@ def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, see
         a00, a01, a02, a11, a12, a22 = inverse_components(s00, s01, s02, s11, s12, s22)
         S_inverse_rows[0, q], S_inverse_rows[1, q], S_inverse_rows[2, q] = a00, a01, a02
         S_inverse_rows[3, q], S_inverse_rows[4, q], S_inverse_rows[5, q] = a11, a12, a22
-    out = np.empty(seeds.size)
-    best = np.empty(m)
-    bound, quadratic, det = np.empty(N), np.empty(N), np.empty(N)
-    correction = np.empty(6)
-    U = np.empty((6, 3))
-    for k in range(seeds.size):
-        s = seeds[k]
-        # conditioning on s: P_s = P - U U' with U = P H_s' L_s^-T, correction K_s y_s = U L_s^-1 y_s
-        c00 = np.sqrt(S[s, 0, 0])                          # S_s = L L' (by hand: LAPACK's call costs more)
-        c10, c20 = S[s, 1, 0] / c00, S[s, 2, 0] / c00
-        c11 = np.sqrt(S[s, 1, 1] - c10 * c10)
-        c21 = (S[s, 2, 1] - c20 * c10) / c11
-        c22 = np.sqrt(S[s, 2, 2] - c20 * c20 - c21 * c21)
-        w0 = y[s, 0] / c00                                 # L^-1 y_s and the rows of L^-1 H_s P
-        w1 = (y[s, 1] - c10 * w0) / c11
-        w2 = (y[s, 2] - c20 * w0 - c21 * w1) / c22
-        for b in range(6):
-            u0 = HP[s, 0, b] / c00
-            u1 = (HP[s, 1, b] - c10 * u0) / c11
-            u2 = (HP[s, 2, b] - c20 * u0 - c21 * u1) / c22
-            U[b, 0], U[b, 1], U[b, 2] = u0, u1, u2
-            correction[b] = u0 * w0 + u1 * w1 + u2 * w2
-        for i in range(m):
-            best[i] = null_cost[i]
-        # S|s <= S, so d^2 under S is a lower bound and screens the pairs (as the numpy twin does);
-        # under a slip's wide prior most pass it, so every pair's conditioned cost is computed in
-        # one branch-free pass and the screen only decides which of them count
-        conditioned_costs(H_rows, y_rows, S_rows, S_inverse_rows, correction, U, bound, quadratic, det)
-        for q in range(N):
-            if bound[q] > gate[q] or pair_obs[q] == pair_obs[s] or pair_landmark[q] == pair_landmark[s]:
-                continue
-            if det[q] > 0.0 and quadratic[q] <= gate[q] * det[q]:  # d^2 within the gate: its logarithm only then
-                cost = quadratic[q] / det[q] + math.log(det[q]) - log_det_R[q]
-                if cost < best[pair_obs[q]]:
-                    best[pair_obs[q]] = cost
-        best[pair_obs[s]] = 0.0
-        d2_seed, log_det_seed = mahalanobis(S[s], y[s])
-        total = d2_seed + log_det_seed - log_det_R[s]
-        for i in range(m):
-            total += best[i]
-        out[k] = total
-    return out
+    return S, log_det_R, HP, H_rows, y_rows, S_rows, S_inverse_rows
+
+
+@inlined
+def conditioning_on(S, HP, y, s, U, correction):
+    """Conditioning on seed pair s: P_s = P - U U' with U = P H_s' L_s^-T (U (6, 3)), and the
+    correction K_s y_s = U L_s^-1 y_s (correction (6,)), both written in place, where S_s = L L'."""
+    c00 = np.sqrt(S[s, 0, 0])                          # S_s = L L' (by hand: LAPACK's call costs more)
+    c10, c20 = S[s, 1, 0] / c00, S[s, 2, 0] / c00
+    c11 = np.sqrt(S[s, 1, 1] - c10 * c10)
+    c21 = (S[s, 2, 1] - c20 * c10) / c11
+    c22 = np.sqrt(S[s, 2, 2] - c20 * c20 - c21 * c21)
+    w0 = y[s, 0] / c00                                 # L^-1 y_s and the rows of L^-1 H_s P
+    w1 = (y[s, 1] - c10 * w0) / c11
+    w2 = (y[s, 2] - c20 * w0 - c21 * w1) / c22
+    for b in range(6):
+        u0 = HP[s, 0, b] / c00
+        u1 = (HP[s, 1, b] - c10 * u0) / c11
+        u2 = (HP[s, 2, b] - c20 * u0 - c21 * u1) / c22
+        U[b, 0], U[b, 1], U[b, 2] = u0, u1, u2
+        correction[b] = u0 * w0 + u1 * w1 + u2 * w2
 
 
 @jit

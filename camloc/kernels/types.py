@@ -24,7 +24,7 @@ SceneArrays = namedtuple("SceneArrays", [
     "z",                   # (K, 3) the measurement (``camloc.measurement``'s layout: u, v, depth / 0 / 1/depth)
     "R_file",              # (K, 3, 3) the file's noise: what the estimate weighs pairs by
     "R_file_inverse",      # (K, 3, 3) its information
-    "R_assoc",             # (K, 3, 3) the noise association judges pairs by (floored, ``association.noise_floored``)
+    "R_assoc",             # (K, 3, 3) the noise association judges pairs by (floored, ``observation_space.noise_floored``)
     "R_assoc_inverse",     # (K, 3, 3)
     "log_det_R",           # (K,) ln det R_assoc
     "point",               # (K, 3) each observation as a camera-frame point
@@ -40,7 +40,7 @@ SceneArrays = namedtuple("SceneArrays", [
     "odom_cov",            # (N - 1, 6, 6)
     # view limits and consistency bounds
     "view_limits",         # (5,) min_depth, max_depth, max_angle (rad), and the detection range (low, high:
-                           # ``scene.detection_range``; 0, 0 without pixel observations)
+                           # ``observation_space.detection_range``; 0, 0 without pixel observations)
     "nis_bound",           # (3 P + 4,) the 99.9% chi^2 quantile of d degrees of freedom, by d
     "obs_gate",            # (K,) the chi^2 gate of each observation's pairs, at its dof
     "obs_dof",             # (K,) int64 each observation's degrees of freedom

@@ -26,15 +26,13 @@ import math
 
 import numpy as np
 
+from camloc.constants import CONVERGED
 from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.measurement import DEPTH
 from camloc.kernels.rotation import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
-
-# Iterated updates stop when the correction changes by less than this (metres / radians).
-CONVERGED = 1e-6
 
 
 # ---------------------------------------------------------------------------------------------

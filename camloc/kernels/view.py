@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.kernels._jit import FIRST, entry, jit
 
 # Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
@@ -161,6 +162,6 @@ def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, cos_half_angle, 
 def widened_view(P, max_angle):
     """(margin metres, half-angle) of a view widened by three standard deviations of the
     position and of the orientation of P, for a prior too wide for the data's own margins."""
-    margin = 3.0 * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[:3, :3]))[-1], 0.0))
-    widened = max_angle + 3.0 * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[3:6, 3:6]))[-1], 0.0))
-    return margin, max(max_angle, min(widened, math.radians(89.0)))
+    margin = WIDENED_VIEW_SIGMAS * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[:3, :3]))[-1], 0.0))
+    widened = max_angle + WIDENED_VIEW_SIGMAS * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[3:6, 3:6]))[-1], 0.0))
+    return margin, max(max_angle, min(widened, math.radians(MAX_HALF_ANGLE_DEG)))

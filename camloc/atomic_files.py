@@ -1,0 +1,120 @@
+"""Writing files whole or not at all, and the folders they go in: every output of camloc goes
+through here (run folders, datasets, figures, reports).
+
+``atomic_write`` (a temporary sibling renamed into place only on success), ``write_text_atomic``
+for text, ``write_files_atomic`` for a set of files (all or none), ``make_folder`` for missing
+parents and ``refuse_existing`` for a user's file that ``--force`` alone may replace.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import IO, Callable, Iterator, Sequence
+
+from camloc.errors import CamlocError
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
+    """Open a temporary sibling of ``path`` for writing; it replaces ``path`` only on success.
+
+    The temporary file lives in the same directory so that ``os.replace`` is a rename on one
+    file system; on any exception it is removed and ``path`` keeps its old content (or stays
+    absent).
+
+    Parameters
+    ----------
+    path : the file to (re)write; missing parent folders are created.
+    binary : open in ``"wb"`` instead of ``"w"`` (UTF-8 text, ``"\n"`` newlines).
+    """
+    path = Path(path)
+    tmp = _temporary_sibling(path)
+    try:
+        with _open_for_writing(tmp, binary) as handle:
+            yield handle
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def make_folder(folder: str | Path) -> None:
+    """Create ``folder`` and its missing parents (every command's outputs go through here).
+
+    Raises
+    ------
+    CamlocError : ``cannot create the folder <folder>: <reason>``.
+    """
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CamlocError(f"cannot create the folder {folder}: {error.strerror or error}") from None
+
+
+def refuse_existing(path: str | Path, *, force: bool) -> None:
+    """Refuse to replace an existing ``path`` unless ``force``: a user's file is never overwritten
+    by accident (the course dataset, a figure, a report).
+
+    Raises
+    ------
+    CamlocError : ``<path>: already exists; refusing to replace it without --force``.
+    """
+    path = Path(path)
+    if not force and (path.exists() or path.is_symlink()):
+        raise CamlocError(f"{path}: already exists; refusing to replace it without --force")
+
+
+def _temporary_sibling(path: Path) -> Path:
+    """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
+    if path.is_dir():  # a file cannot replace a folder, even with --force
+        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
+    make_folder(path.parent)
+    try:
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:
+        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
+    os.close(fd)
+    os.chmod(tmp_name, 0o644)
+    return Path(tmp_name)
+
+
+def _open_for_writing(path: Path, binary: bool) -> IO:
+    if binary:
+        return path.open("wb")
+    return path.open("w", encoding="utf-8", newline="")
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` whole or not at all (temporary file + ``os.replace``)."""
+    with atomic_write(path) as handle:
+        handle.write(text)
+
+
+def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[bytes]], None]) -> None:
+    """Write every file of ``paths``, or none of them.
+
+    ``write(path, handle)`` fills each file's hidden temporary sibling (opened ``"wb"``); only
+    when every one of them is complete are they renamed into place, one after the other. On any
+    failure the temporaries are removed and every path keeps its old content (or stays absent).
+
+    Raises
+    ------
+    CamlocError : a folder or a temporary file cannot be created.
+    """
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for path in map(Path, paths):
+            staged.append((_temporary_sibling(path), path))
+            with _open_for_writing(staged[-1][0], binary=True) as handle:
+                write(path, handle)
+        for tmp, path in staged:
+            os.replace(tmp, path)
+    except BaseException:
+        for tmp, _ in staged:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        raise

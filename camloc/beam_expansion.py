@@ -1,0 +1,229 @@
+"""The numpy beam's explanation of one pose (``camloc.beam``): every hypothesis' children that
+explain all of the pose's observations, the clear ones in stacked updates and the ambiguous rest
+branched on one at a time (``PoseExpansion.explain_all``), pruned to the beam and merged
+(``PoseExpansion.prune``)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from functools import partial
+from typing import Callable, Optional
+
+import numpy as np
+
+from camloc import ekf, measurement
+from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
+from camloc.pair_options import PairGating, PairOptions, member
+
+
+class PoseExpansion:
+    """Explains a pose's observations from hypotheses of the run ``ctx``: ``explain_all`` grows
+    them, ``prune`` keeps the beam. ``history`` is the search's list of each pose's beam (its
+    length is the pose being explained), ``statistics`` what it counts."""
+
+    def __init__(self, context: BeamContext, settings: BeamSettings, gating: PairGating, statistics: BeamStatistics,
+                 history: list[list[Hypothesis]]):
+        self.ctx = context
+        self.settings = settings
+        self.gating = gating
+        self.statistics = statistics
+        self.history = history
+        self.null_cost = context.null_cost      # cost of leaving each observation unassigned
+
+    def explain(self, h: Hypothesis, obs: np.ndarray) -> list[Hypothesis]:
+        """Children of h that explain all of obs, pruned to the beam."""
+        return self.explain_all([h], obs)
+
+    def explain_all(self, parents: list[Hypothesis], obs: np.ndarray) -> list[Hypothesis]:
+        """Children of all parents that explain all of obs.
+
+        Under each parent the clear observations are taken in one stacked update; conditioned on
+        them, the others are gated again, and those that became clear are taken in the next
+        stacked update, until none does (an observation is often ambiguous only until a
+        neighbour's pair pins the pose). Then the observations still ambiguous are branched on
+        one at a time, each parent's partial explanations pruned to a beam of their own, so that
+        a costlier parent's best explanation is grown to the end: where observations are few it
+        is often the right one. Where every observation is ambiguous and the beam is full, that
+        is beam_width^2 partial explanations per observation, mostly near copies (the parents of
+        a pose differ in a pair or two); so past ``partial_budget`` the parents share one budget,
+        ranked by cost plus the least the observations they have still to explain can cost.
+        """
+        partials = [self.after_clear(h, obs, root) for root, h in enumerate(parents)]
+        expected = [self.expected(h, obs, p.options) for h, p in zip(parents, partials)]
+        while any(p.order for p in partials):
+            grown: list[Partial] = []
+            for p in partials:
+                if not p.order:
+                    grown.append(p)
+                    continue
+                i, order = p.order[0], p.order[1:]
+                options = p.options[i] if p.h.x is p.base_x else self.gating.conditioned(p.h, obs[i : i + 1], [p.options[i]])[0]
+                rest = p.rest - p.least[i]
+                grown += [Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
+                          for child in self.branches(p.h, int(obs[i]), options)]
+            partials = self.prune_partials(grown)
+        return [self.missed(p.h, expected[p.root], parents[p.root]) for p in partials]
+
+    def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> np.ndarray:
+        """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
+        claim: those in the pool of one of its pixel observations (near the ray) whose distance
+        from that observation's camera under h lies within ``detect_range``, where a camera
+        surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
+        apart by their predicted spread, which favours a far one (its prediction is tighter);
+        but a near landmark on the ray would have been detected, and left unclaimed it is a
+        miss (``missed``)."""
+        low, high = self.ctx.detect_range
+        if self.settings.miss_cost <= 0.0 or high <= 0.0:
+            return np.zeros(0, np.int64)
+        ds = self.ctx.dataset
+        pixel = ~measurement.measures_range(ds.obs_kind[obs])
+        found = []
+        T_world_robot = self.ctx.filter.pose(h.x)
+        for i in np.flatnonzero(pixel):
+            landmarks = options[i].landmarks
+            if landmarks.size == 0:
+                continue
+            centre = T_world_robot[:3, :3] @ self.ctx.cameras[int(self.ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
+            distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
+            found.append(landmarks[(distance >= low) & (distance <= high)])
+        return np.unique(np.concatenate(found)) if found else np.zeros(0, np.int64)
+
+    def missed(self, h: Hypothesis, expected: np.ndarray, parent: Hypothesis) -> Hypothesis:
+        """h (an explanation grown from ``parent``) charged ``miss_cost`` for each of the
+        ``expected`` landmarks it leaves unclaimed."""
+        if expected.size == 0:
+            return h
+        missed = int((~member(expected, np.array([lm for _, lm in h.pairs], dtype=np.int64))).sum())
+        if missed and h is parent:  # never the parent's own cost
+            h = Hypothesis(h.x, h.P, h.cost, h.parent, h.pairs, h.unassigned, h.slipped)
+        h.cost += self.settings.miss_cost * missed
+        return h
+
+    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int) -> Partial:
+        """h after its stacked updates with the clear observations (see ``explain_all``), with
+        the ambiguous rest in the order to branch on them (fewest gated options first)."""
+        options = self.gating.options(h, obs)
+        taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)  # a seeded explanation's seed pair
+        if taken.size:
+            for o in options:
+                o.costs = np.where(member(o.landmarks, taken), np.inf, o.costs)
+        child, pending = h, np.arange(obs.size)
+        while pending.size:
+            choice = self.clear_choices(obs[pending], [options[i] for i in pending])
+            clear = [k for k, c in enumerate(choice) if c is not None]
+            if not clear:
+                break
+            child = self.stacked_child(child, obs[pending[clear]], [options[pending[k]] for k in clear], [choice[k] for k in clear])
+            pending = pending[[k for k, c in enumerate(choice) if c is None]]
+            if pending.size:
+                conditioned = self.gating.conditioned(child, obs[pending], [options[i] for i in pending])
+                for i, o in zip(pending, conditioned):
+                    options[i] = o
+        order = tuple(sorted((int(i) for i in pending), key=lambda i: int(np.isfinite(options[i].costs).sum())))
+        least = {i: min(float(self.null_cost[obs[i]]), float(options[i].costs.min(initial=np.inf))) for i in order}
+        return Partial(child, order, options, child.x, least, sum(least.values()), root)
+
+    def prune_partials(self, partials: list[Partial]) -> list[Partial]:
+        """Each parent's partial explanations pruned as ``prune`` does (they have explained the
+        same observations, so their costs compare); then, if together they are more than
+        ``partial_budget``, the best of each parent and the rest of the budget by cost plus
+        ``rest``, the least their observations still to explain can cost."""
+        by_root: dict[int, list[Partial]] = {}
+        for p in partials:
+            by_root.setdefault(p.root, []).append(p)
+        kept = [p for group in by_root.values() for p in self.prune(group, lambda p: p.h)]
+        if len(kept) > self.settings.partial_budget:
+            kept.sort(key=lambda p: p.h.cost + p.rest)
+            firsts = {}
+            for p in kept:
+                firsts.setdefault(p.root, p)
+            others = [p for p in kept if firsts[p.root] is not p]
+            kept = list(firsts.values()) + others[: max(0, self.settings.partial_budget - len(firsts))]
+        self.statistics.partial_prunings.append(PartialPruning(len(self.history), len(by_root), len(partials), len(kept)))
+        return kept
+
+    def viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
+        """Which pair options (inf: excluded) and whether the null option lie within branch_delta
+        of the best."""
+        best = min(null_cost, float(costs.min()) if costs.size else np.inf)
+        limit = best + self.settings.branch_delta
+        return costs <= limit, null_cost <= limit
+
+    def clear_choices(self, obs: np.ndarray, options: list[PairOptions]) -> list[Optional[int]]:
+        """Per observation: the index of its only viable landmark option, -1 when leaving it
+        unassigned is its only viable option, None when it is ambiguous (several viable options,
+        or its landmark is viable for another observation too)."""
+        viable = [self.viable(o.costs, float(c)) for o, c in zip(options, self.null_cost[obs])]
+        claims = Counter(int(lm) for o, (pairs, _) in zip(options, viable) for lm in o.landmarks[pairs])
+        shared = {lm for lm, count in claims.items() if count > 1}
+        choice: list[Optional[int]] = []
+        for o, (pairs, null) in zip(options, viable):
+            if int(pairs.sum()) + int(null) != 1:
+                choice.append(None)
+            elif null:
+                choice.append(-1)
+            else:
+                j = int(np.flatnonzero(pairs)[0])
+                choice.append(None if int(o.landmarks[j]) in shared else j)
+        return choice
+
+    def stacked_child(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions], choice: list[int]) -> Hypothesis:
+        """h updated with all chosen pairs at once; the cost of the stacked innovation is the same
+        chain-rule sum the one-by-one path computes."""
+        taken = [i for i, j in enumerate(choice) if j >= 0]
+        unassigned = len(choice) - len(taken)
+        cost = h.cost + float(sum(self.null_cost[obs[i]] for i, j in enumerate(choice) if j < 0))
+        if not taken:
+            return Hypothesis(h.x, h.P, cost, h.parent, h.pairs, h.unassigned + unassigned)
+        o = obs[taken]
+        landmarks = np.array([options[i].landmarks[choice[i]] for i in taken])
+        at_prior = (np.array([options[i].z_hat[choice[i]] for i in taken]), np.array([options[i].H[choice[i]] for i in taken]))
+        result = self.ctx.updated(h.x, h.P, o, landmarks, at_prior=at_prior, for_association=True)  # stacked, iterated as configured
+        # the joint cost of the pairs, each in the coordinates its option chose, at h
+        y = np.array([options[i].y[choice[i]] for i in taken]).reshape(-1)
+        Hc = np.array([options[i].Hc[choice[i]] for i in taken]).reshape(-1, h.P.shape[0])
+        Rc = np.array([options[i].Rc[choice[i]] for i in taken])
+        cost += ekf.innovation_cost(h.P, Hc, Rc, y)
+        x, P = result.state, result.cov
+        pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
+        return Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
+
+    def branches(self, h: Hypothesis, o: int, options: PairOptions) -> list[Hypothesis]:
+        """Children of h for one observation (``options`` under h): unassigned, or paired with a
+        viable landmark."""
+        free = ~member(options.landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64))
+        null_cost = float(self.null_cost[o])
+        pairs, null = self.viable(np.where(free, options.costs, np.inf), null_cost)
+        out = []
+        if null:
+            out.append(Hypothesis(h.x, h.P, h.cost + null_cost, h.parent, h.pairs, h.unassigned + 1))
+        paired = np.flatnonzero(pairs)
+        self.statistics.children_created += paired.size
+        for j in paired:
+            out.append(Hypothesis(None, None, h.cost + float(options.costs[j]), h.parent, h.pairs + ((o, int(options.landmarks[j])),),
+                                  h.unassigned, pending=partial(self.paired_state, h.x, h.P, o, options, int(j))))
+        return out
+
+    def paired_state(self, x: np.ndarray, P: np.ndarray, o: int, options: PairOptions, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(x, P) updated with observation o paired with its option j."""
+        self.statistics.children_settled += 1
+        result = self.ctx.updated(x, P, np.array([o]), options.landmarks[j : j + 1],
+                                  at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True)
+        return result.state, result.cov
+
+    def prune(self, children: list, hypothesis: Callable = lambda c: c) -> list:
+        """The cheapest children within beam_delta of the best, merged, at most beam_width.
+        ``hypothesis(child)`` is the child's Hypothesis (children may be Partial)."""
+        children = sorted(children, key=lambda c: hypothesis(c).cost)
+        limit = hypothesis(children[0]).cost + self.settings.beam_delta
+        kept: list = []
+        for c in children:
+            if hypothesis(c).cost > limit or len(kept) >= self.settings.beam_width:
+                break
+            if not any(self.same_state(hypothesis(c), hypothesis(k)) for k in kept):
+                kept.append(c)
+        return kept
+
+    def same_state(self, a: Hypothesis, b: Hypothesis) -> bool:
+        d = self.ctx.filter.difference(a.x, b.x)
+        return bool(np.all(d * d <= self.settings.merge_sigma**2 * np.diagonal(b.P)))

@@ -1,0 +1,60 @@
+"""Fixed constants (not options) that both engines read, defined once: the beam's, read by the
+numpy beam (``camloc.beam``: ``BeamSettings``' defaults), the compiled one's settings
+(``camloc.scene``) and its seed search (``camloc.seeds``, ``camloc.kernels.beam``), and the
+iterated update's (``camloc.ekf``, ``camloc.kernels.update``). Plain Python: no numba import, so
+the numpy engine reads them without loading the kernels. The reason for each beam value is in
+``docs/beam.md``."""
+
+from camloc.tails import chi2_quantile
+
+# Hypotheses whose states differ by less than this many standard deviations on every axis merge.
+MERGE_SIGMA = 0.3
+# Most partial explanations of a pose kept across all the beam's hypotheses, past each one's best.
+PARTIAL_BUDGET = 64
+
+# A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
+# landmarks that were within this many gates before: its predictions moved by about H dx, with dx
+# drawn from the variance it lost, so a landmark it gates was within the (wider) earlier gate with
+# the same probability; twice the gate (about 99.996% for the default) makes a miss negligible.
+POOL_GATE_FACTOR = 2.0
+
+# The slip's search runs at a pose of at least this many observations, most of them unassigned: two
+# detections with depth pin the position and two of the three rotation axes, with the prior the third.
+SLIP_MIN_OBSERVATIONS = 2
+# The slip's search: pairs ranked as first pairs, seeds explained in full, explanations kept per seed.
+SLIP_CANDIDATES = 256
+SLIP_SEEDS = 8
+SEED_EXPLANATIONS = 2
+
+# The slip's search runs where a pose's best explanation leaves an unusual share of its observations
+# unassigned for this data: a binomial tail below UNUSUAL_PROBABILITY at the rate of the last
+# UNEXPLAINED_WINDOW poses' best explanations (at most UNEXPLAINED_RATE_CAP), for the pose alone or
+# pooled with the UNEXPLAINED_RUN - 1 poses before it.
+UNEXPLAINED_WINDOW = 50
+UNUSUAL_PROBABILITY = 0.01
+UNEXPLAINED_RATE_CAP = 0.6
+UNEXPLAINED_RUN = 3
+
+# A seeded explanation whose state leaves its prior's 99.9% region is dropped: the chi^2 quantile
+# with 6 degrees of freedom.
+STATE_GATE = float(chi2_quantile(6, 0.001))
+
+# A view widened for a wide prior (the seeds' search) reaches this many standard deviations of the
+# prior's position (metres) and orientation (angle) further; no view's half-angle passes
+# MAX_HALF_ANGLE_DEG from the optical axis (the widened one, or the one estimated from the data).
+WIDENED_VIEW_SIGMAS = 3.0
+MAX_HALF_ANGLE_DEG = 89.0
+
+# Two shifts of the robot that a pose's pairs imply agree (a Hough vote for the seeds) within
+# AGREEMENT_SIGMAS standard deviations of a measured point, plus AGREEMENT_DEPTH_FRACTION of its
+# depth for the orientation's error (about 6 deg).
+AGREEMENT_SIGMAS = 3.0
+AGREEMENT_DEPTH_FRACTION = 0.1
+
+# Iterated updates stop when the correction changes by less than this (metres / radians).
+CONVERGED = 1e-6
+
+# What a pose's explanation pays for each landmark near a pixel observation's ray, surely within its
+# camera's detection range (observation_space.detection_range), that it leaves unclaimed (the beam's miss term:
+# camloc.beam_expansion, kernels/beam.py expected_landmarks and missed; docs/beam.md).
+MISS_COST = 8.0

@@ -1,0 +1,116 @@
+"""The numpy localizer's stacked, iterated EKF update of (x, P) with a pose's pairs
+(``StackedUpdate.updated``), as its filter and its beam's hypotheses compute it: every pair's
+camera model, the file's noise or the noise association judges pairs by, and a restart from one
+update in camera-frame points where the innovation is too unlikely for Gauss-Newton from the
+prior's linearization."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Optional
+
+import numpy as np
+
+from camloc import ekf, measurement, models
+from camloc.dataset import Dataset
+from camloc.observation_space import ObservationNoise
+from camloc.tails import chi2_quantile
+
+
+class StackedUpdate:
+    """The update of ``dataset``'s pairs under ``filter`` (``camloc.filters``) with ``iterations``
+    linearizations; ``cameras`` and ``obs_sensor`` by sensor (``sensors.sensors_of``), ``noise``
+    how association judges each observation (``observation_space.observation_noise``),
+    ``obs_dof`` (K,) each observation's degrees of freedom."""
+
+    def __init__(self, dataset: Dataset, filter, iterations: int, cameras: dict, obs_sensor: np.ndarray, noise: ObservationNoise,
+                 obs_dof: np.ndarray):
+        self.dataset = dataset
+        self.filter = filter
+        self.iterations = iterations
+        self.cameras, self.obs_sensor = cameras, obs_sensor
+        self.single_camera = 0 if len(cameras) == 1 else None
+        self.association_cov, self.association_info = noise.cov, noise.info
+        self.point, self.point_cov = noise.point, noise.point_cov
+        self.obs_dof = obs_dof
+        self.nis_bounds: dict[int, float] = {}
+
+    def updated(
+        self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
+        at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
+        start: Optional[np.ndarray] = None,
+    ) -> ekf.UpdateResult:
+        """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
+        predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them. With
+        ``for_association``, the pairs weigh by the noise association judges them by
+        (``association_cov``): the scratch filters that decide an association, not the estimate.
+        ``start``: a state near the posterior, when the caller knows one; the iterations also run
+        from it, and the posterior with the lower MAP cost is kept."""
+        z = self.dataset.obs_z[obs].reshape(-1)
+        if for_association:
+            R, R_inverse = self.association_cov[obs], self.association_info[obs]
+        else:  # the blocks of a block-diagonal covariance (ekf.update)
+            R, R_inverse = self.dataset.obs_cov[obs], self.dataset.obs_info[obs]
+        cameras = self.obs_sensor[obs]
+        if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
+            groups = [(self.cameras[self.single_camera], slice(None))]
+        else:
+            groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
+        landmark_xyz = self.dataset.landmark_xyz[landmarks]
+
+        def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if len(groups) == 1:
+                camera = groups[0][0]
+                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind)
+                return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
+            z_hat = np.empty((obs.size, 3))
+            H = np.empty((obs.size, 3, 6))
+            for camera, mask in groups:
+                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask], camera.kind)
+            return z_hat.reshape(-1), H.reshape(-1, 6)
+
+        prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
+        options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.iterations,
+                       at_prior=prior, R_inverse=R_inverse)
+        result = ekf.update(x, P, z, R, measure, map_cost=map_cost, **options)
+        if self.iterations < 2:
+            return result
+        starts = [] if start is None else [start]
+        if result.nis > self.nis_bound(int(self.obs_dof[obs].sum())):
+            # An innovation this unlikely under the prior's linearization: with a wide prior (after
+            # a slip, or odometry much noisier than the landmarks' spacing) Gauss-Newton in (u, v,
+            # depth) from the prior can stall far from the MAP estimate. Iterate also from one
+            # update in camera-frame points, where the model is nearly linear in the position.
+            starts.append(self.point_step(x, P, obs, groups, prior))
+        if not starts:
+            return result
+        best, lowest = result, result.map_cost if map_cost else ekf.posterior_cost(result.state, x, P, z, R, measure, self.filter.difference, R_inverse)
+        for state in starts:  # keep whichever posterior the MAP cost prefers
+            alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
+            if alternative.map_cost < lowest:
+                best, lowest = alternative, alternative.map_cost
+        if best is result or map_cost:
+            return best
+        return replace(best, map_cost=float("nan"))
+
+    def point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """x after one EKF update with the pairs' measurements as camera-frame points (those
+        ``measurement.judged_as_point``; the others, a pixel's ray, as they are)."""
+        z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
+        y = self.dataset.obs_z[obs] - z_hat
+        Hp, R = H.copy(), self.association_cov[obs].copy()
+        for camera, mask in groups:
+            if not measurement.judged_as_point(camera.kind):
+                continue
+            mine = np.arange(obs.size)[mask]
+            p_hat, J = models.back_project(z_hat[mine], camera.intrinsics, camera.kind)
+            Hp[mine] = J @ H[mine]
+            y[mine] = self.point[obs[mine]] - p_hat
+            R[mine] = self.point_cov[obs[mine]]
+        return self.filter.retract(x, ekf.correction(P, Hp.reshape(3 * obs.size, -1), R, y.reshape(-1)))
+
+    def nis_bound(self, dof: int) -> float:
+        """The 99.9% quantile of chi^2 with dof degrees of freedom."""
+        if dof not in self.nis_bounds:
+            self.nis_bounds[dof] = float(chi2_quantile(dof, 0.001))
+        return self.nis_bounds[dof]
