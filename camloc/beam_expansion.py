@@ -11,7 +11,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from camloc import ekf
+from camloc import ekf, measurement
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
 from camloc.pair_options import PairGating, PairOptions, member
 
@@ -49,6 +49,7 @@ class PoseExpansion:
         ranked by cost plus the least the observations they have still to explain can cost.
         """
         partials = [self.after_clear(h, obs, root) for root, h in enumerate(parents)]
+        expected = [self.expected(h, obs, p.options) for h, p in zip(parents, partials)]
         while any(p.order for p in partials):
             grown: list[Partial] = []
             for p in partials:
@@ -64,7 +65,42 @@ class PoseExpansion:
                 grown += [Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
                           for child in self.branches(p.h, int(obs[i]), options, contested)]
             partials = self.prune_partials(grown)
-        return [p.h for p in partials]
+        return [self.missed(p.h, expected[p.root], parents[p.root]) for p in partials]
+
+    def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> np.ndarray:
+        """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
+        claim: those in the pool of one of its pixel observations (near the ray) whose distance
+        from that observation's camera under h lies within ``detect_range``, where a camera
+        surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
+        apart by their predicted spread, which favours a far one (its prediction is tighter);
+        but a near landmark on the ray would have been detected, and left unclaimed it is a
+        miss (``missed``)."""
+        low, high = self.ctx.detect_range
+        if self.settings.miss_cost <= 0.0 or high <= 0.0:
+            return np.zeros(0, np.int64)
+        ds = self.ctx.dataset
+        pixel = ~measurement.measures_range(ds.obs_kind[obs])
+        found = []
+        T_world_robot = self.ctx.filter.pose(h.x)
+        for i in np.flatnonzero(pixel):
+            landmarks = options[i].landmarks
+            if landmarks.size == 0:
+                continue
+            centre = T_world_robot[:3, :3] @ self.ctx.cameras[int(self.ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
+            distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
+            found.append(landmarks[(distance >= low) & (distance <= high)])
+        return np.unique(np.concatenate(found)) if found else np.zeros(0, np.int64)
+
+    def missed(self, h: Hypothesis, expected: np.ndarray, parent: Hypothesis) -> Hypothesis:
+        """h (an explanation grown from ``parent``) charged ``miss_cost`` for each of the
+        ``expected`` landmarks it leaves unclaimed."""
+        if expected.size == 0:
+            return h
+        missed = int((~member(expected, np.array([lm for _, lm in h.pairs], dtype=np.int64))).sum())
+        if missed and h is parent:  # never the parent's own cost
+            h = Hypothesis(h.x, h.P, h.cost, h.parent, h.pairs, h.unassigned, h.slipped)
+        h.cost += self.settings.miss_cost * missed
+        return h
 
     def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int) -> Partial:
         """h after its stacked updates with the clear observations (see ``explain_all``), with

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 import numpy as np
 
 from camloc import association, ekf
-from camloc.constants import MERGE_SIGMA, PARTIAL_BUDGET, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE
+from camloc.constants import MERGE_SIGMA, MISS_COST, PARTIAL_BUDGET, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE
 
 if TYPE_CHECKING:
     from camloc.associators import CameraModel
@@ -40,6 +40,9 @@ class BeamSettings:
     state_gate : a seeded explanation whose state is further than this from its prior (its
         squared Mahalanobis distance, 6 dof) is dropped (``SeededSearch.within_prior``); inf keeps
         every one.
+    miss_cost : what an explanation pays for each landmark near a pixel observation's ray, within
+        the range where a camera surely detects what it sees (``observation_space.detection_range``), that it
+        leaves unclaimed (``PoseExpansion.missed``); 0: no such term.
     """
 
     beam_width: int = 16
@@ -53,6 +56,7 @@ class BeamSettings:
     seed_explanations: int = SEED_EXPLANATIONS
     partial_budget: int = PARTIAL_BUDGET
     state_gate: float = STATE_GATE
+    miss_cost: float = MISS_COST
 
 
 class PartialPruning(NamedTuple):
@@ -159,6 +163,8 @@ class BeamContext(Protocol):
     point: np.ndarray                    # (K, 3) each observation as a point in its camera's frame,
     point_cov: np.ndarray                # (K, 3, 3) its covariance
     log_det_point_cov: np.ndarray        # (K,) and that covariance's ln det
+    detect_range: tuple[float, float]    # distances from a camera within which it surely detects a landmark
+                                         # it sees (``observation_space.detection_range``; (0, 0): no pixel observations)
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """The landmarks camera ``camera_id`` may see from x; with P, from within three standard

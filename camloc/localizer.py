@@ -21,7 +21,7 @@ from camloc.associators import AssociationScene
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
-from camloc.observation_space import candidate_range, landmark_rows, observation_noise
+from camloc.observation_space import candidate_range, detection_range, landmark_rows, observation_noise
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
@@ -244,6 +244,7 @@ class _Localizer:
 
         self.true_landmark_row = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)  # -1: not in the map
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
+        self.detect_range = detection_range(dataset, self.max_angle)  # the beam's miss term
         self.obs_gate = observation_gates(dataset.obs_kind, 1.0 - config.gate)  # each observation's, at its dof
         # what association judges each observation by (the update keeps the file's own noise), and
         # every observation as a camera-frame point (the beam's other coordinates, the update's restart)

@@ -180,12 +180,13 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
 DENSITY_NEIGHBOURS = 8
 
 
-def pixel_reach(dataset: Dataset, max_angle: float) -> float:
+def pixel_reach(dataset: Dataset, max_angle: float, *, typical: bool = False) -> float:
     """The depth within which a camera's view cone holds, in the map's median local density, as
     many landmarks as its busiest tenth of poses report (pixel-only files: no depth says how far
     a camera sees, and a ray through a dense map meets many landmarks; a view that reaches too
     far lets far ones along the ray pass the gate). The cone of half-angle a to depth r holds
-    ``rho pi tan^2(a) r^3 / 3`` landmarks."""
+    ``rho pi tan^2(a) r^3 / 3`` landmarks. ``typical``: as many as a pose reports on average
+    instead (``detection_range``)."""
     L = dataset.landmark_xyz.shape[0]
     if L <= DENSITY_NEIGHBOURS:
         return float(np.linalg.norm(np.ptp(dataset.landmark_xyz, axis=0))) if L else 10.0
@@ -195,9 +196,29 @@ def pixel_reach(dataset: Dataset, max_angle: float) -> float:
     radius = float(np.median(distance))
     density = DENSITY_NEIGHBOURS / (4.0 / 3.0 * np.pi * max(radius, 1e-9) ** 3)
     per_view = np.bincount(dataset.obs_pose_index * (int(dataset.obs_camera.max()) + 1) + dataset.obs_camera)
-    busy = float(np.quantile(per_view[per_view > 0], 0.9))
+    counts = per_view[per_view > 0]
+    busy = float(counts.mean()) if typical else float(np.quantile(counts, 0.9))
     tan = np.tan(min(max_angle, np.radians(80.0)))
     return float((3.0 * busy / (density * np.pi * tan * tan)) ** (1.0 / 3.0))
+
+
+# A camera surely detects a landmark it sees between these fractions of its typical reach.
+DETECT_NEAR, DETECT_FAR = 0.35, 1.2
+
+
+def detection_range(dataset: Dataset, max_angle: float) -> tuple[float, float]:
+    """(low, high) distances from a pixel camera within which it surely detects a landmark near
+    one of its rays (the beam's miss term: ``camloc.beam_expansion.PoseExpansion.expected``), or
+    (0, 0) for a file without pixel observations. The reach at which the view cone, in the map's
+    median density, holds as many landmarks as a pose reports on average (``pixel_reach``): the
+    cone's half-angle is the widest observed ray's plus 10 deg, wider than the camera's, so this
+    falls short of the true range (1.2-1.6 m on simulated worlds of range 2 m); the range counted
+    as sure goes to 1.2 times that (1.4-1.9 m): a landmark beyond the true range counted as surely
+    seen charges the right explanation."""
+    if not np.any(~measurement.measures_range(dataset.obs_kind)):
+        return 0.0, 0.0
+    reach = pixel_reach(dataset, max_angle, typical=True)
+    return DETECT_NEAR * reach, DETECT_FAR * reach
 
 
 def _widest_ray(dataset: Dataset) -> float:

@@ -12,7 +12,7 @@ import threading
 import numpy as np
 
 from camloc import measurement, sym3
-from camloc.observation_space import ObservationNoise, candidate_range, landmark_rows, observation_noise
+from camloc.observation_space import ObservationNoise, candidate_range, detection_range, landmark_rows, observation_noise
 from camloc.sensors import sensors_of
 from camloc.measurement import observation_gates
 from camloc.dataset import Dataset
@@ -42,6 +42,7 @@ def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float]
     pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
     view = np.array(candidate_range(dataset, config) if view_range is None else view_range)
+    view = np.concatenate([view, detection_range(dataset, float(view[2]))])  # the beam's miss term
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
     if numba_start is not None:
         numba_start.join()

@@ -12,7 +12,7 @@ filtering.oracle_pairs, update.updated; update.iterated_update is tested here, a
 camloc.ekf.update) and the beam's bookkeeping and decisions (new_generation, copy_hypothesis,
 carry, gather, commit, settled, prune, prune_indices, prune_partials, options_for, condition,
 condition_into, options_of, put_state, taken_by, is_taken, least_cost, clear_choices, viable,
-branch, branch_count, settle, same_state, after_clear, predicted; filtering.record_state), whose
+branch, settle, same_state, after_clear, predicted; filtering.record_state), whose
 outcome is which hypotheses survive rather than a formula; also view.cone_members and view.cell_near_cone, steps of the view query, which
 test_kernels.py compares landmark for landmark with a k-d tree.
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
-    SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
+    MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
@@ -26,7 +26,7 @@ from camloc.kernels.rotation import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import visible
-from camloc.measurement import DEPTH
+from camloc.measurement import DEPTH, PIXEL
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -38,7 +38,7 @@ def new_generation(n, cap):
             np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
 
 
-@jit
+@inlined
 def put_state(gen, j, x, P):
     """Hypothesis j's state x (6,) and covariance P (6, 6), entry by entry (as every copy into a
     slice: see ``_jit``)."""
@@ -418,7 +418,7 @@ def branch_order(scene, obs, pending, start, cost):
     return order, least
 
 
-@entry
+@inlined
 def same_state(gen, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
     every axis (the cheaper is kept)."""
@@ -429,7 +429,7 @@ def same_state(gen, a, b, merge_sigma):
     return True
 
 
-@jit
+@inlined
 def settle(scene, settings, gen, c, parents, pending):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
@@ -460,8 +460,12 @@ def prune_indices(scene, settings, gen, candidates, parents, pending):
             break
         merged = False
         for q in range(n):
-            settle(scene, settings, gen, c, parents, pending)
-            settle(scene, settings, gen, kept[q], parents, pending)
+            # (settle's call passes the scene's arrays, each counted on entry and return: made only
+            # where a state is still pending)
+            if pending[5][c]:
+                settle(scene, settings, gen, c, parents, pending)
+            if pending[5][kept[q]]:
+                settle(scene, settings, gen, kept[q], parents, pending)
             if same_state(gen, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
@@ -510,7 +514,8 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending):
         others = ranked[~first][:max(0, settings.partial_budget - first.sum())]
         kept = np.concatenate((ranked[first], others))
     for c in kept:
-        settle(scene, settings, gen, c, parents, pending)
+        if pending[5][c]:
+            settle(scene, settings, gen, c, parents, pending)
     return kept
 
 
@@ -531,10 +536,12 @@ def explain_all(scene, settings, parents, n_parents, obs):
     root = np.arange(n_parents)
     rest = np.zeros(n_parents)
     moved = np.zeros(n_parents, np.bool_)
+    expected = []
     for h in range(n_parents):
         child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap)
         copy_hypothesis(child, FIRST, gen, h)
         options.append(opt)
+        expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
@@ -544,14 +551,20 @@ def explain_all(scene, settings, parents, n_parents, obs):
         for r in root:
             growing = growing or step < orders[r].size
         if not growing:
+            for c in range(root.size):
+                gen[2][c] += MISS_COST * missed(expected[root[c]], taken_by(gen, c))
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
+        # room for every child a partial may have: one per landmark of the observation's pool and
+        # the unassigned one (counting the viable ones would make each partial's options twice)
         total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
-            total += 1 if step >= orders[root[p]].size else branch_count(scene, settings, gen, p, obs, options[root[p]],
-                                                                              orders[root[p]][step], moved[p],
-                                                                              orders[root[p]][step + 1:])
+            if step >= orders[root[p]].size:
+                total += 1
+            else:
+                i = orders[root[p]][step]
+                total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
         children = new_generation(total, cap)
         c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
         pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
@@ -567,10 +580,50 @@ def explain_all(scene, settings, parents, n_parents, obs):
             i = orders[r][step]
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
                         children, at, c_root, c_rest, c_moved, pending)
+        c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
         kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending)
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
         step += 1
+
+
+@jit
+def expected_landmarks(scene, x, obs, opt):
+    """The landmarks (distinct, sorted) a pose's explanation grown from a hypothesis at x is
+    expected to claim: those in the pool (``opt``, its options) of one of its pixel observations
+    whose distance from that observation's camera lies within the scene's detection range
+    (``view_limits[3:5]``, ``observation_space.detection_range``). ``camloc.beam_expansion.PoseExpansion.expected``."""
+    low, high = scene.view_limits[3], scene.view_limits[4]
+    start, lm = opt[0], opt[1]
+    found = np.empty(lm.size, np.int64)
+    n = 0
+    if MISS_COST <= 0.0 or high <= 0.0:
+        return found[:0]
+    for i in range(obs.size):
+        c = scene.obs_camera[obs[i]]
+        if scene.camera_K[c, 4] != PIXEL:
+            continue
+        centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+        for j in range(start[i], start[i + 1]):
+            d = 0.0
+            for a in range(3):
+                e = scene.landmark_xyz[lm[j], a] - centre[a]
+                d += e * e
+            d = math.sqrt(d)
+            if low <= d <= high:
+                found[n] = lm[j]
+                n += 1
+    return np.unique(found[:n])
+
+
+@jit
+def missed(expected, taken):
+    """How many of the expected landmarks are not taken."""
+    n = 0
+    for landmark in expected:
+        if not is_taken(landmark, taken):
+            n += 1
+    return n
 
 
 @jit
@@ -616,14 +669,6 @@ def contested(opt, later, landmarks, pairs):
             if pairs[j] and landmarks[j] == only:
                 return True
     return False
-
-
-@inlined
-def branch_count(scene, settings, gen, p, obs, opt, i, moved, later):
-    landmarks, cost, _, _ = options_of(scene, settings, gen, p, obs, opt, i, moved)
-    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[obs[i]], settings.branch_delta)
-    null = null or contested(opt, later, landmarks, pairs)
-    return pairs.sum() + int(null)
 
 
 @inlined
