@@ -758,7 +758,7 @@ def binomial_upper_tail(u, n, p):
 
 @jit
 def seeds_worth_trying(unassigned, observed, unexplained, count):
-    """``camloc.beam.seeds_worth_trying`` over the first ``count`` rows of ``unexplained`` (the
+    """``camloc.beam_seeded.seeds_worth_trying`` over the first ``count`` rows of ``unexplained`` (the
     poses' (unassigned, observed) so far)."""
     if unassigned < SEEDED_MIN_UNASSIGNED:
         return False
