@@ -73,7 +73,7 @@ def localize(
     on_compile : called once before the compiled loop starts when its kernels are not yet in
         numba's cache (the first run after an install compiles them: a minute or two).
     on_background_compile : given, a run that "auto" would give to the compiled loop while its
-        kernels are not yet compiled, of at most ``warmup.BACKGROUND_COMPILE_MAX_POSES`` poses,
+        kernels are not yet compiled, that numpy takes at most ``warmup.NUMPY_FIRST_RUN_SECONDS`` over,
         runs in numpy instead (the same result, sooner than the compile) and has the kernels
         compiled in a detached background process for the runs after it (``camloc.warmup``);
         called with whether this call started that process (False: an earlier one is running).
@@ -121,7 +121,8 @@ def localize(
 def _compile_in_background(dataset: Dataset) -> Optional[str]:
     """``warmup.STARTED`` or ``warmup.RUNNING`` where this run goes to numpy while the kernels
     compile in the background; None where it compiles them first."""
-    if dataset.num_poses > warmup.BACKGROUND_COMPILE_MAX_POSES:
+    pixel = int(np.count_nonzero(~measurement.measures_range(dataset.obs_kind)))
+    if warmup.numpy_seconds(dataset.num_observations, pixel) > warmup.NUMPY_FIRST_RUN_SECONDS:
         return None
     return warmup.start_background_compile()
 

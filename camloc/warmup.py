@@ -1,7 +1,7 @@
 """The first compile of camloc's kernels, in a detached background process.
 
 After an install numba compiles the kernels once and caches them: a minute or two on a 2-core
-machine (``docs/performance.md``). A run of up to ``BACKGROUND_COMPILE_MAX_POSES`` poses takes
+machine (``docs/performance.md``). A run that numpy takes at most ``NUMPY_FIRST_RUN_SECONDS`` over takes
 less than that in the numpy engine, which gives the same result, so ``camloc run`` does not make its
 user wait: with a cold cache it localizes in numpy and starts this module's compile, at the lowest
 priority, for the runs after it (``localize(on_background_compile=...)``).
@@ -35,11 +35,16 @@ import time
 from pathlib import Path
 from typing import Optional
 
-# Up to this many poses a cold run localizes in numpy and compiles in the background. On this
-# project's 2-core machine the compile takes 80-90 s, and the numpy beam 5 ms a pose at 10
-# observations a pose (9 ms beside the compile), 50 ms on a world of frequent slip searches: 2,000
-# poses take 10-20 s as a rule, and about what the compile takes at worst.
-BACKGROUND_COMPILE_MAX_POSES = 2000
+# A cold run localizes in numpy and compiles in the background where numpy takes at most about
+# this long (``numpy_seconds``); longer, it compiles first. The compile takes 35-90 s on this
+# project's 2-core machine, so a first run stays under half a minute either way where it can.
+NUMPY_FIRST_RUN_SECONDS = 20.0
+# What the numpy beam and filter take per observation, measured on 3,000-pose worlds of two
+# cameras and 10% clutter (8 observations a pose, 2026-12-03, idle 2-core machine): 13.2 s for
+# 24,081 observations with depth; 267 s for 24,131 pixel-only ones, whose rays each gate many
+# landmarks. A world of frequent slip searches takes up to 10x as long.
+NUMPY_SECONDS_PER_OBSERVATION = 0.55e-3
+NUMPY_SECONDS_PER_PIXEL_OBSERVATION = 11e-3
 
 # Set to 0 to compile in the foreground, as a run did before (the tests do; so may a container's build).
 ENVIRONMENT_SWITCH = "CAMLOC_BACKGROUND_COMPILE"
@@ -58,6 +63,13 @@ FILTER_ONLY = "--filter"
 # That share takes 35-55 s on this project's 2-core machine; a process that has not ended after
 # this long is stopped, and the run compiles what it still needs itself.
 FILTER_COMPILE_TIMEOUT = 600.0
+
+
+def numpy_seconds(num_observations: int, num_pixel_observations: int) -> float:
+    """About how long the numpy engine takes over a dataset of these observations (the seconds
+    of ``NUMPY_SECONDS_PER_OBSERVATION`` and ``NUMPY_SECONDS_PER_PIXEL_OBSERVATION``)."""
+    ranged = num_observations - num_pixel_observations
+    return ranged * NUMPY_SECONDS_PER_OBSERVATION + num_pixel_observations * NUMPY_SECONDS_PER_PIXEL_OBSERVATION
 
 
 def cache_folder() -> Optional[Path]:
