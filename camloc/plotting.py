@@ -5,7 +5,7 @@ it; the caller owns the figure (its size, layout, saving). The ``draw_*`` functi
 plots out on a figure they are given. This is the only module of the library that imports
 matplotlib, and nothing in the core imports it, so ``camloc run`` never pays for it.
 
-Colours are fixed across figures: EKF blue, odometry green, ground truth red, smoothed purple (when
+Colours are fixed across figures: the filter's estimate blue, odometry green, ground truth red, smoothed purple (when
 the run was smoothed, ``camloc smooth``), map grey. Errors are computed against the ground truth
 without alignment (``camloc.metrics``).
 """
@@ -23,6 +23,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 
 from camloc import metrics
+from camloc.diagnostics import estimate_name
 from camloc.results import RunResult
 
 ESTIMATE_COLOR = "tab:blue"
@@ -67,21 +68,26 @@ def _paths(result: RunResult) -> dict[str, np.ndarray]:
     return paths
 
 
-_PATH_NAMES = {"estimate": "EKF", "odometry": "odometry", "smoothed": "smoothed"}
+def path_names(result: RunResult) -> dict[str, str]:
+    """Each path's name in legends and titles: the estimate named by what made it, as the run's
+    tables name it (``diagnostics.estimate_name``: ``iterated EKF (euler)``, or odometry alone
+    where the filter made no update), odometry, smoothed."""
+    estimate = estimate_name({**result.summary, "counts": {"updates": int(result.nis.size)}})
+    return {"estimate": estimate, "odometry": "odometry", "smoothed": "smoothed"}
 
 
 def _path_labels(result: RunResult) -> dict[str, str]:
     """Legend labels, with each path's position RMSE when there is ground truth."""
     if result.truth_xyz is None:
-        return {key: _PATH_NAMES[key] for key in _paths(result)}
-    return {key: f"{_PATH_NAMES[key]} (RMSE {_position_rmse(result, xyz):.3f} m)" for key, xyz in _paths(result).items()}
+        return {key: path_names(result)[key] for key in _paths(result)}
+    return {key: f"{path_names(result)[key]} (RMSE {_position_rmse(result, xyz):.3f} m)" for key, xyz in _paths(result).items()}
 
 
 def _trajectory_title(result: RunResult, view: str) -> str:
     title = f"{dataset_name(result)}: {view}"
     if result.truth_xyz is not None:
         title += "\nposition RMSE: " + ", ".join(
-            f"{_PATH_NAMES[key]} {_position_rmse(result, xyz):.3f} m" for key, xyz in _paths(result).items()
+            f"{path_names(result)[key]} {_position_rmse(result, xyz):.3f} m" for key, xyz in _paths(result).items()
         )
     return title
 
@@ -149,7 +155,7 @@ def _draw_paths(ax: Axes, result: RunResult, xyz_of: Callable[[np.ndarray], np.n
                              linewidth=0.5 * width, zorder=6))
     for index, marker, name in ((0, "o", "start"), (-1, "s", "end")):
         ax.plot(*xyz_of(result.estimate_xyz[[index]]), marker=marker, color=START_COLOR, markersize=7,
-                markeredgecolor="white", markeredgewidth=1.0, linestyle="none", label=f"{name} (EKF)", zorder=7)
+                markeredgecolor="white", markeredgewidth=1.0, linestyle="none", label=f"{name} of the estimate", zorder=7)
     return lines
 
 
@@ -326,12 +332,13 @@ def _plot_errors(ax: Axes, result: RunResult, paths: tuple[str, ...], *, rotatio
     if "estimate" in paths:
         bound = rotation_sigma_bound_deg(result, sigma=sigma) if rotation else position_sigma_bound(result, sigma=sigma)
         symbol = "rot" if rotation else "xyz"
-        name = rf"EKF ${sigma:g}\sigma$ ($ {sigma:g}\sqrt{{\mathrm{{tr}}\,P_{{{symbol}}}}}$)"
+        estimate = path_names(result)["estimate"]
+        name = rf"{estimate} ${sigma:g}\sigma$ ($ {sigma:g}\sqrt{{\mathrm{{tr}}\,P_{{{symbol}}}}}$)"
         if bins is None:
             ax.fill_between(x, 0.0, bound, color=ESTIMATE_COLOR, alpha=0.15, linewidth=0, label=name)
         else:  # a band of one-pose spikes is hairlines: the highest and the median bound of each bin
             _fill_bins(ax, x, bins, np.maximum.reduceat(bound, bins[:-1]), alpha=0.13,
-                       label=rf"EKF ${sigma:g}\sigma$ (highest)")
+                       label=rf"{estimate} ${sigma:g}\sigma$ (highest)")
             lowest.append(_bin_medians(bound, bins))
             _fill_bins(ax, x, bins, lowest[-1], alpha=0.3, label=f"{name} (median)")
     drawn = [key for key in paths if key in _paths(result)]
@@ -342,14 +349,14 @@ def _plot_errors(ax: Axes, result: RunResult, paths: tuple[str, ...], *, rotatio
         style = {"color": _PATH_COLORS[key], "zorder": 3 + order}
         width = ERROR_WIDTHS.get(key, _STYLE["linewidth"])
         if bins is None:
-            ax.plot(x, errors, label=_PATH_NAMES[key], linewidth=width, **style)
+            ax.plot(x, errors, label=path_names(result)[key], linewidth=width, **style)
             continue
         ax.plot(*_bin_steps(x, bins, np.maximum.reduceat(errors, bins[:-1])), linewidth=0.6, alpha=0.7, **style)
         lowest.append(_bin_medians(errors, bins))
-        ax.plot(*_bin_steps(x, bins, lowest[-1]), linewidth=width, label=f"{_PATH_NAMES[key]} (median; thin: highest)",
+        ax.plot(*_bin_steps(x, bins, lowest[-1]), linewidth=width, label=f"{path_names(result)[key]} (median; thin: highest)",
                 **style)
     unit = "deg" if rotation else "m"
-    whose = " and ".join(_PATH_NAMES[key] for key in drawn)
+    whose = " and ".join(path_names(result)[key] for key in drawn)
     title = f"{what} of {whose}"
     if bins is None:
         ax.set_ylim(bottom=0.0)
@@ -460,7 +467,7 @@ def plot_nees(ax: Axes, result: RunResult) -> Axes:
     ax.axhspan(lower, upper, color="0.5", alpha=0.12, linewidth=0,
                label=f"per-pose 95% bounds [{lower:.2f}, {upper:.2f}]")
     ax.axhline(metrics.POSE_DOF, color="0.3", linestyle=":", linewidth=1.0, label=f"expected ({metrics.POSE_DOF})")
-    _plot_series(ax, x, nees, np.ones_like(nees), "EKF NEES", joined=True)
+    _plot_series(ax, x, nees, np.ones_like(nees), f"{path_names(result)['estimate']} NEES", joined=True)
     if summary["mean"] is not None:
         mean_lower, mean_upper = summary["mean_bounds"]
         ax.axhline(summary["mean"], color="crimson" if summary["verdict"] != "consistent" else ESTIMATE_COLOR,
@@ -775,10 +782,11 @@ def draw_report(fig: Figure, result: RunResult) -> Figure:
 
 
 def run_title(result: RunResult) -> str:
-    """``"<dataset>: <filter> EKF, <association> association, <N> poses[, smoothed]"``: which
-    run a page shows (the filter and association as the run's configuration names them)."""
+    """``"<dataset>: <estimate>, <association> association, <N> poses[, smoothed]"``: which run a
+    page shows (the estimate as ``path_names`` names it, the association as the run's
+    configuration does)."""
     config = result.summary.get("config", {})
-    parts = [f"{config['filter']} EKF" if "filter" in config else "EKF"]
+    parts = [path_names(result)["estimate"]]
     if "association" in config:
         parts.append(f"{config['association']} association")
     parts.append(f"{len(result.pose_ids)} poses")

@@ -29,7 +29,7 @@ def test_topdown_draws_each_path_with_its_rmse_and_equal_axes(result):
     ax = Figure().add_subplot()
     plotting.plot_topdown(ax, result)
     lines = _lines_by_label(ax)
-    estimate = next(line for label, line in lines.items() if label.startswith("EKF"))
+    estimate = next(line for label, line in lines.items() if label.startswith(plotting.path_names(result)["estimate"]))
     odometry = next(line for label, line in lines.items() if label.startswith("odometry"))
     np.testing.assert_array_equal(estimate.get_xydata(), result.estimate_xyz[:, :2])
     np.testing.assert_array_equal(odometry.get_xydata(), result.odometry_xyz[:, :2])
@@ -37,7 +37,7 @@ def test_topdown_draws_each_path_with_its_rmse_and_equal_axes(result):
     assert estimate.get_color() == "tab:blue" and odometry.get_color() == "tab:green"
     rmse = np.sqrt(np.mean(metrics.position_errors(result.estimate_xyz, result.truth_xyz) ** 2))
     assert f"{rmse:.3f} m" in estimate.get_label()
-    assert result.dataset in ax.get_title() and f"EKF {rmse:.3f} m" in ax.get_title()
+    assert result.dataset in ax.get_title() and f"{plotting.path_names(result)['estimate']} {rmse:.3f} m" in ax.get_title()
     assert ax.get_aspect() == 1.0
     assert ax.get_xlabel() == "x [m]" and ax.get_legend() is not None
     assert len(ax.collections[0].get_offsets()) == len(result.map_landmark_ids)
@@ -55,8 +55,8 @@ def test_error_plots_draw_the_errors_over_pose_ids(result):
     ax = Figure().add_subplot()
     plotting.plot_position_error(ax, result)
     lines = _lines_by_label(ax)
-    np.testing.assert_array_equal(lines["EKF"].get_xdata(), result.pose_ids)
-    np.testing.assert_allclose(lines["EKF"].get_ydata(), metrics.position_errors(result.estimate_xyz, result.truth_xyz))
+    np.testing.assert_array_equal(lines[plotting.path_names(result)["estimate"]].get_xdata(), result.pose_ids)
+    np.testing.assert_allclose(lines[plotting.path_names(result)["estimate"]].get_ydata(), metrics.position_errors(result.estimate_xyz, result.truth_xyz))
     band = ax.collections[0].get_paths()[0].vertices
     assert band[:, 1].max() == pytest.approx(plotting.position_sigma_bound(result).max())
 
@@ -72,7 +72,7 @@ def test_error_plots_draw_the_errors_over_pose_ids(result):
 def test_nees_and_nis_plots_show_values_and_bounds(result):
     ax = Figure().add_subplot()
     plotting.plot_nees(ax, result)
-    nees_line = _lines_by_label(ax)["EKF NEES"]
+    nees_line = _lines_by_label(ax)[f"{plotting.path_names(result)['estimate']} NEES"]
     np.testing.assert_allclose(nees_line.get_ydata(), metrics.run_nees(result))
     assert ax.get_yscale() == "log"
     assert "[1.24, 14.45]" in " ".join(text.get_text() for text in ax.get_legend().get_texts())
@@ -149,13 +149,13 @@ def test_3d_view_draws_the_truth_over_the_estimates_from_a_marked_start_to_a_mar
     ax = Figure().add_subplot(projection="3d")
     plotting.plot_3d(ax, result)
     lines = _lines_by_label(ax)
-    estimate = next(line for label, line in lines.items() if label.startswith("EKF"))
+    estimate = next(line for label, line in lines.items() if label.startswith(plotting.path_names(result)["estimate"]))
     truth = lines["ground truth"]
     # drawn in zorder (no depth sorting): a thin truth over a wider estimate that shows around it
     assert ax.computed_zorder is False
     assert truth.get_zorder() > estimate.get_zorder() > ax.collections[0].get_zorder()
     assert estimate.get_linewidth() > 2 * truth.get_linewidth()
-    for name, index in (("start (EKF)", 0), ("end (EKF)", -1)):
+    for name, index in (("start of the estimate", 0), ("end of the estimate", -1)):
         np.testing.assert_array_equal(np.ravel(lines[name].get_data_3d()), result.estimate_xyz[index])
         assert lines[name].get_zorder() > truth.get_zorder()
     # the limits hold the estimate and the truth
@@ -261,7 +261,7 @@ def test_error_figure_gives_odometry_its_own_panels(result):
     filter_axes, odometry_axes = fig.axes[0::2], fig.axes[1::2]
     for ax in filter_axes:
         labels = set(_lines_by_label(ax))
-        assert "EKF" in labels and "odometry" not in labels
+        assert plotting.path_names(result)["estimate"] in labels and "odometry" not in labels
         assert len(ax.collections) == 1  # the 3-sigma band, with the filter's errors only
         band_top = ax.collections[0].get_paths()[0].vertices[:, 1].max()
         assert ax.get_ylim()[1] >= band_top
@@ -287,7 +287,7 @@ def test_consistency_past_a_thousand_poses_draws_a_rolling_mean(synthetic_run):
     result = synthetic_run(seed=3, num_poses=plotting.ROLLING_FROM + 300)
     ax = plotting.plot_nees(Figure().add_subplot(), result)
     lines = _lines_by_label(ax)
-    raw = lines["EKF NEES"]
+    raw = lines[f"{plotting.path_names(result)['estimate']} NEES"]
     assert raw.get_linestyle() == "None"  # points, not a solid band of lines
     rolling = next(line for label, line in lines.items() if label.startswith("rolling mean"))
     nees = metrics.run_nees(result)
@@ -403,9 +403,11 @@ def test_the_smoothed_errors_do_not_hide_the_filters(synthetic_run, long_run, po
         run = synthetic_run(seed=5, num_poses=poses)
         run = dataclasses.replace(run, smoothed_xyz=run.truth_xyz, smoothed_quat_xyzw=run.truth_quat_xyzw)
     ax = plotting.plot_position_error(Figure().add_subplot(), run)
-    lines = {line.get_label().split(" ")[0]: line for line in ax.get_lines() if not line.get_label().startswith("_")}
-    assert lines["smoothed"].get_zorder() > lines["EKF"].get_zorder()
-    assert lines["EKF"].get_linewidth() >= 2 * lines["smoothed"].get_linewidth()
+    names = plotting.path_names(run)
+    lines = {key: next(line for line in ax.get_lines() if line.get_label().startswith(names[key]))
+             for key in ("estimate", "smoothed")}
+    assert lines["smoothed"].get_zorder() > lines["estimate"].get_zorder()
+    assert lines["estimate"].get_linewidth() >= 2 * lines["smoothed"].get_linewidth()
 
 
 def test_a_long_runs_associations_count_every_outcome_per_bin_visibly(long_run):
@@ -451,9 +453,9 @@ def test_associations_of_a_run_that_used_no_observation_say_why_the_panel_is_emp
 def test_the_reports_page_title_names_the_run(result):
     import dataclasses
 
-    run = dataclasses.replace(result, summary={**result.summary, "config": {"filter": "se3", "association": "jcbb"}})
+    run = dataclasses.replace(result, summary={**result.summary, "config": {"filter": "se3", "iterations": 1, "association": "jcbb"}})
     title = plotting.draw_report(Figure(figsize=plotting.REPORT_SIZE), run).get_suptitle()
-    assert title.startswith(f"{run.dataset}: se3 EKF, jcbb association, {len(run.pose_ids)} poses")
+    assert title.startswith(f"{run.dataset}: EKF (se3), jcbb association, {len(run.pose_ids)} poses")
     assert "consistency:" in title.splitlines()[1]  # the verdict below it, no longer the page's title
 
 
@@ -493,3 +495,21 @@ def test_the_sweeps_value_axis_always_has_numbers_to_read(low, high):
              if tick.get_text() and bottom <= tick.get_position()[1] <= top]
     assert len(shown) >= 3
     assert _overlapping_tick_labels(ax.yaxis) == 0
+
+
+def test_the_figures_name_the_estimate_as_the_tables_do(synthetic_run):
+    # issue 36, point 1: a table's "iterated EKF (euler)" is not a figure's "EKF", and a run whose
+    # filter made no update shows odometry alone under its own name
+    import dataclasses
+
+    from camloc.diagnostics import ODOMETRY_ALONE
+
+    result = synthetic_run(seed=3)
+    result = dataclasses.replace(result, summary={**result.summary, "config": {"filter": "euler", "iterations": 3}})
+    labels = [line.get_label() for line in plotting.plot_topdown(Figure().add_subplot(), result).get_lines()]
+    assert any(label.startswith("iterated EKF (euler) (RMSE") for label in labels)
+    assert plotting.run_title(result).split(": ", 1)[1].startswith("iterated EKF (euler), ")
+    nothing = dataclasses.replace(result, nis=result.nis[:0])
+    assert plotting.path_names(nothing)["estimate"] == ODOMETRY_ALONE
+    nees_labels = [line.get_label() for line in plotting.plot_nees(Figure().add_subplot(), nothing).get_lines()]
+    assert f"{ODOMETRY_ALONE} NEES" in nees_labels
