@@ -120,7 +120,7 @@ class BeamSearch:
                 on_pose(k)
             if on_decided is not None and (k + 1) % decided_stride == 0:
                 decided = self._pass_decided(decided, on_decided)
-        chosen, slipped = self._backtrack()
+        chosen, slipped = self._backtrack(spread_from=decided)
         if on_decided is not None and decided < n:
             on_decided(decided, chosen[decided:], slipped[decided:])
         return chosen, slipped
@@ -141,22 +141,28 @@ class BeamSearch:
         on_decided(first, chosen, slipped)
         return k + 1
 
-    def _chain(self, k: int, index: int, first: int) -> tuple[list[np.ndarray], np.ndarray]:
+    def _chain(self, k: int, index: int, first: int, spread_from: Optional[int] = None) -> tuple[list[np.ndarray], np.ndarray]:
         """The association of poses first..k along the ancestors of hypothesis ``index`` at pose k;
-        records each pose's ``association_spread`` about that chain's hypothesis."""
+        records the ``association_spread`` about that chain's hypothesis of each pose from
+        ``spread_from`` (default: first) on: the poses before it were recorded by a chain that
+        was already decided there."""
+        spread_from = first if spread_from is None else spread_from
         chosen: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * (k + 1 - first)
         slipped = np.zeros(k + 1 - first, dtype=bool)
         for j in range(k, first - 1, -1):
             h = self.history[j][index]
             chosen[j - first] = np.asarray(h.pairs, dtype=np.int64).reshape(-1, 2)
             slipped[j - first] = h.slipped
-            self.association_spread[j] = self._spread_about(self.history[j], h)
+            if j >= spread_from:
+                self.association_spread[j] = self._spread_about(self.history[j], h)
             index = h.parent
         return chosen, slipped
 
     def _spread_about(self, beam: list[Hypothesis], chosen: Hypothesis) -> np.ndarray:
         """How far the pose's kept hypotheses, weighted by their likelihood there, spread about
         the chosen one (``ekf.mixture_spread``): zero where the beam held one explanation."""
+        if len(beam) < 2:
+            return np.zeros_like(self.association_spread[0])
         differences = np.array([self.ctx.filter.difference(h.x, chosen.x) for h in beam])
         return ekf.mixture_spread(differences, np.array([h.cost for h in beam]))
 
@@ -193,6 +199,6 @@ class BeamSearch:
         self.seeded.unexplained.append((kept[0].unassigned, obs.size))
         return kept
 
-    def _backtrack(self) -> tuple[list[np.ndarray], np.ndarray]:
+    def _backtrack(self, spread_from: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
         # each pose's beam is sorted by cost: the first is the best
-        return self._chain(len(self.history) - 1, 0, 0)
+        return self._chain(len(self.history) - 1, 0, 0, spread_from)

@@ -52,7 +52,8 @@ class SeededSearch:
     def worth_trying(self, unassigned: int, observed: int) -> bool:
         """Whether a pose whose best explanation leaves at most half its observations unassigned
         is searched from seeds all the same (``seeds_worth_trying``)."""
-        return seeds_worth_trying(unassigned, observed, np.array(self.unexplained, dtype=np.int64).reshape(-1, 2))
+        recent = self.unexplained[-UNEXPLAINED_WINDOW:]  # all the rule reads
+        return seeds_worth_trying(unassigned, observed, np.array(recent, dtype=np.int64).reshape(-1, 2))
 
     def unusually_unexplained(self, unassigned: int, observed: int) -> bool:
         """Whether leaving ``unassigned`` of a pose's ``observed`` observations unexplained is

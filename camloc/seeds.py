@@ -39,8 +39,9 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
     groups = [plain]
     # a slip is the explanation of last resort: its search (the costliest, under the widest prior)
     # runs only where the pose stays unusually unexplained after the plain prediction's
-    most = obs.size >= SLIP_MIN_OBSERVATIONS and 2 * unassigned_by_best([(children, count)]) > obs.size
-    if (most and unusually_unexplained(unassigned_by_best([(children, count)]), obs.size, unexplained)
+    left = unassigned_by_best([(children, count)])
+    most = obs.size >= SLIP_MIN_OBSERVATIONS and 2 * left > obs.size
+    if (most and unusually_unexplained(left, obs.size, unexplained)
             and unusually_unexplained(unassigned_by_best([(children, count), plain]), obs.size, unexplained)):
         slipped = kb.gather(parents, np.array([0]), 1)
         slipped[1][0] *= settings.slip_inflation
