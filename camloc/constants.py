@@ -67,3 +67,8 @@ CONVERGED = 1e-6
 # camera's detection range (observation_space.detection_range), that it leaves unclaimed (the beam's miss term:
 # camloc.beam_expansion, kernels/beam.py expected_landmarks and missed; docs/beam.md).
 MISS_COST = 8.0
+
+# An alternative to an update this many cost units above it weighs under 2e-9 of it: what the chance
+# that a pair is clutter adds to the estimate's covariance leaves it out (ekf.leave_one_out_spread,
+# kernels/recheck.py add_leave_one_out_spread), as it does a right pair's, most of a run's.
+NEGLIGIBLE_MARGIN = 40.0

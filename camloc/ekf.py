@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from camloc.constants import CONVERGED
+from camloc.constants import CONVERGED, NEGLIGIBLE_MARGIN
 from camloc.errors import CamlocError
 
 MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -104,6 +104,57 @@ def mixture_spread(differences: np.ndarray, costs: np.ndarray) -> np.ndarray:
     w = np.exp(-(costs - costs.min()) / 2.0)
     w = w / w.sum()
     return symmetrize((differences * w[:, None]).T @ differences)
+
+
+def leave_one_out_spread(
+    P: np.ndarray, residuals: np.ndarray, H: np.ndarray, R_update: np.ndarray, R_judged: np.ndarray,
+    log_det_R_judged: np.ndarray, null_cost: np.ndarray,
+) -> np.ndarray:
+    """What the chance that one of an update's pairs is clutter adds to its covariance.
+
+    The update's posterior (P (n, n), residuals ``r_i = z_i - h_i(x)`` (p, 3) and Jacobians H
+    (p, 3, n) at its state) took every pair as right. The alternative "pair i is clutter" is the
+    posterior of the other pairs, which in the model linearized at the posterior is, with
+    ``B_i = R_i - H_i P H_i'`` (positive definite: P holds pair i's information, R_i = R_update),
+
+        covariance  P_i = P + P H_i' B_i^-1 H_i P,     mean  x_i = x - P H_i' B_i^-1 r_i
+
+    (the Woodbury form of taking H_i' R_i^-1 H_i out of the information). Judged by that
+    posterior with the noise association uses (R_judged), pair i costs ``e' S^-1 e + ln det S -
+    ln det R_judged`` in the beam's units, with ``e = z_i - h_i(x_i) = R_i B_i^-1 r_i`` and
+    ``S = H_i P_i H_i' + R_judged``; leaving the observation unassigned costs ``null_cost``, so the
+    alternative weighs ``exp(-(null - cost) / 2)`` beside the update's 1.
+
+    Returns the mixture's second moment about the update's mean less P,
+    ``sum_i w_i (P_i - P + (x_i - x)(x_i - x)')`` (n, n): a wrong pair that the beam never doubted
+    (the case its spread cannot see) widens the covariance by the odds it had, and a right one,
+    whose alternative costs far more, by next to nothing. A pair whose B is not positive definite
+    by rounding adds nothing.
+    """
+    n = P.shape[0]
+    spread = np.zeros((n, n))
+    if residuals.shape[0] == 0:
+        return spread
+    PHt = P @ np.swapaxes(H, 1, 2)                                   # (p, n, 3)
+    A = H @ PHt                                                      # (p, 3, 3) H P H'
+    B = R_update - A
+    usable = np.linalg.eigvalsh(B)[:, 0] > 0.0
+    if not usable.any():
+        return spread
+    PHt, A, B, r = PHt[usable], A[usable], B[usable], residuals[usable]
+    B_inverse_r = np.linalg.solve(B, r[..., None])                   # (p, 3, 1)
+    e = (R_update[usable] @ B_inverse_r)[..., 0]                      # the residual at the others' posterior
+    S = A + A @ np.linalg.solve(B, A) + R_judged[usable]             # H P_i H' + R_judged
+    d2 = np.einsum("pi,pi->p", e, np.linalg.solve(S, e[..., None])[..., 0])
+    cost = d2 + np.linalg.slogdet(S)[1] - log_det_R_judged[usable]
+    margin = null_cost[usable] - cost                                 # the alternative's cost over the update's
+    shifted = np.concatenate([[0.0], margin])
+    shifted = shifted - shifted.min()
+    w = np.where(shifted <= NEGLIGIBLE_MARGIN, np.exp(-shifted / 2.0), 0.0)
+    w = (w / w.sum())[1:]
+    d = -(PHt @ B_inverse_r)[..., 0]                                  # x_i - x
+    widening = PHt @ np.linalg.solve(B, np.swapaxes(PHt, 1, 2))      # P H' B^-1 H P
+    return symmetrize(np.einsum("p,pij->ij", w, widening + d[:, :, None] * d[:, None, :]))
 
 
 def predict(P: np.ndarray, F: np.ndarray, G: np.ndarray, Q: np.ndarray) -> np.ndarray:

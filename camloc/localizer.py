@@ -286,6 +286,7 @@ class _Localizer:
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
         self.association_spread: Optional[np.ndarray] = None  # (N, 6, 6) with the beam (search_beam)
+        self.pair_spread = np.zeros((n, 6, 6))  # with the beam, what its pairs' chance of being clutter adds
         self.beam_slipped: np.ndarray | None = None
         self.beam_statistics: Optional[BeamStatistics] = None  # what the beam did (search_beam)
         self.slip_pose_ids: list[int] = []
@@ -352,6 +353,8 @@ class _Localizer:
         if obs.size:
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = result.state, result.cov
+            if self.beam_pairs is not None:  # the estimate's covariance, beside the beam's spread
+                self.pair_spread[k] = self.stacked.pair_spread(self.x, self.P, obs, landmarks)
         self._warn_near_singularity(k)                 # by the estimate, as the compiled loop's warning
         self.states[k], self.covs[k] = self.filter.stored(self.x), self.P
         self.poses[k] = self.filter.pose(self.x)
@@ -460,7 +463,7 @@ class _Localizer:
             warnings=self.warnings + ([f"JCBB hit its bound of {self.config.jcbb.max_nodes} joint tests at {cut_short} pose(s) "
                                         "and kept the best set found"] if cut_short else []),
             slip_pose_ids=self.slip_pose_ids, candidate_range=(self.min_depth, self.max_depth, self.max_angle),
-            association_spread=self.association_spread,
+            association_spread=None if self.association_spread is None else self.association_spread + self.pair_spread,
             timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": self.replayed_in_parallel,
                     "replay_process_peak_mb": self.replay_peak_mb, "replay_thread": False},
         )
@@ -473,7 +476,8 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
     (N, 6, 6), pose and odometry pose (N, 4, 4); per observation the chosen landmark id
     (UNASSOCIATED for none) and Mahalanobis distance; per update its pose id, NIS, MAP cost, dof.
     ``association_spread`` (N, 6, 6): with the beam, how far its explanations of each pose spread
-    about the one the filter replayed (``BeamSearch._spread_about``); the estimate's covariance
+    about the one the filter replayed (``BeamSearch._spread_about``) plus what the chance that one
+    of the replayed pairs is clutter adds (``ekf.leave_one_out_spread``); the estimate's covariance
     is the filter's plus that, the filter's own stays ``filter_cov``."""
     ds = dataset
     estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)

@@ -79,7 +79,7 @@ class CompiledRun(NamedTuple):
     map_cost: np.ndarray      # (U,)
     dof: np.ndarray           # (U,) NIS degrees of freedom
     slipped: np.ndarray       # indices of the poses explained as odometry slips
-    spread: np.ndarray        # (N, 6, 6) the beam's association spread (zero without the beam)
+    spread: np.ndarray        # (N, 6, 6) the beam's association spread and its pairs' (zero without the beam)
 
 
 class _Filter:
@@ -100,6 +100,7 @@ class _Filter:
         self.pair_start, self.slipped = np.zeros(n + 1, np.int64), np.zeros(n, np.bool_)
         self.pair_obs, self.pair_landmark = np.zeros(max(64, 2 * K), np.int64), np.zeros(max(64, 2 * K), np.int64)
         self.spread = np.zeros((n, 6, 6))  # with the beam, how far its explanations of each pose spread (_backtrack)
+        self.pair_spread = np.zeros((n, 6, 6))  # and what the chance that a replayed pair is clutter adds
         self.filtered = 0
 
     def set_pairs(self, first: int, pairs: list, slipped: np.ndarray, spread: Optional[np.ndarray] = None):
@@ -131,13 +132,13 @@ class _Filter:
         self.x, self.P = _at_pose(self.counters, filter_poses, self.scene, self.settings, self.method, first, last, self.x,
                                   self.P, self.pair_start, pair_obs, pair_landmark, self.slipped, self.states, self.covs,
                                   self.chosen, self.distance, self.update_pose, self.nis, self.map_cost, self.dof,
-                                  self.counters)
+                                  self.pair_spread, self.counters)
         self.filtered = last
 
     def outputs(self):
         u = int(self.counters[0])
         return CompiledRun(self.states, self.covs, self.chosen, self.distance, self.update_pose[:u], self.nis[:u],
-                           self.map_cost[:u], self.dof[:u], np.flatnonzero(self.slipped), self.spread)
+                           self.map_cost[:u], self.dof[:u], np.flatnonzero(self.slipped), self.spread + self.pair_spread)
 
 
 class _Replay:

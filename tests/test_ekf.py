@@ -192,3 +192,55 @@ def test_the_mixture_spread_is_the_weighted_second_moment_about_the_estimate(rng
     sample = means[rng.choice(5, size=400_000, p=weights)] - mean
     np.testing.assert_allclose(ekf.mixture_spread(means - mean, costs), sample.T @ sample / sample.shape[0], atol=5e-3)
     assert not ekf.mixture_spread(means[:1] - mean, costs[:1]).any()  # one component: nothing to add
+
+
+def _posterior(x0, P0, H, R, z):
+    """The linear Gaussian posterior of prior (x0, P0) and pairs z_i = H_i x + noise R_i, in
+    information form from scratch."""
+    information = np.linalg.inv(P0) + sum(h.T @ np.linalg.solve(r, h) for h, r in zip(H, R))
+    vector = np.linalg.solve(P0, x0) + sum(h.T @ np.linalg.solve(r, y) for h, r, y in zip(H, R, z))
+    P = np.linalg.inv(information)
+    return P @ vector, P
+
+
+@pytest.mark.parametrize("judged_scale", [1.0, 2.5])
+def test_the_leave_one_out_spread_is_the_mixture_of_the_update_and_each_pair_left_out(rng, judged_scale):
+    # Issue 36, point 3: each pair's alternative "this one is clutter" is the posterior of the
+    # others, computed here from scratch (no Woodbury), weighed by the pair's cost under it
+    # (noise R_judged) against leaving the observation unassigned.
+    n, p = 6, 4
+    x0, P0 = rng.normal(size=n), random_spd(rng, n, 0.05)
+    H = rng.normal(size=(p, 3, n))
+    R = np.stack([random_spd(rng, 3, 0.01) for _ in range(p)])
+    z = H @ x0 + rng.normal(scale=0.3, size=(p, 3))
+    R_judged = judged_scale * R
+    null = rng.uniform(4.0, 14.0, p)
+    x, P = _posterior(x0, P0, H, R, z)
+    expected, weights = np.zeros((n, n)), [1.0]
+    terms = []
+    for i in range(p):
+        others = [j for j in range(p) if j != i]
+        x_i, P_i = _posterior(x0, P0, H[others], R[others], z[others])
+        S = H[i] @ P_i @ H[i].T + R_judged[i]
+        e = z[i] - H[i] @ x_i
+        cost = e @ np.linalg.solve(S, e) + np.linalg.slogdet(S)[1] - np.linalg.slogdet(R_judged[i])[1]
+        weights.append(np.exp(-(null[i] - cost) / 2.0))
+        terms.append(P_i - P + np.outer(x_i - x, x_i - x))
+    weights = np.array(weights) / np.sum(weights)
+    expected = sum(w * t for w, t in zip(weights[1:], terms))
+    spread = ekf.leave_one_out_spread(P, z - H @ x, H, R, R_judged, np.linalg.slogdet(R_judged)[1], null)
+    np.testing.assert_allclose(spread, expected, rtol=1e-8, atol=1e-12)
+    assert weights[1:].max() > 1e-3                  # the alternatives weigh something here
+    assert np.linalg.eigvalsh(spread).min() >= -1e-12
+
+
+def test_a_right_pair_far_cheaper_than_clutter_adds_next_to_nothing(rng):
+    n = 6
+    x0, P0 = np.zeros(n), random_spd(rng, n, 0.05)
+    H = rng.normal(size=(3, 3, n))
+    R = np.stack([random_spd(rng, 3, 0.01) for _ in range(3)])
+    z = H @ x0
+    x, P = _posterior(x0, P0, H, R, z)
+    spread = ekf.leave_one_out_spread(P, z - H @ x, H, R, R, np.linalg.slogdet(R)[1], np.full(3, 60.0))
+    assert np.abs(spread).max() < 1e-9 * np.abs(P).max()
+    assert not ekf.leave_one_out_spread(P, np.zeros((0, 3)), H[:0], R[:0], R[:0], np.zeros(0), np.zeros(0)).any()

@@ -11,7 +11,7 @@ import numpy as np
 from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.camera import camera_pose, cameras_of, observe, observe_pairs
 from camloc.kernels.motion import predict
-from camloc.kernels.recheck import assignment_margins, leave_one_out_costs
+from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
 from camloc.kernels.update import updated
@@ -99,14 +99,15 @@ def record_state(states, covs, k, x, P):
 
 @entry
 def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_obs, pair_landmark, slipped,
-                 states, covs, chosen, mahalanobis_distance, update_pose, nis, map_cost, nis_dof, counters):
+                 states, covs, chosen, mahalanobis_distance, update_pose, nis, map_cost, nis_dof, pair_spread, counters):
     """Filter poses first..last-1 from (x, P) (the state after pose first - 1, or the start).
 
     method: GIVEN (pose k's pairs are pair_obs/pair_landmark[pair_start[k]:pair_start[k + 1]], the
     first the seed of an explanation from a slip, and ``slipped[k]``: the prior is widened by
     ``slip_inflation`` there) or ORACLE. Writes states (N, 6), covs (N, 6, 6), per observation the
     chosen landmark (-1 none) and the pair's Mahalanobis distance, per update its pose, NIS, MAP
-    cost and degrees of freedom; counters[0] counts updates, counters[1] is the pose being
+    cost and degrees of freedom, and with GIVEN pairs what their chance of being clutter adds to
+    the estimate's covariance (``add_leave_one_out_spread`` into pair_spread (N, 6, 6)); counters[0] counts updates, counters[1] is the pose being
     filtered (where an error stopped it). Returns (x, P) after pose last - 1."""
     no_start = np.empty(0)                       # ``updated``'s start: none
     for k in range(first, last):
@@ -161,5 +162,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             update_pose[u], nis[u], map_cost[u], nis_dof[u] = k, recorded, cost_k, dof
             counters[0] = u + 1
             x, P = x_post, P_post
+            if method == GIVEN:
+                add_leave_one_out_spread(scene, x, P, obs, landmarks, pair_spread, k)
         record_state(states, covs, k, x, P)
     return x, P

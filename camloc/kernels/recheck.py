@@ -1,6 +1,8 @@
 """The re-check of a pose's accepted pairs: each observation judged by the posterior of the pose's
 other pairs (its own left out), and a pair kept only when no single change of the assignment comes
-close. The numpy twins are ``camloc.association.leave_one_out_costs`` and ``assignment_margins``.
+close; and what the chance that a kept pair is clutter adds to the estimate's covariance. The numpy
+twins are ``camloc.association.leave_one_out_costs`` and ``assignment_margins``, and
+``camloc.ekf.leave_one_out_spread``.
 
 Leaving pair i out of an update linearized at the posterior (the MAP, where the gradient vanishes):
 
@@ -12,11 +14,15 @@ Information is summed from the prior, never subtracted from the posterior, so L_
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from camloc.constants import NEGLIGIBLE_MARGIN
 from camloc.kernels._jit import inlined, jit
+from camloc.kernels.camera import observe_pairs
 from camloc.kernels.small import mm, mtm, mv, solve
-from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, mahalanobis_components, spread
+from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, mahalanobis, mahalanobis_components, spread
 
 
 @inlined
@@ -113,3 +119,65 @@ def assignment_margins(cost, null_cost, chosen):
         if np.isfinite(rival):
             steal[i] = row[i] + rival
     return row, steal
+
+
+@jit
+def positive_definite_3x3(B):
+    """Whether the symmetric B (3, 3) is positive definite (its leading minors, Sylvester)."""
+    minor2 = B[0, 0] * B[1, 1] - B[0, 1] * B[0, 1]
+    det = (B[0, 0] * (B[1, 1] * B[2, 2] - B[1, 2] * B[1, 2]) - B[0, 1] * (B[0, 1] * B[2, 2] - B[1, 2] * B[0, 2])
+           + B[0, 2] * (B[0, 1] * B[1, 2] - B[1, 1] * B[0, 2]))
+    return B[0, 0] > 0.0 and minor2 > 0.0 and det > 0.0
+
+
+@jit
+def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
+    """spread[k] += ``camloc.ekf.leave_one_out_spread`` of the pairs (obs, landmarks) that updated
+    the pose into its posterior (x, P): what the chance that one of them is clutter adds to the
+    estimate's covariance (each pair's alternative, the posterior of the others, weighed by its
+    cost over leaving the observation unassigned)."""
+    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+    p = obs.size
+    margin = np.full(p, np.inf)
+    PHt = np.zeros((p, 6, 3))
+    B_inverse = np.zeros((p, 3, 3))
+    B_inverse_r = np.zeros((p, 3))
+    for i in range(p):
+        o = obs[i]
+        for a in range(6):                         # P H'
+            for c in range(3):
+                total = 0.0
+                for b in range(6):
+                    total += P[a, b] * H[i, c, b]
+                PHt[i, a, c] = total
+        A = mm(H[i], PHt[i])                       # H P H'
+        B = scene.R_file[o] - A
+        if not positive_definite_3x3(B):
+            continue                               # rounding: the pair adds nothing
+        B_inverse[i] = solve(B, np.eye(3))
+        B_inverse_r[i] = mv(B_inverse[i], scene.z[o] - z_hat[i])
+        e = mv(scene.R_file[o], B_inverse_r[i])    # the residual at the others' posterior
+        S = A + mm(A, mm(B_inverse[i], A)) + scene.R_assoc[o]
+        d2, log_det_S = mahalanobis(S, e)
+        margin[i] = scene.null_cost[o] - (d2 + log_det_S - scene.log_det_R[o])
+    lowest = 0.0                                   # the update itself: cost 0
+    for i in range(p):
+        lowest = min(lowest, margin[i])
+    total = math.exp(lowest / 2.0)                 # the update's own weight, exp(-(0 - lowest) / 2)
+    for i in range(p):
+        if margin[i] - lowest <= NEGLIGIBLE_MARGIN:
+            total += math.exp(-(margin[i] - lowest) / 2.0)
+    for i in range(p):
+        if not margin[i] - lowest <= NEGLIGIBLE_MARGIN:
+            continue
+        w = math.exp(-(margin[i] - lowest) / 2.0) / total
+        g = mv(PHt[i], B_inverse_r[i])             # x - x_i
+        widen = mm(PHt[i], mm(B_inverse[i], PHt[i].T))
+        for a in range(6):
+            for b in range(6):
+                spread[k, a, b] += w * (widen[a, b] + g[a] * g[b])
+    for a in range(6):                             # symmetric to rounding, as numpy's symmetrize
+        for b in range(a + 1, 6):
+            mean = 0.5 * (spread[k, a, b] + spread[k, b, a])
+            spread[k, a, b] = mean
+            spread[k, b, a] = mean
