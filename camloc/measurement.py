@@ -9,6 +9,13 @@ disparity  z = (u, v, 1 / depth)   3 rows   (``EDGE_PROJECT_DISPARITY``, g2o's s
 
 with ``u = fx x / z + cx`` and ``v = fy y / z + cy`` of the camera-frame point p = (x, y, z).
 
+Planar kinds, measured in the robot frame of a planar robot (no camera: ``frame == "robot"``;
+their model is ``camloc.planar``'s, the SE(2) filter's only)
+--------------------------------------------------------------------------------------------
+point2     z = (x, y)              2 rows   (``EDGE_SE2_XY``: a point landmark in the robot frame)
+marker     z = (x, y, psi)         3 rows   (``EDGE_SE2_MARKER``: a marker's planar pose in the
+                                             robot frame; psi an angle, residuals wrapped)
+
 One layout for every kind: ``MAX_DIM`` rows
 -------------------------------------------
 Every measurement is stored in ``MAX_DIM`` (3) rows. A kind of fewer rows (pixel: 2) fills the
@@ -31,6 +38,10 @@ import numpy as np
 MAX_DIM = 3
 
 DEPTH, PIXEL, DISPARITY = 0, 1, 2
+POINT2, MARKER = 3, 4
+
+# the sensor id of the planar kinds' observations, which no camera makes (they are in the robot frame)
+ROBOT_FRAME_SENSOR = -1
 
 
 @dataclass(frozen=True)
@@ -41,6 +52,7 @@ class MeasurementKind:
     name: str
     tag: str
     components: tuple[str, ...]
+    frame: str = "camera"  # "camera": a camera's measurement; "robot": a planar robot's, in its own frame
 
     @property
     def dof(self) -> int:
@@ -48,15 +60,22 @@ class MeasurementKind:
 
     @property
     def measures_range(self) -> bool:
-        """Whether a single measurement places the landmark as a point (not a ray)."""
-        return self.dof == MAX_DIM
+        """Whether a single camera measurement places the landmark as a point (not a ray); the
+        planar kinds, which have no camera, say False."""
+        return self.frame == "camera" and self.dof == MAX_DIM
 
 
 KINDS: dict[int, MeasurementKind] = {
     DEPTH: MeasurementKind(DEPTH, "depth", "EDGE_PROJECT_DEPTH", ("u", "v", "depth")),
     PIXEL: MeasurementKind(PIXEL, "pixel", "EDGE_PROJECT_UV", ("u", "v")),
     DISPARITY: MeasurementKind(DISPARITY, "disparity", "EDGE_PROJECT_DISPARITY", ("u", "v", "inverse_depth")),
+    POINT2: MeasurementKind(POINT2, "point2", "EDGE_SE2_XY", ("x", "y"), "robot"),
+    MARKER: MeasurementKind(MARKER, "marker", "EDGE_SE2_MARKER", ("x", "y", "psi"), "robot"),
 }
+CAMERA_KINDS = tuple(code for code, kind in KINDS.items() if kind.frame == "camera")
+PLANAR_KINDS = tuple(code for code, kind in KINDS.items() if kind.frame == "robot")
+# the row of a kind's measurement that is an angle (its residual is wrapped), -1 for none
+ANGLE_ROW = np.array([2 if code == MARKER else -1 for code in sorted(KINDS)], dtype=np.int64)
 KIND_BY_NAME = {kind.name: kind for kind in KINDS.values()}
 KIND_BY_TAG = {kind.tag: kind for kind in KINDS.values()}
 
@@ -69,9 +88,34 @@ def dof_of(kinds: np.ndarray) -> np.ndarray:
     return DOF[np.asarray(kinds, dtype=np.int64)]
 
 
+_MEASURES_RANGE = np.array([KINDS[code].measures_range for code in sorted(KINDS)])
+
+
 def measures_range(kinds: np.ndarray) -> np.ndarray:
-    """(K,) bool: whether each measurement of the given kinds (K,) places its landmark as a point."""
-    return dof_of(kinds) == MAX_DIM
+    """(K,) bool: whether each camera measurement of the given kinds (K,) places its landmark as a
+    point (False for a pixel and for the planar kinds, which have no camera)."""
+    return _MEASURES_RANGE[np.asarray(kinds, dtype=np.int64)]
+
+
+def is_planar(kinds: np.ndarray) -> np.ndarray:
+    """(K,) bool: which of the kinds (K,) are measured in a planar robot's frame (no camera)."""
+    return np.isin(np.asarray(kinds, dtype=np.int64), PLANAR_KINDS)
+
+
+def wrap_residuals(y: np.ndarray, kinds) -> np.ndarray:
+    """Residuals ``z - z_hat`` (..., MAX_DIM) of measurements of ``kinds`` (a code, or codes that
+    broadcast against y's leading axes) with their angle rows (``ANGLE_ROW``) wrapped into
+    [-pi, pi); y itself where no kind has an angle (the camera kinds: unchanged, bit for bit)."""
+    kinds = np.asarray(kinds, dtype=np.int64)
+    angle = ANGLE_ROW[kinds] == 2
+    if not np.any(angle):
+        return y
+    from camloc.geometry import wrap_angle
+
+    y = np.array(y, dtype=float, copy=True)
+    wrapped = wrap_angle(y[..., 2])
+    y[..., 2] = np.where(np.broadcast_to(angle, y.shape[:-1]), wrapped, y[..., 2])
+    return y
 
 
 def judged_as_point(kinds: np.ndarray) -> np.ndarray:

@@ -129,11 +129,8 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     measures no range (a pixel: a ray) has no point: its point and point covariance are zeros
     (a singular spread, which fits nothing; its pair is judged in its own coordinates), as is a
     disparity's (``measurement.judged_as_point``)."""
-    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
-    camera_K = np.array([(dataset.cameras[int(c)].fx, dataset.cameras[int(c)].fy, dataset.cameras[int(c)].cx,
-                          dataset.cameras[int(c)].cy) for c in camera_ids], dtype=float).reshape(-1, 4)
     K = dataset.num_observations
-    intrinsics = camera_K[np.searchsorted(camera_ids, dataset.obs_camera)] if K else camera_K[:0]
+    intrinsics = observation_intrinsics(dataset)
     cov, info = noise_floored(dataset.obs_z, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1],
                                           dataset.obs_kind)
     point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
@@ -151,6 +148,28 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     if ranged.any():
         log_det_point_cov[ranged] = sym3.log_abs_det(point_cov[ranged])
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
+
+
+def observation_intrinsics(dataset: Dataset) -> np.ndarray:
+    """(K, 4) each observation's camera's fx, fy, cx, cy; (1, 1, 0, 0) for a planar kind's, which
+    no camera makes (its x and y are metres in the robot frame)."""
+    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
+    camera_K = np.array([(dataset.cameras[int(c)].fx, dataset.cameras[int(c)].fy, dataset.cameras[int(c)].cx,
+                          dataset.cameras[int(c)].cy) for c in camera_ids], dtype=float).reshape(-1, 4)
+    intrinsics = np.tile([1.0, 1.0, 0.0, 0.0], (dataset.num_observations, 1))
+    by_camera = np.isin(dataset.obs_camera, camera_ids)
+    if np.any(by_camera):
+        intrinsics[by_camera] = camera_K[np.searchsorted(camera_ids, dataset.obs_camera[by_camera])]
+    return intrinsics
+
+
+def planar_range(dataset: Dataset) -> float:
+    """How far a planar robot's own sensor (the planar kinds') sees: 1.25 x the farthest measured
+    landmark + 0.5 m, as ``candidate_range`` takes a camera's depth; 0 without such observations."""
+    mine = measurement.is_planar(dataset.obs_kind)
+    if not np.any(mine):
+        return 0.0
+    return 1.25 * float(np.hypot(dataset.obs_z[mine, 0], dataset.obs_z[mine, 1]).max()) + 0.5
 
 
 def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
@@ -226,6 +245,8 @@ def _widest_ray(dataset: Dataset) -> float:
     if dataset.num_observations == 0:
         return float(np.radians(60.0))
     tan = np.zeros((dataset.num_observations, 2))
+    if not dataset.cameras:
+        return float(np.radians(60.0))
     for camera_id, camera in dataset.cameras.items():
         mine = dataset.obs_camera == camera_id
         tan[mine, 0] = (dataset.obs_z[mine, 0] - camera.cx) / camera.fx

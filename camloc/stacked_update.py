@@ -57,17 +57,24 @@ class StackedUpdate:
         else:
             groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]
+        heading = self.dataset.landmark_heading[landmarks]
+        kinds = self.dataset.obs_kind[obs]
+        angles = bool(np.any(measurement.ANGLE_ROW[kinds] >= 0))
+        z_measured = z.reshape(obs.size, 3)
 
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if len(groups) == 1:
                 camera = groups[0][0]
-                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind)
-                return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
-            z_hat = np.empty((obs.size, 3))
-            H = np.empty((obs.size, 3, 6))
-            for camera, mask in groups:
-                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask], camera.kind)
-            return z_hat.reshape(-1), H.reshape(-1, 6)
+                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind, heading=heading)
+            else:
+                z_hat = np.empty((obs.size, 3))
+                H = np.empty((obs.size, 3, self.filter.dim))
+                for camera, mask in groups:
+                    z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask],
+                                                               camera.kind, heading=heading[mask])
+            if angles:  # an angle predicted on the measurement's branch, so that z - z_hat is the wrapped residual
+                z_hat = z_measured - measurement.wrap_residuals(z_measured - z_hat, kinds)
+            return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
 
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
         options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.iterations,
@@ -97,7 +104,7 @@ class StackedUpdate:
         """x after one EKF update with the pairs' measurements as camera-frame points (those
         ``measurement.judged_as_point``; the others, a pixel's ray, as they are)."""
         z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
-        y = self.dataset.obs_z[obs] - z_hat
+        y = measurement.wrap_residuals(self.dataset.obs_z[obs] - z_hat, self.dataset.obs_kind[obs])
         Hp, R = H.copy(), self.association_cov[obs].copy()
         for camera, mask in groups:
             if not measurement.judged_as_point(camera.kind):
