@@ -145,7 +145,7 @@ def initial_cov(config: LocalizerConfig, filter_model) -> np.ndarray:
 def _compile_in_background(dataset: Dataset) -> Optional[str]:
     """``warmup.STARTED`` or ``warmup.RUNNING`` where this run goes to numpy while the kernels
     compile in the background; None where it compiles them first."""
-    pixel = int(np.count_nonzero(~measurement.measures_range(dataset.obs_kind)))
+    pixel = int(np.count_nonzero(~measurement.measures_range(dataset.obs_kind) & ~measurement.is_planar(dataset.obs_kind)))
     if warmup.numpy_seconds(dataset.num_observations, pixel) > warmup.NUMPY_FIRST_RUN_SECONDS:
         return None
     return warmup.start_background_compile()

@@ -188,7 +188,7 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     if max_depth is None:
         if depth.size:
             max_depth = 1.25 * float(depth.max()) + 0.5
-        elif dataset.num_observations:
+        elif np.any(~measurement.is_planar(dataset.obs_kind)):  # a camera's, measuring no depth
             max_depth = 1.25 * pixel_reach(dataset, max_angle) + 0.5
         else:
             max_depth = 10.0
@@ -214,7 +214,9 @@ def pixel_reach(dataset: Dataset, max_angle: float, *, typical: bool = False) ->
     distance = cKDTree(dataset.landmark_xyz).query(dataset.landmark_xyz, DENSITY_NEIGHBOURS + 1)[0][:, -1]
     radius = float(np.median(distance))
     density = DENSITY_NEIGHBOURS / (4.0 / 3.0 * np.pi * max(radius, 1e-9) ** 3)
-    per_view = np.bincount(dataset.obs_pose_index * (int(dataset.obs_camera.max()) + 1) + dataset.obs_camera)
+    by_camera = ~measurement.is_planar(dataset.obs_kind)  # a planar robot's own sensor has no view cone
+    camera, pose_index = dataset.obs_camera[by_camera], dataset.obs_pose_index[by_camera]
+    per_view = np.bincount(pose_index * (int(camera.max()) + 1) + camera)
     counts = per_view[per_view > 0]
     busy = float(counts.mean()) if typical else float(np.quantile(counts, 0.9))
     tan = np.tan(min(max_angle, np.radians(80.0)))
@@ -234,8 +236,8 @@ def detection_range(dataset: Dataset, max_angle: float) -> tuple[float, float]:
     falls short of the true range (1.2-1.6 m on simulated worlds of range 2 m); the range counted
     as sure goes to 1.2 times that (1.4-1.9 m): a landmark beyond the true range counted as surely
     seen charges the right explanation."""
-    if not np.any(~measurement.measures_range(dataset.obs_kind)):
-        return 0.0, 0.0
+    if not np.any(~measurement.measures_range(dataset.obs_kind) & ~measurement.is_planar(dataset.obs_kind)):
+        return 0.0, 0.0  # no camera's ray (a planar robot's own sensor measures range)
     reach = pixel_reach(dataset, max_angle, typical=True)
     return DETECT_NEAR * reach, DETECT_FAR * reach
 
