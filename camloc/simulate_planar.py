@@ -40,7 +40,6 @@ import numpy as np
 from camloc import geometry, measurement, planar
 from camloc import simulate as sim3
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset
-from camloc.errors import ConfigError
 from camloc.g2o import observation_cov_from_info
 
 SENSORS = ("points", "markers", "cameras")
@@ -69,7 +68,7 @@ class PlanarSimulationConfig:
     """
 
     sensors: str = "points"
-    poses: int = 200
+    poses: int = 100
     landmarks: int | None = None
     region: float | None = None
     min_range: float = 0.3
@@ -317,8 +316,8 @@ def _information(config: PlanarSimulationConfig, kind: int, camera_obs) -> np.nd
 
 def planar_simulation_config(options: dict, cameras: sim3.SimulationConfig) -> PlanarSimulationConfig:
     """The ``PlanarSimulationConfig`` of ``camloc simulate --robot planar``'s options named as on
-    its command line (None: not given), ``cameras`` the 3-D cameras' config. ConfigError for an
-    option a planar world does not take."""
+    its command line (None: not given), ``cameras`` the 3-D cameras' config.
+    ``SimulationOptionError`` for an option a planar world does not take or out of range."""
     names = {f.name for f in dataclasses.fields(PlanarSimulationConfig)} - {"cameras"}
     values = {}
     for name, value in options.items():
@@ -326,6 +325,6 @@ def planar_simulation_config(options: dict, cameras: sim3.SimulationConfig) -> P
         if value is None:
             continue
         if field not in names:
-            raise ConfigError(f"simulate --robot planar: --{name} does not apply to a planar robot")
+            raise sim3.SimulationOptionError(name, "does not apply to --robot planar (camloc simulate --help says which do)")
         values[field] = value
     return PlanarSimulationConfig(**values, cameras=cameras)

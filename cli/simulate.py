@@ -21,6 +21,11 @@ from camloc.cli.common import (
 )
 
 
+class RobotChoice(str, Enum):
+    three_d = "3d"
+    planar = "planar"
+
+
 class TrajectoryChoice(str, Enum):
     grid = "grid"
     smooth3d = "smooth3d"
@@ -42,6 +47,18 @@ _OUTPUT = typer.Option(..., "--output", "-o", help="The g2o file to write (whole
                        "parent folders are created); an existing file is refused unless --force.",
                        show_default=False)
 _FORCE = force_option("the --output file")
+_ROBOT = typer.Option(RobotChoice.three_d, help=with_default(
+    "3d: a robot with 3-D cameras (VERTEX_SE3:QUAT, EDGE_SE3:QUAT); planar: a robot on a floor (VERTEX_SE2, "
+    "EDGE_SE2; a unicycle path, camloc/simulate_planar.py) carrying the --sensors given. With planar, "
+    "--poses, --landmarks (per planar sensor), --region, --min-range/--max-range and --fov-half-angle-deg "
+    "(of the planar sensors; default 0.3-3 m, 60 deg), --detection-probability (default 0.9) and "
+    "--clutter-fraction apply to the planar sensors, and --cameras, --intrinsics, --measurement and the "
+    "observation sigmas to the 3-D cameras; the other options are refused."), show_default=False)
+_SENSORS = typer.Option("points", help=with_default(
+    "With --robot planar: what the robot observes, comma-separated: points (EDGE_SE2_XY: (x, y) of VERTEX_XY "
+    "landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the planar pose (x, y, "
+    "psi) of VERTEX_MARKER_SE2 markers in the robot frame, each seen only from in front of its face), cameras "
+    "(3-D cameras on the robot, EDGE_PROJECT_* of VERTEX_TRACKXYZ landmarks)."), show_default=False)
 _TRAJECTORY = library_option(
     "grid: 1 m steps and 90 deg turns on flat ground, like the real file; smooth3d: "
     "smooth 3D motion, roll/pitch up to --max-tilt-deg (default 18); aerial: a flying vehicle looking "
@@ -159,6 +176,8 @@ _QUIET = quiet_option()
 def simulate(
     output: Path = _OUTPUT,
     force: bool = _FORCE,
+    robot: RobotChoice = _ROBOT,
+    sensors: str = _SENSORS,
     trajectory: Optional[TrajectoryChoice] = _TRAJECTORY,
     poses: Optional[int] = _POSES,
     landmarks: Optional[int] = _LANDMARKS,
@@ -200,11 +219,14 @@ def simulate(
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
     try:
-        config = simulation_config(options)
+        if robot == RobotChoice.planar:
+            config = _planar_config(options, sensors)
+        else:
+            config = simulation_config(options)
     except SimulationOptionError as error:
         raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
     refuse_existing(output, force=force)
-    simulation = simulate_labelled(config, seed=seed)
+    simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
     write_g2o(simulation.dataset, output)
     summary = _summary(simulation, output, seed)
     if echo_json(summary, enabled=json_output) or quiet:
@@ -216,6 +238,35 @@ def simulate(
         f"{counts['outliers']} outliers), {counts['cameras']} camera(s) from {escape(summary['description'])}",
         highlight=False, soft_wrap=True,
     )
+
+
+# the options a planar world's 3-D cameras take (camloc.simulate.SimulationConfig); the planar
+# sensors take those of camloc.simulate_planar.PlanarSimulationConfig
+_PLANAR_CAMERA_OPTIONS = ("cameras", "intrinsics", "measurement", "observation-sigma-uv", "observation-sigma-depth",
+                          "observation-sigma-scale")
+
+
+def _planar_config(options: dict, sensors: str):
+    """The ``PlanarSimulationConfig`` of ``--robot planar``'s options (SimulationOptionError for one
+    that a planar world does not take)."""
+    from camloc.simulate import simulation_config
+    from camloc.simulate_planar import planar_simulation_config
+
+    cameras = simulation_config({name: value for name, value in options.items() if name in _PLANAR_CAMERA_OPTIONS})
+    planar_options = {name: value for name, value in options.items() if name not in _PLANAR_CAMERA_OPTIONS}
+    return planar_simulation_config({**planar_options, "sensors": sensors}, cameras)
+
+
+def _planar_simulation(config, seed: int):
+    """A planar world as ``simulate_labelled`` gives a 3-D one (its clutter labelled by id)."""
+    import numpy as np
+
+    from camloc.simulate import Simulation
+    from camloc.simulate_planar import simulate_planar
+
+    dataset = simulate_planar(config, seed=seed)
+    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
+    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter)
 
 
 def _summary(simulation, output: Path, seed: int) -> dict:
