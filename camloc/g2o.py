@@ -226,10 +226,11 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     else:
         vertex_ids, vertex_xyz, vertex_quat = _build_pose_vertices(path, tables[TAG_POSE], messages)
         odometry = _build_odometry(path, tables[TAG_ODOMETRY], messages)
-    start = _start_vertex(path, vertex_ids, tables[pose_tag].lines, odometry)
-    pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry)
-    _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[pose_tag].lines)
-    truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages)
+    robot = (TAG_POSE_SE2, TAG_ODOMETRY_SE2) if is_planar else (TAG_POSE, TAG_ODOMETRY)  # the tags messages name
+    start = _start_vertex(path, vertex_ids, tables[pose_tag].lines, odometry, robot)
+    pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry, robot)
+    _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[pose_tag].lines, robot)
+    truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages, robot[0])
     observations = _build_all_observations(path, tables, pose_ids, cameras, messages, is_planar)
 
     for message in messages:
@@ -694,7 +695,8 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
 # --- the pose chain -------------------------------------------------------------------------
 
 
-def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometry: dict[str, np.ndarray]) -> int:
+def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometry: dict[str, np.ndarray],
+                  robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> int:
     """Row of the start pose's vertex: the chain's root (``read_g2o``), else the first vertex.
 
     Files written by other tools need not list the first pose first; the edges say which it is."""
@@ -706,12 +708,13 @@ def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometr
     if rows.size == 0:
         edge_line = int(odometry["lines"][np.flatnonzero(odometry["from"] == root)[0]])
         raise DatasetError(path, edge_line,
-                           f"{TAG_ODOMETRY} from pose {root} starts the odometry chain: expected a {TAG_POSE} for "
+                           f"{robot[1]} from pose {root} starts the odometry chain: expected a {robot[0]} for "
                            f"pose {root} (the known start pose), found vertices of other poses only")
     return int(rows[0])
 
 
-def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray],
+                  robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> tuple[np.ndarray, np.ndarray]:
     """Follow the odometry edges from first_pose (``_start_vertex``).
 
     Returns the pose ids in chain order (N,) and the edge rows in chain order (N-1,). Forks are
@@ -727,7 +730,7 @@ def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) 
         row = edge_of.pop(chain[-1])
         if edge_to[row] in seen:
             raise DatasetError(path, int(lines[row]),
-                               f"{TAG_ODOMETRY} {edge_from[row]} -> {edge_to[row]}: expected the chain to go on "
+                               f"{robot[1]} {edge_from[row]} -> {edge_to[row]}: expected the chain to go on "
                                f"to a new pose, found a cycle (pose {edge_to[row]} is already on it)")
         seen.add(edge_to[row])
         chain.append(edge_to[row])
@@ -735,24 +738,25 @@ def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) 
     if edge_of:
         row = min(edge_of.values())
         raise DatasetError(path, int(lines[row]),
-                           f"{TAG_ODOMETRY} {edge_from[row]} -> {edge_to[row]}: expected every edge on the one "
-                           f"chain from the first {TAG_POSE} {first_pose}, found an edge it never reaches "
+                           f"{robot[1]} {edge_from[row]} -> {edge_to[row]}: expected every edge on the one "
+                           f"chain from the first {robot[0]} {first_pose}, found an edge it never reaches "
                            f"(the chain ends at pose {chain[-1]})")
     return np.array(chain, dtype=np.int64), np.array(order, dtype=np.int64)
 
 
-def _check_vertices_on_chain(path: Path, vertex_ids: np.ndarray, pose_ids: np.ndarray, lines: np.ndarray) -> None:
+def _check_vertices_on_chain(path: Path, vertex_ids: np.ndarray, pose_ids: np.ndarray, lines: np.ndarray,
+                             robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> None:
     """A pose vertex no edge reaches cannot be localized: refuse it rather than drop it silently."""
     off = np.flatnonzero(~np.isin(vertex_ids, pose_ids))
     if off.size:
         row = off[0]
         raise DatasetError(path, int(lines[row]),
-                           f"{TAG_POSE} {vertex_ids[row]}: expected a pose of the odometry chain from "
-                           f"{pose_ids[0]}, found a vertex no {TAG_ODOMETRY} reaches")
+                           f"{robot[0]} {vertex_ids[row]}: expected a pose of the odometry chain from "
+                           f"{pose_ids[0]}, found a vertex no {robot[1]} reaches")
 
 
-def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.ndarray,
-                  vertex_quat: np.ndarray, messages: list[str]) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.ndarray, vertex_quat: np.ndarray,
+                  messages: list[str], pose_tag: str = TAG_POSE) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Truth (N, 3), (N, 4) in chain order when every chain pose has a vertex, else None, None.
 
     A single vertex is the start pose only, even for a one-pose chain.
@@ -761,7 +765,7 @@ def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.n
         return None, None
     if vertex_ids.size < pose_ids.size:
         messages.append(f"ground truth ignored: {pose_ids.size - vertex_ids.size} of {pose_ids.size} poses "
-                        f"have no {TAG_POSE}")
+                        f"have no {pose_tag}")
         return None, None
     row_of = {pose: row for row, pose in enumerate(vertex_ids.tolist())}
     rows = np.array([row_of[pose] for pose in pose_ids.tolist()], dtype=np.int64)
