@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import measurement, sym3
+from camloc import planar, sym3
 
 # Up to this many points a scan finds those within a ball as quickly as a k-d tree does, and
 # scipy.spatial, whose import is 0.2 s (a fifth of ``camloc run`` on a small file), stays unloaded.
@@ -135,7 +135,7 @@ def pair_statistics(
     z : (n, 3) measurements; R_obs : (n, 3, 3) their covariances.
     z_hat : (m, 3) predicted measurements; HPH : (m, 3, 3) ``H P H'`` of each prediction.
     kinds : (n,) the measurements' kinds, whose angle rows' residuals are wrapped
-        (``measurement.wrap_residuals``); None: no angle.
+        (``planar.wrap_residuals``); None: no angle.
 
     Returns
     -------
@@ -145,7 +145,7 @@ def pair_statistics(
     S = HPH[None, :, :, :] + R_obs[:, None, :, :]
     y = z[:, None, :] - z_hat[None, :, :]
     if kinds is not None:
-        y = measurement.wrap_residuals(y, np.asarray(kinds)[:, None])
+        y = planar.wrap_residuals(y, np.asarray(kinds)[:, None])
     d2, log_det = mahalanobis_3x3(S, y)
     return d2, d2 + log_det
 
@@ -256,7 +256,7 @@ def leave_one_out_costs(
     information : (6, 6) prior information (P_prior^-1) plus that of the update's pairs outside
         these observations (another camera's).
     gate : chi^2 gate on d^2; pairs beyond it cost inf.
-    kinds : (n,) the measurements' kinds, for their angle rows (``measurement.wrap_residuals``).
+    kinds : (n,) the measurements' kinds, for their angle rows (``planar.wrap_residuals``).
 
     Returns
     -------
@@ -272,12 +272,12 @@ def leave_one_out_costs(
     rhs = np.zeros((n, dim))
     if paired.size:
         L_rows[paired] = information[None] + (J.sum(axis=0)[None] - J)   # the other pairs' information
-        y_paired = measurement.wrap_residuals(z[paired] - z_hat[chosen[paired]], kinds[paired])
+        y_paired = planar.wrap_residuals(z[paired] - z_hat[chosen[paired]], kinds[paired])
         rhs[paired] = -(HtRinv @ y_paired[..., None])[..., 0]
     P_rows = np.linalg.solve(L_rows, np.broadcast_to(np.eye(dim), (n, dim, dim)))
     P_rows = 0.5 * (P_rows + np.swapaxes(P_rows, 1, 2))
     delta = np.einsum("nij,nj->ni", P_rows, rhs)
-    y = measurement.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None])
+    y = planar.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None])
     residual = y - np.einsum("mij,nj->nmi", H, delta)  # (n, m, 3)
 
     # Screen before the (n, m) factorizations: every L_i >= information, so each S is at most

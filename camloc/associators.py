@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
-from camloc import association, measurement
+from camloc import association, measurement, planar
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3
 from camloc.jcbb import jcbb
@@ -149,7 +149,7 @@ def oracle(scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarra
         mine = scene.obs_sensor[obs] == camera_id
         z_hat, H = scene.observe(x, camera_id, index[mine])
         S = H @ P @ np.swapaxes(H, 1, 2) + scene.association_cov[obs[mine]]
-        y = measurement.wrap_residuals(scene.dataset.obs_z[obs[mine]] - z_hat, scene.dataset.obs_kind[obs[mine]])
+        y = planar.wrap_residuals(scene.dataset.obs_z[obs[mine]] - z_hat, scene.dataset.obs_kind[obs[mine]])
         d2, _ = association.mahalanobis_3x3(S, y)
         keep[mine] = d2 <= scene.obs_gate[obs[mine]]
     return obs[keep], index[keep]
@@ -220,7 +220,7 @@ def best_friends_pairs(
         d2, nll = association.pair_statistics(z, scene.association_cov[obs[rows_c]], z_hat, HPH, kinds)
         pair_cost = {"nll": nll, "mahalanobis": d2}.get(cost)
         if pair_cost is None:
-            pair_cost = np.linalg.norm(measurement.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None]), axis=-1)
+            pair_cost = np.linalg.norm(planar.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None]), axis=-1)
         r, c, gap = association.best_friends(pair_cost, d2, gate=float(scene.obs_gate[obs[rows_c[0]]]), margin=margin)
         rows_all.append(rows_c[r])
         landmarks_all.append(candidates[c])
@@ -261,7 +261,7 @@ class Jcbb:
         if candidates.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
-        y_all = measurement.wrap_residuals(ds.obs_z[obs][:, None, :] - z_hat[None, :, :], ds.obs_kind[obs][:, None])
+        y_all = planar.wrap_residuals(ds.obs_z[obs][:, None, :] - z_hat[None, :, :], ds.obs_kind[obs][:, None])
         HPH = H @ P @ np.swapaxes(H, 1, 2)
         d2, _ = association.pair_statistics(ds.obs_z[obs], scene.association_cov[obs], z_hat, HPH, ds.obs_kind[obs])
         same_camera = np.zeros(d2.shape, dtype=bool)

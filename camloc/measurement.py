@@ -102,22 +102,6 @@ def is_planar(kinds: np.ndarray) -> np.ndarray:
     return np.isin(np.asarray(kinds, dtype=np.int64), PLANAR_KINDS)
 
 
-def wrap_residuals(y: np.ndarray, kinds) -> np.ndarray:
-    """Residuals ``z - z_hat`` (..., MAX_DIM) of measurements of ``kinds`` (a code, or codes that
-    broadcast against y's leading axes) with their angle rows (``ANGLE_ROW``) wrapped into
-    [-pi, pi); y itself where no kind has an angle (the camera kinds: unchanged, bit for bit)."""
-    kinds = np.asarray(kinds, dtype=np.int64)
-    angle = ANGLE_ROW[kinds] == 2
-    if not np.any(angle):
-        return y
-    from camloc.geometry import wrap_angle
-
-    y = np.array(y, dtype=float, copy=True)
-    wrapped = wrap_angle(y[..., 2])
-    y[..., 2] = np.where(np.broadcast_to(angle, y.shape[:-1]), wrapped, y[..., 2])
-    return y
-
-
 def judged_as_point(kinds: np.ndarray) -> np.ndarray:
     """(K,) bool: which measurements association may also judge as the camera-frame point they
     back-project to (where a wide prior's linearization holds better), and the update may restart

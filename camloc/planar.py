@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from camloc import geometry, models
-from camloc.measurement import MARKER, MAX_DIM, POINT2
+from camloc.measurement import ANGLE_ROW, MARKER, MAX_DIM, POINT2
 
 # d R(theta) / d theta = R(theta) J
 J = np.array([[0.0, -1.0], [1.0, 0.0]])
@@ -156,3 +156,18 @@ def planar_block(cov: np.ndarray) -> np.ndarray:
     """The inverse of ``lifted_cov``: the (x, y, yaw) block (..., 3, 3) of (..., 6, 6)."""
     axes = np.array(PLANAR_AXES)
     return cov[..., axes[:, None], axes[None, :]]
+
+
+def wrap_residuals(y: np.ndarray, kinds) -> np.ndarray:
+    """Residuals ``z - z_hat`` (..., MAX_DIM) of measurements of ``kinds`` (a code, or codes that
+    broadcast against y's leading axes) with their angle rows (``measurement.ANGLE_ROW``: a
+    marker's psi) wrapped into [-pi, pi); y itself where no kind has an angle (the camera kinds:
+    unchanged, bit for bit). Here rather than in ``camloc.measurement``, whose values the compiled
+    kernels take in (and which may not reach ``camloc.geometry``)."""
+    kinds = np.asarray(kinds, dtype=np.int64)
+    angle = ANGLE_ROW[kinds] == 2
+    if not np.any(angle):
+        return y
+    y = np.array(y, dtype=float, copy=True)
+    y[..., 2] = np.where(np.broadcast_to(angle, y.shape[:-1]), wrap(y[..., 2]), y[..., 2])
+    return y

@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from camloc import measurement, planar
+from camloc import planar
 from camloc.dataset import Dataset
 from camloc.errors import CamlocError
 from camloc.filters import SE2Filter
@@ -106,7 +106,7 @@ def observation_residuals(problem: PlanarProblem, x: np.ndarray) -> tuple[np.nda
         row = problem.obs_landmark[i:i + 1]
         z_hat, H = filter_model.observe(x[problem.obs_pose[i]], sensor.T_robot_camera, sensor.intrinsics,
                                         problem.landmark_xyz[row], sensor.kind, heading=problem.landmark_heading[row])
-        r[i] = measurement.wrap_residuals(problem.obs_z[i] - z_hat[0], problem.obs_kind[i])
+        r[i] = planar.wrap_residuals(problem.obs_z[i] - z_hat[0], problem.obs_kind[i])
         J[i] = -H[0]
     return r, J
 

@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from camloc import ekf, measurement, models
+from camloc import ekf, measurement, models, planar
 from camloc.dataset import Dataset
 from camloc.observation_space import ObservationNoise
 from camloc.tails import chi2_quantile
@@ -73,7 +73,7 @@ class StackedUpdate:
                     z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask],
                                                                camera.kind, heading=heading[mask])
             if angles:  # an angle predicted on the measurement's branch, so that z - z_hat is the wrapped residual
-                z_hat = z_measured - measurement.wrap_residuals(z_measured - z_hat, kinds)
+                z_hat = z_measured - planar.wrap_residuals(z_measured - z_hat, kinds)
             return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
 
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
@@ -104,7 +104,7 @@ class StackedUpdate:
         """x after one EKF update with the pairs' measurements as camera-frame points (those
         ``measurement.judged_as_point``; the others, a pixel's ray, as they are)."""
         z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
-        y = measurement.wrap_residuals(self.dataset.obs_z[obs] - z_hat, self.dataset.obs_kind[obs])
+        y = planar.wrap_residuals(self.dataset.obs_z[obs] - z_hat, self.dataset.obs_kind[obs])
         Hp, R = H.copy(), self.association_cov[obs].copy()
         for camera, mask in groups:
             if not measurement.judged_as_point(camera.kind):

@@ -98,7 +98,7 @@ def test_observation_jacobians(rng, kind, trial):
     heading = rng.uniform(-math.pi, math.pi, size=4)
     z_hat, H = se2.observe(x, T_rc, K, landmarks, kind, heading=heading)
     H_numeric = numeric_jacobian(
-        lambda s: measurement.wrap_residuals(se2.observe(s, T_rc, K, landmarks, kind, heading=heading)[0] - z_hat, kind).ravel(),
+        lambda s: planar.wrap_residuals(se2.observe(s, T_rc, K, landmarks, kind, heading=heading)[0] - z_hat, kind).ravel(),
         x, 3, se2.retract).reshape(4, 3, 3)
     assert H == pytest.approx(H_numeric, abs=1e-5)
 
@@ -115,9 +115,9 @@ def test_camera_on_a_planar_robot_is_the_3d_model_at_the_lifted_pose(rng):
 def test_marker_residuals_are_wrapped():
     """A marker seen at psi = +179 deg and predicted at -179 deg is 2 deg off, not 358."""
     y = np.array([[0.0, 0.0, math.radians(179.0) - math.radians(-179.0)]])
-    assert measurement.wrap_residuals(y, np.array([MARKER]))[0, 2] == pytest.approx(math.radians(-2.0))
+    assert planar.wrap_residuals(y, np.array([MARKER]))[0, 2] == pytest.approx(math.radians(-2.0))
     same = np.array([[0.1, 0.2, 7.0]])
-    assert measurement.wrap_residuals(same, np.array([DEPTH])) is same  # camera kinds: untouched
+    assert planar.wrap_residuals(same, np.array([DEPTH])) is same  # camera kinds: untouched
 
 
 def test_pose_covariance_is_the_world_frame_error(rng):
