@@ -23,7 +23,7 @@ Measure    of a landmark l (world plane) in the robot frame, p = R(theta)^T (l -
            the planar robot is the 3-D camera model at the lifted pose, its Jacobian the columns
            (x, y, yaw) of the SE(3) right-perturbation Jacobian (``camera``).
 Noise      the file's information of (x, y) or (x, y, psi); an angle residual is wrapped
-           (``camloc.measurement.wrap_residuals``).
+           (``wrap_residuals``).
 Every Jacobian is checked against central finite differences in tests/test_planar.py.
 """
 

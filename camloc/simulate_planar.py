@@ -328,3 +328,35 @@ def planar_simulation_config(options: dict, cameras: sim3.SimulationConfig) -> P
             raise sim3.SimulationOptionError(name, "does not apply to --robot planar (camloc simulate --help says which do)")
         values[field] = value
     return PlanarSimulationConfig(**values, cameras=cameras)
+
+
+# the options a planar world's 3-D cameras take (``camloc.simulate.SimulationConfig``, by their
+# command-line names); the planar sensors take ``PlanarSimulationConfig``'s
+CAMERA_OPTIONS = ("cameras", "intrinsics", "measurement", "observation-sigma-uv", "observation-sigma-depth",
+                  "observation-sigma-scale")
+ROBOTS = ("3d", "planar")
+
+
+def world_config(options: dict) -> sim3.SimulationConfig | PlanarSimulationConfig:
+    """The config of ``camloc simulate``'s options by command-line name (None: not given), a
+    planar world's where ``robot`` is "planar" (its ``sensors`` the planar sensors), else
+    ``camloc.simulate.simulation_config``'s. ``SimulationOptionError`` names a bad option."""
+    options = {name: value for name, value in options.items() if value is not None}
+    robot = options.pop("robot", "3d")
+    sensors = options.pop("sensors", None)
+    if robot not in ROBOTS:
+        raise sim3.SimulationOptionError("robot", f"expected one of {', '.join(ROBOTS)}, found {robot!r}")
+    if robot == "3d":
+        if sensors is not None:
+            raise sim3.SimulationOptionError("sensors", "applies only to robot = planar")
+        return sim3.simulation_config(options)
+    cameras = sim3.simulation_config({name: value for name, value in options.items() if name in CAMERA_OPTIONS})
+    planar_options = {name: value for name, value in options.items() if name not in CAMERA_OPTIONS}
+    return planar_simulation_config({**planar_options, **({"sensors": sensors} if sensors else {})}, cameras)
+
+
+def simulate_world(config: sim3.SimulationConfig | PlanarSimulationConfig, *, seed: int) -> Dataset:
+    """``simulate_planar`` or ``camloc.simulate.simulate``, by the config's kind."""
+    if isinstance(config, PlanarSimulationConfig):
+        return simulate_planar(config, seed=seed)
+    return sim3.simulate(config, seed=seed)

@@ -220,7 +220,9 @@ def simulate(
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
     try:
         if robot == RobotChoice.planar:
-            config = _planar_config(options, sensors)
+            from camloc.simulate_planar import world_config
+
+            config = world_config({**options, "robot": "planar", "sensors": sensors})
         else:
             config = simulation_config(options)
     except SimulationOptionError as error:
@@ -238,23 +240,6 @@ def simulate(
         f"{counts['outliers']} outliers), {counts['cameras']} camera(s) from {escape(summary['description'])}",
         highlight=False, soft_wrap=True,
     )
-
-
-# the options a planar world's 3-D cameras take (camloc.simulate.SimulationConfig); the planar
-# sensors take those of camloc.simulate_planar.PlanarSimulationConfig
-_PLANAR_CAMERA_OPTIONS = ("cameras", "intrinsics", "measurement", "observation-sigma-uv", "observation-sigma-depth",
-                          "observation-sigma-scale")
-
-
-def _planar_config(options: dict, sensors: str):
-    """The ``PlanarSimulationConfig`` of ``--robot planar``'s options (SimulationOptionError for one
-    that a planar world does not take)."""
-    from camloc.simulate import simulation_config
-    from camloc.simulate_planar import planar_simulation_config
-
-    cameras = simulation_config({name: value for name, value in options.items() if name in _PLANAR_CAMERA_OPTIONS})
-    planar_options = {name: value for name, value in options.items() if name not in _PLANAR_CAMERA_OPTIONS}
-    return planar_simulation_config({**planar_options, "sensors": sensors}, cameras)
 
 
 def _planar_simulation(config, seed: int):

@@ -77,3 +77,17 @@ def test_euler_on_planar_observations_is_refused(tmp_path):
     result = invoke("run", world, "--filter", "euler", "-o", tmp_path / "run")
     assert result.exit_code == 2
     assert "use --filter se2" in result.output
+
+
+def test_sweep_of_planar_worlds(tmp_path):
+    study = tmp_path / "study.toml"
+    study.write_text('seeds = 2\n[simulate]\nrobot = "planar"\nsensors = "markers"\nposes = 40\n'
+                     '[run]\nassociation = ["beam", "oracle"]\n', encoding="utf-8")
+    result = invoke("sweep", study, "-o", tmp_path / "sweep", "--json")
+    assert result.exit_code == 0, result.output
+    rows = (tmp_path / "sweep" / "runs.csv").read_text().splitlines()
+    assert len(rows) == 1 + 4 and all(",ok," in row for row in rows[1:])
+    bad = tmp_path / "bad.toml"
+    bad.write_text('seeds = 1\n[simulate]\nsensors = "points"\n', encoding="utf-8")
+    refused = invoke("sweep", bad, "-o", tmp_path / "sweep2")
+    assert refused.exit_code == 2 and "applies only to robot = planar" in refused.output
