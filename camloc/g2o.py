@@ -81,6 +81,9 @@ TAG_MARKER = "VERTEX_MARKER_SE2"
 TAG_OBSERVATION_XY = measurement.KINDS[measurement.POINT2].tag     # EDGE_SE2_XY
 TAG_OBSERVATION_MARKER = measurement.KINDS[measurement.MARKER].tag  # EDGE_SE2_MARKER
 PLANAR_ROBOT_TAGS = (TAG_POSE_SE2, TAG_ODOMETRY_SE2)
+# a planar robot's landmarks: a 3-D file's are skipped with a warning, as unknown tags are (no
+# sensor of a 3-D robot observes them, and a 3-D file read before they were known reads the same)
+PLANAR_ONLY_TAGS = (TAG_LANDMARK_XY, TAG_MARKER)
 
 # Quaternions this close to unit length are kept bit for bit (so that write -> read is exact);
 # further than _QUAT_WARN_TOL they are normalized with a warning, below _QUAT_ZERO_TOL refused.
@@ -215,7 +218,8 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     groups = _group_lines(path, _read_text(path))
     messages: list[str] = _unknown_tag_warnings(groups)
     is_planar = _is_planar(path, groups)
-    tables = _parse_tables(path, groups, is_planar)
+    messages += _planar_records_skipped(groups, is_planar)
+    tables = _parse_tables(path, {tag: lines for tag, lines in groups.items() if is_planar or tag not in PLANAR_ONLY_TAGS}, is_planar)
     pose_tag = TAG_POSE_SE2 if is_planar else TAG_POSE
 
     cameras = _build_cameras(path, tables[TAG_CAMERA], messages)
@@ -263,6 +267,14 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         landmark_kind=landmarks["kind"],
         landmark_heading=landmarks["heading"],
     )
+
+
+def _planar_records_skipped(groups: dict[str, _Lines], is_planar: bool) -> list[str]:
+    """One message per planar-only tag in a 3-D file: its records are skipped (``PLANAR_ONLY_TAGS``)."""
+    if is_planar:
+        return []
+    return [f"line {lines.numbers[0]}: skipped {len(lines.numbers)} record(s) with tag {tag!r}, a planar robot's "
+            "landmark (this file's robot is 3-D)" for tag, lines in groups.items() if tag in PLANAR_ONLY_TAGS and lines.numbers]
 
 
 def _is_planar(path: Path, groups: dict[str, _Lines]) -> bool:

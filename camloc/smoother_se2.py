@@ -81,33 +81,39 @@ class PlanarProblem:
 
 
 def odometry_residual(x_a: np.ndarray, x_b: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The odometry factor's residual (3,) and its Jacobians (3, 3) with respect to the right
-    perturbations of x_a and x_b (model card)."""
-    d = planar.between(x_a, x_b)
-    R_u_T = planar.rotation(u[2]).T
-    r = np.concatenate([R_u_T @ (d[:2] - u[:2]), [planar.wrap(d[2] - u[2])]])
-    A = np.zeros((3, 3))
-    A[:2, :2] = -R_u_T
-    A[:2, 2] = -R_u_T @ (planar.J @ d[:2])
-    A[2, 2] = -1.0
-    B = np.zeros((3, 3))
-    B[:2, :2] = R_u_T @ planar.rotation(d[2])
-    B[2, 2] = 1.0
+    """The odometry factors' residuals (..., 3) and their Jacobians (..., 3, 3) with respect to the
+    right perturbations of x_a and x_b (..., 3) (model card); u (..., 3) the measured increments."""
+    R_a = planar.rotation(x_a[..., 2])
+    d_t = np.einsum("...ji,...j->...i", R_a, x_b[..., :2] - x_a[..., :2])      # R_a^T (t_b - t_a)
+    d_theta = planar.wrap(x_b[..., 2] - x_a[..., 2])
+    R_u = planar.rotation(u[..., 2])
+    r = np.concatenate([np.einsum("...ji,...j->...i", R_u, d_t - u[..., :2]), planar.wrap(d_theta - u[..., 2])[..., None]], -1)
+    A = np.zeros(r.shape + (3,))
+    A[..., :2, :2] = -np.swapaxes(R_u, -1, -2)
+    A[..., :2, 2] = -np.einsum("...ji,...j->...i", R_u, d_t @ planar.J.T)      # -R_u^T J d_t
+    A[..., 2, 2] = -1.0
+    B = np.zeros(r.shape + (3,))
+    B[..., :2, :2] = np.swapaxes(R_u, -1, -2) @ planar.rotation(d_theta)
+    B[..., 2, 2] = 1.0
     return r, A, B
 
 
 def observation_residuals(problem: PlanarProblem, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (M, 3) ``z - h(x_k)`` (angles wrapped) and their Jacobians (M, 3, 3) ``-H``."""
+    """Residuals (M, 3) ``z - h(x_k)`` (angles wrapped) and their Jacobians (M, 3, 3) ``-H``,
+    computed a pose and a sensor at a time (the filter's models take one pose)."""
     filter_model = SE2Filter()
     m = problem.obs_pose.size
     r, J = np.zeros((m, 3)), np.zeros((m, 3, 3))
-    for i in range(m):  # one observation at a time: a planar problem has a few thousand
-        sensor = problem.sensors[int(problem.obs_sensor[i])]
-        row = problem.obs_landmark[i:i + 1]
-        z_hat, H = filter_model.observe(x[problem.obs_pose[i]], sensor.T_robot_camera, sensor.intrinsics,
-                                        problem.landmark_xyz[row], sensor.kind, heading=problem.landmark_heading[row])
-        r[i] = planar.wrap_residuals(problem.obs_z[i] - z_hat[0], problem.obs_kind[i])
-        J[i] = -H[0]
+    order = np.lexsort((problem.obs_sensor, problem.obs_pose))
+    key = problem.obs_pose[order] * (len(problem.sensors) + 1) + problem.obs_sensor[order]
+    bounds = np.flatnonzero(np.diff(key)) + 1
+    for rows in np.split(order, bounds) if m else []:
+        sensor = problem.sensors[int(problem.obs_sensor[rows[0]])]
+        landmarks = problem.obs_landmark[rows]
+        z_hat, H = filter_model.observe(x[problem.obs_pose[rows[0]]], sensor.T_robot_camera, sensor.intrinsics,
+                                        problem.landmark_xyz[landmarks], sensor.kind, heading=problem.landmark_heading[landmarks])
+        r[rows] = planar.wrap_residuals(problem.obs_z[rows] - z_hat, problem.obs_kind[rows])
+        J[rows] = -H
     return r, J
 
 
@@ -126,10 +132,7 @@ class _Linearization:
 
 def linearize(problem: PlanarProblem, x: np.ndarray) -> _Linearization:
     """Every factor's whitened residual and Jacobians at the poses x (N, 3)."""
-    parts = [odometry_residual(x[k], x[k + 1], problem.u[k]) for k in range(problem.u.shape[0])]
-    r = np.array([p[0] for p in parts]).reshape(-1, 3)
-    A = np.array([p[1] for p in parts]).reshape(-1, 3, 3)
-    B = np.array([p[2] for p in parts]).reshape(-1, 3, 3)
+    r, A, B = odometry_residual(x[:-1], x[1:], problem.u)
     W = problem.odom_whiten
     obs_r, obs_J = observation_residuals(problem, x)
     Wo = problem.obs_whiten
@@ -141,27 +144,26 @@ def robust_cost(lin: _Linearization, huber: float) -> float:
 
 
 def normal_equations(problem: PlanarProblem, lin: _Linearization, huber: float) -> tuple[sp.csc_matrix, np.ndarray]:
-    """The IRLS Gauss-Newton system ``H step = -g`` over the free poses 1..N-1, (3(N-1),)."""
+    """The IRLS Gauss-Newton system ``H step = -g`` over the free poses 1..N-1, (3(N-1),):
+    every factor's 3x3 blocks ``J_i' w J_j`` summed into a sparse matrix at once."""
     n = problem.num_poses
-    rows, cols, vals = [], [], []
-    g = np.zeros(DOF * n)
-
-    def add(block_rows: int, block_cols: int, value: np.ndarray) -> None:
-        r, c = np.meshgrid(np.arange(DOF) + DOF * block_rows, np.arange(DOF) + DOF * block_cols, indexing="ij")
-        rows.append(r.ravel()), cols.append(c.ravel()), vals.append(value.ravel())
-
-    for k in range(problem.u.shape[0]):
-        A, B, r = lin.odom_A[k], lin.odom_B[k], lin.odom_r[k]
-        add(k, k, A.T @ A), add(k + 1, k + 1, B.T @ B), add(k, k + 1, A.T @ B), add(k + 1, k, B.T @ A)
-        g[DOF * k:DOF * k + DOF] += A.T @ r
-        g[DOF * (k + 1):DOF * (k + 1) + DOF] += B.T @ r
+    k = np.arange(problem.u.shape[0])
     weight = huber_weight(lin.obs_sq, huber)
-    for i in range(problem.obs_pose.size):
-        k, J, r = int(problem.obs_pose[i]), lin.obs_J[i], lin.obs_r[i]
-        add(k, k, weight[i] * J.T @ J)
-        g[DOF * k:DOF * k + DOF] += weight[i] * J.T @ r
-    H = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(DOF * n, DOF * n)).tocsc()
-    return H[DOF:, DOF:], g[DOF:]  # the first pose is fixed
+    WJ = weight[:, None, None] * lin.obs_J
+    At, Bt = np.swapaxes(lin.odom_A, 1, 2), np.swapaxes(lin.odom_B, 1, 2)
+    Jt = np.swapaxes(lin.obs_J, 1, 2)
+    # (block row, block column, 3x3 block) of every term
+    rows = np.concatenate([k, k + 1, k, k + 1, problem.obs_pose])
+    cols = np.concatenate([k, k + 1, k + 1, k, problem.obs_pose])
+    blocks = np.concatenate([At @ lin.odom_A, Bt @ lin.odom_B, At @ lin.odom_B, Bt @ lin.odom_A, Jt @ WJ])
+    r_index = (DOF * rows[:, None, None] + np.arange(DOF)[None, :, None]) + np.zeros((1, 1, DOF), np.int64)
+    c_index = (DOF * cols[:, None, None] + np.arange(DOF)[None, None, :]) + np.zeros((1, DOF, 1), np.int64)
+    H = sp.coo_matrix((blocks.ravel(), (r_index.ravel(), c_index.ravel())), shape=(DOF * n, DOF * n)).tocsc()
+    g = np.zeros((n, DOF))
+    np.add.at(g, k, np.einsum("eji,ej->ei", lin.odom_A, lin.odom_r))
+    np.add.at(g, k + 1, np.einsum("eji,ej->ei", lin.odom_B, lin.odom_r))
+    np.add.at(g, problem.obs_pose, np.einsum("mji,mj->mi", WJ, lin.obs_r))
+    return H[DOF:, DOF:], g.ravel()[DOF:]  # the first pose is fixed
 
 
 def _step(H: sp.csc_matrix, g: np.ndarray, damping: float) -> np.ndarray:
