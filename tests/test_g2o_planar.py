@@ -124,3 +124,20 @@ def test_planar_file_without_start_pose_is_refused(tmp_path):
     lines = [line for line in VALID if not line.startswith("VERTEX_SE2 100")]
     with pytest.raises(DatasetError, match=r":6: EDGE_SE2 from pose 100 starts the odometry chain: expected a VERTEX_SE2 for pose 100"):
         read_g2o(write_file(tmp_path, lines))
+
+
+def test_planar_landmarks_in_a_3d_file_are_skipped_with_a_warning(tmp_path):
+    lines = [
+        "PARAMS_CAMERACALIB 0 0 0 0.3 0.5 -0.5 0.5 -0.5 1 1 0.5 0.5",
+        "VERTEX_TRACKXYZ 0 2.0 0.0 0.3",
+        "VERTEX_XY 9 1.0 2.0",
+        "VERTEX_MARKER_SE2 10 1.0 2.0 0.5",
+        "VERTEX_SE3:QUAT 1000 0 0 0 0 0 0 1",
+    ]
+    with pytest.warns(UserWarning) as caught:
+        dataset = read_g2o(write_file(tmp_path, lines))
+    assert sorted(tag for tag in ("VERTEX_XY", "VERTEX_MARKER_SE2") for w in caught if f"'{tag}'" in str(w.message)) == [
+        "VERTEX_MARKER_SE2", "VERTEX_XY"]
+    assert not dataset.planar and dataset.landmark_ids.tolist() == [0]
+    assert [w for w in dataset.warnings if "skipped 1 record(s) with tag 'VERTEX_XY'" in w and w.startswith("line 3:")]
+    assert [w for w in dataset.warnings if "'VERTEX_MARKER_SE2'" in w]
