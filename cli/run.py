@@ -71,7 +71,7 @@ _FILTER = library_option(
     "at pitch +-90 deg), se3 (error-state filter on SE(3), no singularity), se2 (error-state filter on "
     "SE(2): x, y, heading of a planar robot, 3 dof; the only one that takes a planar file's EDGE_SE2_XY and "
     "EDGE_SE2_MARKER observations), or auto: se2 for a planar file (VERTEX_SE2 / EDGE_SE2), euler otherwise. "
-    "Planar files run in the numpy engine.",
+    "se2 runs in the numpy engine.",
     "localizer.filter", "--filter"
 )
 _ASSOCIATION = library_option(
