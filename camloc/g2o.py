@@ -220,20 +220,14 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     is_planar = _is_planar(path, groups)
     messages += _planar_records_skipped(groups, is_planar)
     tables = _parse_tables(path, {tag: lines for tag, lines in groups.items() if is_planar or tag not in PLANAR_ONLY_TAGS}, is_planar)
-    pose_tag = TAG_POSE_SE2 if is_planar else TAG_POSE
+    robot = (TAG_POSE_SE2, TAG_ODOMETRY_SE2) if is_planar else (TAG_POSE, TAG_ODOMETRY)  # the tags messages name
 
     cameras = _build_cameras(path, tables[TAG_CAMERA], messages)
     landmarks = _build_landmarks(path, tables, messages)
-    if is_planar:
-        vertex_ids, vertex_xyz, vertex_quat = _build_planar_vertices(path, tables[TAG_POSE_SE2])
-        odometry = _build_planar_odometry(path, tables[TAG_ODOMETRY_SE2])
-    else:
-        vertex_ids, vertex_xyz, vertex_quat = _build_pose_vertices(path, tables[TAG_POSE], messages)
-        odometry = _build_odometry(path, tables[TAG_ODOMETRY], messages)
-    robot = (TAG_POSE_SE2, TAG_ODOMETRY_SE2) if is_planar else (TAG_POSE, TAG_ODOMETRY)  # the tags messages name
-    start = _start_vertex(path, vertex_ids, tables[pose_tag].lines, odometry, robot)
+    vertex_ids, vertex_xyz, vertex_quat, odometry = _build_robot(path, tables, is_planar, messages)
+    start = _start_vertex(path, vertex_ids, tables[robot[0]].lines, odometry, robot)
     pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry, robot)
-    _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[pose_tag].lines, robot)
+    _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[robot[0]].lines, robot)
     truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages, robot[0])
     observations = _build_all_observations(path, tables, pose_ids, cameras, messages, is_planar)
 
@@ -267,6 +261,13 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         landmark_kind=landmarks["kind"],
         landmark_heading=landmarks["heading"],
     )
+
+
+def _build_robot(path: Path, tables: dict[str, _Table], is_planar: bool, messages: list[str]) -> tuple:
+    """The pose vertices (ids, xyz, quaternions) and the odometry edges of a 3-D or planar robot."""
+    if is_planar:
+        return (*_build_planar_vertices(path, tables[TAG_POSE_SE2]), _build_planar_odometry(path, tables[TAG_ODOMETRY_SE2]))
+    return (*_build_pose_vertices(path, tables[TAG_POSE], messages), _build_odometry(path, tables[TAG_ODOMETRY], messages))
 
 
 def _planar_records_skipped(groups: dict[str, _Lines], is_planar: bool) -> list[str]:
