@@ -18,6 +18,8 @@ from camloc import geometry
 # a 3-D point (VERTEX_TRACKXYZ, seen by cameras), a point of the plane (VERTEX_XY, seen by point2
 # observations) or a planar marker with a heading (VERTEX_MARKER_SE2, seen by marker observations).
 LANDMARK_POINT3, LANDMARK_POINT2, LANDMARK_MARKER = 0, 1, 2
+# a tag (VERTEX_TAG): a 3-D point, seen by cameras like a VERTEX_TRACKXYZ, with an orientation
+LANDMARK_TAG = 3
 
 
 @dataclass(frozen=True)
@@ -85,6 +87,9 @@ class Dataset:
     landmark_kind : (L,) int64 each landmark's kind (``LANDMARK_POINT3``, ``LANDMARK_POINT2``,
         ``LANDMARK_MARKER``); a planar landmark has z = 0.
     landmark_heading : (L,) a marker's heading in the world plane (radians), NaN for a point.
+    landmark_quat_xyzw : (L, 4) a tag's orientation in the world (``LANDMARK_TAG``), NaN for others.
+    obs_partner : (K,) int64 for a tag's orientation (``measurement.TAG_ROTATION``), the index of
+        the observation of its position (the one before it); -1 for every other observation.
     """
 
     source: str
@@ -112,12 +117,18 @@ class Dataset:
     planar: bool = False
     landmark_kind: np.ndarray = None  # type: ignore[assignment]  (None: every landmark a 3-D point)
     landmark_heading: np.ndarray = None  # type: ignore[assignment]  (None: no marker)
+    landmark_quat_xyzw: np.ndarray = None  # type: ignore[assignment]  (None: no tag)
+    obs_partner: np.ndarray = None  # type: ignore[assignment]  (None: no tag orientation)
 
     def __post_init__(self) -> None:
         if self.landmark_kind is None:
             object.__setattr__(self, "landmark_kind", np.zeros(len(self.landmark_ids), dtype=np.int64))
         if self.landmark_heading is None:
             object.__setattr__(self, "landmark_heading", np.full(len(self.landmark_ids), np.nan))
+        if self.landmark_quat_xyzw is None:
+            object.__setattr__(self, "landmark_quat_xyzw", np.full((len(self.landmark_ids), 4), np.nan))
+        if self.obs_partner is None:
+            object.__setattr__(self, "obs_partner", np.full(self.obs_z.shape[0], -1, dtype=np.int64))
         if self.obs_kind is None:  # a dataset built by hand of depth observations only
             object.__setattr__(self, "obs_kind", np.zeros(self.obs_z.shape[0], dtype=np.int64))
         if len(self.obs_kind) != self.obs_z.shape[0]:

@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import geometry, models, planar
-from camloc.measurement import DEPTH, PLANAR_KINDS
+from camloc import geometry, models, planar, tags
+from camloc.measurement import DEPTH, PLANAR_KINDS, TAG_ROTATION
 
 SINGULARITY_WARNING_DEG = 80.0
 
@@ -38,7 +38,10 @@ class EulerFilter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return models.motion(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None):
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None, tag_quat=None):
+        if kind == TAG_ROTATION:  # a body rotation E d: the rotation error's Jacobian chains E
+            return _tag_rotation(geometry.euler_to_matrix(x[3:6]), T_robot_camera, tag_quat,
+                                 geometry.euler_rate_matrix(x[3:6]), translation_columns=3)
         return models.observe(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -91,7 +94,9 @@ class SE3Filter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return models.motion_se3(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None):
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None, tag_quat=None):
+        if kind == TAG_ROTATION:
+            return _tag_rotation(x[:3, :3], T_robot_camera, tag_quat, np.eye(3), translation_columns=3)
         return models.observe_se3(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -134,8 +139,12 @@ class SE2Filter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return planar.motion(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None):
-        """Predictions (M, 3) and Jacobians (M, 3, 3); ``heading`` (M,): a marker's, in the world."""
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None, tag_quat=None):
+        """Predictions (M, 3) and Jacobians (M, 3, 3); ``heading`` (M,): a marker's, in the world;
+        ``tag_quat`` (M, 4): a tag's orientation."""
+        if kind == TAG_ROTATION:  # a turn about z
+            return _tag_rotation(planar.lift(x)[:3, :3], T_robot_camera, tag_quat, np.array([[0.0], [0.0], [1.0]]),
+                                 translation_columns=2)
         if kind in PLANAR_KINDS:
             return planar.observe_planar(x, landmark_xyz[:, :2], heading, kind)
         return planar.observe_camera(x, T_robot_camera, intrinsics, landmark_xyz, kind)
@@ -171,6 +180,18 @@ FILTERS = {"euler": EulerFilter, "se3": SE3Filter, "se2": SE2Filter}
 
 def make_filter(name: str):
     return FILTERS[name]()
+
+
+def _tag_rotation(R_world_robot: np.ndarray, T_robot_camera: np.ndarray, tag_quat: np.ndarray, rotation_of_state: np.ndarray,
+                  *, translation_columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """A tag's orientation in the camera (``camloc.tags``): z_hat = Log(R_pred) (M, 3) and H (M, 3, n),
+    R_pred's right perturbation per state error: zeros for the translation, ``H_R`` times
+    ``rotation_of_state`` (d dtheta / d state's rotation part) for the rotation. The filter's update
+    aligns both with the measurement (``tags.aligned``)."""
+    R_pred, H_R = tags.prediction(R_world_robot, T_robot_camera[:3, :3], geometry.quat_to_matrix(tag_quat))
+    H = np.zeros((R_pred.shape[0], 3, translation_columns + rotation_of_state.shape[1]))
+    H[:, :, translation_columns:] = H_R @ rotation_of_state
+    return geometry.so3_log(R_pred), H
 
 
 def _symmetric(P: np.ndarray) -> np.ndarray:

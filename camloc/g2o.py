@@ -24,7 +24,7 @@ import numpy as np
 
 from camloc import geometry, measurement, planar, sym3
 from camloc.atomic_files import make_folder
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Camera, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
 # g2o's EDGE_SE3:QUAT error is (translation, vector part of the error quaternion). A small rotation
@@ -81,6 +81,9 @@ TAG_MARKER = "VERTEX_MARKER_SE2"
 TAG_OBSERVATION_XY = measurement.KINDS[measurement.POINT2].tag     # EDGE_SE2_XY
 TAG_OBSERVATION_MARKER = measurement.KINDS[measurement.MARKER].tag  # EDGE_SE2_MARKER
 PLANAR_ROBOT_TAGS = (TAG_POSE_SE2, TAG_ODOMETRY_SE2)
+# a tag (an AprilTag): its pose, and a camera's observation of its position and orientation
+TAG_TAG = "VERTEX_TAG"
+TAG_OBSERVATION_TAG = "EDGE_PROJECT_TAG"
 # a planar robot's landmarks: a 3-D file's are skipped with a warning, as unknown tags are (no
 # sensor of a 3-D robot observes them, and a 3-D file read before they were known reads the same)
 PLANAR_ONLY_TAGS = (TAG_LANDMARK_XY, TAG_MARKER)
@@ -153,14 +156,18 @@ _OBSERVATION_XY = _Layout(TAG_OBSERVATION_XY, ("pose", "landmark", "x", "y") + _
                           "pose landmark x y + 3 information numbers", ("x", "y"))
 _OBSERVATION_MARKER = _Layout(TAG_OBSERVATION_MARKER, ("pose", "landmark", "x", "y", "psi") + _upper_names(3), 2,
                               "pose landmark x y psi + 6 information numbers", ("x", "y"))
+_TAG = _Layout(TAG_TAG, ("id", "x", "y", "z", "qx", "qy", "qz", "qw"), 1, "id x y z qx qy qz qw", ("x", "y", "z"))
+_OBSERVATION_TAG = _Layout(TAG_OBSERVATION_TAG, ("pose", "landmark", "camera", "u", "v", "depth", "qx", "qy", "qz", "qw")
+                           + _upper_names(6), 3, "pose landmark camera u v depth qx qy qz qw + 21 information numbers",
+                           ("depth",), ("u", "v"))
 # each observation record's layout by its measurement kind (camloc.measurement)
 _OBSERVATION_LAYOUTS = {measurement.DEPTH: _OBSERVATION, measurement.PIXEL: _OBSERVATION_UV,
                         measurement.DISPARITY: _OBSERVATION_DISPARITY, measurement.POINT2: _OBSERVATION_XY,
                         measurement.MARKER: _OBSERVATION_MARKER}
 # the map's records, by the kind of landmark each gives (camloc.dataset)
-_LANDMARK_LAYOUTS = {LANDMARK_POINT3: _LANDMARK, LANDMARK_POINT2: _LANDMARK_XY, LANDMARK_MARKER: _MARKER}
+_LANDMARK_LAYOUTS = {LANDMARK_POINT3: _LANDMARK, LANDMARK_POINT2: _LANDMARK_XY, LANDMARK_MARKER: _MARKER, LANDMARK_TAG: _TAG}
 _LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, _POSE_SE2, _ODOMETRY_SE2, _LANDMARK_XY,
-                                              _MARKER, *_OBSERVATION_LAYOUTS.values())}
+                                              _MARKER, _TAG, *_OBSERVATION_LAYOUTS.values(), _OBSERVATION_TAG)}
 KNOWN_TAGS = tuple(_LAYOUTS)
 
 
@@ -260,6 +267,8 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         planar=is_planar,
         landmark_kind=landmarks["kind"],
         landmark_heading=landmarks["heading"],
+        landmark_quat_xyzw=landmarks["quat"],
+        obs_partner=np.where(observations["kind"] == measurement.TAG_ROTATION, np.arange(observations["kind"].size) - 1, -1),
     )
 
 
@@ -591,17 +600,18 @@ def _build_landmarks(path: Path, tables: dict[str, _Table], messages: list[str])
         table = tables[layout.tag]
         n = table.ids.shape[0]
         xyz = np.zeros((n, 3))
-        columns = 3 if kind == LANDMARK_POINT3 else 2  # a planar landmark's z is 0
+        columns = 3 if kind in (LANDMARK_POINT3, LANDMARK_TAG) else 2  # a planar landmark's z is 0
         xyz[:, :columns] = table.values[:, :columns]
         heading = table.values[:, 2].copy() if kind == LANDMARK_MARKER else np.full(n, np.nan)
-        parts.append((table.ids[:, 0], xyz, np.full(n, kind, np.int64), heading, table.lines))
-    ids, xyz, kinds, heading, lines = (np.concatenate(column) for column in zip(*parts))
+        quat = _unit_quaternions(path, TAG_TAG, table.values[:, 3:7], table.lines, messages) if kind == LANDMARK_TAG else np.full((n, 4), np.nan)
+        parts.append((table.ids[:, 0], xyz, np.full(n, kind, np.int64), heading, quat, table.lines))
+    ids, xyz, kinds, heading, quat, lines = (np.concatenate(column) for column in zip(*parts))
     order = np.argsort(lines, kind="stable")
-    ids, xyz, kinds, heading, lines = ids[order], xyz[order], kinds[order], heading[order], lines[order]
+    ids, xyz, kinds, heading, quat, lines = ids[order], xyz[order], kinds[order], heading[order], quat[order], lines[order]
     _check_unique(path, ids, lines, "landmark id")
     if ids.size == 0:
         messages.append(f"no {TAG_LANDMARK} record: the map is empty")
-    return {"ids": ids, "xyz": xyz, "kind": kinds, "heading": heading}
+    return {"ids": ids, "xyz": xyz, "kind": kinds, "heading": heading, "quat": quat}
 
 
 def _build_pose_vertices(path: Path, table: _Table,
@@ -662,6 +672,7 @@ def _build_all_observations(path: Path, tables: dict[str, _Table], pose_ids: np.
     (no camera) sensor is ``measurement.ROBOT_FRAME_SENSOR``."""
     parts = [_build_observations(path, tables[layout.tag], layout, kind, pose_ids, cameras, messages)
              for kind, layout in _OBSERVATION_LAYOUTS.items()]
+    parts.append(_build_tag_observations(path, tables[TAG_OBSERVATION_TAG], pose_ids, cameras, messages))
     order = np.argsort(np.concatenate([part.pop("line") for part in parts]), kind="stable")
     return {name: np.concatenate([part[name] for part in parts])[order] for name in parts[0]}
 
@@ -703,6 +714,30 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
     return {"pose_index": pose_index.astype(np.int64), "camera": camera, "landmark": landmark,
             "z": z, "info": info, "cov": _covariances(path, tag, info, table.lines, observation_cov_from_info),
             "kind": np.full(table.values.shape[0], kind, dtype=np.int64), "line": table.lines}
+
+
+def _build_tag_observations(path: Path, table: _Table, pose_ids: np.ndarray, cameras: dict[int, Camera],
+                            messages: list[str]) -> dict[str, np.ndarray]:
+    """``EDGE_PROJECT_TAG`` records as two observations each, consecutive and on the record's line:
+    a depth observation of the tag's position (u, v, depth) and its orientation's
+    (``measurement.TAG_ROTATION``: z the rotation vector of the measured orientation), each with its
+    block of the 6x6 information, which must have no (u, v, depth) x orientation correlation."""
+    info = _info_from_upper(table.values[:, 7:28], 6)
+    _check_positive_definite(path, TAG_OBSERVATION_TAG, info, table.lines)
+    coupled = np.flatnonzero(np.any(info[:, :3, 3:] != 0.0, axis=(1, 2)))
+    if coupled.size:
+        raise DatasetError(path, int(table.lines[coupled[0]]), f"{TAG_OBSERVATION_TAG}: expected no information between "
+                           "(u, v, depth) and the orientation (the 3x3 block of rows 0-2, columns 3-5 zero), found some")
+    position = _Table(table.ids, np.hstack([table.values[:, :3], info[(slice(None), *np.triu_indices(3))]]), table.lines)
+    layout = _Layout(TAG_OBSERVATION_TAG, _OBSERVATION.names, 3, _OBSERVATION.summary, _OBSERVATION.lengths, _OBSERVATION.image)
+    part = _build_observations(path, position, layout, measurement.DEPTH, pose_ids, cameras, messages)
+    quat = _unit_quaternions(path, TAG_OBSERVATION_TAG, table.values[:, 3:7], table.lines, messages)
+    rotation_info = info[:, 3:, 3:]
+    rotation = {**part, "z": geometry.so3_log(geometry.quat_to_matrix(quat)).reshape(-1, 3), "info": rotation_info,
+                "cov": _covariances(path, TAG_OBSERVATION_TAG, rotation_info, table.lines, observation_cov_from_info),
+                "kind": np.full(table.values.shape[0], measurement.TAG_ROTATION, dtype=np.int64)}
+    # interleaved: each position, then its orientation (``Dataset.obs_partner``)
+    return {name: np.stack([part[name], rotation[name]], axis=1).reshape((-1,) + part[name].shape[1:]) for name in part}
 
 
 # --- the pose chain -------------------------------------------------------------------------
@@ -849,7 +884,8 @@ def _format_dataset(dataset: Dataset) -> list[str]:
 def _landmark_records(dataset: Dataset) -> list[str]:
     """The map's records in dataset order, each by its landmark's kind (``_LANDMARK_LAYOUTS``)."""
     values = {LANDMARK_POINT3: dataset.landmark_xyz, LANDMARK_POINT2: dataset.landmark_xyz[:, :2],
-              LANDMARK_MARKER: np.column_stack([dataset.landmark_xyz[:, :2], dataset.landmark_heading])}
+              LANDMARK_MARKER: np.column_stack([dataset.landmark_xyz[:, :2], dataset.landmark_heading]),
+              LANDMARK_TAG: np.hstack([dataset.landmark_xyz, dataset.landmark_quat_xyzw])}
     lines: list[str] = [""] * len(dataset.landmark_ids)
     for kind, layout in _LANDMARK_LAYOUTS.items():
         rows = np.flatnonzero(dataset.landmark_kind == kind)
@@ -890,6 +926,15 @@ def _observation_records(dataset: Dataset) -> list[str]:
         values = np.hstack([dataset.obs_z[rows, :dof], measurement.upper_triangle(dataset.obs_info[rows], kind)])
         for row, line in zip(rows.tolist(), _records(layout.tag, ids[rows, :layout.n_ids], values)):
             lines[row] = line
+    # a tag's position and orientation: one EDGE_PROJECT_TAG on the position's line, none on the orientation's
+    rotation = np.flatnonzero(dataset.obs_kind == measurement.TAG_ROTATION)
+    position = dataset.obs_partner[rotation]
+    info = np.zeros((rotation.size, 6, 6))
+    info[:, :3, :3], info[:, 3:, 3:] = dataset.obs_info[position], dataset.obs_info[rotation]
+    quat = geometry.matrix_to_quat(geometry.so3_exp(dataset.obs_z[rotation])).reshape(-1, 4)
+    values = np.hstack([dataset.obs_z[position], quat, info[(slice(None), *np.triu_indices(6))]])
+    for row, partner, line in zip(position.tolist(), rotation.tolist(), _records(TAG_OBSERVATION_TAG, ids[position], values)):
+        lines[row], lines[partner] = line, ""
     return lines
 
 

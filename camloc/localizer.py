@@ -83,7 +83,9 @@ def localize(
     config = resolved_config(config or LocalizerConfig(), dataset)
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
-    compilable = config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
+    # a tag's orientation is the numpy engine's only (camloc.tags)
+    compilable = (config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
+                  and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
     if engine == "compiled" and not compilable:
         raise ConfigError(f"the compiled loop runs the euler filter with {' or '.join(COMPILED_ASSOCIATIONS)} association; "
                           f"filter {config.filter!r} with association {config.association!r} runs in numpy")
@@ -145,7 +147,7 @@ def initial_cov(config: LocalizerConfig, filter_model) -> np.ndarray:
 def _compile_in_background(dataset: Dataset) -> Optional[str]:
     """``warmup.STARTED`` or ``warmup.RUNNING`` where this run goes to numpy while the kernels
     compile in the background; None where it compiles them first."""
-    pixel = int(np.count_nonzero(~measurement.measures_range(dataset.obs_kind) & ~measurement.is_planar(dataset.obs_kind)))
+    pixel = int(np.count_nonzero(measurement.is_ray(dataset.obs_kind)))
     if warmup.numpy_seconds(dataset.num_observations, pixel) > warmup.NUMPY_FIRST_RUN_SECONDS:
         return None
     return warmup.start_background_compile()
@@ -280,9 +282,14 @@ class _Localizer:
         self.null_cost = noise.null_cost
         self.stacked = StackedUpdate(dataset, self.filter, config.iterations, self.cameras, self.obs_sensor, noise, self.obs_dof)
 
-        order = np.argsort(dataset.obs_pose_index, kind="stable")
+        # what association sees of each pose: a tag's orientation is not associated but rides with
+        # its position's pair (``with_tag_rotations``)
+        associated = np.flatnonzero(dataset.obs_kind != measurement.TAG_ROTATION)
+        order = associated[np.argsort(dataset.obs_pose_index[associated], kind="stable")]
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
+        riders = np.flatnonzero(dataset.obs_partner >= 0)
+        self.rotation_of = dict(zip(dataset.obs_partner[riders].tolist(), riders.tolist()))  # position -> orientation
         self.T_increments = dataset.T_odometry
         self.scene = AssociationScene(  # what the per-pose association methods read
             dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
@@ -352,6 +359,7 @@ class _Localizer:
         if k > 0:
             self._predict(k - 1)                       # x <- x (+) odometry increment
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
+        obs, landmarks = self.with_tag_rotations(obs, landmarks)  # a tag's orientation with its position
         slipped = self.beam_slipped is not None and bool(self.beam_slipped[k])
         start = None
         if slipped:
@@ -371,6 +379,9 @@ class _Localizer:
             if self.config.recheck.enabled and self.config.association != "oracle" and obs.size >= 2 and not slipped:
                 keep = self._recheck(self.obs_of_pose[k], obs, landmarks, self.P, result.state)
                 if not keep.all():
+                    kept = set(obs[keep].tolist())  # an orientation goes with its position
+                    keep &= np.array([int(self.dataset.obs_partner[o]) in kept if self.dataset.obs_partner[o] >= 0 else True
+                                      for o in obs.tolist()], dtype=bool)
                     obs, landmarks = obs[keep], landmarks[keep]
                     if obs.size:
                         result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)
@@ -402,6 +413,18 @@ class _Localizer:
         if self.associate is None:
             raise RuntimeError("the beam decides the pairs of the whole run first: call search_beam before step")
         return self.associate(self.scene, self.x, self.P, obs)
+
+    def with_tag_rotations(self, obs: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs (p,) and, after each whose observation is a tag's position paired with a tag, its
+        orientation's observation paired with the same tag (``camloc.tags``)."""
+        if not self.rotation_of or obs.size == 0:
+            return obs, landmarks
+        ride = [(self.rotation_of[o], lm) for o, lm in zip(obs.tolist(), landmarks.tolist())
+                if o in self.rotation_of and np.isfinite(self.dataset.landmark_quat_xyzw[lm, 0])]
+        if not ride:
+            return obs, landmarks
+        return (np.concatenate([obs, np.array([r for r, _ in ride], np.int64)]),
+                np.concatenate([landmarks, np.array([lm for _, lm in ride], np.int64)]))
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
         """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative

@@ -16,6 +16,12 @@ point2     z = (x, y)              2 rows   (``EDGE_SE2_XY``: a point landmark i
 marker     z = (x, y, psi)         3 rows   (``EDGE_SE2_MARKER``: a marker's planar pose in the
                                              robot frame; psi an angle, residuals wrapped)
 
+A tag's orientation (``frame == "tag"``; its model is ``camloc.tags``', the numpy engine's only)
+------------------------------------------------------------------------------------------------
+tag_rotation  z = Log(R_tag/c)     3 rows   (the orientation half of ``EDGE_PROJECT_TAG``, whose
+                                             position half is a depth measurement: the two are
+                                             consecutive observations, ``Dataset.obs_partner``)
+
 One layout for every kind: ``MAX_DIM`` rows
 -------------------------------------------
 Every measurement is stored in ``MAX_DIM`` (3) rows. A kind of fewer rows (pixel: 2) fills the
@@ -39,6 +45,7 @@ MAX_DIM = 3
 
 DEPTH, PIXEL, DISPARITY = 0, 1, 2
 POINT2, MARKER = 3, 4
+TAG_ROTATION = 5
 
 # the sensor id of the planar kinds' observations, which no camera makes (they are in the robot frame)
 ROBOT_FRAME_SENSOR = -1
@@ -52,7 +59,7 @@ class MeasurementKind:
     name: str
     tag: str
     components: tuple[str, ...]
-    frame: str = "camera"  # "camera": a camera's measurement; "robot": a planar robot's, in its own frame
+    frame: str = "camera"  # "camera": a camera's measurement; "robot": a planar robot's, in its own frame; "tag": a tag's orientation
 
     @property
     def dof(self) -> int:
@@ -71,6 +78,7 @@ KINDS: dict[int, MeasurementKind] = {
     DISPARITY: MeasurementKind(DISPARITY, "disparity", "EDGE_PROJECT_DISPARITY", ("u", "v", "inverse_depth")),
     POINT2: MeasurementKind(POINT2, "point2", "EDGE_SE2_XY", ("x", "y"), "robot"),
     MARKER: MeasurementKind(MARKER, "marker", "EDGE_SE2_MARKER", ("x", "y", "psi"), "robot"),
+    TAG_ROTATION: MeasurementKind(TAG_ROTATION, "tag_rotation", "EDGE_PROJECT_TAG", ("rx", "ry", "rz"), "tag"),
 }
 CAMERA_KINDS = tuple(code for code, kind in KINDS.items() if kind.frame == "camera")
 PLANAR_KINDS = tuple(code for code, kind in KINDS.items() if kind.frame == "robot")
@@ -95,6 +103,11 @@ def measures_range(kinds: np.ndarray) -> np.ndarray:
     """(K,) bool: whether each camera measurement of the given kinds (K,) places its landmark as a
     point (False for a pixel and for the planar kinds, which have no camera)."""
     return _MEASURES_RANGE[np.asarray(kinds, dtype=np.int64)]
+
+
+def is_ray(kinds: np.ndarray) -> np.ndarray:
+    """(K,) bool: which of the kinds (K,) are a camera's ray (a pixel: no range)."""
+    return np.asarray(kinds, dtype=np.int64) == PIXEL
 
 
 def is_planar(kinds: np.ndarray) -> np.ndarray:

@@ -188,7 +188,7 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     if max_depth is None:
         if depth.size:
             max_depth = 1.25 * float(depth.max()) + 0.5
-        elif np.any(~measurement.is_planar(dataset.obs_kind)):  # a camera's, measuring no depth
+        elif np.any(measurement.is_ray(dataset.obs_kind)):  # a camera's, measuring no depth
             max_depth = 1.25 * pixel_reach(dataset, max_angle) + 0.5
         else:
             max_depth = 10.0
@@ -214,7 +214,7 @@ def pixel_reach(dataset: Dataset, max_angle: float, *, typical: bool = False) ->
     distance = cKDTree(dataset.landmark_xyz).query(dataset.landmark_xyz, DENSITY_NEIGHBOURS + 1)[0][:, -1]
     radius = float(np.median(distance))
     density = DENSITY_NEIGHBOURS / (4.0 / 3.0 * np.pi * max(radius, 1e-9) ** 3)
-    by_camera = ~measurement.is_planar(dataset.obs_kind)  # a planar robot's own sensor has no view cone
+    by_camera = np.isin(dataset.obs_kind, measurement.CAMERA_KINDS)  # a planar robot's own sensor has no view cone, a tag's orientation no ray
     camera, pose_index = dataset.obs_camera[by_camera], dataset.obs_pose_index[by_camera]
     per_view = np.bincount(pose_index * (int(camera.max()) + 1) + camera)
     counts = per_view[per_view > 0]
@@ -236,7 +236,7 @@ def detection_range(dataset: Dataset, max_angle: float) -> tuple[float, float]:
     falls short of the true range (1.2-1.6 m on simulated worlds of range 2 m); the range counted
     as sure goes to 1.2 times that (1.4-1.9 m): a landmark beyond the true range counted as surely
     seen charges the right explanation."""
-    if not np.any(~measurement.measures_range(dataset.obs_kind) & ~measurement.is_planar(dataset.obs_kind)):
+    if not np.any(measurement.is_ray(dataset.obs_kind)):
         return 0.0, 0.0  # no camera's ray (a planar robot's own sensor measures range)
     reach = pixel_reach(dataset, max_angle, typical=True)
     return DETECT_NEAR * reach, DETECT_FAR * reach
@@ -250,7 +250,7 @@ def _widest_ray(dataset: Dataset) -> float:
     if not dataset.cameras:
         return float(np.radians(60.0))
     for camera_id, camera in dataset.cameras.items():
-        mine = dataset.obs_camera == camera_id
+        mine = (dataset.obs_camera == camera_id) & np.isin(dataset.obs_kind, measurement.CAMERA_KINDS)  # image coordinates
         tan[mine, 0] = (dataset.obs_z[mine, 0] - camera.cx) / camera.fx
         tan[mine, 1] = (dataset.obs_z[mine, 1] - camera.cy) / camera.fy
     widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))

@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from camloc import ekf, measurement, models, planar
+from camloc import ekf, geometry, measurement, models, planar, tags
 from camloc.dataset import Dataset
 from camloc.observation_space import ObservationNoise
 from camloc.tails import chi2_quantile
@@ -58,22 +58,28 @@ class StackedUpdate:
             groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]
         heading = self.dataset.landmark_heading[landmarks]
+        tag_quat = self.dataset.landmark_quat_xyzw[landmarks]
         kinds = self.dataset.obs_kind[obs]
         angles = bool(np.any(measurement.ANGLE_ROW[kinds] >= 0))
+        tag_rows = np.flatnonzero(kinds == measurement.TAG_ROTATION)
         z_measured = z.reshape(obs.size, 3)
 
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if len(groups) == 1:
                 camera = groups[0][0]
-                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind, heading=heading)
+                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind, heading=heading,
+                                               tag_quat=tag_quat)
             else:
                 z_hat = np.empty((obs.size, 3))
                 H = np.empty((obs.size, 3, self.filter.dim))
                 for camera, mask in groups:
                     z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask],
-                                                               camera.kind, heading=heading[mask])
+                                                               camera.kind, heading=heading[mask], tag_quat=tag_quat[mask])
             if angles:  # an angle predicted on the measurement's branch, so that z - z_hat is the wrapped residual
                 z_hat = z_measured - planar.wrap_residuals(z_measured - z_hat, kinds)
+            if tag_rows.size:  # a tag's orientation: the innovation is Log(R_pred^-1 R_meas) (camloc.tags)
+                z_hat, H = z_hat.copy(), H.copy()
+                z_hat[tag_rows], H[tag_rows] = tags.aligned(z_measured[tag_rows], geometry.so3_exp(z_hat[tag_rows]), H[tag_rows])
             return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
 
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))

@@ -59,6 +59,10 @@ _SENSORS = typer.Option("points", help=with_default(
     "landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the planar pose (x, y, "
     "psi) of VERTEX_MARKER_SE2 markers in the robot frame, each seen only from in front of its face), cameras "
     "(3-D cameras on the robot, EDGE_PROJECT_* of VERTEX_TRACKXYZ landmarks)."), show_default=False)
+_TAG_SIGMA_DEG = typer.Option(None, min=0.0, help=with_default(
+    "With --robot 3d: every landmark a tag (VERTEX_TAG, a random orientation) and every depth detection of one "
+    "also measuring its orientation in the camera, with this standard deviation per axis, degrees "
+    "(EDGE_PROJECT_TAG; camloc/simulate_tags.py). Without it: points (VERTEX_TRACKXYZ)."), show_default=False)
 _TRAJECTORY = library_option(
     "grid: 1 m steps and 90 deg turns on flat ground, like the real file; smooth3d: "
     "smooth 3D motion, roll/pitch up to --max-tilt-deg (default 18); aerial: a flying vehicle looking "
@@ -178,6 +182,7 @@ def simulate(
     force: bool = _FORCE,
     robot: RobotChoice = _ROBOT,
     sensors: str = _SENSORS,
+    tag_sigma_deg: Optional[float] = _TAG_SIGMA_DEG,
     trajectory: Optional[TrajectoryChoice] = _TRAJECTORY,
     poses: Optional[int] = _POSES,
     landmarks: Optional[int] = _LANDMARKS,
@@ -227,8 +232,15 @@ def simulate(
             config = simulation_config(options)
     except SimulationOptionError as error:
         raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
+    if tag_sigma_deg is not None and robot == RobotChoice.planar:
+        raise typer.BadParameter("applies only to --robot 3d", param_hint="--tag-sigma-deg")
+    if tag_sigma_deg is not None and not tag_sigma_deg > 0.0:
+        raise typer.BadParameter(f"expected a standard deviation > 0, found {tag_sigma_deg:g}", param_hint="--tag-sigma-deg")
     refuse_existing(output, force=force)
-    simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
+    if tag_sigma_deg is not None:
+        simulation = _tag_simulation(config, seed, tag_sigma_deg)
+    else:
+        simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
     write_g2o(simulation.dataset, output)
     summary = _summary(simulation, output, seed)
     if echo_json(summary, enabled=json_output) or quiet:
@@ -240,6 +252,20 @@ def simulate(
         f"{counts['outliers']} outliers), {counts['cameras']} camera(s) from {escape(summary['description'])}",
         highlight=False, soft_wrap=True,
     )
+
+
+def _tag_simulation(config, seed: int, sigma_deg: float):
+    """A 3-D world of tags (``camloc.simulate_tags``), labelled as ``simulate_labelled`` labels one."""
+    import math
+
+    import numpy as np
+
+    from camloc.simulate import Simulation
+    from camloc.simulate_tags import simulate_tags
+
+    dataset = simulate_tags(config, seed=seed, sigma_rad=math.radians(sigma_deg))
+    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
+    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter)
 
 
 def _planar_simulation(config, seed: int):

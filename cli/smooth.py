@@ -65,6 +65,9 @@ def smooth(
     read_seconds = time.perf_counter() - started
 
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
+        from camloc.tags import position_pairs_only
+
+        run = position_pairs_only(run, data)  # the smoothers have no model of a tag's orientation
         if data.planar:  # a planar robot: the SE(2) smoother (its odometry has no z, roll or pitch noise)
             from camloc.smoother_se2 import smooth_planar_run
 
