@@ -31,7 +31,7 @@ import numpy as np
 
 from camloc import association, measurement, planar
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG
 from camloc.jcbb import jcbb
 from camloc.sensors import CameraModel
 
@@ -118,7 +118,7 @@ class AssociationScene:
             self.map_index, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
         )
-        return near[kinds[near] == LANDMARK_POINT3]
+        return near[np.isin(kinds[near], (LANDMARK_POINT3, LANDMARK_TAG))]  # a camera sees points and tags
 
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from

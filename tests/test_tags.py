@@ -4,6 +4,7 @@ Jacobians against finite differences through every filter's retraction, the g2o 
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -125,3 +126,26 @@ def test_a_tags_orientation_is_paired_with_its_position(tag_world):
     partner = tag_world.obs_partner[rotation]
     assert np.array_equal(chosen[rotation], chosen[partner])
     assert np.count_nonzero(chosen[rotation] >= 0) > 0.9 * rotation.size
+
+
+def test_tags_end_to_end(tmp_path):
+    from typer.testing import CliRunner
+
+    from camloc.cli.app import app
+
+    def invoke(*args):
+        return CliRunner().invoke(app, [str(arg) for arg in args])
+
+    world, run_dir = tmp_path / "tags.g2o", tmp_path / "run"
+    made = invoke("simulate", "-o", world, "--poses", 60, "--max-observations-per-pose", 2, "--tag-sigma-deg", 1.0)
+    assert made.exit_code == 0, made.output
+    assert "EDGE_PROJECT_TAG" in world.read_text()
+    ran = invoke("run", world, "-o", run_dir, "--json")
+    assert ran.exit_code == 0, ran.output
+    assert json.loads(ran.output)["timing"]["engine"] == "numpy"
+    assert invoke("eval", run_dir).exit_code == 0
+    smoothed = invoke("smooth", run_dir, "--json")
+    assert smoothed.exit_code == 0, smoothed.output
+    assert json.loads(smoothed.output)["observation_factors"] == json.loads(ran.output)["counts"]["accepted"] / 2
+    refused = invoke("simulate", "--robot", "planar", "-o", tmp_path / "x.g2o", "--tag-sigma-deg", 1.0)
+    assert refused.exit_code == 2 and "applies only to --robot 3d" in refused.output
