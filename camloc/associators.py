@@ -125,7 +125,7 @@ class AssociationScene:
         state x, and their Jacobians (m, 3, n)."""
         camera = self.cameras[int(camera_id)]
         return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks], camera.kind,
-                                   heading=self.dataset.landmark_heading[landmarks])
+                                   heading=self.dataset.landmark_heading[landmarks], tag_quat=self.dataset.landmark_quat_xyzw[landmarks])
 
     def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The landmarks camera ``camera_id`` may see from state x (``visible``): (candidates (m,),

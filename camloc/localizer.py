@@ -17,6 +17,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from camloc import association, associators, ekf, geometry, measurement, planar, warmup
+from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
@@ -282,14 +283,13 @@ class _Localizer:
         self.null_cost = noise.null_cost
         self.stacked = StackedUpdate(dataset, self.filter, config.iterations, self.cameras, self.obs_sensor, noise, self.obs_dof)
 
-        # what association sees of each pose: a tag's orientation is not associated but rides with
-        # its position's pair (``with_tag_rotations``)
+        # what association sees of each pose: a tag's orientation is not associated but joins its
+        # position's pair (``tag_orientations.TagOrientations``)
         associated = np.flatnonzero(dataset.obs_kind != measurement.TAG_ROTATION)
         order = associated[np.argsort(dataset.obs_pose_index[associated], kind="stable")]
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
-        riders = np.flatnonzero(dataset.obs_partner >= 0)
-        self.rotation_of = dict(zip(dataset.obs_partner[riders].tolist(), riders.tolist()))  # position -> orientation
+        self.tag_orientations = TagOrientations(dataset)
         self.T_increments = dataset.T_odometry
         self.scene = AssociationScene(  # what the per-pose association methods read
             dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
@@ -359,7 +359,6 @@ class _Localizer:
         if k > 0:
             self._predict(k - 1)                       # x <- x (+) odometry increment
         obs, landmarks = self._associate(k, self.obs_of_pose[k])  # which observation is which landmark
-        obs, landmarks = self.with_tag_rotations(obs, landmarks)  # a tag's orientation with its position
         slipped = self.beam_slipped is not None and bool(self.beam_slipped[k])
         start = None
         if slipped:
@@ -379,12 +378,18 @@ class _Localizer:
             if self.config.recheck.enabled and self.config.association != "oracle" and obs.size >= 2 and not slipped:
                 keep = self._recheck(self.obs_of_pose[k], obs, landmarks, self.P, result.state)
                 if not keep.all():
-                    kept = set(obs[keep].tolist())  # an orientation goes with its position
-                    keep &= np.array([int(self.dataset.obs_partner[o]) in kept if self.dataset.obs_partner[o] >= 0 else True
-                                      for o in obs.tolist()], dtype=bool)
                     obs, landmarks = obs[keep], landmarks[keep]
                     if obs.size:
                         result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)
+            if self.tag_orientations and obs.size:
+                # the pairs final, the orientations of their tags join them (camloc.tags): after
+                # the re-check, which judges the pairs association chose, by their positions
+                with_rotations = self.tag_orientations.joined(obs, landmarks, self.x, self.P, self.observe, self.obs_sensor,
+                                                              self.association_cov)
+                if with_rotations[0].size != obs.size or not np.array_equal(with_rotations[0], obs):
+                    obs, landmarks = with_rotations
+                    if obs.size:
+                        result = self.updated(self.x, self.P, obs, landmarks, map_cost=True, start=result.state)
         if obs.size:
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = result.state, result.cov
@@ -413,18 +418,6 @@ class _Localizer:
         if self.associate is None:
             raise RuntimeError("the beam decides the pairs of the whole run first: call search_beam before step")
         return self.associate(self.scene, self.x, self.P, obs)
-
-    def with_tag_rotations(self, obs: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The pairs (p,) and, after each whose observation is a tag's position paired with a tag, its
-        orientation's observation paired with the same tag (``camloc.tags``)."""
-        if not self.rotation_of or obs.size == 0:
-            return obs, landmarks
-        ride = [(self.rotation_of[o], lm) for o, lm in zip(obs.tolist(), landmarks.tolist())
-                if o in self.rotation_of and np.isfinite(self.dataset.landmark_quat_xyzw[lm, 0])]
-        if not ride:
-            return obs, landmarks
-        return (np.concatenate([obs, np.array([r for r, _ in ride], np.int64)]),
-                np.concatenate([landmarks, np.array([lm for _, lm in ride], np.int64)]))
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
         """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative

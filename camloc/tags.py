@@ -1,5 +1,6 @@
 """A tag's orientation measured by a camera (an AprilTag's rotation from its homography), in the
-error-state form of the micro Lie theory (Sola et al. 2018): pure functions of arrays.
+error-state form of the micro Lie theory (Sola et al. 2018): pure functions of arrays. (The
+numpy localizer's use of them: ``camloc.tag_orientations``.)
 
 Model card
 ----------
