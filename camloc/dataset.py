@@ -129,6 +129,27 @@ class Dataset:
             object.__setattr__(self, "landmark_quat_xyzw", np.full((len(self.landmark_ids), 4), np.nan))
         if self.obs_partner is None:
             object.__setattr__(self, "obs_partner", np.full(self.obs_z.shape[0], -1, dtype=np.int64))
+        self._fit_defaults()
+
+    def _fit_defaults(self) -> None:
+        """A dataset replaced with another map or other observations (``dataclasses.replace``) keeps
+        the per-landmark and per-observation arrays it had: where those hold only their defaults
+        (3-D points, no tag orientation) they are made again at the new size; otherwise a size
+        that does not fit is a ValueError."""
+        L, K = len(self.landmark_ids), self.obs_z.shape[0]
+        defaults = {
+            "landmark_kind": (L, lambda: np.zeros(L, dtype=np.int64), lambda a: np.all(a == 0)),
+            "landmark_heading": (L, lambda: np.full(L, np.nan), lambda a: np.all(np.isnan(a))),
+            "landmark_quat_xyzw": (L, lambda: np.full((L, 4), np.nan), lambda a: np.all(np.isnan(a))),
+            "obs_partner": (K, lambda: np.full(K, -1, dtype=np.int64), lambda a: np.all(a == -1)),
+        }
+        for name, (size, make, is_default) in defaults.items():
+            value = getattr(self, name)
+            if len(value) == size:
+                continue
+            if not is_default(value):
+                raise ValueError(f"{name} has {len(value)} rows for {size}")
+            object.__setattr__(self, name, make())
         if self.obs_kind is None:  # a dataset built by hand of depth observations only
             object.__setattr__(self, "obs_kind", np.zeros(self.obs_z.shape[0], dtype=np.int64))
         if len(self.obs_kind) != self.obs_z.shape[0]:

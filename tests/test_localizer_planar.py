@@ -92,6 +92,7 @@ def dataclass_replace_twins(dataset):
         landmark_xyz=np.concatenate([dataset.landmark_xyz, dataset.landmark_xyz]),
         landmark_kind=np.concatenate([dataset.landmark_kind, dataset.landmark_kind]),
         landmark_heading=np.concatenate([dataset.landmark_heading, dataset.landmark_heading + np.radians(120.0)]),
+        landmark_quat_xyzw=np.concatenate([dataset.landmark_quat_xyzw, dataset.landmark_quat_xyzw]),
     )
 
 
