@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import measurement, sym3
+from camloc import planar, sym3
 
 # Up to this many points a scan finds those within a ball as quickly as a k-d tree does, and
 # scipy.spatial, whose import is 0.2 s (a fifth of ``camloc run`` on a small file), stays unloaded.
@@ -126,7 +126,7 @@ def view_cone_ball(apex: np.ndarray, axis: np.ndarray, depth: float, half_angle_
 
 
 def pair_statistics(
-    z: np.ndarray, R_obs: np.ndarray, z_hat: np.ndarray, HPH: np.ndarray
+    z: np.ndarray, R_obs: np.ndarray, z_hat: np.ndarray, HPH: np.ndarray, kinds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Squared Mahalanobis distance and negative log-likelihood of every (observation, candidate).
 
@@ -134,6 +134,8 @@ def pair_statistics(
     ----------
     z : (n, 3) measurements; R_obs : (n, 3, 3) their covariances.
     z_hat : (m, 3) predicted measurements; HPH : (m, 3, 3) ``H P H'`` of each prediction.
+    kinds : (n,) the measurements' kinds, whose angle rows' residuals are wrapped
+        (``planar.wrap_residuals``); None: no angle.
 
     Returns
     -------
@@ -141,7 +143,10 @@ def pair_statistics(
     nll : (n, m) ``d2 + ln det S``.
     """
     S = HPH[None, :, :, :] + R_obs[:, None, :, :]
-    d2, log_det = mahalanobis_3x3(S, z[:, None, :] - z_hat[None, :, :])
+    y = z[:, None, :] - z_hat[None, :, :]
+    if kinds is not None:
+        y = planar.wrap_residuals(y, np.asarray(kinds)[:, None])
+    d2, log_det = mahalanobis_3x3(S, y)
     return d2, d2 + log_det
 
 
@@ -227,7 +232,7 @@ def assignment_margins(cost: np.ndarray, null_cost: np.ndarray, chosen: np.ndarr
 
 def leave_one_out_costs(
     z: np.ndarray, R_obs: np.ndarray, z_hat: np.ndarray, H: np.ndarray, chosen: np.ndarray,
-    *, information: np.ndarray, gate: float,
+    *, information: np.ndarray, gate: float, kinds: np.ndarray | None = None,
 ) -> np.ndarray:
     """Pair costs of every observation against every candidate, each observation judged by the
     posterior of all the other pairs (its own pair left out).
@@ -251,31 +256,35 @@ def leave_one_out_costs(
     information : (6, 6) prior information (P_prior^-1) plus that of the update's pairs outside
         these observations (another camera's).
     gate : chi^2 gate on d^2; pairs beyond it cost inf.
+    kinds : (n,) the measurements' kinds, for their angle rows (``planar.wrap_residuals``).
 
     Returns
     -------
     (n, m) costs ``d^2 + ln det S - ln det R`` (the beam's units), inf beyond the gate.
     """
-    n = z.shape[0]
+    n, dim = z.shape[0], information.shape[0]
+    kinds = np.zeros(n, np.int64) if kinds is None else np.asarray(kinds)
     paired = np.flatnonzero(chosen >= 0)
-    Hc = H[chosen[paired]]                                            # (p, 3, 6)
-    HtRinv = np.swapaxes(np.linalg.solve(R_obs[paired], Hc), 1, 2)   # (p, 6, 3) H' R^-1
-    J = HtRinv @ Hc                                                   # (p, 6, 6) each pair's information
-    L_rows = np.broadcast_to(information + J.sum(axis=0), (n, 6, 6)).copy()
-    rhs = np.zeros((n, 6))
+    Hc = H[chosen[paired]]                                            # (p, 3, n_x)
+    HtRinv = np.swapaxes(np.linalg.solve(R_obs[paired], Hc), 1, 2)   # (p, n_x, 3) H' R^-1
+    J = HtRinv @ Hc                                                   # (p, n_x, n_x) each pair's information
+    L_rows = np.broadcast_to(information + J.sum(axis=0), (n, dim, dim)).copy()
+    rhs = np.zeros((n, dim))
     if paired.size:
         L_rows[paired] = information[None] + (J.sum(axis=0)[None] - J)   # the other pairs' information
-        rhs[paired] = -(HtRinv @ (z[paired] - z_hat[chosen[paired]])[..., None])[..., 0]
-    P_rows = np.linalg.solve(L_rows, np.broadcast_to(np.eye(6), (n, 6, 6)))
+        y_paired = planar.wrap_residuals(z[paired] - z_hat[chosen[paired]], kinds[paired])
+        rhs[paired] = -(HtRinv @ y_paired[..., None])[..., 0]
+    P_rows = np.linalg.solve(L_rows, np.broadcast_to(np.eye(dim), (n, dim, dim)))
     P_rows = 0.5 * (P_rows + np.swapaxes(P_rows, 1, 2))
     delta = np.einsum("nij,nj->ni", P_rows, rhs)
-    residual = z[:, None, :] - z_hat[None, :, :] - np.einsum("mij,nj->nmi", H, delta)  # (n, m, 3)
+    y = planar.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None])
+    residual = y - np.einsum("mij,nj->nmi", H, delta)  # (n, m, 3)
 
     # Screen before the (n, m) factorizations: every L_i >= information, so each S is at most
     # S_bound_j = H_j information^-1 H_j' + r_max I (r_max: the largest eigenvalue of any R_i),
     # and d^2 under S_bound is a lower bound on the true d^2. Pairs whose bound fails the gate
     # fail it for certain; only the few others are factored.
-    P_bound = np.linalg.solve(information, np.eye(6))
+    P_bound = np.linalg.solve(information, np.eye(dim))
     r_max = float(np.linalg.eigvalsh(R_obs).max())
     S_bound = H @ P_bound @ np.swapaxes(H, 1, 2) + r_max * np.eye(3)
     try:

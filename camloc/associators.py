@@ -29,8 +29,9 @@ from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
-from camloc import association, measurement
+from camloc import association, measurement, planar
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG
 from camloc.jcbb import jcbb
 from camloc.sensors import CameraModel
 
@@ -62,6 +63,8 @@ class AssociationScene:
     conditioned : ``conditioned(x, P, obs, landmarks) -> (x, P)``: the state conditioned on the
         given pairs, weighed by ``association_cov`` (the localizer's stacked, iterated update),
         for a method that judges the rest of a pose's observations after some pairs.
+    planar_range : how far a planar robot's own sensor (``measurement.PLANAR_KINDS``) sees,
+        metres (``observation_space.planar_range``).
     """
 
     dataset: Dataset
@@ -76,6 +79,7 @@ class AssociationScene:
     association_cov: np.ndarray
     true_landmark_row: np.ndarray
     conditioned: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+    planar_range: float = 0.0
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
@@ -83,6 +87,8 @@ class AssociationScene:
         standard deviations of the position (in metres) and of the orientation (in angle), for a
         prior too wide for the data's own margins."""
         camera = self.cameras[int(camera_id)]
+        if self.filter.dim == 3:  # a planar robot (camloc.planar): its own sensor sees around it
+            return self._visible_planar(x, camera, P)
         margin, max_angle = 0.0, self.max_angle
         if P is not None:
             margin = WIDENED_VIEW_SIGMAS * float(np.sqrt(np.linalg.eigvalsh(P[:3, :3])[-1]))
@@ -93,11 +99,33 @@ class AssociationScene:
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
         )
 
+    def _visible_planar(self, x: np.ndarray, camera: CameraModel, P: Optional[np.ndarray]) -> np.ndarray:
+        """``visible`` for a planar state (x, y, theta): a planar sensor's landmarks of its kind
+        within ``planar_range`` of the robot (with P, widened by three standard deviations of the
+        position); a camera's 3-D points in its view from the lifted pose (the heading's
+        standard deviation widening the view's angle)."""
+        kinds = self.dataset.landmark_kind
+        margin = 0.0 if P is None else WIDENED_VIEW_SIGMAS * float(np.sqrt(np.linalg.eigvalsh(P[:2, :2])[-1]))
+        if camera.kind in measurement.PLANAR_KINDS:
+            wanted = LANDMARK_MARKER if camera.kind == measurement.MARKER else LANDMARK_POINT2
+            near = self.map_index.within(np.array([x[0], x[1], 0.0]), self.planar_range + margin)
+            return near[kinds[near] == wanted]
+        max_angle = self.max_angle
+        if P is not None:
+            widened = max_angle + WIDENED_VIEW_SIGMAS * float(np.sqrt(P[2, 2]))
+            max_angle = max(max_angle, min(widened, np.radians(MAX_HALF_ANGLE_DEG)))
+        near = association.candidate_indices(
+            self.map_index, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
+            min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
+        )
+        return near[np.isin(kinds[near], (LANDMARK_POINT3, LANDMARK_TAG))]  # a camera sees points and tags
+
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted measurements (m, 3) of the given landmark indices by camera ``camera_id`` from
         state x, and their Jacobians (m, 3, n)."""
         camera = self.cameras[int(camera_id)]
-        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks], camera.kind)
+        return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks], camera.kind,
+                                   heading=self.dataset.landmark_heading[landmarks], tag_quat=self.dataset.landmark_quat_xyzw[landmarks])
 
     def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The landmarks camera ``camera_id`` may see from state x (``visible``): (candidates (m,),
@@ -121,7 +149,8 @@ def oracle(scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarra
         mine = scene.obs_sensor[obs] == camera_id
         z_hat, H = scene.observe(x, camera_id, index[mine])
         S = H @ P @ np.swapaxes(H, 1, 2) + scene.association_cov[obs[mine]]
-        d2, _ = association.mahalanobis_3x3(S, scene.dataset.obs_z[obs[mine]] - z_hat)
+        y = planar.wrap_residuals(scene.dataset.obs_z[obs[mine]] - z_hat, scene.dataset.obs_kind[obs[mine]])
+        d2, _ = association.mahalanobis_3x3(S, y)
         keep[mine] = d2 <= scene.obs_gate[obs[mine]]
     return obs[keep], index[keep]
 
@@ -187,10 +216,11 @@ def best_friends_pairs(
         if candidates.size == 0:
             continue
         z = ds.obs_z[obs[rows_c]]
-        d2, nll = association.pair_statistics(z, scene.association_cov[obs[rows_c]], z_hat, HPH)
+        kinds = ds.obs_kind[obs[rows_c]]
+        d2, nll = association.pair_statistics(z, scene.association_cov[obs[rows_c]], z_hat, HPH, kinds)
         pair_cost = {"nll": nll, "mahalanobis": d2}.get(cost)
         if pair_cost is None:
-            pair_cost = np.linalg.norm(z[:, None, :] - z_hat[None, :, :], axis=-1)
+            pair_cost = np.linalg.norm(planar.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None]), axis=-1)
         r, c, gap = association.best_friends(pair_cost, d2, gate=float(scene.obs_gate[obs[rows_c[0]]]), margin=margin)
         rows_all.append(rows_c[r])
         landmarks_all.append(candidates[c])
@@ -231,9 +261,9 @@ class Jcbb:
         if candidates.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
-        y_all = ds.obs_z[obs][:, None, :] - z_hat[None, :, :]
+        y_all = planar.wrap_residuals(ds.obs_z[obs][:, None, :] - z_hat[None, :, :], ds.obs_kind[obs][:, None])
         HPH = H @ P @ np.swapaxes(H, 1, 2)
-        d2, _ = association.pair_statistics(ds.obs_z[obs], scene.association_cov[obs], z_hat, HPH)
+        d2, _ = association.pair_statistics(ds.obs_z[obs], scene.association_cov[obs], z_hat, HPH, ds.obs_kind[obs])
         same_camera = np.zeros(d2.shape, dtype=bool)
         start = 0
         for mine, size in blocks:

@@ -79,7 +79,7 @@ class PoseExpansion:
         if self.settings.miss_cost <= 0.0 or high <= 0.0:
             return np.zeros(0, np.int64)
         ds = self.ctx.dataset
-        pixel = ~measurement.measures_range(ds.obs_kind[obs])
+        pixel = measurement.is_ray(ds.obs_kind[obs])
         found = []
         T_world_robot = self.ctx.filter.pose(h.x)
         for i in np.flatnonzero(pixel):

@@ -14,6 +14,13 @@ import numpy as np
 
 from camloc import geometry
 
+# What each landmark of the map is (``Dataset.landmark_kind``), by the record that gave it:
+# a 3-D point (VERTEX_TRACKXYZ, seen by cameras), a point of the plane (VERTEX_XY, seen by point2
+# observations) or a planar marker with a heading (VERTEX_MARKER_SE2, seen by marker observations).
+LANDMARK_POINT3, LANDMARK_POINT2, LANDMARK_MARKER = 0, 1, 2
+# a tag (VERTEX_TAG): a 3-D point, seen by cameras like a VERTEX_TRACKXYZ, with an orientation
+LANDMARK_TAG = 3
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -73,6 +80,16 @@ class Dataset:
         evaluators may, to score the association. Ids absent from the map are clutter.
     tag_counts : number of records per tag, unknown tags included.
     warnings : messages about the input that did not stop the reading.
+    planar : a planar robot (g2o's 2-D records: ``VERTEX_SE2``, ``EDGE_SE2``): its poses and
+        increments are stored lifted to 3-D (z = 0, a rotation about z), ``odom_info`` is the file's
+        (N-1, 3, 3) information of (x, y, theta) and ``odom_cov`` the lifted (N-1, 6, 6) covariance
+        of (translation, rotation vector), zero in z, roll and pitch (``planar.lifted_cov``).
+    landmark_kind : (L,) int64 each landmark's kind (``LANDMARK_POINT3``, ``LANDMARK_POINT2``,
+        ``LANDMARK_MARKER``); a planar landmark has z = 0.
+    landmark_heading : (L,) a marker's heading in the world plane (radians), NaN for a point.
+    landmark_quat_xyzw : (L, 4) a tag's orientation in the world (``LANDMARK_TAG``), NaN for others.
+    obs_partner : (K,) int64 for a tag's orientation (``measurement.TAG_ROTATION``), the index of
+        the observation of its position (the one before it); -1 for every other observation.
     """
 
     source: str
@@ -97,8 +114,42 @@ class Dataset:
     obs_kind: np.ndarray = None  # type: ignore[assignment]  (None: every observation is DEPTH)
     tag_counts: dict[str, int] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    planar: bool = False
+    landmark_kind: np.ndarray = None  # type: ignore[assignment]  (None: every landmark a 3-D point)
+    landmark_heading: np.ndarray = None  # type: ignore[assignment]  (None: no marker)
+    landmark_quat_xyzw: np.ndarray = None  # type: ignore[assignment]  (None: no tag)
+    obs_partner: np.ndarray = None  # type: ignore[assignment]  (None: no tag orientation)
 
     def __post_init__(self) -> None:
+        if self.landmark_kind is None:
+            object.__setattr__(self, "landmark_kind", np.zeros(len(self.landmark_ids), dtype=np.int64))
+        if self.landmark_heading is None:
+            object.__setattr__(self, "landmark_heading", np.full(len(self.landmark_ids), np.nan))
+        if self.landmark_quat_xyzw is None:
+            object.__setattr__(self, "landmark_quat_xyzw", np.full((len(self.landmark_ids), 4), np.nan))
+        if self.obs_partner is None:
+            object.__setattr__(self, "obs_partner", np.full(self.obs_z.shape[0], -1, dtype=np.int64))
+        self._fit_defaults()
+
+    def _fit_defaults(self) -> None:
+        """A dataset replaced with another map or other observations (``dataclasses.replace``) keeps
+        the per-landmark and per-observation arrays it had: where those hold only their defaults
+        (3-D points, no tag orientation) they are made again at the new size; otherwise a size
+        that does not fit is a ValueError."""
+        L, K = len(self.landmark_ids), self.obs_z.shape[0]
+        defaults = {
+            "landmark_kind": (L, lambda: np.zeros(L, dtype=np.int64), lambda a: np.all(a == 0)),
+            "landmark_heading": (L, lambda: np.full(L, np.nan), lambda a: np.all(np.isnan(a))),
+            "landmark_quat_xyzw": (L, lambda: np.full((L, 4), np.nan), lambda a: np.all(np.isnan(a))),
+            "obs_partner": (K, lambda: np.full(K, -1, dtype=np.int64), lambda a: np.all(a == -1)),
+        }
+        for name, (size, make, is_default) in defaults.items():
+            value = getattr(self, name)
+            if len(value) == size:
+                continue
+            if not is_default(value):
+                raise ValueError(f"{name} has {len(value)} rows for {size}")
+            object.__setattr__(self, name, make())
         if self.obs_kind is None:  # a dataset built by hand of depth observations only
             object.__setattr__(self, "obs_kind", np.zeros(self.obs_z.shape[0], dtype=np.int64))
         if len(self.obs_kind) != self.obs_z.shape[0]:

@@ -36,7 +36,8 @@ def summarize_dataset(dataset: Dataset) -> dict[str, Any]:
     - ``observation_noise``: ``sigma_u``, ``sigma_v``, ``sigma_depth``, medians over observations
       of the standard deviations in ``obs_cov`` (depth: over depth observations); None without.
     - ``observation_kinds``: observations of each measurement kind (``camloc.measurement``):
-      ``depth``, ``pixel``, ``disparity``.
+      ``depth``, ``pixel``, ``disparity``, ``point2``, ``marker``.
+    - ``robot``: ``planar`` (``VERTEX_SE2`` / ``EDGE_SE2``) or ``3d``.
     - ``observations_per_pose``: ``min``, ``median``, ``max``, ``poses_without``.
     - ``landmarks_never_observed``: ``count`` and ``ids`` of map landmarks no observation's true
       id names.
@@ -61,6 +62,7 @@ def summarize_dataset(dataset: Dataset) -> dict[str, Any]:
         "observation_noise": _observation_noise(dataset.obs_cov, dataset.obs_kind),
         "observation_kinds": {kind.name: int(np.count_nonzero(dataset.obs_kind == kind.code))
                               for kind in measurement.KINDS.values()},
+        "robot": "planar" if dataset.planar else "3d",
         "observations_per_pose": _observations_per_pose(dataset),
         "landmarks_never_observed": _ids_summary(np.setdiff1d(dataset.landmark_ids, dataset.obs_true_landmark)),
         "unmapped_observations": _unmapped_observations(dataset),

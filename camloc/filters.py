@@ -2,6 +2,8 @@
 
 - ``EulerFilter`` (``--filter euler``, the default): the state is the 6-vector (x, y, z, roll,
   pitch, yaw) and the update is additive; singular at pitch +-90 deg.
+- ``SE2Filter`` (``--filter se2``, the default for planar files): an error-state EKF on SE(2), the
+  state (x, y, theta), the error its right perturbation (``camloc.planar``); 3 degrees of freedom.
 - ``SE3Filter`` (``--filter se3``): an error-state EKF on SE(3). The state is the pose matrix T; the
   covariance is over the right perturbation delta = (dt, dtheta) with T_true = T Exp(delta) in the
   sense of ``geometry.retract_right``; the update is applied through that retraction. No
@@ -17,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import geometry, models
-from camloc.measurement import DEPTH
+from camloc import geometry, models, planar, tags
+from camloc.measurement import DEPTH, PLANAR_KINDS, TAG_ROTATION
 
 SINGULARITY_WARNING_DEG = 80.0
 
@@ -28,6 +30,7 @@ class EulerFilter:
 
     name = "euler"
     stored_size = 6
+    dim = 6
 
     def initial(self, T_world_robot: np.ndarray) -> np.ndarray:
         return geometry.pose_to_euler(T_world_robot)
@@ -35,7 +38,10 @@ class EulerFilter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return models.motion(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH):
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None, tag_quat=None):
+        if kind == TAG_ROTATION:  # a body rotation E d: the rotation error's Jacobian chains E
+            return _tag_rotation(geometry.euler_to_matrix(x[3:6]), T_robot_camera, tag_quat,
+                                 geometry.euler_rate_matrix(x[3:6]), translation_columns=3)
         return models.observe(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -80,6 +86,7 @@ class SE3Filter:
 
     name = "se3"
     stored_size = 7  # x, y, z, qx, qy, qz, qw
+    dim = 6
 
     def initial(self, T_world_robot: np.ndarray) -> np.ndarray:
         return np.array(T_world_robot, dtype=float)
@@ -87,7 +94,9 @@ class SE3Filter:
     def predict(self, x: np.ndarray, T_increment: np.ndarray):
         return models.motion_se3(x, T_increment)
 
-    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH):
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None, tag_quat=None):
+        if kind == TAG_ROTATION:
+            return _tag_rotation(x[:3, :3], T_robot_camera, tag_quat, np.eye(3), translation_columns=3)
         return models.observe_se3(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -116,11 +125,73 @@ class SE3Filter:
         return None
 
 
-FILTERS = {"euler": EulerFilter, "se3": SE3Filter}
+class SE2Filter:
+    """State the planar pose (x, y, theta); error its right perturbation (dt (2), dtheta)
+    (``camloc.planar``). Observes the planar kinds (point2, marker) and 3-D cameras on the robot."""
+
+    name = "se2"
+    stored_size = 3  # x, y, theta
+    dim = 3
+
+    def initial(self, T_world_robot: np.ndarray) -> np.ndarray:
+        return planar.flatten(np.asarray(T_world_robot, dtype=float))
+
+    def predict(self, x: np.ndarray, T_increment: np.ndarray):
+        return planar.motion(x, T_increment)
+
+    def observe(self, x, T_robot_camera, intrinsics, landmark_xyz, kind=DEPTH, heading=None, tag_quat=None):
+        """Predictions (M, 3) and Jacobians (M, 3, 3); ``heading`` (M,): a marker's, in the world;
+        ``tag_quat`` (M, 4): a tag's orientation."""
+        if kind == TAG_ROTATION:  # a turn about z
+            return _tag_rotation(planar.lift(x)[:3, :3], T_robot_camera, tag_quat, np.array([[0.0], [0.0], [1.0]]),
+                                 translation_columns=2)
+        if kind in PLANAR_KINDS:
+            return planar.observe_planar(x, landmark_xyz[:, :2], heading, kind)
+        return planar.observe_camera(x, T_robot_camera, intrinsics, landmark_xyz, kind)
+
+    def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        return planar.retract(x, delta)
+
+    def difference(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return planar.difference(a, b)
+
+    def pose(self, x: np.ndarray) -> np.ndarray:
+        return planar.lift(x)
+
+    def stored(self, x: np.ndarray) -> np.ndarray:
+        return np.array(x, dtype=float)
+
+    def pose_cov(self, stored_states: np.ndarray, covs: np.ndarray) -> np.ndarray:
+        """Covariances (N, 3, 3) of the right perturbation -> (N, 6, 6) of the pose error
+        ``geometry.pose_error_vector``, zero in z, roll and pitch (the robot stays in the plane;
+        NEES of a planar run is taken on the (x, y, yaw) block, ``planar.planar_block``): the world
+        error is (R(theta) dt, dtheta), ``J = blockdiag(R(theta), 1)``."""
+        J = np.zeros_like(covs)
+        J[:, :2, :2] = planar.rotation(stored_states[:, 2])
+        J[:, 2, 2] = 1.0
+        return planar.lifted_cov(_symmetric(J @ covs @ np.swapaxes(J, 1, 2)))
+
+    def near_singularity(self, x: np.ndarray) -> float | None:
+        return None
+
+
+FILTERS = {"euler": EulerFilter, "se3": SE3Filter, "se2": SE2Filter}
 
 
 def make_filter(name: str):
     return FILTERS[name]()
+
+
+def _tag_rotation(R_world_robot: np.ndarray, T_robot_camera: np.ndarray, tag_quat: np.ndarray, rotation_of_state: np.ndarray,
+                  *, translation_columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """A tag's orientation in the camera (``camloc.tags``): z_hat = Log(R_pred) (M, 3) and H (M, 3, n),
+    R_pred's right perturbation per state error: zeros for the translation, ``H_R`` times
+    ``rotation_of_state`` (d dtheta / d state's rotation part) for the rotation. The filter's update
+    aligns both with the measurement (``tags.aligned``)."""
+    R_pred, H_R = tags.prediction(R_world_robot, T_robot_camera[:3, :3], geometry.quat_to_matrix(tag_quat))
+    H = np.zeros((R_pred.shape[0], 3, translation_columns + rotation_of_state.shape[1]))
+    H[:, :, translation_columns:] = H_R @ rotation_of_state
+    return geometry.so3_log(R_pred), H
 
 
 def _symmetric(P: np.ndarray) -> np.ndarray:

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from camloc import geometry, measurement, sym3
+from camloc import geometry, measurement, planar, sym3
 from camloc.atomic_files import make_folder
-from camloc.dataset import Camera, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
 # g2o's EDGE_SE3:QUAT error is (translation, vector part of the error quaternion). A small rotation
@@ -73,6 +73,20 @@ TAG_OBSERVATION = measurement.KINDS[measurement.DEPTH].tag              # EDGE_P
 TAG_OBSERVATION_UV = measurement.KINDS[measurement.PIXEL].tag           # EDGE_PROJECT_UV
 TAG_OBSERVATION_DISPARITY = measurement.KINDS[measurement.DISPARITY].tag  # EDGE_PROJECT_DISPARITY
 OBSERVATION_TAGS = (TAG_OBSERVATION, TAG_OBSERVATION_UV, TAG_OBSERVATION_DISPARITY)
+# a planar robot (g2o's 2-D types), and its landmarks and observations (docs/format.md)
+TAG_POSE_SE2 = "VERTEX_SE2"
+TAG_ODOMETRY_SE2 = "EDGE_SE2"
+TAG_LANDMARK_XY = "VERTEX_XY"
+TAG_MARKER = "VERTEX_MARKER_SE2"
+TAG_OBSERVATION_XY = measurement.KINDS[measurement.POINT2].tag     # EDGE_SE2_XY
+TAG_OBSERVATION_MARKER = measurement.KINDS[measurement.MARKER].tag  # EDGE_SE2_MARKER
+PLANAR_ROBOT_TAGS = (TAG_POSE_SE2, TAG_ODOMETRY_SE2)
+# a tag (an AprilTag): its pose, and a camera's observation of its position and orientation
+TAG_TAG = "VERTEX_TAG"
+TAG_OBSERVATION_TAG = "EDGE_PROJECT_TAG"
+# a planar robot's landmarks: a 3-D file's are skipped with a warning, as unknown tags are (no
+# sensor of a 3-D robot observes them, and a 3-D file read before they were known reads the same)
+PLANAR_ONLY_TAGS = (TAG_LANDMARK_XY, TAG_MARKER)
 
 # Quaternions this close to unit length are kept bit for bit (so that write -> read is exact);
 # further than _QUAT_WARN_TOL they are normalized with a warning, below _QUAT_ZERO_TOL refused.
@@ -133,10 +147,27 @@ _OBSERVATION_UV = _Layout(TAG_OBSERVATION_UV, ("pose", "landmark", "camera", "u"
 _OBSERVATION_DISPARITY = _Layout(
     TAG_OBSERVATION_DISPARITY, ("pose", "landmark", "camera", "u", "v", "inverse_depth") + _upper_names(3), 3,
     "pose landmark camera u v 1/depth + 6 information numbers", (), ("u", "v", "inverse_depth"))
+_POSE_SE2 = _Layout(TAG_POSE_SE2, ("id", "x", "y", "theta"), 1, "id x y theta", ("x", "y"))
+_ODOMETRY_SE2 = _Layout(TAG_ODOMETRY_SE2, ("from", "to", "dx", "dy", "dtheta") + _upper_names(3), 2,
+                        "from to dx dy dtheta + 6 information numbers", ("dx", "dy"))
+_LANDMARK_XY = _Layout(TAG_LANDMARK_XY, ("id", "x", "y"), 1, "id x y", ("x", "y"))
+_MARKER = _Layout(TAG_MARKER, ("id", "x", "y", "psi"), 1, "id x y psi", ("x", "y"))
+_OBSERVATION_XY = _Layout(TAG_OBSERVATION_XY, ("pose", "landmark", "x", "y") + _upper_names(2), 2,
+                          "pose landmark x y + 3 information numbers", ("x", "y"))
+_OBSERVATION_MARKER = _Layout(TAG_OBSERVATION_MARKER, ("pose", "landmark", "x", "y", "psi") + _upper_names(3), 2,
+                              "pose landmark x y psi + 6 information numbers", ("x", "y"))
+_TAG = _Layout(TAG_TAG, ("id", "x", "y", "z", "qx", "qy", "qz", "qw"), 1, "id x y z qx qy qz qw", ("x", "y", "z"))
+_OBSERVATION_TAG = _Layout(TAG_OBSERVATION_TAG, ("pose", "landmark", "camera", "u", "v", "depth", "qx", "qy", "qz", "qw")
+                           + _upper_names(6), 3, "pose landmark camera u v depth qx qy qz qw + 21 information numbers",
+                           ("depth",), ("u", "v"))
 # each observation record's layout by its measurement kind (camloc.measurement)
 _OBSERVATION_LAYOUTS = {measurement.DEPTH: _OBSERVATION, measurement.PIXEL: _OBSERVATION_UV,
-                        measurement.DISPARITY: _OBSERVATION_DISPARITY}
-_LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, *_OBSERVATION_LAYOUTS.values())}
+                        measurement.DISPARITY: _OBSERVATION_DISPARITY, measurement.POINT2: _OBSERVATION_XY,
+                        measurement.MARKER: _OBSERVATION_MARKER}
+# the map's records, by the kind of landmark each gives (camloc.dataset)
+_LANDMARK_LAYOUTS = {LANDMARK_POINT3: _LANDMARK, LANDMARK_POINT2: _LANDMARK_XY, LANDMARK_MARKER: _MARKER, LANDMARK_TAG: _TAG}
+_LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, _POSE_SE2, _ODOMETRY_SE2, _LANDMARK_XY,
+                                              _MARKER, _TAG, *_OBSERVATION_LAYOUTS.values(), _OBSERVATION_TAG)}
 KNOWN_TAGS = tuple(_LAYOUTS)
 
 
@@ -193,17 +224,19 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     path = Path(path)
     groups = _group_lines(path, _read_text(path))
     messages: list[str] = _unknown_tag_warnings(groups)
-    tables = _parse_tables(path, groups)
+    is_planar = _is_planar(path, groups)
+    messages += _planar_records_skipped(groups, is_planar)
+    tables = _parse_tables(path, {tag: lines for tag, lines in groups.items() if is_planar or tag not in PLANAR_ONLY_TAGS}, is_planar)
+    robot = (TAG_POSE_SE2, TAG_ODOMETRY_SE2) if is_planar else (TAG_POSE, TAG_ODOMETRY)  # the tags messages name
 
     cameras = _build_cameras(path, tables[TAG_CAMERA], messages)
-    landmark_ids, landmark_xyz = _build_landmarks(path, tables[TAG_LANDMARK], messages)
-    vertex_ids, vertex_xyz, vertex_quat = _build_pose_vertices(path, tables[TAG_POSE], messages)
-    odometry = _build_odometry(path, tables[TAG_ODOMETRY], messages)
-    start = _start_vertex(path, vertex_ids, tables[TAG_POSE].lines, odometry)
-    pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry)
-    _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[TAG_POSE].lines)
-    truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages)
-    observations = _build_all_observations(path, tables, pose_ids, cameras, messages)
+    landmarks = _build_landmarks(path, tables, messages)
+    vertex_ids, vertex_xyz, vertex_quat, odometry = _build_robot(path, tables, is_planar, messages)
+    start = _start_vertex(path, vertex_ids, tables[robot[0]].lines, odometry, robot)
+    pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry, robot)
+    _check_vertices_on_chain(path, vertex_ids, pose_ids, tables[robot[0]].lines, robot)
+    truth_xyz, truth_quat = _ground_truth(pose_ids, vertex_ids, vertex_xyz, vertex_quat, messages, robot[0])
+    observations = _build_all_observations(path, tables, pose_ids, cameras, messages, is_planar)
 
     for message in messages:
         warnings.warn(f"{path}: {message}", G2oWarning, stacklevel=2)
@@ -211,8 +244,8 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     return Dataset(
         source=str(path),
         cameras=cameras,
-        landmark_ids=landmark_ids,
-        landmark_xyz=landmark_xyz,
+        landmark_ids=landmarks["ids"],
+        landmark_xyz=landmarks["xyz"],
         pose_ids=pose_ids,
         start_xyz=vertex_xyz[start],
         start_quat_xyzw=vertex_quat[start],
@@ -231,7 +264,39 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
         obs_kind=observations["kind"],
         tag_counts={tag: len(lines.numbers) for tag, lines in groups.items()},
         warnings=tuple(messages),
+        planar=is_planar,
+        landmark_kind=landmarks["kind"],
+        landmark_heading=landmarks["heading"],
+        landmark_quat_xyzw=landmarks["quat"],
+        obs_partner=np.where(observations["kind"] == measurement.TAG_ROTATION, np.arange(observations["kind"].size) - 1, -1),
     )
+
+
+def _build_robot(path: Path, tables: dict[str, _Table], is_planar: bool, messages: list[str]) -> tuple:
+    """The pose vertices (ids, xyz, quaternions) and the odometry edges of a 3-D or planar robot."""
+    if is_planar:
+        return (*_build_planar_vertices(path, tables[TAG_POSE_SE2]), _build_planar_odometry(path, tables[TAG_ODOMETRY_SE2]))
+    return (*_build_pose_vertices(path, tables[TAG_POSE], messages), _build_odometry(path, tables[TAG_ODOMETRY], messages))
+
+
+def _planar_records_skipped(groups: dict[str, _Lines], is_planar: bool) -> list[str]:
+    """One message per planar-only tag in a 3-D file: its records are skipped (``PLANAR_ONLY_TAGS``)."""
+    if is_planar:
+        return []
+    return [f"line {lines.numbers[0]}: skipped {len(lines.numbers)} record(s) with tag {tag!r}, a planar robot's "
+            "landmark (this file's robot is 3-D)" for tag, lines in groups.items() if tag in PLANAR_ONLY_TAGS and lines.numbers]
+
+
+def _is_planar(path: Path, groups: dict[str, _Lines]) -> bool:
+    """Whether the file's robot is planar (``VERTEX_SE2``/``EDGE_SE2``); a file with both kinds of
+    robot record is a DatasetError at the first record of the kind that comes second."""
+    planar_lines = [n for tag in PLANAR_ROBOT_TAGS for n in groups.get(tag, _Lines()).numbers]
+    spatial_lines = [n for tag in (TAG_POSE, TAG_ODOMETRY) for n in groups.get(tag, _Lines()).numbers]
+    if planar_lines and spatial_lines:
+        line = min(planar_lines) if min(planar_lines) > min(spatial_lines) else min(spatial_lines)
+        raise DatasetError(path, line, f"expected one kind of robot, planar ({TAG_POSE_SE2}, {TAG_ODOMETRY_SE2}) or 3-D "
+                                       f"({TAG_POSE}, {TAG_ODOMETRY}), found both")
+    return bool(planar_lines)
 
 
 # Files a user may hand over for a g2o file, told apart by their first bytes.
@@ -303,7 +368,7 @@ def _unknown_tag_warnings(groups: dict[str, _Lines]) -> list[str]:
     ]
 
 
-def _parse_tables(path: Path, groups: dict[str, _Lines]) -> dict[str, _Table]:
+def _parse_tables(path: Path, groups: dict[str, _Lines], is_planar: bool = False) -> dict[str, _Table]:
     """Every known tag parsed in bulk; of several malformed lines, the earliest is reported."""
     tables: dict[str, _Table] = {}
     errors: list[DatasetError] = []
@@ -314,9 +379,16 @@ def _parse_tables(path: Path, groups: dict[str, _Lines]) -> dict[str, _Table]:
             errors.append(error)
     if errors:
         raise min(errors, key=lambda error: error.line if error.line is not None else 0)
-    for tag, what in ((TAG_CAMERA, "at least one camera"), (TAG_POSE, "the start pose")):
+    # a planar robot may observe without a camera (EDGE_SE2_XY, EDGE_SE2_MARKER)
+    required = ((TAG_POSE_SE2, "the start pose"),) if is_planar else ((TAG_CAMERA, "at least one camera"), (TAG_POSE, "the start pose"))
+    for tag, what in required:
         if tag not in groups:
             raise DatasetError(path, None, f"expected a {tag} record ({what}), found none")
+    if not is_planar:
+        for tag in (TAG_OBSERVATION_XY, TAG_OBSERVATION_MARKER):
+            if tag in groups:
+                raise DatasetError(path, groups[tag].numbers[0], f"{tag} is a planar robot's observation: expected "
+                                                                 f"{TAG_POSE_SE2} and {TAG_ODOMETRY_SE2} poses, found {TAG_POSE}")
     return tables
 
 
@@ -520,12 +592,26 @@ def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, 
     }
 
 
-def _build_landmarks(path: Path, table: _Table, messages: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    ids = table.ids[:, 0].copy()
-    _check_unique(path, ids, table.lines, "landmark id")
+def _build_landmarks(path: Path, tables: dict[str, _Table], messages: list[str]) -> dict[str, np.ndarray]:
+    """The map of every landmark record in file order: ids, xyz (planar ones at z = 0), kind and
+    heading (NaN but for markers); ids unique across the records."""
+    parts = []
+    for kind, layout in _LANDMARK_LAYOUTS.items():
+        table = tables[layout.tag]
+        n = table.ids.shape[0]
+        xyz = np.zeros((n, 3))
+        columns = 3 if kind in (LANDMARK_POINT3, LANDMARK_TAG) else 2  # a planar landmark's z is 0
+        xyz[:, :columns] = table.values[:, :columns]
+        heading = table.values[:, 2].copy() if kind == LANDMARK_MARKER else np.full(n, np.nan)
+        quat = _unit_quaternions(path, TAG_TAG, table.values[:, 3:7], table.lines, messages) if kind == LANDMARK_TAG else np.full((n, 4), np.nan)
+        parts.append((table.ids[:, 0], xyz, np.full(n, kind, np.int64), heading, quat, table.lines))
+    ids, xyz, kinds, heading, quat, lines = (np.concatenate(column) for column in zip(*parts))
+    order = np.argsort(lines, kind="stable")
+    ids, xyz, kinds, heading, quat, lines = ids[order], xyz[order], kinds[order], heading[order], quat[order], lines[order]
+    _check_unique(path, ids, lines, "landmark id")
     if ids.size == 0:
         messages.append(f"no {TAG_LANDMARK} record: the map is empty")
-    return ids, table.values.copy()
+    return {"ids": ids, "xyz": xyz, "kind": kinds, "heading": heading, "quat": quat}
 
 
 def _build_pose_vertices(path: Path, table: _Table,
@@ -539,6 +625,31 @@ def _build_pose_vertices(path: Path, table: _Table,
                            f"({EXACT_TIMESTAMP_ID}), which the trajectory files' timestamps hold exactly, found {ids[row]}")
     quat = _unit_quaternions(path, TAG_POSE, table.values[:, 3:7], table.lines, messages)
     return ids, table.values[:, 0:3].copy(), quat
+
+
+def _build_planar_vertices(path: Path, table: _Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``VERTEX_SE2`` records as lifted poses: ids, xyz (z = 0) and quaternions about z."""
+    ids = table.ids[:, 0].copy()
+    _check_unique(path, ids, table.lines, "pose vertex id")
+    xyz = np.column_stack([table.values[:, :2], np.zeros(ids.size)])
+    return ids, xyz, planar.quat_of_heading(table.values[:, 2])
+
+
+def _build_planar_odometry(path: Path, table: _Table) -> dict[str, np.ndarray]:
+    """``EDGE_SE2`` records as lifted increments, with the file's (x, y, theta) information
+    (g2o's SE2 error is the increment's (dx, dy, dtheta) itself: no reparametrization) and its
+    inverse lifted to (translation, rotation vector) (``planar.lifted_cov``)."""
+    _check_unique(path, table.ids[:, 0], table.lines, f"{TAG_ODOMETRY_SE2} from pose (a fork in the chain)")
+    info = _info_from_upper(table.values[:, 3:9], 3)
+    _check_positive_definite(path, TAG_ODOMETRY_SE2, info, table.lines)
+    cov = _covariances(path, TAG_ODOMETRY_SE2, info, table.lines, lambda i: 0.5 * (np.linalg.inv(i) + np.swapaxes(np.linalg.inv(i), -1, -2)))
+    n = table.ids.shape[0]
+    return {
+        "from": table.ids[:, 0], "to": table.ids[:, 1], "lines": table.lines,
+        "translation": np.column_stack([table.values[:, :2], np.zeros(n)]),
+        "quat": planar.quat_of_heading(table.values[:, 2]),
+        "info": info, "cov": planar.lifted_cov(cov),
+    }
 
 
 def _build_odometry(path: Path, table: _Table, messages: list[str]) -> dict[str, np.ndarray]:
@@ -556,10 +667,12 @@ def _build_odometry(path: Path, table: _Table, messages: list[str]) -> dict[str,
 
 
 def _build_all_observations(path: Path, tables: dict[str, _Table], pose_ids: np.ndarray,
-                            cameras: dict[int, Camera], messages: list[str]) -> dict[str, np.ndarray]:
-    """The observations of every kind (``_OBSERVATION_LAYOUTS``) in file order."""
+                            cameras: dict[int, Camera], messages: list[str], is_planar: bool = False) -> dict[str, np.ndarray]:
+    """The observations of every kind (``_OBSERVATION_LAYOUTS``) in file order. A planar kind's
+    (no camera) sensor is ``measurement.ROBOT_FRAME_SENSOR``."""
     parts = [_build_observations(path, tables[layout.tag], layout, kind, pose_ids, cameras, messages)
              for kind, layout in _OBSERVATION_LAYOUTS.items()]
+    parts.append(_build_tag_observations(path, tables[TAG_OBSERVATION_TAG], pose_ids, cameras, messages))
     order = np.argsort(np.concatenate([part.pop("line") for part in parts]), kind="stable")
     return {name: np.concatenate([part[name] for part in parts])[order] for name in parts[0]}
 
@@ -576,7 +689,8 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
             what = "depth" if kind == measurement.DEPTH else "inverse depth"
             messages.append(f"line {table.lines[behind[0]]}: {behind.size} {tag} record(s) with {what} <= 0, "
                             "where only landmarks in front of the camera (depth > 0) can be seen; no landmark will fit them")
-    pose, landmark, camera = table.ids[:, 0], table.ids[:, 1].copy(), table.ids[:, 2].copy()
+    pose, landmark = table.ids[:, 0], table.ids[:, 1].copy()
+    camera = table.ids[:, 2].copy() if layout.n_ids == 3 else np.full(pose.size, measurement.ROBOT_FRAME_SENSOR, np.int64)
     sorter = np.argsort(pose_ids)
     slot = np.minimum(np.searchsorted(pose_ids, pose, sorter=sorter), pose_ids.size - 1)
     pose_index = sorter[slot]
@@ -585,9 +699,9 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
         row = unknown[0]
         raise DatasetError(path, int(table.lines[row]),
                            f"{tag} from pose {pose[row]}: expected a pose of the odometry chain, "
-                           f"found an id that no {TAG_POSE} or {TAG_ODOMETRY} defines")
+                           f"found an id that no pose vertex or odometry edge defines")
     camera_ids = np.array(sorted(cameras), dtype=np.int64)
-    unknown = np.flatnonzero(~np.isin(camera, camera_ids))
+    unknown = np.flatnonzero(~np.isin(camera, camera_ids) & (layout.n_ids == 3))
     if unknown.size:
         row = unknown[0]
         raise DatasetError(path, int(table.lines[row]),
@@ -602,10 +716,35 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
             "kind": np.full(table.values.shape[0], kind, dtype=np.int64), "line": table.lines}
 
 
+def _build_tag_observations(path: Path, table: _Table, pose_ids: np.ndarray, cameras: dict[int, Camera],
+                            messages: list[str]) -> dict[str, np.ndarray]:
+    """``EDGE_PROJECT_TAG`` records as two observations each, consecutive and on the record's line:
+    a depth observation of the tag's position (u, v, depth) and its orientation's
+    (``measurement.TAG_ROTATION``: z the rotation vector of the measured orientation), each with its
+    block of the 6x6 information, which must have no (u, v, depth) x orientation correlation."""
+    info = _info_from_upper(table.values[:, 7:28], 6)
+    _check_positive_definite(path, TAG_OBSERVATION_TAG, info, table.lines)
+    coupled = np.flatnonzero(np.any(info[:, :3, 3:] != 0.0, axis=(1, 2)))
+    if coupled.size:
+        raise DatasetError(path, int(table.lines[coupled[0]]), f"{TAG_OBSERVATION_TAG}: expected no information between "
+                           "(u, v, depth) and the orientation (the 3x3 block of rows 0-2, columns 3-5 zero), found some")
+    position = _Table(table.ids, np.hstack([table.values[:, :3], info[(slice(None), *np.triu_indices(3))]]), table.lines)
+    layout = _Layout(TAG_OBSERVATION_TAG, _OBSERVATION.names, 3, _OBSERVATION.summary, _OBSERVATION.lengths, _OBSERVATION.image)
+    part = _build_observations(path, position, layout, measurement.DEPTH, pose_ids, cameras, messages)
+    quat = _unit_quaternions(path, TAG_OBSERVATION_TAG, table.values[:, 3:7], table.lines, messages)
+    rotation_info = info[:, 3:, 3:]
+    rotation = {**part, "z": geometry.so3_log(geometry.quat_to_matrix(quat)).reshape(-1, 3), "info": rotation_info,
+                "cov": _covariances(path, TAG_OBSERVATION_TAG, rotation_info, table.lines, observation_cov_from_info),
+                "kind": np.full(table.values.shape[0], measurement.TAG_ROTATION, dtype=np.int64)}
+    # interleaved: each position, then its orientation (``Dataset.obs_partner``)
+    return {name: np.stack([part[name], rotation[name]], axis=1).reshape((-1,) + part[name].shape[1:]) for name in part}
+
+
 # --- the pose chain -------------------------------------------------------------------------
 
 
-def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometry: dict[str, np.ndarray]) -> int:
+def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometry: dict[str, np.ndarray],
+                  robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> int:
     """Row of the start pose's vertex: the chain's root (``read_g2o``), else the first vertex.
 
     Files written by other tools need not list the first pose first; the edges say which it is."""
@@ -617,12 +756,13 @@ def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometr
     if rows.size == 0:
         edge_line = int(odometry["lines"][np.flatnonzero(odometry["from"] == root)[0]])
         raise DatasetError(path, edge_line,
-                           f"{TAG_ODOMETRY} from pose {root} starts the odometry chain: expected a {TAG_POSE} for "
+                           f"{robot[1]} from pose {root} starts the odometry chain: expected a {robot[0]} for "
                            f"pose {root} (the known start pose), found vertices of other poses only")
     return int(rows[0])
 
 
-def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray],
+                  robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> tuple[np.ndarray, np.ndarray]:
     """Follow the odometry edges from first_pose (``_start_vertex``).
 
     Returns the pose ids in chain order (N,) and the edge rows in chain order (N-1,). Forks are
@@ -638,7 +778,7 @@ def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) 
         row = edge_of.pop(chain[-1])
         if edge_to[row] in seen:
             raise DatasetError(path, int(lines[row]),
-                               f"{TAG_ODOMETRY} {edge_from[row]} -> {edge_to[row]}: expected the chain to go on "
+                               f"{robot[1]} {edge_from[row]} -> {edge_to[row]}: expected the chain to go on "
                                f"to a new pose, found a cycle (pose {edge_to[row]} is already on it)")
         seen.add(edge_to[row])
         chain.append(edge_to[row])
@@ -646,24 +786,25 @@ def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray]) 
     if edge_of:
         row = min(edge_of.values())
         raise DatasetError(path, int(lines[row]),
-                           f"{TAG_ODOMETRY} {edge_from[row]} -> {edge_to[row]}: expected every edge on the one "
-                           f"chain from the first {TAG_POSE} {first_pose}, found an edge it never reaches "
+                           f"{robot[1]} {edge_from[row]} -> {edge_to[row]}: expected every edge on the one "
+                           f"chain from the first {robot[0]} {first_pose}, found an edge it never reaches "
                            f"(the chain ends at pose {chain[-1]})")
     return np.array(chain, dtype=np.int64), np.array(order, dtype=np.int64)
 
 
-def _check_vertices_on_chain(path: Path, vertex_ids: np.ndarray, pose_ids: np.ndarray, lines: np.ndarray) -> None:
+def _check_vertices_on_chain(path: Path, vertex_ids: np.ndarray, pose_ids: np.ndarray, lines: np.ndarray,
+                             robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> None:
     """A pose vertex no edge reaches cannot be localized: refuse it rather than drop it silently."""
     off = np.flatnonzero(~np.isin(vertex_ids, pose_ids))
     if off.size:
         row = off[0]
         raise DatasetError(path, int(lines[row]),
-                           f"{TAG_POSE} {vertex_ids[row]}: expected a pose of the odometry chain from "
-                           f"{pose_ids[0]}, found a vertex no {TAG_ODOMETRY} reaches")
+                           f"{robot[0]} {vertex_ids[row]}: expected a pose of the odometry chain from "
+                           f"{pose_ids[0]}, found a vertex no {robot[1]} reaches")
 
 
-def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.ndarray,
-                  vertex_quat: np.ndarray, messages: list[str]) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.ndarray, vertex_quat: np.ndarray,
+                  messages: list[str], pose_tag: str = TAG_POSE) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Truth (N, 3), (N, 4) in chain order when every chain pose has a vertex, else None, None.
 
     A single vertex is the start pose only, even for a one-pose chain.
@@ -672,7 +813,7 @@ def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.n
         return None, None
     if vertex_ids.size < pose_ids.size:
         messages.append(f"ground truth ignored: {pose_ids.size - vertex_ids.size} of {pose_ids.size} poses "
-                        f"have no {TAG_POSE}")
+                        f"have no {pose_tag}")
         return None, None
     row_of = {pose: row for row, pose in enumerate(vertex_ids.tolist())}
     rows = np.array([row_of[pose] for pose in pose_ids.tolist()], dtype=np.int64)
@@ -724,15 +865,9 @@ def _format_dataset(dataset: Dataset) -> list[str]:
     cameras = list(dataset.cameras.values())
     lines += _records(TAG_CAMERA, [camera.id for camera in cameras], np.array(
         [[*camera.translation, *camera.quat_xyzw, camera.fx, camera.fy, camera.cx, camera.cy] for camera in cameras]))
-    lines += _records(TAG_LANDMARK, dataset.landmark_ids, dataset.landmark_xyz)
-    if dataset.truth_xyz is not None:
-        lines += _records(TAG_POSE, dataset.pose_ids, np.hstack([dataset.truth_xyz, dataset.truth_quat_xyzw]))
-    else:
-        lines += _records(TAG_POSE, dataset.pose_ids[:1], np.hstack([dataset.start_xyz, dataset.start_quat_xyzw])[None])
-
-    odom_upper = dataset.odom_info[(slice(None), *np.triu_indices(6))]  # (N-1, 21), row by row
-    edges = _records(TAG_ODOMETRY, np.stack([dataset.pose_ids[:-1], dataset.pose_ids[1:]], axis=1), np.hstack(
-        [dataset.odom_translation, dataset.odom_quat_xyzw, odom_upper]))
+    lines += _landmark_records(dataset)
+    lines += _pose_records(dataset)
+    edges = _odometry_records(dataset)
     observations = _observation_records(dataset)
     if np.all(np.diff(dataset.obs_pose_index) >= 0):
         # Interleave: the observations of pose k come right after the edge that reaches it.
@@ -746,6 +881,41 @@ def _format_dataset(dataset: Dataset) -> list[str]:
     return lines
 
 
+def _landmark_records(dataset: Dataset) -> list[str]:
+    """The map's records in dataset order, each by its landmark's kind (``_LANDMARK_LAYOUTS``)."""
+    values = {LANDMARK_POINT3: dataset.landmark_xyz, LANDMARK_POINT2: dataset.landmark_xyz[:, :2],
+              LANDMARK_MARKER: np.column_stack([dataset.landmark_xyz[:, :2], dataset.landmark_heading]),
+              LANDMARK_TAG: np.hstack([dataset.landmark_xyz, dataset.landmark_quat_xyzw])}
+    lines: list[str] = [""] * len(dataset.landmark_ids)
+    for kind, layout in _LANDMARK_LAYOUTS.items():
+        rows = np.flatnonzero(dataset.landmark_kind == kind)
+        for row, line in zip(rows.tolist(), _records(layout.tag, dataset.landmark_ids[rows], values[kind][rows])):
+            lines[row] = line
+    return lines
+
+
+def _pose_records(dataset: Dataset) -> list[str]:
+    """Every ground-truth pose's vertex when there is ground truth, else only the start's."""
+    if dataset.truth_xyz is not None:
+        ids, xyz, quat = dataset.pose_ids, dataset.truth_xyz, dataset.truth_quat_xyzw
+    else:
+        ids, xyz, quat = dataset.pose_ids[:1], dataset.start_xyz[None], dataset.start_quat_xyzw[None]
+    if dataset.planar:
+        return _records(TAG_POSE_SE2, ids, planar.flatten(geometry.pose_from_quat(xyz, quat)))
+    return _records(TAG_POSE, ids, np.hstack([xyz, quat]))
+
+
+def _odometry_records(dataset: Dataset) -> list[str]:
+    """One edge per increment, with the file's information (upper triangle, row by row)."""
+    ends = np.stack([dataset.pose_ids[:-1], dataset.pose_ids[1:]], axis=1)
+    if dataset.planar:
+        increments = planar.flatten(dataset.T_odometry).reshape(-1, 3)
+        upper = dataset.odom_info[(slice(None), *np.triu_indices(3))]
+        return _records(TAG_ODOMETRY_SE2, ends, np.hstack([increments, upper]))
+    odom_upper = dataset.odom_info[(slice(None), *np.triu_indices(6))]  # (N-1, 21), row by row
+    return _records(TAG_ODOMETRY, ends, np.hstack([dataset.odom_translation, dataset.odom_quat_xyzw, odom_upper]))
+
+
 def _observation_records(dataset: Dataset) -> list[str]:
     """One line per observation, in dataset order, each with its kind's tag and layout."""
     ids = np.stack([dataset.pose_ids[dataset.obs_pose_index], dataset.obs_true_landmark, dataset.obs_camera], axis=1)
@@ -754,8 +924,17 @@ def _observation_records(dataset: Dataset) -> list[str]:
         rows = np.flatnonzero(dataset.obs_kind == kind)
         dof = measurement.KINDS[kind].dof
         values = np.hstack([dataset.obs_z[rows, :dof], measurement.upper_triangle(dataset.obs_info[rows], kind)])
-        for row, line in zip(rows.tolist(), _records(layout.tag, ids[rows], values)):
+        for row, line in zip(rows.tolist(), _records(layout.tag, ids[rows, :layout.n_ids], values)):
             lines[row] = line
+    # a tag's position and orientation: one EDGE_PROJECT_TAG on the position's line, none on the orientation's
+    rotation = np.flatnonzero(dataset.obs_kind == measurement.TAG_ROTATION)
+    position = dataset.obs_partner[rotation]
+    info = np.zeros((rotation.size, 6, 6))
+    info[:, :3, :3], info[:, 3:, 3:] = dataset.obs_info[position], dataset.obs_info[rotation]
+    quat = geometry.matrix_to_quat(geometry.so3_exp(dataset.obs_z[rotation])).reshape(-1, 4)
+    values = np.hstack([dataset.obs_z[position], quat, info[(slice(None), *np.triu_indices(6))]])
+    for row, partner, line in zip(position.tolist(), rotation.tolist(), _records(TAG_OBSERVATION_TAG, ids[position], values)):
+        lines[row], lines[partner] = line, ""
     return lines
 
 

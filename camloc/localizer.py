@@ -11,23 +11,24 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, measurement, warmup
+from camloc import association, associators, ekf, geometry, measurement, planar, warmup
+from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
-from camloc.observation_space import candidate_range, detection_range, landmark_rows, observation_noise
+from camloc.observation_space import candidate_range, detection_range, landmark_rows, observation_noise, planar_range
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
-from camloc.localizer_config import LocalizerConfig, ignored_options
+from camloc.localizer_config import AUTO_FILTER, LocalizerConfig, ignored_options
 from camloc.results import UNASSOCIATED, Associations, RunResult
 from camloc.tails import chi2_quantile
 
@@ -80,11 +81,12 @@ def localize(
         ``summary["timing"]["background_compile"]`` says so. Where that process cannot run, the
         kernels compile in the foreground as without it. ``camloc run`` passes it.
     """
-    config = config or LocalizerConfig()
-    config.validate()
+    config = resolved_config(config or LocalizerConfig(), dataset)
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
-    compilable = config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
+    # a tag's orientation is the numpy engine's only (camloc.tags)
+    compilable = (config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
+                  and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
     if engine == "compiled" and not compilable:
         raise ConfigError(f"the compiled loop runs the euler filter with {' or '.join(COMPILED_ASSOCIATIONS)} association; "
                           f"filter {config.filter!r} with association {config.association!r} runs in numpy")
@@ -118,10 +120,35 @@ def localize(
     return result
 
 
+def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfig:
+    """``config`` validated, its filter "auto" made the one the dataset's robot calls for (se2 for
+    a planar robot, euler otherwise); ConfigError where the filter cannot run the dataset: the
+    planar kinds of observation (point2, marker) are the SE(2) filter's only, and se2 needs a
+    planar robot."""
+    config.validate()
+    if config.filter == AUTO_FILTER:
+        config = replace(config, filter="se2" if dataset.planar else "euler")
+    planar_kinds = [measurement.KINDS[int(k)].tag for k in np.unique(dataset.obs_kind) if int(k) in measurement.PLANAR_KINDS]
+    if planar_kinds and config.filter != "se2":
+        raise ConfigError(f"filter {config.filter!r} cannot use {', '.join(planar_kinds)} observations (a planar robot's, "
+                          "in its own frame): use --filter se2, the default for planar files")
+    if config.filter == "se2" and not dataset.planar:
+        raise ConfigError("filter 'se2' localizes a planar robot (VERTEX_SE2 / EDGE_SE2 poses); this dataset's robot is 3-D: "
+                          "use euler or se3")
+    return config
+
+
+def initial_cov(config: LocalizerConfig, filter_model) -> np.ndarray:
+    """The start pose's covariance in the filter's error: ``config.initial_cov()`` (6, 6), or its
+    (x, y, yaw) block for a planar filter (3 dof)."""
+    P = config.initial_cov()
+    return P if filter_model.dim == 6 else planar.planar_block(P)
+
+
 def _compile_in_background(dataset: Dataset) -> Optional[str]:
     """``warmup.STARTED`` or ``warmup.RUNNING`` where this run goes to numpy while the kernels
     compile in the background; None where it compiles them first."""
-    pixel = int(np.count_nonzero(~measurement.measures_range(dataset.obs_kind)))
+    pixel = int(np.count_nonzero(measurement.is_ray(dataset.obs_kind)))
     if warmup.numpy_seconds(dataset.num_observations, pixel) > warmup.NUMPY_FIRST_RUN_SECONDS:
         return None
     return warmup.start_background_compile()
@@ -235,6 +262,7 @@ class _Localizer:
     """The filter's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig):
+        config = resolved_config(config, dataset)
         self.dataset = dataset
         self.config = config
         self.filter = make_filter(config.filter)
@@ -255,22 +283,26 @@ class _Localizer:
         self.null_cost = noise.null_cost
         self.stacked = StackedUpdate(dataset, self.filter, config.iterations, self.cameras, self.obs_sensor, noise, self.obs_dof)
 
-        order = np.argsort(dataset.obs_pose_index, kind="stable")
+        # what association sees of each pose: a tag's orientation is not associated but joins its
+        # position's pair (``tag_orientations.TagOrientations``)
+        associated = np.flatnonzero(dataset.obs_kind != measurement.TAG_ROTATION)
+        order = associated[np.argsort(dataset.obs_pose_index[associated], kind="stable")]
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
+        self.tag_orientations = TagOrientations(dataset)
         self.T_increments = dataset.T_odometry
         self.scene = AssociationScene(  # what the per-pose association methods read
             dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle=self.max_angle, obs_gate=self.obs_gate,
             association_cov=self.association_cov,
-            true_landmark_row=self.true_landmark_row, conditioned=self.conditioned,
+            true_landmark_row=self.true_landmark_row, conditioned=self.conditioned, planar_range=planar_range(dataset),
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)
 
         n, k_obs = dataset.num_poses, dataset.num_observations
         self.states = np.zeros((n, self.filter.stored_size))
         self.poses = np.zeros((n, 4, 4))
-        self.covs = np.zeros((n, 6, 6))
+        self.covs = np.zeros((n, self.filter.dim, self.filter.dim))
         self.odometry_poses = np.zeros((n, 4, 4))
         self.chosen_landmark = np.full(k_obs, UNASSOCIATED, dtype=np.int64)
         self.mahalanobis = np.full(k_obs, np.nan)
@@ -282,11 +314,11 @@ class _Localizer:
         self.warned_singularity = False
 
         self.x = self.filter.initial(dataset.T_world_start)
-        self.P = config.initial_cov()
+        self.P = initial_cov(config, self.filter)
         self.T_odometry = dataset.T_world_start
         self.beam_pairs: list[np.ndarray] | None = None
         self.association_spread: Optional[np.ndarray] = None  # (N, 6, 6) with the beam (search_beam)
-        self.pair_spread = np.zeros((n, 6, 6))  # with the beam, what its pairs' chance of being clutter adds
+        self.pair_spread = np.zeros((n, self.filter.dim, self.filter.dim))  # with the beam: its pairs' chance of being clutter
         self.beam_slipped: np.ndarray | None = None
         self.beam_statistics: Optional[BeamStatistics] = None  # what the beam did (search_beam)
         self.slip_pose_ids: list[int] = []
@@ -350,11 +382,19 @@ class _Localizer:
                     obs, landmarks = obs[keep], landmarks[keep]
                     if obs.size:
                         result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)
+            if self.tag_orientations and obs.size:
+                # the pairs final, the orientations of their tags join them (camloc.tags): after
+                # the re-check, which judges the pairs association chose, by their positions
+                with_rotations = self.tag_orientations.joined(obs, landmarks, self.x, self.P, self.observe, self.obs_sensor,
+                                                              self.association_cov)
+                if with_rotations[0].size != obs.size or not np.array_equal(with_rotations[0], obs):
+                    obs, landmarks = with_rotations
+                    if obs.size:
+                        result = self.updated(self.x, self.P, obs, landmarks, map_cost=True, start=result.state)
         if obs.size:
             self._record_pairs(k, obs, landmarks, result)
             self.x, self.P = result.state, result.cov
-            if self.beam_pairs is not None:  # the estimate's covariance, beside the beam's spread
-                self.pair_spread[k] = self.stacked.pair_spread(self.x, self.P, obs, landmarks)
+            self.pair_spread[k] = self.stacked.pair_spread(self.x, self.P, obs, landmarks) if self.beam_pairs is not None else 0.0
         self._warn_near_singularity(k)                 # by the estimate, as the compiled loop's warning
         self.states[k], self.covs[k] = self.filter.stored(self.x), self.P
         self.poses[k] = self.filter.pose(self.x)
@@ -399,15 +439,16 @@ class _Localizer:
             chosen = np.array([column_of.get(chosen_landmark.get(int(o), -2), -1) for o in mine], dtype=np.int64)
             Hc = H[chosen[chosen >= 0]]
             R_paired = self.association_cov[mine[chosen >= 0]]
-            pair_information[int(camera_id)] = (np.swapaxes(Hc, 1, 2) @ np.linalg.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((6, 6))
+            dim = self.filter.dim
+            pair_information[int(camera_id)] = (np.swapaxes(Hc, 1, 2) @ np.linalg.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((dim, dim))
             groups.append((int(camera_id), mine, z_hat, H, chosen))
-        prior_information = np.linalg.solve(P_prior, np.eye(6))
+        prior_information = np.linalg.solve(P_prior, np.eye(self.filter.dim))
         for camera_id, mine, z_hat, H, chosen in groups:
             if z_hat.shape[0] == 0:
                 continue
             information = prior_information + sum(v for c, v in pair_information.items() if c != camera_id)
             cost = association.leave_one_out_costs(ds.obs_z[mine], self.association_cov[mine], z_hat, H, chosen, information=information,
-                                                   gate=float(self.obs_gate[mine[0]]))
+                                                   gate=float(self.obs_gate[mine[0]]), kinds=ds.obs_kind[mine])
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
             for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
                 if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin):

@@ -18,6 +18,9 @@ import numpy as np
 from camloc.beam_types import BeamSettings
 from camloc.errors import ConfigError
 from camloc.filters import FILTERS
+
+# the filter a dataset's robot calls for: se2 for a planar one, euler otherwise (``localizer.resolved_config``)
+AUTO_FILTER = "auto"
 from camloc.g2o import MAX_COORDINATE
 
 ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
@@ -147,8 +150,10 @@ class LocalizerConfig:
 
     Attributes
     ----------
-    filter : "euler" (state x, y, z, roll, pitch, yaw; singular at pitch +-90 deg) or "se3" (an
-        error-state filter on SE(3), no singularity), see ``camloc.filters``.
+    filter : "euler" (state x, y, z, roll, pitch, yaw; singular at pitch +-90 deg), "se3" (an
+        error-state filter on SE(3), no singularity), "se2" (an error-state filter on SE(2): a
+        planar robot), see ``camloc.filters``; or "auto" (the default): se2 for a planar dataset,
+        euler otherwise (``localizer.resolved_config``; the run's summary records which ran).
     association : "beam" (a beam of association hypotheses, see ``camloc.beam``), "jcbb" (joint
         compatibility branch and bound, seeded by best friends), "best-friends" (mutual best
         match + gates) or "oracle" (the file's landmark ids, gated like any pair: what perfect
@@ -165,7 +170,7 @@ class LocalizerConfig:
     view : the candidate landmarks' depth range and field of view (``ViewOptions``).
     """
 
-    filter: str = "euler"
+    filter: str = "auto"
     association: str = "beam"
     iterations: int = 3
     gate: float = 0.99
@@ -205,7 +210,8 @@ class LocalizerConfig:
             return [(wrong, False, f"must be a {kind}, got {getattr(self, wrong)!r}")]
         beam, best_friends, recheck, view = self.beam, self.best_friends, self.recheck, self.view
         return [
-            ("filter", self.filter in FILTERS, f"must be one of {', '.join(FILTERS)}, got {self.filter!r}"),
+            ("filter", self.filter in FILTERS or self.filter == AUTO_FILTER,
+             f"must be one of {AUTO_FILTER}, {', '.join(FILTERS)}, got {self.filter!r}"),
             ("association", self.association in ASSOCIATION_METHODS,
              f"must be one of {', '.join(ASSOCIATION_METHODS)}, got {self.association!r}"),
             ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= 50, f"must be an integer in 1..50, got {self.iterations}"),

@@ -9,6 +9,19 @@ disparity  z = (u, v, 1 / depth)   3 rows   (``EDGE_PROJECT_DISPARITY``, g2o's s
 
 with ``u = fx x / z + cx`` and ``v = fy y / z + cy`` of the camera-frame point p = (x, y, z).
 
+Planar kinds, measured in the robot frame of a planar robot (no camera: ``frame == "robot"``;
+their model is ``camloc.planar``'s, the SE(2) filter's only)
+--------------------------------------------------------------------------------------------
+point2     z = (x, y)              2 rows   (``EDGE_SE2_XY``: a point landmark in the robot frame)
+marker     z = (x, y, psi)         3 rows   (``EDGE_SE2_MARKER``: a marker's planar pose in the
+                                             robot frame; psi an angle, residuals wrapped)
+
+A tag's orientation (``frame == "tag"``; its model is ``camloc.tags``', the numpy engine's only)
+------------------------------------------------------------------------------------------------
+tag_rotation  z = Log(R_tag/c)     3 rows   (the orientation half of ``EDGE_PROJECT_TAG``, whose
+                                             position half is a depth measurement: the two are
+                                             consecutive observations, ``Dataset.obs_partner``)
+
 One layout for every kind: ``MAX_DIM`` rows
 -------------------------------------------
 Every measurement is stored in ``MAX_DIM`` (3) rows. A kind of fewer rows (pixel: 2) fills the
@@ -31,6 +44,11 @@ import numpy as np
 MAX_DIM = 3
 
 DEPTH, PIXEL, DISPARITY = 0, 1, 2
+POINT2, MARKER = 3, 4
+TAG_ROTATION = 5
+
+# the sensor id of the planar kinds' observations, which no camera makes (they are in the robot frame)
+ROBOT_FRAME_SENSOR = -1
 
 
 @dataclass(frozen=True)
@@ -41,6 +59,7 @@ class MeasurementKind:
     name: str
     tag: str
     components: tuple[str, ...]
+    frame: str = "camera"  # "camera": a camera's measurement; "robot": a planar robot's, in its own frame; "tag": a tag's orientation
 
     @property
     def dof(self) -> int:
@@ -48,15 +67,23 @@ class MeasurementKind:
 
     @property
     def measures_range(self) -> bool:
-        """Whether a single measurement places the landmark as a point (not a ray)."""
-        return self.dof == MAX_DIM
+        """Whether a single camera measurement places the landmark as a point (not a ray); the
+        planar kinds, which have no camera, say False."""
+        return self.frame == "camera" and self.dof == MAX_DIM
 
 
 KINDS: dict[int, MeasurementKind] = {
     DEPTH: MeasurementKind(DEPTH, "depth", "EDGE_PROJECT_DEPTH", ("u", "v", "depth")),
     PIXEL: MeasurementKind(PIXEL, "pixel", "EDGE_PROJECT_UV", ("u", "v")),
     DISPARITY: MeasurementKind(DISPARITY, "disparity", "EDGE_PROJECT_DISPARITY", ("u", "v", "inverse_depth")),
+    POINT2: MeasurementKind(POINT2, "point2", "EDGE_SE2_XY", ("x", "y"), "robot"),
+    MARKER: MeasurementKind(MARKER, "marker", "EDGE_SE2_MARKER", ("x", "y", "psi"), "robot"),
+    TAG_ROTATION: MeasurementKind(TAG_ROTATION, "tag_rotation", "EDGE_PROJECT_TAG", ("rx", "ry", "rz"), "tag"),
 }
+CAMERA_KINDS = tuple(code for code, kind in KINDS.items() if kind.frame == "camera")
+PLANAR_KINDS = tuple(code for code, kind in KINDS.items() if kind.frame == "robot")
+# the row of a kind's measurement that is an angle (its residual is wrapped), -1 for none
+ANGLE_ROW = np.array([2 if code == MARKER else -1 for code in sorted(KINDS)], dtype=np.int64)
 KIND_BY_NAME = {kind.name: kind for kind in KINDS.values()}
 KIND_BY_TAG = {kind.tag: kind for kind in KINDS.values()}
 
@@ -69,9 +96,23 @@ def dof_of(kinds: np.ndarray) -> np.ndarray:
     return DOF[np.asarray(kinds, dtype=np.int64)]
 
 
+_MEASURES_RANGE = np.array([KINDS[code].measures_range for code in sorted(KINDS)])
+
+
 def measures_range(kinds: np.ndarray) -> np.ndarray:
-    """(K,) bool: whether each measurement of the given kinds (K,) places its landmark as a point."""
-    return dof_of(kinds) == MAX_DIM
+    """(K,) bool: whether each camera measurement of the given kinds (K,) places its landmark as a
+    point (False for a pixel and for the planar kinds, which have no camera)."""
+    return _MEASURES_RANGE[np.asarray(kinds, dtype=np.int64)]
+
+
+def is_ray(kinds: np.ndarray) -> np.ndarray:
+    """(K,) bool: which of the kinds (K,) are a camera's ray (a pixel: no range)."""
+    return np.asarray(kinds, dtype=np.int64) == PIXEL
+
+
+def is_planar(kinds: np.ndarray) -> np.ndarray:
+    """(K,) bool: which of the kinds (K,) are measured in a planar robot's frame (no camera)."""
+    return np.isin(np.asarray(kinds, dtype=np.int64), PLANAR_KINDS)
 
 
 def judged_as_point(kinds: np.ndarray) -> np.ndarray:

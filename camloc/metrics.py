@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from camloc import geometry
+from camloc.planar import PLANAR_AXES, planar_block
 from camloc.diagnostics import estimate_name
 from camloc.errors import CamlocError, ConfigError
 from camloc.tails import chi2_quantile
@@ -44,6 +45,7 @@ if TYPE_CHECKING:
 ALIGN_METHODS = ("none", "se3", "sim3")
 CONFIDENCE = 0.95
 POSE_DOF = 6
+PLANAR_POSE_DOF = 3  # a planar filter's (x, y, yaw)
 UNASSOCIATED = -1  # the same sentinel as camloc.results.UNASSOCIATED
 
 
@@ -484,15 +486,42 @@ def nees_per_pose(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> np.
     return nees
 
 
+def is_planar_run(result: RunResult) -> bool:
+    """Whether the run's estimate is a planar filter's (``--filter se2``): its pose covariance is
+    that of (x, y, yaw) alone, and its NEES has 3 degrees of freedom (``run_nees``)."""
+    return result.summary.get("config", {}).get("filter") == "se2"
+
+
+def nees_dof(result: RunResult) -> int:
+    """The degrees of freedom of the run's NEES: 3 for a planar filter, else ``POSE_DOF``."""
+    return PLANAR_POSE_DOF if is_planar_run(result) else POSE_DOF
+
+
+def planar_nees_per_pose(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """``nees_per_pose`` of the planar part (x, y, yaw) of the pose error and of its covariance
+    (N, 6, 6) (``planar.planar_block``): 3 degrees of freedom."""
+    e = geometry.pose_error_vector(T_est, T_true)[:, list(PLANAR_AXES)]
+    P = planar_block(cov)
+    nees = np.full(e.shape[0], np.nan)
+    valid = _positive_definite(P)
+    if np.any(valid):
+        nees[valid] = np.einsum("ni,ni->n", e[valid], np.linalg.solve(P[valid], e[valid][..., None])[..., 0])
+    return nees
+
+
 def run_nees(result: RunResult) -> np.ndarray:
-    """(N,) NEES of every pose of a run with ground truth, NaN for the poses left out.
+    """(N,) NEES of every pose of a run with ground truth, NaN for the poses left out; of the
+    (x, y, yaw) error alone (3 dof) for a planar filter's run (``is_planar_run``).
 
     Left out: the first pose, which the dataset gives (it is the filter's known start, so its
     error is zero whatever its covariance says), and poses whose covariance is singular.
     """
     T_est = geometry.pose_from_quat(result.estimate_xyz, result.estimate_quat_xyzw)
     T_true = geometry.pose_from_quat(result.truth_xyz, result.truth_quat_xyzw)
-    nees = nees_per_pose(T_est, T_true, result.estimate_cov)
+    if is_planar_run(result):
+        nees = planar_nees_per_pose(T_est, T_true, result.estimate_cov)
+    else:
+        nees = nees_per_pose(T_est, T_true, result.estimate_cov)
     nees[0] = np.nan
     return nees
 
@@ -712,7 +741,7 @@ def evaluate(result: RunResult, *, align: str = "none", delta: int = 1) -> dict:
             "ate_rmse": _ratio(odometry["ate"]["rmse"], estimate["ate"]["rmse"]),
             "rotation_rmse": _ratio(odometry["rotation"]["rmse_deg"], estimate["rotation"]["rmse_deg"]),
         }
-        out["nees"] = nees_summary(run_nees(result))
+        out["nees"] = nees_summary(run_nees(result), dof=nees_dof(result))
         if result.smoothed_xyz is not None:
             out["smoothed"] = trajectory_metrics(
                 result.smoothed_xyz, result.smoothed_quat_xyzw, result.truth_xyz, result.truth_quat_xyzw,

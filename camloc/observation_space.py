@@ -129,11 +129,8 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     measures no range (a pixel: a ray) has no point: its point and point covariance are zeros
     (a singular spread, which fits nothing; its pair is judged in its own coordinates), as is a
     disparity's (``measurement.judged_as_point``)."""
-    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
-    camera_K = np.array([(dataset.cameras[int(c)].fx, dataset.cameras[int(c)].fy, dataset.cameras[int(c)].cx,
-                          dataset.cameras[int(c)].cy) for c in camera_ids], dtype=float).reshape(-1, 4)
     K = dataset.num_observations
-    intrinsics = camera_K[np.searchsorted(camera_ids, dataset.obs_camera)] if K else camera_K[:0]
+    intrinsics = observation_intrinsics(dataset)
     cov, info = noise_floored(dataset.obs_z, dataset.obs_cov, dataset.obs_info, intrinsics[:, 0], intrinsics[:, 1],
                                           dataset.obs_kind)
     point, point_cov = np.zeros((K, 3)), np.zeros((K, 3, 3))
@@ -153,6 +150,28 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
 
 
+def observation_intrinsics(dataset: Dataset) -> np.ndarray:
+    """(K, 4) each observation's camera's fx, fy, cx, cy; (1, 1, 0, 0) for a planar kind's, which
+    no camera makes (its x and y are metres in the robot frame)."""
+    camera_ids = np.array(sorted(dataset.cameras), dtype=np.int64)
+    camera_K = np.array([(dataset.cameras[int(c)].fx, dataset.cameras[int(c)].fy, dataset.cameras[int(c)].cx,
+                          dataset.cameras[int(c)].cy) for c in camera_ids], dtype=float).reshape(-1, 4)
+    intrinsics = np.tile([1.0, 1.0, 0.0, 0.0], (dataset.num_observations, 1))
+    by_camera = np.isin(dataset.obs_camera, camera_ids)
+    if np.any(by_camera):
+        intrinsics[by_camera] = camera_K[np.searchsorted(camera_ids, dataset.obs_camera[by_camera])]
+    return intrinsics
+
+
+def planar_range(dataset: Dataset) -> float:
+    """How far a planar robot's own sensor (the planar kinds') sees: 1.25 x the farthest measured
+    landmark + 0.5 m, as ``candidate_range`` takes a camera's depth; 0 without such observations."""
+    mine = measurement.is_planar(dataset.obs_kind)
+    if not np.any(mine):
+        return 0.0
+    return 1.25 * float(np.hypot(dataset.obs_z[mine, 0], dataset.obs_z[mine, 1]).max()) + 0.5
+
+
 def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     """(min_depth, max_depth, max_angle_rad) from the config, or from the data where unset:
     depth up to 1.25 x the largest measured + 0.5 m, the widest observed ray + 10 deg (at most 89).
@@ -169,7 +188,7 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     if max_depth is None:
         if depth.size:
             max_depth = 1.25 * float(depth.max()) + 0.5
-        elif dataset.num_observations:
+        elif np.any(measurement.is_ray(dataset.obs_kind)):  # a camera's, measuring no depth
             max_depth = 1.25 * pixel_reach(dataset, max_angle) + 0.5
         else:
             max_depth = 10.0
@@ -195,7 +214,9 @@ def pixel_reach(dataset: Dataset, max_angle: float, *, typical: bool = False) ->
     distance = cKDTree(dataset.landmark_xyz).query(dataset.landmark_xyz, DENSITY_NEIGHBOURS + 1)[0][:, -1]
     radius = float(np.median(distance))
     density = DENSITY_NEIGHBOURS / (4.0 / 3.0 * np.pi * max(radius, 1e-9) ** 3)
-    per_view = np.bincount(dataset.obs_pose_index * (int(dataset.obs_camera.max()) + 1) + dataset.obs_camera)
+    by_camera = np.isin(dataset.obs_kind, measurement.CAMERA_KINDS)  # a planar robot's own sensor has no view cone, a tag's orientation no ray
+    camera, pose_index = dataset.obs_camera[by_camera], dataset.obs_pose_index[by_camera]
+    per_view = np.bincount(pose_index * (int(camera.max()) + 1) + camera)
     counts = per_view[per_view > 0]
     busy = float(counts.mean()) if typical else float(np.quantile(counts, 0.9))
     tan = np.tan(min(max_angle, np.radians(80.0)))
@@ -215,8 +236,8 @@ def detection_range(dataset: Dataset, max_angle: float) -> tuple[float, float]:
     falls short of the true range (1.2-1.6 m on simulated worlds of range 2 m); the range counted
     as sure goes to 1.2 times that (1.4-1.9 m): a landmark beyond the true range counted as surely
     seen charges the right explanation."""
-    if not np.any(~measurement.measures_range(dataset.obs_kind)):
-        return 0.0, 0.0
+    if not np.any(measurement.is_ray(dataset.obs_kind)):
+        return 0.0, 0.0  # no camera's ray (a planar robot's own sensor measures range)
     reach = pixel_reach(dataset, max_angle, typical=True)
     return DETECT_NEAR * reach, DETECT_FAR * reach
 
@@ -226,8 +247,10 @@ def _widest_ray(dataset: Dataset) -> float:
     if dataset.num_observations == 0:
         return float(np.radians(60.0))
     tan = np.zeros((dataset.num_observations, 2))
+    if not dataset.cameras:
+        return float(np.radians(60.0))
     for camera_id, camera in dataset.cameras.items():
-        mine = dataset.obs_camera == camera_id
+        mine = (dataset.obs_camera == camera_id) & np.isin(dataset.obs_kind, measurement.CAMERA_KINDS)  # image coordinates
         tan[mine, 0] = (dataset.obs_z[mine, 0] - camera.cx) / camera.fx
         tan[mine, 1] = (dataset.obs_z[mine, 1] - camera.cy) / camera.fy
     widest = float(np.degrees(np.arctan(np.hypot(tan[:, 0], tan[:, 1])).max()))

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from camloc import association, measurement, models
+from camloc import association, measurement, models, planar
 from camloc.beam_types import BeamContext, Hypothesis
 from camloc.constants import POOL_GATE_FACTOR
 
@@ -98,7 +98,7 @@ class PairGating:
         p_hat, _, HPH, JHPHJ = spread
         spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(self.R[o], axis1=1, axis2=2)[:, None]
         spread_point = np.trace(JHPHJ, axis1=1, axis2=2)[None, :] + np.trace(self.point_cov[o], axis1=1, axis2=2)[:, None]
-        y_pixels = ds.obs_z[o][:, None, :] - z_hat[None, :, :]
+        y_pixels = planar.wrap_residuals(ds.obs_z[o][:, None, :] - z_hat[None, :, :], ds.obs_kind[o][:, None])
         y_point = self.point[o][:, None, :] - p_hat[None, :, :]
         near = ((np.einsum("ijk,ijk->ij", y_pixels, y_pixels) <= limit * spread_pixels)
                 | ((np.einsum("ijk,ijk->ij", y_point, y_point) <= limit * spread_point) & self.ranged[o][:, None]))
@@ -122,7 +122,7 @@ class PairGating:
         Returns d^2 and the cost of each pair, and whether it is judged as a point.
         """
         ds = self.ctx.dataset
-        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], ds.obs_z[o] - z_hat)
+        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], planar.wrap_residuals(ds.obs_z[o] - z_hat, ds.obs_kind[o]))
         d2_point, log_det_point = association.mahalanobis_3x3(JHPHJ + self.point_cov[o], self.point[o] - p_hat)
         cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
         cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
@@ -137,7 +137,7 @@ class PairGating:
         coordinates ``in_best_coordinates`` chose for it."""
         ds = self.ctx.dataset
         point = in_point[:, None]
-        y = np.where(point, self.point[o] - p_hat, ds.obs_z[o] - z_hat)
+        y = np.where(point, self.point[o] - p_hat, planar.wrap_residuals(ds.obs_z[o] - z_hat, ds.obs_kind[o]))
         Hc = np.where(point[:, :, None], Hp, H)
         Rc = np.where(point[:, :, None], self.point_cov[o], self.R[o])
         return y, Hc, Rc

@@ -323,7 +323,8 @@ _PATH_COLORS = {"estimate": ESTIMATE_COLOR, "odometry": ODOMETRY_COLOR, "smoothe
 
 
 def _plot_errors(ax: Axes, result: RunResult, paths: tuple[str, ...], *, rotation: bool, sigma: float) -> Axes:
-    what = "rotation error" if rotation else "position error"
+    # a planar robot's rotation is its heading
+    what = ("heading error" if metrics.is_planar_run(result) else "rotation error") if rotation else "position error"
     if result.truth_xyz is None:
         return _no_truth(ax, what)
     x = result.pose_ids
@@ -461,12 +462,13 @@ def plot_nees(ax: Axes, result: RunResult) -> Axes:
     if result.truth_xyz is None:
         return _no_truth(ax, "NEES")
     nees = metrics.run_nees(result)
-    summary = metrics.nees_summary(nees)
+    dof = metrics.nees_dof(result)  # 3 for a planar filter's (x, y, yaw)
+    summary = metrics.nees_summary(nees, dof=dof)
     lower, upper = summary["bounds"]
     x = result.pose_ids
     ax.axhspan(lower, upper, color="0.5", alpha=0.12, linewidth=0,
                label=f"per-pose 95% bounds [{lower:.2f}, {upper:.2f}]")
-    ax.axhline(metrics.POSE_DOF, color="0.3", linestyle=":", linewidth=1.0, label=f"expected ({metrics.POSE_DOF})")
+    ax.axhline(dof, color="0.3", linestyle=":", linewidth=1.0, label=f"expected ({dof})")
     _plot_series(ax, x, nees, np.ones_like(nees), f"{path_names(result)['estimate']} NEES", joined=True)
     if summary["mean"] is not None:
         mean_lower, mean_upper = summary["mean_bounds"]
@@ -475,7 +477,7 @@ def plot_nees(ax: Axes, result: RunResult) -> Axes:
                    label=f"mean {summary['mean']:.2f}\n(95% interval [{mean_lower:.2f}, {mean_upper:.2f}]\n"
                          f"of {summary['effective_poses']:.0f} independent poses)")
     _plain_log_scale(ax)
-    _finish_time_axis(ax, result, "NEES (6 dof)", f"pose NEES: {summary['verdict']}")
+    _finish_time_axis(ax, result, f"NEES ({dof} dof)", f"pose NEES: {summary['verdict']}")
     return ax
 
 
@@ -739,7 +741,7 @@ def draw_consistency(fig: Figure, result: RunResult) -> Figure:
 
 def consistency_title(result: RunResult) -> str:
     """``"consistency: <verdict> (NEES <v>, NIS <v>)"``, the verdict of NEES and NIS together."""
-    nees = metrics.nees_summary(metrics.run_nees(result)) if result.truth_xyz is not None else None
+    nees = metrics.nees_summary(metrics.run_nees(result), dof=metrics.nees_dof(result)) if result.truth_xyz is not None else None
     nis = metrics.nis_summary(result.nis, result.nis_dof)
     verdict = metrics.consistency_verdict(nees, nis)["verdict"]
     parts = ([f"NEES {nees['verdict']}"] if nees is not None else []) + [f"NIS {nis['verdict']}"]
@@ -769,8 +771,11 @@ def draw_report(fig: Figure, result: RunResult) -> Figure:
     """Every plot on one figure: paths (top-down, 3D), the filter's errors, odometry's errors,
     NEES and NIS, associations."""
     grid = fig.add_gridspec(5, 2, height_ratios=[2.2, 1.0, 1.0, 1.0, 1.0])
-    plot_topdown(fig.add_subplot(grid[0, 0]), result)
-    plot_3d(fig.add_subplot(grid[0, 1], projection="3d"), result)
+    if metrics.is_planar_run(result):  # no z to show: the plan takes the row
+        plot_topdown(fig.add_subplot(grid[0, :]), result)
+    else:
+        plot_topdown(fig.add_subplot(grid[0, 0]), result)
+        plot_3d(fig.add_subplot(grid[0, 1], projection="3d"), result)
     for row, paths in ((1, FILTER_PATHS), (2, ("odometry",))):
         plot_position_error(fig.add_subplot(grid[row, 0]), result, paths=paths)
         plot_rotation_error(fig.add_subplot(grid[row, 1]), result, paths=paths)
@@ -804,3 +809,11 @@ FIGURES: dict[str, tuple[tuple[float, float], Callable[[Figure, RunResult], Figu
     "associations": ((14.0, 4.5), draw_associations),
 }
 REPORT_SIZE = (17.0, 23.0)
+
+
+def figures_of(result: RunResult) -> dict[str, tuple[tuple[float, float], Callable[[Figure, RunResult], Figure]]]:
+    """The figures ``camloc plot`` draws of a run: ``FIGURES``, less the 3D view for a planar
+    filter's run (its z is 0 throughout)."""
+    if metrics.is_planar_run(result):
+        return {name: layout for name, layout in FIGURES.items() if name != "3d"}
+    return dict(FIGURES)

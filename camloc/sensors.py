@@ -38,12 +38,15 @@ def sensors_of(dataset: "Dataset") -> tuple[dict[int, CameraModel], np.ndarray]:
     kinds = len(measurement.KINDS)
     code = np.asarray(dataset.obs_camera, np.int64) * kinds + np.asarray(dataset.obs_kind, np.int64)
     observed, obs_sensor = np.unique(code, return_inverse=True)  # sorted by (camera id, kind)
-    keys = [(int(c) // kinds, int(c) % kinds) for c in observed]
+    keys = [(int(c) // kinds, int(c) % kinds) for c in observed]  # floor division: the robot frame's -1 too
     seen = {c for c, _ in keys}
     unobserved = [(int(c), measurement.DEPTH) for c in sorted(dataset.cameras) if int(c) not in seen]
     ordered = sorted(keys + unobserved)
     sensors = {}
     for index, (camera_id, kind) in enumerate(ordered):
+        if camera_id == measurement.ROBOT_FRAME_SENSOR:  # a planar robot's own sensor: in the robot frame
+            sensors[index] = CameraModel(np.eye(4), (1.0, 1.0, 0.0, 0.0), kind, camera_id)
+            continue
         camera = dataset.cameras[camera_id]
         sensors[index] = CameraModel(camera.T_robot_camera, (camera.fx, camera.fy, camera.cx, camera.cy), kind, camera_id)
     # rows of the observed sensors among all of them (the unobserved cameras interleave by id)

@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from camloc import ekf, measurement, models
+from camloc import ekf, geometry, measurement, models, planar, tags
 from camloc.dataset import Dataset
 from camloc.observation_space import ObservationNoise
 from camloc.tails import chi2_quantile
@@ -52,24 +52,7 @@ class StackedUpdate:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
         else:  # the blocks of a block-diagonal covariance (ekf.update)
             R, R_inverse = self.dataset.obs_cov[obs], self.dataset.obs_info[obs]
-        cameras = self.obs_sensor[obs]
-        if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
-            groups = [(self.cameras[self.single_camera], slice(None))]
-        else:
-            groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
-        landmark_xyz = self.dataset.landmark_xyz[landmarks]
-
-        def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            if len(groups) == 1:
-                camera = groups[0][0]
-                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind)
-                return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
-            z_hat = np.empty((obs.size, 3))
-            H = np.empty((obs.size, 3, 6))
-            for camera, mask in groups:
-                z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask], camera.kind)
-            return z_hat.reshape(-1), H.reshape(-1, 6)
-
+        groups, measure = self.measurement_function(obs, landmarks)
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
         options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.iterations,
                        at_prior=prior, R_inverse=R_inverse)
@@ -94,23 +77,60 @@ class StackedUpdate:
             return best
         return replace(best, map_cost=float("nan"))
 
+    def measurement_function(self, obs: np.ndarray, landmarks: np.ndarray):
+        """(groups, measure): the pairs' sensors ((camera, mask) each) and ``measure(state) ->
+        (z_hat (3p,), H (3p, n))``, the pairs' predictions in the layout ``ekf.update`` takes: an
+        angle predicted on its measurement's branch, a tag's orientation as ``camloc.tags``
+        aligns it."""
+        z = self.dataset.obs_z[obs].reshape(-1)
+        cameras = self.obs_sensor[obs]
+        if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
+            groups = [(self.cameras[self.single_camera], slice(None))]
+        else:
+            groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
+        landmark_xyz = self.dataset.landmark_xyz[landmarks]
+        heading = self.dataset.landmark_heading[landmarks]
+        tag_quat = self.dataset.landmark_quat_xyzw[landmarks]
+        kinds = self.dataset.obs_kind[obs]
+        angles = bool(np.any(measurement.ANGLE_ROW[kinds] >= 0))
+        tag_rows = np.flatnonzero(kinds == measurement.TAG_ROTATION)
+        z_measured = z.reshape(obs.size, 3)
+
+        def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if len(groups) == 1:
+                camera = groups[0][0]
+                z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind, heading=heading,
+                                               tag_quat=tag_quat)
+            else:
+                z_hat = np.empty((obs.size, 3))
+                H = np.empty((obs.size, 3, self.filter.dim))
+                for camera, mask in groups:
+                    z_hat[mask], H[mask] = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz[mask],
+                                                               camera.kind, heading=heading[mask], tag_quat=tag_quat[mask])
+            if angles:  # an angle predicted on the measurement's branch, so that z - z_hat is the wrapped residual
+                z_hat = z_measured - planar.wrap_residuals(z_measured - z_hat, kinds)
+            if tag_rows.size:  # a tag's orientation: the innovation is Log(R_pred^-1 R_meas) (camloc.tags)
+                z_hat, H = z_hat.copy(), H.copy()
+                z_hat[tag_rows], H[tag_rows] = tags.aligned(z_measured[tag_rows], geometry.so3_exp(z_hat[tag_rows]), H[tag_rows])
+            return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
+
+        return groups, measure
+
     def pair_spread(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
         """What the chance that one of the pairs that updated (x, P) into this posterior is clutter
         adds to its covariance (``ekf.leave_one_out_spread``, at the posterior)."""
-        z_hat = np.empty((obs.size, 3))
-        H = np.empty((obs.size, 3, P.shape[0]))
-        for c in np.unique(self.obs_sensor[obs]):
-            camera, mask = self.cameras[int(c)], self.obs_sensor[obs] == c
-            z_hat[mask], H[mask] = self.filter.observe(x, camera.T_robot_camera, camera.intrinsics,
-                                                       self.dataset.landmark_xyz[landmarks[mask]], camera.kind)
-        return ekf.leave_one_out_spread(P, self.dataset.obs_z[obs] - z_hat, H, self.dataset.obs_cov[obs], self.association_cov[obs],
-                                        self.association_log_det[obs], self.null_cost[obs])
+        z_hat, H = self.measurement_function(obs, landmarks)[1](x)
+        z_hat, H = z_hat.reshape(obs.size, 3), H.reshape(obs.size, 3, -1)
+        # a tag's orientation is no association of its own: it rides with its position's pair
+        own = self.dataset.obs_kind[obs] != measurement.TAG_ROTATION
+        return ekf.leave_one_out_spread(P, (self.dataset.obs_z[obs] - z_hat)[own], H[own], self.dataset.obs_cov[obs[own]],
+                                        self.association_cov[obs[own]], self.association_log_det[obs[own]], self.null_cost[obs[own]])
 
     def point_step(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, groups: list, prior: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """x after one EKF update with the pairs' measurements as camera-frame points (those
         ``measurement.judged_as_point``; the others, a pixel's ray, as they are)."""
         z_hat, H = prior[0].reshape(-1, 3), prior[1].reshape(obs.size, 3, -1)
-        y = self.dataset.obs_z[obs] - z_hat
+        y = planar.wrap_residuals(self.dataset.obs_z[obs] - z_hat, self.dataset.obs_kind[obs])
         Hp, R = H.copy(), self.association_cov[obs].copy()
         for camera, mask in groups:
             if not measurement.judged_as_point(camera.kind):

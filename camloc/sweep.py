@@ -210,9 +210,9 @@ def _check_cells(spec: SweepSpec, where) -> None:
     """Build every simulate cell's and run cell's config once, so bad values fail before running;
     a method's option where no cell runs that method is refused, as ``camloc run`` refuses it."""
     from camloc.config import run_config
-    from camloc.simulate import simulation_config
+    from camloc.simulate_planar import world_config
 
-    for key, table, build in (("simulate", spec.simulate, simulation_config), ("run", spec.run, run_config)):
+    for key, table, build in (("simulate", spec.simulate, world_config), ("run", spec.run, run_config)):
         unused = {name for name, _ in table} if key == "run" else set()
         for options in _product(table):
             cell = ", ".join(f"{k} = {_toml(v)}" for k, v in options.items())
@@ -355,12 +355,12 @@ def _localize_and_score(cell: Cell) -> dict:
     import camloc
     from camloc.metrics import evaluate
     from camloc.config import run_config
-    from camloc.simulate import simulate, simulation_config
+    from camloc.simulate_planar import simulate_world, world_config
 
     if cell.path is not None:
         dataset = camloc.load(cell.path)
-    else:
-        dataset = simulate(simulation_config(dict(cell.simulate)), seed=cell.seed)
+    else:  # robot = "planar" in [simulate]: a planar world (camloc.simulate_planar)
+        dataset = simulate_world(world_config(dict(cell.simulate)), seed=cell.seed)
     # parallel=False: the sweep already fills the cores (and a Dask worker's daemonic process may
     # not start one); the result is the same either way.
     result = camloc.localize(dataset, run_config(applicable(dict(cell.run))), parallel=False)

@@ -51,12 +51,13 @@ def _interval(bounds: Optional[list]) -> str:
 
 
 def _trajectory_table(blocks: Mapping[str, Mapping], title: str, *, ratio: Optional[tuple[str, str]] = None,
-                      ratio_title: Optional[str] = None) -> Table:
+                      ratio_title: Optional[str] = None, planar: bool = False) -> Table:
     """Rows of trajectory metrics, one column per block (e.g. the filter, odometry), plus a ratio column.
 
     ``ratio = (numerator, denominator)`` names two blocks; by default, with exactly two blocks,
     the second over the first. ``ratio_title`` heads its column (default ``numerator /
-    denominator``; a filter's long name would squeeze the table at 80 columns).
+    denominator``; a filter's long name would squeeze the table at 80 columns). ``planar``: a
+    planar filter's run, whose rotation is its heading (and says so).
     """
     table = Table(title=title, title_justify="left", min_width=len(title))
     table.add_column("metric")
@@ -68,6 +69,7 @@ def _trajectory_table(blocks: Mapping[str, Mapping], title: str, *, ratio: Optio
     if ratio is not None:
         table.add_column(escape(ratio_title or f"{ratio[0]} / {ratio[1]}"), justify="right", style="bold")
     for label, keys, spec in _TRAJECTORY_ROWS:
+        label = label.replace("rotation", "heading") if planar else label
         values = {name: _get(block, *keys) for name, block in blocks.items()}
         cells = [_fmt(value, spec) for value in values.values()]
         if ratio is not None:
@@ -145,7 +147,7 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
             ratio, ratio_title = ("smoothed", name), "smoothed /\nfilter"
         parts.append(_trajectory_table(
             blocks, f"trajectory error vs ground truth (align {report['align']}, RPE delta {report['delta']})",
-            ratio=ratio, ratio_title=ratio_title,
+            ratio=ratio, ratio_title=ratio_title, planar=_get(report, "nees", "dof") == 3,  # a planar filter's NEES
         ))
         if report["align"] != "none":
             parts.append(_alignment_table(blocks))

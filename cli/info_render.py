@@ -26,7 +26,9 @@ def _ids(ids: Sequence[int], limit: int = 12) -> str:
 def render_dataset_summary(summary: Mapping[str, Any]) -> Group:
     """Tables for the counts, the cameras and the dataset's statistics, then the warnings."""
     title = Text.assemble(("camloc info: ", "bold"), str(summary["dataset"]))
-    return Group(title, _records_table(summary), _cameras_table(summary["cameras"]), _statistics_table(summary),
+    # a planar robot may carry no camera: its table would be empty
+    cameras = [_cameras_table(summary["cameras"])] if summary["cameras"] or summary.get("robot") != "planar" else []
+    return Group(title, _records_table(summary), *cameras, _statistics_table(summary),
                  *_warning_lines(summary["warnings"]))
 
 
@@ -64,6 +66,7 @@ def _statistics_table(summary: Mapping[str, Any]) -> Table:
     table.add_column("", style="bold")
     table.add_column("")
     rows = [
+        ("robot", "planar (VERTEX_SE2, EDGE_SE2; stored at z = 0)" if summary.get("robot") == "planar" else "3-D"),
         ("poses / odometry edges", f"{counts['poses']} / {counts['odometry_edges']}"),
         ("landmarks / observations", f"{counts['landmarks']} / {counts['observations']}"),
         ("trajectory length [m]", f"{trajectory['length_m']:.2f} ({source})"),
@@ -71,7 +74,8 @@ def _statistics_table(summary: Mapping[str, Any]) -> Table:
                                        in zip(trajectory["extent_min_m"], trajectory["extent_max_m"]))),
         ("odometry sigma translation [m]", _triple(odometry["sigma_translation_m"], ".4g")),
         ("odometry sigma rotation [deg]", _triple(odometry["sigma_rotation_deg"], ".4g")),
-        ("observation sigma u v depth", "  ".join(_fmt(observation[key], ".4g")
+        # a planar kind's (point2: x y; marker: x y psi) in the u, v, depth columns
+        ("observation sigma u v depth" if summary.get("robot") != "planar" else "observation sigma u/x v/y depth", "  ".join(_fmt(observation[key], ".4g")
                                                   for key in ("sigma_u", "sigma_v", "sigma_depth"))),
         ("observations by kind", ", ".join(f"{count} {name}" for name, count in summary["observation_kinds"].items() if count)
                                  or "none"),

@@ -39,7 +39,7 @@ def plot(
 ) -> None:
     """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
 
-    By default writes fig-topdown, fig-3d, fig-errors, fig-consistency and fig-associations (.png) into the run folder, replacing the ones drawn before; with --output a single report figure holding every panel. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
+    By default writes fig-topdown, fig-3d (not for a planar run, --filter se2: its z is 0), fig-errors, fig-consistency and fig-associations (.png) into the run folder, replacing the ones drawn before; with --output a single report figure holding every panel. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
 
     For a sweep folder (written by 'camloc sweep'), draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
     """
@@ -71,7 +71,7 @@ def plot(
     elif output is not None:
         layouts = {output: (plotting.REPORT_SIZE, plotting.draw_report)}
     else:
-        layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.FIGURES.items()}
+        layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.figures_of(result).items()}
 
     def render(path: Path, handle) -> None:
         size, draw = layouts[path]

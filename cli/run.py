@@ -23,8 +23,10 @@ from camloc.cli.common import (
 
 
 class FilterChoice(str, Enum):
+    auto = "auto"
     euler = "euler"
     se3 = "se3"
+    se2 = "se2"
 
 
 class AssociationChoice(str, Enum):
@@ -66,7 +68,10 @@ _CONFIG_FILE = typer.Option(
 )
 _FILTER = library_option(
     "State parametrization: euler (x, y, z, roll, pitch, yaw; singular "
-    "at pitch +-90 deg) or se3 (error-state filter on SE(3), no singularity).",
+    "at pitch +-90 deg), se3 (error-state filter on SE(3), no singularity), se2 (error-state filter on "
+    "SE(2): x, y, heading of a planar robot, 3 dof; the only one that takes a planar file's EDGE_SE2_XY and "
+    "EDGE_SE2_MARKER observations), or auto: se2 for a planar file (VERTEX_SE2 / EDGE_SE2), euler otherwise. "
+    "se2 runs in the numpy engine.",
     "localizer.filter", "--filter"
 )
 _ASSOCIATION = library_option(

@@ -39,8 +39,10 @@ def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Grou
     if summary.get("estimate") is not None:
         table.add_row(label("position RMSE [m]"), _fmt(_get(summary, "estimate.ate.rmse"), ".4f"), _fmt(_get(summary, "odometry.ate.rmse"), ".4f"))
         table.add_row(label("position max [m]"), _fmt(_get(summary, "estimate.ate.max"), ".4f"), _fmt(_get(summary, "odometry.ate.max"), ".4f"))
-        table.add_row(label("rotation RMSE [deg]"), _fmt(_get(summary, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(summary, "odometry.rotation.rmse_deg"), ".2f"))
-        table.add_row("NEES mean (6 dof)", _fmt(_get(summary, "nees.mean"), ".2f"), "")
+        # a planar robot's rotation is its heading
+        rotation = "heading RMSE [deg]" if _get(summary, "config.filter") == "se2" else "rotation RMSE [deg]"
+        table.add_row(label(rotation), _fmt(_get(summary, "estimate.rotation.rmse_deg"), ".2f"), _fmt(_get(summary, "odometry.rotation.rmse_deg"), ".2f"))
+        table.add_row(f"NEES mean ({_get(summary, 'nees.dof') or 6} dof)", _fmt(_get(summary, "nees.mean"), ".2f"), "")
     else:
         table.add_row("trajectory error", "no ground truth", "")
     association = Table(title="associations", title_justify="left")

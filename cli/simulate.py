@@ -21,6 +21,11 @@ from camloc.cli.common import (
 )
 
 
+class RobotChoice(str, Enum):
+    three_d = "3d"
+    planar = "planar"
+
+
 class TrajectoryChoice(str, Enum):
     grid = "grid"
     smooth3d = "smooth3d"
@@ -42,6 +47,22 @@ _OUTPUT = typer.Option(..., "--output", "-o", help="The g2o file to write (whole
                        "parent folders are created); an existing file is refused unless --force.",
                        show_default=False)
 _FORCE = force_option("the --output file")
+_ROBOT = typer.Option(RobotChoice.three_d, help=with_default(
+    "3d: a robot with 3-D cameras (VERTEX_SE3:QUAT, EDGE_SE3:QUAT); planar: a robot on a floor (VERTEX_SE2, "
+    "EDGE_SE2; a unicycle path, camloc/simulate_planar.py) carrying the --sensors given. With planar, "
+    "--poses, --landmarks (per planar sensor), --region, --min-range/--max-range and --fov-half-angle-deg "
+    "(of the planar sensors; default 0.3-3 m, 60 deg), --detection-probability (default 0.9) and "
+    "--clutter-fraction apply to the planar sensors, and --cameras, --intrinsics, --measurement and the "
+    "observation sigmas to the 3-D cameras; the other options are refused."), show_default=False)
+_SENSORS = typer.Option("points", help=with_default(
+    "With --robot planar: what the robot observes, comma-separated: points (EDGE_SE2_XY: (x, y) of VERTEX_XY "
+    "landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the planar pose (x, y, "
+    "psi) of VERTEX_MARKER_SE2 markers in the robot frame, each seen only from in front of its face), cameras "
+    "(3-D cameras on the robot, EDGE_PROJECT_* of VERTEX_TRACKXYZ landmarks)."), show_default=False)
+_TAG_SIGMA_DEG = typer.Option(None, min=0.0, help=with_default(
+    "With --robot 3d: every landmark a tag (VERTEX_TAG, a random orientation) and every depth detection of one "
+    "also measuring its orientation in the camera, with this standard deviation per axis, degrees "
+    "(EDGE_PROJECT_TAG; camloc/simulate_tags.py). Without it: points (VERTEX_TRACKXYZ)."), show_default=False)
 _TRAJECTORY = library_option(
     "grid: 1 m steps and 90 deg turns on flat ground, like the real file; smooth3d: "
     "smooth 3D motion, roll/pitch up to --max-tilt-deg (default 18); aerial: a flying vehicle looking "
@@ -159,6 +180,9 @@ _QUIET = quiet_option()
 def simulate(
     output: Path = _OUTPUT,
     force: bool = _FORCE,
+    robot: RobotChoice = _ROBOT,
+    sensors: str = _SENSORS,
+    tag_sigma_deg: Optional[float] = _TAG_SIGMA_DEG,
     trajectory: Optional[TrajectoryChoice] = _TRAJECTORY,
     poses: Optional[int] = _POSES,
     landmarks: Optional[int] = _LANDMARKS,
@@ -200,11 +224,23 @@ def simulate(
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
     try:
-        config = simulation_config(options)
+        if robot == RobotChoice.planar:
+            from camloc.simulate_planar import world_config
+
+            config = world_config({**options, "robot": "planar", "sensors": sensors})
+        else:
+            config = simulation_config(options)
     except SimulationOptionError as error:
         raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
+    if tag_sigma_deg is not None and robot == RobotChoice.planar:
+        raise typer.BadParameter("applies only to --robot 3d", param_hint="--tag-sigma-deg")
+    if tag_sigma_deg is not None and not tag_sigma_deg > 0.0:
+        raise typer.BadParameter(f"expected a standard deviation > 0, found {tag_sigma_deg:g}", param_hint="--tag-sigma-deg")
     refuse_existing(output, force=force)
-    simulation = simulate_labelled(config, seed=seed)
+    if tag_sigma_deg is not None:
+        simulation = _tag_simulation(config, seed, tag_sigma_deg)
+    else:
+        simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
     write_g2o(simulation.dataset, output)
     summary = _summary(simulation, output, seed)
     if echo_json(summary, enabled=json_output) or quiet:
@@ -216,6 +252,32 @@ def simulate(
         f"{counts['outliers']} outliers), {counts['cameras']} camera(s) from {escape(summary['description'])}",
         highlight=False, soft_wrap=True,
     )
+
+
+def _tag_simulation(config, seed: int, sigma_deg: float):
+    """A 3-D world of tags (``camloc.simulate_tags``), labelled as ``simulate_labelled`` labels one."""
+    import math
+
+    import numpy as np
+
+    from camloc.simulate import Simulation
+    from camloc.simulate_tags import simulate_tags
+
+    dataset = simulate_tags(config, seed=seed, sigma_rad=math.radians(sigma_deg))
+    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
+    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter)
+
+
+def _planar_simulation(config, seed: int):
+    """A planar world as ``simulate_labelled`` gives a 3-D one (its clutter labelled by id)."""
+    import numpy as np
+
+    from camloc.simulate import Simulation
+    from camloc.simulate_planar import simulate_planar
+
+    dataset = simulate_planar(config, seed=seed)
+    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
+    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter)
 
 
 def _summary(simulation, output: Path, seed: int) -> dict:

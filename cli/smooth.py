@@ -43,7 +43,7 @@ def smooth(
 ) -> None:
     """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
 
-    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
+    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. A planar dataset (VERTEX_SE2 / EDGE_SE2) is smoothed in SE(2) (x, y, heading: camloc/smoother_se2.py), any other in SE(3). Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation (a planar robot's: heading) RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
     """
     import warnings
 
@@ -65,7 +65,15 @@ def smooth(
     read_seconds = time.perf_counter() - started
 
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
-        result = smoother.smooth_run(data, run, config, on_iteration=on_iteration)
+        from camloc.tags import position_pairs_only
+
+        run = position_pairs_only(run, data)  # the smoothers have no model of a tag's orientation
+        if data.planar:  # a planar robot: the SE(2) smoother (its odometry has no z, roll or pitch noise)
+            from camloc.smoother_se2 import smooth_planar_run
+
+            result = smooth_planar_run(data, run, config, on_iteration=on_iteration)
+        else:
+            result = smoother.smooth_run(data, run, config, on_iteration=on_iteration)
     written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
 
     report = smoother.smoothing_report(run, result, config)

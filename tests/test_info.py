@@ -81,6 +81,7 @@ def test_summary_numbers():
     assert summary["observations_per_pose"] == {"min": 0, "median": 0.0, "max": 3, "poses_without": 3}
     assert summary["landmarks_never_observed"] == {"count": 1, "ids": [8]}
     assert summary["unmapped_observations"] == {"count": 2, "ids": [50]}
+    assert summary["robot"] == "3d"
     assert summary["warnings"] == ["line 3: skipped 2 record(s) with unknown tag 'FIX'"]
     json.dumps(summary)  # plain types only
 
@@ -148,11 +149,12 @@ def test_info_json(square_file):
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert list(summary) == ["dataset", "counts", "tag_counts", "unknown_tags", "cameras", "trajectory",
-                             "odometry_noise", "observation_noise", "observation_kinds", "observations_per_pose",
+                             "odometry_noise", "observation_noise", "observation_kinds", "robot", "observations_per_pose",
                              "landmarks_never_observed", "unmapped_observations", "warnings"]
     assert summary["counts"] == {"poses": 5, "odometry_edges": 4, "landmarks": 3, "observations": 5, "cameras": 1}
     assert summary["tag_counts"]["FIX"] == 2
     assert summary["unmapped_observations"] == {"count": 2, "ids": [50]}
+    assert summary["robot"] == "3d"
     assert len(summary["warnings"]) == 1 and "'FIX'" in summary["warnings"][0]
     assert result.stderr == ""  # the warning is in the JSON, not printed twice
 

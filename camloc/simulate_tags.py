@@ -1,0 +1,82 @@
+"""Simulated tags (``camloc simulate --tag-sigma-deg``): a 3-D world whose landmarks are tags
+(AprilTags) with an orientation, each detection measuring the tag's orientation in the camera as
+well as its position (``EDGE_PROJECT_TAG``). Pure: returns a ``Dataset``, does no I/O.
+
+Model card
+----------
+Tags        every landmark of the world ``camloc.simulate`` makes, given an orientation uniform over
+            SO(3) (a tag's visibility does not depend on it here: the camera model of
+            ``camloc.simulate`` decides what is seen).
+Orientation each depth detection of a map landmark (not clutter, not an outlier) gets its tag's
+            orientation in the camera, ``R_meas = R_c^T R^T R_tag Exp(n)``, n ~ N(0, sigma^2 I)
+            (``camloc.tags``), as the observation right after its position's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from camloc import geometry, measurement, tags
+from camloc.dataset import LANDMARK_TAG, Dataset
+from camloc.g2o import observation_cov_from_info
+from camloc.simulate import SimulationConfig, simulate_labelled
+
+
+def simulate_tags(config: SimulationConfig, *, seed: int, sigma_rad: float) -> Dataset:
+    """``camloc.simulate``'s world of ``config`` with every landmark a tag and every detection of
+    one (outliers aside) also measuring its orientation with noise ``sigma_rad`` (radians, > 0)."""
+    if not sigma_rad > 0.0:
+        raise ValueError(f"a tag's orientation noise must be > 0 rad, got {sigma_rad}")
+    simulation = simulate_labelled(config, seed=seed)
+    dataset = simulation.dataset
+    rng = np.random.default_rng([seed, 37])
+    tag_quat = Rotation.random(len(dataset.landmark_ids), random_state=rng).as_quat()
+    rows = np.flatnonzero(~simulation.is_clutter & ~simulation.is_outlier & (dataset.obs_kind == measurement.DEPTH))
+    T_truth = dataset.T_world_truth
+    z = np.zeros((rows.size, 3))
+    for n, o in enumerate(rows.tolist()):
+        camera = dataset.cameras[int(dataset.obs_camera[o])]
+        R_pred, _ = tags.prediction(T_truth[dataset.obs_pose_index[o], :3, :3], camera.T_robot_camera[:3, :3],
+                                    geometry.quat_to_matrix(tag_quat[int(dataset.obs_true_landmark[o])])[None])
+        z[n] = geometry.so3_log(R_pred[0] @ geometry.so3_exp(rng.normal(scale=sigma_rad, size=3)))
+    return _with_orientations(dataset, rows, z, sigma_rad, tag_quat)
+
+
+def _with_orientations(dataset: Dataset, rows: np.ndarray, z: np.ndarray, sigma_rad: float, tag_quat: np.ndarray) -> Dataset:
+    """``dataset`` with an orientation observation (z (R, 3)) after each of its observations ``rows``."""
+    K = dataset.num_observations
+    # the new order: every observation, and after each of rows its orientation (index K + n)
+    after = np.full(K, -1, np.int64)
+    after[rows] = K + np.arange(rows.size)
+    order = np.concatenate([[o, after[o]] if after[o] >= 0 else [o] for o in range(K)]).astype(np.int64) if K else np.zeros(0, np.int64)
+    info = np.broadcast_to(np.eye(3) / sigma_rad**2, (rows.size, 3, 3))
+
+    def extended(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        return np.concatenate([old, new])[order]
+
+    kinds = extended(dataset.obs_kind, np.full(rows.size, measurement.TAG_ROTATION, np.int64))
+    obs_info = extended(dataset.obs_info, info)
+    return dataclasses.replace(
+        dataset,
+        source=dataset.source.replace("simulate(", f"simulate(tags with orientation sigma {np.degrees(sigma_rad):g} deg, ", 1),
+        obs_pose_index=extended(dataset.obs_pose_index, dataset.obs_pose_index[rows]),
+        obs_camera=extended(dataset.obs_camera, dataset.obs_camera[rows]),
+        obs_z=extended(dataset.obs_z, z), obs_info=obs_info, obs_cov=observation_cov_from_info(obs_info),
+        obs_true_landmark=extended(dataset.obs_true_landmark, dataset.obs_true_landmark[rows]), obs_kind=kinds,
+        obs_partner=np.where(kinds == measurement.TAG_ROTATION, np.arange(order.size) - 1, -1),
+        landmark_kind=np.full(len(dataset.landmark_ids), LANDMARK_TAG, np.int64), landmark_quat_xyzw=tag_quat,
+        tag_counts={**dataset.tag_counts, "VERTEX_TAG": len(dataset.landmark_ids)},
+    )
+
+
+def without_orientations(dataset: Dataset) -> Dataset:
+    """``dataset`` with its tags' orientation observations left out (positions alone), for comparison."""
+    keep = np.flatnonzero(dataset.obs_kind != measurement.TAG_ROTATION)
+    return dataclasses.replace(
+        dataset, obs_pose_index=dataset.obs_pose_index[keep], obs_camera=dataset.obs_camera[keep], obs_z=dataset.obs_z[keep],
+        obs_info=dataset.obs_info[keep], obs_cov=dataset.obs_cov[keep], obs_true_landmark=dataset.obs_true_landmark[keep],
+        obs_kind=dataset.obs_kind[keep], obs_partner=np.full(keep.size, -1, np.int64),
+    )
