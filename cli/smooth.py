@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from enum import Enum
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Optional
 
@@ -22,6 +23,12 @@ from camloc.cli.common import (
 from camloc.errors import CamlocError
 
 
+class MapChoice(str, Enum):
+    exact = "exact"
+    prior = "prior"
+    none = "none"
+
+
 def smooth(
     run_dir: Path = run_dir_argument(),
     *,
@@ -38,21 +45,33 @@ def smooth(
         "Most linearizations (Gauss-Newton / Levenberg-Marquardt steps) before stopping; a run that stops there "
         "is reported as not converged.", "smoother.max_iterations", "--max-iterations", min=1
     ),
+    map_mode: Optional[MapChoice] = library_option(
+        "How the map's landmarks are held: 'exact' (fixed at the map, as the filter used them), 'prior' "
+        "(estimated with the poses, pulled toward the map with --map-sigma) or 'none' (estimated from the "
+        "observations alone; the start pose fixes the frame). Landmarks the map lacks that observations are "
+        "assigned to are estimated in every mode. The map after smoothing is written as map.csv.",
+        "smoother.map", "--map"
+    ),
+    map_sigma: Optional[float] = library_option(
+        "Standard deviation of the map prior per axis, metres (with --map prior).", "smoother.map_sigma",
+        "--map-sigma"
+    ),
     json_output: bool = json_option("the report"),
     quiet: bool = quiet_option(),
 ) -> None:
     """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
 
-    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
+    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. With --map prior or none the landmarks are estimated too. Writes smoothed.tum and map.csv (the map after smoothing: a row per landmark with its covariance) into RUN_DIR (each whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
     """
     import warnings
 
     from camloc import smoother
     from camloc.diagnostics import estimate_name
     from camloc.g2o import G2oWarning, read_g2o
-    from camloc.results import load_run, write_smoothed
+    from camloc.results import load_run, write_map, write_smoothed
 
-    given = {"huber": huber, "max_iterations": max_iterations}
+    given = {"huber": huber, "max_iterations": max_iterations, "map": map_mode.value if map_mode else None,
+             "map_sigma": map_sigma}
     config = smoother.SmootherConfig(**{name: value for name, value in given.items() if value is not None})
     config.validate()
     started = time.perf_counter()
@@ -67,11 +86,13 @@ def smooth(
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
         result = smoother.smooth_run(data, run, config, on_iteration=on_iteration)
     written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
+    map_file = write_map(run_dir, smoother.estimated_map(data, run, result, config))
 
     report = smoother.smoothing_report(run, result, config)
     report["dataset"] = str(dataset_path)
     report["timing"] = {"read_seconds": read_seconds, **report["timing"]}
     report["smoothed_file"] = str(written)
+    report["map_file"] = str(map_file)
     report["estimate_name"] = estimate_name(run.summary)
     if echo_json(report, enabled=json_output):
         return  # "converged": false says it
@@ -107,6 +128,12 @@ def _iteration_status(*, enabled: bool) -> Iterator[Optional[Callable]]:
         yield on_iteration
 
 
+def _map_row(report: Mapping[str, Any]) -> str:
+    held = {"exact": "held exact", "none": "not used"}.get(report["map"]) or f"prior, sigma {report['map_sigma']:g} m"
+    landmarks = report["landmarks"]
+    return f"{held}; {landmarks['estimated']} landmarks estimated ({landmarks['added']} added)"
+
+
 def render_smoothing(report: Mapping[str, Any]):
     """Tables of a ``camloc.smoother.smoothing_report`` (with ``output`` and ``read_seconds``)."""
     from rich.console import Group
@@ -139,6 +166,7 @@ def render_smoothing(report: Mapping[str, Any]):
     rows = (
         ("factors", f"{report['odometry_factors']} odometry, {report['observation_factors']} observations"),
         ("Huber threshold", huber),
+        ("map", _map_row(report)),
         ("down-weighted observations", str(report["downweighted_observations"])),
         ("iterations", iterations),
         ("cost, initial -> final", f"{report['initial_cost']:.6g} -> {report['final_cost']:.6g}"),
@@ -152,5 +180,9 @@ def render_smoothing(report: Mapping[str, Any]):
     if report["dropped_observations"]:
         parts.append(Text(f"note: {report['dropped_observations']} accepted observation(s) left out: their landmark "
         "is behind the camera at the filter's poses", style="yellow"))
-    parts.append(Text(f"wrote {report['smoothed_file']}"))
+    if report["landmarks"]["undetermined"]:
+        parts.append(Text(f"note: {report['landmarks']['undetermined']} landmark(s) left out with their observations: "
+                          "the observations do not place them (a single pixel ray, or rays with too little parallax) "
+                          "and no map prior holds them", style="yellow"))
+    parts.append(Text(f"wrote {report['smoothed_file']} and {report['map_file']}"))
     return Group(*parts)
