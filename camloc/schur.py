@@ -121,7 +121,7 @@ class SchurSolver:
         x_l = np.einsum("lij,ljk->lik", self.landmark_inverse, rhs).reshape(-1, columns.shape[1])
         return np.concatenate([x_p, x_l]).reshape(b.shape)
 
-    def landmark_covariances(self) -> np.ndarray:
+    def landmark_covariances(self, *, by_solves: bool = False) -> np.ndarray:
         """The 3x3 diagonal blocks (L, 3, 3) of H^-1 belonging to the landmarks: their marginal
         covariances when H is an information matrix, ``Hll^-1 + W_l^T S^-1 W_l`` each.
 
@@ -129,7 +129,7 @@ class SchurSolver:
         pattern of its factor, where selected inversion (``camloc.selected_inverse``) computes it
         at about the cost of the factorization. Should the factor's pattern not allow that, the
         same blocks come from solves with the factor, a block of right-hand sides at a time
-        (exact too, but about 10^4 times slower at 20,000 poses).
+        (exact too, but far slower on large problems); ``by_solves`` asks for that way.
         """
         cov = self.landmark_inverse.copy()
         if not self.num_pose:
@@ -137,6 +137,8 @@ class SchurSolver:
         from camloc.selected_inverse import PatternError, quadratic_forms, selected_inverse
 
         try:
+            if by_solves:
+                raise PatternError("asked for solves")
             Z, perm = selected_inverse(self.lu)
             cov += quadratic_forms(Z, perm, self.W, LANDMARK_DOF)
         except PatternError:

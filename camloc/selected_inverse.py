@@ -10,10 +10,12 @@ column by column from the last, that gives Takahashi's recurrence (Takahashi, Fa
     Z[j, j] = 1 / D[j] - sum_{k in struct(j)} Z[k, j] L[k, j]
 
 where struct(j) are the rows below the diagonal of L's column j. Every Z[i, k] it reads lies on
-L's pattern (its rows form a clique of the filled graph), so Z is computed there only, at about
-the cost of the factorization, never the dense inverse. L and D are SuperLU's in symmetric mode
-(``camloc.schur.factor``: the same permutation of rows and columns, diagonal pivots), where
-``U = D L^T``.
+L's symbolic pattern (its rows form a clique of the filled graph), so Z is computed there only,
+at about the cost of the factorization, never the dense inverse. L and D are SuperLU's in
+symmetric mode (``camloc.schur.factor``: the same permutation of rows and columns, diagonal
+pivots), where ``U = D L^T``. SuperLU's L as scipy hands it over leaves out entries that came out
+exactly zero, so its pattern is first closed again (``_closed_pattern``: each column's rows
+include its elimination-tree children's, Liu 1990) with zeros where entries were missing.
 
 The loops are compiled with numba (a few seconds the first time, cached beside this file).
 """
@@ -51,10 +53,64 @@ def selected_inverse(lu) -> tuple[sp.csc_matrix, np.ndarray]:
     L = sp.csc_matrix(lu.L)
     L.sort_indices()
     D = lu.U.diagonal()
-    Z = np.zeros(L.nnz)
-    if not _takahashi(L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data, D, Z):
+    indptr, indices, data = _closed_pattern(L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
+    Z = np.zeros(len(data))
+    if not _takahashi(indptr, indices, data, D, Z):
         raise PatternError("the factor's pattern is not closed under the recurrence")
-    return sp.csc_matrix((Z, L.indices, L.indptr), shape=L.shape), np.asarray(lu.perm_c)
+    return sp.csc_matrix((Z, indices, indptr), shape=L.shape), np.asarray(lu.perm_c)
+
+
+@_jit
+def _closed_pattern(indptr, indices, data):  # pragma: no cover - compiled
+    """L (CSC, rows sorted, diagonal first) on the smallest pattern that holds its entries and is
+    closed under elimination: column j's rows are its own and those of every child c (parent(c)
+    = the first row below c's diagonal) beyond j; entries L lacked are zero."""
+    n = indptr.shape[0] - 1
+    capacity = max(2 * indices.shape[0], 16)
+    out_indices = np.empty(capacity, dtype=np.int64)
+    out_ptr = np.zeros(n + 1, dtype=np.int64)
+    mark = np.full(n, -1, dtype=np.int64)
+    head = np.full(n, -1, dtype=np.int64)  # children of each column, as linked lists
+    next_child = np.full(n, -1, dtype=np.int64)
+    rows = np.empty(n, dtype=np.int64)
+    for j in range(n):
+        count = 0
+        for p in range(indptr[j], indptr[j + 1]):
+            rows[count] = indices[p]
+            mark[indices[p]] = j
+            count += 1
+        c = head[j]
+        while c != -1:
+            for p in range(out_ptr[c] + 1, out_ptr[c + 1]):
+                row = out_indices[p]
+                if row > j and mark[row] != j:
+                    mark[row] = j
+                    rows[count] = row
+                    count += 1
+            c = next_child[c]
+        column = np.sort(rows[:count])
+        start = out_ptr[j]
+        if start + count > capacity:
+            capacity = 2 * (start + count)
+            grown = np.empty(capacity, dtype=np.int64)
+            grown[:start] = out_indices[:start]
+            out_indices = grown
+        for q in range(count):
+            out_indices[start + q] = column[q]
+        out_ptr[j + 1] = start + count
+        if count > 1:  # the parent: the first row below the diagonal
+            parent = column[1]
+            next_child[j] = head[parent]
+            head[parent] = j
+    out_indices = out_indices[: out_ptr[n]].copy()
+    out_data = np.zeros(out_ptr[n])
+    for j in range(n):
+        q = out_ptr[j]
+        for p in range(indptr[j], indptr[j + 1]):
+            while out_indices[q] < indices[p]:
+                q += 1
+            out_data[q] = data[p]
+    return out_ptr, out_indices, out_data
 
 
 @_jit

@@ -730,13 +730,22 @@ def _minimize(problem, T, X, config, on_iteration):
         H, g = normal_equations(lin, config.huber, newton=not majorize)
         if iterations == 0:
             condition = _check_conditioning(problem, H, config)
-        step = _solve_step(H, g, damping, problem.num_pose_unknowns if problem.num_landmarks else None)
-        candidate, candidate_X = _retract(problem, T, X, step)
-        candidate_lin = linearize(problem, candidate, candidate_X)
-        candidate_cost = robust_cost(candidate_lin, config.huber)
+        try:
+            step = _solve_step(H, g, damping, problem.num_pose_unknowns if problem.num_landmarks else None)
+        except CamlocError:
+            if not problem.num_landmarks:
+                raise
+            # The Newton Hessian of a landmark whose observations are all beyond the Huber
+            # threshold can lose rank along their residuals: a rejected step, retried as IRLS
+            # (positive definite where the observations determine the landmark), then damped.
+            step = None
         iterations += 1
-        accepted = candidate_cost <= cost
-        max_step = float(np.max(np.abs(step))) if step.size else 0.0
+        if step is not None:
+            candidate, candidate_X = _retract(problem, T, X, step)
+            candidate_lin = linearize(problem, candidate, candidate_X)
+            candidate_cost = robust_cost(candidate_lin, config.huber)
+        accepted = step is not None and candidate_cost <= cost
+        max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
         if accepted:
             T, X, lin, cost = candidate, candidate_X, candidate_lin, candidate_cost
             damping, majorize = (damping / 10.0 if damping > 1e-9 else 0.0), False
