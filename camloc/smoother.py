@@ -613,6 +613,12 @@ def _unknown_name(problem: SmoothingProblem, column: int) -> str:
 
 
 def _check_conditioning(problem: SmoothingProblem, H: sp.csc_matrix, config: SmootherConfig) -> float:
+    return _conditioned_factor(problem, H, config)[0]
+
+
+def _conditioned_factor(problem: SmoothingProblem, H: sp.csc_matrix, config: SmootherConfig):
+    """The condition estimate of the scaled H and its factor (the first step's, reused), or a
+    CamlocError naming the worst-determined pose or landmark."""
     unknowns = problem.num_unknowns
     diag = H.diagonal()
     empty = np.flatnonzero(~(diag > 0.0))
@@ -635,19 +641,21 @@ def _check_conditioning(problem: SmoothingProblem, H: sp.csc_matrix, config: Smo
             f"largest accepted {config.max_condition:.2g}): the data do not determine every {what}; worst "
             f"determined: {_unknown_name(problem, worst)}"
         )
-    return condition
+    return condition, lu
 
 
 # --------------------------------------------------------------------------------------------
 # Gauss-Newton / Levenberg-Marquardt
 
 
-def _solve_step(H: sp.csc_matrix, g: np.ndarray, damping: float, num_pose: int | None = None) -> np.ndarray:
+def _solve_step(H: sp.csc_matrix, g: np.ndarray, damping: float, num_pose: int | None = None, *,
+                factored=None) -> np.ndarray:
     """The step (6(N-1) + 3L,) of ``(H + damping diag(H)) delta = -g``, in the Jacobi-scaled
-    form; ``num_pose`` the poses' unknowns (None: all), the landmarks' eliminated first."""
+    form; ``num_pose`` the poses' unknowns (None: all), the landmarks' eliminated first;
+    ``factored`` a factor of this scaled H and damping made already (``_factorization``)."""
     Hs, d = _scaled(H)
     try:
-        lu = _factorization(Hs, Hs.shape[0] if num_pose is None else num_pose, damping)
+        lu = factored or _factorization(Hs, Hs.shape[0] if num_pose is None else num_pose, damping)
     except (RuntimeError, np.linalg.LinAlgError):
         raise CamlocError("cannot smooth: the normal matrix became singular during the iterations") from None
     return d * lu.solve(-d * g)
@@ -714,27 +722,31 @@ def smooth(
         dropped_observations=dropped,
         downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
         seconds=time.perf_counter() - started,
-        landmarks=_landmark_estimate(problem, lin, X, config) if problem.num_landmarks else None,
+        landmarks=_landmark_estimate(problem, lin, X, config, counts["factor"]) if problem.num_landmarks else None,
         undetermined_landmarks=np.concatenate([undetermined, weak]),
     )
 
 
 def _minimize(problem, T, X, config, on_iteration):
     """The Gauss-Newton / Levenberg-Marquardt loop (model card, "Solver"): the poses and
-    landmarks at the end, their linearization and cost, the initial cost, and the counts."""
+    landmarks at the end, their linearization and cost, the initial cost, and the counts (with
+    ``factor``: the scaled factor and scale of the last step when it was a plain Newton step)."""
     lin = linearize(problem, T, X)
     cost = initial_cost = robust_cost(lin, config.huber)
     condition = math.nan
     damping, majorize, iterations, converged = 0.0, True, 0, problem.num_unknowns == 0
+    num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
+    last_factor = None
     while not converged and iterations < config.max_iterations:
         H, g = normal_equations(lin, config.huber, newton=not majorize)
-        if iterations == 0:
-            condition = _check_conditioning(problem, H, config)
+        Hs, d = _scaled(H)
         try:
-            step = _solve_step(H, g, damping, problem.num_pose_unknowns if problem.num_landmarks else None)
-        except CamlocError:
-            if not problem.num_landmarks:
-                raise
+            if iterations == 0:  # the first step reuses the condition check's factor
+                condition, lu = _conditioned_factor(problem, H, config)
+            else:
+                lu = _step_factor(Hs, num_pose, damping)
+            step = d * lu.solve(-d * g)
+        except _SingularStep:
             # The Newton Hessian of a landmark whose observations are all beyond the Huber
             # threshold can lose rank along their residuals: a rejected step, retried as IRLS
             # (positive definite where the observations determine the landmark), then damped.
@@ -747,6 +759,7 @@ def _minimize(problem, T, X, config, on_iteration):
         accepted = step is not None and candidate_cost <= cost
         max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
         if accepted:
+            last_factor = (lu, d) if damping == 0.0 and not majorize else None
             T, X, lin, cost = candidate, candidate_X, candidate_lin, candidate_cost
             damping, majorize = (damping / 10.0 if damping > 1e-9 else 0.0), False
             converged = max_step < config.step_tolerance
@@ -761,21 +774,40 @@ def _minimize(problem, T, X, config, on_iteration):
             converged = damping > _MAX_DAMPING
         if on_iteration is not None:
             on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
-    counts = {"iterations": iterations, "converged": bool(converged), "condition": condition}
+    counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
+              "factor": last_factor if converged else None}
     return T, X, lin, cost, initial_cost, counts
 
 
-def _landmark_estimate(problem: SmoothingProblem, lin: Linearization, X: np.ndarray,
-                       config: SmootherConfig) -> LandmarkEstimate:
+class _SingularStep(CamlocError):
+    """A step's normal matrix that could not be factored (with landmark variables: retried)."""
+
+
+def _step_factor(Hs: sp.csc_matrix, num_pose: int, damping: float):
+    try:
+        return _factorization(Hs, num_pose, damping)
+    except (RuntimeError, np.linalg.LinAlgError):
+        error = _SingularStep if num_pose < Hs.shape[0] else CamlocError
+        raise error("cannot smooth: the normal matrix became singular during the iterations") from None
+
+
+def _landmark_estimate(problem: SmoothingProblem, lin: Linearization, X: np.ndarray, config: SmootherConfig,
+                       factor=None) -> LandmarkEstimate:
     """The landmark variables at the solution with their marginal covariances: the landmark
     blocks of the inverse of the robust cost's Gauss-Newton Hessian there (its Laplace
-    approximation), through the Schur complement (``SchurSolver.landmark_covariances``)."""
-    H, _ = normal_equations(lin, config.huber, newton=True)
-    Hs, d = _scaled(H)
-    try:
-        cov = SchurSolver(Hs, problem.num_pose_unknowns).landmark_covariances()
-    except (RuntimeError, np.linalg.LinAlgError):
-        raise CamlocError("cannot smooth: the normal matrix is singular at the solution") from None
+    approximation), through the Schur complement (``SchurSolver.landmark_covariances``).
+    ``factor``: the last step's (SchurSolver, scale) when it was a plain Newton step: that
+    Hessian is the one at the solution to within the last step (below ``step_tolerance``), and
+    refactoring it would cost a step's time again."""
+    if factor is None:
+        H, _ = normal_equations(lin, config.huber, newton=True)
+        Hs, d = _scaled(H)
+        try:
+            factor = (SchurSolver(Hs, problem.num_pose_unknowns), d)
+        except (RuntimeError, np.linalg.LinAlgError):
+            raise CamlocError("cannot smooth: the normal matrix is singular at the solution") from None
+    solver, d = factor
+    cov = solver.landmark_covariances()
     scale = d[problem.num_pose_unknowns:].reshape(-1, LANDMARK_DOF)
     cov = cov * scale[:, :, None] * scale[:, None, :]  # H^-1 = D Hs^-1 D
     observations = np.bincount(problem.obs_landmark[problem.obs_landmark >= 0], minlength=problem.num_landmarks)
