@@ -114,6 +114,60 @@ def _closed_pattern(indptr, indices, data):  # pragma: no cover - compiled
 
 
 @_jit
+def _supernode_widths(indptr, indices):  # pragma: no cover - compiled
+    """(n,) columns from j to the end of j's supernode: j joins j+1's when its pattern is j then j+1's."""
+    n = indptr.shape[0] - 1
+    width = np.ones(n, dtype=np.int64)  # columns from j to the end of j's supernode
+    for j in range(n - 2, -1, -1):  # j joins j+1's supernode when its pattern is j then j+1's
+        size, next_size = indptr[j + 1] - indptr[j], indptr[j + 2] - indptr[j + 1]
+        same = size == next_size + 1
+        if same:
+            for q in range(next_size):
+                if indices[indptr[j] + 1 + q] != indices[indptr[j + 1] + q]:
+                    same = False
+                    break
+        if same:
+            width[j] = width[j + 1] + 1
+    return width
+
+
+@_jit
+def _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):  # pragma: no cover - compiled
+    """The upper triangle of Z_RR (m, m) (its diagonal halved) for the rows R of a supernode
+    (``indices[base:base + m]``), a row at a time (contiguous writes), an ancestor supernode K
+    at a time; False when a needed entry is off the pattern."""
+    Z_RR[:, :] = 0.0
+    a = 0
+    while a < m:  # the upper triangle of Z_RR, a row at a time, an ancestor supernode K at a time
+        k0 = indices[base + a]
+        end = k0 + width[k0]  # K's columns k0..end-1 (k0 may be inside K)
+        a1 = a
+        while a1 < m and indices[base + a1] < end:
+            a1 += 1
+        # the rows of R beyond K's columns lie in K's rows below (closed pattern): where, once for K
+        below, stop = indptr[k0] + (end - k0), indptr[k0 + 1]
+        p = below
+        for b in range(a1, m):
+            row = indices[base + b]
+            while p < stop and indices[p] < row:
+                p += 1
+            if p == stop or indices[p] != row:
+                return False
+            position[b] = p - below
+        for r in range(a, a1):  # column k of K holds rows k..end-1, then K's rows below
+            k = indices[base + r]
+            column = indptr[k]
+            Z_RR[r, r] = 0.5 * Z[column]  # halved: the diagonal is counted twice below
+            for b in range(r + 1, a1):
+                Z_RR[r, b] = Z[column + (indices[base + b] - k)]
+            tail = column + (end - k)
+            for b in range(a1, m):
+                Z_RR[r, b] = Z[tail + position[b]]
+        a = a1
+    return True
+
+
+@_jit
 def _takahashi(indptr, indices, L, D, Z):  # pragma: no cover - compiled
     """Fill Z (nnz,) on L's closed pattern, a supernode at a time from the last; False when a
     needed entry is missing from the pattern.
@@ -129,17 +183,7 @@ def _takahashi(indptr, indices, L, D, Z):  # pragma: no cover - compiled
     scalar loops, took 35 s at 20,000 poses; this takes a few).
     """
     n = indptr.shape[0] - 1
-    width = np.ones(n, dtype=np.int64)  # columns from j to the end of j's supernode
-    for j in range(n - 2, -1, -1):  # j joins j+1's supernode when its pattern is j then j+1's
-        size, next_size = indptr[j + 1] - indptr[j], indptr[j + 2] - indptr[j + 1]
-        same = size == next_size + 1
-        if same:
-            for q in range(next_size):
-                if indices[indptr[j] + 1 + q] != indices[indptr[j + 1] + q]:
-                    same = False
-                    break
-        if same:
-            width[j] = width[j + 1] + 1
+    width = _supernode_widths(indptr, indices)
     # walk supernodes from the last: a supernode starts at c0 and spans width[c0] columns when
     # c0 - 1 does not join it
     c1 = n
@@ -162,34 +206,8 @@ def _takahashi(indptr, indices, L, D, Z):  # pragma: no cover - compiled
         if ZRR.shape[0] < m * m:
             ZRR = np.empty(4 * m * m)
         Z_RR = ZRR[: m * m].reshape((m, m))  # contiguous, for BLAS
-        Z_RR[:, :] = 0.0
-        a = 0
-        while a < m:  # the upper triangle of Z_RR, a row at a time, an ancestor supernode K at a time
-            k0 = indices[base + a]
-            end = k0 + width[k0]  # K's columns k0..end-1 (k0 may be inside K)
-            a1 = a
-            while a1 < m and indices[base + a1] < end:
-                a1 += 1
-            # the rows of R beyond K's columns lie in K's rows below (closed pattern): where, once for K
-            below, stop = indptr[k0] + (end - k0), indptr[k0 + 1]
-            p = below
-            for b in range(a1, m):
-                row = indices[base + b]
-                while p < stop and indices[p] < row:
-                    p += 1
-                if p == stop or indices[p] != row:
-                    return False
-                position[b] = p - below
-            for r in range(a, a1):  # column k of K holds rows k..end-1, then K's rows below
-                k = indices[base + r]
-                column = indptr[k]
-                Z_RR[r, r] = 0.5 * Z[column]  # halved: the diagonal is counted twice below
-                for b in range(r + 1, a1):
-                    Z_RR[r, b] = Z[column + (indices[base + b] - k)]
-                tail = column + (end - k)
-                for b in range(a1, m):
-                    Z_RR[r, b] = Z[tail + position[b]]
-            a = a1
+        if not _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):
+            return False
         # Z_RR = U + U^T with U that upper triangle: two BLAS products, the arithmetic of the recurrence
         Y = np.dot(Z_RR, LR) + np.dot(Z_RR.T, LR)
         # Z_RJ = -Y L_JJ^-1: solve X L_JJ = -Y, the last column first (L_JJ unit lower)
