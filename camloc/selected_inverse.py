@@ -268,27 +268,43 @@ def quadratic_forms(Z: sp.csc_matrix, perm: np.ndarray, W: sp.csc_matrix, width:
 
 @_jit
 def _quadratic_forms(Zp, Zi, Zd, perm, Wp, Wi, Wd, width, out):  # pragma: no cover - compiled
+    """Each block's W_l (rows, width) made dense over the union of its columns' rows, the block
+    of A^-1 over those rows looked up once (binary search in Z's columns), then W_l^T A^-1 W_l."""
+    n = perm.shape[0]
+    slot = np.full(n, -1, dtype=np.int64)  # row -> its place in the current block's row list
+    rows = np.empty(n, dtype=np.int64)
     for block in range(out.shape[0]):
+        m = 0
         for a in range(width):
-            ca = block * width + a
-            for b in range(a, width):
-                cb = block * width + b
-                total = 0.0
-                for x in range(Wp[ca], Wp[ca + 1]):
-                    u = perm[Wi[x]]
-                    for y in range(Wp[cb], Wp[cb + 1]):
-                        v = perm[Wi[y]]
-                        col, row = min(u, v), max(u, v)
-                        lo, hi = Zp[col], Zp[col + 1]
-                        while lo < hi:  # binary search of the row in the column
-                            mid = (lo + hi) // 2
-                            if Zi[mid] < row:
-                                lo = mid + 1
-                            else:
-                                hi = mid
-                        if lo == Zp[col + 1] or Zi[lo] != row:
-                            return False
-                        total += Wd[x] * Zd[lo] * Wd[y]
-                out[block, a, b] = total
-                out[block, b, a] = total
+            c = block * width + a
+            for x in range(Wp[c], Wp[c + 1]):
+                if slot[Wi[x]] < 0:
+                    slot[Wi[x]] = m
+                    rows[m] = Wi[x]
+                    m += 1
+        Wl = np.zeros((m, width))
+        for a in range(width):
+            c = block * width + a
+            for x in range(Wp[c], Wp[c + 1]):
+                Wl[slot[Wi[x]], a] = Wd[x]
+        A = np.empty((m, m))
+        for i in range(m):
+            u = perm[rows[i]]
+            for j in range(i, m):
+                v = perm[rows[j]]
+                col, row = min(u, v), max(u, v)
+                lo, hi = Zp[col], Zp[col + 1]
+                while lo < hi:  # binary search of the row in the column
+                    mid = (lo + hi) // 2
+                    if Zi[mid] < row:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                if lo == Zp[col + 1] or Zi[lo] != row:
+                    return False
+                A[i, j] = Zd[lo]
+                A[j, i] = Zd[lo]
+        out[block] = np.dot(Wl.T.copy(), np.dot(A, Wl))
+        for i in range(m):
+            slot[rows[i]] = -1
     return True

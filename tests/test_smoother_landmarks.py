@@ -371,3 +371,31 @@ def test_write_map_is_atomic_and_only_into_a_run_folder(tmp_path, cli_run):
     assert not (tmp_path / MAP_CSV).exists()
     path = write_map(run_dir, empty)
     assert read_map(path).ids.shape == (0,) and [p.name for p in run_dir.glob(".map.csv*")] == []
+
+
+def test_cli_eval_scores_the_smoothed_map_against_a_true_map(tmp_path):
+    truth = simulate(SimulationConfig(trajectory="grid", poses=80), seed=8)
+    rng = np.random.default_rng(8)
+    moved = rng.random(len(truth.landmark_ids)) < 0.25
+    xyz = truth.landmark_xyz + 0.3 * moved[:, None] * np.array([0.0, 0.6, 0.8])
+    write_g2o(truth, tmp_path / "truth.g2o")
+    write_g2o(dataclasses.replace(truth, landmark_xyz=xyz), tmp_path / "moved.g2o")
+    assert invoke("run", tmp_path / "moved.g2o", "-o", tmp_path / "run", "--association", "oracle", "-q").exit_code == 0
+    outcome = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o")
+    assert outcome.exit_code == 2 and "smooth the run first" in outcome.stderr
+    assert json.loads(invoke("eval", tmp_path / "run", "--json").stdout)["map"] is None
+
+    scores = {}
+    for mode in ("exact", "prior"):
+        assert invoke("smooth", tmp_path / "run", "--map", mode, "-q").exit_code == 0
+        outcome = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o", "--json")
+        assert outcome.exit_code == 0, outcome.output
+        scores[mode] = json.loads(outcome.stdout)["map"]
+    exact, prior = scores["exact"]["mapped"], scores["prior"]["mapped"]
+    given_rmse = float(np.sqrt(np.mean(np.sum((xyz - truth.landmark_xyz) ** 2, axis=1))))
+    assert exact["count"] == len(truth.landmark_ids) and exact["rmse"] == pytest.approx(given_rmse)
+    assert exact["nees"] is None and exact["unknown"] == 0  # held exact: zero covariances
+    assert prior["rmse"] < 0.8 * exact["rmse"] and prior["nees"] is not None
+    assert scores["prior"]["added"] == {"count": 0, "rmse": None, "max": None, "nees": None, "unknown": 0}
+    tables = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o")
+    assert "map vs the true map" in tables.stdout and f"{prior['rmse']:.4f}" in tables.stdout
