@@ -105,11 +105,13 @@ _MAX_DAMPING = 1e8
 # held) has a larger condition number is left out: its rays meet at under about 0.006 degrees
 # (condition ~ 1 / parallax^2), so its depth is a guess, and it would spoil the whole system's.
 _MAX_LANDMARK_CONDITION = 1e8
-# The landmarks' covariances reuse the last Newton factor when the poses and landmarks have moved
-# less than this (metres or radians, the steps' largest components added) since it was made: its
-# Hessian then differs from the one at the solution far below what the Laplace approximation
-# itself leaves out.
-_COVARIANCE_REUSE = 1e-4
+# With landmark variables, a Newton step is solved with the last Newton factor (conjugate
+# gradients, ``_preconditioned_step``) instead of a new one while the poses and landmarks have
+# moved less than this since it was made (metres or radians, the steps' largest components
+# added), and the landmarks' covariances reuse it on the same terms: its Hessian then differs
+# from the current one by about that share (lever arms of a metre), far below what the Laplace
+# approximation itself leaves out, and near the solution a factor costs 4 s at 20,000 poses.
+_FACTOR_REUSE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -769,7 +771,7 @@ def _minimize(problem, T, X, config, on_iteration):
         Hs, d = _scaled(H)
         try:
             step = None
-            if problem.num_landmarks and factor is not None and damping == 0.0 and not majorize:
+            if problem.num_landmarks and moved < _FACTOR_REUSE and damping == 0.0 and not majorize:
                 step = _preconditioned_step(Hs, d, g, factor)
             if step is None:
                 if iterations == 0:  # the first step reuses the condition check's factor
@@ -809,11 +811,11 @@ def _minimize(problem, T, X, config, on_iteration):
             on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
     # The covariances may use that factor where T moved too little since for its Hessian to differ.
     counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
-              "factor": factor if converged and moved < _COVARIANCE_REUSE else None}
+              "factor": factor if converged and moved < _FACTOR_REUSE else None}
     return T, X, lin, cost, initial_cost, counts
 
 
-def _preconditioned_step(Hs: sp.csc_matrix, d: np.ndarray, g: np.ndarray, factor, *, rtol: float = 1e-9,
+def _preconditioned_step(Hs: sp.csc_matrix, d: np.ndarray, g: np.ndarray, factor, *, rtol: float = 1e-8,
                          max_iterations: int = 25) -> Optional[np.ndarray]:
     """The step of ``Hs (delta / d) = -d g`` by conjugate gradients preconditioned with an
     earlier iteration's factor (of ``Hs_0``, scale ``d_0``: ``Hs^-1 ~ E Hs_0^-1 E``, ``E = d_0 / d``);
