@@ -30,6 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _bench  # noqa: E402  (the benchmarks folder is not a package)
+
 
 def camloc(*args: str) -> str:
     command = [sys.executable, "-m", "camloc.cli.app", *args]
@@ -103,6 +106,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as temporary:
         folder = args.dir or Path(temporary)
         folder.mkdir(parents=True, exist_ok=True)
+        print(f"camloc smooth speed; {_bench.source_note()}; {_bench.machine_load()}")
         dataset_path, run_dir, setup = make_data(folder, args.poses)
         dataset, run = read_g2o(dataset_path), load_run(run_dir)
         for name, seconds in setup.items():
@@ -130,6 +134,7 @@ def main() -> None:
                 print(f"  {name:<36} {seconds:.3f} s")
             print(f"cli      camloc smooth --json --map {mode}: {cli_seconds:.2f} s end to end "
                   f"(reading {report['timing']['read_seconds']:.2f} s, smoothing {report['timing']['smooth_seconds']:.2f} s)")
+            print(f"machine  {_bench.machine_load()}")
             print(f"accuracy position RMSE filter {rmse(run.estimate_xyz, dataset.truth_xyz):.4f} m, smoothed "
                   f"{rmse(result.xyz, dataset.truth_xyz):.4f} m")
 

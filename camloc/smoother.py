@@ -89,7 +89,7 @@ from camloc.dataset import Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
-from camloc.schur import SchurSolver, factor, landmark_blocks
+from camloc.schur import SchurSolver, factor
 from camloc.smoother_landmarks import (MAP_MODES, LandmarkEstimate, LandmarkVariables, initial_positions,
                                        landmark_variables)
 
@@ -915,9 +915,15 @@ def _without_undetermined_landmarks(problem: SmoothingProblem, T: np.ndarray) ->
     condition number beyond ``_MAX_LANDMARK_CONDITION`` (rays with too little parallax)."""
     if not problem.num_landmarks:
         return problem, np.zeros(0, dtype=np.int64)
-    lin = linearize(problem, T)
-    H = (lin.jacobian.T @ lin.jacobian).tocsc()
-    blocks = landmark_blocks(H, problem.num_pose_unknowns)
+    p, lm = problem, problem.landmarks
+    rows = np.flatnonzero(p.obs_landmark >= 0)
+    _, _, J, _ = observation_factors(T[p.obs_pose[rows]], p.obs_T_robot_camera[rows], p.obs_intrinsics[rows],
+                                     lm.xyz[p.obs_landmark[rows]], p.obs_z[rows],
+                                     None if p.obs_kind is None else p.obs_kind[rows])
+    J = p.obs_whiten[rows] @ J
+    blocks = np.zeros((len(lm), LANDMARK_DOF, LANDMARK_DOF))
+    np.add.at(blocks, p.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)  # J^T J of each landmark's observations
+    blocks += np.where(lm.has_prior, 1.0 / lm.prior_sigma**2, 0.0)[:, None, None] * np.eye(LANDMARK_DOF)
     eig = np.linalg.eigvalsh(blocks)
     keep = eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION
     if np.all(keep):
