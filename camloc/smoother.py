@@ -265,7 +265,7 @@ class SmoothingResult:
     dropped_observations : accepted observations left out because their landmark is behind the
         camera at the initial poses (no projection exists there).
     downweighted_observations : observations beyond the Huber threshold at the solution.
-    seconds : wall time of the optimization.
+    seconds : wall time of the optimization (the landmarks' covariances included).
     landmarks : the landmark variables' estimate and marginal covariance; None when every
         landmark was held at the map.
     undetermined_landmarks : (U,) ids of landmark variables left out with their observations:
@@ -739,6 +739,7 @@ def smooth(
 
     X = None if problem.landmarks is None else problem.landmarks.xyz
     T, X, lin, cost, initial_cost, counts = _minimize(problem, T, X, config, on_iteration)
+    landmarks = _landmark_estimate(problem, lin, X, config, counts["factor"]) if problem.num_landmarks else None
     return SmoothingResult(
         T_world_robot=T,
         iterations=counts["iterations"],
@@ -751,7 +752,7 @@ def smooth(
         dropped_observations=dropped,
         downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
         seconds=time.perf_counter() - started,
-        landmarks=_landmark_estimate(problem, lin, X, config, counts["factor"]) if problem.num_landmarks else None,
+        landmarks=landmarks,
         undetermined_landmarks=np.concatenate([undetermined, weak]),
     )
 

@@ -399,3 +399,27 @@ def test_cli_eval_scores_the_smoothed_map_against_a_true_map(tmp_path):
     assert scores["prior"]["added"] == {"count": 0, "rmse": None, "max": None, "nees": None, "unknown": 0}
     tables = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o")
     assert "map vs the true map" in tables.stdout and f"{prior['rmse']:.4f}" in tables.stdout
+
+
+def test_the_conditioning_check_covers_the_landmarks(world):
+    dataset, run = world
+    result = smoother.smooth_run(dataset, run, NONE)
+    assert np.isfinite(result.condition) and result.converged
+    from camloc.errors import CamlocError
+
+    with pytest.raises(CamlocError, match=r"do not determine every pose and landmark; worst determined: (pose|landmark) \d+"):
+        smoother.smooth_run(dataset, run, dataclasses.replace(NONE, max_condition=10.0))
+
+
+def test_added_landmarks_started_far_off_still_reach_the_same_solution():
+    dataset, run, truth, _ = missing_world(3)
+    reference = smoother.smooth_run(dataset, run)
+    lm = reference.landmarks
+    rng = np.random.default_rng(1)
+    far = {int(i): x + rng.normal(scale=0.4, size=3) for i, x in zip(lm.ids, lm.xyz)}  # 0.7 m off on average
+    iterations = []
+    result = smoother.smooth_run(dataset, run, added_xyz=far, on_iteration=iterations.append)
+    assert result.converged and result.final_cost == pytest.approx(reference.final_cost, rel=1e-9)
+    np.testing.assert_allclose(result.landmarks.xyz, lm.xyz, atol=1e-6)
+    np.testing.assert_allclose(result.T_world_robot, reference.T_world_robot, atol=1e-6)
+    assert result.initial_cost > 2 * reference.initial_cost and len(iterations) == result.iterations
