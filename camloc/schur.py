@@ -139,7 +139,9 @@ class SchurSolver:
         try:
             if by_solves:
                 raise PatternError("asked for solves")
-            Z, perm = selected_inverse(self.lu)
+            coupled = self.W.copy()
+            coupled.data[:] = 1.0  # positive: the pattern of W W^T, pairs of poses a landmark couples, without cancellation
+            Z, perm = selected_inverse(self.lu, coupled @ coupled.T)
             cov += quadratic_forms(Z, perm, self.W, LANDMARK_DOF)
         except PatternError:
             cov += self._quadratic_forms_by_solves()

@@ -35,13 +35,17 @@ class PatternError(RuntimeError):
     """The factor's pattern lacks an entry the recurrence needs (a factor that dropped zeros)."""
 
 
-def selected_inverse(lu) -> tuple[sp.csc_matrix, np.ndarray]:
+def selected_inverse(lu, needed: sp.spmatrix | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
     """``Z`` (lower triangle, on L's pattern, CSC) of the inverse of ``P A P^T``, and ``perm``
     (n,) with ``A^-1[u, v] = Z[perm[u], perm[v]]`` (read the lower triangle: max row, min column).
 
     Parameters
     ----------
     lu : scipy's SuperLU of a symmetric positive definite A in symmetric mode.
+    needed : (n, n) a pattern (A's indices) whose entries of A^-1 are wanted: added to the
+        pattern before it is closed. scipy's sparse arithmetic drops entries that come out
+        exactly zero (a grid world's axis-aligned poses give such), so A's own pattern, and
+        so L's, can lack a pair of poses that see a common landmark.
 
     Raises
     ------
@@ -51,13 +55,22 @@ def selected_inverse(lu) -> tuple[sp.csc_matrix, np.ndarray]:
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise PatternError("the factor permutes rows and columns differently")
     L = sp.csc_matrix(lu.L)
+    perm = np.asarray(lu.perm_c)
+    if needed is not None:  # zeros on the pattern of the needed pairs, in L's (permuted, lower) indices
+        E = sp.coo_matrix(needed)
+        u, v = perm[E.row], perm[E.col]
+        Lc = L.tocoo()
+        rows = np.concatenate([Lc.row, np.maximum(u, v)])
+        cols = np.concatenate([Lc.col, np.minimum(u, v)])
+        L = sp.coo_matrix((np.concatenate([Lc.data, np.zeros(len(u))]), (rows, cols)), shape=L.shape).tocsc()
+        L.sum_duplicates()  # zeros added to an entry L has leave its value as it is
     L.sort_indices()
     D = lu.U.diagonal()
     indptr, indices, data = _closed_pattern(L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
     Z = np.zeros(len(data))
     if not _takahashi(indptr, indices, data, D, Z):
         raise PatternError("the factor's pattern is not closed under the recurrence")
-    return sp.csc_matrix((Z, indices, indptr), shape=L.shape), np.asarray(lu.perm_c)
+    return sp.csc_matrix((Z, indices, indptr), shape=L.shape), perm
 
 
 @_jit

@@ -423,3 +423,23 @@ def test_added_landmarks_started_far_off_still_reach_the_same_solution():
     np.testing.assert_allclose(result.landmarks.xyz, lm.xyz, atol=1e-6)
     np.testing.assert_allclose(result.T_world_robot, reference.T_world_robot, atol=1e-6)
     assert result.initial_cost > 2 * reference.initial_cost and len(iterations) == result.iterations
+
+
+def test_selected_inversion_needs_no_fallback_on_a_grid_world(monkeypatch):
+    # axis-aligned grid poses give normal-matrix entries that cancel exactly, which scipy's sparse
+    # arithmetic drops from the pattern: the pairs of poses a landmark couples are added back
+    dataset = simulate(SimulationConfig(trajectory="grid", poses=120), seed=2)
+    run = localize(dataset, LocalizerConfig(association="oracle"))
+    problem = smoother.problem_from_run(dataset, run, NONE)
+    T = smoother.initial_poses(dataset, run)
+    problem, _ = smoother._with_initial_landmarks(problem, T)
+    H, _ = smoother.normal_equations(smoother.linearize(problem, T), 2.0, newton=True)
+    Hs, _ = smoother._scaled(H)
+    solver = SchurSolver(Hs, problem.num_pose_unknowns)
+    expected = solver.landmark_covariances(by_solves=True)
+
+    def no_fallback(self):
+        raise AssertionError("fell back to solves")
+
+    monkeypatch.setattr(SchurSolver, "_quadratic_forms_by_solves", no_fallback)
+    np.testing.assert_allclose(solver.landmark_covariances(), expected, rtol=1e-8, atol=1e-14)
