@@ -7,7 +7,9 @@ A run folder holds:
   observation, ``landmark`` and ``mahalanobis`` empty when the observation was rejected;
 - ``states.npz``: per-pose filter state and covariance, pose covariance, NIS per update;
 - ``summary.json``: dataset, configuration, counts, timings and headline metrics;
-- ``smoothed.tum`` (only after ``camloc smooth``): the smoother's poses, TUM like the others.
+- ``smoothed.tum`` (only after ``camloc smooth``): the smoother's poses, TUM like the others;
+- ``map.csv`` (only after ``camloc smooth``): the smoother's map, a row per landmark
+  (``MAP_HEADER``: position, covariance, ``mapped`` or ``added``, observations).
 
 The TUM files are the run's trajectories: ``load_run`` reads the estimate, odometry and ground
 truth from them (timestamps must be the run's pose ids), so that ``camloc eval`` and ``camloc
@@ -63,6 +65,8 @@ ASSOCIATIONS_CSV = "associations.csv"
 STATES_NPZ = "states.npz"
 SUMMARY_JSON = "summary.json"
 SMOOTHED_TUM = "smoothed.tum"
+MAP_CSV = "map.csv"
+MAP_HEADER = ("id", "x", "y", "z", "cxx", "cxy", "cxz", "cyy", "cyz", "czz", "origin", "observations")
 ASSOCIATIONS_HEADER = ("pose", "camera", "u", "v", "depth", "landmark", "true_landmark", "mahalanobis")
 TUM_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
 RUN_FORMAT_VERSION = 2
@@ -77,7 +81,7 @@ FIGURE_FORMATS = ("png", "pdf", "svg")
 # derived ones included (a smoothed path or a figure of the old run would pass for the new one's),
 # and keeps everything else.
 CAMLOC_FILES = frozenset(
-    (ESTIMATE_TUM, ODOMETRY_TUM, GROUNDTRUTH_TUM, ASSOCIATIONS_CSV, STATES_NPZ, SUMMARY_JSON, SMOOTHED_TUM)
+    (ESTIMATE_TUM, ODOMETRY_TUM, GROUNDTRUTH_TUM, ASSOCIATIONS_CSV, STATES_NPZ, SUMMARY_JSON, SMOOTHED_TUM, MAP_CSV)
     + tuple(f"fig-{name}.{suffix}" for name in FIGURE_NAMES for suffix in FIGURE_FORMATS)
 )
 
@@ -693,6 +697,89 @@ def write_smoothed(run_dir: str | Path, pose_ids: np.ndarray, xyz: np.ndarray, q
     path = run_dir / SMOOTHED_TUM
     write_tum(path, pose_ids, xyz, quat_xyzw)
     return path
+
+
+@dataclass(frozen=True)
+class LandmarkMap:
+    """An estimated map (K landmarks), ``map.csv``'s content.
+
+    Attributes
+    ----------
+    ids : (K,) int64; xyz : (K, 3) world frame, metres.
+    cov : (K, 3, 3) covariance of each position, m^2 (zero for a landmark held exactly at the map).
+    added : (K,) bool: ``added`` (the map lacked it) or ``mapped``.
+    observations : (K,) int64 observations the estimate used.
+    """
+
+    ids: np.ndarray
+    xyz: np.ndarray
+    cov: np.ndarray
+    added: np.ndarray
+    observations: np.ndarray
+
+
+def map_text(landmarks: LandmarkMap) -> str:
+    """The CSV text of a map (header ``MAP_HEADER``, a row per landmark; floats as their repr)."""
+    m = landmarks
+    cov = np.asarray(m.cov, dtype=float)
+    columns = [
+        map(str, np.asarray(m.ids, dtype=np.int64).tolist()),
+        *(map(repr, np.asarray(m.xyz, dtype=float)[:, i].tolist()) for i in range(3)),
+        *(map(repr, cov[:, i, j].tolist()) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))),
+        ("added" if added else "mapped" for added in np.asarray(m.added, dtype=bool).tolist()),
+        map(str, np.asarray(m.observations, dtype=np.int64).tolist()),
+    ]
+    lines = [",".join(MAP_HEADER), *map(",".join, zip(*columns))]
+    return "\n".join(lines) + "\n"
+
+
+def write_map(run_dir: str | Path, landmarks: LandmarkMap) -> Path:
+    """Write the smoother's map as ``map.csv`` into an existing run folder, whole or not at all.
+
+    Raises
+    ------
+    CamlocError : ``run_dir`` is not a run folder, or the file cannot be written.
+    """
+    run_dir = Path(run_dir)
+    if not is_run_folder(run_dir):
+        raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run' to add {MAP_CSV} to")
+    path = run_dir / MAP_CSV
+    write_text_atomic(path, map_text(landmarks))
+    return path
+
+
+def read_map(path: str | Path) -> LandmarkMap:
+    """Read a ``map.csv`` written by ``map_text``.
+
+    Raises
+    ------
+    DatasetError : a missing or malformed file (with the line).
+    """
+    path = Path(path)
+    lines = _read_text(path).splitlines()
+    if not lines or tuple(cell.strip() for cell in lines[0].split(",")) != MAP_HEADER:
+        raise DatasetError(path, 1, f"expected the header {','.join(MAP_HEADER)}, found {lines[0] if lines else 'nothing'}")
+    ids, values, added, observations = [], [], [], []
+    for number, line in enumerate(lines[1:], start=2):
+        cells = [cell.strip() for cell in line.split(",")]
+        if len(cells) != len(MAP_HEADER):
+            raise DatasetError(path, number, f"expected {len(MAP_HEADER)} fields, found {len(cells)}")
+        if cells[10] not in ("mapped", "added"):
+            raise DatasetError(path, number, f"origin: expected mapped or added, found {cells[10]!r}")
+        try:
+            ids.append(int(cells[0]))
+            observations.append(int(cells[11]))
+            row = [float(cell) for cell in cells[1:10]]
+        except ValueError:
+            raise DatasetError(path, number, "expected an integer id and observations and finite numbers") from None
+        if not all(math.isfinite(v) for v in row):
+            raise DatasetError(path, number, "expected finite numbers")
+        values.append(row)
+        added.append(cells[10] == "added")
+    v = np.array(values, dtype=float).reshape(-1, 9)
+    upper = v[:, [3, 4, 5, 4, 6, 7, 5, 7, 8]].reshape(-1, 3, 3)
+    return LandmarkMap(np.array(ids, dtype=np.int64), v[:, :3], upper, np.array(added, dtype=bool),
+                       np.array(observations, dtype=np.int64))
 
 
 def load_smoothed(run_dir: str | Path, pose_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:

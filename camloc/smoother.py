@@ -1,8 +1,12 @@
-"""The smoother: the maximum a posteriori trajectory over all poses, using all the data at once.
+"""The smoother: the maximum a posteriori trajectory over all poses (and, unless the map is held
+exact, the landmarks), using all the data at once.
 
 The filter (``camloc.localizer``) estimates each pose from the past only. Given the associations a
 run accepted, the smoother solves for every pose jointly, by Gauss-Newton / Levenberg-Marquardt
-on an analytic sparse Jacobian.
+on an analytic sparse Jacobian. ``SmootherConfig.map`` says how the map is held
+(``camloc.smoother_landmarks``): ``exact`` (fixed: poses only, the default), ``prior`` (mapped
+landmarks estimated too, pulled toward the map) or ``none``; landmarks the map lacks that the
+run assigns observations to (added ones) are estimated in every mode.
 
     problem = problem_from_run(dataset, run)          # checks that the two belong together
     result = smooth(problem, initial_poses(dataset, run), SmootherConfig())
@@ -10,10 +14,12 @@ on an analytic sparse Jacobian.
 Model card
 ----------
 Variables   T_k = (R_k, t_k), k = 0..N-1, robot poses in the world frame. T_0 is FIXED at the
-            dataset's start pose; the unknowns are the other N-1 poses, 6 (N-1) numbers.
+            dataset's start pose (it also fixes the frame when no map does); the unknowns are
+            the other N-1 poses, 6 (N-1) numbers, then the L landmark variables l_j, 3 L
+            (world frame, metres; none under ``exact`` with a complete map).
 Update      right perturbation delta_k = (dt, dtheta), body frame, metres and radians:
             ``R_k <- R_k Exp(dtheta)``, ``t_k <- t_k + R_k dt`` (``geometry.retract_right``): the
-            noise convention of ``camloc.models`` (SO(3) x R^3).
+            noise convention of ``camloc.models`` (SO(3) x R^3); a landmark ``l_j <- l_j + dl``.
 Odometry    one factor per edge (a, b) with measured increment dT = T_a^-1 T_b Exp(w):
               E = dT^-1 T_a^-1 T_b,    r = (t(E), Log(R(E)))                          (6,)
             whitened by the edge's covariance ``dataset.odom_cov`` (already in (translation,
@@ -21,6 +27,10 @@ Odometry    one factor per edge (a, b) with measured increment dT = T_a^-1 T_b E
 Observation one factor per observation the run ACCEPTED (``associations.csv`` landmark set):
               r = z - h(T_k, l),   h = project(camera_points(T_k, T_robot_camera, l))   (3,)
             whitened by ``dataset.obs_cov`` the same way. Rejected observations are not used.
+            l is the map's landmark where held, else the variable.
+Map prior   under ``prior``, one factor per observed mapped landmark:
+              r = (l_j - l_map) / sigma                                                (3,)
+            isotropic, ``sigma = SmootherConfig.map_sigma`` (metres); not robustified.
 Loss        ``cost = 1/2 sum_odometry |r_w|^2 + 1/2 sum_observations rho(|r_w|^2)`` (scipy's
             ``least_squares`` convention, 1/2 in front), with Huber's
             ``rho(s) = s`` for ``s <= f^2`` and ``2 f sqrt(s) - f^2`` beyond: an observation
@@ -34,8 +44,9 @@ Jacobians   with ``p = R_a^T (t_b - t_a)``, ``R_ab = R_a^T R_b``, ``Jr`` the rig
               dr/d(dt_a, dth_a) = [[-R_dT^T, R_dT^T [p]x], [0, -Jr^-1(r_th) R_ab^T]]
               dr/d(dt_b, dth_b) = [[R_dT^T R_ab, 0],     [0,  Jr^-1(r_th)]]
               dr_obs/d(dt, dth) = -P(p_cam) R_c^T [-I, [p_robot]x]
+              dr_obs/dl = -P(p_cam) R_c^T R^T,      dr_prior/dl = I / sigma
             (P the projection Jacobian); all checked against central finite differences on the
-            manifold in tests/test_smoother.py.
+            manifold in tests/test_smoother.py and tests/test_smoother_landmarks.py.
 Solver      re-linearize until the largest step component is below ``step_tolerance``. The first
             step is iteratively reweighted Gauss-Newton (IRLS, weights rho'(s)): its model lies
             above the robust cost, safe far from the solution. Later steps use the Gauss-Newton
@@ -43,9 +54,20 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             quadratically where IRLS creeps (50 iterations were not enough on 20,000 poses, 8
             are now). A step that does not lower the cost is retried as IRLS, then with
             Levenberg-Marquardt damping. The normal matrix is scaled to unit diagonal (Jacobi)
-            and factored with SuperLU; before the first step the graph is checked for poses tied
-            to nothing and the matrix's 1-norm condition number is estimated, and a problem that
-            does not determine every pose is refused with a ``CamlocError`` instead of solved.
+            and factored with SuperLU; with landmark variables, each landmark's 3x3 block is
+            eliminated first (its Schur complement, ``camloc.schur``) and SuperLU factors the
+            reduced pose system. Before the first step the graph is checked for poses tied to
+            nothing and the matrix's 1-norm condition number is estimated, and a problem that
+            does not determine every pose (and landmark) is refused with a ``CamlocError``
+            instead of solved. A landmark variable whose own observations do not place it (a
+            single pixel ray, rays of under ~0.006 degrees of parallax) and that no prior holds
+            is left out with its observations and named (``undetermined_landmarks``), not
+            refused: an online map adds such landmarks as a matter of course. A step whose
+            Newton system cannot be factored (a landmark whose observations are all beyond the
+            Huber threshold) is retried as IRLS, then damped.
+Covariance  of the landmark variables: the landmark blocks of the inverse Gauss-Newton Hessian of
+            the robust cost at the solution, by the Schur complement and selected inversion of
+            the reduced system's factor (``camloc.selected_inverse``), never a dense inverse.
 
 Pure: no I/O, no printing.
 """
@@ -54,7 +76,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -66,15 +88,30 @@ from camloc import geometry, measurement
 from camloc.dataset import Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
-from camloc.results import UNASSOCIATED, RunResult
+from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
+from camloc.schur import SchurSolver, factor
+from camloc.smoother_landmarks import (MAP_MODES, LandmarkEstimate, LandmarkVariables, initial_positions,
+                                       landmark_variables)
 
 POSE_DOF = 6
 OBS_DIM = 3
+LANDMARK_DOF = 3
 # Predicted depths below this (metres) put a landmark behind the camera: no projection exists.
 MIN_DEPTH = 1e-6
 # Largest Levenberg-Marquardt damping (on a unit-diagonal normal matrix) before giving up on
 # lowering the cost: the current poses are then a minimum to working precision.
 _MAX_DAMPING = 1e8
+# A landmark variable whose own 3x3 information block (its observations and prior, the poses
+# held) has a larger condition number is left out: its rays meet at under about 0.006 degrees
+# (condition ~ 1 / parallax^2), so its depth is a guess, and it would spoil the whole system's.
+_MAX_LANDMARK_CONDITION = 1e8
+# With landmark variables, a Newton step is solved with the last Newton factor (conjugate
+# gradients, ``_preconditioned_step``) instead of a new one while the poses and landmarks have
+# moved less than this since it was made (metres or radians, the steps' largest components
+# added), and the landmarks' covariances reuse it on the same terms: its Hessian then differs
+# from the current one by about that share (lever arms of a metre), far below what the Laplace
+# approximation itself leaves out, and near the solution a factor costs 4 s at 20,000 poses.
+_FACTOR_REUSE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -95,12 +132,18 @@ class SmootherConfig:
     max_condition : largest accepted 1-norm condition estimate of the Jacobi-scaled normal
         matrix; beyond it the data do not determine every pose (machine epsilon is 2.2e-16, so
         1e14 leaves about two significant digits in the worst direction).
+    map : how the map's landmarks are held (``camloc.smoother_landmarks``): ``exact`` (fixed at
+        the map), ``prior`` (estimated, pulled toward the map with ``map_sigma``) or ``none``
+        (estimated from the observations alone). Landmarks the map lacks are estimated in all three.
+    map_sigma : the map prior's standard deviation per axis, metres (``map = "prior"``).
     """
 
     huber: float = 2.0
     max_iterations: int = 50
     step_tolerance: float = 1e-7
     max_condition: float = 1e14
+    map: str = "exact"
+    map_sigma: float = 0.1
 
     def validate(self) -> None:
         """Raise ConfigError naming the first option out of range."""
@@ -112,6 +155,10 @@ class SmootherConfig:
             raise ConfigError(f"step_tolerance must be > 0, got {self.step_tolerance}")
         if not self.max_condition > 1.0:
             raise ConfigError(f"max_condition must be > 1, got {self.max_condition}")
+        if self.map not in MAP_MODES:
+            raise ConfigError(f"map must be one of {', '.join(MAP_MODES)}, got {self.map!r}")
+        if not (self.map_sigma > 0.0 and math.isfinite(self.map_sigma)):
+            raise ConfigError(f"map_sigma must be a finite number of metres > 0, got {self.map_sigma}")
 
 
 @dataclass(frozen=True)
@@ -129,12 +176,17 @@ class SmoothingProblem:
     obs_pose : (M,) int64 index of the observing pose.
     obs_T_robot_camera : (M, 4, 4) camera mount of each observation.
     obs_intrinsics : (M, 4) fx, fy, cx, cy.
-    obs_landmark_xyz : (M, 3) the associated landmark, world frame, metres.
+    obs_landmark_xyz : (M, 3) the associated landmark, world frame, metres, where it is held fixed
+        (``obs_landmark`` < 0); the others' rows are not read.
     obs_z : (M, 3) the measurements (``camloc.measurement``'s layout: u, v, then depth, inverse
         depth or a pixel's inert 0).
     obs_whiten : (M, 3, 3) ``L^-1`` of the observation covariance.
     obs_row : (M,) int64 index of each observation in the dataset (for messages and reports).
     obs_kind : (M,) int64 each measurement's kind (``camloc.measurement``); None: depth.
+    landmarks : the landmarks estimated with the poses (``camloc.smoother_landmarks``); None:
+        every landmark is held at ``obs_landmark_xyz``.
+    obs_landmark : (M,) int64 the variable landmark (index into ``landmarks``) of each
+        observation, -1 where its landmark is held fixed; None: all are fixed.
     """
 
     pose_ids: np.ndarray
@@ -151,14 +203,36 @@ class SmoothingProblem:
     obs_whiten: np.ndarray
     obs_row: np.ndarray
     obs_kind: np.ndarray | None = None
+    landmarks: LandmarkVariables | None = None
+    obs_landmark: np.ndarray | None = None
 
     @property
     def num_poses(self) -> int:
         return int(self.pose_ids.shape[0])
 
     @property
-    def num_unknowns(self) -> int:
+    def num_landmarks(self) -> int:
+        """Landmark variables (0 when every landmark is held fixed)."""
+        return 0 if self.landmarks is None else len(self.landmarks)
+
+    @property
+    def num_pose_unknowns(self) -> int:
         return POSE_DOF * (self.num_poses - 1)
+
+    @property
+    def num_unknowns(self) -> int:
+        """Poses' 6 (N - 1), then the landmark variables' 3 L: the columns of the Jacobian."""
+        return self.num_pose_unknowns + LANDMARK_DOF * self.num_landmarks
+
+    def observed_xyz(self, X: np.ndarray | None) -> np.ndarray:
+        """(M, 3) each observation's landmark: the fixed ones from ``obs_landmark_xyz``, the
+        variables from X (L, 3)."""
+        if self.obs_landmark is None or X is None:
+            return self.obs_landmark_xyz
+        xyz = self.obs_landmark_xyz.copy()
+        variable = self.obs_landmark >= 0
+        xyz[variable] = X[self.obs_landmark[variable]]
+        return xyz
 
 
 @dataclass(frozen=True)
@@ -191,7 +265,12 @@ class SmoothingResult:
     dropped_observations : accepted observations left out because their landmark is behind the
         camera at the initial poses (no projection exists there).
     downweighted_observations : observations beyond the Huber threshold at the solution.
-    seconds : wall time of the optimization.
+    seconds : wall time of the optimization (the landmarks' covariances included).
+    landmarks : the landmark variables' estimate and marginal covariance; None when every
+        landmark was held at the map.
+    undetermined_landmarks : (U,) ids of landmark variables left out with their observations:
+        their observations do not place them (a single pixel ray, too little parallax) and no
+        map prior holds them.
     """
 
     T_world_robot: np.ndarray
@@ -205,6 +284,8 @@ class SmoothingResult:
     dropped_observations: int
     downweighted_observations: int
     seconds: float
+    landmarks: LandmarkEstimate | None = None
+    undetermined_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def xyz(self) -> np.ndarray:
@@ -282,6 +363,25 @@ def observation_residuals(
     J : (M, 3, 6) dr / d(dt, dtheta) of the right perturbation of the pose.
     depth : (M,) predicted depth (the model has no projection where it is not positive).
     """
+    r, J_pose, _, depth = observation_factors(T_pose, T_robot_camera, intrinsics, landmark_xyz, z_uvd, kinds)
+    return r, J_pose, depth
+
+
+def observation_factors(
+    T_pose: np.ndarray,
+    T_robot_camera: np.ndarray,
+    intrinsics: np.ndarray,
+    landmark_xyz: np.ndarray,
+    z_uvd: np.ndarray,
+    kinds: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``observation_residuals`` and also the Jacobian with respect to the landmark.
+
+    Returns
+    -------
+    r, J_pose, depth : as ``observation_residuals``.
+    J_landmark : (M, 3, 3) dr / dl, l the landmark's world position: ``-P R_c^T R^T``.
+    """
     R, t = T_pose[:, :3, :3], T_pose[:, :3, 3]
     R_c_T = np.swapaxes(T_robot_camera[:, :3, :3], 1, 2)
     # The same arithmetic as models.camera_points, one pose and camera per row.
@@ -295,8 +395,10 @@ def observation_residuals(
     dp_robot = np.empty((len(depth), 3, 6))
     dp_robot[:, :, 0:3] = -np.eye(3)  # R^T (l - t - R dt) = p_robot - dt
     dp_robot[:, :, 3:6] = geometry.hat(p_robot)  # Exp(-dth) p_robot ~= p_robot + [p_robot]x dth
-    J = -(P @ R_c_T @ dp_robot)
-    return z_uvd - z_hat, J, depth
+    P_c = P @ R_c_T
+    J_pose = -(P_c @ dp_robot)
+    J_landmark = -(P_c @ np.swapaxes(R, 1, 2))  # p_robot = R^T (l - t)
+    return z_uvd - z_hat, J_pose, J_landmark, depth
 
 
 # --------------------------------------------------------------------------------------------
@@ -319,17 +421,19 @@ def whitening(cov: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Linearization:
-    """Whitened residuals and their sparse Jacobian at one set of poses.
+    """Whitened residuals and their sparse Jacobian at one set of poses (and landmarks).
 
-    ``residual`` (6E + 3M,) is the odometry factors' residuals then the observations', 6 and 3
-    rows each; ``jacobian`` (6E + 3M, 6(N-1)) CSR; ``obs_sq`` (M,) each observation's squared
-    Mahalanobis distance; ``odom_sq`` (E,) each odometry factor's.
+    ``residual`` (6E + 3M + 3P,) is the odometry factors' residuals, then the observations', then
+    the map priors', 6, 3 and 3 rows each; ``jacobian`` (6E + 3M + 3P, 6(N-1) + 3L) CSR, the
+    poses' columns then the landmarks'; ``obs_sq`` (M,) each observation's squared Mahalanobis
+    distance; ``odom_sq`` (E,) each odometry factor's; ``prior_sq`` (P,) each map prior's.
     """
 
     residual: np.ndarray
     jacobian: sp.csr_matrix
     odom_sq: np.ndarray
     obs_sq: np.ndarray
+    prior_sq: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _block_coo(first_row: np.ndarray, pose: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -343,12 +447,23 @@ def _block_coo(first_row: np.ndarray, pose: np.ndarray, blocks: np.ndarray) -> t
     return rows.ravel(), cols.ravel(), blocks.ravel()
 
 
-def linearize(problem: SmoothingProblem, T: np.ndarray) -> Linearization:
-    """Whitened residuals and the analytic sparse Jacobian of every factor at poses T (N, 4, 4)."""
+def _landmark_coo(first_row: np.ndarray, first_col: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
+    """COO triplets of dense blocks (F, d, 3) at rows ``first_row + 0..d-1``, columns ``first_col + 0..2``."""
+    d = blocks.shape[1]
+    rows = np.broadcast_to(first_row[:, None, None] + np.arange(d)[None, :, None], blocks.shape)
+    cols = np.broadcast_to(first_col[:, None, None] + np.arange(LANDMARK_DOF)[None, None, :], blocks.shape)
+    return rows.ravel(), cols.ravel(), blocks.ravel()
+
+
+def linearize(problem: SmoothingProblem, T: np.ndarray, X: np.ndarray | None = None) -> Linearization:
+    """Whitened residuals and the analytic sparse Jacobian of every factor at poses T (N, 4, 4)
+    and landmark variables X (L, 3) (None: ``problem.landmarks.xyz``)."""
     p = problem
+    if X is None and p.landmarks is not None:
+        X = p.landmarks.xyz
     r_odom, J_from, J_to = odometry_residuals(T[p.odom_from], T[p.odom_to], p.T_odometry)
-    r_obs, J_obs, _ = observation_residuals(T[p.obs_pose], p.obs_T_robot_camera, p.obs_intrinsics,
-                                            p.obs_landmark_xyz, p.obs_z, p.obs_kind)
+    r_obs, J_obs, J_lm, _ = observation_factors(T[p.obs_pose], p.obs_T_robot_camera, p.obs_intrinsics,
+                                                p.observed_xyz(X), p.obs_z, p.obs_kind)
     # Whitening: r_w = L^-1 r and J_w = L^-1 J.
     r_odom = np.einsum("nij,nj->ni", p.odom_whiten, r_odom)
     r_obs = np.einsum("nij,nj->ni", p.obs_whiten, r_obs)
@@ -359,14 +474,30 @@ def linearize(problem: SmoothingProblem, T: np.ndarray) -> Linearization:
     obs_rows = POSE_DOF * num_odom + OBS_DIM * np.arange(len(p.obs_pose))
     parts = [_block_coo(odom_rows, p.odom_from, J_from), _block_coo(odom_rows, p.odom_to, J_to),
              _block_coo(obs_rows, p.obs_pose, J_obs)]
+    residuals = [r_odom.ravel(), r_obs.ravel()]
+    num_rows = POSE_DOF * num_odom + OBS_DIM * len(p.obs_pose)
+    r_prior = np.zeros((0, LANDMARK_DOF))
+    if p.num_landmarks:
+        variable = np.flatnonzero(p.obs_landmark >= 0)
+        first_col = p.num_pose_unknowns + LANDMARK_DOF * p.obs_landmark[variable]
+        parts.append(_landmark_coo(obs_rows[variable], first_col, p.obs_whiten[variable] @ J_lm[variable]))
+        # The map prior r = (l - l_map) / sigma, J = I / sigma.
+        held = np.flatnonzero(p.landmarks.has_prior)
+        sigma = p.landmarks.prior_sigma[held]
+        r_prior = (X[held] - p.landmarks.prior_xyz[held]) / sigma[:, None]
+        prior_rows = num_rows + LANDMARK_DOF * np.arange(len(held))
+        J_prior = np.eye(LANDMARK_DOF)[None] / sigma[:, None, None]
+        parts.append(_landmark_coo(prior_rows, p.num_pose_unknowns + LANDMARK_DOF * held, J_prior))
+        residuals.append(r_prior.ravel())
+        num_rows += LANDMARK_DOF * len(held)
     rows, cols, values = (np.concatenate(column) for column in zip(*parts))
-    shape = (POSE_DOF * num_odom + OBS_DIM * len(p.obs_pose), p.num_unknowns)
-    jacobian = sp.csr_matrix((values, (rows, cols)), shape=shape)
+    jacobian = sp.csr_matrix((values, (rows, cols)), shape=(num_rows, p.num_unknowns))
     return Linearization(
-        residual=np.concatenate([r_odom.ravel(), r_obs.ravel()]),
+        residual=np.concatenate(residuals),
         jacobian=jacobian,
         odom_sq=np.einsum("ni,ni->n", r_odom, r_odom),
         obs_sq=np.einsum("ni,ni->n", r_obs, r_obs),
+        prior_sq=np.einsum("ni,ni->n", r_prior, r_prior),
     )
 
 
@@ -389,13 +520,14 @@ def huber_weight(s: np.ndarray, f: float) -> np.ndarray:
 
 
 def robust_cost(lin: Linearization, huber: float) -> float:
-    """``1/2 (sum odom_sq + sum rho(obs_sq))``; inf when a residual is not finite."""
-    cost = 0.5 * (float(np.sum(lin.odom_sq)) + float(np.sum(huber_rho(lin.obs_sq, huber))))
+    """``1/2 (sum odom_sq + sum rho(obs_sq) + sum prior_sq)``; inf when a residual is not finite."""
+    cost = 0.5 * (float(np.sum(lin.odom_sq)) + float(np.sum(huber_rho(lin.obs_sq, huber))) + float(np.sum(lin.prior_sq)))
     return cost if math.isfinite(cost) else math.inf
 
 
 def _row_weights(lin: Linearization, huber: float) -> np.ndarray:
-    return np.concatenate([np.ones(POSE_DOF * len(lin.odom_sq)), np.repeat(huber_weight(lin.obs_sq, huber), OBS_DIM)])
+    return np.concatenate([np.ones(POSE_DOF * len(lin.odom_sq)), np.repeat(huber_weight(lin.obs_sq, huber), OBS_DIM),
+                           np.ones(LANDMARK_DOF * len(lin.prior_sq))])
 
 
 def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple[sp.csc_matrix, np.ndarray]:
@@ -475,7 +607,22 @@ def _scaled(H: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
 def _factor(Hs: sp.csc_matrix):
     # SuperLU in symmetric mode: a fill-reducing ordering of H + H^T and diagonal pivots, which
     # suit a symmetric positive definite matrix (a banded one for an odometry chain).
-    return splu(Hs, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return factor(Hs)
+
+
+def _factorization(Hs: sp.csc_matrix, num_pose: int, damping: float = 0.0):
+    """A factor of ``Hs + damping I`` with a ``solve``: SuperLU of the whole matrix when every
+    unknown is a pose (the smoother as it always was), else the landmarks' Schur complement.
+
+    Raises
+    ------
+    RuntimeError : a singular pose system; np.linalg.LinAlgError : a singular landmark block.
+    """
+    if Hs.shape[0] == num_pose:
+        if damping > 0.0:
+            Hs = (Hs + damping * sp.identity(Hs.shape[0], format="csc")).tocsc()
+        return _factor(Hs)
+    return SchurSolver(Hs, num_pose, damping)
 
 
 def condition_estimate(Hs: sp.csc_matrix, lu) -> tuple[float, int]:
@@ -487,44 +634,58 @@ def condition_estimate(Hs: sp.csc_matrix, lu) -> tuple[float, int]:
     return norm * float(estimate), int(np.argmax(np.abs(column)))
 
 
+def _unknown_name(problem: SmoothingProblem, column: int) -> str:
+    """``pose <id>`` or ``landmark <id>``: what the normal matrix's ``column`` belongs to."""
+    if column < problem.num_pose_unknowns:
+        return f"pose {problem.pose_ids[column // POSE_DOF + 1]}"
+    return f"landmark {problem.landmarks.ids[(column - problem.num_pose_unknowns) // LANDMARK_DOF]}"
+
+
 def _check_conditioning(problem: SmoothingProblem, H: sp.csc_matrix, config: SmootherConfig) -> float:
+    return _conditioned_factor(problem, H, config)[0]
+
+
+def _conditioned_factor(problem: SmoothingProblem, H: sp.csc_matrix, config: SmootherConfig):
+    """The condition estimate of the scaled H and its factor (the first step's, reused), or a
+    CamlocError naming the worst-determined pose or landmark."""
     unknowns = problem.num_unknowns
     diag = H.diagonal()
     empty = np.flatnonzero(~(diag > 0.0))
     if empty.size:
-        pose = problem.pose_ids[empty[0] // POSE_DOF + 1]
-        raise CamlocError(f"cannot smooth: no factor constrains pose {pose} (its normal-matrix block is zero)")
+        raise CamlocError(f"cannot smooth: no factor constrains {_unknown_name(problem, empty[0])} "
+                          "(its normal-matrix block is zero)")
     Hs, _ = _scaled(H)
+    what = "pose" if not problem.num_landmarks else "pose and landmark"
     try:
-        lu = _factor(Hs)
-    except RuntimeError:
+        lu = _factorization(Hs, problem.num_pose_unknowns)
+    except (RuntimeError, np.linalg.LinAlgError):
         raise CamlocError(
             f"cannot smooth: the normal matrix ({unknowns} unknowns) is singular: the odometry and the accepted "
-            "observations do not determine every pose"
+            f"observations do not determine every {what}"
         ) from None
     condition, worst = condition_estimate(Hs, lu)
     if not condition <= config.max_condition:
-        pose = problem.pose_ids[worst // POSE_DOF + 1]
         raise CamlocError(
             f"cannot smooth: the normal matrix is rank deficient or nearly so (condition estimate {condition:.2g}, "
-            f"largest accepted {config.max_condition:.2g}): the data do not determine every pose; worst determined: "
-            f"pose {pose}"
+            f"largest accepted {config.max_condition:.2g}): the data do not determine every {what}; worst "
+            f"determined: {_unknown_name(problem, worst)}"
         )
-    return condition
+    return condition, lu
 
 
 # --------------------------------------------------------------------------------------------
 # Gauss-Newton / Levenberg-Marquardt
 
 
-def _solve_step(H: sp.csc_matrix, g: np.ndarray, damping: float) -> np.ndarray:
-    """The step (6(N-1),) of ``(H + damping diag(H)) delta = -g``, in the Jacobi-scaled form."""
+def _solve_step(H: sp.csc_matrix, g: np.ndarray, damping: float, num_pose: int | None = None, *,
+                factored=None) -> np.ndarray:
+    """The step (6(N-1) + 3L,) of ``(H + damping diag(H)) delta = -g``, in the Jacobi-scaled
+    form; ``num_pose`` the poses' unknowns (None: all), the landmarks' eliminated first;
+    ``factored`` a factor of this scaled H and damping made already (``_factorization``)."""
     Hs, d = _scaled(H)
-    if damping > 0.0:
-        Hs = (Hs + damping * sp.identity(Hs.shape[0], format="csc")).tocsc()
     try:
-        lu = _factor(Hs)
-    except RuntimeError:
+        lu = factored or _factorization(Hs, Hs.shape[0] if num_pose is None else num_pose, damping)
+    except (RuntimeError, np.linalg.LinAlgError):
         raise CamlocError("cannot smooth: the normal matrix became singular during the iterations") from None
     return d * lu.solve(-d * g)
 
@@ -535,6 +696,14 @@ def _retract_all(T: np.ndarray, step: np.ndarray) -> np.ndarray:
     return moved
 
 
+def _retract(problem: SmoothingProblem, T: np.ndarray, X: np.ndarray | None, step: np.ndarray):
+    """Poses moved by the step's pose part (right perturbation), landmarks by the rest (added)."""
+    n = problem.num_pose_unknowns
+    if X is None:
+        return _retract_all(T, step), None
+    return _retract_all(T, step[:n]), X + step[n:].reshape(-1, LANDMARK_DOF)
+
+
 def smooth(
     problem: SmoothingProblem,
     T_initial: np.ndarray,
@@ -542,13 +711,14 @@ def smooth(
     *,
     on_iteration: Optional[IterationCallback] = None,
 ) -> SmoothingResult:
-    """The MAP poses of ``problem``, starting from ``T_initial``.
+    """The MAP poses (and landmark variables) of ``problem``, starting from ``T_initial``.
 
     Parameters
     ----------
     problem : the factor graph (``problem_from_run`` builds it from a dataset and a run).
     T_initial : (N, 4, 4) initial poses, world frame (the filter's estimate); the first is
-        replaced by the fixed start pose.
+        replaced by the fixed start pose. Landmark variables start at ``problem.landmarks.xyz``,
+        or from their observations at these poses where it is NaN.
     config : options; None = ``SmootherConfig()``.
     on_iteration : called after every linearization with an ``Iteration``.
 
@@ -562,26 +732,71 @@ def smooth(
     started = time.perf_counter()
     T = np.array(T_initial, dtype=float)
     T[0] = problem.T_start
+    problem, undetermined = _with_initial_landmarks(problem, T)
     problem, dropped = _without_unprojectable(problem, T)
+    problem, weak = _without_undetermined_landmarks(problem, T)
     check_determined(problem)
 
-    lin = linearize(problem, T)
+    X = None if problem.landmarks is None else problem.landmarks.xyz
+    T, X, lin, cost, initial_cost, counts = _minimize(problem, T, X, config, on_iteration)
+    landmarks = _landmark_estimate(problem, lin, X, config, counts["factor"]) if problem.num_landmarks else None
+    return SmoothingResult(
+        T_world_robot=T,
+        iterations=counts["iterations"],
+        converged=counts["converged"],
+        initial_cost=initial_cost,
+        final_cost=cost,
+        condition=counts["condition"],
+        odometry_factors=int(len(problem.odom_from)),
+        observation_factors=int(len(problem.obs_pose)),
+        dropped_observations=dropped,
+        downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
+        seconds=time.perf_counter() - started,
+        landmarks=landmarks,
+        undetermined_landmarks=np.concatenate([undetermined, weak]),
+    )
+
+
+def _minimize(problem, T, X, config, on_iteration):
+    """The Gauss-Newton / Levenberg-Marquardt loop (model card, "Solver"): the poses and
+    landmarks at the end, their linearization and cost, the initial cost, and the counts (with
+    ``factor``: the scaled factor and scale of the last step when it was a plain Newton step)."""
+    lin = linearize(problem, T, X)
     cost = initial_cost = robust_cost(lin, config.huber)
     condition = math.nan
     damping, majorize, iterations, converged = 0.0, True, 0, problem.num_unknowns == 0
+    num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
+    factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
     while not converged and iterations < config.max_iterations:
         H, g = normal_equations(lin, config.huber, newton=not majorize)
-        if iterations == 0:
-            condition = _check_conditioning(problem, H, config)
-        step = _solve_step(H, g, damping)
-        candidate = _retract_all(T, step)
-        candidate_lin = linearize(problem, candidate)
-        candidate_cost = robust_cost(candidate_lin, config.huber)
+        Hs, d = _scaled(H)
+        try:
+            step = None
+            if problem.num_landmarks and moved < _FACTOR_REUSE and damping == 0.0 and not majorize:
+                step = _preconditioned_step(Hs, d, g, factor)
+            if step is None:
+                if iterations == 0:  # the first step reuses the condition check's factor
+                    condition, lu = _conditioned_factor(problem, H, config)
+                else:
+                    lu = _step_factor(Hs, num_pose, damping)
+                step = d * lu.solve(-d * g)
+                if damping == 0.0 and not majorize:
+                    factor, moved = (lu, d), 0.0
+        except _SingularStep:
+            # The Newton Hessian of a landmark whose observations are all beyond the Huber
+            # threshold can lose rank along their residuals: a rejected step, retried as IRLS
+            # (positive definite where the observations determine the landmark), then damped.
+            step = None
         iterations += 1
-        accepted = candidate_cost <= cost
-        max_step = float(np.max(np.abs(step))) if step.size else 0.0
+        if step is not None:
+            candidate, candidate_X = _retract(problem, T, X, step)
+            candidate_lin = linearize(problem, candidate, candidate_X)
+            candidate_cost = robust_cost(candidate_lin, config.huber)
+        accepted = step is not None and candidate_cost <= cost
+        max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
         if accepted:
-            T, lin, cost = candidate, candidate_lin, candidate_cost
+            moved += max_step
+            T, X, lin, cost = candidate, candidate_X, candidate_lin, candidate_cost
             damping, majorize = (damping / 10.0 if damping > 1e-9 else 0.0), False
             converged = max_step < config.step_tolerance
         elif not majorize:
@@ -595,26 +810,147 @@ def smooth(
             converged = damping > _MAX_DAMPING
         if on_iteration is not None:
             on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
+    # The covariances may use that factor where T moved too little since for its Hessian to differ.
+    counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
+              "factor": factor if converged and moved < _FACTOR_REUSE else None}
+    return T, X, lin, cost, initial_cost, counts
 
-    return SmoothingResult(
-        T_world_robot=T,
-        iterations=iterations,
-        converged=bool(converged),
-        initial_cost=initial_cost,
-        final_cost=cost,
-        condition=condition,
-        odometry_factors=int(len(problem.odom_from)),
-        observation_factors=int(len(problem.obs_pose)),
-        dropped_observations=dropped,
-        downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
-        seconds=time.perf_counter() - started,
-    )
+
+def _preconditioned_step(Hs: sp.csc_matrix, d: np.ndarray, g: np.ndarray, factor, *, rtol: float = 1e-8,
+                         max_iterations: int = 25) -> Optional[np.ndarray]:
+    """The step of ``Hs (delta / d) = -d g`` by conjugate gradients preconditioned with an
+    earlier iteration's factor (of ``Hs_0``, scale ``d_0``: ``Hs^-1 ~ E Hs_0^-1 E``, ``E = d_0 / d``);
+    None when the residual does not fall below ``rtol`` in ``max_iterations`` (factor afresh).
+
+    Near the solution the Newton matrix changes little from one iteration to the next, so a few
+    solves with the old factor (0.07 s each at 20,000 poses) replace a new one (4 s): an inexact
+    Newton step whose gradient is exact, so the minimum it converges to is the same.
+    """
+    lu, d_0 = factor
+    ratio = d_0 / d
+
+    def precondition(v: np.ndarray) -> np.ndarray:
+        return ratio * lu.solve(ratio * v)
+
+    b = -d * g
+    x = precondition(b)
+    r = b - Hs @ x
+    z = precondition(r)
+    p, rz = z.copy(), float(r @ z)
+    target = rtol * float(np.linalg.norm(b))
+    for _ in range(max_iterations):
+        if float(np.linalg.norm(r)) <= target:
+            return d * x
+        Hp = Hs @ p
+        alpha = rz / float(p @ Hp)
+        x += alpha * p
+        r -= alpha * Hp
+        z = precondition(r)
+        rz, previous = float(r @ z), rz
+        p = z + (rz / previous) * p
+    return None
+
+
+class _SingularStep(CamlocError):
+    """A step's normal matrix that could not be factored (with landmark variables: retried)."""
+
+
+def _step_factor(Hs: sp.csc_matrix, num_pose: int, damping: float):
+    try:
+        return _factorization(Hs, num_pose, damping)
+    except (RuntimeError, np.linalg.LinAlgError):
+        error = _SingularStep if num_pose < Hs.shape[0] else CamlocError
+        raise error("cannot smooth: the normal matrix became singular during the iterations") from None
+
+
+def _landmark_estimate(problem: SmoothingProblem, lin: Linearization, X: np.ndarray, config: SmootherConfig,
+                       factor=None) -> LandmarkEstimate:
+    """The landmark variables at the solution with their marginal covariances: the landmark
+    blocks of the inverse of the robust cost's Gauss-Newton Hessian there (its Laplace
+    approximation), through the Schur complement (``SchurSolver.landmark_covariances``).
+    ``factor``: the last step's (SchurSolver, scale) when it was a plain Newton step: that
+    Hessian is the one at the solution to within the last step (below ``step_tolerance``), and
+    refactoring it would cost a step's time again."""
+    if factor is None:
+        H, _ = normal_equations(lin, config.huber, newton=True)
+        Hs, d = _scaled(H)
+        try:
+            factor = (SchurSolver(Hs, problem.num_pose_unknowns), d)
+        except (RuntimeError, np.linalg.LinAlgError):
+            raise CamlocError("cannot smooth: the normal matrix is singular at the solution") from None
+    solver, d = factor
+    cov = solver.landmark_covariances()
+    scale = d[problem.num_pose_unknowns:].reshape(-1, LANDMARK_DOF)
+    cov = cov * scale[:, :, None] * scale[:, None, :]  # H^-1 = D Hs^-1 D
+    observations = np.bincount(problem.obs_landmark[problem.obs_landmark >= 0], minlength=problem.num_landmarks)
+    lm = problem.landmarks
+    return LandmarkEstimate(ids=lm.ids, xyz=X, cov=cov, added=lm.added, observations=observations)
+
+
+def _with_initial_landmarks(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, np.ndarray]:
+    """The problem with every landmark variable given a first position (``problem.landmarks.xyz``
+    where given, else from its observations at poses T), and the ids of those that their
+    observations do not place (a single pixel ray, parallel rays): left out with their
+    observations, unless a map prior holds them."""
+    lm = problem.landmarks
+    if lm is None or not len(lm):
+        return problem, np.zeros(0, dtype=np.int64)
+    xyz = lm.xyz.copy()
+    unknown = np.isnan(xyz).any(axis=1)
+    if np.any(unknown):
+        rows = np.flatnonzero(unknown[np.maximum(problem.obs_landmark, 0)] & (problem.obs_landmark >= 0))
+        kinds = problem.obs_kind if problem.obs_kind is not None else np.zeros(len(problem.obs_pose), dtype=np.int64)
+        found = initial_positions(T[problem.obs_pose[rows]], problem.obs_T_robot_camera[rows],
+                                  problem.obs_intrinsics[rows], problem.obs_z[rows], kinds[rows],
+                                  problem.obs_landmark[rows], len(lm))
+        xyz[unknown] = found[unknown]
+    xyz = np.where(np.isnan(xyz) & lm.has_prior[:, None], lm.prior_xyz, xyz)
+    placed = ~np.isnan(xyz).any(axis=1)
+    problem = replace(problem, landmarks=lm.with_xyz(xyz))
+    return _select_landmarks(problem, placed), lm.ids[~placed]
+
+
+def _without_undetermined_landmarks(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, np.ndarray]:
+    """The problem without the landmark variables that their observations (and prior) do not
+    determine at poses T, and their ids: those whose 3x3 information block is singular or has a
+    condition number beyond ``_MAX_LANDMARK_CONDITION`` (rays with too little parallax)."""
+    if not problem.num_landmarks:
+        return problem, np.zeros(0, dtype=np.int64)
+    p, lm = problem, problem.landmarks
+    rows = np.flatnonzero(p.obs_landmark >= 0)
+    _, _, J, _ = observation_factors(T[p.obs_pose[rows]], p.obs_T_robot_camera[rows], p.obs_intrinsics[rows],
+                                     lm.xyz[p.obs_landmark[rows]], p.obs_z[rows],
+                                     None if p.obs_kind is None else p.obs_kind[rows])
+    J = p.obs_whiten[rows] @ J
+    blocks = np.zeros((len(lm), LANDMARK_DOF, LANDMARK_DOF))
+    np.add.at(blocks, p.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)  # J^T J of each landmark's observations
+    blocks += np.where(lm.has_prior, 1.0 / lm.prior_sigma**2, 0.0)[:, None, None] * np.eye(LANDMARK_DOF)
+    eig = np.linalg.eigvalsh(blocks)
+    keep = eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION
+    if np.all(keep):
+        return problem, np.zeros(0, dtype=np.int64)
+    return _select_landmarks(problem, keep), problem.landmarks.ids[~keep]
+
+
+def _select_landmarks(problem: SmoothingProblem, keep: np.ndarray) -> SmoothingProblem:
+    """The problem with the landmark variables where ``keep`` (L,) and the observations of the others left out."""
+    if np.all(keep):
+        return problem
+    observed = problem.obs_landmark
+    kept = (observed < 0) | keep[np.maximum(observed, 0)]
+    problem = _select_observations(problem, kept)
+    renumber = np.cumsum(keep) - 1
+    obs_landmark = np.where(problem.obs_landmark >= 0, renumber[np.maximum(problem.obs_landmark, 0)], -1)
+    landmarks = problem.landmarks.select(keep)
+    return replace(problem, landmarks=landmarks if len(landmarks) else None,
+                   obs_landmark=obs_landmark if len(landmarks) else None)
 
 
 def _without_unprojectable(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, int]:
     """The problem without observations whose landmark is behind the camera at poses T."""
+    X = None if problem.landmarks is None else problem.landmarks.xyz
     _, _, depth = observation_residuals(T[problem.obs_pose], problem.obs_T_robot_camera, problem.obs_intrinsics,
-                                        problem.obs_landmark_xyz, problem.obs_z, problem.obs_kind)
+                                        problem.observed_xyz(X), problem.obs_z, problem.obs_kind)
     keep = depth > MIN_DEPTH
     if np.all(keep):
         return problem, 0
@@ -632,6 +968,7 @@ def _select_observations(problem: SmoothingProblem, keep: np.ndarray) -> Smoothi
         obs_kind=problem.obs_kind[keep] if problem.obs_kind is not None else None,
         obs_whiten=problem.obs_whiten[keep],
         obs_row=problem.obs_row[keep],
+        obs_landmark=problem.obs_landmark[keep] if problem.obs_landmark is not None else None,
     )
 
 
@@ -639,14 +976,27 @@ def _select_observations(problem: SmoothingProblem, keep: np.ndarray) -> Smoothi
 # From a dataset and a run folder
 
 
-def problem_from_run(dataset: Dataset, run: RunResult) -> SmoothingProblem:
+def problem_from_run(
+    dataset: Dataset,
+    run: RunResult,
+    config: Optional[SmootherConfig] = None,
+    *,
+    added_xyz: Optional[dict[int, np.ndarray]] = None,
+) -> SmoothingProblem:
     """The factor graph of a dataset's odometry chain and the observations a run accepted.
+
+    Parameters
+    ----------
+    config : its ``map`` and ``map_sigma`` say which landmarks are variables
+        (``camloc.smoother_landmarks``); None: ``SmootherConfig()`` (the map held exact).
+    added_xyz : first positions (3,) by id of landmarks the map lacks that the run assigns
+        observations to (added landmarks); those not given start from their observations.
 
     Raises
     ------
-    CamlocError : the run was not made from this dataset (other poses, other observations), or
-        it associates an observation with a landmark the dataset's map does not have.
+    CamlocError : the run was not made from this dataset (other poses, other observations).
     """
+    config = config or SmootherConfig()
     check_run_matches(dataset, run)
     chosen = np.asarray(run.associations.landmark)
     rows = np.flatnonzero(chosen != UNASSOCIATED)
@@ -654,14 +1004,17 @@ def problem_from_run(dataset: Dataset, run: RunResult) -> SmoothingProblem:
     position = np.searchsorted(dataset.landmark_ids[order], chosen[rows])
     position = np.clip(position, 0, max(len(order) - 1, 0))
     found = dataset.landmark_ids[order][position] == chosen[rows] if len(order) else np.zeros(len(rows), bool)
-    if not np.all(found):
-        first = int(np.flatnonzero(~found)[0])
-        missing = np.unique(chosen[rows][~found])
-        raise CamlocError(
-            f"the run associates observation {rows[first] + 1} (associations.csv line {rows[first] + 2}) with "
-            f"landmark {chosen[rows][first]}, which the dataset's map ({len(dataset.landmark_ids)} landmarks) does "
-            f"not have ({len(missing)} such landmark id(s)): expected the dataset the run was made from"
-        )
+    # Variables: the landmarks the map lacks (added), and under a prior or no map the mapped ones too.
+    variable = ~found if config.map == "exact" else np.ones(len(rows), dtype=bool)
+    variable_ids = np.unique(chosen[rows][variable])
+    obs_landmark = np.full(len(rows), -1, dtype=np.int64)
+    obs_landmark[variable] = np.searchsorted(variable_ids, chosen[rows][variable])
+    obs_xyz = np.full((len(rows), 3), np.nan)
+    obs_xyz[found] = dataset.landmark_xyz[order][position[found]]
+    landmarks = None
+    if len(variable_ids):
+        landmarks = landmark_variables(variable_ids, dataset.landmark_ids, dataset.landmark_xyz, config.map,
+                                       config.map_sigma, added_xyz)
     cameras = dataset.obs_camera[rows]
     mounts = {cid: cam.T_robot_camera for cid, cam in dataset.cameras.items()}
     intrinsics = {cid: (cam.fx, cam.fy, cam.cx, cam.cy) for cid, cam in dataset.cameras.items()}
@@ -676,11 +1029,13 @@ def problem_from_run(dataset: Dataset, run: RunResult) -> SmoothingProblem:
         obs_pose=np.asarray(dataset.obs_pose_index[rows], dtype=np.int64),
         obs_T_robot_camera=np.array([mounts[int(c)] for c in cameras]).reshape(-1, 4, 4),
         obs_intrinsics=np.array([intrinsics[int(c)] for c in cameras], dtype=float).reshape(-1, 4),
-        obs_landmark_xyz=dataset.landmark_xyz[order][position].reshape(-1, 3),
+        obs_landmark_xyz=obs_xyz,
         obs_z=dataset.obs_z[rows],
         obs_kind=np.asarray(dataset.obs_kind[rows], dtype=np.int64),
         obs_whiten=whitening(dataset.obs_cov[rows]),
         obs_row=rows.astype(np.int64),
+        landmarks=landmarks,
+        obs_landmark=obs_landmark if landmarks is not None else None,
     )
 
 
@@ -760,10 +1115,50 @@ def smooth_run(
     run: RunResult,
     config: Optional[SmootherConfig] = None,
     *,
+    added_xyz: Optional[dict[int, np.ndarray]] = None,
     on_iteration: Optional[IterationCallback] = None,
 ) -> SmoothingResult:
-    """``smooth`` the run's accepted associations over the dataset, from the filter's estimate."""
-    return smooth(problem_from_run(dataset, run), initial_poses(dataset, run), config, on_iteration=on_iteration)
+    """``smooth`` the run's accepted associations over the dataset, from the filter's estimate
+    (``problem_from_run`` for ``config``'s map and ``added_xyz``)."""
+    problem = problem_from_run(dataset, run, config, added_xyz=added_xyz)
+    return smooth(problem, initial_poses(dataset, run), config, on_iteration=on_iteration)
+
+
+def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, config: SmootherConfig) -> LandmarkMap:
+    """The map after smoothing, a row per landmark sorted by id (``map.csv``).
+
+    Mapped landmarks the smoother held (``exact``, or never observed under ``prior``) keep the
+    map's position, with a zero covariance under ``exact`` and the prior's ``map_sigma^2 I``
+    under ``prior``; under ``none`` only the landmarks it estimated are listed (the map gives no
+    position). Estimated ones (mapped under ``prior`` or ``none``, and added ones in every mode)
+    carry the smoother's position and marginal covariance. Undetermined ones are left out.
+    """
+    landmark = np.asarray(run.associations.landmark)
+    counts = dict(zip(*np.unique(landmark[landmark != UNASSOCIATED], return_counts=True)))
+    ids, xyz = [], []
+    cov, added, observations = [], [], []
+    if config.map != "none":
+        held = dataset.landmark_ids
+        if result.landmarks is not None:
+            held = held[~np.isin(held, result.landmarks.ids)]
+        rows = np.isin(dataset.landmark_ids, held)
+        ids.append(dataset.landmark_ids[rows])
+        xyz.append(dataset.landmark_xyz[rows])
+        variance = 0.0 if config.map == "exact" else config.map_sigma**2
+        cov.append(np.broadcast_to(variance * np.eye(3), (int(rows.sum()), 3, 3)))
+        added.append(np.zeros(int(rows.sum()), dtype=bool))
+        observations.append(np.array([counts.get(i, 0) for i in dataset.landmark_ids[rows].tolist()], dtype=np.int64))
+    if result.landmarks is not None:
+        lm = result.landmarks
+        ids.append(lm.ids), xyz.append(lm.xyz), cov.append(lm.cov), added.append(lm.added)
+        observations.append(np.asarray(lm.observations, dtype=np.int64))
+    if not ids:
+        return LandmarkMap(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, dtype=bool),
+                           np.zeros(0, dtype=np.int64))
+    all_ids = np.concatenate(ids)
+    order = np.argsort(all_ids, kind="stable")
+    return LandmarkMap(all_ids[order], np.concatenate(xyz)[order], np.concatenate(cov)[order],
+                       np.concatenate(added)[order], np.concatenate(observations)[order])
 
 
 def smoothing_report(run: RunResult, result: SmoothingResult, config: SmootherConfig) -> dict:
@@ -787,6 +1182,13 @@ def smoothing_report(run: RunResult, result: SmoothingResult, config: SmootherCo
         "initial_cost": result.initial_cost,
         "final_cost": result.final_cost,
         "condition_estimate": result.condition if math.isfinite(result.condition) else None,
+        "map": config.map,
+        "map_sigma": config.map_sigma if config.map == "prior" else None,
+        "landmarks": {
+            "estimated": 0 if result.landmarks is None else len(result.landmarks.ids),
+            "added": 0 if result.landmarks is None else int(np.count_nonzero(result.landmarks.added)),
+            "undetermined": int(len(result.undetermined_landmarks)),
+        },
         "timing": {"smooth_seconds": result.seconds},
         "estimate": None,
         "smoothed": None,

@@ -44,6 +44,12 @@ def evaluate_command(
         0.01, "--max-diff", min=0.0, help=with_default("Largest timestamp difference when pairing --est and --ref "
         "poses (camloc writes pose ids as timestamps)."), show_default=False
     ),
+    true_map: Optional[Path] = typer.Option(
+        None, "--true-map", metavar="DATASET", help="A g2o file whose landmarks (VERTEX_TRACKXYZ) are the true map "
+        "(for a simulated world whose map was withheld or moved: the file before that): scores the run's map.csv "
+        "(written by 'camloc smooth'): position RMSE of mapped and of added landmarks, their NEES, estimated ids the "
+        "true map lacks. Default: none.", show_default=False
+    ),
     json_output: bool = json_option("the metrics"),
     quiet: bool = quiet_option(),
 ) -> None:
@@ -54,6 +60,8 @@ def evaluate_command(
     from camloc import metrics
     from camloc.results import load_run, read_tum
 
+    if true_map is not None and run_dir is None:
+        raise ConfigError("--true-map scores a run folder's map.csv: expected RUN_DIR")
     if run_dir is not None and (est is not None or ref is not None):
         raise ConfigError("expected either RUN_DIR or --est and --ref, found both")
     if run_dir is None:
@@ -65,6 +73,7 @@ def evaluate_command(
         report = {"estimate_file": str(est), "reference_file": str(ref), **report}
     else:
         report = metrics.evaluate(load_run(run_dir), align=align.value, delta=delta)
+        report["map"] = _map_score(run_dir, true_map) if true_map is not None else None
 
     if echo_json(report, enabled=json_output) or quiet:
         return
@@ -74,3 +83,22 @@ def evaluate_command(
         console.print(eval_render.render_trajectory_comparison(report), soft_wrap=True)
     else:
         console.print(eval_render.render_run_evaluation(report))
+
+
+def _map_score(run_dir: Path, true_map: Path) -> dict:
+    """``metrics.map_errors`` of the run's map.csv against the landmarks of the g2o file ``true_map``."""
+    import warnings
+
+    from camloc import metrics
+    from camloc.errors import CamlocError
+    from camloc.g2o import G2oWarning, read_g2o
+    from camloc.results import MAP_CSV, read_map
+
+    if not (run_dir / MAP_CSV).is_file():
+        raise CamlocError(f"{run_dir}: no {MAP_CSV} to score against --true-map; smooth the run first ('camloc smooth {run_dir}')")
+    estimated = read_map(run_dir / MAP_CSV)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", G2oWarning)  # its trajectory and observations are not read here
+        truth = read_g2o(true_map)
+    return metrics.map_errors(estimated.ids, estimated.xyz, estimated.cov, estimated.added, truth.landmark_ids,
+                              truth.landmark_xyz)

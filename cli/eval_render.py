@@ -131,6 +131,22 @@ def _consistency_table(nees: Optional[Mapping[str, Any]], nis: Mapping[str, Any]
     return table
 
 
+def _map_table(score: Mapping[str, Any]) -> Table:
+    """map.csv against --true-map: mapped and added landmarks side by side."""
+    table = Table(title="map vs the true map (map.csv)", title_justify="left")
+    for column in ("", "mapped", "added"):
+        table.add_column(column, justify="right" if column else "left")
+
+    def cell(value, spec: str) -> str:
+        return "-" if value is None else format(value, spec)
+
+    rows = (("landmarks scored", "count", "d"), ("position RMSE [m]", "rmse", ".4f"), ("largest error [m]", "max", ".4f"),
+            ("NEES (3 if consistent)", "nees", ".2f"), ("ids the true map lacks", "unknown", "d"))
+    for label, key, spec in rows:
+        table.add_row(label, cell(score["mapped"][key], spec), cell(score["added"][key], spec))
+    return table
+
+
 def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
     """Tables of ``camloc.metrics.evaluate``: trajectories side by side, alignment (when used),
     association, consistency, then the verdict line (NEES and NIS together) and any notes."""
@@ -152,6 +168,8 @@ def render_run_evaluation(report: Mapping[str, Any]) -> RenderableType:
         if report["align"] != "none":
             parts.append(_alignment_table(blocks))
     parts.append(_association_table(report["association"]))
+    if report.get("map") is not None:
+        parts.append(_map_table(report["map"]))
     parts.append(_consistency_table(report["nees"], report["nis"]))
     if report["nees"] is not None and report["nees"]["skipped_poses"]:
         parts.append(Text(f"NEES leaves out {report['nees']['skipped_poses']} pose(s): the given start pose "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from enum import Enum
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Optional
 
@@ -22,6 +23,12 @@ from camloc.cli.common import (
 from camloc.errors import CamlocError
 
 
+class MapChoice(str, Enum):
+    exact = "exact"
+    prior = "prior"
+    none = "none"
+
+
 def smooth(
     run_dir: Path = run_dir_argument(),
     *,
@@ -38,21 +45,33 @@ def smooth(
         "Most linearizations (Gauss-Newton / Levenberg-Marquardt steps) before stopping; a run that stops there "
         "is reported as not converged.", "smoother.max_iterations", "--max-iterations", min=1
     ),
+    map_mode: Optional[MapChoice] = library_option(
+        "How the map's landmarks are held: 'exact' (fixed at the map, as the filter used them), 'prior' "
+        "(estimated with the poses, pulled toward the map with --map-sigma) or 'none' (estimated from the "
+        "observations alone; the start pose fixes the frame). Landmarks the map lacks that observations are "
+        "assigned to are estimated in every mode. The map after smoothing is written as map.csv.",
+        "smoother.map", "--map"
+    ),
+    map_sigma: Optional[float] = library_option(
+        "Standard deviation of the map prior per axis, metres (with --map prior).", "smoother.map_sigma",
+        "--map-sigma"
+    ),
     json_output: bool = json_option("the report"),
     quiet: bool = quiet_option(),
 ) -> None:
     """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
 
-    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. A planar dataset (VERTEX_SE2 / EDGE_SE2) is smoothed in SE(2) (x, y, heading: camloc/smoother_se2.py), any other in SE(3). Writes smoothed.tum into RUN_DIR (whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation (a planar robot's: heading) RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
+    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. With --map prior or none the landmarks are estimated too. A planar dataset (VERTEX_SE2 / EDGE_SE2) is smoothed in SE(2) (x, y, heading: camloc/smoother_se2.py) with its map exact, any other in SE(3). Writes smoothed.tum and map.csv (the map after smoothing: a row per landmark with its covariance) into RUN_DIR (each whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation (a planar robot's: heading) RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
     """
     import warnings
 
     from camloc import smoother
     from camloc.diagnostics import estimate_name
     from camloc.g2o import G2oWarning, read_g2o
-    from camloc.results import load_run, write_smoothed
+    from camloc.results import load_run, write_map, write_smoothed
 
-    given = {"huber": huber, "max_iterations": max_iterations}
+    given = {"huber": huber, "max_iterations": max_iterations, "map": map_mode.value if map_mode else None,
+             "map_sigma": map_sigma}
     config = smoother.SmootherConfig(**{name: value for name, value in given.items() if value is not None})
     config.validate()
     started = time.perf_counter()
@@ -64,22 +83,17 @@ def smooth(
         data = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
 
+    run = _position_pairs(run, data)
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
-        from camloc.tags import position_pairs_only
-
-        run = position_pairs_only(run, data)  # the smoothers have no model of a tag's orientation
-        if data.planar:  # a planar robot: the SE(2) smoother (its odometry has no z, roll or pitch noise)
-            from camloc.smoother_se2 import smooth_planar_run
-
-            result = smooth_planar_run(data, run, config, on_iteration=on_iteration)
-        else:
-            result = smoother.smooth_run(data, run, config, on_iteration=on_iteration)
+        result = _smoothed(data, run, config, dataset_path, on_iteration)
     written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
+    map_file = write_map(run_dir, smoother.estimated_map(data, run, result, config))
 
     report = smoother.smoothing_report(run, result, config)
     report["dataset"] = str(dataset_path)
     report["timing"] = {"read_seconds": read_seconds, **report["timing"]}
     report["smoothed_file"] = str(written)
+    report["map_file"] = str(map_file)
     report["estimate_name"] = estimate_name(run.summary)
     if echo_json(report, enabled=json_output):
         return  # "converged": false says it
@@ -87,6 +101,28 @@ def smooth(
         console.print(render_smoothing(report))
     if not report["converged"]:
         print_warnings(["stopped at --max-iterations before the steps became tiny"], run_dir)
+
+
+def _position_pairs(run, data):
+    """The run as the smoothers see it: a tag's orientation has no model there (camloc.tags)."""
+    from camloc.tags import position_pairs_only
+
+    return position_pairs_only(run, data)
+
+
+def _smoothed(data, run, config, dataset_path: Path, on_iteration):
+    """The smoothing of ``run``: SE(2) for a planar robot (its odometry has no z, roll or pitch
+    noise; its map held exact), SE(3) with the landmarks as ``config.map`` says otherwise."""
+    from camloc import smoother
+
+    if data.planar:
+        from camloc.smoother_se2 import smooth_planar_run
+
+        if config.map != "exact":
+            raise CamlocError(f"{dataset_path}: --map {config.map}: a planar robot's smoother holds its map exact "
+                              "(it estimates the poses only); use --map exact")
+        return smooth_planar_run(data, run, config, on_iteration=on_iteration)
+    return smoother.smooth_run(data, run, config, on_iteration=on_iteration)
 
 
 def _recorded_dataset(run_dir: Path, summary: Mapping[str, Any], fallback: str) -> Path:
@@ -113,6 +149,12 @@ def _iteration_status(*, enabled: bool) -> Iterator[Optional[Callable]]:
             status.update(f"smoothing: iteration {iteration.number}, cost {iteration.cost:.6g}")
 
         yield on_iteration
+
+
+def _map_row(report: Mapping[str, Any]) -> str:
+    held = {"exact": "held exact", "none": "not used"}.get(report["map"]) or f"prior, sigma {report['map_sigma']:g} m"
+    landmarks = report["landmarks"]
+    return f"{held}; {landmarks['estimated']} landmarks estimated ({landmarks['added']} added)"
 
 
 def render_smoothing(report: Mapping[str, Any]):
@@ -147,6 +189,7 @@ def render_smoothing(report: Mapping[str, Any]):
     rows = (
         ("factors", f"{report['odometry_factors']} odometry, {report['observation_factors']} observations"),
         ("Huber threshold", huber),
+        ("map", _map_row(report)),
         ("down-weighted observations", str(report["downweighted_observations"])),
         ("iterations", iterations),
         ("cost, initial -> final", f"{report['initial_cost']:.6g} -> {report['final_cost']:.6g}"),
@@ -160,5 +203,9 @@ def render_smoothing(report: Mapping[str, Any]):
     if report["dropped_observations"]:
         parts.append(Text(f"note: {report['dropped_observations']} accepted observation(s) left out: their landmark "
         "is behind the camera at the filter's poses", style="yellow"))
-    parts.append(Text(f"wrote {report['smoothed_file']}"))
+    if report["landmarks"]["undetermined"]:
+        parts.append(Text(f"note: {report['landmarks']['undetermined']} landmark(s) left out with their observations: "
+                          "the observations do not place them (a single pixel ray, or rays with too little parallax) "
+                          "and no map prior holds them", style="yellow"))
+    parts.append(Text(f"wrote {report['smoothed_file']} and {report['map_file']}"))
     return Group(*parts)

@@ -48,6 +48,9 @@ def test_simulate_run_eval_plot_smooth(tmp_path, sensors):
     smooth_report = json.loads(smoothed.output)
     assert smooth_report["converged"]
     assert smooth_report["smoothed"]["ate"]["rmse"] <= 1.05 * smooth_report["estimate"]["ate"]["rmse"]
+    assert (run_dir / "map.csv").is_file()
+    refused = invoke("smooth", run_dir, "--map", "prior")  # the SE(2) smoother estimates poses only
+    assert refused.exit_code == 2 and "holds its map exact" in refused.output
 
     info = invoke("info", world, "--json")
     assert info.exit_code == 0, info.output

@@ -1,0 +1,323 @@
+"""Entries of the inverse of a sparse symmetric positive definite matrix on the pattern of its
+factor (selected inversion), for the smoother's landmark covariances.
+
+With ``P A P^T = L D L^T`` (L unit lower triangular, D diagonal), ``Z = (L D L^T)^-1`` satisfies
+``L^T Z = D^-1 L^-1``, whose strictly upper part is zero and whose diagonal is ``1 / D``. Read
+column by column from the last, that gives Takahashi's recurrence (Takahashi, Fagan and Chin,
+1973; Erisman and Tinney, 1975):
+
+    Z[i, j] = - sum_{k in struct(j)} Z[i, k] L[k, j]                     i in struct(j)
+    Z[j, j] = 1 / D[j] - sum_{k in struct(j)} Z[k, j] L[k, j]
+
+where struct(j) are the rows below the diagonal of L's column j. Every Z[i, k] it reads lies on
+L's symbolic pattern (its rows form a clique of the filled graph), so Z is computed there only,
+at about the cost of the factorization, never the dense inverse. L and D are SuperLU's in
+symmetric mode (``camloc.schur.factor``: the same permutation of rows and columns, diagonal
+pivots), where ``U = D L^T``. SuperLU's L as scipy hands it over leaves out entries that came out
+exactly zero, so its pattern is first closed again (``_closed_pattern``: each column's rows
+include its elimination-tree children's, Liu 1990) with zeros where entries were missing.
+
+The loops are compiled with numba (a few seconds the first time, cached beside this file).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+# The kernels' options (``camloc.kernels._jit``), without their cache checks: these two functions
+# read nothing but their arguments.
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+
+class PatternError(RuntimeError):
+    """The factor's pattern lacks an entry the recurrence needs (a factor that dropped zeros)."""
+
+
+def selected_inverse(lu, needed: sp.spmatrix | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``Z`` (lower triangle, on L's pattern, CSC) of the inverse of ``P A P^T``, and ``perm``
+    (n,) with ``A^-1[u, v] = Z[perm[u], perm[v]]`` (read the lower triangle: max row, min column).
+
+    Parameters
+    ----------
+    lu : scipy's SuperLU of a symmetric positive definite A in symmetric mode.
+    needed : (n, n) a pattern (A's indices) whose entries of A^-1 are wanted: added to the
+        pattern before it is closed. scipy's sparse arithmetic drops entries that come out
+        exactly zero (a grid world's axis-aligned poses give such), so A's own pattern, and
+        so L's, can lack a pair of poses that see a common landmark.
+
+    Raises
+    ------
+    PatternError : the factor is not of that kind (other row and column permutations, or a
+        pattern the recurrence cannot run on).
+    """
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        raise PatternError("the factor permutes rows and columns differently")
+    L = sp.csc_matrix(lu.L)
+    perm = np.asarray(lu.perm_c)
+    if needed is not None:  # zeros on the pattern of the needed pairs, in L's (permuted, lower) indices
+        E = sp.coo_matrix(needed)
+        u, v = perm[E.row], perm[E.col]
+        Lc = L.tocoo()
+        rows = np.concatenate([Lc.row, np.maximum(u, v)])
+        cols = np.concatenate([Lc.col, np.minimum(u, v)])
+        L = sp.coo_matrix((np.concatenate([Lc.data, np.zeros(len(u))]), (rows, cols)), shape=L.shape).tocsc()
+        L.sum_duplicates()  # zeros added to an entry L has leave its value as it is
+    L.sort_indices()
+    D = lu.U.diagonal()
+    indptr, indices, data = _closed_pattern(L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
+    Z = np.zeros(len(data))
+    if not _takahashi(indptr, indices, data, D, Z):
+        raise PatternError("the factor's pattern is not closed under the recurrence")
+    return sp.csc_matrix((Z, indices, indptr), shape=L.shape), perm
+
+
+@_jit
+def _closed_pattern(indptr, indices, data):  # pragma: no cover - compiled
+    """L (CSC, rows sorted, diagonal first) on the smallest pattern that holds its entries and is
+    closed under elimination: column j's rows are its own and those of every child c (parent(c)
+    = the first row below c's diagonal) beyond j; entries L lacked are zero."""
+    n = indptr.shape[0] - 1
+    capacity = max(2 * indices.shape[0], 16)
+    out_indices = np.empty(capacity, dtype=np.int64)
+    out_ptr = np.zeros(n + 1, dtype=np.int64)
+    mark = np.full(n, -1, dtype=np.int64)
+    head = np.full(n, -1, dtype=np.int64)  # children of each column, as linked lists
+    next_child = np.full(n, -1, dtype=np.int64)
+    rows = np.empty(n, dtype=np.int64)
+    for j in range(n):
+        count = 0
+        for p in range(indptr[j], indptr[j + 1]):
+            rows[count] = indices[p]
+            mark[indices[p]] = j
+            count += 1
+        c = head[j]
+        while c != -1:
+            for p in range(out_ptr[c] + 1, out_ptr[c + 1]):
+                row = out_indices[p]
+                if row > j and mark[row] != j:
+                    mark[row] = j
+                    rows[count] = row
+                    count += 1
+            c = next_child[c]
+        column = np.sort(rows[:count])
+        start = out_ptr[j]
+        if start + count > capacity:
+            capacity = 2 * (start + count)
+            grown = np.empty(capacity, dtype=np.int64)
+            grown[:start] = out_indices[:start]
+            out_indices = grown
+        for q in range(count):
+            out_indices[start + q] = column[q]
+        out_ptr[j + 1] = start + count
+        if count > 1:  # the parent: the first row below the diagonal
+            parent = column[1]
+            next_child[j] = head[parent]
+            head[parent] = j
+    out_indices = out_indices[: out_ptr[n]].copy()
+    out_data = np.zeros(out_ptr[n])
+    for j in range(n):
+        q = out_ptr[j]
+        for p in range(indptr[j], indptr[j + 1]):
+            while out_indices[q] < indices[p]:
+                q += 1
+            out_data[q] = data[p]
+    return out_ptr, out_indices, out_data
+
+
+@_jit
+def _supernode_widths(indptr, indices):  # pragma: no cover - compiled
+    """(n,) columns from j to the end of j's supernode: j joins j+1's when its pattern is j then j+1's."""
+    n = indptr.shape[0] - 1
+    width = np.ones(n, dtype=np.int64)  # columns from j to the end of j's supernode
+    for j in range(n - 2, -1, -1):  # j joins j+1's supernode when its pattern is j then j+1's
+        size, next_size = indptr[j + 1] - indptr[j], indptr[j + 2] - indptr[j + 1]
+        same = size == next_size + 1
+        if same:
+            for q in range(next_size):
+                if indices[indptr[j] + 1 + q] != indices[indptr[j + 1] + q]:
+                    same = False
+                    break
+        if same:
+            width[j] = width[j + 1] + 1
+    return width
+
+
+@_jit
+def _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):  # pragma: no cover - compiled
+    """The upper triangle of Z_RR (m, m) (its diagonal halved) for the rows R of a supernode
+    (``indices[base:base + m]``), a row at a time (contiguous writes), an ancestor supernode K
+    at a time; False when a needed entry is off the pattern."""
+    Z_RR[:, :] = 0.0
+    a = 0
+    while a < m:  # the upper triangle of Z_RR, a row at a time, an ancestor supernode K at a time
+        k0 = indices[base + a]
+        end = k0 + width[k0]  # K's columns k0..end-1 (k0 may be inside K)
+        a1 = a
+        while a1 < m and indices[base + a1] < end:
+            a1 += 1
+        # the rows of R beyond K's columns lie in K's rows below (closed pattern): where, once for K
+        below, stop = indptr[k0] + (end - k0), indptr[k0 + 1]
+        p = below
+        for b in range(a1, m):
+            row = indices[base + b]
+            while p < stop and indices[p] < row:
+                p += 1
+            if p == stop or indices[p] != row:
+                return False
+            position[b] = p - below
+        for r in range(a, a1):  # column k of K holds rows k..end-1, then K's rows below
+            k = indices[base + r]
+            column = indptr[k]
+            Z_RR[r, r] = 0.5 * Z[column]  # halved: the diagonal is counted twice below
+            for b in range(r + 1, a1):
+                Z_RR[r, b] = Z[column + (indices[base + b] - k)]
+            tail = column + (end - k)
+            for b in range(a1, m):
+                Z_RR[r, b] = Z[tail + position[b]]
+        a = a1
+    return True
+
+
+@_jit
+def _takahashi(indptr, indices, L, D, Z):  # pragma: no cover - compiled
+    """Fill Z (nnz,) on L's closed pattern, a supernode at a time from the last; False when a
+    needed entry is missing from the pattern.
+
+    A supernode is a run of columns c0..c1-1 whose patterns nest (column c's is c and the next
+    one's): a dense unit lower triangle L_JJ over rows R_J = c0..c1-1, and a block L_RJ over the
+    rows R below, shared. Its part of Takahashi's recurrence in block form (Z = (L D L^T)^-1):
+
+        Z_RJ = -Z_RR L_RJ L_JJ^-1,     Z_JJ = L_JJ^-T (D_J^-1 L_JJ^-1 - L_RJ^T Z_RJ)
+
+    Z_RR is gathered from the columns of R (their entries below, on the pattern) once per
+    supernode, into a dense block, so that the products are BLAS's (a column at a time, in
+    scalar loops, took 35 s at 20,000 poses; this takes a few).
+    """
+    n = indptr.shape[0] - 1
+    width = _supernode_widths(indptr, indices)
+    # walk supernodes from the last: a supernode starts at c0 and spans width[c0] columns when
+    # c0 - 1 does not join it
+    c1 = n
+    ZRR = np.empty(256)
+    position = np.empty(n, dtype=np.int64)
+    while c1 > 0:
+        c0 = c1 - 1
+        while c0 > 0 and width[c0 - 1] == width[c0] + 1:
+            c0 -= 1
+        w = c1 - c0
+        base = indptr[c0] + w  # the rows R start here in the first column
+        m = indptr[c0 + 1] - base
+        if indices[indptr[c0]] != c0:
+            return False
+        LR = np.empty((m, w))  # L_RJ
+        for t in range(w):
+            off = indptr[c0 + t] + (w - t)
+            for b in range(m):
+                LR[b, t] = L[off + b]
+        if ZRR.shape[0] < m * m:
+            ZRR = np.empty(4 * m * m)
+        Z_RR = ZRR[: m * m].reshape((m, m))  # contiguous, for BLAS
+        if not _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):
+            return False
+        # Z_RR = U + U^T with U that upper triangle: two BLAS products, the arithmetic of the recurrence
+        Y = np.dot(Z_RR, LR) + np.dot(Z_RR.T, LR)
+        # Z_RJ = -Y L_JJ^-1: solve X L_JJ = -Y, the last column first (L_JJ unit lower)
+        X = np.empty((m, w))
+        for t in range(w - 1, -1, -1):
+            for b in range(m):
+                X[b, t] = -Y[b, t]
+            for s in range(t + 1, w):
+                l_st = L[indptr[c0 + t] + (s - t)]
+                for b in range(m):
+                    X[b, t] -= X[b, s] * l_st
+        # Z_JJ = L_JJ^-T (D^-1 L_JJ^-1 - L_RJ^T Z_RJ)
+        Linv = np.zeros((w, w))  # L_JJ^-1, unit lower
+        for t in range(w):
+            Linv[t, t] = 1.0
+            for s in range(t + 1, w):
+                total = 0.0
+                for r in range(t, s):
+                    total += L[indptr[c0 + r] + (s - r)] * Linv[r, t]
+                Linv[s, t] = -total
+        B = -np.dot(LR.T.copy(), X)  # -L_RJ^T Z_RJ
+        for s in range(w):
+            for t in range(w):
+                B[s, t] += Linv[s, t] / D[c0 + s]
+        for s in range(w):
+            for t in range(s + 1):  # the lower triangle, (s, t) with s >= t
+                total = 0.0
+                for r in range(s, w):  # (L_JJ^-T)[s, r] = Linv[r, s]
+                    total += Linv[r, s] * B[r, t]
+                Z[indptr[c0 + t] + (s - t)] = total
+        for t in range(w):
+            off = indptr[c0 + t] + (w - t)
+            for b in range(m):
+                Z[off + b] = X[b, t]
+        c1 = c0
+    return True
+
+
+def quadratic_forms(Z: sp.csc_matrix, perm: np.ndarray, W: sp.csc_matrix, width: int) -> np.ndarray:
+    """``W_l^T A^-1 W_l`` (count, width, width) for each block of ``width`` columns of W, with
+    A^-1 given on a pattern by ``selected_inverse`` (it must hold every pair of rows a block
+    touches, as the factor of ``A = S`` does for ``W = Hpl Hll^-1``).
+
+    Raises
+    ------
+    PatternError : a pair of rows off Z's pattern.
+    """
+    W = sp.csc_matrix(W)
+    W.sort_indices()
+    count = W.shape[1] // width
+    out = np.zeros((count, width, width))
+    ok = _quadratic_forms(Z.indptr.astype(np.int64), Z.indices.astype(np.int64), Z.data, perm.astype(np.int64),
+                          W.indptr.astype(np.int64), W.indices.astype(np.int64), W.data, width, out)
+    if not ok:
+        raise PatternError("a landmark couples poses whose inverse entry is off the factor's pattern")
+    return out
+
+
+@_jit
+def _quadratic_forms(Zp, Zi, Zd, perm, Wp, Wi, Wd, width, out):  # pragma: no cover - compiled
+    """Each block's W_l (rows, width) made dense over the union of its columns' rows, the block
+    of A^-1 over those rows looked up once (binary search in Z's columns), then W_l^T A^-1 W_l."""
+    n = perm.shape[0]
+    slot = np.full(n, -1, dtype=np.int64)  # row -> its place in the current block's row list
+    rows = np.empty(n, dtype=np.int64)
+    for block in range(out.shape[0]):
+        m = 0
+        for a in range(width):
+            c = block * width + a
+            for x in range(Wp[c], Wp[c + 1]):
+                if slot[Wi[x]] < 0:
+                    slot[Wi[x]] = m
+                    rows[m] = Wi[x]
+                    m += 1
+        Wl = np.zeros((m, width))
+        for a in range(width):
+            c = block * width + a
+            for x in range(Wp[c], Wp[c + 1]):
+                Wl[slot[Wi[x]], a] = Wd[x]
+        A = np.empty((m, m))
+        for i in range(m):
+            u = perm[rows[i]]
+            for j in range(i, m):
+                v = perm[rows[j]]
+                col, row = min(u, v), max(u, v)
+                lo, hi = Zp[col], Zp[col + 1]
+                while lo < hi:  # binary search of the row in the column
+                    mid = (lo + hi) // 2
+                    if Zi[mid] < row:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                if lo == Zp[col + 1] or Zi[lo] != row:
+                    return False
+                A[i, j] = Zd[lo]
+                A[j, i] = Zd[lo]
+        out[block] = np.dot(Wl.T.copy(), np.dot(A, Wl))
+        for i in range(m):
+            slot[rows[i]] = -1
+    return True
