@@ -691,12 +691,17 @@ def write_smoothed(run_dir: str | Path, pose_ids: np.ndarray, xyz: np.ndarray, q
     ------
     CamlocError : ``run_dir`` is not a run folder, or the file cannot be written.
     """
-    run_dir = Path(run_dir)
-    if not is_run_folder(run_dir):
-        raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run' to add {SMOOTHED_TUM} to")
-    path = run_dir / SMOOTHED_TUM
+    path = _file_in_run_folder(run_dir, SMOOTHED_TUM)
     write_tum(path, pose_ids, xyz, quat_xyzw)
     return path
+
+
+def _file_in_run_folder(run_dir: str | Path, name: str) -> Path:
+    """The path of file ``name`` in ``run_dir``, which must be a run folder (CamlocError if not)."""
+    run_dir = Path(run_dir)
+    if not is_run_folder(run_dir):
+        raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run' to add {name} to")
+    return run_dir / name
 
 
 @dataclass(frozen=True)
@@ -740,10 +745,7 @@ def write_map(run_dir: str | Path, landmarks: LandmarkMap) -> Path:
     ------
     CamlocError : ``run_dir`` is not a run folder, or the file cannot be written.
     """
-    run_dir = Path(run_dir)
-    if not is_run_folder(run_dir):
-        raise CamlocError(f"{run_dir}: expected a run folder written by 'camloc run' to add {MAP_CSV} to")
-    path = run_dir / MAP_CSV
+    path = _file_in_run_folder(run_dir, MAP_CSV)
     write_text_atomic(path, map_text(landmarks))
     return path
 
