@@ -107,8 +107,9 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
     ``slip_inflation`` there) or ORACLE. Writes states (N, 6), covs (N, 6, 6), per observation the
     chosen landmark (-1 none) and the pair's Mahalanobis distance, per update its pose, NIS, MAP
     cost and degrees of freedom, and with GIVEN pairs what their chance of being clutter adds to
-    the estimate's covariance (``add_leave_one_out_spread`` into pair_spread (N, 6, 6)); counters[0] counts updates, counters[1] is the pose being
-    filtered (where an error stopped it). Returns (x, P) after pose last - 1."""
+    the estimate's covariance (``add_leave_one_out_spread`` into pair_spread (N, 6, 6));
+    counters[0] counts updates, counters[1] is the pose being filtered (where an error stopped
+    it). Returns (x, P) after pose last - 1."""
     no_start = np.empty(0)                       # ``updated``'s start: none
     for k in range(first, last):
         counters[1] = k
