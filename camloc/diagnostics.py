@@ -36,7 +36,10 @@ def filter_name(config: Mapping[str, Any]) -> str:
     state, iterations = config.get("filter"), config.get("iterations")
     if not isinstance(state, str) or not isinstance(iterations, int):
         return "filter"
-    return f"{'iterated EKF' if iterations > 1 else 'EKF'} ({state})"
+    kind = 'iterated EKF' if iterations > 1 else 'EKF'
+    if config.get("map") in ("prior", "none"):  # the mapping localizer (camloc.slam_run)
+        return f"{kind}-SLAM (map {config['map']})"
+    return f"{kind} ({state})"
 
 
 def estimate_name(summary: Mapping[str, Any]) -> str:

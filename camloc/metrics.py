@@ -354,32 +354,36 @@ def association_outcomes(associations: Associations, map_landmark_ids: np.ndarra
 
     ``made`` (a landmark was chosen), ``correct`` (it is the true one), ``wrong`` (another one),
     ``rejected`` (none chosen), ``in_map`` (the true landmark is in the map), ``missed`` (in the
-    map but rejected), ``clutter_accepted`` (not in the map but associated anyway).
+    map but rejected), ``clutter_accepted`` (not in the map but associated anyway), ``to_added``
+    (paired with a landmark the run added, an id the map lacks: neither correct nor wrong here,
+    ``camloc eval --true-map`` scores those).
     """
     chosen = np.asarray(associations.landmark)
     true = np.asarray(associations.true_landmark)
     made = chosen != UNASSOCIATED
     in_map = np.isin(true, map_landmark_ids)
+    to_added = made & ~np.isin(chosen, map_landmark_ids)
     return {
         "made": made,
         "correct": made & (chosen == true),
-        "wrong": made & (chosen != true),
+        "wrong": made & (chosen != true) & ~to_added,
+        "to_added": to_added,
         "rejected": ~made,
         "in_map": in_map,
         "missed": in_map & ~made,
-        "clutter_accepted": ~in_map & made,
+        "clutter_accepted": ~in_map & made & ~to_added,
     }
 
 
 def association_scores(associations: Associations, map_landmark_ids: np.ndarray) -> dict:
     """Counts and scores of the data association against the file's true landmark ids.
 
-    precision = correct / made; recall = correct / observations whose true landmark is in the
-    map; F1 their harmonic mean (None when undefined, e.g. nothing was associated).
+    precision = correct / pairs with the map's landmarks (those with added ones aside:
+    ``to_added``); recall = correct / observations whose true landmark is in the map; F1 their harmonic mean (None when undefined, e.g. nothing was associated).
     """
     masks = association_outcomes(associations, map_landmark_ids)
     counts = {name: int(np.count_nonzero(mask)) for name, mask in masks.items()}
-    precision = _ratio(counts["correct"], counts["made"])
+    precision = _ratio(counts["correct"], counts["made"] - counts["to_added"])
     recall = _ratio(counts["correct"], counts["in_map"])
     f1 = None
     if precision is not None and recall is not None and precision + recall > 0:
@@ -394,6 +398,7 @@ def association_scores(associations: Associations, map_landmark_ids: np.ndarray)
         "in_map": counts["in_map"],
         "clutter": int(len(masks["made"])) - counts["in_map"],
         "clutter_accepted": counts["clutter_accepted"],
+        "to_added": counts["to_added"],
         "precision": precision,
         "recall": recall,
         "f1": f1,

@@ -1,0 +1,284 @@
+"""The landmarks of a mapping run (``camloc.slam_run``): their table, and how landmarks the map
+lacks are added.
+
+- ``LandmarkTable``: every landmark of the run, the map's then the added ones, in the state or
+  waiting outside it.
+- ``LandmarkAdditions``: the mapping localizer's part that adds landmarks. An unassigned
+  observation that no landmark in view fits within its gate is a candidate: one with range enters
+  the state at once as a **tentative** landmark (the inverse observation: consistent in the
+  invariant error), confirmed or dropped by its track score (below); a pixel gathers into a track
+  of rays (``camloc.slam_tracks``) until their parallax fixes a depth (delayed initialization).
+  Under the oracle, an id the map lacks becomes a landmark at its second observation.
+
+Pure computation: no I/O, no printing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Optional
+
+import numpy as np
+
+from camloc import measurement, slam
+from camloc.dataset import Dataset
+from camloc.results import LandmarkMap
+from camloc.slam_tracks import DEPTH_VARIANCE_INFLATION, Tracks, triangulate
+
+# an assignment's cost outside the gate
+UNPAIRED = 1e12
+
+# A landmark entered from one observation is **tentative** until its score, the log-likelihood
+# ratio of "a landmark" over "clutter" of what was seen of it (the track score of multi-target
+# tracking: + (null cost - pair cost) / 2 for each pair, + ln(1 - DETECTION_PROBABILITY) each time
+# it was surely in view and not seen), reaches CONFIRM_SCORE (odds 1000:1); it is dropped, with
+# its pairs, below DROP_SCORE or when not seen again within TENTATIVE_GAP poses. Clutter, uniform
+# over what the cameras see, is not seen again where it was: it is dropped.
+CONFIRM_SCORE = float(np.log(1000.0))
+DROP_SCORE = -2.0
+DETECTION_PROBABILITY = 0.9
+TENTATIVE_GAP = 5
+
+
+class LandmarkTable:
+    """Every landmark of the run: the map's (in file order) then the added ones; where each is
+    (its row in the state, -1 outside), its position and world covariance while outside the state
+    (a zero covariance: held exactly), when it was last seen and how many observations it took."""
+
+    def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
+        n = ids.size
+        self.ids, self.xyz, self.cov = ids.astype(np.int64), xyz.astype(float).reshape(n, 3), cov.reshape(n, 3, 3)
+        self.added = np.zeros(n, bool)
+        self.state_row = np.full(n, -1, np.int64)
+        self.last_seen = np.full(n, -1, np.int64)
+        self.observations = np.zeros(n, np.int64)
+        self.tentative = np.zeros(n, bool)  # added, not yet seen CONFIRM_OBSERVATIONS times
+        self.score = np.zeros(n)  # a tentative landmark's log-likelihood ratio over clutter
+        self.dead = np.zeros(n, bool)       # a tentative landmark dropped (clutter): out of the map
+        self.num_mapped = n
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def append(self, landmark_id: int) -> int:
+        """A new (added) landmark, in the state: its index."""
+        self.ids = np.append(self.ids, landmark_id)
+        self.xyz = np.vstack([self.xyz, np.zeros((1, 3))])
+        self.cov = np.concatenate([self.cov, np.zeros((1, 3, 3))])
+        self.added = np.append(self.added, True)
+        self.state_row = np.append(self.state_row, -1)
+        self.last_seen = np.append(self.last_seen, -1)
+        self.observations = np.append(self.observations, 0)
+        self.tentative = np.append(self.tentative, False)
+        self.score = np.append(self.score, 0.0)
+        self.dead = np.append(self.dead, False)
+        return self.ids.size - 1
+
+    def in_range(self, centre: np.ndarray, radius: float, mapped_index) -> np.ndarray:
+        """Indices of the landmarks within ``radius`` of ``centre`` (the map's through its index)."""
+        mapped = mapped_index.within(centre, radius) if mapped_index is not None else np.zeros(0, np.int64)
+        offset = self.xyz[self.num_mapped:] - centre
+        added = self.num_mapped + np.flatnonzero((np.einsum("ij,ij->i", offset, offset) <= radius * radius)
+                                                 & ~self.dead[self.num_mapped:])
+        return np.concatenate([mapped, added]).astype(np.int64)
+
+class LandmarkAdditions:
+    """The mapping localizer's additions (a mix-in of ``slam_run.MappingLocalizer``, whose state
+    it reads and extends: ``x``, ``P``, ``table``, ``state_landmark``, ``tracks``, ``chosen``)."""
+
+    def _oracle_pairs(self, k: int, obs: np.ndarray) -> list[tuple[int, int]]:
+        """The pose's pairs by the file's ids (mapped, or added under the oracle), gated."""
+        pairs = []
+        for o in obs.tolist():
+            landmark = self.oracle_landmark.get(int(self.dataset.obs_true_landmark[o]))
+            if landmark is None:
+                continue
+            cost = self.landmark_costs(int(self.obs_sensor[o]), np.array([o]), np.array([landmark]))
+            if cost is not None and cost[1][0, 0] < UNPAIRED:  # gated like any pair
+                pairs.append((o, landmark))
+        return pairs
+
+    def estimated_map(self) -> LandmarkMap:
+        """The map at the end of the run: every landmark of the table (the state's estimates for
+        those in it)."""
+        table = self.table
+        xyz, cov = table.xyz.copy(), table.cov.copy()
+        for row, landmark in enumerate(self.state_landmark):
+            xyz[landmark], cov[landmark] = self.x.L[row], slam.landmark_world_cov(self.x, self.P, row)
+        keep = ~table.dead & ~table.tentative
+        return LandmarkMap(ids=table.ids[keep], xyz=xyz[keep], cov=cov[keep], added=table.added[keep],
+                           observations=table.observations[keep])
+
+    def _tracked(self, k: int, unassigned: list[int]) -> None:
+        """Unassigned observations join tracks; a confirmed track becomes a landmark. One that a
+        landmark of the map or the state would explain within its gate is not a new landmark (the
+        association left it out for its cost or its partners): it stays unassigned, so that no
+        landmark is added twice."""
+        self.tracks.expire(k)
+        unassigned = self._unexplained(unassigned)
+        for o in unassigned:
+            kind = int(self.dataset.obs_kind[o])
+            if measurement.measures_range(np.array([kind]))[0]:
+                # a point enters the state at once, tentative (``_retire`` drops it unless seen again):
+                # the filter then judges its next observations with the correlations it holds
+                self._add_landmark(k, o, SingleObservation(o), tentative=True)
+                continue
+            origin, direction, sigma = self._ray(o)
+            track = self.tracks.add_ray(k, o, origin, direction, sigma)
+            if self.tracks.confirmed(track) and self._add_landmark(k, o, track):
+                self.tracks.remove(track)
+
+    def _count_misses(self, seen: set) -> None:
+        """A tentative landmark in the state that was surely in view (``sure_view``) and not
+        seen at this pose: its score takes the miss."""
+        table = self.table
+        if not self.state_landmark or self.sure_view is None:
+            return
+        landmarks = np.array(self.state_landmark, np.int64)
+        rows = np.flatnonzero(table.tentative[landmarks] & ~np.isin(landmarks, list(seen)))
+        if rows.size == 0:
+            return
+        near, far, angle = self.sure_view
+        in_view = np.zeros(rows.size, bool)
+        for sensor in self.sensors.values():
+            if sensor.camera_id < 0:
+                continue
+            p = slam.camera_points(self.x, sensor, self.x.L[rows])
+            distance = np.linalg.norm(p, axis=1)
+            in_view |= (distance >= near) & (distance <= far) & (p[:, 2] >= np.cos(angle) * distance)
+        table.score[landmarks[rows[in_view]]] += np.log(1.0 - DETECTION_PROBABILITY)
+
+    def _unexplained(self, obs: list[int]) -> list[int]:
+        """The observations of ``obs`` that no landmark in view fits within its chi^2 gate."""
+        if not obs or not len(self.table):
+            return obs
+        obs_array = np.array(obs, np.int64)
+        if self.state_landmark:
+            self.table.xyz[np.array(self.state_landmark)] = self.x.L
+        nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, self.mapped_index)
+        fits = np.zeros(obs_array.size, bool)
+        for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():
+            at = self.obs_sensor[obs_array] == sensor_id
+            gated = self.landmark_costs(sensor_id, obs_array[at], nearby)
+            if gated is not None:
+                fits[at] = np.any(gated[1] < UNPAIRED, axis=1)
+        return obs_array[~fits].tolist()
+
+    def _oracle_new(self, k: int, unassigned: list[int]) -> None:
+        """With the oracle, an id the map lacks becomes a landmark once seen twice (rays: with
+        parallax enough); clutter's ids are seen once."""
+        for o in unassigned:
+            true_id = int(self.dataset.obs_true_landmark[o])
+            if true_id in self.oracle_landmark:
+                continue  # a known landmark out of the gate: left unassigned
+            kind = int(self.dataset.obs_kind[o])
+            track = self.oracle_tracks.get(true_id)
+            if track is None:
+                track = self.oracle_tracks[true_id] = OracleTrack(self.tracks)
+            if measurement.measures_range(np.array([kind]))[0]:
+                track.observations.append(o)
+                ready = len(track.observations) >= 2
+            else:
+                origin, direction, sigma = self._ray(o)
+                ready = track.add_ray(k, o, origin, direction, sigma)
+            if ready and self._add_landmark(k, o, track.as_track()):
+                self.oracle_landmark[true_id] = len(self.table) - 1
+                del self.oracle_tracks[true_id]
+
+    def _inverse(self, o: int):
+        sensor = self.sensors[int(self.obs_sensor[o])]
+        return slam.inverse_observation(self.x, sensor, self.dataset.obs_z[o], self.dataset.obs_cov[o])
+
+    def _ray(self, o: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """Observation o's ray: the camera's centre, its unit direction (world) and its angular
+        standard deviation (radians)."""
+        sensor = self.sensors[int(self.obs_sensor[o])]
+        fx, fy, cx, cy = sensor.intrinsics
+        z = self.dataset.obs_z[o]
+        Rc, tc = sensor.T_robot_camera[:3, :3], sensor.T_robot_camera[:3, 3]
+        d = self.x.R @ Rc @ np.array([(z[0] - cx) / fx, (z[1] - cy) / fy, 1.0])
+        cov = self.dataset.obs_cov[o]
+        sigma = float(np.sqrt(max(cov[0, 0] / fx**2, cov[1, 1] / fy**2)))
+        return self.x.t + self.x.R @ tc, d / np.linalg.norm(d), sigma
+
+    def _add_landmark(self, k: int, o: int, track, tentative: bool = False) -> bool:
+        """A new landmark from observation o (the track's latest), in the state; False where a
+        ray's track fixes no depth in front of the camera."""
+        sensor = self.sensors[int(self.obs_sensor[o])]
+        z, R_z = self.dataset.obs_z[o].copy(), self.dataset.obs_cov[o].copy()
+        if not measurement.measures_range(np.array([sensor.kind]))[0]:
+            fix = triangulate(np.array(track.origins), np.array(track.directions), np.array(track.sigma_angle))
+            if fix is None:
+                return False
+            depth_axis = self.x.R @ sensor.T_robot_camera[:3, :3][:, 2]
+            depth = float(slam.camera_points(self.x, sensor, fix[0][None, :])[0, 2])
+            if depth <= max(self.min_depth, 1e-3):
+                return False
+            z[2], R_z[2, :], R_z[:, 2] = depth, 0.0, 0.0
+            R_z[2, 2] = DEPTH_VARIANCE_INFLATION * float(depth_axis @ fix[1] @ depth_axis)
+            sensor = replace(sensor, kind=measurement.DEPTH)
+        xyz, B, N = slam.inverse_observation(self.x, sensor, z, R_z)
+        self.x, self.P = slam.augmented(self.x, self.P, xyz, B, N)
+        landmark = self.table.append(self.next_id)
+        self.next_id += 1
+        self.table.state_row[landmark] = len(self.state_landmark)
+        self.state_landmark.append(landmark)
+        self.table.last_seen[landmark] = k
+        self.table.observations[landmark] = len(track.observations)
+        self.table.tentative[landmark] = tentative
+        self.chosen[np.array(track.observations, np.int64)] = landmark
+        return True
+
+
+# The share of the observations' distances and angles "surely in view" takes: inside what most
+# observations span, so that a landmark predicted there and not seen was missed, not out of view.
+_SURE_QUANTILES = (0.1, 0.9)
+
+
+def sure_view(dataset: Dataset) -> Optional[tuple[float, float, float]]:
+    """(nearest, farthest distance, widest angle) from the camera within which a landmark is surely
+    seen: the 10th and 90th percentiles of the observations' distances, the 90th of their angles
+    to the optical axis. None where no observation measures range."""
+    ranged = np.flatnonzero(measurement.measures_range(dataset.obs_kind))
+    if ranged.size < 10:
+        return None
+    from camloc.observation_space import observation_intrinsics
+
+    intrinsics = observation_intrinsics(dataset)[ranged]
+    points = np.zeros((ranged.size, 3))
+    for kind in np.unique(dataset.obs_kind[ranged]).tolist():
+        at = dataset.obs_kind[ranged] == kind
+        points[at] = measurement.back_project(dataset.obs_z[ranged[at]], intrinsics[at].T, int(kind))[0]
+    distance = np.linalg.norm(points, axis=1)
+    angle = np.arccos(np.clip(points[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
+    near, far = np.quantile(distance, _SURE_QUANTILES)
+    return float(near), float(far), float(np.quantile(angle, _SURE_QUANTILES[1]))
+
+
+class SingleObservation:
+    """One observation as a track (a landmark entered from it alone)."""
+
+    def __init__(self, o: int):
+        self.observations = [o]
+
+
+class OracleTrack:
+    """The observations of one id the map lacks, under the oracle (rays: until they fix a depth)."""
+
+    def __init__(self, tracks: Tracks):
+        self.tracks = tracks
+        self.observations: list[int] = []
+        self.origins: list = []
+        self.directions: list = []
+        self.sigma_angle: list = []
+
+    def add_ray(self, k, o, origin, direction, sigma) -> bool:
+        self.observations.append(o)
+        self.origins.append(origin)
+        self.directions.append(direction)
+        self.sigma_angle.append(sigma)
+        return len(self.observations) >= 2 and triangulate(np.array(self.origins), np.array(self.directions),
+                                                           np.array(self.sigma_angle)) is not None
+
+    def as_track(self):
+        return self
