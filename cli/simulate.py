@@ -243,27 +243,14 @@ def simulate(
 
     Zero sigmas are simulated exactly and written as a large finite information (1e12).
     """
-    from camloc.g2o import write_g2o
     from camloc.atomic_files import refuse_existing
-    from camloc.simulate import SimulationConfig, SimulationOptionError, simulate_labelled, simulation_config
+    from camloc.simulate import SimulationConfig, simulate_labelled
 
     # The options are named after the config's fields: pass on each one given by its command-line
     # name, enums as their text; the others keep the config's defaults.
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
-    try:
-        if robot == RobotChoice.planar:
-            from camloc.simulate_planar import world_config
-
-            config = world_config({**options, "robot": "planar", "sensors": sensors})
-        else:
-            config = simulation_config(options)
-    except SimulationOptionError as error:
-        raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
-    if tag_sigma_deg is not None and robot == RobotChoice.planar:
-        raise typer.BadParameter("applies only to --robot 3d", param_hint="--tag-sigma-deg")
-    if tag_sigma_deg is not None and not tag_sigma_deg > 0.0:
-        raise typer.BadParameter(f"expected a standard deviation > 0, found {tag_sigma_deg:g}", param_hint="--tag-sigma-deg")
+    config = _config(options, robot, sensors, tag_sigma_deg)
     refuse_existing(output, force=force)
     if tag_sigma_deg is not None:
         simulation = _tag_simulation(config, seed, tag_sigma_deg)
@@ -285,6 +272,26 @@ def simulate(
     )
     if true_map is not None:
         console.print(_map_line(summary["map"], true_map), highlight=False, soft_wrap=True)
+
+
+def _config(options: dict, robot: RobotChoice, sensors: str, tag_sigma_deg: Optional[float]):
+    """The simulation's config of the options given, a bad one refused as a bad parameter."""
+    from camloc.simulate import SimulationOptionError, simulation_config
+
+    try:
+        if robot == RobotChoice.planar:
+            from camloc.simulate_planar import world_config
+
+            config = world_config({**options, "robot": "planar", "sensors": sensors})
+        else:
+            config = simulation_config(options)
+    except SimulationOptionError as error:
+        raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
+    if tag_sigma_deg is not None and robot == RobotChoice.planar:
+        raise typer.BadParameter("applies only to --robot 3d", param_hint="--tag-sigma-deg")
+    if tag_sigma_deg is not None and not tag_sigma_deg > 0.0:
+        raise typer.BadParameter(f"expected a standard deviation > 0, found {tag_sigma_deg:g}", param_hint="--tag-sigma-deg")
+    return config
 
 
 # The true map's file beside a world whose map is edited: ``world.g2o`` -> ``world.true-map.g2o``.
