@@ -49,18 +49,10 @@ def plot(
 
     For a sweep folder (written by 'camloc sweep'), draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
     """
-    from camloc.atomic_files import refuse_existing, write_files_atomic
-    from camloc.results import FIGURE_FORMATS, load_run
+    from camloc.atomic_files import write_files_atomic
+    from camloc.results import load_run
 
-    if true_map is not None and output is not None:
-        raise ConfigError("--true-map is drawn on fig-map, which the one-page --output report leaves out: expected one of them")
-
-    if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
-        raise ConfigError(
-            f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
-        )
-    if output is not None:
-        refuse_existing(output, force=force)
+    _check_output(output, force, true_map)
     from camloc.sweep import is_sweep_folder
 
     sweep = is_sweep_folder(run_dir)
@@ -104,6 +96,22 @@ def plot(
             console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
     if show:
         plt.show()
+
+
+def _check_output(output: Optional[Path], force: bool, true_map: Optional[Path]) -> None:
+    """Refuse an --output that is no figure file or exists (without --force), or one with --true-map."""
+    from camloc.atomic_files import refuse_existing
+    from camloc.results import FIGURE_FORMATS
+
+    if output is None:
+        return
+    if true_map is not None:
+        raise ConfigError("--true-map is drawn on fig-map, which the one-page --output report leaves out: expected one of them")
+    if output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
+        raise ConfigError(
+            f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
+        )
+    refuse_existing(output, force=force)
 
 
 def _map_layout(run_dir: Path, result, true_map: Optional[Path], suffix: str) -> dict:
