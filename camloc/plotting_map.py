@@ -16,14 +16,13 @@ from matplotlib.axes import Axes
 from matplotlib.collections import EllipseCollection, LineCollection
 from matplotlib.figure import Figure
 
+from camloc.map_scores import MOVED_FROM_M  # given positions this far from the truth are drawn as moved
 from camloc.plotting import ESTIMATE_COLOR, MAP_COLOR, TRUTH_COLOR, dataset_name
 from camloc.results import LandmarkMap, RunResult
 
 ADDED_COLOR = "tab:orange"
 SIGMA = 2.0  # the ellipses hold 86% of a 2-D Gaussian's mass
 MAP_FIGURE_SIZE = (8.0, 7.0)
-# Given positions this far (m) or more from the truth are drawn as moved (``camloc.map_scores``'s rule).
-MOVED_FROM_M = 1e-6
 # Point clouds of more landmarks than this are rasterized in a vector figure (.pdf, .svg).
 RASTERIZED_FROM = 2000
 

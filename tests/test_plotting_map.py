@@ -73,7 +73,10 @@ def test_a_run_that_lists_its_added_landmarks_in_its_map_draws_them_once(synthet
     assert len(MapView(run, view.estimated).given()[0]) == 30
 
 
-def test_cli_plot_writes_fig_map_with_a_map_csv_only(tmp_path, synthetic_run):
+def test_cli_plot_writes_fig_map_with_a_map_csv_only(tmp_path, synthetic_run, monkeypatch):
+    from camloc import plotting
+
+    monkeypatch.setattr(plotting, "figures_of", lambda result: {})  # the run's other figures: tests/test_cli_eval_plot.py
     view = _view(synthetic_run, with_truth=True)
     run_dir = save_run(tmp_path / "run", view.result)
     world = simulate(SimulationConfig(poses=5, landmarks=30), seed=0)
@@ -88,5 +91,6 @@ def test_cli_plot_writes_fig_map_with_a_map_csv_only(tmp_path, synthetic_run):
     outcome = invoke(app, ["plot", str(run_dir), "--true-map", str(tmp_path / "truth.g2o"), "--dpi", "50"])
     assert outcome.exit_code == 0, outcome.output
     assert (run_dir / "fig-map.png").read_bytes().startswith(b"\x89PNG") and "fig-map.png" in outcome.stdout
+    assert sorted(path.name for path in run_dir.glob("fig-*")) == ["fig-map.png"]
     outcome = invoke(app, ["plot", str(run_dir), "--true-map", str(tmp_path / "truth.g2o"), "-o", str(tmp_path / "r.pdf")])
     assert outcome.exit_code == 2 and "leaves out" in outcome.stderr

@@ -138,3 +138,19 @@ def test_the_tag_world_is_edited_after_its_orientations_are_drawn(tmp_path):
     np.testing.assert_array_equal(edited.obs_z, whole.obs_z)
     write_g2o(edited, tmp_path / "t.g2o")
     assert _read(tmp_path / "t.g2o").tag_counts["VERTEX_TAG"] == len(kept)
+
+
+def test_a_sweep_cell_and_a_planar_world_take_the_map_options(tmp_path):
+    from camloc.simulate_planar import simulate_world, world_config
+
+    whole = simulate_world(world_config({"poses": 20}), seed=0)
+    half = simulate_world(world_config({"poses": 20, "withhold-map": 0.5}), seed=0)
+    assert len(half.landmark_ids) == len(whole.landmark_ids) - round(0.5 * len(whole.landmark_ids))
+    outcome = invoke("simulate", "-o", tmp_path / "p.g2o", "--robot", "planar", "--poses", 30, "--withhold-map", 0.5,
+                     "--clutter-fraction", 0.1, "--json")
+    assert outcome.exit_code == 0, outcome.output
+    summary = json.loads(outcome.stdout)
+    truth = _read(tmp_path / "p.true-map.g2o")
+    clutter = ~np.isin(truth.obs_true_landmark, truth.landmark_ids)
+    assert summary["counts"]["clutter"] == np.count_nonzero(clutter) > 0  # withheld landmarks are not clutter
+    assert summary["map"]["withheld_observations"] > 0 and truth.planar
