@@ -245,20 +245,21 @@ def simulate(
     """
     from camloc.atomic_files import refuse_existing
     from camloc.simulate import SimulationConfig, simulate_labelled
+    from camloc.simulate_map import edits_map
 
     # The options are named after the config's fields: pass on each one given by its command-line
     # name, enums as their text; the others keep the config's defaults.
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
     config = _config(options, robot, sensors, tag_sigma_deg)
-    refuse_existing(output, force=force)
+    true_map = true_map_path(output) if edits_map(config) else None
+    for path in (output, true_map):
+        if path is not None:
+            refuse_existing(path, force=force)
     if tag_sigma_deg is not None:
         simulation = _tag_simulation(config, seed, tag_sigma_deg)
     else:
         simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
-    true_map = true_map_path(output) if simulation.map_edits is not None else None
-    if true_map is not None:
-        refuse_existing(true_map, force=force)
     _write(simulation, output, true_map)
     summary = _summary(simulation, output, seed, true_map)
     if echo_json(summary, enabled=json_output) or quiet:
