@@ -55,8 +55,9 @@ _ROBOT = typer.Option(RobotChoice.three_d, help=with_default(
     "EDGE_SE2; a unicycle path, camloc/simulate_planar.py) carrying the --sensors given. With planar, "
     "--poses, --landmarks (per planar sensor), --region, --min-range/--max-range and --fov-half-angle-deg "
     "(of the planar sensors; default 0.3-3 m, 60 deg), --detection-probability (default 0.9) and "
-    "--clutter-fraction apply to the planar sensors, and --cameras, --intrinsics, --measurement and the "
-    "observation sigmas to the 3-D cameras; the other options are refused."), show_default=False)
+    "--clutter-fraction apply to the planar sensors, --cameras, --intrinsics, --measurement and the "
+    "observation sigmas to the 3-D cameras, --withhold-map, --move-map, --move-distance and --no-map to the whole map "
+    "(planar landmarks move in the floor's plane); the other options are refused."), show_default=False)
 _SENSORS = typer.Option("points", help=with_default(
     "With --robot planar: what the robot observes, comma-separated: points (EDGE_SE2_XY: (x, y) of VERTEX_XY "
     "landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the planar pose (x, y, "
