@@ -55,9 +55,9 @@ from scipy.spatial import cKDTree
 
 from camloc import geometry, measurement, models
 from camloc.dataset import Camera, Dataset
-from camloc.simulate_map import DEFAULT_MOVE_DISTANCE_M, MapEdits, edit_map, edits_map, map_edit_problem
 from camloc.errors import ConfigError
 from camloc.g2o import observation_cov_from_info, odometry_cov_from_info, odometry_info_from_cov
+from camloc.simulate_map import DEFAULT_MOVE_DISTANCE_M, MapEdits, edit_map, edits_map, map_edit_problem
 
 TRAJECTORIES = ("grid", "smooth3d", "aerial")
 INTRINSICS = ("normalized", "pixel")
