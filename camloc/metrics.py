@@ -409,39 +409,6 @@ def association_scores(associations: Associations, map_landmark_ids: np.ndarray)
 # Consistency
 
 
-def map_errors(ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray, added: np.ndarray,
-               true_ids: np.ndarray, true_xyz: np.ndarray) -> dict:
-    """How far an estimated map (``map.csv``: ids (K,), xyz (K, 3), cov (K, 3, 3), added (K,))
-    lies from the true one (true_ids (T,), true_xyz (T, 3)), for mapped and added landmarks apart.
-
-    Each part: ``count`` landmarks scored (those with a true position), ``rmse`` and ``max`` of
-    their position errors (m; None when none), ``nees`` the mean of ``e^T cov^-1 e`` over the
-    ones with a positive definite covariance (3 where consistent; None when none: a map held
-    exact has zero covariances), and ``unknown``: estimated ids the true map lacks (clutter made
-    into a landmark).
-    """
-    order = np.argsort(true_ids, kind="stable")
-    at = np.clip(np.searchsorted(true_ids[order], ids), 0, max(len(order) - 1, 0))
-    known = (true_ids[order][at] == ids) if len(order) else np.zeros(len(ids), dtype=bool)
-    report = {}
-    for name, rows in (("mapped", ~added), ("added", added)):
-        scored = rows & known
-        error = xyz[scored] - true_xyz[order][at[scored]]
-        distance = np.linalg.norm(error, axis=1)
-        eig = np.linalg.eigvalsh(cov[scored]) if scored.any() else np.zeros((0, 3))
-        definite = eig[:, 0] > 0.0
-        nees = np.einsum("ni,ni->n", error[definite],
-                         np.linalg.solve(cov[scored][definite], error[definite][:, :, None])[:, :, 0])
-        report[name] = {
-            "count": int(scored.sum()),
-            "rmse": _number(np.sqrt(np.mean(distance**2))) if distance.size else None,
-            "max": _number(distance.max()) if distance.size else None,
-            "nees": _number(nees.mean()) if nees.size else None,
-            "unknown": int(np.count_nonzero(rows & ~known)),
-        }
-    return report
-
-
 def chi2_bounds(dof: np.ndarray | int, *, confidence: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
     """Two-sided chi-square bounds: P(lower <= X <= upper) = confidence for X ~ chi2(dof)."""
     tail = (1.0 - confidence) / 2.0

@@ -76,13 +76,15 @@ _READABLE_FORMAT_VERSIONS = (1, 2)
 _REQUIRED_FILES = (STATES_NPZ, SUMMARY_JSON, ASSOCIATIONS_CSV)
 # The figures 'camloc plot' draws into a run folder, fig-<name>.<format>.
 FIGURE_NAMES = ("topdown", "3d", "errors", "consistency", "associations")
+# fig-map, drawn beside them when the run folder has a map.csv (camloc.plotting_map)
+MAP_FIGURE_NAME = "map"
 FIGURE_FORMATS = ("png", "pdf", "svg")
 # Every file camloc writes into a run folder; replacing a run (force=True) drops these, the
 # derived ones included (a smoothed path or a figure of the old run would pass for the new one's),
 # and keeps everything else.
 CAMLOC_FILES = frozenset(
     (ESTIMATE_TUM, ODOMETRY_TUM, GROUNDTRUTH_TUM, ASSOCIATIONS_CSV, STATES_NPZ, SUMMARY_JSON, SMOOTHED_TUM, MAP_CSV)
-    + tuple(f"fig-{name}.{suffix}" for name in FIGURE_NAMES for suffix in FIGURE_FORMATS)
+    + tuple(f"fig-{name}.{suffix}" for name in (*FIGURE_NAMES, MAP_FIGURE_NAME) for suffix in FIGURE_FORMATS)
 )
 
 
