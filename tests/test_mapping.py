@@ -167,3 +167,56 @@ def _first_poses(dataset: Dataset, n: int) -> dict:
                 odom_info=dataset.odom_info[:n - 1], odom_cov=dataset.odom_cov[:n - 1], obs_pose_index=dataset.obs_pose_index[keep],
                 obs_camera=dataset.obs_camera[keep], obs_z=dataset.obs_z[keep], obs_info=dataset.obs_info[keep],
                 obs_cov=dataset.obs_cov[keep], obs_true_landmark=dataset.obs_true_landmark[keep], obs_kind=dataset.obs_kind[keep])
+
+
+# --- through the command line --------------------------------------------------------------------
+
+def _cli(*args):
+    from typer.testing import CliRunner
+
+    from camloc.cli.app import app
+
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def test_run_map_prior_writes_the_map_and_eval_scores_it(tmp_path):
+    """simulate (a fifth of the map withheld) -> run --map prior -> map.csv, eval --true-map."""
+    import json
+
+    from camloc.results import read_map
+
+    world = tmp_path / "w.g2o"
+    assert _cli("simulate", "-o", world, "--poses", "120", "--seed", "2", "--withhold-map", "0.2", "-q").exit_code == 0
+    run = _cli("run", world, "--map", "prior", "--map-sigma", "0.05", "-o", tmp_path / "r", "--json")
+    assert run.exit_code == 0, run.output
+    summary = json.loads(run.output)
+    assert summary["config"]["map"] == "prior" and summary["config"]["map_sigma"] == 0.05
+    assert summary["map"]["mode"] == "prior" and summary["map"]["added"] >= 1
+    landmarks = read_map(tmp_path / "r" / "map.csv")
+    assert int(landmarks.added.sum()) == summary["map"]["added"]
+    scored = _cli("eval", tmp_path / "r", "--true-map", tmp_path / "w.true-map.g2o", "--json")
+    assert scored.exit_code == 0, scored.output
+    report = json.loads(scored.output)["map"]
+    assert report["added_twice"]["landmarks"] == 0 and report["clutter"]["landmarks"] == 0
+
+
+def test_a_file_without_a_map_is_mapped_from_scratch(tmp_path):
+    """No landmark vertex: --map auto runs as none and adds landmarks (with the true association it
+    beats odometry: test_no_map_maps_everything_from_the_start)."""
+    import json
+
+    world = tmp_path / "w.g2o"
+    assert _cli("simulate", "-o", world, "--poses", "80", "--seed", "1", "--no-map", "-q").exit_code == 0
+    run = _cli("run", world, "-o", tmp_path / "r", "--json")
+    assert run.exit_code == 0, run.output
+    summary = json.loads(run.output)
+    assert summary["config"]["map"] == "none" and summary["map"]["added"] > 10
+    assert summary["map"]["mapped"] == 0 and summary["counts"]["updates"] > 40
+
+
+def test_mapping_a_planar_file_is_refused_clearly(tmp_path):
+    world = tmp_path / "p.g2o"
+    assert _cli("simulate", "-o", world, "--robot", "planar", "--poses", "30", "-q").exit_code == 0
+    run = _cli("run", world, "--map", "prior", "-o", tmp_path / "r")
+    assert run.exit_code != 0
+    assert "planar" in run.output and "--map exact" in run.output and "Traceback" not in run.output
