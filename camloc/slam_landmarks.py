@@ -39,6 +39,13 @@ DROP_SCORE = -2.0
 DETECTION_PROBABILITY = 0.9
 TENTATIVE_GAP = 10
 
+# Poses a landmark may go unseen before it leaves the state, with a map (exact or prior: the map
+# holds the robot, so what a landmark's correlation with it carries is small); with no map,
+# landmarks stay in the state (their correlations are the whole estimate) up to MAX_STATE_LANDMARKS,
+# the least recently seen leaving beyond that.
+RETIRE_AFTER = 30
+MAX_STATE_LANDMARKS = 600
+
 
 class LandmarkTable:
     """Every landmark of the run: the map's (in file order) then the added ones; where each is
@@ -109,6 +116,39 @@ class LandmarkAdditions:
         return LandmarkMap(ids=table.ids[keep], xyz=xyz[keep], cov=cov[keep], added=table.added[keep],
                            observations=table.observations[keep])
 
+    def _retire(self, k: int) -> None:
+        """Landmarks unseen for ``RETIRE_AFTER`` poses leave the state, keeping their estimate."""
+        if not self.state_landmark:
+            return
+        landmarks = np.array(self.state_landmark, np.int64)
+        if self.config.map == "none":
+            drop = np.zeros(landmarks.size, bool)
+            if landmarks.size > MAX_STATE_LANDMARKS:
+                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - MAX_STATE_LANDMARKS]] = True
+        else:
+            drop = self.table.last_seen[landmarks] < k - RETIRE_AFTER
+        # a tentative landmark is confirmed, or dropped with its pairs (clutter, or too rarely seen to map)
+        table = self.table
+        table.tentative[landmarks[table.score[landmarks] >= CONFIRM_SCORE]] = False
+        unconfirmed = table.tentative[landmarks]
+        gone = unconfirmed & ((table.last_seen[landmarks] < k - TENTATIVE_GAP) | (table.score[landmarks] < DROP_SCORE))
+        if np.any(gone):
+            table.dead[landmarks[gone]] = True
+            self.chosen[np.isin(self.chosen, landmarks[gone])] = -1
+            drop |= gone
+        if not np.any(drop):
+            return
+        for row in np.flatnonzero(drop).tolist():
+            landmark = int(landmarks[row])
+            self.table.xyz[landmark] = self.x.L[row]
+            self.table.cov[landmark] = slam.landmark_world_cov(self.x, self.P, row)
+        self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
+        self.table.state_row[landmarks[drop]] = -1
+        self.state_landmark = landmarks[~drop].tolist()
+        self.table.state_row[landmarks[~drop]] = np.arange(int(np.count_nonzero(~drop)))
+
+    # -- the run's records ------------------------------------------------------------------------
+
     def _tracked(self, k: int, unassigned: list[int]) -> None:
         """Unassigned observations join tracks; a confirmed track becomes a landmark. One that a
         landmark of the map or the state would explain within its gate is not a new landmark (the
@@ -138,14 +178,7 @@ class LandmarkAdditions:
         rows = np.flatnonzero(table.tentative[landmarks] & ~np.isin(landmarks, list(seen)))
         if rows.size == 0:
             return
-        near, far, angle = self.sure_view
-        in_view = np.zeros(rows.size, bool)
-        for sensor in self.sensors.values():
-            if sensor.camera_id < 0:
-                continue
-            p = slam.camera_points(self.x, sensor, self.x.L[rows])
-            distance = np.linalg.norm(p, axis=1)
-            in_view |= (distance >= near) & (distance <= far) & (p[:, 2] >= np.cos(angle) * distance)
+        in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
         table.score[landmarks[rows[in_view]]] += np.log(1.0 - DETECTION_PROBABILITY)
 
     def _unexplained(self, obs: list[int]) -> list[int]:
@@ -233,6 +266,20 @@ class LandmarkAdditions:
 # The share of the observations' distances and angles "surely in view" takes: inside what most
 # observations span, so that a landmark predicted there and not seen was missed, not out of view.
 _SURE_QUANTILES = (0.1, 0.9)
+
+
+def surely_in_view(x: slam.SlamMean, sensors: dict, xyz: np.ndarray, view: tuple[float, float, float]) -> np.ndarray:
+    """(M,) bool: which world points (M, 3) some camera of ``sensors`` surely sees from x
+    (within ``view``: ``sure_view``'s distances and angle)."""
+    near, far, angle = view
+    in_view = np.zeros(xyz.shape[0], bool)
+    for sensor in sensors.values():
+        if sensor.camera_id < 0:  # a planar robot's own sensor
+            continue
+        p = slam.camera_points(x, sensor, xyz)
+        distance = np.linalg.norm(p, axis=1)
+        in_view |= (distance >= near) & (distance <= far) & (p[:, 2] >= np.cos(angle) * distance)
+    return in_view
 
 
 def sure_view(dataset: Dataset) -> Optional[tuple[float, float, float]]:
