@@ -84,8 +84,26 @@ def localize(
     config = resolved_config(config or LocalizerConfig(), dataset)
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
+    hooks = dict(parallel=parallel, engine=engine, on_compile=on_compile, on_background_compile=on_background_compile)
     if config.map != "exact":  # landmarks in the state: the mapping localizer (numpy)
-        return _localize_mapping(dataset, config, on_progress, parallel, engine, on_compile, on_background_compile)
+        return _localize_mapping(dataset, config, on_progress, hooks)
+    result = _localize_exact(dataset, config, on_progress, **hooks)
+    if _mappable(dataset) and config.association != "oracle":
+        # in every mode, landmarks the map lacks are added: where the rejected observations agree
+        # on places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
+        from camloc.slam_landmarks import lacking_landmarks
+
+        T = geometry.pose_from_quat(result.estimate_xyz, result.estimate_quat_xyzw)
+        places = lacking_landmarks(dataset, T, result.estimate_cov, result.associations.landmark == UNASSOCIATED)
+        if places:
+            result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
+            result.summary["map"]["screened_places"] = places
+    return result
+
+
+def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, parallel, engine, on_compile,
+                    on_background_compile) -> RunResult:
+    """The localizer against the map held exactly (``localize``'s engines)."""
     # a tag's orientation is the numpy engine's only (camloc.tags)
     compilable = (config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
                   and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
@@ -122,22 +140,25 @@ def localize(
     return result
 
 
-def _localize_mapping(dataset, config, on_progress, parallel, engine, on_compile, on_background_compile) -> RunResult:
-    """``config.map`` prior or none: the mapping localizer (``camloc.slam_run``). With the beam and
-    a map, the beam first decides which observations are the map's, over the whole run and on the
-    map as given (robust where one pose's evidence is not), and the mapping localizer takes those
-    pairs and decides the rest among added landmarks, new ones and clutter."""
+def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Optional[RunResult] = None) -> RunResult:
+    """The mapping localizer (``camloc.slam_run``): ``config.map`` prior or none, or exact where
+    the map lacks landmarks (``given_run``: the exact map's run). With the beam and a map, the beam
+    first decides which observations are the map's, over the whole run and on the map as given
+    (robust where one pose's evidence is not), and the mapping localizer takes those pairs and
+    decides the rest among added landmarks, new ones and clutter."""
     from camloc.slam_run import localize_mapping
 
     given, beam_seconds, warnings = None, 0.0, []
-    if config.association == "beam" and config.map != "none" and dataset.landmark_ids.size:
-        halves = (lambda done, total: on_progress(done // 2, total)) if on_progress is not None else None
-        beam_run = localize(dataset, replace(config, map="exact"), on_progress=halves, parallel=parallel, engine=engine,
-                            on_compile=on_compile, on_background_compile=on_background_compile)
+    beam_run = given_run
+    if beam_run is None and config.association == "beam" and config.map != "none" and dataset.landmark_ids.size:
+        halves = (lambda done, total, report=on_progress: report(done // 2, total)) if on_progress is not None else None
+        beam_run = _localize_exact(dataset, replace(config, map="exact"), halves, **hooks)
+    if beam_run is not None:
         given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
         beam_seconds = beam_run.summary["timing"]["filter_seconds"]
         warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
-        on_progress = (lambda done, total: on_progress(total // 2 + done // 2, total)) if on_progress is not None else None
+        if given_run is None and on_progress is not None:
+            on_progress = (lambda done, total, report=on_progress: report(total // 2 + done // 2, total))
     result = localize_mapping(dataset, config, on_progress, given)
     timing = result.summary["timing"]
     timing["background_compile"] = False
@@ -148,6 +169,12 @@ def _localize_mapping(dataset, config, on_progress, parallel, engine, on_compile
     return result
 
 
+def _mappable(dataset: Dataset) -> bool:
+    """Whether the mapping localizer runs the dataset: a 3-D robot's point landmarks (a planar
+    robot's and tags' orientations are not in its model)."""
+    return not dataset.planar and not np.any(dataset.obs_kind == measurement.TAG_ROTATION)
+
+
 def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfig:
     """``config`` validated, its filter "auto" made the one the dataset's robot calls for (se2 for
     a planar robot, euler otherwise); ConfigError where the filter cannot run the dataset: the
@@ -156,7 +183,7 @@ def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfi
     config.validate()
     if config.filter == AUTO_FILTER:
         config = replace(config, filter="se2" if dataset.planar else "euler")
-    mappable = not dataset.planar and not np.any(dataset.obs_kind == measurement.TAG_ROTATION)
+    mappable = _mappable(dataset)
     if config.map == AUTO_MAP:
         config = replace(config, map="none" if mappable and dataset.landmark_ids.size == 0 else "exact")
     if config.map != "exact" and not mappable:

@@ -329,3 +329,49 @@ class OracleTrack:
 
     def as_track(self):
         return self
+
+
+# The screening of an exact map's run (``lacking_landmarks``): rejected observations whose points
+# agree, from at least SCREEN_POSES different poses, within SCREEN_SIGMAS of their spread.
+SCREEN_POSES = 3
+SCREEN_SIGMAS = 3.0
+
+
+def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray) -> int:
+    """How many places the run's rejected observations (``rejected`` (K,) bool) point at from
+    ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
+    see, almost never agrees with itself three times). Each observation with range becomes a world
+    point through its pose's estimate (N, 4, 4); they agree within ``SCREEN_SIGMAS`` of the spread
+    of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world). Rays (pixels)
+    are not screened."""
+    from scipy.spatial import cKDTree
+
+    from camloc.sensors import sensors_of
+
+    obs = np.flatnonzero(rejected & measurement.measures_range(dataset.obs_kind))
+    if obs.size < SCREEN_POSES:
+        return 0
+    sensors, obs_sensor = sensors_of(dataset)
+    points, spread = np.zeros((obs.size, 3)), np.zeros(obs.size)
+    for sensor_id in np.unique(obs_sensor[obs]).tolist():
+        at = obs_sensor[obs] == sensor_id
+        mine = obs[at]
+        sensor = sensors[sensor_id]
+        p_camera, G = measurement.back_project(dataset.obs_z[mine], sensor.intrinsics, sensor.kind)
+        T = T_world_robot[dataset.obs_pose_index[mine]] @ sensor.T_robot_camera
+        points[at] = np.einsum("nij,nj->ni", T[:, :3, :3], p_camera) + T[:, :3, 3]
+        noise = np.einsum("nij,njk,nlk->nil", G, dataset.obs_cov[mine], G)
+        position = pose_cov[dataset.obs_pose_index[mine], :3, :3]
+        spread[at] = np.sqrt(np.trace(noise, axis1=1, axis2=2) + np.trace(position, axis1=1, axis2=2))
+    radius = SCREEN_SIGMAS * float(np.median(spread))
+    tree = cKDTree(points)
+    pose = dataset.obs_pose_index[obs]
+    places = 0
+    claimed = np.zeros(obs.size, bool)
+    for i, neighbours in enumerate(tree.query_ball_point(points, radius)):
+        if claimed[i] or len(neighbours) < SCREEN_POSES:
+            continue
+        if np.unique(pose[neighbours]).size >= SCREEN_POSES:
+            places += 1
+            claimed[neighbours] = True
+    return places
