@@ -338,14 +338,13 @@ SCREEN_SIGMAS = 3.0
 
 
 def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray) -> int:
-    """How many places the run's rejected observations (``rejected`` (K,) bool) point at from
-    ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
+    """How many places away from every mapped landmark the run's rejected observations
+    (``rejected`` (K,) bool) point at from ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
     see, almost never agrees with itself three times). Each observation with range becomes a world
     point through its pose's estimate (N, 4, 4); they agree within ``SCREEN_SIGMAS`` of the spread
     of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world). Rays (pixels)
     are not screened."""
-    from scipy.spatial import cKDTree
-
+    from camloc.association import PointIndex  # a scan below a few thousand points: no scipy for a small run
     from camloc.sensors import sensors_of
 
     obs = np.flatnonzero(rejected & measurement.measures_range(dataset.obs_kind))
@@ -364,11 +363,18 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
         position = pose_cov[dataset.obs_pose_index[mine], :3, :3]
         spread[at] = np.sqrt(np.trace(noise, axis1=1, axis2=2) + np.trace(position, axis1=1, axis2=2))
     radius = SCREEN_SIGMAS * float(np.median(spread))
-    tree = cKDTree(points)
+    if dataset.landmark_ids.size:  # a rejected observation near a mapped landmark is one the run missed, not one the map lacks
+        landmarks = PointIndex(dataset.landmark_xyz)
+        lone = np.array([landmarks.within(p, radius).size == 0 for p in points], dtype=bool)
+        obs, points = obs[lone], points[lone]
+        if obs.size < SCREEN_POSES:
+            return 0
+    index = PointIndex(points)
     pose = dataset.obs_pose_index[obs]
     places = 0
     claimed = np.zeros(obs.size, bool)
-    for i, neighbours in enumerate(tree.query_ball_point(points, radius)):
+    for i in range(obs.size):
+        neighbours = index.within(points[i], radius) if not claimed[i] else ()
         if claimed[i] or len(neighbours) < SCREEN_POSES:
             continue
         if np.unique(pose[neighbours]).size >= SCREEN_POSES:
