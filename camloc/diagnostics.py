@@ -72,9 +72,10 @@ def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJ
     return min(1.0, float(binomial_tail(rejected - 1, observations, rate)))  # its rounding can pass 1
 
 
-def run_warnings(counts: Mapping[str, int]) -> list[str]:
+def run_warnings(counts: Mapping[str, int], *, mapped: bool = False) -> list[str]:
     """The warnings a run's counts call for (``summary["counts"]``: ``observations``, ``rejected``,
-    ``updates``), each one line: the estimate is odometry alone, or the map looks incomplete."""
+    ``updates``), each one line: the estimate is odometry alone, or the map looks incomplete (not
+    said of a run that ``mapped``: it added what the map lacks, its summary's ``map`` says how much)."""
     observations, rejected, updates = counts["observations"], counts["rejected"], counts["updates"]
     found = []
     if observations == 0:
@@ -83,7 +84,7 @@ def run_warnings(counts: Mapping[str, int]) -> list[str]:
     elif updates == 0:
         found.append(f"all {observations} observations were rejected, so the filter made no update: the estimate "
                       "is odometry alone, not corrected by the camera")
-    if observations and rejection_tail(rejected, observations) < INCOMPLETE_MAP_PROBABILITY:
+    if observations and not mapped and rejection_tail(rejected, observations) < INCOMPLETE_MAP_PROBABILITY:
         found.append(
             f"{rejected} of {observations} observations ({rejected / observations:.0%}) were rejected, far more than "
             f"a complete map and ordinary clutter leave (at most about {REFERENCE_REJECTED_SHARE:.0%}): the map may "

@@ -97,7 +97,9 @@ def localize(
         places = lacking_landmarks(dataset, T, result.estimate_cov, result.associations.landmark == UNASSOCIATED)
         if places:
             result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
-            result.summary["map"]["screened_places"] = places
+            result.summary["warnings"].append(
+                f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
+                f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
     return result
 
 

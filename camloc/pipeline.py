@@ -67,7 +67,7 @@ def run_dataset(
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
     # What the numbers do not say by themselves (odometry alone, an incomplete map): said once,
     # in the summary's warnings, which the command line prints and summary.json keeps.
-    summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"])]
+    summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"], mapped=summary.get("map") is not None)]
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None
