@@ -80,3 +80,26 @@ def without_orientations(dataset: Dataset) -> Dataset:
         obs_info=dataset.obs_info[keep], obs_cov=dataset.obs_cov[keep], obs_true_landmark=dataset.obs_true_landmark[keep],
         obs_kind=dataset.obs_kind[keep], obs_partner=np.full(keep.size, -1, np.int64),
     )
+
+
+def with_twin_tags(dataset: Dataset, *, offset_m: float, turn_deg: float, seed: int) -> Dataset:
+    """``dataset`` (a tag world) with a twin beside every tag: ``offset_m`` away in a random
+    direction, its orientation the tag's turned by ``turn_deg`` about a random axis, and never seen
+    (the observations name the originals). A world where a tag's position alone cannot tell it
+    from its twin (an offset within the position's noise) and its orientation can."""
+    rng = np.random.default_rng([seed, 3737])
+    n = len(dataset.landmark_ids)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    axis = rng.normal(size=(n, 3))
+    turn = np.radians(turn_deg) * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    twin_quat = geometry.matrix_to_quat(geometry.quat_to_matrix(dataset.landmark_quat_xyzw) @ geometry.so3_exp(turn))
+    return dataclasses.replace(
+        dataset,
+        landmark_ids=np.concatenate([dataset.landmark_ids, dataset.landmark_ids.max() + 1 + np.arange(n)]),
+        landmark_xyz=np.concatenate([dataset.landmark_xyz, dataset.landmark_xyz + offset_m * direction]),
+        landmark_kind=np.concatenate([dataset.landmark_kind, dataset.landmark_kind]),
+        landmark_heading=np.concatenate([dataset.landmark_heading, dataset.landmark_heading]),
+        landmark_quat_xyzw=np.concatenate([dataset.landmark_quat_xyzw, twin_quat]),
+        tag_counts={**dataset.tag_counts, "VERTEX_TAG": 2 * n},
+    )
