@@ -16,7 +16,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, measurement, planar, warmup
+from camloc import association, associators, ekf, geometry, measurement, planar, tags, warmup
 from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
@@ -523,11 +523,13 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
     ds = dataset
     estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)
     odometry_xyz, odometry_quat = geometry.pose_to_quat(odometry_poses)
+    rows = tags.association_rows(ds.obs_kind)  # a row an observation, one a tag (its position's)
     associations = Associations(
-        pose_id=ds.pose_ids[ds.obs_pose_index], camera=ds.obs_camera.copy(), uvd=ds.obs_z.copy(),
-        landmark=chosen_landmark, true_landmark=ds.obs_true_landmark.copy(), mahalanobis=mahalanobis,
+        pose_id=ds.pose_ids[ds.obs_pose_index[rows]], camera=ds.obs_camera[rows], uvd=ds.obs_z[rows],
+        landmark=chosen_landmark[rows], true_landmark=ds.obs_true_landmark[rows],
+        mahalanobis=tags.row_distances(mahalanobis, ds.obs_kind, ds.obs_partner),
     )
-    accepted = int(np.count_nonzero(chosen_landmark != UNASSOCIATED))
+    accepted = int(np.count_nonzero(associations.landmark != UNASSOCIATED))
     filter_seconds = timing["filter_seconds"]
     min_depth, max_depth, max_angle = candidate_range
     summary = {
@@ -535,8 +537,8 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
         "config": asdict(config),
         "candidate_range": {"min_depth": min_depth, "max_depth": max_depth, "max_angle_deg": float(np.degrees(max_angle))},
         "counts": {
-            "poses": ds.num_poses, "observations": ds.num_observations, "accepted": accepted,
-            "rejected": ds.num_observations - accepted, "updates": len(nis), "landmarks": int(ds.landmark_ids.size),
+            "poses": ds.num_poses, "observations": int(rows.size), "accepted": accepted,
+            "rejected": int(rows.size) - accepted, "updates": len(nis), "landmarks": int(ds.landmark_ids.size),
         },
         "timing": {
             "filter_seconds": filter_seconds,

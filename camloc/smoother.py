@@ -84,7 +84,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import LinearOperator, onenormest, splu
 
-from camloc import geometry, measurement
+from camloc import geometry, measurement, tags
 from camloc.dataset import Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
@@ -998,7 +998,7 @@ def problem_from_run(
     """
     config = config or SmootherConfig()
     check_run_matches(dataset, run)
-    chosen = np.asarray(run.associations.landmark)
+    chosen = tags.observation_landmarks(run.associations.landmark, dataset.obs_kind, dataset.obs_partner, orientations=False)
     rows = np.flatnonzero(chosen != UNASSOCIATED)
     order = np.argsort(dataset.landmark_ids, kind="stable")
     position = np.searchsorted(dataset.landmark_ids[order], chosen[rows])
@@ -1075,23 +1075,25 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
         raise CamlocError(f"run and dataset {dataset.source} do not match: odometry reaches {_triple(odometry[k])} at pose "
                           f"{ours[k]} in the dataset but {_triple(run.odometry_xyz[k])} in the run; {hint}")
     a = run.associations
-    if len(a.pose_id) != dataset.num_observations:
+    rows = tags.association_rows(dataset.obs_kind)  # one a tag: its position's
+    if len(a.pose_id) != rows.size:
         raise CamlocError(
             f"run and dataset {dataset.source} do not match: the run has {len(a.pose_id)} observations in "
-            f"associations.csv, the dataset {dataset.num_observations}; {hint}"
+            f"associations.csv, the dataset {rows.size}; {hint}"
         )
     same = (
-        (a.pose_id == dataset.pose_ids[dataset.obs_pose_index])
-        & (a.camera == dataset.obs_camera)
-        & np.all(np.isclose(a.uvd, dataset.obs_z, rtol=1e-9, atol=1e-12), axis=1)
+        (a.pose_id == dataset.pose_ids[dataset.obs_pose_index[rows]])
+        & (a.camera == dataset.obs_camera[rows])
+        & np.all(np.isclose(a.uvd, dataset.obs_z[rows], rtol=1e-9, atol=1e-12), axis=1)
     )
     if not np.all(same):
         k = int(np.flatnonzero(~same)[0])
+        o = rows[k]
         raise CamlocError(
             f"run and dataset {dataset.source} do not match: observation {k + 1} (associations.csv line {k + 2}) is "
             f"pose {a.pose_id[k]}, camera {a.camera[k]}, uvd {_triple(a.uvd[k])} in the run but pose "
-            f"{dataset.pose_ids[dataset.obs_pose_index[k]]}, camera {dataset.obs_camera[k]}, uvd "
-            f"{_triple(dataset.obs_z[k])} in the dataset; {hint}"
+            f"{dataset.pose_ids[dataset.obs_pose_index[o]]}, camera {dataset.obs_camera[o]}, uvd "
+            f"{_triple(dataset.obs_z[o])} in the dataset; {hint}"
         )
 
 

@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from camloc import planar
+from camloc import planar, tags
 from camloc.dataset import Dataset
 from camloc.errors import CamlocError
 from camloc.filters import SE2Filter
@@ -228,7 +228,8 @@ def planar_problem(dataset: Dataset, run: RunResult) -> PlanarProblem:
     if not dataset.planar:
         raise CamlocError(f"{dataset.source}: the planar smoother needs a planar dataset (VERTEX_SE2 / EDGE_SE2)")
     check_run_matches(dataset, run)
-    chosen = np.asarray(run.associations.landmark)
+    # a tag's orientation has no factor here: its position's alone
+    chosen = tags.observation_landmarks(run.associations.landmark, dataset.obs_kind, dataset.obs_partner, orientations=False)
     rows = np.flatnonzero(chosen != UNASSOCIATED)
     order = np.argsort(dataset.landmark_ids, kind="stable")
     landmark = order[np.searchsorted(dataset.landmark_ids[order], chosen[rows])] if rows.size else np.zeros(0, np.int64)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from camloc import geometry
+from camloc.measurement import TAG_ROTATION
 
 
 def prediction(R_world_robot: np.ndarray, R_robot_camera: np.ndarray, R_world_tag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,16 +50,32 @@ def aligned(z: np.ndarray, R_pred: np.ndarray, H_R: np.ndarray) -> tuple[np.ndar
     return z - e, geometry.so3_right_jacobian_inverse(-e) @ H_R
 
 
-def position_pairs_only(run, dataset):
-    """``run`` (a ``RunResult``) with the pairs of its tags' orientation observations left out
-    (``measurement.TAG_ROTATION``): what the smoothers, which model a tag's position only, take."""
-    import dataclasses
+def association_rows(obs_kind: np.ndarray) -> np.ndarray:
+    """The observations (R,) that are a row of ``associations.csv``, of a dataset's kinds (K,):
+    every one but a tag's orientation, whose tag is its position's row (one row a tag)."""
+    return np.flatnonzero(np.asarray(obs_kind) != TAG_ROTATION)
 
-    from camloc.measurement import TAG_ROTATION
+
+def observation_landmarks(landmark: np.ndarray, obs_kind: np.ndarray, obs_partner: np.ndarray, *, orientations: bool) -> np.ndarray:
+    """Each observation's chosen landmark (K,) from the rows of ``associations.csv`` (R,: their
+    ``landmark``, ``association_rows``): a tag's orientation gets its position's, or none
+    (``UNASSOCIATED``) with ``orientations=False`` (a tag's position alone)."""
     from camloc.results import UNASSOCIATED
 
-    rotation = np.asarray(dataset.obs_kind) == TAG_ROTATION
-    if not np.any(rotation) or len(run.associations.landmark) != rotation.size:
-        return run
-    landmark = np.where(rotation, UNASSOCIATED, run.associations.landmark)
-    return dataclasses.replace(run, associations=dataclasses.replace(run.associations, landmark=landmark))
+    out = np.full(np.shape(obs_kind), UNASSOCIATED, dtype=np.int64)
+    out[association_rows(obs_kind)] = landmark
+    if orientations:
+        rotation = np.flatnonzero(np.asarray(obs_kind) == TAG_ROTATION)
+        out[rotation] = out[obs_partner[rotation]]
+    return out
+
+
+def row_distances(mahalanobis: np.ndarray, obs_kind: np.ndarray, obs_partner: np.ndarray) -> np.ndarray:
+    """The Mahalanobis distance (R,) of each row of ``associations.csv`` from each observation's
+    (K,): a tag's, ``sqrt(d_position^2 + d_orientation^2)`` where its orientation joined the
+    update (the two halves' innovations taken as independent), its position's otherwise."""
+    d = np.array(mahalanobis, dtype=float)
+    rotation = np.flatnonzero(np.asarray(obs_kind) == TAG_ROTATION)
+    joined = rotation[np.isfinite(d[rotation])]
+    d[obs_partner[joined]] = np.hypot(d[obs_partner[joined]], d[joined])
+    return d[association_rows(obs_kind)]

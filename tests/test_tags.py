@@ -119,13 +119,21 @@ def test_orientation_lowers_the_rotation_error_with_few_tags():
     assert np.mean(with_rotation) <= 0.7 * np.mean(without_rotation), (with_rotation, without_rotation)
 
 
-def test_a_tags_orientation_is_paired_with_its_position(tag_world):
+def test_a_tag_is_one_row_and_its_orientation_joins_the_update(tag_world):
+    """associations.csv has a row a tag (its position's), the counts with it; the updates' NIS
+    counts a tag's 6 dof where its orientation joined (almost every tag with the true pairs)."""
     result = localize(tag_world, LocalizerConfig(association="oracle"))
-    chosen = result.associations.landmark
     rotation = np.flatnonzero(tag_world.obs_kind == measurement.TAG_ROTATION)
-    partner = tag_world.obs_partner[rotation]
-    assert np.array_equal(chosen[rotation], chosen[partner])
-    assert np.count_nonzero(chosen[rotation] >= 0) > 0.9 * rotation.size
+    rows = np.flatnonzero(tag_world.obs_kind != measurement.TAG_ROTATION)
+    a = result.associations
+    assert a.landmark.size == rows.size == result.summary["counts"]["observations"]
+    assert np.array_equal(a.uvd, tag_world.obs_z[rows]) and np.array_equal(a.true_landmark, tag_world.obs_true_landmark[rows])
+    accepted = a.landmark >= 0
+    assert result.summary["counts"]["accepted"] == np.count_nonzero(accepted)
+    tag_rows = np.isin(rows, tag_world.obs_partner[rotation])
+    joined_dof = int(np.sum(result.nis_dof)) - 3 * np.count_nonzero(accepted)
+    assert 0.9 * 3 * np.count_nonzero(accepted & tag_rows) <= joined_dof <= 3 * np.count_nonzero(accepted & tag_rows)
+    assert metrics.evaluate(result)["association"]["precision"] == 1.0
 
 
 def test_tags_end_to_end(tmp_path):
@@ -146,7 +154,7 @@ def test_tags_end_to_end(tmp_path):
     assert invoke("eval", run_dir).exit_code == 0
     smoothed = invoke("smooth", run_dir, "--json")
     assert smoothed.exit_code == 0, smoothed.output
-    assert json.loads(smoothed.output)["observation_factors"] == json.loads(ran.output)["counts"]["accepted"] / 2
+    assert json.loads(smoothed.output)["observation_factors"] == json.loads(ran.output)["counts"]["accepted"]
     refused = invoke("simulate", "--robot", "planar", "-o", tmp_path / "x.g2o", "--tag-sigma-deg", 1.0)
     assert refused.exit_code == 2 and "applies only to --robot 3d" in refused.output
 
