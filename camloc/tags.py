@@ -31,8 +31,9 @@ from camloc.measurement import TAG_ROTATION
 
 def prediction(R_world_robot: np.ndarray, R_robot_camera: np.ndarray, R_world_tag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Predicted orientations (M, 3, 3) of tags (M, 3, 3) in the camera frame, and H_R (M, 3, 3):
-    ``R_pred(R Exp(dtheta)) = R_pred Exp(H_R dtheta)`` for the robot's right rotation perturbation."""
-    R_pred = R_robot_camera.T @ R_world_robot.T @ R_world_tag
+    ``R_pred(R Exp(dtheta)) = R_pred Exp(H_R dtheta)`` for the robot's right rotation perturbation.
+    The robot's rotation and the camera's mount: one (3, 3) each, or (M, 3, 3) a tag each."""
+    R_pred = np.swapaxes(R_robot_camera, -1, -2) @ np.swapaxes(R_world_robot, -1, -2) @ R_world_tag
     H_R = -np.swapaxes(R_world_tag, -1, -2) @ R_world_robot
     return R_pred, H_R
 
@@ -40,6 +41,15 @@ def prediction(R_world_robot: np.ndarray, R_robot_camera: np.ndarray, R_world_ta
 def residual(R_meas: np.ndarray, R_pred: np.ndarray) -> np.ndarray:
     """e = Log(R_pred^-1 R_meas), (M, 3)."""
     return geometry.so3_log(np.swapaxes(R_pred, -1, -2) @ R_meas)
+
+
+def smoother_residual(R_meas: np.ndarray, R_pred: np.ndarray, H_R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smoother's factor of a tag's orientation: ``r = Log(R_meas^T R_pred)`` (M, 3) (the
+    filter's residual e, negated: ``-n`` at the truth, of the same covariance) and its Jacobian
+    (M, 3, 3) for the robot's right rotation perturbation: ``R_pred -> R_pred Exp(H_R dtheta)``
+    gives ``Log(Exp(r) Exp(H_R dtheta)) = r + Jr^-1(r) H_R dtheta`` (Jr the right Jacobian)."""
+    r = geometry.so3_log(np.swapaxes(R_meas, -1, -2) @ R_pred)
+    return r, geometry.so3_right_jacobian_inverse(r) @ H_R
 
 
 def aligned(z: np.ndarray, R_pred: np.ndarray, H_R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
