@@ -7,9 +7,10 @@ Model card
 Tags        every landmark of the world ``camloc.simulate`` makes, given an orientation uniform over
             SO(3) (a tag's visibility does not depend on it here: the camera model of
             ``camloc.simulate`` decides what is seen).
-Orientation each depth detection of a map landmark (not clutter, not an outlier) gets its tag's
-            orientation in the camera, ``R_meas = R_c^T R^T R_tag Exp(n)``, n ~ N(0, sigma^2 I)
-            (``camloc.tags``), as the observation right after its position's.
+Orientation each depth or pixel detection of a map landmark (not clutter, not an outlier) gets its
+            tag's orientation in the camera, ``R_meas = R_c^T R^T R_tag Exp(n)``, n ~ N(0, sigma^2 I)
+            (``camloc.tags``), as the observation right after its position's (written as
+            ``EDGE_PROJECT_TAG``, or ``EDGE_PROJECT_TAG_UV`` for a camera without depth).
 """
 
 from __future__ import annotations
@@ -25,6 +26,11 @@ from camloc.g2o import observation_cov_from_info
 from camloc.simulate import SimulationConfig, simulate_labelled
 
 
+# the kinds of camera measurement a tag's record carries with its orientation (camloc.g2o): a
+# disparity camera's detections of a tag keep their position alone
+TAG_POSITION_KINDS = (measurement.DEPTH, measurement.PIXEL)
+
+
 def simulate_tags(config: SimulationConfig, *, seed: int, sigma_rad: float) -> Dataset:
     """``camloc.simulate``'s world of ``config`` with every landmark a tag and every detection of
     one (outliers aside) also measuring its orientation with noise ``sigma_rad`` (radians, > 0)."""
@@ -34,7 +40,8 @@ def simulate_tags(config: SimulationConfig, *, seed: int, sigma_rad: float) -> D
     dataset = simulation.dataset
     rng = np.random.default_rng([seed, 37])
     tag_quat = Rotation.random(len(dataset.landmark_ids), random_state=rng).as_quat()
-    rows = np.flatnonzero(~simulation.is_clutter & ~simulation.is_outlier & (dataset.obs_kind == measurement.DEPTH))
+    # a depth camera's detection is an EDGE_PROJECT_TAG, a pixel-only camera's an EDGE_PROJECT_TAG_UV
+    rows = np.flatnonzero(~simulation.is_clutter & ~simulation.is_outlier & np.isin(dataset.obs_kind, TAG_POSITION_KINDS))
     T_truth = dataset.T_world_truth
     z = np.zeros((rows.size, 3))
     for n, o in enumerate(rows.tolist()):

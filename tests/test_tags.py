@@ -156,6 +156,10 @@ def test_tags_end_to_end(tmp_path):
     assert smoothed.exit_code == 0, smoothed.output
     accepted = json.loads(ran.output)["counts"]["accepted"]  # a tag is one row: its orientation a factor of its own
     assert accepted < json.loads(smoothed.output)["observation_factors"] <= 2 * accepted
+    pixel = tmp_path / "pixel_tags.g2o"
+    made = invoke("simulate", "-o", pixel, "--poses", 40, "--tag-sigma-deg", 1.0, "--measurement", "pixel")
+    assert made.exit_code == 0 and "EDGE_PROJECT_TAG_UV " in pixel.read_text(), made.output
+    assert invoke("run", pixel, "-o", tmp_path / "pixel_run").exit_code == 0
     refused = invoke("simulate", "--robot", "planar", "-o", tmp_path / "x.g2o", "--tag-sigma-deg", 1.0)
     assert refused.exit_code == 2 and "applies only to --robot 3d" in refused.output
 
@@ -213,3 +217,40 @@ def test_orientation_in_association_against_its_veto_alone(twin_tag_world, monke
     monkeypatch.setattr(tag_orientations, "ORIENTATION_IN_ASSOCIATION", False)
     veto = metrics.evaluate(localize(twin_tag_world))["association"]
     assert full["recall"] >= 0.9 and veto["recall"] <= 0.7 and full["precision"] >= 0.99
+
+
+def test_pixel_only_tags_round_trip_and_run(tmp_path):
+    """A camera without depth: each tag detection an EDGE_PROJECT_TAG_UV (pixel + orientation),
+    read back as a pixel observation and its orientation; the run pairs them right and the
+    orientation's 3 dof join each update's NIS."""
+    config = SimulationConfig(trajectory="smooth3d", poses=60, max_observations_per_pose=2, measurement="pixel")
+    world = simulate_tags(config, seed=2, sigma_rad=math.radians(1.0))
+    write_g2o(world, tmp_path / "pixel_tags.g2o")
+    text = (tmp_path / "pixel_tags.g2o").read_text()
+    assert "EDGE_PROJECT_TAG_UV " in text and "EDGE_PROJECT_UV " not in text and "EDGE_PROJECT_TAG " not in text
+    back = read_g2o(tmp_path / "pixel_tags.g2o")
+    rotation = np.flatnonzero(back.obs_kind == measurement.TAG_ROTATION)
+    assert rotation.size and np.all(back.obs_kind[back.obs_partner[rotation]] == measurement.PIXEL)
+    for name in ("obs_kind", "obs_partner", "obs_true_landmark"):
+        assert np.array_equal(getattr(back, name), getattr(world, name)), name
+    assert np.allclose(back.obs_info, world.obs_info, rtol=0, atol=1e-9)
+    result = localize(back)
+    report = metrics.evaluate(result)
+    assert report["association"]["precision"] >= 0.99 and report["association"]["recall"] >= 0.9
+    accepted = np.count_nonzero(result.associations.landmark >= 0)
+    assert int(np.sum(result.nis_dof)) > 2 * accepted  # a pixel's 2 dof, and 3 more where the orientation joined
+
+
+def test_correlated_pixel_tag_information_is_refused(tmp_path):
+    info = np.eye(5) * 1000.0
+    info[1, 4] = info[4, 1] = 10.0
+    upper = " ".join(repr(float(v)) for v in info[np.triu_indices(5)])
+    lines = ["PARAMS_CAMERACALIB 0 0 0 0.3 0.5 -0.5 0.5 -0.5 1 1 0.5 0.5", "VERTEX_TAG 0 2 0 0.3 0 0 0 1",
+             "VERTEX_SE3:QUAT 1000 0 0 0 0 0 0 1", f"EDGE_PROJECT_TAG_UV 1000 0 0 0.5 0.5 0 0 0 1 {upper}"]
+    path = tmp_path / "tag.g2o"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r":4: EDGE_PROJECT_TAG_UV: expected no information between \(u, v\)"):
+        read_g2o(path)
+    path.write_text("\n".join(lines[:-1] + ["EDGE_PROJECT_TAG_UV 1000 0 0 0.5 0.5 0 0 0 1 1000"]) + "\n")
+    with pytest.raises(DatasetError, match=r":4: .*EDGE_PROJECT_TAG_UV"):
+        read_g2o(path)
