@@ -571,6 +571,7 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
         filter_state=states, filter_cov=covs,
         odometry_xyz=odometry_xyz, odometry_quat_xyzw=odometry_quat, truth_xyz=ds.truth_xyz, truth_quat_xyzw=ds.truth_quat_xyzw,
         map_landmark_ids=ds.landmark_ids, map_landmark_xyz=ds.landmark_xyz, associations=associations,
+        map_landmark_heading=tags.landmark_headings(ds.landmark_heading, ds.landmark_quat_xyzw),
         update_pose_ids=np.asarray(update_pose_ids, dtype=np.int64), nis=np.asarray(nis, dtype=float),
         nis_dof=np.asarray(nis_dof, dtype=np.int64), summary=summary,
     )

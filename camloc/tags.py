@@ -89,3 +89,15 @@ def row_distances(mahalanobis: np.ndarray, obs_kind: np.ndarray, obs_partner: np
     joined = rotation[np.isfinite(d[rotation])]
     d[obs_partner[joined]] = np.hypot(d[obs_partner[joined]], d[joined])
     return d[association_rows(obs_kind)]
+
+
+def landmark_headings(heading: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """Each landmark's heading in the plane (L,), radians: a marker's own (``heading``), a tag's
+    yaw (the direction of its x axis, from its orientation ``quat_xyzw`` (L, 4)), NaN for the
+    others (points: NaN in both)."""
+    out = np.array(heading, dtype=float)
+    tag = np.isfinite(quat_xyzw[:, 0]) & np.isnan(out)
+    if np.any(tag):
+        R = geometry.quat_to_matrix(quat_xyzw[tag])
+        out[tag] = np.arctan2(R[:, 1, 0], R[:, 0, 0])
+    return geometry.wrap_angle(out)  # a file's psi may be any angle
