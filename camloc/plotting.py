@@ -211,7 +211,7 @@ def _draw_map_topdown(ax: Axes, map_xyz: np.ndarray, low: np.ndarray, high: np.n
 
 # A landmark's heading is a tick this share of the view box's larger side long.
 HEADING_TICK = 0.025
-HEADING_COLOR = "#2b6cb0"
+HEADING_COLOR = "0.3"  # dark grey: the map's, apart from the paths' colours
 
 
 def draw_landmark_headings(ax: Axes, result: RunResult, low: np.ndarray, high: np.ndarray) -> None:
