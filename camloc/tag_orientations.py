@@ -3,7 +3,8 @@ to its position's pair in the association (``TagOrientations.pair_terms``) and h
 pair in the update (``TagOrientations.joined``); the model is ``camloc.tags``'.
 
 In the association a tag observation is one measurement of 6 dof, its position (3) and its
-orientation (3): a pair of it with a tag is judged by the joint d^2 of both, gated at 6 dof, and
+orientation (3): a pair of it with a tag is judged by the joint d^2 of both, gated at 6 dof
+(``TAG_GATE_TAIL``), and
 costs ``d^2 + ln det S - ln det R`` of the joint innovation, split as the position's (what every
 pair costs) plus the orientation's given the position (``conditional_terms``: the Schur
 complement of S's position block). Leaving it unassigned, or pairing it with a landmark that has
@@ -25,12 +26,20 @@ from camloc.tails import chi2_quantile
 # right ones (and their positions with them).
 VETO_GATE = float(chi2_quantile(3, 0.001))
 
+# A tag pair's joint gate (position and orientation, 6 dof) leaves out at most this share of
+# right pairs (99.9%), or the association's own where that is wider: a wrong tag's orientation is
+# tens of sigmas off, far beyond either, and with one or two tags a pose every right one left out
+# costs (at the association's 99%, the filter's slight overconfidence in rotation left out 6-7% of
+# right tags on worlds of one tag a pose, and the position error rose by up to 80%:
+# benchmarks/tags.py filter, 2026-12-03).
+TAG_GATE_TAIL = 0.001
+
 # SO(3)'s volume in the measure of rotation vectors near the identity (the Haar measure,
 # |d theta|^3 at small angles): the integral over the ball of radius pi of 2 (1 - cos a) / a^2, 8 pi^2
 ROTATION_VOLUME = 8.0 * np.pi**2
 
 # Whether the association judges a tag pair by its orientation too (False: by its position, the
-# orientation only vetoing the pair afterwards); for comparisons (tests, benchmarks/tags_nearby.py)
+# orientation only vetoing the pair afterwards); for comparisons (tests, benchmarks/tags.py nearby)
 ORIENTATION_IN_ASSOCIATION = True
 
 
@@ -75,7 +84,7 @@ class TagOrientations:
         self.clutter = np.zeros(dataset.num_observations)  # the orientation's share of leaving a position unexplained
         self.clutter[dataset.obs_partner[riders]] = rotation_clutter_cost(self.cov[riders]) if riders.size else 0.0
         self.is_tag = np.isfinite(dataset.landmark_quat_xyzw[:, 0]) if len(dataset.landmark_ids) else np.zeros(0, bool)
-        self.joint_gate = float(chi2_quantile(6, 1.0 - gate))  # a tag pair's, position and orientation
+        self.joint_gate = float(chi2_quantile(6, min(1.0 - gate, TAG_GATE_TAIL)))  # a tag pair's, position and orientation
 
     def __bool__(self) -> bool:
         return bool(self.rotation_of)
