@@ -118,7 +118,7 @@ def nearby_table(seeds: int, poses: int) -> None:
                 for data, in_association in ((dataset, True), (dataset, False), (without_orientations(dataset), True)):
                     tag_orientations.ORIENTATION_IN_ASSOCIATION = in_association
                     scores = metrics.evaluate(_run(data, association=association))["association"]
-                    cells.append(f"{scores['precision'] or 0.0:.3f} / {scores['recall'] or 0.0:.3f}")
+                    cells.append(" / ".join("n/a" if scores[k] is None else f"{scores[k]:.3f}" for k in ("precision", "recall")))
                 tag_orientations.ORIENTATION_IN_ASSOCIATION = True
                 print(f"| {association} | {cap} | {seed} | {' | '.join(cells)} |", flush=True)
 
