@@ -2,12 +2,11 @@
 to its position's pair in the association (``TagOrientations.pair_terms``) and how it joins that
 pair in the update (``TagOrientations.joined``); the model is ``camloc.tags``'.
 
-In the association a tag observation is one measurement of 6 dof, its position (3) and its
-orientation (3): a pair of it with a tag is judged by the joint d^2 of both, gated at 6 dof
-(``TAG_GATE_TAIL``), and
-costs ``d^2 + ln det S - ln det R`` of the joint innovation, split as the position's (what every
-pair costs) plus the orientation's given the position (``conditional_terms``: the Schur
-complement of S's position block). Leaving it unassigned, or pairing it with a landmark that has
+In the association a tag observation is one measurement of its position (3 dof, a pixel-only
+camera's 2) and its orientation (3): a pair of it with a tag is judged by the joint d^2 of both,
+gated at their dof (``TAG_GATE_TAIL``), and costs ``d^2 + ln det S - ln det R`` of the joint
+innovation, split as the position's (what every pair costs) plus the orientation's given the
+position (``conditional_terms``: the Schur complement of S's position block). Leaving it unassigned, or pairing it with a landmark that has
 no orientation, leaves the orientation unexplained: clutter uniform over SO(3)
 (``rotation_clutter_cost``). Two tags at nearly the same place are then told apart by their
 orientations, which position alone cannot do.
@@ -17,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import association, geometry, sym3
+from camloc import association, geometry, measurement, sym3
 from camloc.tags import aligned
 from camloc.tails import chi2_quantile
 
@@ -69,8 +68,9 @@ def conditional_terms(y, H, R, e, H_rot, R_rot, P) -> tuple[np.ndarray, np.ndarr
 
 class TagOrientations:
     """The tags' orientation observations of a dataset (``measurement.TAG_ROTATION``), each the
-    partner of its position's (``Dataset.obs_partner``): association pairs the positions, and a
-    pair's tag orientation joins it in the update (``joined``). False when the dataset has none."""
+    partner of its position's (``Dataset.obs_partner``): association pairs the positions, judging a
+    tag pair by its orientation too (``pair_terms``, ``null_cost``), and a pair's tag orientation
+    joins it in the update (``joined``). False when the dataset has none."""
 
     def __init__(self, dataset, association_cov: np.ndarray | None = None, gate: float = 0.99):
         """``association_cov`` (K, 3, 3): the noise association judges each observation by (None:
@@ -84,7 +84,9 @@ class TagOrientations:
         self.clutter = np.zeros(dataset.num_observations)  # the orientation's share of leaving a position unexplained
         self.clutter[dataset.obs_partner[riders]] = rotation_clutter_cost(self.cov[riders]) if riders.size else 0.0
         self.is_tag = np.isfinite(dataset.landmark_quat_xyzw[:, 0]) if len(dataset.landmark_ids) else np.zeros(0, bool)
-        self.joint_gate = float(chi2_quantile(6, min(1.0 - gate, TAG_GATE_TAIL)))  # a tag pair's, position and orientation
+        # a tag pair's gate, position and orientation: at the position's dof + 3 (a pixel's 2 + 3)
+        dof = measurement.dof_of(dataset.obs_kind) + 3
+        self.joint_gate = np.asarray(chi2_quantile(dof, min(1.0 - gate, TAG_GATE_TAIL)), dtype=float).reshape(-1)
 
     def __bool__(self) -> bool:
         return bool(self.rotation_of)
@@ -115,7 +117,7 @@ class TagOrientations:
         judged by their positions: innovation y (g, 3), Jacobian H (g, 3, n) and noise R (g, 3, 3)
         in the coordinates the pair was judged in, d^2 gate (g,). Returns the d^2 (g,) and cost (g,)
         to add to each pair's and the gate (g,) the sum must pass: a tag's position paired with a
-        tag, its orientation's conditional terms (``conditional_terms``) and the 6-dof gate; with
+        tag, its orientation's conditional terms (``conditional_terms``) and the joint gate; with
         a landmark without orientation, the orientation's clutter cost; any other, nothing."""
         if not ORIENTATION_IN_ASSOCIATION:
             return np.zeros(obs.size), np.zeros(obs.size), np.asarray(gate, dtype=float)
@@ -124,7 +126,7 @@ class TagOrientations:
         if both.size:
             d2[both], log_det = conditional_terms(y[both], H[both], R[both], e, H_rot, R_rot, P)
             cost[both] = d2[both] + log_det
-            gate[both] = self.joint_gate
+            gate[both] = self.joint_gate[obs[both]]
         return d2, cost, gate
 
     def joined(self, obs, landmarks, x, P, observe, obs_sensor, association_cov) -> tuple[np.ndarray, np.ndarray]:

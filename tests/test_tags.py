@@ -234,6 +234,11 @@ def test_pixel_only_tags_round_trip_and_run(tmp_path):
     for name in ("obs_kind", "obs_partner", "obs_true_landmark"):
         assert np.array_equal(getattr(back, name), getattr(world, name)), name
     assert np.allclose(back.obs_info, world.obs_info, rtol=0, atol=1e-9)
+    from camloc.tag_orientations import TAG_GATE_TAIL, TagOrientations
+    from camloc.tails import chi2_quantile
+
+    gates = TagOrientations(back).joint_gate[back.obs_partner[rotation]]  # a pixel's 2 dof and the orientation's 3
+    assert gates == pytest.approx(chi2_quantile(5, TAG_GATE_TAIL))
     result = localize(back)
     report = metrics.evaluate(result)
     assert report["association"]["precision"] >= 0.99 and report["association"]["recall"] >= 0.9
