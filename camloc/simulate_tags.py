@@ -42,14 +42,41 @@ def simulate_tags(config: SimulationConfig, *, seed: int, sigma_rad: float) -> D
     tag_quat = Rotation.random(len(dataset.landmark_ids), random_state=rng).as_quat()
     # a depth camera's detection is an EDGE_PROJECT_TAG, a pixel-only camera's an EDGE_PROJECT_TAG_UV
     rows = np.flatnonzero(~simulation.is_clutter & ~simulation.is_outlier & np.isin(dataset.obs_kind, TAG_POSITION_KINDS))
+    return _with_orientations(dataset, rows, _measured(dataset, rows, tag_quat, rng, sigma_rad), sigma_rad, tag_quat)
+
+
+def planar_tags(config, *, seed: int, sigma_rad: float) -> Dataset:
+    """A planar robot's cameras seeing tags: ``camloc.simulate_planar``'s world of ``config``
+    (a ``PlanarSimulationConfig`` with cameras) with every camera landmark a tag and every camera
+    detection of one measuring its orientation too (the planar simulator's cameras make no
+    outliers; clutter has no tag)."""
+    from camloc.dataset import LANDMARK_POINT3
+    from camloc.simulate_planar import simulate_planar
+
+    dataset = simulate_planar(config, seed=seed)
+    rng = np.random.default_rng([seed, 37])
+    point = dataset.landmark_kind == LANDMARK_POINT3
+    tag_quat = np.full((len(dataset.landmark_ids), 4), np.nan)
+    tag_quat[point] = Rotation.random(int(np.count_nonzero(point)), random_state=rng).as_quat()
+    mapped = np.isin(dataset.obs_true_landmark, dataset.landmark_ids[point])
+    rows = np.flatnonzero(mapped & np.isin(dataset.obs_kind, TAG_POSITION_KINDS))
+    kind = np.where(point, LANDMARK_TAG, dataset.landmark_kind)
+    tagged = _with_orientations(dataset, rows, _measured(dataset, rows, tag_quat, rng, sigma_rad), sigma_rad, tag_quat)
+    return dataclasses.replace(tagged, landmark_kind=kind, tag_counts={**dataset.tag_counts, "VERTEX_TAG": int(np.count_nonzero(point))})
+
+
+def _measured(dataset: Dataset, rows: np.ndarray, tag_quat: np.ndarray, rng: np.random.Generator, sigma_rad: float) -> np.ndarray:
+    """The measured orientations (R, 3) (rotation vectors) of the tags of observations ``rows``
+    (R,) in their cameras at the true poses, with noise ``sigma_rad`` per axis."""
     T_truth = dataset.T_world_truth
+    row_of = {int(i): n for n, i in enumerate(dataset.landmark_ids.tolist())}
     z = np.zeros((rows.size, 3))
     for n, o in enumerate(rows.tolist()):
         camera = dataset.cameras[int(dataset.obs_camera[o])]
         R_pred, _ = tags.prediction(T_truth[dataset.obs_pose_index[o], :3, :3], camera.T_robot_camera[:3, :3],
-                                    geometry.quat_to_matrix(tag_quat[int(dataset.obs_true_landmark[o])])[None])
+                                    geometry.quat_to_matrix(tag_quat[row_of[int(dataset.obs_true_landmark[o])]])[None])
         z[n] = geometry.so3_log(R_pred[0] @ geometry.so3_exp(rng.normal(scale=sigma_rad, size=3)))
-    return _with_orientations(dataset, rows, z, sigma_rad, tag_quat)
+    return z
 
 
 def _with_orientations(dataset: Dataset, rows: np.ndarray, z: np.ndarray, sigma_rad: float, tag_quat: np.ndarray) -> Dataset:
