@@ -45,15 +45,13 @@ def simulate_tags(config: SimulationConfig, *, seed: int, sigma_rad: float) -> D
     return _with_orientations(dataset, rows, _measured(dataset, rows, tag_quat, rng, sigma_rad), sigma_rad, tag_quat)
 
 
-def planar_tags(config, *, seed: int, sigma_rad: float) -> Dataset:
-    """A planar robot's cameras seeing tags: ``camloc.simulate_planar``'s world of ``config``
-    (a ``PlanarSimulationConfig`` with cameras) with every camera landmark a tag and every camera
-    detection of one measuring its orientation too (the planar simulator's cameras make no
+def planar_tags(dataset: Dataset, *, seed: int, sigma_rad: float) -> Dataset:
+    """A planar robot's cameras seeing tags: a world of ``camloc.simulate_planar`` with cameras
+    (``dataset``) with every camera landmark a tag (orientations drawn from ``seed``) and every
+    camera detection of one measuring its orientation too (the planar simulator's cameras make no
     outliers; clutter has no tag)."""
     from camloc.dataset import LANDMARK_POINT3
-    from camloc.simulate_planar import simulate_planar
 
-    dataset = simulate_planar(config, seed=seed)
     rng = np.random.default_rng([seed, 37])
     point = dataset.landmark_kind == LANDMARK_POINT3
     tag_quat = np.full((len(dataset.landmark_ids), 4), np.nan)

@@ -117,7 +117,8 @@ def planar_tag_world():
     """A planar robot's camera seeing tags (``simulate_tags.planar_tags``), the beam's run."""
     from camloc.simulate_tags import planar_tags
 
-    dataset = planar_tags(PlanarSimulationConfig(sensors="cameras", poses=80), seed=1, sigma_rad=math.radians(1.0))
+    dataset = planar_tags(simulate_planar(PlanarSimulationConfig(sensors="cameras", poses=80), seed=1), seed=1,
+                          sigma_rad=math.radians(1.0))
     return dataset, localize(dataset)
 
 
