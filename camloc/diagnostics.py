@@ -15,7 +15,7 @@ never reads the file's landmark ids (as localization never does, the oracle asid
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional
 
 from camloc.tails import binomial_tail
 
@@ -36,7 +36,18 @@ def filter_name(config: Mapping[str, Any]) -> str:
     state, iterations = config.get("filter"), config.get("iterations")
     if not isinstance(state, str) or not isinstance(iterations, int):
         return "filter"
-    return f"{'iterated EKF' if iterations > 1 else 'EKF'} ({state})"
+    kind = 'iterated EKF' if iterations > 1 else 'EKF'
+    if config.get("map") in ("prior", "none"):  # the mapping localizer (camloc.slam_run)
+        return f"{kind}-SLAM (map {config['map']})"
+    return f"{kind} ({state})"
+
+
+def _mapping_name(summary: Mapping[str, Any]) -> Optional[str]:
+    """A mapping run's name (``iterated EKF-SLAM (map exact)``), from its summary's map block."""
+    block, config = summary.get("map"), summary.get("config")
+    if not isinstance(block, Mapping) or not isinstance(config, Mapping):
+        return None
+    return f"{'iterated EKF' if config.get('iterations', 1) > 1 else 'EKF'}-SLAM (map {block.get('mode')})"
 
 
 def estimate_name(summary: Mapping[str, Any]) -> str:
@@ -47,6 +58,9 @@ def estimate_name(summary: Mapping[str, Any]) -> str:
     if counts.get("updates") == 0:
         return ODOMETRY_ALONE
     config = summary.get("config")
+    mapping = _mapping_name(summary)
+    if mapping is not None:
+        return mapping
     return filter_name(config) if isinstance(config, Mapping) else "filter"
 
 

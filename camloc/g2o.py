@@ -236,7 +236,7 @@ def read_g2o(path: str | os.PathLike) -> Dataset:
     robot = (TAG_POSE_SE2, TAG_ODOMETRY_SE2) if is_planar else (TAG_POSE, TAG_ODOMETRY)  # the tags messages name
 
     cameras = _build_cameras(path, tables[TAG_CAMERA], messages)
-    landmarks = _build_landmarks(path, tables, messages)
+    landmarks = _build_landmarks(path, tables, messages, is_planar)
     vertex_ids, vertex_xyz, vertex_quat, odometry = _build_robot(path, tables, is_planar, messages)
     start = _start_vertex(path, vertex_ids, tables[robot[0]].lines, odometry, robot)
     pose_ids, edge_order = _follow_chain(path, int(vertex_ids[start]), odometry, robot)
@@ -598,7 +598,7 @@ def _build_cameras(path: Path, table: _Table, messages: list[str]) -> dict[int, 
     }
 
 
-def _build_landmarks(path: Path, tables: dict[str, _Table], messages: list[str]) -> dict[str, np.ndarray]:
+def _build_landmarks(path: Path, tables: dict[str, _Table], messages: list[str], is_planar: bool = False) -> dict[str, np.ndarray]:
     """The map of every landmark record in file order: ids, xyz (planar ones at z = 0), kind and
     heading (NaN but for markers); ids unique across the records."""
     parts = []
@@ -616,7 +616,10 @@ def _build_landmarks(path: Path, tables: dict[str, _Table], messages: list[str])
     ids, xyz, kinds, heading, quat, lines = ids[order], xyz[order], kinds[order], heading[order], quat[order], lines[order]
     _check_unique(path, ids, lines, "landmark id")
     if ids.size == 0:
-        messages.append(f"no {TAG_LANDMARK} record: the map is empty")
+        # A map-less file is valid (no survey: camloc simulate --no-map); its observations read as
+        # observations of ids absent from the map, as clutter's and a withheld landmark's do.
+        tags = (TAG_LANDMARK_XY, TAG_MARKER, TAG_LANDMARK) if is_planar else (TAG_LANDMARK, TAG_TAG)
+        messages.append(f"no landmark record ({', '.join(tags)}): the map is empty")
     return {"ids": ids, "xyz": xyz, "kind": kinds, "heading": heading, "quat": quat}
 
 
@@ -859,6 +862,12 @@ def write_g2o(dataset: Dataset, path: str | os.PathLike) -> None:
         _write_atomically(path, "".join(_format_dataset(dataset)))
     except OSError as error:
         raise CamlocError(f"{path}: cannot write: {error.strerror or error}") from None
+
+
+def g2o_text(dataset: Dataset) -> str:
+    """The text ``write_g2o`` writes, for a caller that writes several files all or none
+    (``camloc.atomic_files.write_files_atomic``)."""
+    return "".join(_format_dataset(dataset))
 
 
 def _records(tag: str, ids: np.ndarray, values: np.ndarray) -> list[str]:

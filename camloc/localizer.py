@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, measurement, planar, tags, warmup
+from camloc import association, associators, ekf, geometry, measurement, planar, warmup
 from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
@@ -28,9 +28,9 @@ from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset
 from camloc.errors import ConfigError
-from camloc.localizer_config import AUTO_FILTER, LocalizerConfig, ignored_options
-from camloc.results import UNASSOCIATED, Associations, RunResult
-from camloc.tails import chi2_quantile
+from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
+from camloc.results import UNASSOCIATED, RunResult
+from camloc.run_records import build_result, recorded_nis
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -84,6 +84,26 @@ def localize(
     config = resolved_config(config or LocalizerConfig(), dataset)
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
+    hooks = dict(parallel=parallel, engine=engine, on_compile=on_compile, on_background_compile=on_background_compile)
+    if config.map != "exact":  # landmarks in the state: the mapping localizer (numpy)
+        return _localize_mapping(dataset, config, on_progress, hooks)
+    result = _localize_exact(dataset, config, on_progress, **hooks)
+    if _mappable(dataset) and config.association != "oracle":
+        # in every mode, landmarks the map lacks are added: where the rejected observations agree
+        # on places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
+        from camloc.slam_landmarks import lacking_landmarks
+
+        T = geometry.pose_from_quat(result.estimate_xyz, result.estimate_quat_xyzw)
+        places = lacking_landmarks(dataset, T, result.estimate_cov, result.associations.landmark == UNASSOCIATED)
+        if places:
+            result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
+            result.summary["map"]["screened_places"] = places
+    return result
+
+
+def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, parallel, engine, on_compile,
+                    on_background_compile) -> RunResult:
+    """The localizer against the map held exactly (``localize``'s engines)."""
     # a tag's orientation is the numpy engine's only (camloc.tags)
     compilable = (config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
                   and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
@@ -120,6 +140,41 @@ def localize(
     return result
 
 
+def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Optional[RunResult] = None) -> RunResult:
+    """The mapping localizer (``camloc.slam_run``): ``config.map`` prior or none, or exact where
+    the map lacks landmarks (``given_run``: the exact map's run). With the beam and a map, the beam
+    first decides which observations are the map's, over the whole run and on the map as given
+    (robust where one pose's evidence is not), and the mapping localizer takes those pairs and
+    decides the rest among added landmarks, new ones and clutter."""
+    from camloc.slam_run import localize_mapping
+
+    given, beam_seconds, warnings = None, 0.0, []
+    beam_run = given_run
+    if beam_run is None and config.association == "beam" and config.map != "none" and dataset.landmark_ids.size:
+        halves = (lambda done, total, report=on_progress: report(done // 2, total)) if on_progress is not None else None
+        beam_run = _localize_exact(dataset, replace(config, map="exact"), halves, **hooks)
+    if beam_run is not None:
+        given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
+        beam_seconds = beam_run.summary["timing"]["filter_seconds"]
+        warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
+        if given_run is None and on_progress is not None:
+            on_progress = (lambda done, total, report=on_progress: report(total // 2 + done // 2, total))
+    result = localize_mapping(dataset, config, on_progress, given)
+    timing = result.summary["timing"]
+    timing["background_compile"] = False
+    result.summary["map"]["beam_seconds"] = beam_seconds  # the beam's pass over the map, before the mapping one
+    timing["filter_seconds"] += beam_seconds
+    timing["poses_per_second"] = dataset.num_poses / timing["filter_seconds"] if timing["filter_seconds"] > 0 else float("inf")
+    result.summary["warnings"] += warnings
+    return result
+
+
+def _mappable(dataset: Dataset) -> bool:
+    """Whether the mapping localizer runs the dataset: a 3-D robot's point landmarks (a planar
+    robot's and tags' orientations are not in its model)."""
+    return not dataset.planar and not np.any(dataset.obs_kind == measurement.TAG_ROTATION)
+
+
 def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfig:
     """``config`` validated, its filter "auto" made the one the dataset's robot calls for (se2 for
     a planar robot, euler otherwise); ConfigError where the filter cannot run the dataset: the
@@ -128,6 +183,12 @@ def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfi
     config.validate()
     if config.filter == AUTO_FILTER:
         config = replace(config, filter="se2" if dataset.planar else "euler")
+    mappable = _mappable(dataset)
+    if config.map == AUTO_MAP:
+        config = replace(config, map="none" if mappable and dataset.landmark_ids.size == 0 else "exact")
+    if config.map != "exact" and not mappable:
+        raise ConfigError(f"map {config.map!r} (mapping) runs a 3-D robot's point landmarks; this dataset's "
+                          + ("robot is planar" if dataset.planar else "tags carry orientations") + ": use --map exact")
     planar_kinds = [measurement.KINDS[int(k)].tag for k in np.unique(dataset.obs_kind) if int(k) in measurement.PLANAR_KINDS]
     if planar_kinds and config.filter != "se2":
         raise ConfigError(f"filter {config.filter!r} cannot use {', '.join(planar_kinds)} observations (a planar robot's, "
@@ -508,112 +569,3 @@ class _Localizer:
             timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": self.replayed_in_parallel,
                     "replay_process_peak_mb": self.replay_peak_mb, "replay_thread": False},
         )
-
-
-def build_result(dataset, config, filter_model, states, covs, poses, odometry_poses, chosen_landmark, mahalanobis,
-                 update_pose_ids, nis, map_costs, nis_dof, *, warnings, slip_pose_ids, candidate_range, timing,
-                 association_spread=None) -> RunResult:
-    """The RunResult of a run's records: per pose the filter's stored state (N, S), covariance
-    (N, 6, 6), pose and odometry pose (N, 4, 4); per observation the chosen landmark id
-    (UNASSOCIATED for none) and Mahalanobis distance; per update its pose id, NIS, MAP cost, dof.
-    ``association_spread`` (N, 6, 6): with the beam, how far its explanations of each pose spread
-    about the one the filter replayed (``BeamSearch._spread_about``) plus what the chance that one
-    of the replayed pairs is clutter adds (``ekf.leave_one_out_spread``); the estimate's covariance
-    is the filter's plus that, the filter's own stays ``filter_cov``."""
-    ds = dataset
-    estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)
-    odometry_xyz, odometry_quat = geometry.pose_to_quat(odometry_poses)
-    rows = tags.association_rows(ds.obs_kind)  # a row an observation, one a tag (its position's)
-    associations = Associations(
-        pose_id=ds.pose_ids[ds.obs_pose_index[rows]], camera=ds.obs_camera[rows], uvd=ds.obs_z[rows],
-        landmark=chosen_landmark[rows], true_landmark=ds.obs_true_landmark[rows],
-        mahalanobis=tags.row_distances(mahalanobis, ds.obs_kind, ds.obs_partner),
-    )
-    accepted = int(np.count_nonzero(associations.landmark != UNASSOCIATED))
-    filter_seconds = timing["filter_seconds"]
-    min_depth, max_depth, max_angle = candidate_range
-    summary = {
-        "dataset": ds.source,
-        "config": asdict(config),
-        "candidate_range": {"min_depth": min_depth, "max_depth": max_depth, "max_angle_deg": float(np.degrees(max_angle))},
-        "counts": {
-            "poses": ds.num_poses, "observations": int(rows.size), "accepted": accepted,
-            "rejected": int(rows.size) - accepted, "updates": len(nis), "landmarks": int(ds.landmark_ids.size),
-        },
-        "timing": {
-            "filter_seconds": filter_seconds,
-            "poses_per_second": ds.num_poses / filter_seconds if filter_seconds > 0 else float("inf"),
-            **{key: value for key, value in timing.items() if key != "filter_seconds"},
-        },
-        "warnings": list(ds.warnings) + list(warnings),
-    }
-    ignored = ignored_options(config)
-    if ignored:
-        summary["warnings"].append(f"association oracle takes the file's landmark ids and ignores {', '.join(ignored)}")
-    if slip_pose_ids:
-        summary["warnings"].append(
-            f"{len(slip_pose_ids)} pose(s) were explained as odometry slips (prior covariance widened "
-            f"{config.beam.slip_inflation:g}x): " + ", ".join(str(i) for i in slip_pose_ids[:10]) + (" ..." if len(slip_pose_ids) > 10 else "")
-        )
-    guard = divergence_guard(np.asarray(update_pose_ids, dtype=np.int64), np.asarray(map_costs), np.asarray(nis_dof))
-    summary["divergence_guard"] = guard
-    summary["slip_poses"] = list(slip_pose_ids)
-    if guard["runs"]:
-        summary["warnings"].append(
-            f"the filter may have diverged: its updates' chi-square statistic stayed above the {100 * GUARD_PROBABILITY:g}% bound for "
-            f"{GUARD_RUN_LENGTH} or more consecutive updates at poses "
-            + ", ".join(f"{a}-{b}" for a, b in guard["runs"][:5])
-            + (" ..." if len(guard["runs"]) > 5 else "")
-        )
-    return RunResult(
-        dataset=ds.source, pose_ids=ds.pose_ids.copy(), estimate_xyz=estimate_xyz, estimate_quat_xyzw=estimate_quat,
-        estimate_cov=filter_model.pose_cov(states, covs if association_spread is None else covs + association_spread),
-        filter_state=states, filter_cov=covs,
-        odometry_xyz=odometry_xyz, odometry_quat_xyzw=odometry_quat, truth_xyz=ds.truth_xyz, truth_quat_xyzw=ds.truth_quat_xyzw,
-        map_landmark_ids=ds.landmark_ids, map_landmark_xyz=ds.landmark_xyz, associations=associations,
-        map_landmark_heading=tags.landmark_headings(ds.landmark_heading, ds.landmark_quat_xyzw),
-        update_pose_ids=np.asarray(update_pose_ids, dtype=np.int64), nis=np.asarray(nis, dtype=float),
-        nis_dof=np.asarray(nis_dof, dtype=np.int64), summary=summary,
-    )
-
-
-def recorded_nis(nis_at_prior: float, map_cost: float, iterations: int) -> float:
-    """The consistency statistic an update records: for an iterated update, the MAP cost at the
-    posterior (chi^2 with 3p dof; at convergence the NIS at the last linearization), since the NIS
-    at the prior's linearization carries the second-order error the iterations removed (two pixel
-    cameras: NIS per dof 5.3 at the prior, 1.00 at the posterior, with the true association)."""
-    if iterations > 1 and np.isfinite(map_cost):
-        return float(map_cost)
-    return float(nis_at_prior)
-
-
-GUARD_PROBABILITY = 0.999
-GUARD_RUN_LENGTH = 3
-
-
-def divergence_guard(update_pose_ids: np.ndarray, statistic: np.ndarray, dof: np.ndarray) -> dict:
-    """Updates whose accepted pairs are jointly inconsistent, and runs of them.
-
-    ``statistic`` is each update's chi^2 statistic with ``dof`` degrees of freedom (3 per pair):
-    the MAP cost at the posterior (``ekf.UpdateResult.map_cost``; NIS for a single linearization).
-    An update is inconsistent when it is above the ``GUARD_PROBABILITY`` quantile;
-    ``GUARD_RUN_LENGTH`` or more consecutive inconsistent updates (poses without observations do
-    not break a run) are reported as a possible divergence, as (first pose id, last pose id) pairs.
-    """
-    if statistic.size == 0:
-        return {"inconsistent_poses": [], "runs": []}
-    bad = statistic > chi2_quantile(dof, 1.0 - GUARD_PROBABILITY)
-    runs, start, length = [], None, 0
-    for pose_id, is_bad in zip(update_pose_ids.tolist(), bad.tolist()):
-        if is_bad:
-            start, length = (pose_id if length == 0 else start), length + 1
-            last = pose_id
-        else:
-            if length >= GUARD_RUN_LENGTH:
-                runs.append([start, last])
-            length = 0
-    if length >= GUARD_RUN_LENGTH:
-        runs.append([start, last])
-    return {"inconsistent_poses": update_pose_ids[bad].tolist(), "runs": runs}
-
-

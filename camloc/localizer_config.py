@@ -24,6 +24,11 @@ AUTO_FILTER = "auto"
 from camloc.g2o import MAX_COORDINATE
 
 ASSOCIATION_METHODS = ("beam", "jcbb", "best-friends", "oracle")
+# How the run holds the map (``camloc.slam_run``): "auto" is exact where the file has a map, none
+# where it has none (``localizer.resolved_config``).
+MAP_MODES = ("auto", "exact", "prior", "none")
+AUTO_MAP = "auto"
+MAX_MAP_SIGMA = 1e3
 # What the oracle ignores (it takes the file's ids, gated): the re-check, the candidate view and
 # the null cost, which belong to the methods that search for the pairs. They are accepted with it
 # (a study compares each method with the oracle under the same options) and the run says so.
@@ -168,6 +173,12 @@ class LocalizerConfig:
         ``JcbbOptions``).
     recheck : the re-check after each update (``RecheckOptions``).
     view : the candidate landmarks' depth range and field of view (``ViewOptions``).
+    map : how the map is held: "exact" (landmarks where the map says, the localizer of every
+        filter and method), "prior" (mapped landmarks estimated too, pulled toward the map with
+        ``map_sigma``), "none" (the map's positions unused); in "prior" and "none" the mapping
+        localizer (``camloc.slam_run``: EKF-SLAM, landmarks the map lacks added) runs. "auto"
+        (the default): exact where the file has a map, none where it has none.
+    map_sigma : the map prior's standard deviation per axis, metres (``map = "prior"``).
     """
 
     filter: str = "auto"
@@ -182,6 +193,8 @@ class LocalizerConfig:
     jcbb: JcbbOptions = field(default_factory=JcbbOptions)
     recheck: RecheckOptions = field(default_factory=RecheckOptions)
     view: ViewOptions = field(default_factory=ViewOptions)
+    map: str = AUTO_MAP
+    map_sigma: float = 0.1
 
     def initial_cov(self) -> np.ndarray:
         """(6, 6) the start pose's covariance: ``initial_sigma_xyz`` on the position (metres),
@@ -212,6 +225,9 @@ class LocalizerConfig:
         return [
             ("filter", self.filter in FILTERS or self.filter == AUTO_FILTER,
              f"must be one of {AUTO_FILTER}, {', '.join(FILTERS)}, got {self.filter!r}"),
+            ("map", self.map in MAP_MODES, f"must be one of {', '.join(MAP_MODES)}, got {self.map!r}"),
+            ("map_sigma", _finite(self.map_sigma) and 0.0 < self.map_sigma <= MAX_MAP_SIGMA,
+             f"must be in (0, {MAX_MAP_SIGMA:g}] m, got {self.map_sigma}"),
             ("association", self.association in ASSOCIATION_METHODS,
              f"must be one of {', '.join(ASSOCIATION_METHODS)}, got {self.association!r}"),
             ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= 50, f"must be an integer in 1..50, got {self.iterations}"),

@@ -354,32 +354,36 @@ def association_outcomes(associations: Associations, map_landmark_ids: np.ndarra
 
     ``made`` (a landmark was chosen), ``correct`` (it is the true one), ``wrong`` (another one),
     ``rejected`` (none chosen), ``in_map`` (the true landmark is in the map), ``missed`` (in the
-    map but rejected), ``clutter_accepted`` (not in the map but associated anyway).
+    map but rejected), ``clutter_accepted`` (not in the map but associated anyway), ``to_added``
+    (paired with a landmark the run added, an id the map lacks: neither correct nor wrong here,
+    ``camloc eval --true-map`` scores those).
     """
     chosen = np.asarray(associations.landmark)
     true = np.asarray(associations.true_landmark)
     made = chosen != UNASSOCIATED
     in_map = np.isin(true, map_landmark_ids)
+    to_added = made & ~np.isin(chosen, map_landmark_ids)
     return {
         "made": made,
         "correct": made & (chosen == true),
-        "wrong": made & (chosen != true),
+        "wrong": made & (chosen != true) & ~to_added,
+        "to_added": to_added,
         "rejected": ~made,
         "in_map": in_map,
         "missed": in_map & ~made,
-        "clutter_accepted": ~in_map & made,
+        "clutter_accepted": ~in_map & made & ~to_added,
     }
 
 
 def association_scores(associations: Associations, map_landmark_ids: np.ndarray) -> dict:
     """Counts and scores of the data association against the file's true landmark ids.
 
-    precision = correct / made; recall = correct / observations whose true landmark is in the
-    map; F1 their harmonic mean (None when undefined, e.g. nothing was associated).
+    precision = correct / pairs with the map's landmarks (those with added ones aside:
+    ``to_added``); recall = correct / observations whose true landmark is in the map; F1 their harmonic mean (None when undefined, e.g. nothing was associated).
     """
     masks = association_outcomes(associations, map_landmark_ids)
     counts = {name: int(np.count_nonzero(mask)) for name, mask in masks.items()}
-    precision = _ratio(counts["correct"], counts["made"])
+    precision = _ratio(counts["correct"], counts["made"] - counts["to_added"])
     recall = _ratio(counts["correct"], counts["in_map"])
     f1 = None
     if precision is not None and recall is not None and precision + recall > 0:
@@ -394,6 +398,7 @@ def association_scores(associations: Associations, map_landmark_ids: np.ndarray)
         "in_map": counts["in_map"],
         "clutter": int(len(masks["made"])) - counts["in_map"],
         "clutter_accepted": counts["clutter_accepted"],
+        "to_added": counts["to_added"],
         "precision": precision,
         "recall": recall,
         "f1": f1,
@@ -402,39 +407,6 @@ def association_scores(associations: Associations, map_landmark_ids: np.ndarray)
 
 # --------------------------------------------------------------------------------------------
 # Consistency
-
-
-def map_errors(ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray, added: np.ndarray,
-               true_ids: np.ndarray, true_xyz: np.ndarray) -> dict:
-    """How far an estimated map (``map.csv``: ids (K,), xyz (K, 3), cov (K, 3, 3), added (K,))
-    lies from the true one (true_ids (T,), true_xyz (T, 3)), for mapped and added landmarks apart.
-
-    Each part: ``count`` landmarks scored (those with a true position), ``rmse`` and ``max`` of
-    their position errors (m; None when none), ``nees`` the mean of ``e^T cov^-1 e`` over the
-    ones with a positive definite covariance (3 where consistent; None when none: a map held
-    exact has zero covariances), and ``unknown``: estimated ids the true map lacks (clutter made
-    into a landmark).
-    """
-    order = np.argsort(true_ids, kind="stable")
-    at = np.clip(np.searchsorted(true_ids[order], ids), 0, max(len(order) - 1, 0))
-    known = (true_ids[order][at] == ids) if len(order) else np.zeros(len(ids), dtype=bool)
-    report = {}
-    for name, rows in (("mapped", ~added), ("added", added)):
-        scored = rows & known
-        error = xyz[scored] - true_xyz[order][at[scored]]
-        distance = np.linalg.norm(error, axis=1)
-        eig = np.linalg.eigvalsh(cov[scored]) if scored.any() else np.zeros((0, 3))
-        definite = eig[:, 0] > 0.0
-        nees = np.einsum("ni,ni->n", error[definite],
-                         np.linalg.solve(cov[scored][definite], error[definite][:, :, None])[:, :, 0])
-        report[name] = {
-            "count": int(scored.sum()),
-            "rmse": _number(np.sqrt(np.mean(distance**2))) if distance.size else None,
-            "max": _number(distance.max()) if distance.size else None,
-            "nees": _number(nees.mean()) if nees.size else None,
-            "unknown": int(np.count_nonzero(rows & ~known)),
-        }
-    return report
 
 
 def chi2_bounds(dof: np.ndarray | int, *, confidence: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:

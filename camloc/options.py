@@ -22,6 +22,8 @@ RUN_OPTIONS: dict[str, str] = {
     "iterations": "iterations",
     "gate": "gate",
     "null-cost": "null_cost",
+    "map": "map",
+    "map-sigma": "map_sigma",
     "initial-sigma-xyz": "initial_sigma_xyz",
     "initial-sigma-deg": "initial_sigma_deg",
     "beam-width": "beam.width",

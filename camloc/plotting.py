@@ -2,8 +2,9 @@
 
 Every ``plot_*`` function draws into a matplotlib axis given as its first argument and returns
 it; the caller owns the figure (its size, layout, saving). The ``draw_*`` functions lay several
-plots out on a figure they are given. This is the only module of the library that imports
-matplotlib, and nothing in the core imports it, so ``camloc run`` never pays for it.
+plots out on a figure they are given. This module and ``camloc.plotting_map`` (the map figure) are
+the only ones of the library that import matplotlib, and nothing in the core imports them, so
+``camloc run`` never pays for it.
 
 Colours are fixed across figures: the filter's estimate blue, odometry green, ground truth red, smoothed purple (when
 the run was smoothed, ``camloc smooth``), map grey. Errors are computed against the ground truth

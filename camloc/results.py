@@ -77,13 +77,15 @@ _READABLE_FORMAT_VERSIONS = (1, 2)
 _REQUIRED_FILES = (STATES_NPZ, SUMMARY_JSON, ASSOCIATIONS_CSV)
 # The figures 'camloc plot' draws into a run folder, fig-<name>.<format>.
 FIGURE_NAMES = ("topdown", "3d", "errors", "consistency", "associations")
+# fig-map, drawn beside them when the run folder has a map.csv (camloc.plotting_map)
+MAP_FIGURE_NAME = "map"
 FIGURE_FORMATS = ("png", "pdf", "svg")
 # Every file camloc writes into a run folder; replacing a run (force=True) drops these, the
 # derived ones included (a smoothed path or a figure of the old run would pass for the new one's),
 # and keeps everything else.
 CAMLOC_FILES = frozenset(
     (ESTIMATE_TUM, ODOMETRY_TUM, GROUNDTRUTH_TUM, ASSOCIATIONS_CSV, STATES_NPZ, SUMMARY_JSON, SMOOTHED_TUM, MAP_CSV)
-    + tuple(f"fig-{name}.{suffix}" for name in FIGURE_NAMES for suffix in FIGURE_FORMATS)
+    + tuple(f"fig-{name}.{suffix}" for name in (*FIGURE_NAMES, MAP_FIGURE_NAME) for suffix in FIGURE_FORMATS)
 )
 
 
@@ -135,6 +137,8 @@ class RunResult:
     summary : JSON-serializable dict (dataset, configuration, counts, timings, metrics, warnings).
     smoothed_xyz, smoothed_quat_xyzw : (N, 3), (N, 4) the smoother's poses (``smoothed.tum``),
         or None when the run was not smoothed.
+    landmark_map : the map the run estimated (``map.csv``): a mapping run's (``camloc.slam_run``),
+        or None. Its added landmarks' ids are those ``associations.landmark`` may hold beyond the map's.
     """
 
     dataset: str
@@ -157,6 +161,7 @@ class RunResult:
     summary: dict = field(default_factory=dict)
     smoothed_xyz: np.ndarray | None = None
     smoothed_quat_xyzw: np.ndarray | None = None
+    landmark_map: "LandmarkMap | None" = None
     map_landmark_heading: np.ndarray | None = None
 
 
@@ -604,6 +609,8 @@ def _write_run_files(folder: Path, result: RunResult) -> None:
             handle, format_version=np.int64(RUN_FORMAT_VERSION), dataset=np.str_(result.dataset), **arrays
         )
     (folder / SUMMARY_JSON).write_text(dumps_json(result.summary), encoding="utf-8")
+    if result.landmark_map is not None:
+        (folder / MAP_CSV).write_text(map_text(result.landmark_map), encoding="utf-8")
 
 
 def _move_into_place(tmp: Path, run_dir: Path) -> None:
@@ -671,10 +678,13 @@ def load_run(run_dir: str | Path, *, smoothed: bool = True) -> RunResult:
                                                           "restore it or run 'camloc run' again")
     associations, row_lines = _read_associations_with_lines(run_dir / ASSOCIATIONS_CSV)
     _check_association_poses(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["pose_ids"])
-    _check_association_landmarks(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["map_landmark_ids"])
+    landmark_map = read_map(run_dir / MAP_CSV) if (run_dir / MAP_CSV).is_file() else None
+    known_ids = arrays["map_landmark_ids"] if landmark_map is None else np.union1d(arrays["map_landmark_ids"], landmark_map.ids)
+    _check_association_landmarks(run_dir / ASSOCIATIONS_CSV, associations, row_lines, known_ids)
     arrays.setdefault("truth_xyz", None)
     arrays.setdefault("truth_quat_xyzw", None)
-    result = RunResult(dataset=arrays.pop("dataset"), associations=associations, summary=summary, **arrays)
+    result = RunResult(dataset=arrays.pop("dataset"), associations=associations, summary=summary, landmark_map=landmark_map,
+                       **arrays)
     problems = run_problems(result)
     if problems:
         raise CamlocError(f"{run_dir}: inconsistent run folder: {'; '.join(problems)}")

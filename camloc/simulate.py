@@ -37,6 +37,9 @@ Ids         landmarks 0..L-1, poses from 1000 (or the next power of ten above L,
             one id space between vertices), clutter from the next power of ten above the last pose.
 Randomness  one ``np.random.default_rng(seed)``, split into independent streams per stage so that,
             for one seed, changing e.g. the clutter leaves the trajectory, map and noise unchanged.
+Imperfect   ``withhold_map``, ``move_map`` / ``move_distance`` and ``no_map`` edit the map written
+map         after the whole world is simulated (``camloc.simulate_map``): the detections are of the
+            true map whatever the file's map says, and ``Simulation.map_edits`` keeps the truth.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ from camloc import geometry, measurement, models
 from camloc.dataset import Camera, Dataset
 from camloc.errors import ConfigError
 from camloc.g2o import observation_cov_from_info, odometry_cov_from_info, odometry_info_from_cov
+from camloc.simulate_map import DEFAULT_MOVE_DISTANCE_M, MapEdits, edit_map, edits_map, map_edit_problem
 
 TRAJECTORIES = ("grid", "smooth3d", "aerial")
 INTRINSICS = ("normalized", "pixel")
@@ -121,6 +125,12 @@ class SimulationConfig:
     observation_sigma_depth : std of depth, metres (1/sqrt(1000)); of a disparity camera's
         inverse depth, in 1/m, the same number.
     observation_sigma_scale : multiplies the observation sigmas; 0 gives exact observations.
+    withhold_map : share of the landmarks left out of the file's map, in [0, 1]; their detections
+        stay, with their true ids (``camloc.simulate_map``).
+    move_map : share of the landmarks written ``move_distance`` metres from their true position in
+        a random direction, in [0, 1 - withhold_map]; detections are of the true positions.
+    move_distance : how far a moved landmark is written from its true position, metres (0.3).
+    no_map : write no landmark at all (detections stay, with their true ids).
     """
 
     trajectory: str = "grid"
@@ -147,6 +157,10 @@ class SimulationConfig:
     observation_sigma_uv: float | None = None
     observation_sigma_depth: float = REAL_OBS_SIGMA
     observation_sigma_scale: float = 1.0
+    withhold_map: float = 0.0
+    move_map: float = 0.0
+    move_distance: float = DEFAULT_MOVE_DISTANCE_M
+    no_map: bool = False
 
     def __post_init__(self) -> None:
         _require(self.trajectory in TRAJECTORIES, "trajectory", f"one of {', '.join(TRAJECTORIES)}", self.trajectory)
@@ -186,6 +200,9 @@ class SimulationConfig:
         }
         for name, (value, bound, unit) in scaled.items():
             _require(value <= bound, name, f"at most {bound:g} {unit} (times its scale)", value)
+        problem = map_edit_problem(self.withhold_map, self.move_map, self.move_distance, self.no_map, MAX_LENGTH_M)
+        if problem is not None:
+            _require(False, *problem)
 
     def camera_kinds(self) -> list[int]:
         """The measurement kind of each camera (``camloc.measurement`` codes)."""
@@ -278,12 +295,16 @@ class Simulation:
     ----------
     dataset : the simulated data.
     is_outlier : (K,) bool, the measurement was replaced by a random one (true id kept).
-    is_clutter : (K,) bool, a detection of nothing in the map (its id is absent from the map).
+    is_clutter : (K,) bool, a detection of nothing (its id is absent from the true map; a withheld
+        landmark's detections are not clutter, though their ids are absent from the file's map).
+    map_edits : the true map and what was withheld or moved, when the config asks for an
+        imperfect map (``camloc.simulate_map``); None when the file's map is the truth.
     """
 
     dataset: Dataset
     is_outlier: np.ndarray
     is_clutter: np.ndarray
+    map_edits: MapEdits | None = None
 
 
 def simulate(config: SimulationConfig, *, seed: int) -> Dataset:
@@ -302,7 +323,17 @@ def simulate(config: SimulationConfig, *, seed: int) -> Dataset:
 
 
 def simulate_labelled(config: SimulationConfig, *, seed: int) -> Simulation:
-    """``simulate``, also returning which observations are outliers and clutter."""
+    """``simulate``, also returning which observations are outliers and clutter, and the true map
+    when the file's is edited (``withhold_map``, ``move_map``, ``no_map``)."""
+    simulation = _simulate_whole(config, seed=seed)
+    if not edits_map(config):
+        return simulation
+    edits = edit_map(simulation.dataset, config, seed=seed)
+    return dataclasses.replace(simulation, dataset=edits.dataset, map_edits=edits)
+
+
+def _simulate_whole(config: SimulationConfig, *, seed: int) -> Simulation:
+    """The world with its complete, true map (``simulate_labelled`` before any map edit)."""
     rng_path, rng_map, rng_odom, rng_detect, rng_noise, rng_spurious = np.random.default_rng(seed).spawn(6)
     # The world: a true path, the cameras on the robot, a map around the path.
     T_world_robot = TRAJECTORY_GENERATORS[config.trajectory](config, rng_path)

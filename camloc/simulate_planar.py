@@ -41,6 +41,7 @@ from camloc import geometry, measurement, planar
 from camloc import simulate as sim3
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset
 from camloc.g2o import observation_cov_from_info
+from camloc.simulate_map import DEFAULT_MOVE_DISTANCE_M, edit_map, edits_map, map_edit_problem, without_map_edits
 
 SENSORS = ("points", "markers", "cameras")
 MARKER_FACING_DEG = 75.0
@@ -65,6 +66,8 @@ class PlanarSimulationConfig:
     observation_sigma_xy, observation_sigma_psi : a planar observation's noise.
     cameras : ``camloc.simulate.SimulationConfig`` of the 3-D cameras (with ``cameras`` in
         ``sensors``); its trajectory and odometry options are not used.
+    withhold_map, move_map, move_distance, no_map : an imperfect map, as in
+        ``camloc.simulate.SimulationConfig`` (``camloc.simulate_map``; planar landmarks move in the floor's plane).
     """
 
     sensors: str = "points"
@@ -82,6 +85,10 @@ class PlanarSimulationConfig:
     observation_sigma_xy: float = 0.05
     observation_sigma_psi: float = 0.05
     cameras: sim3.SimulationConfig = dataclasses.field(default_factory=sim3.SimulationConfig)
+    withhold_map: float = 0.0
+    move_map: float = 0.0
+    move_distance: float = DEFAULT_MOVE_DISTANCE_M
+    no_map: bool = False
 
     def __post_init__(self) -> None:
         names = self.sensor_names()
@@ -96,6 +103,9 @@ class PlanarSimulationConfig:
         _require(self.visible_per_pose > 0, "visible-per-pose", "> 0", self.visible_per_pose)
         for name in ("odometry_sigma_xy", "odometry_sigma_theta", "observation_sigma_xy", "observation_sigma_psi"):
             _require(0 < getattr(self, name) <= 1.0, name.replace("_", "-"), "in (0, 1]", getattr(self, name))
+        problem = map_edit_problem(self.withhold_map, self.move_map, self.move_distance, self.no_map, sim3.MAX_LENGTH_M)
+        if problem is not None:
+            _require(False, problem[0].replace("_", "-"), *problem[1:])
 
     def sensor_names(self) -> list[str]:
         return [name.strip() for name in str(self.sensors).split(",") if name.strip()]
@@ -121,7 +131,10 @@ class _Planar:
 
 
 def simulate_planar(config: PlanarSimulationConfig, *, seed: int) -> Dataset:
-    """A planar world with ground truth for every pose, deterministic for a seed."""
+    """A planar world with ground truth for every pose, deterministic for a seed; its map edited
+    as the config says once the whole world is made (``camloc.simulate_map``)."""
+    if edits_map(config):
+        return edit_map(simulate_planar(without_map_edits(config), seed=seed), config, seed=seed).dataset
     rng_path, rng_odom, rng_map, rng_obs, rng_cam = np.random.default_rng(seed).spawn(5)
     x_true = planar_path(config.poses, config.region_side_m, rng_path)
     T_true = planar.lift(x_true)

@@ -24,6 +24,7 @@ from camloc import geometry, measurement, tags
 from camloc.dataset import LANDMARK_TAG, Dataset
 from camloc.g2o import observation_cov_from_info
 from camloc.simulate import SimulationConfig, simulate_labelled
+from camloc.simulate_map import edit_map, edits_map, without_map_edits
 
 
 # the kinds of camera measurement a tag's record carries with its orientation (camloc.g2o): a
@@ -33,9 +34,12 @@ TAG_POSITION_KINDS = (measurement.DEPTH, measurement.PIXEL)
 
 def simulate_tags(config: SimulationConfig, *, seed: int, sigma_rad: float) -> Dataset:
     """``camloc.simulate``'s world of ``config`` with every landmark a tag and every detection of
-    one (outliers aside) also measuring its orientation with noise ``sigma_rad`` (radians, > 0)."""
+    one (outliers aside) also measuring its orientation with noise ``sigma_rad`` (radians, > 0).
+    The map is edited (``camloc.simulate_map``) once the whole world of tags is made."""
     if not sigma_rad > 0.0:
         raise ValueError(f"a tag's orientation noise must be > 0 rad, got {sigma_rad}")
+    if edits_map(config):
+        return edit_map(simulate_tags(without_map_edits(config), seed=seed, sigma_rad=sigma_rad), config, seed=seed).dataset
     simulation = simulate_labelled(config, seed=seed)
     dataset = simulation.dataset
     rng = np.random.default_rng([seed, 37])

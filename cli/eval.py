@@ -45,10 +45,11 @@ def evaluate_command(
         "poses (camloc writes pose ids as timestamps)."), show_default=False
     ),
     true_map: Optional[Path] = typer.Option(
-        None, "--true-map", metavar="DATASET", help="A g2o file whose landmarks (VERTEX_TRACKXYZ) are the true map "
-        "(for a simulated world whose map was withheld or moved: the file before that): scores the run's map.csv "
-        "(written by 'camloc smooth'): position RMSE of mapped and of added landmarks, their NEES, estimated ids the "
-        "true map lacks. Default: none.", show_default=False
+        None, "--true-map", metavar="DATASET", help="A g2o file whose landmarks are the true map (for a world of "
+        "'camloc simulate --withhold-map/--move-map/--no-map': the <stem>.true-map.g2o it wrote): scores the run's "
+        "map.csv: position RMSE and NEES of mapped, moved and added landmarks (an added one against the true "
+        "landmark most of its observations are), landmarks added twice, clutter made into landmarks, landmarks "
+        "never added (docs/json.md). Default: none.", show_default=False
     ),
     json_output: bool = json_option("the metrics"),
     quiet: bool = quiet_option(),
@@ -72,8 +73,9 @@ def evaluate_command(
         )
         report = {"estimate_file": str(est), "reference_file": str(ref), **report}
     else:
-        report = metrics.evaluate(load_run(run_dir), align=align.value, delta=delta)
-        report["map"] = _map_score(run_dir, true_map) if true_map is not None else None
+        result = load_run(run_dir)
+        report = metrics.evaluate(result, align=align.value, delta=delta)
+        report["map"] = _map_score(run_dir, result, true_map) if true_map is not None else None
 
     if echo_json(report, enabled=json_output) or quiet:
         return
@@ -85,13 +87,14 @@ def evaluate_command(
         console.print(eval_render.render_run_evaluation(report))
 
 
-def _map_score(run_dir: Path, true_map: Path) -> dict:
-    """``metrics.map_errors`` of the run's map.csv against the landmarks of the g2o file ``true_map``."""
+def _map_score(run_dir: Path, result, true_map: Path) -> dict:
+    """``map_scores.map_score`` of the run's map.csv against the landmarks of the g2o file ``true_map``,
+    through the run's associations (each observation's true id) and the map it was given."""
     import warnings
 
-    from camloc import metrics
     from camloc.errors import CamlocError
     from camloc.g2o import G2oWarning, read_g2o
+    from camloc.map_scores import map_score
     from camloc.results import MAP_CSV, read_map
 
     if not (run_dir / MAP_CSV).is_file():
@@ -100,5 +103,7 @@ def _map_score(run_dir: Path, true_map: Path) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", G2oWarning)  # its trajectory and observations are not read here
         truth = read_g2o(true_map)
-    return metrics.map_errors(estimated.ids, estimated.xyz, estimated.cov, estimated.added, truth.landmark_ids,
-                              truth.landmark_xyz)
+    associations = result.associations
+    return map_score(estimated, given_ids=result.map_landmark_ids, given_xyz=result.map_landmark_xyz,
+                     true_ids=truth.landmark_ids, true_xyz=truth.landmark_xyz,
+                     obs_landmark=associations.landmark, obs_true=associations.true_landmark)

@@ -33,28 +33,31 @@ def plot(
     ),
     dpi: int = typer.Option(150, min=50, max=1200, help=with_default("Resolution of raster (.png) figures, dots "
                                                                      "per inch."), show_default=False),
+    true_map: Optional[Path] = typer.Option(
+        None, "--true-map", metavar="DATASET", help="With a map.csv in the run folder: a g2o file whose landmarks are "
+        "the true map (the <stem>.true-map.g2o of 'camloc simulate --withhold-map/--move-map/--no-map'), drawn on "
+        "fig-map with a segment from each moved landmark's given position to its truth. Default: none.",
+        show_default=False
+    ),
     show: bool = typer.Option(False, "--show", help=with_default("Also open the figures in a window (needs a "
                                                                  "display); off: files only."), show_default=False),
     quiet: bool = quiet_option(),
 ) -> None:
     """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
 
-    By default writes fig-topdown, fig-3d (not for a planar run, --filter se2: its z is 0), fig-errors, fig-consistency and fig-associations (.png) into the run folder, replacing the ones drawn before; with --output a single report figure holding every panel. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
+    By default writes fig-topdown, fig-3d (not for a planar run, --filter se2: its z is 0), fig-errors, fig-consistency and fig-associations (.png) into the run folder, and fig-map when the run folder has a map.csv (the given map, the estimated one with 2-sigma ellipses, added landmarks marked), replacing the ones drawn before; with --output a single report figure holding every panel but the map. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
 
     For a sweep folder (written by 'camloc sweep'), draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
     """
-    from camloc.atomic_files import refuse_existing, write_files_atomic
-    from camloc.results import FIGURE_FORMATS, load_run
+    from camloc.atomic_files import write_files_atomic
+    from camloc.results import load_run
 
-    if output is not None and output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
-        raise ConfigError(
-            f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
-        )
-    if output is not None:
-        refuse_existing(output, force=force)
+    _check_output(output, force, true_map)
     from camloc.sweep import is_sweep_folder
 
     sweep = is_sweep_folder(run_dir)
+    if sweep and true_map is not None:
+        raise ConfigError(f"--true-map is drawn on a run's map figure: {run_dir} is a sweep folder")
     result = _load_sweep(run_dir) if sweep else load_run(run_dir)
 
     import matplotlib
@@ -72,6 +75,7 @@ def plot(
         layouts = {output: (plotting.REPORT_SIZE, plotting.draw_report)}
     else:
         layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.figures_of(result).items()}
+        layouts.update(_map_layout(run_dir, result, true_map, figure_format.value))
 
     def render(path: Path, handle) -> None:
         size, draw = layouts[path]
@@ -92,6 +96,50 @@ def plot(
             console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
     if show:
         plt.show()
+
+
+def _check_output(output: Optional[Path], force: bool, true_map: Optional[Path]) -> None:
+    """Refuse an --output that is no figure file or exists (without --force), or one with --true-map."""
+    from camloc.atomic_files import refuse_existing
+    from camloc.results import FIGURE_FORMATS
+
+    if output is None:
+        return
+    if true_map is not None:
+        raise ConfigError("--true-map is drawn on fig-map, which the one-page --output report leaves out: expected one of them")
+    if output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
+        raise ConfigError(
+            f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
+        )
+    refuse_existing(output, force=force)
+
+
+def _map_layout(run_dir: Path, result, true_map: Optional[Path], suffix: str) -> dict:
+    """{fig-map path: (size, draw)} when the run folder has a map.csv, else {} (and --true-map is refused)."""
+    from camloc.results import MAP_CSV, MAP_FIGURE_NAME, read_map
+
+    if not (run_dir / MAP_CSV).is_file():
+        if true_map is not None:
+            raise ConfigError(f"--true-map is drawn on the map figure: expected a {MAP_CSV} in {run_dir}, found none")
+        return {}
+    from camloc.plotting_map import MAP_FIGURE_SIZE, MapView, draw_map
+
+    view = MapView(result, read_map(run_dir / MAP_CSV), *_true_landmarks(true_map))
+    return {run_dir / f"fig-{MAP_FIGURE_NAME}.{suffix}": (MAP_FIGURE_SIZE, lambda fig, _: draw_map(fig, view))}
+
+
+def _true_landmarks(true_map: Optional[Path]) -> tuple:
+    """(ids, xyz) of the landmarks of the g2o file ``true_map``; (None, None) without one."""
+    if true_map is None:
+        return None, None
+    import warnings
+
+    from camloc.g2o import G2oWarning, read_g2o
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", G2oWarning)  # only its landmarks are drawn
+        truth = read_g2o(true_map)
+    return truth.landmark_ids, truth.landmark_xyz
 
 
 def _load_sweep(folder: Path) -> tuple[list, str]:

@@ -36,6 +36,13 @@ class AssociationChoice(str, Enum):
     oracle = "oracle"
 
 
+class MapChoice(str, Enum):
+    auto = "auto"
+    exact = "exact"
+    prior = "prior"
+    none = "none"
+
+
 class CostChoice(str, Enum):
     nll = "nll"
     mahalanobis = "mahalanobis"
@@ -93,6 +100,17 @@ _NULL_COST = typer.Option(
     None, help="Cost of calling an observation clutter instead of pairing it (beam and re-check), in cost units "
     "(2 x negative log-likelihood: +2 = e times less likely; docs/association.md). Default: from the "
     "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
+)
+_MAP = library_option(
+    "How the file's map is held: exact (landmarks where the map says them; observations of landmarks it lacks "
+    "are left as clutter), prior (mapped landmarks are estimated too, pulled toward the map with --map-sigma), "
+    "none (the map's positions unused); prior and none map what the map lacks (EKF-SLAM: added landmarks in "
+    "map.csv of the run folder; docs/mapping.md). auto: exact for a file with a map, none for one without.",
+    "localizer.map", "--map"
+)
+_MAP_SIGMA = library_option(
+    "With --map prior: the map's standard deviation per axis, metres.",
+    "localizer.map_sigma", "--map-sigma"
 )
 _INITIAL_SIGMA_XYZ = library_option(
     "Standard deviation of the start position, metres.",
@@ -184,6 +202,8 @@ def run(
     iterations: Optional[int] = _ITERATIONS,
     gate: Optional[float] = _GATE,
     null_cost: Optional[float] = _NULL_COST,
+    map: Optional[MapChoice] = _MAP,  # noqa: A002 (named after --map)
+    map_sigma: Optional[float] = _MAP_SIGMA,
     initial_sigma_xyz: Optional[float] = _INITIAL_SIGMA_XYZ,
     initial_sigma_deg: Optional[float] = _INITIAL_SIGMA_DEG,
     beam_width: Optional[int] = _BEAM_WIDTH,
@@ -206,7 +226,7 @@ def run(
 ) -> None:
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
-    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json, written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
+    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json (and map.csv with --map prior or none), written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
 
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset numpy takes under about 20 s over (some 4,500 poses of 8 observations with depth) it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """

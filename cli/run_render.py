@@ -54,8 +54,13 @@ def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Grou
         str(counts["observations"]), str(counts["accepted"]), _fmt(correct, "d"), _fmt(wrong, "d"), str(counts["rejected"]),
         _fmt(_get(summary, "association.precision"), ".3f"), _fmt(_get(summary, "association.recall"), ".3f"),
     )
+    mapped = summary.get("map")
+    map_line = None
+    if isinstance(mapped, Mapping):
+        map_line = Text(f"map {mapped['mode']}: {mapped['mapped_observed']} of {mapped['mapped']} mapped landmarks seen, "
+                        f"{mapped['added']} added (map.csv)")
     footer = Text(
         f"{counts['poses']} poses in {timing['filter_seconds']:.2f} s ({timing['poses_per_second']:.0f} poses/s)"
         + (f"; run folder: {written}" if written else "")
     )
-    return Group(table, association, footer)
+    return Group(table, association, *([map_line] if map_line is not None else []), footer)

@@ -44,16 +44,20 @@ class RangeKindChoice(str, Enum):
 
 # The command's arguments and options, in its signature's order (their help is ``--help``'s text).
 _OUTPUT = typer.Option(..., "--output", "-o", help="The g2o file to write (whole or not at all; missing "
-                       "parent folders are created); an existing file is refused unless --force.",
+                       "parent folders are created); an existing file is refused unless --force. With "
+                       "--withhold-map, --move-map or --no-map, also <stem>.true-map.g2o beside it: the same world "
+                       "with its true, complete map (for 'camloc eval --true-map' and 'camloc plot --true-map'); "
+                       "both files are written or neither.",
                        show_default=False)
-_FORCE = force_option("the --output file")
+_FORCE = force_option("the --output file (and its .true-map.g2o)")
 _ROBOT = typer.Option(RobotChoice.three_d, help=with_default(
     "3d: a robot with 3-D cameras (VERTEX_SE3:QUAT, EDGE_SE3:QUAT); planar: a robot on a floor (VERTEX_SE2, "
     "EDGE_SE2; a unicycle path, camloc/simulate_planar.py) carrying the --sensors given. With planar, "
     "--poses, --landmarks (per planar sensor), --region, --min-range/--max-range and --fov-half-angle-deg "
     "(of the planar sensors; default 0.3-3 m, 60 deg), --detection-probability (default 0.9) and "
-    "--clutter-fraction apply to the planar sensors, and --cameras, --intrinsics, --measurement and the "
-    "observation sigmas to the 3-D cameras; the other options are refused."), show_default=False)
+    "--clutter-fraction apply to the planar sensors, --cameras, --intrinsics, --measurement and the "
+    "observation sigmas to the 3-D cameras, --withhold-map, --move-map, --move-distance and --no-map to the whole map "
+    "(planar landmarks move in the floor's plane); the other options are refused."), show_default=False)
 _SENSORS = typer.Option("points", help=with_default(
     "With --robot planar: what the robot observes, comma-separated: points (EDGE_SE2_XY: (x, y) of VERTEX_XY "
     "landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the planar pose (x, y, "
@@ -172,6 +176,27 @@ _OBSERVATION_SIGMA_SCALE = library_option(
     "Multiplies the observation sigmas; 0: exact observations.",
     "simulation.observation_sigma_scale"
 )
+_WITHHOLD_MAP = library_option(
+    "Share of the landmarks left out of the file's map, in [0, 1] (a map from a partial survey); their "
+    "detections stay, with their true ids, so they read as ids absent from the map, as clutter does. "
+    "Writes the true map too (see --output).",
+    "simulation.withhold_map", metavar="FRACTION"
+)
+_MOVE_MAP = library_option(
+    "Share of the landmarks written --move-distance metres from their true position, in a random "
+    "direction, in [0, 1 - --withhold-map] (moved since the survey); the detections are of the true "
+    "positions. Writes the true map too (see --output).",
+    "simulation.move_map", metavar="FRACTION"
+)
+_MOVE_DISTANCE = library_option(
+    "How far a landmark of --move-map is written from its true position, metres.",
+    "simulation.move_distance", metavar="METRES"
+)
+_NO_MAP = library_option(
+    "Write no landmark at all (no survey): the detections stay, with their true ids. Writes the true "
+    "map too (see --output).",
+    "simulation.no_map", "--no-map"
+)
 _SEED = typer.Option(0, min=0, help=with_default("Seed of the random generator; the same seed gives the "
                                                  "same file."), show_default=False)
 _JSON_OUTPUT = json_option("the summary", instead="a line")
@@ -208,6 +233,10 @@ def simulate(
     observation_sigma_uv: Optional[float] = _OBSERVATION_SIGMA_UV,
     observation_sigma_depth: Optional[float] = _OBSERVATION_SIGMA_DEPTH,
     observation_sigma_scale: Optional[float] = _OBSERVATION_SIGMA_SCALE,
+    withhold_map: Optional[float] = _WITHHOLD_MAP,
+    move_map: Optional[float] = _MOVE_MAP,
+    move_distance: Optional[float] = _MOVE_DISTANCE,
+    no_map: Optional[bool] = _NO_MAP,
     seed: int = _SEED,
     json_output: bool = _JSON_OUTPUT,
     quiet: bool = _QUIET,
@@ -216,14 +245,42 @@ def simulate(
 
     Zero sigmas are simulated exactly and written as a large finite information (1e12).
     """
-    from camloc.g2o import write_g2o
     from camloc.atomic_files import refuse_existing
-    from camloc.simulate import SimulationConfig, SimulationOptionError, simulate_labelled, simulation_config
+    from camloc.simulate import SimulationConfig, simulate_labelled
+    from camloc.simulate_map import edits_map
 
     # The options are named after the config's fields: pass on each one given by its command-line
     # name, enums as their text; the others keep the config's defaults.
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
+    config = _config(options, robot, sensors, tag_sigma_deg)
+    true_map = true_map_path(output) if edits_map(config) else None
+    for path in (output, true_map):
+        if path is not None:
+            refuse_existing(path, force=force)
+    if tag_sigma_deg is not None:
+        simulation = _tag_simulation(config, seed, tag_sigma_deg)
+    else:
+        simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
+    _write(simulation, output, true_map)
+    summary = _summary(simulation, output, seed, true_map)
+    if echo_json(summary, enabled=json_output) or quiet:
+        return
+    counts = summary["counts"]
+    console.print(
+        f"[bold]{escape(str(output))}[/]: {counts['poses']} poses, {counts['landmarks']} landmarks, "
+        f"{counts['observations']} observations ({counts['clutter']} clutter, "
+        f"{counts['outliers']} outliers), {counts['cameras']} camera(s) from {escape(summary['description'])}",
+        highlight=False, soft_wrap=True,
+    )
+    if true_map is not None:
+        console.print(_map_line(summary["map"], true_map), highlight=False, soft_wrap=True)
+
+
+def _config(options: dict, robot: RobotChoice, sensors: str, tag_sigma_deg: Optional[float]):
+    """The simulation's config of the options given, a bad one refused as a bad parameter."""
+    from camloc.simulate import SimulationOptionError, simulation_config
+
     try:
         if robot == RobotChoice.planar:
             from camloc.simulate_planar import world_config
@@ -237,52 +294,77 @@ def simulate(
         raise typer.BadParameter("applies only to --robot 3d", param_hint="--tag-sigma-deg")
     if tag_sigma_deg is not None and not tag_sigma_deg > 0.0:
         raise typer.BadParameter(f"expected a standard deviation > 0, found {tag_sigma_deg:g}", param_hint="--tag-sigma-deg")
-    refuse_existing(output, force=force)
-    if tag_sigma_deg is not None:
-        simulation = _tag_simulation(config, seed, tag_sigma_deg)
-    else:
-        simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
-    write_g2o(simulation.dataset, output)
-    summary = _summary(simulation, output, seed)
-    if echo_json(summary, enabled=json_output) or quiet:
-        return
-    counts = summary["counts"]
-    console.print(
-        f"[bold]{escape(str(output))}[/]: {counts['poses']} poses, {counts['landmarks']} landmarks, "
-        f"{counts['observations']} observations ({counts['clutter']} clutter, "
-        f"{counts['outliers']} outliers), {counts['cameras']} camera(s) from {escape(summary['description'])}",
-        highlight=False, soft_wrap=True,
-    )
+    return config
+
+
+# The true map's file beside a world whose map is edited: ``world.g2o`` -> ``world.true-map.g2o``.
+TRUE_MAP_SUFFIX = ".true-map.g2o"
+
+
+def true_map_path(output: Path) -> Path:
+    """Where ``camloc simulate -o output`` writes the true map of an edited world."""
+    return output.with_name(f"{output.stem if output.suffix.lower() == '.g2o' else output.name}{TRUE_MAP_SUFFIX}")
+
+
+def _write(simulation, output: Path, true_map: Optional[Path]) -> None:
+    """The world (and the whole world with its true map) written all or none."""
+    from camloc.atomic_files import write_files_atomic
+    from camloc.g2o import g2o_text
+
+    texts = {output: g2o_text(simulation.dataset)}
+    if true_map is not None:
+        texts[true_map] = g2o_text(simulation.map_edits.whole)
+    write_files_atomic(list(texts), lambda path, handle: handle.write(texts[path].encode("utf-8")))
+
+
+def _map_line(report: dict, true_map: Path) -> str:
+    """``map: 72 of 144 landmarks withheld, 36 moved 0.3 m; true map: PATH``."""
+    parts = [f"{report['withheld']} of {report['true_landmarks']} landmarks withheld"
+             + (f" ({report['withheld_observations']} observations of them)" if report["withheld"] else "")]
+    if report["moved"]:
+        parts.append(f"{report['moved']} moved {report['move_distance']:g} m")
+    return f"map: {', '.join(parts)}; true map: {escape(str(true_map))}"
+
+
+def _labelled(config, seed: int, make):
+    """A ``Simulation`` of a world made by another simulator than ``simulate_labelled`` (planar,
+    tags; ``make(config)`` makes the world): no outliers, clutter told by the ids absent from the
+    true map, the map edited as the config says once the whole world is made."""
+    import numpy as np
+
+    from camloc.simulate import Simulation
+    from camloc.simulate_map import edit_map, edits_map, without_map_edits
+
+    edits = edit_map(make(without_map_edits(config)), config, seed=seed) if edits_map(config) else None
+    dataset = make(config) if edits is None else edits.dataset
+    truth = dataset if edits is None else edits.whole
+    clutter = ~np.isin(dataset.obs_true_landmark, truth.landmark_ids)
+    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter,
+                      map_edits=edits)
 
 
 def _tag_simulation(config, seed: int, sigma_deg: float):
     """A 3-D world of tags (``camloc.simulate_tags``), labelled as ``simulate_labelled`` labels one."""
     import math
 
-    import numpy as np
-
-    from camloc.simulate import Simulation
     from camloc.simulate_tags import simulate_tags
 
-    dataset = simulate_tags(config, seed=seed, sigma_rad=math.radians(sigma_deg))
-    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
-    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter)
+    return _labelled(config, seed, lambda c: simulate_tags(c, seed=seed, sigma_rad=math.radians(sigma_deg)))
 
 
 def _planar_simulation(config, seed: int):
     """A planar world as ``simulate_labelled`` gives a 3-D one (its clutter labelled by id)."""
-    import numpy as np
-
-    from camloc.simulate import Simulation
     from camloc.simulate_planar import simulate_planar
 
-    dataset = simulate_planar(config, seed=seed)
-    clutter = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)
-    return Simulation(dataset=dataset, is_outlier=np.zeros(dataset.num_observations, bool), is_clutter=clutter)
+    return _labelled(config, seed, lambda c: simulate_planar(c, seed=seed))
 
 
-def _summary(simulation, output: Path, seed: int) -> dict:
+def _summary(simulation, output: Path, seed: int, true_map: Optional[Path]) -> dict:
     dataset = simulation.dataset
+    edits = simulation.map_edits
+    truth = dataset if edits is None else edits.whole
+    withheld = 0 if edits is None else len(edits.withheld)
+    moved = 0 if edits is None else len(edits.moved)
     return {
         "dataset": str(output),
         "description": dataset.source,
@@ -295,4 +377,18 @@ def _summary(simulation, output: Path, seed: int) -> dict:
             "clutter": int(simulation.is_clutter.sum()),
             "outliers": int(simulation.is_outlier.sum()),
         },
+        "true_map": None if true_map is None else str(true_map),
+        "map": {
+            "true_landmarks": int(truth.landmark_ids.shape[0]),
+            "withheld": withheld,
+            "moved": moved,
+            "move_distance": float(edits.move_distance) if moved else None,
+            "withheld_observations": 0 if edits is None else int(_count_of(dataset.obs_true_landmark, edits.withheld)),
+        },
     }
+
+
+def _count_of(ids, wanted) -> int:
+    import numpy as np
+
+    return int(np.count_nonzero(np.isin(ids, wanted)))

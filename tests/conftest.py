@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-import numpy as np
-import pytest
+# one BLAS thread, as the command line sets (camloc/cli/__init__.py): before numpy loads
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 # A run with a cold kernel cache compiles in the foreground here, as the tests expect: no test may
 # leave a background compile behind (camloc.warmup; its own tests switch it on where they need it).

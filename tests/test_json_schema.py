@@ -117,6 +117,8 @@ def test_run_eval_smooth_and_info_print_the_documented_keys(worlds, truth):
     smoothing = invoke_json("smooth", run_dir)
     check_against_doc(smoothing, "camloc smooth")
     check_against_doc(invoke_json("eval", run_dir), "camloc eval")  # now with the smoothed path
+    if truth:  # and the map.csv the smoother wrote, scored against the file's own map
+        check_against_doc(invoke_json("eval", run_dir, "--true-map", dataset), "camloc eval")
     check_against_doc(invoke_json("info", dataset), "camloc info")
 
     # The same quantity under the same key, whichever command prints it.
@@ -136,12 +138,17 @@ def test_eval_of_two_files_and_simulate_print_the_documented_keys(worlds):
     check_against_doc(comparison, "camloc eval --est --ref")
     simulated = invoke_json("simulate", "-o", folder / "sim.g2o", "--poses", "12")
     check_against_doc(simulated, "camloc simulate")
-    assert simulated["dataset"] == str(folder / "sim.g2o")
+    assert simulated["dataset"] == str(folder / "sim.g2o") and simulated["true_map"] is None
+    edited = invoke_json("simulate", "-o", folder / "edited.g2o", "--poses", "12", "--move-map", "0.5")
+    check_against_doc(edited, "camloc simulate")
+    assert edited["true_map"] == str(folder / "edited.true-map.g2o") and edited["map"]["move_distance"] == 0.3
 
 
 def test_the_check_catches_a_missing_and_an_undocumented_key():
     output = {"dataset": "x", "description": "y", "seed": 0,
-              "counts": {"poses": 1, "landmarks": 1, "observations": 1, "cameras": 1, "clutter": 0, "outliers": 0}}
+              "counts": {"poses": 1, "landmarks": 1, "observations": 1, "cameras": 1, "clutter": 0, "outliers": 0},
+              "true_map": None, "map": {"true_landmarks": 1, "withheld": 0, "moved": 0, "move_distance": None,
+                                        "withheld_observations": 0}}
     check_against_doc(output, "camloc simulate")
     with pytest.raises(AssertionError, match="seed is documented but missing"):
         check_against_doc({key: value for key, value in output.items() if key != "seed"}, "camloc simulate")

@@ -271,7 +271,7 @@ def test_se3_filter_stays_consistent_through_pitch_90_where_euler_does_not():
 
 
 def test_divergence_guard_reports_runs_of_inconsistent_updates():
-    from camloc.localizer import divergence_guard
+    from camloc.run_records import divergence_guard
 
     updates = np.array([100, 101, 102, 103, 105, 106, 108, 109])
     dof = np.full(8, 9)

@@ -200,15 +200,16 @@ def test_association_scores_on_a_hand_table():
                       [3, 1],   # wrong
                       [-1, 2],  # rejected, missed
                       [-1, 99],  # rejected clutter: right
-                      [2, 99]])  # clutter accepted: wrong
+                      [2, 99],  # clutter accepted: wrong
+                      [1000, 7]])  # paired with an added landmark: neither right nor wrong here
     k = len(table)
     associations = Associations(
         pose_id=np.arange(k), camera=np.zeros(k, dtype=np.int64), uvd=np.zeros((k, 3)),
         landmark=table[:, 0], true_landmark=table[:, 1], mahalanobis=np.ones(k),
     )
     scores = metrics.association_scores(associations, np.array([1, 2, 3]))
-    expected = {"observations": 6, "made": 4, "correct": 2, "wrong": 2, "rejected": 2, "missed": 1,
-                "in_map": 4, "clutter": 2, "clutter_accepted": 1}
+    expected = {"observations": 7, "made": 5, "correct": 2, "wrong": 2, "rejected": 2, "missed": 1,
+                "in_map": 4, "clutter": 3, "clutter_accepted": 1, "to_added": 1}
     assert {key: scores[key] for key in expected} == expected
     assert scores["precision"] == pytest.approx(0.5)
     assert scores["recall"] == pytest.approx(0.5)

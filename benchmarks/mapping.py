@@ -1,0 +1,95 @@
+"""Mapping (issue 38): the run on imperfect maps against the same world's complete map, world by world.
+
+For each world (a trajectory, ``--poses``, a seed, optional clutter) it runs:
+- ``full``: the complete map, ``--map exact`` (the default localizer): the reference;
+- ``half``: half the map withheld, under ``exact`` (what camloc did before mapping) and ``prior``;
+- ``moved``: a quarter of the map moved by 0.3 m, under ``exact`` and ``prior`` (sigma 0.1 m), and
+  the moved landmarks' error after the run;
+- ``none``: no map at all;
+each with the default association (beam) and the true one (oracle), and prints position RMSE (and
+its ratio to ``full``), mean NEES, landmarks added, added twice and made of clutter, and the speed.
+
+    nice python benchmarks/mapping.py --trajectories grid,smooth3d,aerial --seeds 0,1,2 --poses 300
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import Counter
+
+import numpy as np
+
+from camloc import metrics
+from camloc.localizer import localize
+from camloc.localizer_config import LocalizerConfig
+from camloc.simulate import SimulationConfig, simulate_labelled
+
+
+def stands_for(result) -> dict:
+    """Each added landmark's id -> the true id most of its observations are of."""
+    a, m = result.associations, result.landmark_map
+    out = {}
+    for landmark_id in m.ids[m.added]:
+        counts = Counter(a.true_landmark[a.landmark == landmark_id].tolist())
+        out[int(landmark_id)] = counts.most_common(1)[0][0] if counts else None
+    return out
+
+
+def case(dataset, truth_map, is_clutter, map_mode: str, association: str, moved_ids=()) -> dict:
+    started = time.perf_counter()
+    result = localize(dataset, LocalizerConfig(map=map_mode, association=association))
+    seconds = time.perf_counter() - started
+    rmse = float(np.sqrt(np.mean(np.sum((result.estimate_xyz - dataset.truth_xyz) ** 2, axis=1))))
+    row = {"rmse": rmse, "nees": float(np.nanmean(metrics.run_nees(result))), "seconds": seconds, "added": 0,
+           "twice": 0, "clutter_landmarks": 0, "moved_error": None}
+    if result.landmark_map is not None:
+        stands = stands_for(result)
+        real = [v for v in stands.values() if v is not None and v in truth_map]
+        row["added"] = len(stands)
+        row["twice"] = sum(n - 1 for n in Counter(real).values() if n > 1)
+        row["clutter_landmarks"] = sum(1 for v in stands.values() if v is None or v not in truth_map)
+        if len(moved_ids):
+            m = result.landmark_map
+            at = np.isin(m.ids, moved_ids)
+            row["moved_error"] = float(np.mean([np.linalg.norm(m.xyz[i] - truth_map[int(m.ids[i])]) for i in np.flatnonzero(at)]))
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trajectories", default="grid,smooth3d,aerial")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--poses", type=int, default=300)
+    parser.add_argument("--clutter", type=float, default=0.0)
+    parser.add_argument("--associations", default="beam,oracle")
+    args = parser.parse_args()
+    print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | s")
+    for trajectory in args.trajectories.split(","):
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter)
+            full = simulate_labelled(SimulationConfig(**base), seed=seed)
+            truth_map = dict(zip(full.dataset.landmark_ids.tolist(), full.dataset.landmark_xyz))
+            worlds = [("half", SimulationConfig(**base, withhold_map=0.5), ("exact", "prior")),
+                      ("moved", SimulationConfig(**base, move_map=0.25), ("exact", "prior")),
+                      ("none", SimulationConfig(**base, no_map=True), ("none",))]
+            for association in args.associations.split(","):
+                reference = case(full.dataset, truth_map, full.is_clutter, "exact", association)
+                _print(trajectory, seed, "full exact", association, reference, reference["rmse"])
+                for name, config, modes in worlds:
+                    world = simulate_labelled(config, seed=seed)
+                    ds = world.dataset
+                    moved = [int(i) for i in ds.landmark_ids if np.linalg.norm(ds.landmark_xyz[ds.landmark_ids == i][0] - truth_map[int(i)]) > 1e-6]
+                    for mode in modes:
+                        row = case(ds, truth_map, world.is_clutter, mode, association, moved if name == "moved" else ())
+                        _print(trajectory, seed, f"{name} {mode}", association, row, reference["rmse"])
+
+
+def _print(trajectory, seed, name, association, row, full_rmse) -> None:
+    moved = f"{row['moved_error']:.3f}" if row["moved_error"] is not None else "-"
+    print(f"{trajectory}/{seed} | {name} | {association} | {row['rmse']:.3f} | {row['rmse'] / full_rmse:.2f} | {row['nees']:.2f} | "
+          f"{row['added']} | {row['twice']} | {row['clutter_landmarks']} | {moved} | {row['seconds']:.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

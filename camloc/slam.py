@@ -1,0 +1,214 @@
+"""EKF-SLAM in the invariant error form: the robot pose and the landmarks it maps, one Gaussian.
+
+Model card
+----------
+State      the robot pose (R, t) and m landmarks l_1..l_m, world frame (an element of SE_{m+1}(3)).
+Error      xi = (xi_t, xi_theta, xi_l1, .., xi_lm) (3 + 3 + 3 m), **left** of the estimate:
+              R = Exp(xi_theta) R^,  t = Exp(xi_theta) t^ + J(xi_theta) xi_t,
+              l_i = Exp(xi_theta) l^_i + J(xi_theta) xi_li
+           (J the left Jacobian of SO(3); ``retract``). This is the right-invariant error of the
+           invariant EKF (Barrau & Bonnabel): the error of the whole map and the robot moves
+           together under a change of world frame, which is what keeps the filter consistent
+           where the textbook error (robot heading and landmark positions apart) grows
+           overconfident: the unobservable directions (world position and heading with no map)
+           stay unobservable in the linearization.
+Motion     T' = T dT Exp(w), w = (w_t, w_theta) ~ N(0, Q), the odometry's right perturbation.
+           In this error **F = I** (the error does not depend on the estimate: the source of the
+           consistency) and the noise enters through the adjoint of the new estimate:
+           xi' = xi + G w, G = (R^, [t^]x R^ on xi_t; R^ on xi_theta; [l^_i]x R^ on each xi_li),
+           so a prediction costs O(m^2) (``G Q G'``), no more than an update.
+Measure    p_robot = R' (l - t) of a landmark in the state: d p_robot / d xi = R^' (-I on xi_t,
+           0 on xi_theta, +I on xi_l), exactly to first order. Of a landmark held fixed (an
+           exact map's): d p_robot / d xi = R^' (-I on xi_t, [l]x on xi_theta). Then the camera
+           (``camloc.measurement``): p_camera = R_c' (p_robot - t_c), z = h_kind(p_camera).
+Inverse    a new landmark from a measurement with range: l = t + R (t_c + R_c g(z)) with g the
+           back-projection; its error is xi_l = xi_t + R^ R_c G dz: the robot's translation error
+           plus the measurement's noise, no heading term (``inverse_observation``).
+
+Pure: no I/O, no printing. Every Jacobian is checked against finite differences of ``retract``
+in tests/test_slam.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from camloc import ekf, geometry, measurement
+
+POSE_DIM = 6  # xi_t, xi_theta
+
+
+@dataclass
+class SlamMean:
+    """The estimate's mean: the robot pose (R (3, 3), t (3,)) and the landmarks in the state L (m, 3)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    L: np.ndarray
+
+    @property
+    def dim(self) -> int:
+        return POSE_DIM + 3 * self.L.shape[0]
+
+    def pose(self) -> np.ndarray:
+        return geometry.make_pose(self.R, self.t)
+
+
+def left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3), ``J_l(phi) = J_r(-phi)``."""
+    return geometry.so3_right_jacobian(-np.asarray(phi, dtype=float))
+
+
+def retract(x: SlamMean, delta: np.ndarray) -> SlamMean:
+    """``exp(delta) x``: the estimate moved by an error delta (dim,) (the group's exponential)."""
+    phi = delta[3:6]
+    E, J = geometry.so3_exp(phi), left_jacobian(phi)
+    L = x.L @ E.T + delta[6:].reshape(-1, 3) @ J.T if x.L.size else x.L.copy()
+    return SlamMean(E @ x.R, E @ x.t + J @ delta[0:3], L)
+
+
+def difference(a: SlamMean, b: SlamMean) -> np.ndarray:
+    """The error delta with ``retract(b, delta) == a`` (the group's logarithm of a b^-1)."""
+    phi = geometry.so3_log(a.R @ b.R.T)
+    E, J_inverse = geometry.so3_exp(phi), np.linalg.inv(left_jacobian(phi))
+    dt = J_inverse @ (a.t - E @ b.t)
+    dl = (a.L - b.L @ E.T) @ J_inverse.T if a.L.size else np.zeros((0, 3))
+    return np.concatenate([dt, phi, dl.ravel()])
+
+
+def predict(x: SlamMean, P: np.ndarray, T_increment: np.ndarray, Q: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+    """The estimate after an odometry increment T_k_k+1 (4, 4) with noise Q (6, 6) on its right
+    perturbation (translation, rotation vector): F = I, ``P + G Q G'`` with G the adjoint of the
+    new estimate (``noise_coefficients``)."""
+    R_next = x.R @ T_increment[:3, :3]
+    t_next = x.t + x.R @ T_increment[:3, 3]
+    x_next = SlamMean(R_next, t_next, x.L)
+    G = noise_coefficients(x_next)
+    return x_next, ekf.symmetrize(P + G @ Q @ G.T)
+
+
+def noise_coefficients(x: SlamMean) -> np.ndarray:
+    """G (dim, 6): how the increment's right perturbation w = (w_t, w_theta) moves the error: the
+    body-frame noise seen in the world, ``xi_theta += R w_theta``, ``xi_t += R w_t + [t]x R w_theta``,
+    and every landmark's ``xi_l += [l]x R w_theta`` (a turn of the robot about itself is, in this
+    error, a turn of the world about its origin and a shift back; the adjoint of SE_{m+1}(3))."""
+    G = np.zeros((x.dim, POSE_DIM))
+    RW = x.R
+    G[0:3, 0:3] = RW
+    G[0:3, 3:6] = geometry.hat(x.t) @ RW
+    G[3:6, 3:6] = RW
+    if x.L.size:
+        G[POSE_DIM:, 3:6] = (geometry.hat(x.L) @ RW).reshape(-1, 3)
+    return G
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A camera as the measurement takes it: ``T_robot_camera`` (4, 4), intrinsics (fx, fy, cx,
+    cy), the kind of its measurements (``camloc.measurement``)."""
+
+    T_robot_camera: np.ndarray
+    intrinsics: tuple
+    kind: int
+
+
+def camera_points(x: SlamMean, sensor: Sensor, xyz: np.ndarray) -> np.ndarray:
+    """World points (M, 3) in the camera frame (M, 3)."""
+    Rc, tc = sensor.T_robot_camera[:3, :3], sensor.T_robot_camera[:3, 3]
+    return ((xyz - x.t) @ x.R - tc) @ Rc
+
+
+def observe(x: SlamMean, sensor: Sensor, xyz: np.ndarray, state_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Predictions (M, MAX_DIM) of points xyz (M, 3) and their Jacobians (M, MAX_DIM, dim) with
+    respect to the error: a point with ``state_row`` i >= 0 is the state's landmark i (its xyz
+    must be ``x.L[i]``), -1 a point held fixed."""
+    p_camera = camera_points(x, sensor, xyz)
+    Jh = measurement.projection_jacobian(p_camera, sensor.intrinsics, sensor.kind)  # (M, 3, 3)
+    A = Jh @ (sensor.T_robot_camera[:3, :3].T @ x.R.T)  # d z / d p_world-like: Jh Rc' R'
+    M = xyz.shape[0]
+    H = np.zeros((M, measurement.MAX_DIM, x.dim))
+    H[:, :, 0:3] = -A
+    fixed = state_row < 0
+    if np.any(fixed):
+        H[fixed, :, 3:6] = A[fixed] @ geometry.hat(xyz[fixed])
+    for j in np.flatnonzero(~fixed):
+        col = POSE_DIM + 3 * int(state_row[j])
+        H[j, :, col:col + 3] = A[j]
+    return measurement.project(p_camera, sensor.intrinsics, sensor.kind), H
+
+
+def inverse_observation(x: SlamMean, sensor: Sensor, z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A new landmark from one measurement with range z (MAX_DIM,) of noise R_z (MAX_DIM,
+    MAX_DIM): its position (3,), the coefficients B (3, POSE_DIM) of its error on the pose's
+    (xi_l = B xi_pose + noise: [I, 0]) and the noise's covariance N (3, 3)."""
+    p_camera, G = measurement.back_project(z[None, :], sensor.intrinsics, sensor.kind)
+    Rc, tc = sensor.T_robot_camera[:3, :3], sensor.T_robot_camera[:3, 3]
+    xyz = x.t + x.R @ (tc + Rc @ p_camera[0])
+    W = x.R @ Rc @ G[0]  # d l / d z
+    B = np.zeros((3, POSE_DIM))
+    B[:, 0:3] = np.eye(3)
+    return xyz, B, ekf.symmetrize(W @ R_z @ W.T)
+
+
+def augmented(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+    """The state with one more landmark at xyz (3,) whose error is ``B xi + n`` (B (3, dim) on the
+    current error, n ~ N(0, N) independent of it): the new rows are ``B P`` and ``B P B' + N``."""
+    n = P.shape[0]
+    if B.shape[1] < n:
+        B = np.hstack([B, np.zeros((3, n - B.shape[1]))])
+    BP = B @ P
+    P_new = np.zeros((n + 3, n + 3))
+    P_new[:n, :n] = P
+    P_new[n:, :n] = BP
+    P_new[:n, n:] = BP.T
+    P_new[n:, n:] = ekf.symmetrize(BP @ B.T + N)
+    return SlamMean(x.R, x.t, np.vstack([x.L, xyz[None, :]])), P_new
+
+
+def world_prior_coefficients(x: SlamMean, xyz: np.ndarray) -> np.ndarray:
+    """B (3, POSE_DIM) of a landmark at xyz whose world error dl is independent of the pose:
+    ``xi_l = dl + [l]x xi_theta`` (the invariant error carries the heading's lever arm)."""
+    B = np.zeros((3, POSE_DIM))
+    B[:, 3:6] = geometry.hat(xyz)
+    return B
+
+
+def without_landmarks(x: SlamMean, P: np.ndarray, drop: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+    """The state without the landmarks whose rows ``drop`` (bool (m,)) marks: marginalized out,
+    which for a Gaussian in covariance form is deleting their rows and columns."""
+    keep_rows = np.concatenate([np.ones(POSE_DIM, bool), np.repeat(~drop, 3)])
+    return SlamMean(x.R, x.t, x.L[~drop]), P[np.ix_(keep_rows, keep_rows)]
+
+
+def landmark_world_cov(x: SlamMean, P: np.ndarray, i: int) -> np.ndarray:
+    """The world-frame covariance (3, 3) of landmark i's position: ``dl = xi_l - [l]x xi_theta``."""
+    c = POSE_DIM + 3 * i
+    A = np.zeros((3, P.shape[0]))
+    A[:, 3:6] = -geometry.hat(x.L[i])
+    A[:, c:c + 3] = np.eye(3)
+    return ekf.symmetrize(A @ P @ A.T)
+
+
+def pose_right_cov(x: SlamMean, P: np.ndarray) -> np.ndarray:
+    """The pose block as the covariance (6, 6) of the SE(3) filter's right perturbation (dt,
+    dtheta) (``geometry.retract_right``): ``dtheta = R' xi_theta``, ``dt = R' (xi_t - [t]x xi_theta)``."""
+    J = np.zeros((POSE_DIM, POSE_DIM))
+    J[0:3, 0:3] = x.R.T
+    J[0:3, 3:6] = -x.R.T @ geometry.hat(x.t)
+    J[3:6, 3:6] = x.R.T
+    return ekf.symmetrize(J @ P[:POSE_DIM, :POSE_DIM] @ J.T)
+
+
+def initial_cov(x: SlamMean, world_cov: np.ndarray) -> np.ndarray:
+    """The start pose's error covariance from its world-frame one (translation, rotation vector;
+    ``geometry.pose_error_vector``'s order): ``xi_t = dt + [t]x xi_theta``."""
+    A = np.eye(POSE_DIM)
+    A[0:3, 3:6] = geometry.hat(x.t)
+    return ekf.symmetrize(A @ world_cov @ A.T)
+
+
+def landmark_world_cov_of(x: SlamMean, P: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """The world covariance (3, 3) of a point whose error is ``C`` (3, POSE_DIM) times the pose's."""
+    return ekf.symmetrize(C @ P[:POSE_DIM, :POSE_DIM] @ C.T)

@@ -1,0 +1,377 @@
+"""The landmarks of a mapping run (``camloc.slam_run``): their table, and how landmarks the map
+lacks are added.
+
+- ``LandmarkTable``: every landmark of the run, the map's then the added ones, in the state or
+  waiting outside it.
+- ``LandmarkAdditions``: the mapping localizer's part that adds landmarks. An unassigned
+  observation that no landmark in view fits within its gate is a candidate: one with range enters
+  the state at once as a **tentative** landmark (the inverse observation: consistent in the
+  invariant error), confirmed or dropped by its track score (below); a pixel gathers into a track
+  of rays (``camloc.slam_tracks``) until their parallax fixes a depth (delayed initialization).
+  Under the oracle, an id the map lacks becomes a landmark at its second observation.
+
+Pure computation: no I/O, no printing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Optional
+
+import numpy as np
+
+from camloc import measurement, slam
+from camloc.dataset import Dataset
+from camloc.results import LandmarkMap
+from camloc.slam_tracks import DEPTH_VARIANCE_INFLATION, Tracks, triangulate
+
+# an assignment's cost outside the gate
+UNPAIRED = 1e12
+
+# A landmark entered from one observation is **tentative** until its score, the log-likelihood
+# ratio of "a landmark" over "clutter" of what was seen of it (the track score of multi-target
+# tracking: + (null cost - pair cost) / 2 for each pair, + ln(1 - DETECTION_PROBABILITY) each time
+# it was surely in view and not seen), reaches CONFIRM_SCORE (odds 1000:1); it is dropped, with
+# its pairs, below DROP_SCORE or when not seen again within TENTATIVE_GAP poses. Clutter, uniform
+# over what the cameras see, is not seen again where it was: it is dropped.
+CONFIRM_SCORE = float(np.log(1000.0))
+DROP_SCORE = -2.0
+DETECTION_PROBABILITY = 0.9
+TENTATIVE_GAP = 10
+
+# Poses a landmark may go unseen before it leaves the state, with a map (exact or prior: the map
+# holds the robot, so what a landmark's correlation with it carries is small); with no map,
+# landmarks stay in the state (their correlations are the whole estimate) up to MAX_STATE_LANDMARKS,
+# the least recently seen leaving beyond that.
+RETIRE_AFTER = 30
+MAX_STATE_LANDMARKS = 600
+
+
+class LandmarkTable:
+    """Every landmark of the run: the map's (in file order) then the added ones; where each is
+    (its row in the state, -1 outside), its position and world covariance while outside the state
+    (a zero covariance: held exactly), when it was last seen and how many observations it took."""
+
+    def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
+        n = ids.size
+        self.ids, self.xyz, self.cov = ids.astype(np.int64), xyz.astype(float).reshape(n, 3), cov.reshape(n, 3, 3)
+        self.added = np.zeros(n, bool)
+        self.state_row = np.full(n, -1, np.int64)
+        self.last_seen = np.full(n, -1, np.int64)
+        self.observations = np.zeros(n, np.int64)
+        self.tentative = np.zeros(n, bool)  # added, not yet seen CONFIRM_OBSERVATIONS times
+        self.score = np.zeros(n)  # a tentative landmark's log-likelihood ratio over clutter
+        self.dead = np.zeros(n, bool)       # a tentative landmark dropped (clutter): out of the map
+        self.num_mapped = n
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def append(self, landmark_id: int) -> int:
+        """A new (added) landmark, in the state: its index."""
+        self.ids = np.append(self.ids, landmark_id)
+        self.xyz = np.vstack([self.xyz, np.zeros((1, 3))])
+        self.cov = np.concatenate([self.cov, np.zeros((1, 3, 3))])
+        self.added = np.append(self.added, True)
+        self.state_row = np.append(self.state_row, -1)
+        self.last_seen = np.append(self.last_seen, -1)
+        self.observations = np.append(self.observations, 0)
+        self.tentative = np.append(self.tentative, False)
+        self.score = np.append(self.score, 0.0)
+        self.dead = np.append(self.dead, False)
+        return self.ids.size - 1
+
+    def in_range(self, centre: np.ndarray, radius: float, mapped_index) -> np.ndarray:
+        """Indices of the landmarks within ``radius`` of ``centre`` (the map's through its index)."""
+        mapped = mapped_index.within(centre, radius) if mapped_index is not None else np.zeros(0, np.int64)
+        offset = self.xyz[self.num_mapped:] - centre
+        added = self.num_mapped + np.flatnonzero((np.einsum("ij,ij->i", offset, offset) <= radius * radius)
+                                                 & ~self.dead[self.num_mapped:])
+        return np.concatenate([mapped, added]).astype(np.int64)
+
+class LandmarkAdditions:
+    """The mapping localizer's additions (a mix-in of ``slam_run.MappingLocalizer``, whose state
+    it reads and extends: ``x``, ``P``, ``table``, ``state_landmark``, ``tracks``, ``chosen``)."""
+
+    def _oracle_pairs(self, k: int, obs: np.ndarray) -> list[tuple[int, int]]:
+        """The pose's pairs by the file's ids (mapped, or added under the oracle), gated."""
+        pairs = []
+        for o in obs.tolist():
+            landmark = self.oracle_landmark.get(int(self.dataset.obs_true_landmark[o]))
+            if landmark is None:
+                continue
+            cost = self.landmark_costs(int(self.obs_sensor[o]), np.array([o]), np.array([landmark]))
+            if cost is not None and cost[1][0, 0] < UNPAIRED:  # gated like any pair
+                pairs.append((o, landmark))
+        return pairs
+
+    def estimated_map(self) -> LandmarkMap:
+        """The map at the end of the run: every landmark of the table (the state's estimates for
+        those in it)."""
+        table = self.table
+        xyz, cov = table.xyz.copy(), table.cov.copy()
+        for row, landmark in enumerate(self.state_landmark):
+            xyz[landmark], cov[landmark] = self.x.L[row], slam.landmark_world_cov(self.x, self.P, row)
+        keep = ~table.dead & ~table.tentative
+        return LandmarkMap(ids=table.ids[keep], xyz=xyz[keep], cov=cov[keep], added=table.added[keep],
+                           observations=table.observations[keep])
+
+    def _retire(self, k: int) -> None:
+        """Landmarks unseen for ``RETIRE_AFTER`` poses leave the state, keeping their estimate."""
+        if not self.state_landmark:
+            return
+        landmarks = np.array(self.state_landmark, np.int64)
+        if self.config.map == "none":
+            drop = np.zeros(landmarks.size, bool)
+            if landmarks.size > MAX_STATE_LANDMARKS:
+                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - MAX_STATE_LANDMARKS]] = True
+        else:
+            drop = self.table.last_seen[landmarks] < k - RETIRE_AFTER
+        # a tentative landmark is confirmed, or dropped with its pairs (clutter, or too rarely seen to map)
+        table = self.table
+        table.tentative[landmarks[table.score[landmarks] >= CONFIRM_SCORE]] = False
+        unconfirmed = table.tentative[landmarks]
+        gone = unconfirmed & ((table.last_seen[landmarks] < k - TENTATIVE_GAP) | (table.score[landmarks] < DROP_SCORE))
+        if np.any(gone):
+            table.dead[landmarks[gone]] = True
+            self.chosen[np.isin(self.chosen, landmarks[gone])] = -1
+            drop |= gone
+        if not np.any(drop):
+            return
+        for row in np.flatnonzero(drop).tolist():
+            landmark = int(landmarks[row])
+            self.table.xyz[landmark] = self.x.L[row]
+            self.table.cov[landmark] = slam.landmark_world_cov(self.x, self.P, row)
+        self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
+        self.table.state_row[landmarks[drop]] = -1
+        self.state_landmark = landmarks[~drop].tolist()
+        self.table.state_row[landmarks[~drop]] = np.arange(int(np.count_nonzero(~drop)))
+
+    # -- the run's records ------------------------------------------------------------------------
+
+    def _tracked(self, k: int, unassigned: list[int]) -> None:
+        """Unassigned observations join tracks; a confirmed track becomes a landmark. One that a
+        landmark of the map or the state would explain within its gate is not a new landmark (the
+        association left it out for its cost or its partners): it stays unassigned, so that no
+        landmark is added twice."""
+        self.tracks.expire(k)
+        unassigned = self._unexplained(unassigned)
+        for o in unassigned:
+            kind = int(self.dataset.obs_kind[o])
+            if measurement.measures_range(np.array([kind]))[0]:
+                # a point enters the state at once, tentative (``_retire`` drops it unless seen again):
+                # the filter then judges its next observations with the correlations it holds
+                self._add_landmark(k, o, SingleObservation(o), tentative=True)
+                continue
+            origin, direction, sigma = self._ray(o)
+            track = self.tracks.add_ray(k, o, origin, direction, sigma)
+            if self.tracks.confirmed(track) and self._add_landmark(k, o, track):
+                self.tracks.remove(track)
+
+    def _count_misses(self, seen: set) -> None:
+        """A tentative landmark in the state that was surely in view (``sure_view``) and not
+        seen at this pose: its score takes the miss."""
+        table = self.table
+        if not self.state_landmark or self.sure_view is None:
+            return
+        landmarks = np.array(self.state_landmark, np.int64)
+        rows = np.flatnonzero(table.tentative[landmarks] & ~np.isin(landmarks, list(seen)))
+        if rows.size == 0:
+            return
+        in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
+        table.score[landmarks[rows[in_view]]] += np.log(1.0 - DETECTION_PROBABILITY)
+
+    def _unexplained(self, obs: list[int]) -> list[int]:
+        """The observations of ``obs`` that no landmark in view fits within its chi^2 gate."""
+        if not obs or not len(self.table):
+            return obs
+        obs_array = np.array(obs, np.int64)
+        if self.state_landmark:
+            self.table.xyz[np.array(self.state_landmark)] = self.x.L
+        nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, self.mapped_index)
+        fits = np.zeros(obs_array.size, bool)
+        for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():
+            at = self.obs_sensor[obs_array] == sensor_id
+            gated = self.landmark_costs(sensor_id, obs_array[at], nearby)
+            if gated is not None:
+                fits[at] = np.any(gated[1] < UNPAIRED, axis=1)
+        return obs_array[~fits].tolist()
+
+    def _oracle_new(self, k: int, unassigned: list[int]) -> None:
+        """With the oracle, an id the map lacks becomes a landmark once seen twice (rays: with
+        parallax enough); clutter's ids are seen once."""
+        for o in unassigned:
+            true_id = int(self.dataset.obs_true_landmark[o])
+            if true_id in self.oracle_landmark:
+                continue  # a known landmark out of the gate: left unassigned
+            kind = int(self.dataset.obs_kind[o])
+            track = self.oracle_tracks.get(true_id)
+            if track is None:
+                track = self.oracle_tracks[true_id] = OracleTrack(self.tracks)
+            if measurement.measures_range(np.array([kind]))[0]:
+                track.observations.append(o)
+                ready = len(track.observations) >= 2
+            else:
+                origin, direction, sigma = self._ray(o)
+                ready = track.add_ray(k, o, origin, direction, sigma)
+            if ready and self._add_landmark(k, o, track.as_track()):
+                self.oracle_landmark[true_id] = len(self.table) - 1
+                del self.oracle_tracks[true_id]
+
+    def _inverse(self, o: int):
+        sensor = self.sensors[int(self.obs_sensor[o])]
+        return slam.inverse_observation(self.x, sensor, self.dataset.obs_z[o], self.dataset.obs_cov[o])
+
+    def _ray(self, o: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """Observation o's ray: the camera's centre, its unit direction (world) and its angular
+        standard deviation (radians)."""
+        sensor = self.sensors[int(self.obs_sensor[o])]
+        fx, fy, cx, cy = sensor.intrinsics
+        z = self.dataset.obs_z[o]
+        Rc, tc = sensor.T_robot_camera[:3, :3], sensor.T_robot_camera[:3, 3]
+        d = self.x.R @ Rc @ np.array([(z[0] - cx) / fx, (z[1] - cy) / fy, 1.0])
+        cov = self.dataset.obs_cov[o]
+        sigma = float(np.sqrt(max(cov[0, 0] / fx**2, cov[1, 1] / fy**2)))
+        return self.x.t + self.x.R @ tc, d / np.linalg.norm(d), sigma
+
+    def _add_landmark(self, k: int, o: int, track, tentative: bool = False) -> bool:
+        """A new landmark from observation o (the track's latest), in the state; False where a
+        ray's track fixes no depth in front of the camera."""
+        sensor = self.sensors[int(self.obs_sensor[o])]
+        z, R_z = self.dataset.obs_z[o].copy(), self.dataset.obs_cov[o].copy()
+        if not measurement.measures_range(np.array([sensor.kind]))[0]:
+            fix = triangulate(np.array(track.origins), np.array(track.directions), np.array(track.sigma_angle))
+            if fix is None:
+                return False
+            depth_axis = self.x.R @ sensor.T_robot_camera[:3, :3][:, 2]
+            depth = float(slam.camera_points(self.x, sensor, fix[0][None, :])[0, 2])
+            if depth <= max(self.min_depth, 1e-3):
+                return False
+            z[2], R_z[2, :], R_z[:, 2] = depth, 0.0, 0.0
+            R_z[2, 2] = DEPTH_VARIANCE_INFLATION * float(depth_axis @ fix[1] @ depth_axis)
+            sensor = replace(sensor, kind=measurement.DEPTH)
+        xyz, B, N = slam.inverse_observation(self.x, sensor, z, R_z)
+        self.x, self.P = slam.augmented(self.x, self.P, xyz, B, N)
+        landmark = self.table.append(self.next_id)
+        self.next_id += 1
+        self.table.state_row[landmark] = len(self.state_landmark)
+        self.state_landmark.append(landmark)
+        self.table.last_seen[landmark] = k
+        self.table.observations[landmark] = len(track.observations)
+        self.table.tentative[landmark] = tentative
+        self.chosen[np.array(track.observations, np.int64)] = landmark
+        return True
+
+
+# The share of the observations' distances and angles "surely in view" takes: inside what most
+# observations span, so that a landmark predicted there and not seen was missed, not out of view.
+_SURE_QUANTILES = (0.1, 0.9)
+
+
+def surely_in_view(x: slam.SlamMean, sensors: dict, xyz: np.ndarray, view: tuple[float, float, float]) -> np.ndarray:
+    """(M,) bool: which world points (M, 3) some camera of ``sensors`` surely sees from x
+    (within ``view``: ``sure_view``'s distances and angle)."""
+    near, far, angle = view
+    in_view = np.zeros(xyz.shape[0], bool)
+    for sensor in sensors.values():
+        if sensor.camera_id < 0:  # a planar robot's own sensor
+            continue
+        p = slam.camera_points(x, sensor, xyz)
+        distance = np.linalg.norm(p, axis=1)
+        in_view |= (distance >= near) & (distance <= far) & (p[:, 2] >= np.cos(angle) * distance)
+    return in_view
+
+
+def sure_view(dataset: Dataset) -> Optional[tuple[float, float, float]]:
+    """(nearest, farthest distance, widest angle) from the camera within which a landmark is surely
+    seen: the 10th and 90th percentiles of the observations' distances, the 90th of their angles
+    to the optical axis. None where no observation measures range."""
+    ranged = np.flatnonzero(measurement.measures_range(dataset.obs_kind))
+    if ranged.size < 10:
+        return None
+    from camloc.observation_space import observation_intrinsics
+
+    intrinsics = observation_intrinsics(dataset)[ranged]
+    points = np.zeros((ranged.size, 3))
+    for kind in np.unique(dataset.obs_kind[ranged]).tolist():
+        at = dataset.obs_kind[ranged] == kind
+        points[at] = measurement.back_project(dataset.obs_z[ranged[at]], intrinsics[at].T, int(kind))[0]
+    distance = np.linalg.norm(points, axis=1)
+    angle = np.arccos(np.clip(points[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
+    near, far = np.quantile(distance, _SURE_QUANTILES)
+    return float(near), float(far), float(np.quantile(angle, _SURE_QUANTILES[1]))
+
+
+class SingleObservation:
+    """One observation as a track (a landmark entered from it alone)."""
+
+    def __init__(self, o: int):
+        self.observations = [o]
+
+
+class OracleTrack:
+    """The observations of one id the map lacks, under the oracle (rays: until they fix a depth)."""
+
+    def __init__(self, tracks: Tracks):
+        self.tracks = tracks
+        self.observations: list[int] = []
+        self.origins: list = []
+        self.directions: list = []
+        self.sigma_angle: list = []
+
+    def add_ray(self, k, o, origin, direction, sigma) -> bool:
+        self.observations.append(o)
+        self.origins.append(origin)
+        self.directions.append(direction)
+        self.sigma_angle.append(sigma)
+        return len(self.observations) >= 2 and triangulate(np.array(self.origins), np.array(self.directions),
+                                                           np.array(self.sigma_angle)) is not None
+
+    def as_track(self):
+        return self
+
+
+# The screening of an exact map's run (``lacking_landmarks``): rejected observations whose points
+# agree, from at least SCREEN_POSES different poses, within SCREEN_SIGMAS of their spread.
+SCREEN_POSES = 3
+SCREEN_SIGMAS = 3.0
+
+
+def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray) -> int:
+    """How many places the run's rejected observations (``rejected`` (K,) bool) point at from
+    ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
+    see, almost never agrees with itself three times). Each observation with range becomes a world
+    point through its pose's estimate (N, 4, 4); they agree within ``SCREEN_SIGMAS`` of the spread
+    of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world). Rays (pixels)
+    are not screened."""
+    from scipy.spatial import cKDTree
+
+    from camloc.sensors import sensors_of
+
+    obs = np.flatnonzero(rejected & measurement.measures_range(dataset.obs_kind))
+    if obs.size < SCREEN_POSES:
+        return 0
+    sensors, obs_sensor = sensors_of(dataset)
+    points, spread = np.zeros((obs.size, 3)), np.zeros(obs.size)
+    for sensor_id in np.unique(obs_sensor[obs]).tolist():
+        at = obs_sensor[obs] == sensor_id
+        mine = obs[at]
+        sensor = sensors[sensor_id]
+        p_camera, G = measurement.back_project(dataset.obs_z[mine], sensor.intrinsics, sensor.kind)
+        T = T_world_robot[dataset.obs_pose_index[mine]] @ sensor.T_robot_camera
+        points[at] = np.einsum("nij,nj->ni", T[:, :3, :3], p_camera) + T[:, :3, 3]
+        noise = np.einsum("nij,njk,nlk->nil", G, dataset.obs_cov[mine], G)
+        position = pose_cov[dataset.obs_pose_index[mine], :3, :3]
+        spread[at] = np.sqrt(np.trace(noise, axis1=1, axis2=2) + np.trace(position, axis1=1, axis2=2))
+    radius = SCREEN_SIGMAS * float(np.median(spread))
+    tree = cKDTree(points)
+    pose = dataset.obs_pose_index[obs]
+    places = 0
+    claimed = np.zeros(obs.size, bool)
+    for i, neighbours in enumerate(tree.query_ball_point(points, radius)):
+        if claimed[i] or len(neighbours) < SCREEN_POSES:
+            continue
+        if np.unique(pose[neighbours]).size >= SCREEN_POSES:
+            places += 1
+            claimed[neighbours] = True
+    return places

@@ -1,0 +1,222 @@
+"""The mapping localizer (``camloc run --map prior|none``, camloc.slam_run) on worlds built for each
+behaviour: a landmark the map lacks is added and corrected as it is seen again, a moved landmark is
+corrected under a prior and not under the exact map, clutter never becomes a landmark, and two
+pixel-only cameras on a robot that does not move map a landmark consistently."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from camloc import geometry, measurement
+from camloc.dataset import Camera, Dataset
+from camloc.g2o import observation_cov_from_info, odometry_cov_from_info
+from camloc.localizer import localize
+from camloc.localizer_config import LocalizerConfig
+from camloc.simulate import SimulationConfig, simulate_labelled
+from camloc.tails import chi2_quantile
+
+
+def _world(seed=0, poses=150, **options):
+    return simulate_labelled(SimulationConfig(poses=poses, **options), seed=seed)
+
+
+def _most_seen(dataset, count=1):
+    ids, seen = np.unique(dataset.obs_true_landmark, return_counts=True)
+    mapped = np.isin(ids, dataset.landmark_ids)
+    return ids[mapped][np.argsort(-seen[mapped], kind="stable")][:count]
+
+
+def _position_rmse(result, dataset):
+    return float(np.sqrt(np.mean(np.sum((result.estimate_xyz - dataset.truth_xyz) ** 2, axis=1))))
+
+
+def test_withheld_landmarks_are_added_where_they_are():
+    """A fifth of the map withheld (the most seen landmarks, so each is seen many times): the
+    run adds them (each once), near their true place, with ids the map lacks, and pairs their
+    observations with them; the pose estimate stays within 1.3x the full map's."""
+    dataset = _world(seed=2).dataset
+    withheld = _most_seen(dataset, count=len(dataset.landmark_ids) // 5)
+    keep = ~np.isin(dataset.landmark_ids, withheld)
+    partial = replace(dataset, landmark_ids=dataset.landmark_ids[keep], landmark_xyz=dataset.landmark_xyz[keep])
+    full = localize(dataset, LocalizerConfig(map="prior"), engine="numpy")
+    result = localize(partial, LocalizerConfig(map="prior"), engine="numpy")
+    landmarks = result.landmark_map
+    added = landmarks.added
+    assert added.sum() >= 0.8 * withheld.size
+    assert not np.any(np.isin(landmarks.ids[added], dataset.landmark_ids))  # new ids
+    # each added landmark stands for the withheld one most of its observations are of
+    a = result.associations
+    stands_for = []
+    for landmark_id in landmarks.ids[added]:
+        true_ids, counts = np.unique(a.true_landmark[a.landmark == landmark_id], return_counts=True)
+        stands_for.append(true_ids[np.argmax(counts)])
+    stands_for = np.array(stands_for)
+    assert np.all(np.isin(stands_for, withheld))
+    assert np.unique(stands_for).size == stands_for.size  # none added twice
+    true_xyz = dataset.landmark_xyz[np.searchsorted(dataset.landmark_ids, stands_for)]
+    error = np.linalg.norm(landmarks.xyz[added] - true_xyz, axis=1)
+    assert np.median(error) < 0.1
+    assert _position_rmse(result, dataset) <= 1.3 * _position_rmse(full, dataset)
+    assert result.summary["map"]["added"] == int(added.sum())
+
+
+def test_a_moved_landmark_is_corrected_under_a_prior_and_not_under_the_exact_map():
+    dataset = _world(seed=1).dataset
+    target = _most_seen(dataset)[0]
+    row = int(np.flatnonzero(dataset.landmark_ids == target)[0])
+    moved_xyz = dataset.landmark_xyz.copy()
+    moved_xyz[row] += [0.3, 0.0, 0.0]
+    moved = replace(dataset, landmark_xyz=moved_xyz)
+    prior = localize(moved, LocalizerConfig(map="prior", map_sigma=0.1, association="oracle"), engine="numpy")
+    at = int(np.flatnonzero(prior.landmark_map.ids == target)[0])
+    assert np.linalg.norm(prior.landmark_map.xyz[at] - dataset.landmark_xyz[row]) < 0.15  # at most half of 0.3 m
+    # its covariance shrank from the prior's, and is honest about what is left
+    assert np.trace(prior.landmark_map.cov[at]) < 3 * 0.1**2
+    exact = localize(moved, LocalizerConfig(map="exact", association="oracle"), engine="numpy")
+    assert exact.landmark_map is None  # the map held as given: nothing estimated, no map.csv
+    assert np.linalg.norm(exact.map_landmark_xyz[row] - dataset.landmark_xyz[row]) == pytest.approx(0.3)
+
+
+def test_clutter_never_becomes_a_landmark():
+    """30% of the observations clutter, the map complete: nothing is added."""
+    sim = _world(seed=4, clutter_fraction=0.3)
+    result = localize(sim.dataset, LocalizerConfig(map="prior"), engine="numpy")
+    assert result.landmark_map.added.sum() == 0
+    a = result.associations
+    assert np.count_nonzero(a.landmark[sim.is_clutter] != -1) <= 0.01 * sim.is_clutter.sum()
+
+
+def test_no_map_maps_everything_from_the_start():
+    """With no map at all the run is EKF-SLAM from the known start: every landmark it keeps is
+    added, and it does better than odometry alone."""
+    dataset = _world(seed=3, poses=100).dataset
+    result = localize(dataset, LocalizerConfig(map="none", association="oracle"), engine="numpy")
+    odometry = float(np.sqrt(np.mean(np.sum((result.odometry_xyz - dataset.truth_xyz) ** 2, axis=1))))
+    assert result.landmark_map.added.all() and result.landmark_map.added.size > 20
+    assert _position_rmse(result, dataset) < 0.6 * odometry
+
+
+def _static_stereo(seed: int, poses: int = 40) -> tuple[Dataset, np.ndarray]:
+    """A robot standing still (odometry: no motion, tight noise) with two pixel-only cameras 0.3 m
+    apart looking along its x axis, seeing one landmark 3 m ahead that no map holds, 1 px noise."""
+    rng = np.random.default_rng(seed)
+    landmark = np.array([3.0, 0.2, 0.1])
+    look_x = geometry.euler_to_quat(np.radians([-90.0, 0.0, -90.0]))  # camera z along the robot's x
+    cameras = {c: Camera(id=c, translation=np.array([0.0, y, 0.0]), quat_xyzw=look_x, fx=500.0, fy=500.0, cx=320.0, cy=240.0)
+               for c, y in ((0, 0.15), (1, -0.15))}
+    z, camera_of = [], []
+    for k in range(poses):
+        for c, camera in cameras.items():
+            R_c = geometry.quat_to_matrix(camera.quat_xyzw)
+            p = R_c.T @ (landmark - camera.translation)
+            uv = np.array([500.0 * p[0] / p[2] + 320.0, 500.0 * p[1] / p[2] + 240.0]) + rng.normal(size=2)
+            z.append([uv[0], uv[1], 0.0])
+            camera_of.append(c)
+    K = len(z)
+    obs_info = np.tile(measurement.padded_information(np.array([[1.0, 0.0, 1.0]]), measurement.PIXEL), (K, 1, 1))
+    odom_info = np.tile(np.diag([1e8] * 6), (poses - 1, 1, 1))
+    identity = np.tile([0.0, 0.0, 0.0, 1.0], (poses - 1, 1))
+    truth_quat = np.tile([0.0, 0.0, 0.0, 1.0], (poses, 1))
+    dataset = Dataset(
+        source="static-stereo", cameras=cameras, landmark_ids=np.zeros(0, np.int64), landmark_xyz=np.zeros((0, 3)),
+        pose_ids=np.arange(100, 100 + poses), start_xyz=np.zeros(3), start_quat_xyzw=truth_quat[0],
+        truth_xyz=np.zeros((poses, 3)), truth_quat_xyzw=truth_quat, odom_translation=np.zeros((poses - 1, 3)),
+        odom_quat_xyzw=identity, odom_info=odom_info, odom_cov=odometry_cov_from_info(odom_info),
+        obs_pose_index=np.repeat(np.arange(poses), 2), obs_camera=np.array(camera_of, np.int64), obs_z=np.array(z),
+        obs_info=obs_info, obs_cov=observation_cov_from_info(obs_info), obs_true_landmark=np.full(K, 7, np.int64),
+        obs_kind=np.full(K, measurement.PIXEL, np.int64),
+    )
+    return dataset, landmark
+
+
+@pytest.mark.parametrize("association", ["beam", "oracle"])
+def test_two_pixel_cameras_on_a_still_robot_map_a_landmark_consistently(association):
+    """The classic two-camera case: the landmark's estimate converges to the truth as it is seen
+    again and again, and its covariance is consistent (NEES over seeds within the 95% bounds of a
+    3-dof chi-square mean)."""
+    nees, spread = [], []
+    for seed in range(20):
+        dataset, truth = _static_stereo(seed)
+        config = LocalizerConfig(map="none", association=association, initial_sigma_xyz=1e-4, initial_sigma_deg=1e-3)
+        landmarks = localize(dataset, config, engine="numpy").landmark_map
+        assert landmarks.ids.size == 1 and landmarks.added[0]
+        error = landmarks.xyz[0] - truth
+        nees.append(float(error @ np.linalg.solve(landmarks.cov[0], error)))
+        spread.append(np.sqrt(np.trace(landmarks.cov[0])))
+    assert np.median(spread) < 0.05  # 3 m away through a 0.3 m baseline: centimetres after 40 views
+    lower, upper = chi2_quantile(3 * 20, 0.975) / 20, chi2_quantile(3 * 20, 0.025) / 20
+    assert lower <= np.mean(nees) <= upper
+
+
+def test_a_landmark_is_corrected_as_it_is_seen_again():
+    """The same still robot: after 3 poses of views the landmark is a few centimetres wide, after
+    40 a fraction of that, and closer to the truth."""
+    dataset, truth = _static_stereo(0, poses=40)
+    config = LocalizerConfig(map="none", association="oracle", initial_sigma_xyz=1e-4, initial_sigma_deg=1e-3)
+    early = localize(replace(dataset, **_first_poses(dataset, 3)), config, engine="numpy").landmark_map
+    late = localize(dataset, config, engine="numpy").landmark_map
+    assert np.trace(late.cov[0]) < 0.2 * np.trace(early.cov[0])
+    assert np.linalg.norm(late.xyz[0] - truth) < np.linalg.norm(early.xyz[0] - truth) + 0.01
+
+
+def _first_poses(dataset: Dataset, n: int) -> dict:
+    keep = dataset.obs_pose_index < n
+    return dict(pose_ids=dataset.pose_ids[:n], truth_xyz=dataset.truth_xyz[:n], truth_quat_xyzw=dataset.truth_quat_xyzw[:n],
+                odom_translation=dataset.odom_translation[:n - 1], odom_quat_xyzw=dataset.odom_quat_xyzw[:n - 1],
+                odom_info=dataset.odom_info[:n - 1], odom_cov=dataset.odom_cov[:n - 1], obs_pose_index=dataset.obs_pose_index[keep],
+                obs_camera=dataset.obs_camera[keep], obs_z=dataset.obs_z[keep], obs_info=dataset.obs_info[keep],
+                obs_cov=dataset.obs_cov[keep], obs_true_landmark=dataset.obs_true_landmark[keep], obs_kind=dataset.obs_kind[keep])
+
+
+# --- through the command line --------------------------------------------------------------------
+
+def _cli(*args):
+    from typer.testing import CliRunner
+
+    from camloc.cli.app import app
+
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def test_run_map_prior_writes_the_map_and_eval_scores_it(tmp_path):
+    """simulate (a fifth of the map withheld) -> run --map prior -> map.csv, eval --true-map."""
+    import json
+
+    from camloc.results import read_map
+
+    world = tmp_path / "w.g2o"
+    assert _cli("simulate", "-o", world, "--poses", "120", "--seed", "2", "--withhold-map", "0.2", "-q").exit_code == 0
+    run = _cli("run", world, "--map", "prior", "--map-sigma", "0.05", "-o", tmp_path / "r", "--json")
+    assert run.exit_code == 0, run.output
+    summary = json.loads(run.output)
+    assert summary["config"]["map"] == "prior" and summary["config"]["map_sigma"] == 0.05
+    assert summary["map"]["mode"] == "prior" and summary["map"]["added"] >= 1
+    landmarks = read_map(tmp_path / "r" / "map.csv")
+    assert int(landmarks.added.sum()) == summary["map"]["added"]
+    scored = _cli("eval", tmp_path / "r", "--true-map", tmp_path / "w.true-map.g2o", "--json")
+    assert scored.exit_code == 0, scored.output
+    report = json.loads(scored.output)["map"]
+    assert report["added_twice"]["landmarks"] == 0 and report["clutter"]["landmarks"] == 0
+
+
+def test_a_file_without_a_map_is_mapped_from_scratch(tmp_path):
+    """No landmark vertex: --map auto runs as none and adds landmarks (with the true association it
+    beats odometry: test_no_map_maps_everything_from_the_start)."""
+    import json
+
+    world = tmp_path / "w.g2o"
+    assert _cli("simulate", "-o", world, "--poses", "80", "--seed", "1", "--no-map", "-q").exit_code == 0
+    run = _cli("run", world, "-o", tmp_path / "r", "--json")
+    assert run.exit_code == 0, run.output
+    summary = json.loads(run.output)
+    assert summary["config"]["map"] == "none" and summary["map"]["added"] > 10
+    assert summary["map"]["mapped"] == 0 and summary["counts"]["updates"] > 40
+
+
+def test_mapping_a_planar_file_is_refused_clearly(tmp_path):
+    world = tmp_path / "p.g2o"
+    assert _cli("simulate", "-o", world, "--robot", "planar", "--poses", "30", "-q").exit_code == 0
+    run = _cli("run", world, "--map", "prior", "-o", tmp_path / "r")
+    assert run.exit_code != 0
+    assert "planar" in run.output and "--map exact" in run.output and "Traceback" not in run.output

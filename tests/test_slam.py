@@ -1,0 +1,118 @@
+"""The invariant EKF-SLAM's model (camloc.slam): every Jacobian against finite differences of the
+state's retraction, and the prediction's error propagation against a perturbed pair of runs."""
+
+import numpy as np
+import pytest
+
+from camloc import geometry, measurement, slam
+from camloc.sensors import CameraModel
+
+STEP = 1e-6
+
+
+def _state(rng, m=2):
+    R = geometry.so3_exp(rng.normal(size=3) * 0.5)
+    t = rng.normal(size=3)
+    # landmarks in front of the camera below (about 4 m ahead along the robot's x)
+    L = t + (R @ (np.array([4.0, 0.0, 0.0]) + rng.normal(size=(m, 3)) * 0.5).T).T
+    return slam.SlamMean(R, t, L)
+
+
+def _camera(kind):
+    # a camera looking along the robot's x axis (its z), offset on the robot
+    Rc = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rc, [0.1, -0.05, 0.2]
+    return CameraModel(T, (500.0, 510.0, 320.0, 240.0), kind, 0)
+
+
+def _numeric(f, x, dim):
+    columns = []
+    for i in range(dim):
+        e = np.zeros(dim)
+        e[i] = STEP
+        columns.append((f(slam.retract(x, e)) - f(slam.retract(x, -e))) / (2 * STEP))
+    return np.stack(columns, axis=-1)
+
+
+@pytest.mark.parametrize("kind", [measurement.DEPTH, measurement.PIXEL, measurement.DISPARITY])
+def test_observation_jacobians_match_finite_differences(kind):
+    rng = np.random.default_rng(3)
+    x = _state(rng)
+    sensor = _camera(kind)
+    fixed = x.t + x.R @ np.array([5.0, 0.3, -0.2])
+    for row, xyz_of in [(0, lambda s: s.L[0]), (1, lambda s: s.L[1]), (-1, lambda s: fixed)]:
+        z, H = slam.observe(x, sensor, xyz_of(x)[None, :], np.array([row]))
+        numeric = _numeric(lambda s: slam.observe(s, sensor, xyz_of(s)[None, :], np.array([row]))[0][0], x, x.dim)
+        np.testing.assert_allclose(H[0], numeric, atol=1e-5 * max(1.0, np.abs(numeric).max()))
+        if row >= 0:  # a landmark in the state moves with it, not with the heading
+            np.testing.assert_allclose(H[0][:, 3:6], 0.0, atol=1e-9)
+
+
+def test_retract_and_difference_are_inverse():
+    rng = np.random.default_rng(4)
+    x = _state(rng)
+    delta = rng.normal(size=x.dim) * 0.3
+    moved = slam.retract(x, delta)
+    np.testing.assert_allclose(slam.difference(moved, x), delta, atol=1e-10)
+
+
+def test_inverse_observation_and_its_error():
+    """The landmark a depth measurement implies reprojects to it, and its error is the pose's
+    translation error plus the measurement's noise mapped (B = [I, 0], W R W')."""
+    rng = np.random.default_rng(5)
+    x = _state(rng, m=0)
+    sensor = _camera(measurement.DEPTH)
+    z = np.array([300.0, 250.0, 4.0])
+    R_z = np.diag([2.0, 3.0, 0.01])
+    xyz, B, N = slam.inverse_observation(x, sensor, z, R_z)
+    z_back, _ = slam.observe(x, sensor, xyz[None, :], np.array([-1]))
+    np.testing.assert_allclose(z_back[0], z, atol=1e-9)
+    # xi_l = l(x (+) xi) - Exp(xi_theta) l^ ... : the landmark from the perturbed pose, as an error
+    def landmark_error(s):
+        l_new, _, _ = slam.inverse_observation(s, sensor, z, R_z)
+        with_landmark = slam.SlamMean(s.R, s.t, l_new[None, :])
+        base = slam.SlamMean(x.R, x.t, xyz[None, :])
+        return slam.difference(with_landmark, base)[6:9]
+    numeric = _numeric(landmark_error, x, 6)
+    np.testing.assert_allclose(B, numeric, atol=1e-6)
+    # the noise: d l / d z through W, numerically
+    W = np.stack([(slam.inverse_observation(x, sensor, z + e, R_z)[0] - slam.inverse_observation(x, sensor, z - e, R_z)[0]) / 2e-6
+                  for e in np.eye(3) * 1e-6], axis=1)
+    np.testing.assert_allclose(N, W @ R_z @ W.T, rtol=1e-5)
+
+
+def test_prediction_error_propagates_with_identity():
+    """Two states an error xi apart stay xi apart (to first order) after the same increment (F = I),
+    and an increment's right perturbation w moves the error by G w (``noise_coefficients``)."""
+    rng = np.random.default_rng(6)
+    x = _state(rng, m=1)
+    T_inc = geometry.make_pose(geometry.so3_exp(rng.normal(size=3) * 0.2), rng.normal(size=3))
+    xi = rng.normal(size=x.dim) * 1e-5
+    a, _ = slam.predict(x, np.eye(x.dim), T_inc, np.eye(6))
+    b, _ = slam.predict(slam.retract(x, xi), np.eye(x.dim), T_inc, np.eye(6))
+    np.testing.assert_allclose(slam.difference(b, a), xi, atol=1e-9)
+    w = rng.normal(size=6) * 1e-5
+    c, _ = slam.predict(x, np.eye(x.dim), T_inc @ geometry.make_pose(geometry.so3_exp(w[3:6]), w[0:3]), np.eye(6))
+    np.testing.assert_allclose(slam.difference(c, a), slam.noise_coefficients(a) @ w, atol=1e-9)
+    # and the covariance grows by exactly G Q G'
+    Q = np.diag(rng.uniform(0.1, 1.0, size=6))
+    _, P = slam.predict(x, np.zeros((x.dim, x.dim)), T_inc, Q)
+    G = slam.noise_coefficients(a)
+    np.testing.assert_allclose(P, G @ Q @ G.T, atol=1e-12)
+
+
+def test_world_covariances_round_trip():
+    """A landmark entered with a world prior independent of the pose reads back that prior plus
+    nothing of the pose (its world covariance), and the start's world covariance reads back."""
+    rng = np.random.default_rng(7)
+    x = _state(rng, m=0)
+    world = np.diag([0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-4])
+    P = slam.initial_cov(x, world)
+    J = np.zeros((6, 6))  # right perturbation -> world (dt, dtheta): blockdiag(R, R)
+    J[:3, :3], J[3:, 3:] = x.R, x.R
+    np.testing.assert_allclose(J @ slam.pose_right_cov(x, P) @ J.T, world, atol=1e-12)
+    xyz = np.array([3.0, -2.0, 1.0])
+    prior = np.diag([0.04, 0.05, 0.06])
+    x2, P2 = slam.augmented(x, P, xyz, slam.world_prior_coefficients(x, xyz), prior)
+    np.testing.assert_allclose(slam.landmark_world_cov(x2, P2, 0), prior, atol=1e-12)
