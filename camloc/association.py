@@ -151,14 +151,14 @@ def pair_statistics(
 
 
 def best_friends(
-    cost: np.ndarray, d2: np.ndarray, *, gate: float, margin: float
+    cost: np.ndarray, d2: np.ndarray, *, gate: float | np.ndarray, margin: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mutual-best pairs that pass the gate and have no close rival.
 
     Parameters
     ----------
     cost : (n, m) pair costs (lower is better); d2 : (n, m) squared Mahalanobis distances.
-    gate : accept only pairs with ``d2 <= gate`` (a chi^2 quantile).
+    gate : accept only pairs with ``d2 <= gate`` (a chi^2 quantile; or (n, m), each pair's).
     margin : reject a pair when a rival in its row or column costs less than ``cost + margin``.
 
     Returns
@@ -176,7 +176,7 @@ def best_friends(
     best_obs = np.argmin(cost, axis=0)
     best_cost = cost[rows, best_cand]
     mutual = best_obs[best_cand] == rows
-    gated = d2[rows, best_cand] <= gate
+    gated = d2[rows, best_cand] <= np.broadcast_to(gate, d2.shape)[rows, best_cand]
     gap = np.minimum(_runner_up(cost, axis=1), _runner_up(cost, axis=0)[best_cand]) - best_cost
     keep = mutual & gated & (gap >= margin)
     return rows[keep], best_cand[keep], gap[keep]

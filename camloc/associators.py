@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
-from camloc import association, measurement, planar
+from camloc import association, measurement, planar, tag_orientations
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG
 from camloc.jcbb import jcbb
@@ -65,6 +65,8 @@ class AssociationScene:
         for a method that judges the rest of a pose's observations after some pairs.
     planar_range : how far a planar robot's own sensor (``measurement.PLANAR_KINDS``) sees,
         metres (``observation_space.planar_range``).
+    tag_orientations : the tags' orientations, which a tag's pair is judged by with its position
+        (``camloc.tag_orientations``); None or False: none.
     """
 
     dataset: Dataset
@@ -80,6 +82,7 @@ class AssociationScene:
     true_landmark_row: np.ndarray
     conditioned: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
     planar_range: float = 0.0
+    tag_orientations: Optional[tag_orientations.TagOrientations] = None
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
@@ -212,22 +215,40 @@ def best_friends_pairs(
         rows_c = np.flatnonzero(scene.obs_sensor[obs] == camera_id)
         candidates, z_hat, H, HPH = scene.predictions(x, P, camera_id)
         free = ~np.isin(candidates, taken)
-        candidates, z_hat, HPH = candidates[free], z_hat[free], HPH[free]
+        candidates, z_hat, H, HPH = candidates[free], z_hat[free], H[free], HPH[free]
         if candidates.size == 0:
             continue
         z = ds.obs_z[obs[rows_c]]
         kinds = ds.obs_kind[obs[rows_c]]
         d2, nll = association.pair_statistics(z, scene.association_cov[obs[rows_c]], z_hat, HPH, kinds)
+        more_d2, more_cost, gate = orientation_terms(scene, x, P, obs[rows_c], candidates, z_hat, H)
+        d2, nll = d2 + more_d2, nll + more_cost
         pair_cost = {"nll": nll, "mahalanobis": d2}.get(cost)
         if pair_cost is None:
             pair_cost = np.linalg.norm(planar.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None]), axis=-1)
-        r, c, gap = association.best_friends(pair_cost, d2, gate=float(scene.obs_gate[obs[rows_c[0]]]), margin=margin)
+        r, c, gap = association.best_friends(pair_cost, d2, gate=gate, margin=margin)
         rows_all.append(rows_c[r])
         landmarks_all.append(candidates[c])
         gaps_all.append(gap)
     if not rows_all:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     return np.concatenate(rows_all), np.concatenate(landmarks_all), np.concatenate(gaps_all)
+
+
+def orientation_terms(
+    scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray, candidates: np.ndarray, z_hat: np.ndarray, H: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What tags' orientations add to every pair of observations obs (n,) and candidates (m,)
+    (predictions z_hat (m, 3), H (m, 3, s)): d^2 (n, m), cost (n, m) and each pair's gate (n, m)
+    (``tag_orientations.TagOrientations.pair_terms``; zeros and ``obs_gate`` without tags)."""
+    gate = np.broadcast_to(scene.obs_gate[obs][:, None], (obs.size, candidates.size))
+    if not scene.tag_orientations:
+        return np.zeros(gate.shape), np.zeros(gate.shape), gate
+    i, j = (part.ravel() for part in np.indices(gate.shape))
+    y = planar.wrap_residuals(scene.dataset.obs_z[obs[i]] - z_hat[j], scene.dataset.obs_kind[obs[i]])
+    terms = scene.tag_orientations.pair_terms(x, P, obs[i], candidates[j], y, H[j], scene.association_cov[obs[i]], scene.observe,
+                                              scene.obs_sensor, gate.ravel())
+    return tuple(term.reshape(gate.shape) for term in terms)
 
 
 @dataclass(eq=False)
@@ -269,13 +290,26 @@ class Jcbb:
         for mine, size in blocks:
             same_camera[mine, start : start + size] = True
             start += size
-        compatible = (d2 <= scene.obs_gate[obs][:, None]) & same_camera
+        more_d2, _, gate = orientation_terms(scene, x, P, obs, candidates, z_hat, H)
+        compatible = (d2 + more_d2 <= gate) & same_camera
+        orientations = orientation_rows(scene, x, obs, candidates, compatible)
         rows, landmarks, _ = best_friends_pairs(scene, x, P, obs, taken=np.zeros(0, np.int64), cost=self.seed_cost, margin=self.seed_margin)
         column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
         seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
         result = jcbb(y_all, H, P, scene.association_cov[obs], compatible, dof=measurement.dof_of(ds.obs_kind[obs]),
-                      probability=self.probability, max_nodes=self.max_nodes, seed=seed)
+                      probability=self.probability, max_nodes=self.max_nodes, seed=seed, orientations=orientations)
         if not result.exhaustive:
             self.poses_cut_short += 1
         paired = result.assignment >= 0
         return obs[paired], candidates[result.assignment[paired]]
+
+
+def orientation_rows(scene: AssociationScene, x: np.ndarray, obs: np.ndarray, candidates: np.ndarray, compatible: np.ndarray) -> dict:
+    """The orientation rows of the compatible pairs (i, j) of observations obs (n,) and candidates
+    (m,) that are a tag's position with a tag: {(i, j): (e (3,), H_rot (3, s), R_rot (3, 3))}
+    (``tag_orientations.TagOrientations.orientation_rows``), for ``jcbb``'s joint test."""
+    if not scene.tag_orientations or not tag_orientations.ORIENTATION_IN_ASSOCIATION:
+        return {}
+    i, j = np.nonzero(compatible)
+    both, e, H_rot, R_rot = scene.tag_orientations.orientation_rows(x, obs[i], candidates[j], scene.observe, scene.obs_sensor)
+    return {(int(i[b]), int(j[b])): (e[n], H_rot[n], R_rot[n]) for n, b in enumerate(both)}

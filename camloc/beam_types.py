@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from camloc.associators import CameraModel
     from camloc.dataset import Dataset
     from camloc.filters import EulerFilter, SE3Filter
+    from camloc.tag_orientations import TagOrientations
 
 
 @dataclass(frozen=True)
@@ -163,6 +164,7 @@ class BeamContext(Protocol):
     point: np.ndarray                    # (K, 3) each observation as a point in its camera's frame,
     point_cov: np.ndarray                # (K, 3, 3) its covariance
     log_det_point_cov: np.ndarray        # (K,) and that covariance's ln det
+    tag_orientations: TagOrientations    # the tags' orientations (``camloc.tag_orientations``; False without)
     detect_range: tuple[float, float]    # distances from a camera within which it surely detects a landmark
                                          # it sees (``observation_space.detection_range``; (0, 0): no pixel observations)
 

@@ -84,6 +84,7 @@ PLANAR_ROBOT_TAGS = (TAG_POSE_SE2, TAG_ODOMETRY_SE2)
 # a tag (an AprilTag): its pose, and a camera's observation of its position and orientation
 TAG_TAG = "VERTEX_TAG"
 TAG_OBSERVATION_TAG = "EDGE_PROJECT_TAG"
+TAG_OBSERVATION_TAG_UV = "EDGE_PROJECT_TAG_UV"  # a camera without depth: the tag's pixel and orientation
 # a planar robot's landmarks: a 3-D file's are skipped with a warning, as unknown tags are (no
 # sensor of a 3-D robot observes them, and a 3-D file read before they were known reads the same)
 PLANAR_ONLY_TAGS = (TAG_LANDMARK_XY, TAG_MARKER)
@@ -160,6 +161,11 @@ _TAG = _Layout(TAG_TAG, ("id", "x", "y", "z", "qx", "qy", "qz", "qw"), 1, "id x 
 _OBSERVATION_TAG = _Layout(TAG_OBSERVATION_TAG, ("pose", "landmark", "camera", "u", "v", "depth", "qx", "qy", "qz", "qw")
                            + _upper_names(6), 3, "pose landmark camera u v depth qx qy qz qw + 21 information numbers",
                            ("depth",), ("u", "v"))
+_OBSERVATION_TAG_UV = _Layout(TAG_OBSERVATION_TAG_UV, ("pose", "landmark", "camera", "u", "v", "qx", "qy", "qz", "qw")
+                              + _upper_names(5), 3, "pose landmark camera u v qx qy qz qw + 15 information numbers",
+                              (), ("u", "v"))
+# a tag observation's record by the kind of its position's half
+_TAG_OBSERVATION_LAYOUTS = {measurement.DEPTH: _OBSERVATION_TAG, measurement.PIXEL: _OBSERVATION_TAG_UV}
 # each observation record's layout by its measurement kind (camloc.measurement)
 _OBSERVATION_LAYOUTS = {measurement.DEPTH: _OBSERVATION, measurement.PIXEL: _OBSERVATION_UV,
                         measurement.DISPARITY: _OBSERVATION_DISPARITY, measurement.POINT2: _OBSERVATION_XY,
@@ -167,7 +173,7 @@ _OBSERVATION_LAYOUTS = {measurement.DEPTH: _OBSERVATION, measurement.PIXEL: _OBS
 # the map's records, by the kind of landmark each gives (camloc.dataset)
 _LANDMARK_LAYOUTS = {LANDMARK_POINT3: _LANDMARK, LANDMARK_POINT2: _LANDMARK_XY, LANDMARK_MARKER: _MARKER, LANDMARK_TAG: _TAG}
 _LAYOUTS = {layout.tag: layout for layout in (_CAMERA, _LANDMARK, _POSE, _ODOMETRY, _POSE_SE2, _ODOMETRY_SE2, _LANDMARK_XY,
-                                              _MARKER, _TAG, *_OBSERVATION_LAYOUTS.values(), _OBSERVATION_TAG)}
+                                              _MARKER, _TAG, *_OBSERVATION_LAYOUTS.values(), *_TAG_OBSERVATION_LAYOUTS.values())}
 KNOWN_TAGS = tuple(_LAYOUTS)
 
 
@@ -675,7 +681,8 @@ def _build_all_observations(path: Path, tables: dict[str, _Table], pose_ids: np.
     (no camera) sensor is ``measurement.ROBOT_FRAME_SENSOR``."""
     parts = [_build_observations(path, tables[layout.tag], layout, kind, pose_ids, cameras, messages)
              for kind, layout in _OBSERVATION_LAYOUTS.items()]
-    parts.append(_build_tag_observations(path, tables[TAG_OBSERVATION_TAG], pose_ids, cameras, messages))
+    parts += [_build_tag_observations(path, tables[layout.tag], kind, pose_ids, cameras, messages)
+              for kind, layout in _TAG_OBSERVATION_LAYOUTS.items()]
     order = np.argsort(np.concatenate([part.pop("line") for part in parts]), kind="stable")
     return {name: np.concatenate([part[name] for part in parts])[order] for name in parts[0]}
 
@@ -719,25 +726,30 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
             "kind": np.full(table.values.shape[0], kind, dtype=np.int64), "line": table.lines}
 
 
-def _build_tag_observations(path: Path, table: _Table, pose_ids: np.ndarray, cameras: dict[int, Camera],
+def _build_tag_observations(path: Path, table: _Table, kind: int, pose_ids: np.ndarray, cameras: dict[int, Camera],
                             messages: list[str]) -> dict[str, np.ndarray]:
-    """``EDGE_PROJECT_TAG`` records as two observations each, consecutive and on the record's line:
-    a depth observation of the tag's position (u, v, depth) and its orientation's
-    (``measurement.TAG_ROTATION``: z the rotation vector of the measured orientation), each with its
-    block of the 6x6 information, which must have no (u, v, depth) x orientation correlation."""
-    info = _info_from_upper(table.values[:, 7:28], 6)
-    _check_positive_definite(path, TAG_OBSERVATION_TAG, info, table.lines)
-    coupled = np.flatnonzero(np.any(info[:, :3, 3:] != 0.0, axis=(1, 2)))
+    """``EDGE_PROJECT_TAG`` (``kind`` depth) or ``EDGE_PROJECT_TAG_UV`` (pixel) records as two
+    observations each, consecutive and on the record's line: an observation of the tag's position
+    of that kind ((u, v, depth) or (u, v)) and its orientation's (``measurement.TAG_ROTATION``: z
+    the rotation vector of the measured orientation), each with its block of the information,
+    which must have no position x orientation correlation."""
+    layout, dof = _TAG_OBSERVATION_LAYOUTS[kind], measurement.KINDS[kind].dof
+    tag, dim = layout.tag, dof + 3
+    info = _info_from_upper(table.values[:, dof + 4:], dim)
+    _check_positive_definite(path, tag, info, table.lines)
+    coupled = np.flatnonzero(np.any(info[:, :dof, dof:] != 0.0, axis=(1, 2)))
     if coupled.size:
-        raise DatasetError(path, int(table.lines[coupled[0]]), f"{TAG_OBSERVATION_TAG}: expected no information between "
-                           "(u, v, depth) and the orientation (the 3x3 block of rows 0-2, columns 3-5 zero), found some")
-    position = _Table(table.ids, np.hstack([table.values[:, :3], info[(slice(None), *np.triu_indices(3))]]), table.lines)
-    layout = _Layout(TAG_OBSERVATION_TAG, _OBSERVATION.names, 3, _OBSERVATION.summary, _OBSERVATION.lengths, _OBSERVATION.image)
-    part = _build_observations(path, position, layout, measurement.DEPTH, pose_ids, cameras, messages)
-    quat = _unit_quaternions(path, TAG_OBSERVATION_TAG, table.values[:, 3:7], table.lines, messages)
-    rotation_info = info[:, 3:, 3:]
+        what = "(u, v, depth)" if kind == measurement.DEPTH else "(u, v)"
+        raise DatasetError(path, int(table.lines[coupled[0]]), f"{tag}: expected no information between {what} and the "
+                           f"orientation (the block of rows 0-{dof - 1}, columns {dof}-{dim - 1} zero), found some")
+    position_layout = _OBSERVATION_LAYOUTS[kind]
+    position = _Table(table.ids, np.hstack([table.values[:, :dof], info[(slice(None), *np.triu_indices(dof))]]), table.lines)
+    layout = _Layout(tag, position_layout.names, 3, position_layout.summary, position_layout.lengths, position_layout.image)
+    part = _build_observations(path, position, layout, kind, pose_ids, cameras, messages)
+    quat = _unit_quaternions(path, tag, table.values[:, dof:dof + 4], table.lines, messages)
+    rotation_info = info[:, dof:, dof:]
     rotation = {**part, "z": geometry.so3_log(geometry.quat_to_matrix(quat)).reshape(-1, 3), "info": rotation_info,
-                "cov": _covariances(path, TAG_OBSERVATION_TAG, rotation_info, table.lines, observation_cov_from_info),
+                "cov": _covariances(path, tag, rotation_info, table.lines, observation_cov_from_info),
                 "kind": np.full(table.values.shape[0], measurement.TAG_ROTATION, dtype=np.int64)}
     # interleaved: each position, then its orientation (``Dataset.obs_partner``)
     return {name: np.stack([part[name], rotation[name]], axis=1).reshape((-1,) + part[name].shape[1:]) for name in part}
@@ -935,15 +947,17 @@ def _observation_records(dataset: Dataset) -> list[str]:
         values = np.hstack([dataset.obs_z[rows, :dof], measurement.upper_triangle(dataset.obs_info[rows], kind)])
         for row, line in zip(rows.tolist(), _records(layout.tag, ids[rows, :layout.n_ids], values)):
             lines[row] = line
-    # a tag's position and orientation: one EDGE_PROJECT_TAG on the position's line, none on the orientation's
-    rotation = np.flatnonzero(dataset.obs_kind == measurement.TAG_ROTATION)
-    position = dataset.obs_partner[rotation]
-    info = np.zeros((rotation.size, 6, 6))
-    info[:, :3, :3], info[:, 3:, 3:] = dataset.obs_info[position], dataset.obs_info[rotation]
-    quat = geometry.matrix_to_quat(geometry.so3_exp(dataset.obs_z[rotation])).reshape(-1, 4)
-    values = np.hstack([dataset.obs_z[position], quat, info[(slice(None), *np.triu_indices(6))]])
-    for row, partner, line in zip(position.tolist(), rotation.tolist(), _records(TAG_OBSERVATION_TAG, ids[position], values)):
-        lines[row], lines[partner] = line, ""
+    # a tag's position and orientation: one EDGE_PROJECT_TAG (_UV) on the position's line, none on the orientation's
+    for kind, layout in _TAG_OBSERVATION_LAYOUTS.items():
+        rotation = np.flatnonzero(dataset.obs_kind == measurement.TAG_ROTATION)
+        rotation = rotation[dataset.obs_kind[dataset.obs_partner[rotation]] == kind]
+        position, dof = dataset.obs_partner[rotation], measurement.KINDS[kind].dof
+        info = np.zeros((rotation.size, dof + 3, dof + 3))
+        info[:, :dof, :dof], info[:, dof:, dof:] = dataset.obs_info[position, :dof, :dof], dataset.obs_info[rotation]
+        quat = geometry.matrix_to_quat(geometry.so3_exp(dataset.obs_z[rotation])).reshape(-1, 4)
+        values = np.hstack([dataset.obs_z[position, :dof], quat, info[(slice(None), *np.triu_indices(dof + 3))]])
+        for row, partner, line in zip(position.tolist(), rotation.tolist(), _records(layout.tag, ids[position], values)):
+            lines[row], lines[partner] = line, ""
     return lines
 
 

@@ -39,20 +39,23 @@ class JcbbResult:
 
 
 def joint_nis(
-    pairs: list[tuple[int, int]], y_all: np.ndarray, H: np.ndarray, P: np.ndarray, R_obs: np.ndarray
+    pairs: list[tuple[int, int]], y_all: np.ndarray, H: np.ndarray, P: np.ndarray, R_obs: np.ndarray, orientations: dict | None = None,
 ) -> float:
     """``y' S^-1 y`` of the stacked innovation of ``pairs`` (observation, candidate).
 
     y_all : (n, m, 3) innovations of every observation against every candidate; H : (m, 3, s)
-    candidate Jacobians; P : (s, s) state covariance; R_obs : (n, 3, 3).
+    candidate Jacobians; P : (s, s) state covariance; R_obs : (n, 3, 3). orientations : a tag
+    pair's orientation rows {(i, j): (e (3,), H_rot (3, s), R_rot (3, 3))}, stacked after the
+    positions (``camloc.tag_orientations``).
     """
     obs = [i for i, _ in pairs]
     cand = [j for _, j in pairs]
-    y = y_all[obs, cand].reshape(-1)
-    H_stack = H[cand].reshape(-1, H.shape[-1])
+    rows = [orientations[pair] for pair in pairs if pair in orientations] if orientations else []
+    y = np.concatenate([y_all[obs, cand].reshape(-1)] + [e for e, _, _ in rows])
+    H_stack = np.concatenate([H[cand].reshape(-1, H.shape[-1])] + [H_rot for _, H_rot, _ in rows])
     S = H_stack @ P @ H_stack.T
-    for k, i in enumerate(obs):
-        S[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] += R_obs[i]
+    for k, R in enumerate([R_obs[i] for i in obs] + [R_rot for _, _, R_rot in rows]):
+        S[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] += R
     return float(y @ np.linalg.solve(S, y))
 
 
@@ -65,16 +68,13 @@ def _individual_d2(i: int, columns: np.ndarray, y_all: np.ndarray, H: np.ndarray
 
 
 def jcbb(
-    y_all: np.ndarray,
-    H: np.ndarray,
-    P: np.ndarray,
-    R_obs: np.ndarray,
-    compatible: np.ndarray,
+    y_all: np.ndarray, H: np.ndarray, P: np.ndarray, R_obs: np.ndarray, compatible: np.ndarray,
     *,
     probability: float = 0.99,
     max_nodes: int = 2000,
     seed: list[tuple[int, int]] | None = None,
     dof: np.ndarray | None = None,
+    orientations: dict | None = None,
 ) -> JcbbResult:
     """The largest jointly compatible set of pairs.
 
@@ -90,16 +90,18 @@ def jcbb(
         every observation, nothing can beat it and the search is skipped.
     dof : (n,) each observation's degrees of freedom (``camloc.measurement``: its rows beyond
         them are inert); None: 3 each.
+    orientations : the orientation rows of tag pairs (``joint_nis``), 3 more dof each.
     """
     n = compatible.shape[0]
     dof = np.full(n, 3, dtype=np.int64) if dof is None else np.asarray(dof, dtype=np.int64)
-    bounds = chi2_quantile(np.arange(1, 3 * n + 1), 1.0 - probability)  # chi^2 quantiles by total dof
+    orientations = orientations or {}
+    bounds = chi2_quantile(np.arange(1, 6 * n + 1), 1.0 - probability)  # chi^2 quantiles by total dof
 
     def bound(pairs: list) -> float:
-        return float(bounds[sum(int(dof[i]) for i, _ in pairs) - 1])
+        return float(bounds[sum(int(dof[i]) + 3 * ((i, j) in orientations) for i, j in pairs) - 1])
 
     if seed and len(seed) == n:
-        nis = joint_nis(seed, y_all, H, P, R_obs)
+        nis = joint_nis(seed, y_all, H, P, R_obs, orientations)
         if nis <= bound(seed):
             assignment = np.full(n, -1, dtype=np.int64)
             for i, j in seed:
@@ -132,7 +134,7 @@ def jcbb(
                 return
             nodes += 1
             trial = pairs + [(i, int(j))]
-            trial_nis = joint_nis(trial, y_all, H, P, R_obs)
+            trial_nis = joint_nis(trial, y_all, H, P, R_obs, orientations)
             if trial_nis <= bound(trial):
                 search(depth + 1, trial, used | {int(j)}, trial_nis)
         # leave observation i unpaired, if pairing all the rest could still beat the best set

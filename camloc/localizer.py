@@ -18,7 +18,7 @@ import numpy as np
 
 from camloc import association, associators, ekf, geometry, measurement, planar, warmup
 from camloc.tag_orientations import TagOrientations
-from camloc.associators import AssociationScene
+from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
@@ -343,21 +343,20 @@ class _Localizer:
         noise = observation_noise(dataset, config)
         self.association_cov, self.log_det_R = noise.cov, noise.log_det
         self.point, self.point_cov, self.log_det_point_cov = noise.point, noise.point_cov, noise.log_det_point_cov
-        self.null_cost = noise.null_cost
+        self.tag_orientations = TagOrientations(dataset, noise.cov, config.gate)
+        self.null_cost = self.tag_orientations.null_cost(noise.null_cost)  # the association's (a tag's orientation too)
         self.stacked = StackedUpdate(dataset, self.filter, config.iterations, self.cameras, self.obs_sensor, noise, self.obs_dof)
 
-        # what association sees of each pose: a tag's orientation is not associated but joins its
-        # position's pair (``tag_orientations.TagOrientations``)
+        # what association sees of each pose: a tag's orientation rides with its position (``TagOrientations``)
         associated = np.flatnonzero(dataset.obs_kind != measurement.TAG_ROTATION)
         order = associated[np.argsort(dataset.obs_pose_index[associated], kind="stable")]
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
         self.obs_of_pose = [order[bounds[k] : bounds[k + 1]] for k in range(dataset.num_poses)]
-        self.tag_orientations = TagOrientations(dataset)
         self.T_increments = dataset.T_odometry
         self.scene = AssociationScene(  # what the per-pose association methods read
             dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle=self.max_angle, obs_gate=self.obs_gate,
-            association_cov=self.association_cov,
+            association_cov=self.association_cov, tag_orientations=self.tag_orientations,
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned, planar_range=planar_range(dataset),
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)
@@ -504,14 +503,15 @@ class _Localizer:
             R_paired = self.association_cov[mine[chosen >= 0]]
             dim = self.filter.dim
             pair_information[int(camera_id)] = (np.swapaxes(Hc, 1, 2) @ np.linalg.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((dim, dim))
-            groups.append((int(camera_id), mine, z_hat, H, chosen))
+            groups.append((int(camera_id), mine, candidates, z_hat, H, chosen))
         prior_information = np.linalg.solve(P_prior, np.eye(self.filter.dim))
-        for camera_id, mine, z_hat, H, chosen in groups:
+        for camera_id, mine, candidates, z_hat, H, chosen in groups:
             if z_hat.shape[0] == 0:
                 continue
             information = prior_information + sum(v for c, v in pair_information.items() if c != camera_id)
             cost = association.leave_one_out_costs(ds.obs_z[mine], self.association_cov[mine], z_hat, H, chosen, information=information,
                                                    gate=float(self.obs_gate[mine[0]]), kinds=ds.obs_kind[mine])
+            cost = cost + orientation_terms(self.scene, x_post, P_prior, mine, candidates, z_hat, H)[1]  # a tag's orientation
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
             for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
                 if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin):

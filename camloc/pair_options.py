@@ -63,8 +63,8 @@ class PairGating:
             d2, costs, in_point = self.in_best_coordinates(o[j], z_hat[g], p_hat, HPH, JHPHJ)
             pool = d2 <= pool_gate  # each observation's pool
             j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
-            costs = np.where(d2 <= gate, costs, np.inf)
             y, Hc, Rc = self.chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
+            costs = self.with_orientations(h, o[j], candidates[g], d2, costs, (y, Hc, Rc), np.full(d2.size, gate))
             bounds = np.searchsorted(j, np.arange(rows.size + 1))
             for k, r in enumerate(rows):
                 part = slice(bounds[k], bounds[k + 1])
@@ -142,6 +142,18 @@ class PairGating:
         Rc = np.where(point[:, :, None], self.point_cov[o], self.R[o])
         return y, Hc, Rc
 
+    def with_orientations(
+        self, h: Hypothesis, o: np.ndarray, landmarks: np.ndarray, d2: np.ndarray, costs: np.ndarray, judged: tuple, gate: np.ndarray,
+    ) -> np.ndarray:
+        """The costs (g,) of g pairs (observations o, landmarks) under h, infinite outside their
+        gate, from their positions' d^2 and costs: a tag's orientation judged with its position
+        (``tag_orientations.TagOrientations.pair_terms``; ``judged``: the pairs' (y, Hc, Rc))."""
+        tags = self.ctx.tag_orientations
+        if tags:
+            more_d2, more_cost, gate = tags.pair_terms(h.x, h.P, o, landmarks, *judged, self.ctx.observe, self.ctx.obs_sensor, gate)
+            d2, costs = d2 + more_d2, costs + more_cost
+        return np.where(d2 <= gate, costs, np.inf)
+
     def conditioned(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> list[PairOptions]:
         """Options of observations obs under h, a hypothesis conditioned on some of the pose's
         pairs, from their options before: the same pools of landmarks predicted again from h, one
@@ -161,8 +173,9 @@ class PairGating:
             owner = np.repeat(obs[rows], sizes)
             p_hat, Hp, HPH, JHPHJ = self.spread(h.P, camera_id, z_hat, H)
             d2, costs, in_point = self.in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)
-            costs = np.where((d2 <= self.ctx.obs_gate[owner]) & ~member(landmarks, taken), costs, np.inf)
             y, Hc, Rc = self.chosen(in_point, owner, z_hat, H, p_hat, Hp)
+            costs = self.with_orientations(h, owner, landmarks, d2, costs, (y, Hc, Rc), self.ctx.obs_gate[owner])
+            costs = np.where(member(landmarks, taken), np.inf, costs)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
                 part = slice(start, stop)
                 out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part])

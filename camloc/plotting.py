@@ -171,6 +171,7 @@ def plot_topdown(ax: Axes, result: RunResult, *, show_map: bool = True) -> Axes:
     low, high = _view_box(result)
     if show_map and len(result.map_landmark_xyz):
         _draw_map_topdown(ax, result.map_landmark_xyz, low, high)
+        draw_landmark_headings(ax, result, low, high)
     _draw_paths(ax, result, lambda xyz: xyz[:, :2].T, _odometry_label(result, low, high, 2))
     # The view box as the data limits (not fixed limits): the equal aspect widens one side to
     # fill the axis, and odometry beyond the box is clipped.
@@ -207,6 +208,30 @@ def _draw_map_topdown(ax: Axes, map_xyz: np.ndarray, low: np.ndarray, high: np.n
               vmin=0.0, vmax=2.5 * max(float(np.percentile(counts[counts > 0], 90)), 1.0), interpolation="nearest",
               aspect="auto", zorder=1, rasterized=True)
     ax.fill([], [], color="0.6", label=f"{label[:-1]}, density per {cell:.2g} m cell)")
+
+
+# A landmark's heading is a tick this share of the view box's larger side long.
+HEADING_TICK = 0.025
+HEADING_COLOR = "0.3"  # dark grey: the map's, apart from the paths' colours
+
+
+def draw_landmark_headings(ax: Axes, result: RunResult, low: np.ndarray, high: np.ndarray) -> None:
+    """A planar run's markers and tags in the view box (``low``, ``high``): each a tick from
+    its position in its heading (``RunResult.map_landmark_heading``: a marker's psi, a tag's yaw),
+    ``HEADING_TICK`` of the box long, drawn as one ``LineCollection`` however many there are. A
+    3-D run, or a run folder without headings, draws none."""
+    heading = result.map_landmark_heading
+    if heading is None or not metrics.is_planar_run(result):
+        return
+    rows = np.flatnonzero(np.isfinite(heading) & _inside(result.map_landmark_xyz, low, high, 2))
+    if rows.size == 0:
+        return
+    from matplotlib.collections import LineCollection
+
+    start = result.map_landmark_xyz[rows, :2]
+    tip = start + HEADING_TICK * float(np.max(high[:2] - low[:2])) * np.column_stack([np.cos(heading[rows]), np.sin(heading[rows])])
+    ax.add_collection(LineCollection(np.stack([start, tip], axis=1), colors=HEADING_COLOR, linewidths=1.2, zorder=2,
+                                     label=f"headings ({rows.size} markers and tags)"), autolim=False)
 
 
 def _legend_below(ax: Axes) -> None:

@@ -5,7 +5,8 @@ A run folder holds:
   ``timestamp x y z qx qy qz qw`` with the pose id as timestamp;
 - ``associations.csv``: ``pose,camera,u,v,depth,landmark,true_landmark,mahalanobis``, one row per
   observation, ``landmark`` and ``mahalanobis`` empty when the observation was rejected;
-- ``states.npz``: per-pose filter state and covariance, pose covariance, NIS per update;
+- ``states.npz``: per-pose filter state and covariance, pose covariance, NIS per update, the map
+  (and its markers' and tags' headings, ``map_landmark_heading``);
 - ``summary.json``: dataset, configuration, counts, timings and headline metrics;
 - ``smoothed.tum`` (only after ``camloc smooth``): the smoother's poses, TUM like the others;
 - ``map.csv`` (only after ``camloc smooth``): the smoother's map, a row per landmark
@@ -128,6 +129,8 @@ class RunResult:
     odometry_xyz, odometry_quat_xyzw : (N, 3), (N, 4) odometry alone from the same start.
     truth_xyz, truth_quat_xyzw : (N, 3), (N, 4) ground truth, or None.
     map_landmark_ids, map_landmark_xyz : (L,), (L, 3) the known map the run localized against.
+    map_landmark_heading : (L,) each landmark's heading in the plane, radians: a marker's psi, a
+        tag's yaw (its x axis); NaN for a point. None for a run folder written before it was kept.
     associations : one row per observation.
     update_pose_ids : (U,) int64 the pose of each filter update (one per pose with accepted pairs).
     nis : (U,) normalized innovation squared of each update; nis_dof : (U,) its degrees of freedom.
@@ -159,6 +162,7 @@ class RunResult:
     smoothed_xyz: np.ndarray | None = None
     smoothed_quat_xyzw: np.ndarray | None = None
     landmark_map: "LandmarkMap | None" = None
+    map_landmark_heading: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -443,6 +447,8 @@ def _parse_cell(path: Path, line: int, name: str, text: str) -> int | float | No
 # What states.npz holds: arrays whose rows are the poses, and the others.
 _POSE_ARRAYS = ("pose_ids", "estimate_cov", "filter_state", "filter_cov")
 _OTHER_ARRAYS = ("map_landmark_ids", "map_landmark_xyz", "update_pose_ids", "nis", "nis_dof")
+# held when the run has them (a run folder written before they were has not)
+_OPTIONAL_ARRAYS = ("map_landmark_heading",)
 # The trajectories' one home: TUM file -> the RunResult fields it holds (ground truth and the
 # smoothed path only when there are some).
 _TUM_ARRAYS = {
@@ -484,6 +490,8 @@ def run_problems(result: RunResult) -> list[str]:
         expected.update(smoothed_xyz=(n, 3), smoothed_quat_xyzw=(n, 4))
     num_landmarks = np.shape(result.map_landmark_ids)[0] if np.ndim(result.map_landmark_ids) == 1 else -1
     expected.update(map_landmark_ids=(num_landmarks,), map_landmark_xyz=(num_landmarks, 3))
+    if result.map_landmark_heading is not None:
+        expected.update(map_landmark_heading=(num_landmarks,))
     num_updates = np.shape(result.update_pose_ids)[0] if np.ndim(result.update_pose_ids) == 1 else -1
     expected.update(update_pose_ids=(num_updates,), nis=(num_updates,), nis_dof=(num_updates,))
     problems = [
@@ -595,6 +603,7 @@ def _write_run_files(folder: Path, result: RunResult) -> None:
             )
     (folder / ASSOCIATIONS_CSV).write_text(associations_text(result.associations), encoding="utf-8")
     arrays = {name: np.asarray(getattr(result, name)) for name in _POSE_ARRAYS + _OTHER_ARRAYS}
+    arrays.update({name: np.asarray(getattr(result, name)) for name in _OPTIONAL_ARRAYS if getattr(result, name) is not None})
     with open(folder / STATES_NPZ, "wb") as handle:
         np.savez_compressed(
             handle, format_version=np.int64(RUN_FORMAT_VERSION), dataset=np.str_(result.dataset), **arrays
@@ -856,7 +865,7 @@ def _read_states(path: Path) -> dict[str, Any]:
     dataset = stored["dataset"]
     if dataset.ndim != 0 or dataset.dtype.kind != "U":
         raise DatasetError(path, None, f"dataset: expected one string (the dataset's path), found {_describe(dataset)}")
-    arrays: dict[str, Any] = {name: stored[name] for name in names[1:]}
+    arrays: dict[str, Any] = {name: stored[name] for name in names[1:] + tuple(n for n in _OPTIONAL_ARRAYS if n in stored)}
     arrays = _check_states(path, arrays)
     arrays["dataset"] = str(dataset)
     return arrays
@@ -873,7 +882,7 @@ def _describe(array: np.ndarray) -> str:
 # What each array of states.npz holds, and its shape after the first axis (None: any size of at
 # least 1, the same on both axes of a covariance):
 #   ids: integers; counts: integers >= 1; numbers: finite; non-negative: finite >= 0;
-#   positions: finite metres within MAX_COORDINATE;
+#   positions: finite metres within MAX_COORDINATE; headings: radians in [-2 pi, 2 pi], or NaN (none);
 #   covariances: symmetric positive semi-definite, not zero at every pose.
 _STATE_ARRAYS: dict[str, tuple[str, tuple]] = {
     "pose_ids": ("ids", ()),
@@ -885,6 +894,7 @@ _STATE_ARRAYS: dict[str, tuple[str, tuple]] = {
     "update_pose_ids": ("ids", ()),
     "nis": ("non-negative", ()),
     "nis_dof": ("counts", ()),
+    "map_landmark_heading": ("headings", ()),
 }
 # The run writes symmetric covariances; this tolerance only separates rounding from damage.
 _MATRIX_TOLERANCE = 1e-9
@@ -962,6 +972,8 @@ def _state_value_problem(value: np.ndarray, kind: str, where: Callable[[int], st
     if kind == "positions":
         expected = f"expected finite metres within +-{MAX_COORDINATE:.0e}"
         return _first_bad(value, ~(np.abs(value) <= MAX_COORDINATE), expected, where)
+    if kind == "headings":
+        return _first_bad(value, ~(np.isnan(value) | (np.abs(value) <= 2.0 * np.pi)), "expected radians within +-2 pi, or NaN", where)
     problem = _first_bad(value, ~np.isfinite(value), "expected finite numbers", where)
     if problem is None and kind == "covariances":
         problem = _covariance_problem(value, where)

@@ -8,7 +8,7 @@ from dataclasses import asdict
 
 import numpy as np
 
-from camloc import geometry
+from camloc import geometry, tags
 from camloc.localizer_config import ignored_options
 from camloc.results import UNASSOCIATED, Associations, RunResult
 from camloc.tails import chi2_quantile
@@ -27,11 +27,13 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
     ds = dataset
     estimate_xyz, estimate_quat = geometry.pose_to_quat(poses)
     odometry_xyz, odometry_quat = geometry.pose_to_quat(odometry_poses)
+    rows = tags.association_rows(ds.obs_kind)  # a row an observation, one a tag (its position's)
     associations = Associations(
-        pose_id=ds.pose_ids[ds.obs_pose_index], camera=ds.obs_camera.copy(), uvd=ds.obs_z.copy(),
-        landmark=chosen_landmark, true_landmark=ds.obs_true_landmark.copy(), mahalanobis=mahalanobis,
+        pose_id=ds.pose_ids[ds.obs_pose_index[rows]], camera=ds.obs_camera[rows], uvd=ds.obs_z[rows],
+        landmark=chosen_landmark[rows], true_landmark=ds.obs_true_landmark[rows],
+        mahalanobis=tags.row_distances(mahalanobis, ds.obs_kind, ds.obs_partner),
     )
-    accepted = int(np.count_nonzero(chosen_landmark != UNASSOCIATED))
+    accepted = int(np.count_nonzero(associations.landmark != UNASSOCIATED))
     filter_seconds = timing["filter_seconds"]
     min_depth, max_depth, max_angle = candidate_range
     summary = {
@@ -39,8 +41,8 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
         "config": asdict(config),
         "candidate_range": {"min_depth": min_depth, "max_depth": max_depth, "max_angle_deg": float(np.degrees(max_angle))},
         "counts": {
-            "poses": ds.num_poses, "observations": ds.num_observations, "accepted": accepted,
-            "rejected": ds.num_observations - accepted, "updates": len(nis), "landmarks": int(ds.landmark_ids.size),
+            "poses": ds.num_poses, "observations": int(rows.size), "accepted": accepted,
+            "rejected": int(rows.size) - accepted, "updates": len(nis), "landmarks": int(ds.landmark_ids.size),
         },
         "timing": {
             "filter_seconds": filter_seconds,
@@ -74,6 +76,7 @@ def build_result(dataset, config, filter_model, states, covs, poses, odometry_po
         filter_state=states, filter_cov=covs,
         odometry_xyz=odometry_xyz, odometry_quat_xyzw=odometry_quat, truth_xyz=ds.truth_xyz, truth_quat_xyzw=ds.truth_quat_xyzw,
         map_landmark_ids=ds.landmark_ids, map_landmark_xyz=ds.landmark_xyz, associations=associations,
+        map_landmark_heading=tags.landmark_headings(ds.landmark_heading, ds.landmark_quat_xyzw),
         update_pose_ids=np.asarray(update_pose_ids, dtype=np.int64), nis=np.asarray(nis, dtype=float),
         nis_dof=np.asarray(nis_dof, dtype=np.int64), summary=summary,
     )

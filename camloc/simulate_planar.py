@@ -350,26 +350,52 @@ CAMERA_OPTIONS = ("cameras", "intrinsics", "measurement", "observation-sigma-uv"
 ROBOTS = ("3d", "planar")
 
 
-def world_config(options: dict) -> sim3.SimulationConfig | PlanarSimulationConfig:
+def world_config(options: dict) -> sim3.SimulationConfig | PlanarSimulationConfig | TagWorldConfig:
     """The config of ``camloc simulate``'s options by command-line name (None: not given), a
-    planar world's where ``robot`` is "planar" (its ``sensors`` the planar sensors), else
-    ``camloc.simulate.simulation_config``'s. ``SimulationOptionError`` names a bad option."""
+    planar world's where ``robot`` is "planar" (its ``sensors`` the planar sensors), a 3-D
+    world of tags' with ``tag-sigma-deg``, else ``camloc.simulate.simulation_config``'s.
+    ``SimulationOptionError`` names a bad option."""
     options = {name: value for name, value in options.items() if value is not None}
     robot = options.pop("robot", "3d")
     sensors = options.pop("sensors", None)
     if robot not in ROBOTS:
         raise sim3.SimulationOptionError("robot", f"expected one of {', '.join(ROBOTS)}, found {robot!r}")
+    tag_sigma_deg = options.pop("tag-sigma-deg", None)
     if robot == "3d":
         if sensors is not None:
             raise sim3.SimulationOptionError("sensors", "applies only to robot = planar")
-        return sim3.simulation_config(options)
+        config = sim3.simulation_config(options)
+        return config if tag_sigma_deg is None else tag_world_config(config, tag_sigma_deg)
+    if tag_sigma_deg is not None:
+        raise sim3.SimulationOptionError("tag-sigma-deg", "applies only to robot = 3d")
     cameras = sim3.simulation_config({name: value for name, value in options.items() if name in CAMERA_OPTIONS})
     planar_options = {name: value for name, value in options.items() if name not in CAMERA_OPTIONS}
     return planar_simulation_config({**planar_options, **({"sensors": sensors} if sensors else {})}, cameras)
 
 
-def simulate_world(config: sim3.SimulationConfig | PlanarSimulationConfig, *, seed: int) -> Dataset:
-    """``simulate_planar`` or ``camloc.simulate.simulate``, by the config's kind."""
+def simulate_world(config: sim3.SimulationConfig | PlanarSimulationConfig | TagWorldConfig, *, seed: int) -> Dataset:
+    """``simulate_planar``, ``camloc.simulate_tags.simulate_tags`` or ``camloc.simulate.simulate``,
+    by the config's kind."""
     if isinstance(config, PlanarSimulationConfig):
         return simulate_planar(config, seed=seed)
+    if isinstance(config, TagWorldConfig):
+        from camloc.simulate_tags import simulate_tags
+
+        return simulate_tags(config.world, seed=seed, sigma_rad=math.radians(config.sigma_deg))
     return sim3.simulate(config, seed=seed)
+
+
+@dataclass(frozen=True)
+class TagWorldConfig:
+    """A 3-D world of tags (``camloc.simulate_tags``): the world's config and the orientation's
+    noise, degrees per axis (``camloc simulate --tag-sigma-deg``; ``tag-sigma-deg`` in a sweep)."""
+
+    world: sim3.SimulationConfig
+    sigma_deg: float
+
+
+def tag_world_config(world: sim3.SimulationConfig, sigma_deg) -> TagWorldConfig:
+    """``TagWorldConfig``; ``SimulationOptionError`` for a noise that is not a number > 0."""
+    if isinstance(sigma_deg, bool) or not isinstance(sigma_deg, (int, float)) or not sigma_deg > 0.0 or not math.isfinite(sigma_deg):
+        raise sim3.SimulationOptionError("tag-sigma-deg", f"expected a standard deviation > 0 degrees, found {sigma_deg!r}")
+    return TagWorldConfig(world, float(sigma_deg))

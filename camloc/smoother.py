@@ -28,6 +28,11 @@ Observation one factor per observation the run ACCEPTED (``associations.csv`` la
               r = z - h(T_k, l),   h = project(camera_points(T_k, T_robot_camera, l))   (3,)
             whitened by ``dataset.obs_cov`` the same way. Rejected observations are not used.
             l is the map's landmark where held, else the variable.
+Tag         a tag's orientation (``EDGE_PROJECT_TAG``, ``camloc.tags``), a factor of its own
+            beside its position's where the map holds the tag (``map = "exact"``):
+              r = Log(R_meas^T R_pred),   R_pred = R_c^T R_k^T R_tag                       (3,)
+            whitened by its covariance (a rotation vector in the tag's frame); under ``prior``
+            or ``none`` the tag's orientation is not estimated, and its position alone is used.
 Map prior   under ``prior``, one factor per observed mapped landmark:
               r = (l_j - l_map) / sigma                                                (3,)
             isotropic, ``sigma = SmootherConfig.map_sigma`` (metres); not robustified.
@@ -45,6 +50,7 @@ Jacobians   with ``p = R_a^T (t_b - t_a)``, ``R_ab = R_a^T R_b``, ``Jr`` the rig
               dr/d(dt_b, dth_b) = [[R_dT^T R_ab, 0],     [0,  Jr^-1(r_th)]]
               dr_obs/d(dt, dth) = -P(p_cam) R_c^T [-I, [p_robot]x]
               dr_obs/dl = -P(p_cam) R_c^T R^T,      dr_prior/dl = I / sigma
+              dr_tag/d(dt, dth) = [0, Jr^-1(r) H_R],  H_R = -R_tag^T R_k    (R_pred -> R_pred Exp(H_R dth))
             (P the projection Jacobian); all checked against central finite differences on the
             manifold in tests/test_smoother.py and tests/test_smoother_landmarks.py.
 Solver      re-linearize until the largest step component is below ``step_tolerance``. The first
@@ -84,10 +90,11 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import LinearOperator, onenormest, splu
 
-from camloc import geometry, measurement
+from camloc import geometry, measurement, tags
 from camloc.dataset import Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
+from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
 from camloc.schur import SchurSolver, factor
 from camloc.smoother_landmarks import (MAP_MODES, LandmarkEstimate, LandmarkVariables, initial_positions,
@@ -187,6 +194,8 @@ class SmoothingProblem:
         every landmark is held at ``obs_landmark_xyz``.
     obs_landmark : (M,) int64 the variable landmark (index into ``landmarks``) of each
         observation, -1 where its landmark is held fixed; None: all are fixed.
+    obs_tag_rotation : (M, 3, 3) the world orientation of each observation's tag, read where
+        the observation is a tag's orientation (``measurement.TAG_ROTATION``, ``camloc.tags``); None: none is.
     """
 
     pose_ids: np.ndarray
@@ -205,6 +214,7 @@ class SmoothingProblem:
     obs_kind: np.ndarray | None = None
     landmarks: LandmarkVariables | None = None
     obs_landmark: np.ndarray | None = None
+    obs_tag_rotation: np.ndarray | None = None
 
     @property
     def num_poses(self) -> int:
@@ -374,8 +384,11 @@ def observation_factors(
     landmark_xyz: np.ndarray,
     z_uvd: np.ndarray,
     kinds: np.ndarray | None = None,
+    tag_rotation: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``observation_residuals`` and also the Jacobian with respect to the landmark.
+    ``tag_rotation`` (M, 3, 3): the tags' world orientations, for the rows that are a tag's
+    orientation (``_tag_orientations``).
 
     Returns
     -------
@@ -398,7 +411,25 @@ def observation_factors(
     P_c = P @ R_c_T
     J_pose = -(P_c @ dp_robot)
     J_landmark = -(P_c @ np.swapaxes(R, 1, 2))  # p_robot = R^T (l - t)
-    return z_uvd - z_hat, J_pose, J_landmark, depth
+    r = z_uvd - z_hat
+    if tag_rotation is not None:
+        _tag_orientations(r, J_pose, J_landmark, R, T_robot_camera, z_uvd, np.broadcast_to(kinds, depth.shape), tag_rotation)
+    return r, J_pose, J_landmark, depth
+
+
+def _tag_orientations(r, J_pose, J_landmark, R, T_robot_camera, z, kinds, tag_rotation) -> None:
+    """The rows of ``observation_factors`` that are a tag's orientation (``TAG_ROTATION``; z its
+    rotation vector), in place: ``r = Log(R_meas^T R_pred)`` with ``R_pred = R_c^T R^T R_tag``,
+    ``dr/d(dt, dth) = [0, Jr^-1(r) H_R]`` (``tags.smoother_residual``), nothing for the landmark's
+    position. The depth stays the tag centre's: a tag behind the camera is dropped whole."""
+    rows = np.flatnonzero(kinds == measurement.TAG_ROTATION)
+    if rows.size == 0:
+        return
+    R_pred, H_R = tags.prediction(R[rows], T_robot_camera[rows, :3, :3], tag_rotation[rows])
+    r[rows], J_R = tags.smoother_residual(geometry.so3_exp(z[rows]), R_pred, H_R)
+    J_pose[rows] = 0.0
+    J_pose[rows, :, 3:6] = J_R
+    J_landmark[rows] = 0.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -463,7 +494,7 @@ def linearize(problem: SmoothingProblem, T: np.ndarray, X: np.ndarray | None = N
         X = p.landmarks.xyz
     r_odom, J_from, J_to = odometry_residuals(T[p.odom_from], T[p.odom_to], p.T_odometry)
     r_obs, J_obs, J_lm, _ = observation_factors(T[p.obs_pose], p.obs_T_robot_camera, p.obs_intrinsics,
-                                                p.observed_xyz(X), p.obs_z, p.obs_kind)
+                                                p.observed_xyz(X), p.obs_z, p.obs_kind, p.obs_tag_rotation)
     # Whitening: r_w = L^-1 r and J_w = L^-1 J.
     r_odom = np.einsum("nij,nj->ni", p.odom_whiten, r_odom)
     r_obs = np.einsum("nij,nj->ni", p.obs_whiten, r_obs)
@@ -949,8 +980,8 @@ def _select_landmarks(problem: SmoothingProblem, keep: np.ndarray) -> SmoothingP
 def _without_unprojectable(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, int]:
     """The problem without observations whose landmark is behind the camera at poses T."""
     X = None if problem.landmarks is None else problem.landmarks.xyz
-    _, _, depth = observation_residuals(T[problem.obs_pose], problem.obs_T_robot_camera, problem.obs_intrinsics,
-                                        problem.observed_xyz(X), problem.obs_z, problem.obs_kind)
+    _, _, _, depth = observation_factors(T[problem.obs_pose], problem.obs_T_robot_camera, problem.obs_intrinsics,
+                                         problem.observed_xyz(X), problem.obs_z, problem.obs_kind, problem.obs_tag_rotation)
     keep = depth > MIN_DEPTH
     if np.all(keep):
         return problem, 0
@@ -969,6 +1000,7 @@ def _select_observations(problem: SmoothingProblem, keep: np.ndarray) -> Smoothi
         obs_whiten=problem.obs_whiten[keep],
         obs_row=problem.obs_row[keep],
         obs_landmark=problem.obs_landmark[keep] if problem.obs_landmark is not None else None,
+        obs_tag_rotation=problem.obs_tag_rotation[keep] if problem.obs_tag_rotation is not None else None,
     )
 
 
@@ -998,7 +1030,7 @@ def problem_from_run(
     """
     config = config or SmootherConfig()
     check_run_matches(dataset, run)
-    chosen = np.asarray(run.associations.landmark)
+    chosen = _chosen_landmarks(dataset, run, config)
     rows = np.flatnonzero(chosen != UNASSOCIATED)
     order = np.argsort(dataset.landmark_ids, kind="stable")
     position = np.searchsorted(dataset.landmark_ids[order], chosen[rows])
@@ -1036,7 +1068,36 @@ def problem_from_run(
         obs_row=rows.astype(np.int64),
         landmarks=landmarks,
         obs_landmark=obs_landmark if landmarks is not None else None,
+        obs_tag_rotation=_tag_rotations(dataset, rows, order[position[found]], found),
     )
+
+
+def _tag_rotations(dataset: Dataset, rows: np.ndarray, mapped: np.ndarray, found: np.ndarray) -> np.ndarray | None:
+    """The world orientation (M, 3, 3) of the tag of each observation ``rows`` (M,) whose
+    landmark is in the map (``found``; ``mapped`` its map rows), the identity for the others
+    (their rows are not read); None where none of the rows is a tag's orientation."""
+    if not np.any(dataset.obs_kind[rows] == measurement.TAG_ROTATION):
+        return None
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (rows.size, 1))
+    quat[found] = dataset.landmark_quat_xyzw[mapped]
+    quat[~np.isfinite(quat[:, 0])] = [0.0, 0.0, 0.0, 1.0]  # a point's: no orientation
+    return geometry.quat_to_matrix(quat)
+
+
+def _chosen_landmarks(dataset: Dataset, run: RunResult, config: SmootherConfig) -> np.ndarray:
+    """Each observation's landmark id (K,) as the run chose it (``UNASSOCIATED``: none): a tag's
+    orientation its position's where the map holds the tag exact (``map = "exact"`` and the tag in
+    it), so that its orientation is known; otherwise a tag's position alone (the smoother does
+    not estimate a tag's orientation)."""
+    chosen = tags.observation_landmarks(run.associations.landmark, dataset.obs_kind, dataset.obs_partner, orientations=True)
+    rotation = np.flatnonzero(dataset.obs_kind == measurement.TAG_ROTATION)
+    if config.map != "exact":
+        chosen[rotation] = UNASSOCIATED
+        return chosen
+    mapped = landmark_rows(dataset.landmark_ids, chosen[rotation])
+    known = (mapped >= 0) & np.isfinite(dataset.landmark_quat_xyzw[np.maximum(mapped, 0), 0]) if len(dataset.landmark_ids) else mapped >= 0
+    chosen[rotation[~known]] = UNASSOCIATED
+    return chosen
 
 
 def check_run_matches(dataset: Dataset, run: RunResult) -> None:
@@ -1075,23 +1136,25 @@ def check_run_matches(dataset: Dataset, run: RunResult) -> None:
         raise CamlocError(f"run and dataset {dataset.source} do not match: odometry reaches {_triple(odometry[k])} at pose "
                           f"{ours[k]} in the dataset but {_triple(run.odometry_xyz[k])} in the run; {hint}")
     a = run.associations
-    if len(a.pose_id) != dataset.num_observations:
+    rows = tags.association_rows(dataset.obs_kind)  # one a tag: its position's
+    if len(a.pose_id) != rows.size:
         raise CamlocError(
             f"run and dataset {dataset.source} do not match: the run has {len(a.pose_id)} observations in "
-            f"associations.csv, the dataset {dataset.num_observations}; {hint}"
+            f"associations.csv, the dataset {rows.size}; {hint}"
         )
     same = (
-        (a.pose_id == dataset.pose_ids[dataset.obs_pose_index])
-        & (a.camera == dataset.obs_camera)
-        & np.all(np.isclose(a.uvd, dataset.obs_z, rtol=1e-9, atol=1e-12), axis=1)
+        (a.pose_id == dataset.pose_ids[dataset.obs_pose_index[rows]])
+        & (a.camera == dataset.obs_camera[rows])
+        & np.all(np.isclose(a.uvd, dataset.obs_z[rows], rtol=1e-9, atol=1e-12), axis=1)
     )
     if not np.all(same):
         k = int(np.flatnonzero(~same)[0])
+        o = rows[k]
         raise CamlocError(
             f"run and dataset {dataset.source} do not match: observation {k + 1} (associations.csv line {k + 2}) is "
             f"pose {a.pose_id[k]}, camera {a.camera[k]}, uvd {_triple(a.uvd[k])} in the run but pose "
-            f"{dataset.pose_ids[dataset.obs_pose_index[k]]}, camera {dataset.obs_camera[k]}, uvd "
-            f"{_triple(dataset.obs_z[k])} in the dataset; {hint}"
+            f"{dataset.pose_ids[dataset.obs_pose_index[o]]}, camera {dataset.obs_camera[o]}, uvd "
+            f"{_triple(dataset.obs_z[o])} in the dataset; {hint}"
         )
 
 

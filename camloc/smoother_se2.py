@@ -15,8 +15,11 @@ Odometry    one factor per edge (a, b) with measured increment u (``EDGE_SE2``):
             covariance (the file's information inverted). Jacobians, J the rotation by +90 deg:
               dr/d delta_a = [[-R_u^T, -R_u^T J d_t], [0, 0, -1]],  dr/d delta_b = [[R_u^T R(d_theta), 0], [0, 0, 1]]
 Observation one factor per accepted observation: r = z - h(x_k) (an angle row wrapped), h and its
-            Jacobian H those of the filter (``filters.SE2Filter.observe``: point2, marker, or a
-            3-D camera on the lifted pose); dr/d delta = -H. Whitened by the file's covariance.
+            Jacobian H those of the filter (``filters.SE2Filter.observe``: point2, marker (its
+            heading psi a row), or a 3-D camera on the lifted pose); dr/d delta = -H. A tag's
+            orientation seen by a camera is a factor of its own beside its centre's, the filter's
+            error state r = e = Log(R_pred^-1 R_meas) with H through Jl^-1(e) (``tags.aligned``:
+            the 1-DOF turn about z of the planar robot). Whitened by the file's covariance.
 Loss        as ``camloc.smoother``: 1/2 sum |r_odo|^2 + 1/2 sum rho(|r_obs|^2), Huber rho on each
             observation's Mahalanobis distance (``SmootherConfig.huber``).
 Solver      Gauss-Newton on the IRLS weights with Levenberg-Marquardt damping when a step does not
@@ -38,10 +41,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from camloc import planar
+from camloc import geometry, planar, tags
 from camloc.dataset import Dataset
 from camloc.errors import CamlocError
 from camloc.filters import SE2Filter
+from camloc.measurement import TAG_ROTATION
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.sensors import sensors_of
 from camloc.smoother import IterationCallback, Iteration, SmootherConfig, SmoothingResult, check_run_matches, huber_rho, huber_weight
@@ -59,7 +63,8 @@ class PlanarProblem:
     x_start : (3,) the fixed first pose. u : (N-1, 3) measured increments; odom_whiten (N-1, 3, 3).
     obs_pose : (M,) observing pose; obs_sensor : (M,) its sensor (``sensors.sensors_of``), with
     ``sensors`` the table; obs_landmark : (M,) map rows; obs_z (M, 3), obs_kind (M,),
-    obs_whiten (M, 3, 3).
+    obs_whiten (M, 3, 3); landmark_quat_xyzw : (L, 4) the tags' orientations (NaN for the
+    others), read for a tag's orientation (``measurement.TAG_ROTATION``).
     """
 
     x_start: np.ndarray
@@ -74,6 +79,7 @@ class PlanarProblem:
     obs_z: np.ndarray
     obs_kind: np.ndarray
     obs_whiten: np.ndarray
+    landmark_quat_xyzw: np.ndarray | None = None
 
     @property
     def num_poses(self) -> int:
@@ -111,7 +117,10 @@ def observation_residuals(problem: PlanarProblem, x: np.ndarray) -> tuple[np.nda
         sensor = problem.sensors[int(problem.obs_sensor[rows[0]])]
         landmarks = problem.obs_landmark[rows]
         z_hat, H = filter_model.observe(x[problem.obs_pose[rows[0]]], sensor.T_robot_camera, sensor.intrinsics,
-                                        problem.landmark_xyz[landmarks], sensor.kind, heading=problem.landmark_heading[landmarks])
+                                        problem.landmark_xyz[landmarks], sensor.kind, heading=problem.landmark_heading[landmarks],
+                                        tag_quat=None if problem.landmark_quat_xyzw is None else problem.landmark_quat_xyzw[landmarks])
+        if sensor.kind == TAG_ROTATION:  # z - z_hat the error state e = Log(R_pred^-1 R_meas), H through Jl^-1(e)
+            z_hat, H = tags.aligned(problem.obs_z[rows], geometry.so3_exp(z_hat), H)
         r[rows] = planar.wrap_residuals(problem.obs_z[rows] - z_hat, problem.obs_kind[rows])
         J[rows] = -H
     return r, J
@@ -228,10 +237,13 @@ def planar_problem(dataset: Dataset, run: RunResult) -> PlanarProblem:
     if not dataset.planar:
         raise CamlocError(f"{dataset.source}: the planar smoother needs a planar dataset (VERTEX_SE2 / EDGE_SE2)")
     check_run_matches(dataset, run)
-    chosen = np.asarray(run.associations.landmark)
+    chosen = tags.observation_landmarks(run.associations.landmark, dataset.obs_kind, dataset.obs_partner, orientations=True)
     rows = np.flatnonzero(chosen != UNASSOCIATED)
     order = np.argsort(dataset.landmark_ids, kind="stable")
     landmark = order[np.searchsorted(dataset.landmark_ids[order], chosen[rows])] if rows.size else np.zeros(0, np.int64)
+    # a tag's orientation is a factor beside its centre's where its landmark has one (a tag)
+    keep = (dataset.obs_kind[rows] != TAG_ROTATION) | np.isfinite(dataset.landmark_quat_xyzw[landmark, 0])
+    rows, landmark = rows[keep], landmark[keep]
     sensors, obs_sensor = sensors_of(dataset)
     odom_cov = planar.planar_block(dataset.odom_cov)
     return PlanarProblem(
@@ -239,7 +251,7 @@ def planar_problem(dataset: Dataset, run: RunResult) -> PlanarProblem:
         odom_whiten=_whitening(odom_cov), obs_pose=dataset.obs_pose_index[rows].astype(np.int64),
         obs_sensor=obs_sensor[rows], sensors=sensors, landmark_xyz=dataset.landmark_xyz,
         landmark_heading=dataset.landmark_heading, obs_landmark=landmark.astype(np.int64), obs_z=dataset.obs_z[rows],
-        obs_kind=dataset.obs_kind[rows], obs_whiten=_whitening(dataset.obs_cov[rows]),
+        obs_kind=dataset.obs_kind[rows], obs_whiten=_whitening(dataset.obs_cov[rows]), landmark_quat_xyzw=dataset.landmark_quat_xyzw,
     )
 
 

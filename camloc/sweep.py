@@ -10,7 +10,8 @@ names; a list gives one value per cell and the cells are the product of the list
     [run]
     association = ["beam", "oracle"]
 
-Each cell makes its world where it runs (``camloc.simulate`` from its seed, or reads its file),
+Each cell makes its world where it runs (``camloc.simulate`` from its seed, a planar robot's with
+``robot = "planar"``, a world of tags with ``tag-sigma-deg``; or reads its file),
 localizes it (``camloc.localize``) and scores it (``camloc.metrics.evaluate``): nothing large
 travels to a worker and a cell's numbers do not depend on where it ran. The sweep folder holds
 ``spec.json`` (the normalized spec, so that a resumed sweep can say what changed), ``runs.csv`` (a
@@ -359,7 +360,7 @@ def _localize_and_score(cell: Cell) -> dict:
 
     if cell.path is not None:
         dataset = camloc.load(cell.path)
-    else:  # robot = "planar" in [simulate]: a planar world (camloc.simulate_planar)
+    else:  # robot = "planar" in [simulate]: a planar world, tag-sigma-deg: tags (camloc.simulate_planar.world_config)
         dataset = simulate_world(world_config(dict(cell.simulate)), seed=cell.seed)
     # parallel=False: the sweep already fills the cores (and a Dask worker's daemonic process may
     # not start one); the result is the same either way.

@@ -64,9 +64,10 @@ _SENSORS = typer.Option("points", help=with_default(
     "psi) of VERTEX_MARKER_SE2 markers in the robot frame, each seen only from in front of its face), cameras "
     "(3-D cameras on the robot, EDGE_PROJECT_* of VERTEX_TRACKXYZ landmarks)."), show_default=False)
 _TAG_SIGMA_DEG = typer.Option(None, min=0.0, help=with_default(
-    "With --robot 3d: every landmark a tag (VERTEX_TAG, a random orientation) and every depth detection of one "
-    "also measuring its orientation in the camera, with this standard deviation per axis, degrees "
-    "(EDGE_PROJECT_TAG; camloc/simulate_tags.py). Without it: points (VERTEX_TRACKXYZ)."), show_default=False)
+    "With --robot 3d: every landmark a tag (VERTEX_TAG, a random orientation) and every depth or pixel detection "
+    "of one also measuring its orientation in the camera, with this standard deviation per axis, degrees "
+    "(EDGE_PROJECT_TAG; with --measurement pixel, a camera without depth: EDGE_PROJECT_TAG_UV; "
+    "camloc/simulate_tags.py). Without it: points (VERTEX_TRACKXYZ)."), show_default=False)
 _TRAJECTORY = library_option(
     "grid: 1 m steps and 90 deg turns on flat ground, like the real file; smooth3d: "
     "smooth 3D motion, roll/pitch up to --max-tilt-deg (default 18); aerial: a flying vehicle looking "

@@ -83,7 +83,6 @@ def smooth(
         data = read_g2o(dataset_path)
     read_seconds = time.perf_counter() - started
 
-    run = _position_pairs(run, data)
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
         result = _smoothed(data, run, config, dataset_path, on_iteration)
     written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
@@ -101,13 +100,6 @@ def smooth(
         console.print(render_smoothing(report))
     if not report["converged"]:
         print_warnings(["stopped at --max-iterations before the steps became tiny"], run_dir)
-
-
-def _position_pairs(run, data):
-    """The run as the smoothers see it: a tag's orientation has no model there (camloc.tags)."""
-    from camloc.tags import position_pairs_only
-
-    return position_pairs_only(run, data)
 
 
 def _smoothed(data, run, config, dataset_path: Path, on_iteration):

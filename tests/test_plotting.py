@@ -513,3 +513,36 @@ def test_the_figures_name_the_estimate_as_the_tables_do(synthetic_run):
     assert plotting.path_names(nothing)["estimate"] == ODOMETRY_ALONE
     nees_labels = [line.get_label() for line in plotting.plot_nees(Figure().add_subplot(), nothing).get_lines()]
     assert f"{ODOMETRY_ALONE} NEES" in nees_labels
+
+
+def test_a_planar_runs_markers_are_drawn_with_their_headings(tmp_path):
+    """A planar run's top-down view: a tick per marker from its position in its heading (one
+    LineCollection), kept in the run folder (map_landmark_heading in states.npz); a 3-D run of
+    points draws none."""
+    from matplotlib.collections import LineCollection
+
+    from camloc.localizer import localize
+    from camloc.results import load_run, save_run
+    from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
+
+    dataset = simulate_planar(PlanarSimulationConfig(sensors="markers,points", poses=40), seed=1)
+    save_run(tmp_path / "run", localize(dataset))
+    run = load_run(tmp_path / "run")
+    assert np.allclose(run.map_landmark_heading, dataset.landmark_heading, equal_nan=True)
+    ax = Figure().add_subplot()
+    plotting.plot_topdown(ax, run)
+    [ticks] = [c for c in ax.collections if isinstance(c, LineCollection)]
+    segments = np.array(ticks.get_segments())
+    assert 0 < len(segments) <= np.count_nonzero(np.isfinite(dataset.landmark_heading))
+    start = np.array([np.flatnonzero(np.all(np.isclose(dataset.landmark_xyz[:, :2], s), axis=1))[0] for s in segments[:, 0]])
+    direction = segments[:, 1] - segments[:, 0]
+    assert np.allclose(np.arctan2(direction[:, 1], direction[:, 0]), np.angle(np.exp(1j * dataset.landmark_heading[start])))
+    assert ticks.get_label().startswith(f"headings ({len(segments)} ")
+
+
+def test_a_3d_run_draws_no_headings(result):
+    ax = Figure().add_subplot()
+    plotting.plot_topdown(ax, result)
+    from matplotlib.collections import LineCollection
+
+    assert not [c for c in ax.collections if isinstance(c, LineCollection)]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -569,3 +570,21 @@ def test_associations_read_back_exactly_as_written_and_as_hand_edited(tmp_path):
             assert found.dtype == expected.dtype, (path.name, name)
             np.testing.assert_array_equal(found, expected, err_msg=f"{path.name}: {name}")
         assert np.signbit(read.uvd[0, 1])
+
+
+def test_landmark_headings_are_kept_optional_and_checked(tmp_path, synthetic_run):
+    """map_landmark_heading (a marker's or tag's heading, NaN for a point) goes through
+    states.npz; a run folder written before it was kept loads without it; a heading beyond
+    +-2 pi is refused, naming the array."""
+    run = synthetic_run()
+    L = len(run.map_landmark_ids)
+    heading = np.where(np.arange(L) % 2 == 0, np.nan, 0.5)
+    run_dir = save_run(tmp_path / "run", dataclasses.replace(run, map_landmark_heading=heading))
+    assert np.array_equal(load_run(run_dir).map_landmark_heading, heading, equal_nan=True)
+    with np.load(run_dir / "states.npz") as npz:
+        arrays = {name: npz[name] for name in npz.files if name != "map_landmark_heading"}
+    np.savez(run_dir / "states.npz", **arrays)
+    assert load_run(run_dir).map_landmark_heading is None
+    _rewrite_states(run_dir, map_landmark_heading=np.full(L, 7.0))
+    with pytest.raises(DatasetError, match="map_landmark_heading: expected radians within"):
+        load_run(run_dir)

@@ -110,3 +110,50 @@ def test_the_map_is_gtsams(marker_world):
                        for k in range(dataset.num_poses)])
     assert np.abs(theirs[:, :2] - ours[:, :2]).max() < 1e-4
     assert np.degrees(np.abs(planar.wrap(theirs[:, 2] - ours[:, 2]))).max() < 5e-3
+
+
+@pytest.fixture(scope="module")
+def planar_tag_world():
+    """A planar robot's camera seeing tags (``simulate_tags.planar_tags``), the beam's run."""
+    from camloc.simulate_tags import planar_tags
+
+    dataset = planar_tags(simulate_planar(PlanarSimulationConfig(sensors="cameras", poses=80), seed=1), seed=1,
+                          sigma_rad=math.radians(1.0))
+    return dataset, localize(dataset)
+
+
+def test_tag_orientation_factor_jacobians(planar_tag_world):
+    """A tag's orientation in the planar smoother: e = Log(R_pred^-1 R_meas) and its Jacobian
+    (a turn about z through Jl^-1(e)) against central differences on SE(2)."""
+    from camloc.measurement import TAG_ROTATION
+
+    dataset, run = planar_tag_world
+    problem = planar_problem(dataset, run)
+    rotation = np.flatnonzero(problem.obs_kind == TAG_ROTATION)
+    assert rotation.size > 0.9 * np.count_nonzero(run.associations.landmark >= 0)
+    x = planar.flatten(geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw))
+    _, J = observation_residuals(problem, x)
+    for i in rotation[:: max(1, rotation.size // 4)]:
+        k = int(problem.obs_pose[i])
+
+        def residual(state, i=i, k=k):
+            moved = x.copy()
+            moved[k] = state
+            return observation_residuals(problem, moved)[0][i]
+
+        assert J[i] == pytest.approx(_numeric(residual, x[k]), abs=1e-5)
+        assert np.all(J[i][:, :2] == 0.0)  # the orientation does not see the robot's position
+
+
+def test_tag_orientation_lowers_the_smoothed_heading_error(planar_tag_world):
+    """The same run smoothed with its tags' orientations and from their centres alone: the
+    heading RMSE at least 30% lower with them (measured 38-46% on three seeds of 150 poses)."""
+    from camloc.simulate_tags import without_orientations
+
+    dataset, run = planar_tag_world
+    errors = []
+    for data in (dataset, without_orientations(dataset)):
+        result = smooth_planar_run(data, run, SmootherConfig())
+        heading = planar.flatten(geometry.pose_from_quat(result.xyz, result.quat_xyzw))[:, 2]
+        errors.append(float(np.sqrt(np.mean(planar.wrap(heading - planar.flatten(dataset.T_world_truth)[:, 2]) ** 2))))
+    assert errors[0] <= 0.7 * errors[1], errors

@@ -119,13 +119,21 @@ def test_orientation_lowers_the_rotation_error_with_few_tags():
     assert np.mean(with_rotation) <= 0.7 * np.mean(without_rotation), (with_rotation, without_rotation)
 
 
-def test_a_tags_orientation_is_paired_with_its_position(tag_world):
+def test_a_tag_is_one_row_and_its_orientation_joins_the_update(tag_world):
+    """associations.csv has a row a tag (its position's), the counts with it; the updates' NIS
+    counts a tag's 6 dof where its orientation joined (almost every tag with the true pairs)."""
     result = localize(tag_world, LocalizerConfig(association="oracle"))
-    chosen = result.associations.landmark
     rotation = np.flatnonzero(tag_world.obs_kind == measurement.TAG_ROTATION)
-    partner = tag_world.obs_partner[rotation]
-    assert np.array_equal(chosen[rotation], chosen[partner])
-    assert np.count_nonzero(chosen[rotation] >= 0) > 0.9 * rotation.size
+    rows = np.flatnonzero(tag_world.obs_kind != measurement.TAG_ROTATION)
+    a = result.associations
+    assert a.landmark.size == rows.size == result.summary["counts"]["observations"]
+    assert np.array_equal(a.uvd, tag_world.obs_z[rows]) and np.array_equal(a.true_landmark, tag_world.obs_true_landmark[rows])
+    accepted = a.landmark >= 0
+    assert result.summary["counts"]["accepted"] == np.count_nonzero(accepted)
+    tag_rows = np.isin(rows, tag_world.obs_partner[rotation])
+    joined_dof = int(np.sum(result.nis_dof)) - 3 * np.count_nonzero(accepted)
+    assert 0.9 * 3 * np.count_nonzero(accepted & tag_rows) <= joined_dof <= 3 * np.count_nonzero(accepted & tag_rows)
+    assert metrics.evaluate(result)["association"]["precision"] == 1.0
 
 
 def test_tags_end_to_end(tmp_path):
@@ -146,6 +154,108 @@ def test_tags_end_to_end(tmp_path):
     assert invoke("eval", run_dir).exit_code == 0
     smoothed = invoke("smooth", run_dir, "--json")
     assert smoothed.exit_code == 0, smoothed.output
-    assert json.loads(smoothed.output)["observation_factors"] == json.loads(ran.output)["counts"]["accepted"] / 2
+    accepted = json.loads(ran.output)["counts"]["accepted"]  # a tag is one row: its orientation a factor of its own
+    assert accepted < json.loads(smoothed.output)["observation_factors"] <= 2 * accepted
+    pixel = tmp_path / "pixel_tags.g2o"
+    made = invoke("simulate", "-o", pixel, "--poses", 40, "--tag-sigma-deg", 1.0, "--measurement", "pixel")
+    assert made.exit_code == 0 and "EDGE_PROJECT_TAG_UV " in pixel.read_text(), made.output
+    assert invoke("run", pixel, "-o", tmp_path / "pixel_run").exit_code == 0
     refused = invoke("simulate", "--robot", "planar", "-o", tmp_path / "x.g2o", "--tag-sigma-deg", 1.0)
     assert refused.exit_code == 2 and "applies only to --robot 3d" in refused.output
+
+
+def test_conditional_terms_are_the_joint_innovations_less_the_positions(rng):
+    """The orientation's share of a tag pair's d^2 and ln det S: the dense 6x6 joint of position
+    and orientation less the position's own, with the two correlated through P."""
+    from camloc.tag_orientations import conditional_terms
+
+    M, n = 4, 6
+    A = rng.normal(size=(n, n))
+    P = A @ A.T * 0.1 + np.eye(n) * 0.01
+    y, e = rng.normal(size=(M, 3)), rng.normal(scale=0.1, size=(M, 3))
+    H, H_rot = rng.normal(size=(M, 3, n)), rng.normal(size=(M, 3, n))
+    R = np.stack([np.diag(rng.uniform(0.01, 0.1, 3)) for _ in range(M)])
+    R_rot = np.stack([np.diag(rng.uniform(1e-4, 1e-3, 3)) for _ in range(M)])
+    d2, log_det = conditional_terms(y, H, R, e, H_rot, R_rot, P)
+    for m in range(M):
+        J = np.vstack([H[m], H_rot[m]])
+        S = J @ P @ J.T
+        S[:3, :3] += R[m]
+        S[3:, 3:] += R_rot[m]
+        v = np.concatenate([y[m], e[m]])
+        S_p = S[:3, :3]
+        assert d2[m] == pytest.approx(v @ np.linalg.solve(S, v) - y[m] @ np.linalg.solve(S_p, y[m]), rel=1e-9)
+        assert log_det[m] == pytest.approx(np.linalg.slogdet(S)[1] - np.linalg.slogdet(S_p)[1] - np.linalg.slogdet(R_rot[m])[1], rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def twin_tag_world():
+    """Every tag with an unseen twin 3 cm away (within the position's noise) turned by 90 deg."""
+    from camloc.simulate_tags import with_twin_tags
+
+    config = SimulationConfig(trajectory="smooth3d", poses=80, max_observations_per_pose=2)
+    return with_twin_tags(simulate_tags(config, seed=0, sigma_rad=math.radians(1.0)), offset_m=0.03, turn_deg=90.0, seed=0)
+
+
+@pytest.mark.parametrize("association", ["beam", "jcbb", "best-friends"])
+def test_tags_nearby_are_told_apart_by_their_orientation(twin_tag_world, association):
+    """Two tags at nearly the same place: the orientation in the pair's cost and gate tells them
+    apart (every pair right, almost every tag paired); by their positions alone (the same data
+    without orientations) the association confuses them or pairs few."""
+    report = metrics.evaluate(localize(twin_tag_world, LocalizerConfig(association=association)))
+    alone = metrics.evaluate(localize(without_orientations(twin_tag_world), LocalizerConfig(association=association)))
+    assert report["association"]["precision"] >= 0.99 and report["association"]["recall"] >= 0.9
+    assert (alone["association"]["precision"] or 0.0) < 0.8 or (alone["association"]["recall"] or 0.0) < 0.6
+
+
+def test_orientation_in_association_against_its_veto_alone(twin_tag_world, monkeypatch):
+    """The same twin world with the orientation only vetoing pairs chosen by position (as before
+    issue 37's association point): right pairs, but half of them dropped."""
+    from camloc import tag_orientations
+
+    full = metrics.evaluate(localize(twin_tag_world))["association"]
+    monkeypatch.setattr(tag_orientations, "ORIENTATION_IN_ASSOCIATION", False)
+    veto = metrics.evaluate(localize(twin_tag_world))["association"]
+    assert full["recall"] >= 0.9 and veto["recall"] <= 0.7 and full["precision"] >= 0.99
+
+
+def test_pixel_only_tags_round_trip_and_run(tmp_path):
+    """A camera without depth: each tag detection an EDGE_PROJECT_TAG_UV (pixel + orientation),
+    read back as a pixel observation and its orientation; the run pairs them right and the
+    orientation's 3 dof join each update's NIS."""
+    config = SimulationConfig(trajectory="smooth3d", poses=60, max_observations_per_pose=2, measurement="pixel")
+    world = simulate_tags(config, seed=2, sigma_rad=math.radians(1.0))
+    write_g2o(world, tmp_path / "pixel_tags.g2o")
+    text = (tmp_path / "pixel_tags.g2o").read_text()
+    assert "EDGE_PROJECT_TAG_UV " in text and "EDGE_PROJECT_UV " not in text and "EDGE_PROJECT_TAG " not in text
+    back = read_g2o(tmp_path / "pixel_tags.g2o")
+    rotation = np.flatnonzero(back.obs_kind == measurement.TAG_ROTATION)
+    assert rotation.size and np.all(back.obs_kind[back.obs_partner[rotation]] == measurement.PIXEL)
+    for name in ("obs_kind", "obs_partner", "obs_true_landmark"):
+        assert np.array_equal(getattr(back, name), getattr(world, name)), name
+    assert np.allclose(back.obs_info, world.obs_info, rtol=0, atol=1e-9)
+    from camloc.tag_orientations import TAG_GATE_TAIL, TagOrientations
+    from camloc.tails import chi2_quantile
+
+    gates = TagOrientations(back).joint_gate[back.obs_partner[rotation]]  # a pixel's 2 dof and the orientation's 3
+    assert gates == pytest.approx(chi2_quantile(5, TAG_GATE_TAIL))
+    result = localize(back)
+    report = metrics.evaluate(result)
+    assert report["association"]["precision"] >= 0.99 and report["association"]["recall"] >= 0.9
+    accepted = np.count_nonzero(result.associations.landmark >= 0)
+    assert int(np.sum(result.nis_dof)) > 2 * accepted  # a pixel's 2 dof, and 3 more where the orientation joined
+
+
+def test_correlated_pixel_tag_information_is_refused(tmp_path):
+    info = np.eye(5) * 1000.0
+    info[1, 4] = info[4, 1] = 10.0
+    upper = " ".join(repr(float(v)) for v in info[np.triu_indices(5)])
+    lines = ["PARAMS_CAMERACALIB 0 0 0 0.3 0.5 -0.5 0.5 -0.5 1 1 0.5 0.5", "VERTEX_TAG 0 2 0 0.3 0 0 0 1",
+             "VERTEX_SE3:QUAT 1000 0 0 0 0 0 0 1", f"EDGE_PROJECT_TAG_UV 1000 0 0 0.5 0.5 0 0 0 1 {upper}"]
+    path = tmp_path / "tag.g2o"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r":4: EDGE_PROJECT_TAG_UV: expected no information between \(u, v\)"):
+        read_g2o(path)
+    path.write_text("\n".join(lines[:-1] + ["EDGE_PROJECT_TAG_UV 1000 0 0 0.5 0.5 0 0 0 1 1000"]) + "\n")
+    with pytest.raises(DatasetError, match=r":4: .*EDGE_PROJECT_TAG_UV"):
+        read_g2o(path)
