@@ -363,6 +363,11 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
         position = pose_cov[dataset.obs_pose_index[mine], :3, :3]
         spread[at] = np.sqrt(np.trace(noise, axis1=1, axis2=2) + np.trace(position, axis1=1, axis2=2))
     radius = SCREEN_SIGMAS * float(np.median(spread))
+    # an observation from a pose the run was unsure of (a slip, a stretch without pairs) is not
+    # placed well enough to say what the map lacks: several of them agree on where the estimate
+    # went wrong, not on a landmark
+    sure = spread <= 2.0 * float(np.median(spread))
+    obs, points = obs[sure], points[sure]
     if dataset.landmark_ids.size:  # a rejected observation near a mapped landmark is one the run missed, not one the map lacks
         landmarks = PointIndex(dataset.landmark_xyz)
         lone = np.array([landmarks.within(p, radius).size == 0 for p in points], dtype=bool)

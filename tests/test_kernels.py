@@ -282,7 +282,7 @@ def test_compiled_localizer_equals_the_numpy_one(name, association_method):
     dict(poses=80, trajectory="aerial", cameras=2, intrinsics="pixel"),
     dict(poses=120, trajectory="smooth3d", landmarks=1500, region=11, clutter_fraction=0.35),
     dict(poses=120, trajectory="smooth3d", cameras=2, measurement="pixel", clutter_fraction=0.1),  # with a slip
-    dict(poses=100, trajectory="grid", measurement="pixel", dense=True),
+    dict(poses=50, trajectory="grid", measurement="pixel", dense=True),
 ], ids=["noise-free", "aerial-2cam", "dense-clutter", "pixel-2cam-clutter", "pixel-dense"])
 def test_compiled_beam_equals_the_numpy_one_on_simulated_worlds(kind):
     import dataclasses
