@@ -15,6 +15,7 @@ Pure: no I/O, no printing.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -39,7 +40,8 @@ class Candidate:
 
 def joint_distance(P: np.ndarray, pairs: list[Candidate]) -> float:
     """The stacked innovation's squared Mahalanobis distance ``y' S^-1 y`` with
-    ``S = H P H' + blockdiag(R_i + extra_i)``."""
+    ``S = H P H' + blockdiag(R_i + extra_i)`` (the plain statement of what ``jcbb`` computes from
+    its precomputed blocks)."""
     H = np.vstack([c.H for c in pairs])
     y = np.concatenate([c.y for c in pairs])
     S = H @ P @ H.T
@@ -48,14 +50,36 @@ def joint_distance(P: np.ndarray, pairs: list[Candidate]) -> float:
     return float(y @ np.linalg.solve(S, y))
 
 
+@lru_cache(maxsize=256)
+def _gate(dof: int, probability: float) -> float:
+    return chi2_quantile(dof, 1.0 - probability)
+
+
 def jcbb(P: np.ndarray, candidates: list[list[Candidate]], probability: float, max_nodes: int = 2000) -> list[Candidate]:
     """The largest jointly compatible set of pairs (one candidate or none per observation, each
-    landmark once), ties by the lower sum of the pairs' own costs."""
+    landmark once), ties by the lower sum of the pairs' own costs. Every candidate's H P H' block
+    against every other's is computed once (``H P H'`` over all of them), so that a node's joint
+    test costs what its few pairs do, not the state's size."""
+    order = sorted(range(len(candidates)), key=lambda i: (len(candidates[i]) == 0, len(candidates[i])))
+    lists = [sorted(candidates[i], key=lambda c: c.cost) for i in order]
+    flat = [c for options in lists for c in options]
+    if not flat:
+        return []
+    slot = {id(c): n for n, c in enumerate(flat)}
+    H = np.vstack([c.H for c in flat])
+    cross = H @ P @ H.T  # (3C, 3C): every pair of candidates' H P H'
+    for n, c in enumerate(flat):
+        cross[3 * n:3 * n + 3, 3 * n:3 * n + 3] += c.R + c.extra
+    y_all = np.concatenate([c.y for c in flat])
     best: list[Candidate] = []
     best_cost = np.inf
     nodes = 0
-    order = sorted(range(len(candidates)), key=lambda i: (len(candidates[i]) == 0, len(candidates[i])))
-    lists = [sorted(candidates[i], key=lambda c: c.cost) for i in order]
+
+    def compatible(trial: list[Candidate]) -> bool:
+        rows = np.concatenate([np.arange(3 * slot[id(c)], 3 * slot[id(c)] + 3) for c in trial])
+        y = y_all[rows]
+        d2 = float(y @ np.linalg.solve(cross[np.ix_(rows, rows)], y))
+        return d2 <= _gate(sum(t.dof for t in trial), probability)
 
     def search(depth: int, chosen: list[Candidate], used: set, cost: float) -> None:
         nonlocal best, best_cost, nodes
@@ -71,8 +95,7 @@ def jcbb(P: np.ndarray, candidates: list[list[Candidate]], probability: float, m
             if c.landmark in used:
                 continue
             trial = chosen + [c]
-            dof = sum(t.dof for t in trial)
-            if len(trial) > 1 and joint_distance(P, trial) > chi2_quantile(dof, 1.0 - probability):
+            if len(trial) > 1 and not compatible(trial):
                 continue
             search(depth + 1, trial, used | {c.landmark}, cost + c.cost)
         search(depth + 1, chosen, used, cost)

@@ -98,7 +98,7 @@ class MappingLocalizer(LandmarkAdditions):
         self.P = slam.initial_cov(self.x, config.initial_cov())
         self.T_odometry = T0
         n, K = dataset.num_poses, dataset.num_observations
-        self.states, self.covs = np.zeros((n, 7)), np.zeros((n, 6, 6))
+        self.covs = np.zeros((n, 6, 6))  # the SE(3) filter's right perturbation (its states: the poses, at the end)
         self.poses, self.odometry_poses = np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
         self.chosen = np.full(K, -1, np.int64)  # table index per observation
         self.mahalanobis = np.full(K, np.nan)
@@ -145,7 +145,6 @@ class MappingLocalizer(LandmarkAdditions):
         else:
             self._tracked(k, unassigned)
         self._retire(k)
-        self.states[k] = np.concatenate(geometry.pose_to_quat(self.x.pose()))
         self.covs[k] = slam.pose_right_cov(self.x, self.P)
         self.poses[k], self.odometry_poses[k] = self.x.pose(), self.T_odometry
 
@@ -290,7 +289,8 @@ class MappingLocalizer(LandmarkAdditions):
         self.chosen[left_out], self.mahalanobis[left_out] = -1, np.nan  # pairs with what the map does not keep
         chosen_ids = np.where(self.chosen >= 0, self.table.ids[np.maximum(self.chosen, 0)] if len(self.table) else 0, UNASSOCIATED)
         result = build_result(
-            self.dataset, self.config, make_filter("se3"), self.states, self.covs, self.poses, self.odometry_poses,
+            self.dataset, self.config, make_filter("se3"), np.concatenate(geometry.pose_to_quat(self.poses), axis=1), self.covs,
+            self.poses, self.odometry_poses,
             chosen_ids.astype(np.int64), self.mahalanobis, self.update_pose_ids, self.nis, self.map_costs, self.nis_dof,
             warnings=[], slip_pose_ids=[], candidate_range=(self.min_depth, self.max_depth, self.max_angle),
             timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": False,

@@ -116,3 +116,26 @@ def test_world_covariances_round_trip():
     prior = np.diag([0.04, 0.05, 0.06])
     x2, P2 = slam.augmented(x, P, xyz, slam.world_prior_coefficients(x, xyz), prior)
     np.testing.assert_allclose(slam.landmark_world_cov(x2, P2, 0), prior, atol=1e-12)
+
+
+def test_jcbb_joint_test_equals_the_plain_statement():
+    """jcbb's precomputed blocks give the joint distance of the plain stacked statement, and the
+    search keeps the jointly compatible set: two pairs each fine alone but pulling the pose apart
+    are not taken together."""
+    from camloc.slam_association import Candidate, jcbb, joint_distance
+
+    rng = np.random.default_rng(8)
+    n = 12
+    A = rng.normal(size=(n, n))
+    P = A @ A.T * 0.01 + np.eye(n) * 1e-3
+    H = [rng.normal(size=(3, n)) for _ in range(3)]
+    R = np.eye(3) * 0.01
+    # pair 0 and 1 agree with a pose error e; pair 2 pulls the other way
+    e = rng.normal(size=n) * 0.05
+    ys = [H[0] @ e, H[1] @ e, -H[2] @ e * 8]
+    pairs = [Candidate(i, 100 + i, ys[i], H[i], np.zeros((3, 3)), R, 3, 1.0) for i in range(3)]
+    S = np.vstack(H) @ P @ np.vstack(H).T + np.kron(np.eye(3), R)
+    y = np.concatenate(ys)
+    assert joint_distance(P, pairs) == pytest.approx(float(y @ np.linalg.solve(S, y)))
+    chosen = jcbb(P, [[p] for p in pairs], 0.99)
+    assert len(chosen) == 2 and {c.obs for c in chosen} == {0, 1}
