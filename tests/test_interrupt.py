@@ -24,6 +24,13 @@ def _camloc_script() -> list[str]:
     return [str(script)] if script.is_file() else [sys.executable, "-c", "from camloc.cli import main; main()"]
 
 
+def _interruptible() -> None:
+    """In the child: Ctrl-C's default disposition, as a terminal's foreground command has it (a
+    test run started in the background of a non-interactive shell inherits SIGINT ignored, and
+    its children with it: the run then finishes whatever the signal)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
     dataset = tmp_path / "world.g2o"
     write_g2o(simulate(SimulationConfig(poses=6000), seed=2), dataset)
@@ -33,7 +40,8 @@ def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
     for delay in (0.05, 0.4, 0.9, 1.4, 1.9, 2.4, 3.0):
         run_dir = tmp_path / f"run-{delay}"
         process = subprocess.Popen([*_camloc_script(), "run", str(dataset), "-o", str(run_dir), "--quiet"],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=tmp_path)
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=tmp_path,
+                                   preexec_fn=_interruptible)
         time.sleep(delay)
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGINT)
