@@ -35,7 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from camloc import ekf, geometry, measurement
+
+if TYPE_CHECKING:
+    from camloc.sensors import CameraModel  # a camera: T_robot_camera, intrinsics, kind
 
 POSE_DIM = 6  # xi_t, xi_theta
 
@@ -104,23 +109,13 @@ def noise_coefficients(x: SlamMean) -> np.ndarray:
     return G
 
 
-@dataclass(frozen=True)
-class Sensor:
-    """A camera as the measurement takes it: ``T_robot_camera`` (4, 4), intrinsics (fx, fy, cx,
-    cy), the kind of its measurements (``camloc.measurement``)."""
-
-    T_robot_camera: np.ndarray
-    intrinsics: tuple
-    kind: int
-
-
-def camera_points(x: SlamMean, sensor: Sensor, xyz: np.ndarray) -> np.ndarray:
+def camera_points(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray) -> np.ndarray:
     """World points (M, 3) in the camera frame (M, 3)."""
     Rc, tc = sensor.T_robot_camera[:3, :3], sensor.T_robot_camera[:3, 3]
     return ((xyz - x.t) @ x.R - tc) @ Rc
 
 
-def observe(x: SlamMean, sensor: Sensor, xyz: np.ndarray, state_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def observe(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, state_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Predictions (M, MAX_DIM) of points xyz (M, 3) and their Jacobians (M, MAX_DIM, dim) with
     respect to the error: a point with ``state_row`` i >= 0 is the state's landmark i (its xyz
     must be ``x.L[i]``), -1 a point held fixed."""
@@ -139,7 +134,7 @@ def observe(x: SlamMean, sensor: Sensor, xyz: np.ndarray, state_row: np.ndarray)
     return measurement.project(p_camera, sensor.intrinsics, sensor.kind), H
 
 
-def inverse_observation(x: SlamMean, sensor: Sensor, z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A new landmark from one measurement with range z (MAX_DIM,) of noise R_z (MAX_DIM,
     MAX_DIM): its position (3,), the coefficients B (3, POSE_DIM) of its error on the pose's
     (xi_l = B xi_pose + noise: [I, 0]) and the noise's covariance N (3, 3)."""

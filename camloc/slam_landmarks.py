@@ -186,8 +186,7 @@ class LandmarkAdditions:
         if not obs or not len(self.table):
             return obs
         obs_array = np.array(obs, np.int64)
-        if self.state_landmark:
-            self.table.xyz[np.array(self.state_landmark)] = self.x.L
+        self._sync_positions()
         nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, self.mapped_index)
         fits = np.zeros(obs_array.size, bool)
         for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():

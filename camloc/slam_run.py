@@ -158,8 +158,7 @@ class MappingLocalizer(LandmarkAdditions):
         observation free to stay unassigned."""
         if obs.size == 0:
             return []
-        if self.state_landmark:  # the table's positions of the landmarks in the state, for the search by place
-            self.table.xyz[np.array(self.state_landmark)] = self.x.L
+        self._sync_positions()
         nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, None if added_only else self.mapped_index)
         if self.given_pairs is not None and not added_only:
             mapped = nearby < self.table.num_mapped
@@ -197,6 +196,11 @@ class MappingLocalizer(LandmarkAdditions):
         in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
         missed = nearby[in_view & (self.beam_paired_at[nearby] != k)]
         self.beam_missed[missed] += 1
+
+    def _sync_positions(self) -> None:
+        """The table's positions of the landmarks in the state, for the search by place."""
+        if self.state_landmark:
+            self.table.xyz[np.array(self.state_landmark)] = self.x.L
 
     def _slack(self, landmark: int) -> float:
         """How much costlier than clutter a pair with ``landmark`` may be and still be tried: a

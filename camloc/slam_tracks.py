@@ -1,23 +1,20 @@
-"""Observations no landmark explains, gathered until they agree on a new one (delayed initialization).
+"""Pixels no landmark explains, gathered until their rays fix a landmark (delayed initialization).
 
-An observation the association leaves unassigned may be clutter or a landmark the map lacks. It
-is kept as a **track**: a world point (an observation with range: the point it measures, with the
-robot's uncertainty and its own noise) or a ray (a pixel: the camera's centre and direction). A
-later unassigned observation that agrees with a track joins it (within the chi^2 gate of a point,
-or, for rays, when they meet: every ray within ``RAY_SIGMAS`` of its angular noise of the point
-nearest to all of them). A track becomes a landmark once it holds ``CONFIRM_OBSERVATIONS``
-observations (and, of rays, parallax enough to fix the depth: ``MIN_PARALLAX_DEG``); one not
-extended within ``TRACK_WINDOW`` poses is dropped. Clutter, uniform over what the cameras see,
-almost never repeats at one place, so it stays a track and expires.
+A pixel observation the association leaves unassigned (and that no landmark in view fits) may be
+clutter or a landmark the map lacks; it gives a ray, not a point. It is kept in a **track** of
+rays (the camera's centre and direction): a later one joins the track when they meet (every ray
+within ``RAY_SIGMAS`` of its angular noise of the point nearest to all of them; rays from one
+centre when they are parallel within that noise). A track becomes a landmark once it holds
+``CONFIRM_OBSERVATIONS`` rays with ``MIN_PARALLAX_DEG`` of parallax; one not extended within
+``TRACK_WINDOW`` poses is dropped. (An observation with range enters the state at once as a
+tentative landmark instead: ``camloc.slam_landmarks``.)
 
-Why delayed and not inverse depth: the landmark enters the filter's state from the observation at
-the pose that confirms it, through the inverse observation (a point's own noise plus the robot's
-translation error: consistent in the invariant error, ``camloc.slam``). A ray gives no depth: its
-depth then comes from the track's triangulation (its standard deviation widened by
-``DEPTH_VARIANCE_INFLATION`` for the drift between the views, which the triangulation takes as
-exact), so the earlier views contribute only the depth and the filter never counts a measurement
-twice. Inverse depth would enter every ray at once, but as a 6-parameter landmark the filter's
-models (and the smoother's) would carry only for rays; the delay costs a few poses per landmark.
+Why delayed and not inverse depth: the landmark enters the filter's state from the latest ray, its
+depth from the track's triangulation (its variance widened by ``DEPTH_VARIANCE_INFLATION`` for the
+drift between the views, which the triangulation takes as exact), so the earlier views contribute
+only the depth and the filter never counts a measurement twice. Inverse depth would enter every ray
+at once, but as a 6-parameter landmark the filter's models (and the smoother's) would carry only
+for rays; the delay costs a few poses per landmark.
 
 Pure: no I/O, no printing.
 """
@@ -37,9 +34,8 @@ DEPTH_VARIANCE_INFLATION = 4.0
 
 @dataclass
 class Track:
-    """Unassigned observations that agree with one another.
+    """Unassigned rays that meet.
 
-    point, point_cov : (3,), (3, 3) the latest point measured (observations with range), or None.
     origins, directions : the rays' camera centres and unit directions (pixel observations).
     sigma_angle : each ray's angular standard deviation, radians.
     observations : observation indices; last_pose : the pose it last grew at.
@@ -47,15 +43,9 @@ class Track:
 
     last_pose: int
     observations: list = field(default_factory=list)
-    point: np.ndarray | None = None
-    point_cov: np.ndarray | None = None
     origins: list = field(default_factory=list)
     directions: list = field(default_factory=list)
     sigma_angle: list = field(default_factory=list)
-
-    @property
-    def is_ray(self) -> bool:
-        return self.point is None
 
 
 def triangulate(origins: np.ndarray, directions: np.ndarray, sigma_angle: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -125,32 +115,11 @@ class Tracks:
         """Drop the tracks not extended within ``TRACK_WINDOW`` poses of pose k."""
         self.tracks = [t for t in self.tracks if k - t.last_pose <= TRACK_WINDOW]
 
-    def add_point(self, k: int, obs: int, point: np.ndarray, cov: np.ndarray, drift) -> Track:
-        """An observation with range measuring ``point`` (3,) with covariance ``cov`` (its own
-        noise): joins the nearest track it agrees with (chi^2 gate, 3 dof), or starts one.
-        ``drift(poses, point)``: the covariance (3, 3) of how far the robot's estimate may have
-        moved relative to itself over that many poses, as seen at ``point`` (both observations are
-        made from the robot: only its motion between them separates them, not its place)."""
-        best, best_d2 = None, self.gate
-        for track in self.tracks:
-            if track.is_ray:
-                continue
-            offset = point - track.point
-            d2 = float(offset @ np.linalg.solve(cov + track.point_cov + drift(k - track.last_pose, point), offset))
-            if d2 < best_d2:
-                best, best_d2 = track, d2
-        if best is None:
-            best = Track(last_pose=k)
-            self.tracks.append(best)
-        best.observations.append(obs)
-        best.point, best.point_cov, best.last_pose = point, cov, k
-        return best
-
     def add_ray(self, k: int, obs: int, origin: np.ndarray, direction: np.ndarray, sigma_angle: float) -> Track:
         """A pixel observation, the ray from ``origin`` along the unit ``direction``: joins a
         track whose rays it meets, or starts one."""
         for track in self.tracks:
-            if not track.is_ray or obs in track.observations:
+            if obs in track.observations:
                 continue
             origins = np.array(track.origins + [origin])
             directions = np.array(track.directions + [direction])
@@ -172,7 +141,7 @@ class Tracks:
         """Whether the track holds enough observations (and, of rays, parallax) to be a landmark."""
         if len(track.observations) < CONFIRM_OBSERVATIONS:
             return False
-        return not track.is_ray or parallax_deg(np.array(track.directions)) >= MIN_PARALLAX_DEG
+        return parallax_deg(np.array(track.directions)) >= MIN_PARALLAX_DEG
 
     def remove(self, track: Track) -> None:
         self.tracks = [t for t in self.tracks if t is not track]
