@@ -66,7 +66,7 @@ def localize(
         numpy beam's process, at least ``PARALLEL_MIN_POSES`` poses). Where the compiled beam's
         kernels are not yet compiled, a parallel run compiles the filter's in a second process
         (``camloc.warmup.start_filter_compile``); False keeps the compile to this process too.
-    engine : "compiled" (the loop over numba kernels, ``camloc.loop``: the Euler filter with beam
+    engine : "compiled" (the loop over numba kernels, ``camloc.loop``: the Euler or the SE(2) filter with beam
         or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
         loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
         dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
@@ -107,11 +107,12 @@ def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, p
                     on_background_compile) -> RunResult:
     """The localizer against the map held exactly (``localize``'s engines)."""
     # a tag's orientation is the numpy engine's only (camloc.tags)
-    compilable = (config.filter == "euler" and config.association in COMPILED_ASSOCIATIONS
+    compilable = (config.filter in COMPILED_FILTERS and config.association in COMPILED_ASSOCIATIONS
                   and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
     if engine == "compiled" and not compilable:
-        raise ConfigError(f"the compiled loop runs the euler filter with {' or '.join(COMPILED_ASSOCIATIONS)} association; "
-                          f"filter {config.filter!r} with association {config.association!r} runs in numpy")
+        raise ConfigError(f"the compiled loop runs the {' and '.join(COMPILED_FILTERS)} filters with {' or '.join(COMPILED_ASSOCIATIONS)} "
+                          f"association, without tag orientations; filter {config.filter!r} with association {config.association!r} "
+                          "runs in numpy")
     use_compiled = engine == "compiled" or (engine == "auto" and compilable and dataset.num_poses >= COMPILED_MIN_POSES)
     background = None  # the state of the background compile this run leaves the kernels to
     filter_compile = None  # the process compiling the filter's kernels while this one compiles the beam's
@@ -241,7 +242,8 @@ def _localize_numpy(dataset: Dataset, config: LocalizerConfig, on_progress: Opti
     return localizer.result(time.perf_counter() - started)
 
 
-# The associations the compiled loop (``camloc.loop``) runs; the others run in numpy below.
+# The filters and associations the compiled loop (``camloc.loop``) runs; the others run in numpy below.
+COMPILED_FILTERS = ("euler", "se2")
 COMPILED_ASSOCIATIONS = ("beam", "oracle")
 
 
@@ -249,13 +251,13 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
                        concurrent: bool, filter_ready: Optional[Callable[[], None]] = None) -> RunResult:
     from camloc.loop import PoseFailure, run_compiled
 
-    euler = make_filter("euler")
-    x0 = euler.initial(dataset.T_world_start)
+    model = make_filter(config.filter)
+    x0 = model.initial(dataset.T_world_start)
     started = time.perf_counter()
     view_range = candidate_range(dataset, config)
     try:
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped, spread = run_compiled(
-            dataset, config, on_progress, initial_x=x0, initial_P=config.initial_cov(), concurrent=concurrent,
+            dataset, config, on_progress, initial_x=x0, initial_P=initial_cov(config, model), concurrent=concurrent,
             filter_ready=filter_ready, view_range=view_range)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
@@ -269,15 +271,14 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
             T = T @ increments[k - 1]
         odometry[k] = T
     warnings = []
-    pitch = np.degrees(np.abs(states[:, 4]))
-    near = np.flatnonzero(pitch > SINGULARITY_WARNING_DEG)
+    near = np.flatnonzero(np.degrees(np.abs(states[:, 4])) > SINGULARITY_WARNING_DEG) if model.name == "euler" else np.zeros(0, int)
     if near.size:
         k = int(near[0])
         warnings.append(f"pose {int(dataset.pose_ids[k])}: pitch {np.degrees(states[k, 4]):.1f} deg is close to the Euler filter's "
                         "singularity at +-90 deg; its estimate may degrade from here (--filter se3 has no singularity)")
     landmark = np.where(chosen >= 0, dataset.landmark_ids[np.maximum(chosen, 0)] if dataset.landmark_ids.size else UNASSOCIATED, UNASSOCIATED)
     return build_result(
-        dataset, config, euler, states, covs, geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
+        dataset, config, model, states, covs, model.pose(states) if model.name == "se2" else geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
         dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
         slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=view_range,
         association_spread=spread if config.association == "beam" else None,

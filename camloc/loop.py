@@ -1,4 +1,5 @@
-"""The localizer's loop over compiled kernels (the Euler filter; beam and oracle association).
+"""The localizer's loop over compiled kernels (the Euler and the planar SE(2) filter, the state's
+size telling them apart; beam and oracle association).
 
     scene = build_scene(dataset, config)            # what never changes during the run
     pairs = associate(scene, ...)                   # the beam decides every pose's pairs
@@ -28,8 +29,8 @@ from camloc.scene import build_scene, build_settings
 
 ProgressCallback = Callable[[int, int], None]
 
-# The compiled loop's filter (its states' difference, for the association spread).
-EULER = make_filter("euler")
+# The compiled loop's filters by their state's size (their states' difference, for the association spread).
+FILTER_OF_SIZE = {6: make_filter("euler"), 3: make_filter("se2")}
 
 # The progress callback is called this many times per run at most (between compiled blocks).
 PROGRESS_STEPS = 200
@@ -70,8 +71,8 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
 class CompiledRun(NamedTuple):
     """What ``run_compiled`` returns (``camloc.localizer`` assembles it into a RunResult)."""
 
-    states: np.ndarray        # (N, 6) Euler states
-    covs: np.ndarray          # (N, 6, 6) the filter's covariances
+    states: np.ndarray        # (N, d) the filter's states (d = 6: Euler; 3: planar)
+    covs: np.ndarray          # (N, d, d) the filter's covariances
     chosen: np.ndarray        # (K,) landmark row of each observation, -1 for none
     distance: np.ndarray      # (K,) Mahalanobis distance of each pair, NaN for none
     update_pose: np.ndarray   # (U,) pose index of each update
@@ -79,7 +80,7 @@ class CompiledRun(NamedTuple):
     map_cost: np.ndarray      # (U,)
     dof: np.ndarray           # (U,) NIS degrees of freedom
     slipped: np.ndarray       # indices of the poses explained as odometry slips
-    spread: np.ndarray        # (N, 6, 6) the beam's association spread and its pairs' (zero without the beam)
+    spread: np.ndarray        # (N, d, d) the beam's association spread and its pairs' (zero without the beam)
 
 
 class _Filter:
@@ -87,11 +88,11 @@ class _Filter:
     With the beam (GIVEN), the pairs of each stretch are set (``set_pairs``) before it runs."""
 
     def __init__(self, scene, settings, method, initial_x, initial_P, ready: Optional[Callable[[], None]] = None):
-        n, K = scene.pose_obs_start.size - 1, scene.z.shape[0]
+        n, K, d = scene.pose_obs_start.size - 1, scene.z.shape[0], initial_x.size
         self.ready = ready    # called before the first stretch
         self.scene, self.settings, self.method = scene, settings, method
         self.x, self.P = initial_x.copy(), initial_P.copy()
-        self.states, self.covs = np.zeros((n, 6)), np.zeros((n, 6, 6))
+        self.states, self.covs = np.zeros((n, d)), np.zeros((n, d, d))
         self.chosen, self.distance = np.full(K, -1, np.int64), np.full(K, np.nan)
         self.update_pose, self.nis, self.map_cost, self.dof = np.zeros(n, np.int64), np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
         self.counters = np.zeros(3, np.int64)
@@ -99,8 +100,8 @@ class _Filter:
         # grow by copy, so a stretch handed to the thread keeps reading the arrays it was given
         self.pair_start, self.slipped = np.zeros(n + 1, np.int64), np.zeros(n, np.bool_)
         self.pair_obs, self.pair_landmark = np.zeros(max(64, 2 * K), np.int64), np.zeros(max(64, 2 * K), np.int64)
-        self.spread = np.zeros((n, 6, 6))  # with the beam, how far its explanations of each pose spread (_backtrack)
-        self.pair_spread = np.zeros((n, 6, 6))  # and what the chance that a replayed pair is clutter adds
+        self.spread = np.zeros((n, d, d))  # with the beam, how far its explanations of each pose spread (_backtrack)
+        self.pair_spread = np.zeros((n, d, d))  # and what the chance that a replayed pair is clutter adds
         self.filtered = 0
 
     def set_pairs(self, first: int, pairs: list, slipped: np.ndarray, spread: Optional[np.ndarray] = None):
@@ -196,16 +197,16 @@ class _Replay:
 def search_beam(scene, settings, x0, P0, progress, settle):
     """Every pose's pairs as the beam decides them, handed to ``settle(last, pairs, slipped,
     spread)`` for poses up to last - 1 (pairs: a list of (p, 2) of (observation, landmark), the
-    seed pair first at a slip; slipped (p,); spread (p, 6, 6), ``_backtrack``) as soon as the beam
+    seed pair first at a slip; slipped (p,); spread (p, d, d), ``_backtrack``) as soon as the beam
     has settled them, and for the rest at the end."""
     n = scene.pose_obs_start.size - 1
-    width = settings.beam_width
+    width, d = settings.beam_width, x0.size
     history = (np.zeros(n, np.int64), np.zeros((n, width), np.int64), np.zeros((n, width), np.bool_),
                np.zeros((n, width + 1), np.int64), np.zeros((max(4 * scene.z.shape[0], 64), 2), np.int64), np.zeros(1, np.int64),
-               np.zeros((n, width, 6)), np.zeros((n, width)))
+               np.zeros((n, width, d)), np.zeros((n, width)))
     unexplained = np.zeros((n, 2), np.int64)
     counters = np.zeros(3, np.int64)
-    beam = kb.new_generation(1, 1)
+    beam = kb.new_generation(1, 1, d)
     beam[0][0], beam[1][0], beam[2][0] = x0, P0, 0.0
     size = 1
     settled = 0
@@ -254,13 +255,15 @@ def _backtrack(history, first, last):
     are settled)."""
     count, parent, slipped_flag, pair_start, pairs, _, state, cost = history
     chosen, slipped = [None] * (last - first + 1), np.zeros(last - first + 1, np.bool_)
-    spread = np.zeros((last - first + 1, 6, 6))
+    d = state.shape[2]
+    model = FILTER_OF_SIZE[d]
+    spread = np.zeros((last - first + 1, d, d))
     index = 0
     for k in range(last, first - 1, -1):
         chosen[k - first] = pairs[pair_start[k, index]:pair_start[k, index + 1]].copy()
         slipped[k - first] = slipped_flag[k, index]
         if count[k] > 1:
-            differences = np.array([EULER.difference(state[k, h], state[k, index]) for h in range(count[k])])
+            differences = np.array([model.difference(state[k, h], state[k, index]) for h in range(count[k])])
             spread[k - first] = mixture_spread(differences, cost[k, :count[k]])
         index = parent[k, index]
     return chosen, slipped, spread

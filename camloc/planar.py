@@ -38,6 +38,8 @@ from camloc.measurement import ANGLE_ROW, MARKER, MAX_DIM, POINT2
 J = np.array([[0.0, -1.0], [1.0, 0.0]])
 # the rows of the lifted 6-D error (translation, rotation vector) a planar error is
 PLANAR_AXES = (0, 1, 5)
+# the planar state's size (x, y, theta)
+STATE_SIZE = 3
 
 
 def wrap(angle):

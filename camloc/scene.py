@@ -12,10 +12,10 @@ import threading
 import numpy as np
 
 from camloc import measurement, sym3
-from camloc.observation_space import ObservationNoise, candidate_range, detection_range, landmark_rows, observation_noise
+from camloc.observation_space import ObservationNoise, candidate_range, detection_range, landmark_rows, observation_noise, planar_range
 from camloc.sensors import sensors_of
 from camloc.measurement import observation_gates
-from camloc.dataset import Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
 from camloc.kernels.types import SceneArrays, Settings
 from camloc.tails import chi2_quantile
 
@@ -42,15 +42,18 @@ def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float]
     pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
     view = np.array(candidate_range(dataset, config) if view_range is None else view_range)
-    view = np.concatenate([view, detection_range(dataset, float(view[2]))])  # the beam's miss term
+    view = np.concatenate([view, detection_range(dataset, float(view[2])), [planar_range(dataset)]])  # the beam's miss term, the planar range
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
     if numba_start is not None:
         numba_start.join()
     # cells of half the view's ball: a query visits about 4^3 of them, where cells of the ball's
     # size hold six times the ball's volume in their 3^3
-    grid = build_grid(dataset.landmark_xyz, 0.5 * view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), view[1], view[2])[1])
+    reach = view_cone_ball(np.zeros(3), np.array([0.0, 0.0, 1.0]), view[1], view[2])[1]
+    if not np.any(~measurement.is_planar(dataset.obs_kind)) and view[5] > 0.0:
+        reach = view[5]  # only a planar robot's own sensors: their range is the query's ball
+    grid = build_grid(dataset.landmark_xyz, 0.5 * reach)
     return SceneArrays(
-        np.ascontiguousarray(dataset.landmark_xyz, dtype=float), *grid,
+        landmark_table(dataset), landmark_sensor_kind(dataset), *grid,
         np.ascontiguousarray([c.T_robot_camera[:3, :3] for c in cameras], dtype=float).reshape(-1, 3, 3),
         np.ascontiguousarray([c.T_robot_camera[:3, 3] for c in cameras], dtype=float).reshape(-1, 3),
         camera_K, obs_camera,
@@ -64,6 +67,26 @@ def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float]
         view, chi2_quantile(np.maximum(np.arange(measurement.MAX_DIM * (most_pairs + 1) + 1), 1), 0.001),
         observation_gates(dataset.obs_kind, 1.0 - config.gate), measurement.dof_of(dataset.obs_kind),
     )
+
+
+def landmark_table(dataset: Dataset) -> np.ndarray:
+    """The map as the kernels read it: (L, 3) positions, and for a planar robot's map a fourth
+    column, each marker's heading (0 for the others: only a marker's measurement reads it)."""
+    xyz = np.ascontiguousarray(dataset.landmark_xyz, dtype=float)
+    if not dataset.planar:
+        return xyz
+    return np.ascontiguousarray(np.column_stack([xyz, np.nan_to_num(dataset.landmark_heading, nan=0.0)]))
+
+
+def landmark_sensor_kind(dataset: Dataset) -> np.ndarray:
+    """(L,) int64 the planar kind that observes each landmark (``measurement.POINT2`` for a
+    ``LANDMARK_POINT2``, ``MARKER`` for a ``LANDMARK_MARKER``), -1 for a camera's (a 3-D point or
+    a tag): a sensor's candidates are of its kind (``kernels.view.sensor_candidates``)."""
+    kinds = np.asarray(dataset.landmark_kind, dtype=np.int64)
+    out = np.full(kinds.shape, -1, np.int64)
+    out[kinds == LANDMARK_POINT2] = measurement.POINT2
+    out[kinds == LANDMARK_MARKER] = measurement.MARKER
+    return out
 
 
 def _load_first_kernel(view_cone_ball) -> None:

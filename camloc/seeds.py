@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import geometry
+from camloc import geometry, planar
 from camloc.constants import (
     AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
     UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
 )
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
-from camloc.kernels.rotation import difference
+from camloc.kernels.state import difference
 from camloc.kernels.update import updated
 from camloc.kernels.view import widened_view
 from camloc.measurement import DEPTH
@@ -71,7 +71,7 @@ def concatenated(generations):
     """One generation of [(generation, count), ...], and the counts."""
     cap = max(g[7].shape[1] for g, _ in generations)
     sizes = np.array([n for _, n in generations], dtype=np.int64)
-    out = kb.new_generation(int(sizes.sum()), cap)
+    out = kb.new_generation(int(sizes.sum()), cap, generations[0][0][0].shape[1])
     at = 0
     for g, n in generations:
         for i in range(n):
@@ -175,14 +175,14 @@ def within_prior(x_child, x, P) -> bool:
 
 def implied_shifts(scene, x, obs, pair_obs, pair_landmark):
     """(N, 3) the shift of the robot from x each pair implies (``association.shift_agreement``)."""
-    T_world_robot = geometry.pose_from_euler(x)
+    T_world_robot = planar.lift(x) if x.size == planar.STATE_SIZE else geometry.pose_from_euler(x)
     measured_world = np.empty((pair_obs.size, 3))
     cameras = scene.obs_camera[obs][pair_obs]
     for c in np.unique(cameras):
         mine = cameras == c
         T_world_camera = T_world_robot @ geometry.make_pose(scene.camera_R[c], scene.camera_t[c])
         measured_world[mine] = geometry.transform_points(T_world_camera, scene.point[obs[pair_obs[mine]]])
-    return scene.landmark_xyz[pair_landmark] - measured_world
+    return scene.landmark_xyz[pair_landmark, :3] - measured_world
 
 
 def agreement_radius(scene, obs) -> float:

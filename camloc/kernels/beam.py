@@ -3,8 +3,8 @@ pose's work is one call. The reasoning (why a beam, the costs, the seeds of a sl
 explanations per seed) is in ``docs/beam.md``; the numpy reference it was checked against is
 ``camloc.beam`` (``BeamSearch``).
 
-A generation of hypotheses is a tuple of arrays (``new_generation``): states X (n, 6), covariances
-P (n, 6, 6), costs (n,) (twice the negative log-likelihood of all they explain), the index of the
+A generation of hypotheses is a tuple of arrays (``new_generation``): states X (n, d), covariances
+P (n, d, d) (d the state's size: 6 for the Euler state, 3 for the planar one), costs (n,) (twice the negative log-likelihood of all they explain), the index of the
 hypothesis each grew from at the previous pose, observations left unassigned at this pose, whether
 it was explained from a slip's widened prior, and its pairs at this pose (n, cap, 2) of
 (observation, landmark) with their count.
@@ -22,10 +22,11 @@ from camloc.constants import (
 )
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
 from camloc.kernels.motion import predict
-from camloc.kernels.rotation import difference
+from camloc.kernels.planar import wrapped_residual
+from camloc.kernels.state import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
-from camloc.kernels.view import visible
+from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, PIXEL
 
 AMBIGUOUS, UNASSIGNED = -2, -1
@@ -33,18 +34,19 @@ DONE, SLIP, GROW = 0, 1, 2
 
 
 @entry
-def new_generation(n, cap):
-    return (np.empty((n, 6)), np.empty((n, 6, 6)), np.empty(n), np.full(n, -1, np.int64), np.zeros(n, np.int64),
+def new_generation(n, cap, dim):
+    """n hypotheses of states of size dim (6: Euler, 3: planar), room for cap pairs each."""
+    return (np.empty((n, dim)), np.empty((n, dim, dim)), np.empty(n), np.full(n, -1, np.int64), np.zeros(n, np.int64),
             np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
 
 
 @inlined
 def put_state(gen, j, x, P):
-    """Hypothesis j's state x (6,) and covariance P (6, 6), entry by entry (as every copy into a
+    """Hypothesis j's state x (n,) and covariance P (n, n), entry by entry (as every copy into a
     slice: see ``_jit``)."""
-    for a in range(6):
+    for a in range(x.shape[0]):
         gen[0][j, a] = x[a]
-        for b in range(6):
+        for b in range(x.shape[0]):
             gen[1][j, a, b] = P[a, b]
 
 
@@ -61,7 +63,7 @@ def copy_hypothesis(src, i, dst, j):
 def carry(gen, indices):
     """The hypotheses at indices as the next pose's beam: states, covariances and costs (their
     pairs are in the history)."""
-    out = new_generation(indices.size, ONE)
+    out = new_generation(indices.size, ONE, gen[0].shape[1])
     for j in range(indices.size):
         put_state(out, j, gen[0][indices[j]], gen[1][indices[j]])
         out[2][j] = gen[2][indices[j]]
@@ -70,7 +72,7 @@ def carry(gen, indices):
 
 @entry
 def gather(gen, indices, cap):
-    out = new_generation(indices.size, cap)
+    out = new_generation(indices.size, cap, gen[0].shape[1])
     for j in range(indices.size):
         copy_hypothesis(gen, indices[j], out, j)
     return out
@@ -112,20 +114,21 @@ def point_spread(spread_q, j00, j02, j11, j12):
 @inlined
 def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
     """(d^2, cost ``d^2 + ln det S - ln det R``, judged as a point) of observation o against
-    prediction q (z_hat[q] (3,), H[q] (3, 6), ``spread_q`` the upper triangle of H[q] P H[q]'
+    prediction q (z_hat[q] (3,), H[q] (3, d), ``spread_q`` the upper triangle of H[q] P H[q]'
     (``sym3.spread``): one per prediction, whatever the observation) under P, in the measured
     (u, v, depth) or in the camera-frame point they back-project to, whichever is likelier (a
     point is linear in the robot's position; pixels can fit better where the spread is
-    rotation); writes the innovation y[n] (3,) and its Jacobian Hc[n] (3, 6) in the chosen
+    rotation); writes the innovation y[n] (3,) and its Jacobian Hc[n] (3, d) in the chosen
     coordinates. (inf, inf, False), nothing written, where d^2 exceeds ``gate`` in both: most
     pairs a screen lets through, whose logarithms need not be paid for."""
     K = scene.camera_K[scene.obs_camera[o]]
     p0, p1, p2, j00, j02, j11, j12 = as_point(z_hat, q, K)
     a00, a01, a02, a11, a12, a22 = spread_q                                # H P H'
     R, C = scene.R_assoc, scene.point_cov
+    r2 = wrapped_residual(K[4], 2, scene.z[o, 2] - z_hat[q, 2])          # a marker's psi wrapped
     quadratic_pixels, det_pixels = quadratic_and_det(
         a00 + R[o, 0, 0], a01 + R[o, 0, 1], a02 + R[o, 0, 2], a11 + R[o, 1, 1], a12 + R[o, 1, 2], a22 + R[o, 2, 2],
-        scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], scene.z[o, 2] - z_hat[q, 2])
+        scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], r2)
     b00, b01, b02, b11, b12, b22 = point_spread(spread_q, j00, j02, j11, j12)
     p0, p1, p2 = scene.point[o, 0] - p0, scene.point[o, 1] - p1, scene.point[o, 2] - p2
     quadratic_point, det_point = quadratic_and_det(
@@ -139,14 +142,14 @@ def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
     cost_point = d2_point + math.log(det_point) - scene.log_det_point_cov[o] if det_point > 0.0 else np.inf
     if cost_point < cost_pixels:
         y[n, 0], y[n, 1], y[n, 2] = p0, p1, p2
-        for i in range(6):
+        for i in range(H.shape[2]):
             Hc[n, 0, i] = j00 * H[q, 0, i] + j02 * H[q, 2, i]
             Hc[n, 1, i] = j11 * H[q, 1, i] + j12 * H[q, 2, i]
             Hc[n, 2, i] = H[q, 2, i]
         return d2_point, cost_point, True
+    y[n, 0], y[n, 1], y[n, 2] = scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], r2
     for a in range(3):
-        y[n, a] = scene.z[o, a] - z_hat[q, a]
-        for i in range(6):
+        for i in range(H.shape[2]):
             Hc[n, a, i] = H[q, a, i]
     return d2_pixels, cost_pixels, False
 
@@ -156,22 +159,22 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     """What each observation (obs (m,)) may be under (x, P): its pool of landmarks within
     ``pool_gate_factor`` gates, with their costs (inf outside the gate), predictions, innovations
     and Jacobians in their best coordinates. CSR over the observations: (start (m + 1,), landmark,
-    cost, z_hat (g, 3), H (g, 3, 6), y (g, 3), Hc (g, 3, 6), in_point). Among the landmarks in the
+    cost, z_hat (g, 3), H (g, 3, d), y (g, 3), Hc (g, 3, d), in_point). Among the landmarks in the
     view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``)."""
     m = obs.size
+    dim = x.shape[0]                            # the state's size: 6 (Euler), 3 (planar)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     # every camera's candidates, their predictions and spreads, concatenated
     found = []
     for c in cameras:
-        R_wc, centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])
-        found.append(visible(scene, R_wc, centre, max_angle, margin))
+        found.append(sensor_candidates(scene, x, c, max_angle, margin))
     total = 0
     for f in found:
         total += f.size
     cand, cand_camera = np.empty(total, np.int64), np.empty(total, np.int64)
-    z_hat, H = np.empty((total, 3)), np.empty((total, 3, 6))
+    z_hat, H = np.empty((total, 3)), np.empty((total, 3, dim))
     p_hat, diagonal_pixels, diagonal_point = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
-    spreads = np.empty((total, 6))
+    spreads = np.empty((total, 6))              # the upper triangle of each H P H' (3, 3)
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
@@ -193,14 +196,15 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
     lm, cost, in_point = np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.bool_)
-    zh, Hs, ys, Hcs = np.empty((cap, 3)), np.empty((cap, 3, 6)), np.empty((cap, 3)), np.empty((cap, 3, 6))
+    zh, Hs, ys, Hcs = np.empty((cap, 3)), np.empty((cap, 3, dim)), np.empty((cap, 3)), np.empty((cap, 3, dim))
     n = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
     for r in range(m):
         o = obs[r]
         c = scene.obs_camera[o]
         gate = scene.obs_gate[o]
         pool_gate = settings.pool_gate_factor * gate
-        as_points = scene.camera_K[c, 4] == DEPTH
+        kind = scene.camera_K[c, 4]
+        as_points = kind == DEPTH
         for q in range(total):
             if cand_camera[q] != c:
                 continue
@@ -209,7 +213,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             # points is judged in its own coordinates alone
             beyond_pixels, beyond_point = False, not as_points
             for a in range(3):
-                e = scene.z[o, a] - z_hat[q, a]
+                e = wrapped_residual(kind, a, scene.z[o, a] - z_hat[q, a])
                 beyond_pixels |= e * e > pool_gate * (diagonal_pixels[q, a] + scene.R_assoc[o, a, a])
                 e = scene.point[o, a] - p_hat[q, a]
                 beyond_point |= e * e > pool_gate * (diagonal_point[q, a] + scene.point_cov[o, a, a])
@@ -221,7 +225,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= gate else np.inf, point
             for a in range(3):
                 zh[n, a] = z_hat[q, a]
-                for b in range(6):
+                for b in range(dim):
                     Hs[n, a, b] = H[q, a, b]
             n += 1
         start[r + 1] = n
@@ -266,7 +270,8 @@ def condition(scene, settings, x, P, o, pool, taken):
     """``condition_into`` with fresh arrays: (cost, z_hat, H, y, Hc, in_point) of the pool's g landmarks."""
     g = pool.size
     cost, in_point = np.empty(g), np.empty(g, np.bool_)
-    z_hat, H, ys, Hcs = np.empty((g, 3)), np.empty((g, 3, 6)), np.empty((g, 3)), np.empty((g, 3, 6))
+    dim = x.shape[0]
+    z_hat, H, ys, Hcs = np.empty((g, 3)), np.empty((g, 3, dim)), np.empty((g, 3)), np.empty((g, 3, dim))
     condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, FIRST)
     return cost, z_hat, H, ys, Hcs, in_point
 
@@ -327,7 +332,7 @@ def after_clear(scene, settings, gen, h, obs, cap):
     for j in range(lm.size):
         if is_taken(lm[j], taken):
             cost[j] = np.inf
-    child = new_generation(ONE, cap)
+    child = new_generation(ONE, cap, gen[0].shape[1])
     copy_hypothesis(gen, h, child, FIRST)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
@@ -379,7 +384,8 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
     n_taken = o.size
     no_start = np.empty(0)                       # ``updated``'s start: none
     landmarks = np.empty(n_taken, np.int64)
-    z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, 6)), np.empty((n_taken, 3)), np.empty((n_taken, 3, 6))
+    dim = x.shape[0]
+    z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, dim)), np.empty((n_taken, 3)), np.empty((n_taken, 3, dim))
     R, R_inverse = np.empty((n_taken, 3, 3)), np.empty((n_taken, 3, 3))
     for t in range(n_taken):
         j = options[t]
@@ -387,7 +393,7 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
         point = in_point[j]
         for a in range(3):
             z_hat[t, a], y[t, a] = zh[j, a], ys[j, a]
-            for b in range(6):
+            for b in range(dim):
                 H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
             for b in range(3):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
@@ -423,7 +429,7 @@ def same_state(gen, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
     every axis (the cheaper is kept)."""
     d = difference(gen[0][a], gen[0][b])
-    for i in range(6):
+    for i in range(d.size):
         if d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
             return False
     return True
@@ -476,16 +482,16 @@ def prune_indices(scene, settings, gen, candidates, parents, pending):
 
 
 @jit
-def settled(n):
-    """The pending-state record of n settled hypotheses."""
-    return (np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3, 6)),
+def settled(n, dim):
+    """The pending-state record of n settled hypotheses (of states of size dim)."""
+    return (np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3, dim)),
             np.zeros(n, np.bool_))
 
 
 @entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n))
+    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]))
 
 
 @inlined
@@ -531,7 +537,8 @@ def explain_all(scene, settings, parents, n_parents, obs):
     ``partial_budget`` they share one budget (``prune_partials``)."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
-    gen = new_generation(n_parents, cap)
+    dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
+    gen = new_generation(n_parents, cap, dim)
     options, orders, leasts = [], [], []
     root = np.arange(n_parents)
     rest = np.zeros(n_parents)
@@ -565,10 +572,10 @@ def explain_all(scene, settings, parents, n_parents, obs):
             else:
                 i = orders[root[p]][step]
                 total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
-        children = new_generation(total, cap)
+        children = new_generation(total, cap, dim)
         c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
         pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
-                   np.zeros((total, 3, 6)), np.zeros(total, np.bool_))
+                   np.zeros((total, 3, dim)), np.zeros(total, np.bool_))
         at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
             r = root[p]
@@ -694,7 +701,7 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children
         pending[0][at], pending[1][at], pending[2][at] = p, o, landmarks[j]
         for a in range(3):
             pending[3][at, a] = z_hat[j, a]
-            for b in range(6):
+            for b in range(H.shape[2]):
                 pending[4][at, a, b] = H[j, a, b]
         pending[5][at] = True
         at += 1
@@ -708,7 +715,7 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children
 def predicted(scene, beam, n, k):
     """The beam's first n hypotheses predicted to pose k (k > 0) with its odometry: same costs,
     each remembering which it grew from, no pairs yet."""
-    out = new_generation(n, ONE)
+    out = new_generation(n, ONE, beam[0].shape[1])
     for h in range(n):
         x, P = predict(beam[0][h], beam[1][h], scene.T_increment[k - 1], scene.odom_cov[k - 1])
         put_state(out, h, x, P)
@@ -730,7 +737,7 @@ def commit(history, k, gen, kept):
     for q in range(kept.size):
         h = kept[q]
         parent[k, q], slipped[k, q], cost[k, q] = gen[3][h], gen[5][h], gen[2][h]
-        for a in range(6):
+        for a in range(gen[0].shape[1]):
             state[k, q, a] = gen[0][h, a]
         pair_start[k, q] = used[0]
         for i in range(gen[6][h]):

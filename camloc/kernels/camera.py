@@ -8,6 +8,11 @@ with ``third`` by the sensor's kind (``camloc.measurement``, the fifth column of
 p.z (depth), 1 / p.z (disparity) or the inert 0 of a pixel, whose Jacobian row is 0.
 
 H = dz/dx through ``d p_robot / dt = -R'`` and ``d p_robot / d rpy = [p_robot]x E(rpy)``.
+
+The same model serves a planar robot (its state (x, y, theta), ``camloc.planar``): a camera's
+measurement from the lifted pose, its Jacobian by the right perturbation (dt, dtheta), and the
+planar kinds (point2, marker, measured in the robot frame: ``planar.planar_observe_into``). H has
+as many columns as the state has entries (``H.shape[2]``).
 """
 
 from __future__ import annotations
@@ -15,15 +20,17 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
-from camloc.measurement import DEPTH, DISPARITY
+from camloc.kernels.planar import SE2_DIM, planar_frame_into, planar_observe_into
+from camloc.measurement import DEPTH, DISPARITY, MARKER, POINT2
 from camloc.kernels.rotation import euler_rate_into, euler_to_matrix, euler_to_matrix_into
 from camloc.kernels.small import mm, mv
 
 
 @jit
 def robot_frame(x):
-    """What ``observe_into`` needs of the Euler state x: its rotation R (3, 3), rate matrix E
-    (3, 3) and position t (3,)."""
+    """What ``observe_into`` needs of the state x: the robot's rotation R (3, 3), rate matrix E
+    (3, 3) (the body rotation of each rotation error, by column; a planar state's one: the z axis)
+    and position t (3,)."""
     frame = (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
     robot_frame_into(x, frame)
     return frame
@@ -33,6 +40,9 @@ def robot_frame(x):
 def robot_frame_into(x, frame):
     """``robot_frame`` written into frame, (R, E, t) arrays of its shapes: an iterated update
     predicts its pairs at every step, each time from a new state, into the same buffers."""
+    if x.shape[0] == SE2_DIM:
+        planar_frame_into(x, frame)
+        return
     R, E, t = frame
     euler_to_matrix_into(x[3], x[4], x[5], R)
     euler_rate_into(x[3], x[4], E)
@@ -41,59 +51,80 @@ def robot_frame_into(x, frame):
 
 @inlined
 def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position):
-    """Write the prediction z_hat[i] (3,) of landmark landmarks[j] (3,) and its Jacobian H[i]
-    (3, 6) with respect to the Euler state (rotation R, Euler rate matrix E, position t);
-    d_position = -R_rc' R', the derivative of the camera-frame point by the position. Scalar code
-    on whole arrays and indices: this runs for every candidate of every hypothesis, where a
-    temporary array or a row view (counting references) costs more than the arithmetic."""
+    """Write the prediction z_hat[i] (3,) of landmark landmarks[j] (x, y, z, and a marker's
+    heading where the array has a fourth column) and its Jacobian H[i] (3, n) with respect to the
+    state's error (robot rotation R, rate matrix E, position t: ``robot_frame``; n = 6, the Euler
+    state, or 3, the planar one); d_position = -R_rc' R', the derivative of the camera-frame point
+    by the world position. Scalar code on whole arrays and indices: this runs for every candidate
+    of every hypothesis, where a temporary array or a row view (counting references) costs more
+    than the arithmetic."""
     fx, fy, cx, cy, kind = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4]
-    d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
-    r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
-    r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
-    r2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
-    q0, q1, q2 = r0 - t_rc[0], r1 - t_rc[1], r2 - t_rc[2]
-    px = R_rc[0, 0] * q0 + R_rc[1, 0] * q1 + R_rc[2, 0] * q2  # p_camera = R_c' (p_robot - t_c)
-    py = R_rc[0, 1] * q0 + R_rc[1, 1] * q1 + R_rc[2, 1] * q2
-    pz = R_rc[0, 2] * q0 + R_rc[1, 2] * q1 + R_rc[2, 2] * q2
-    inverse_depth = 1.0 / pz
-    z_hat[i, 0] = fx * px * inverse_depth + cx
-    z_hat[i, 1] = fy * py * inverse_depth + cy
-    # the third row: depth (d/dz 1), inverse depth (d/dz -1/z^2) or a pixel's inert 0
-    if kind == DEPTH:
-        z_hat[i, 2], third = pz, 1.0
-    elif kind == DISPARITY:
-        z_hat[i, 2], third = inverse_depth, -inverse_depth * inverse_depth
+    if kind == POINT2 or kind == MARKER:
+        planar_observe_into(R, t, landmarks, j, kind, z_hat, H, i)
     else:
-        z_hat[i, 2], third = 0.0, 0.0
-    # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
-    u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
-    v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
-    for c in range(3):
-        # d p_robot / d rpy = [p_robot]x E, column c
-        m0 = -r2 * E[1, c] + r1 * E[2, c]
-        m1 = r2 * E[0, c] - r0 * E[2, c]
-        m2 = -r1 * E[0, c] + r0 * E[1, c]
-        rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rpy = R_c' [p_robot]x E
-        rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
-        rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
-        H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
-        H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
-        H[i, 2, c] = third * d_position[2, c]
-        H[i, 0, 3 + c] = u_x * rot0 + u_z * rot2
-        H[i, 1, 3 + c] = v_y * rot1 + v_z * rot2
-        H[i, 2, 3 + c] = third * rot2
+        d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
+        r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
+        r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+        r2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+        q0, q1, q2 = r0 - t_rc[0], r1 - t_rc[1], r2 - t_rc[2]
+        px = R_rc[0, 0] * q0 + R_rc[1, 0] * q1 + R_rc[2, 0] * q2  # p_camera = R_c' (p_robot - t_c)
+        py = R_rc[0, 1] * q0 + R_rc[1, 1] * q1 + R_rc[2, 1] * q2
+        pz = R_rc[0, 2] * q0 + R_rc[1, 2] * q1 + R_rc[2, 2] * q2
+        inverse_depth = 1.0 / pz
+        z_hat[i, 0] = fx * px * inverse_depth + cx
+        z_hat[i, 1] = fy * py * inverse_depth + cy
+        # the third row: depth (d/dz 1), inverse depth (d/dz -1/z^2) or a pixel's inert 0
+        if kind == DEPTH:
+            z_hat[i, 2], third = pz, 1.0
+        elif kind == DISPARITY:
+            z_hat[i, 2], third = inverse_depth, -inverse_depth * inverse_depth
+        else:
+            z_hat[i, 2], third = 0.0, 0.0
+        # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
+        u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
+        v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
+        planar = H.shape[2] == SE2_DIM
+        # position columns, then rotation columns: 3 and 3 (Euler), 2 and 1 (planar)
+        rotation_at = 2 if planar else 3
+        for c in range(1 if planar else 3):
+            # d p_robot / d rotation error = [p_robot]x E, column c
+            m0 = -r2 * E[1, c] + r1 * E[2, c]
+            m1 = r2 * E[0, c] - r0 * E[2, c]
+            m2 = -r1 * E[0, c] + r0 * E[1, c]
+            rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rotation = R_c' [p_robot]x E
+            rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
+            rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
+            H[i, 0, rotation_at + c] = u_x * rot0 + u_z * rot2
+            H[i, 1, rotation_at + c] = v_y * rot1 + v_z * rot2
+            H[i, 2, rotation_at + c] = third * rot2
+        if planar:
+            for c in range(2):
+                # a planar error's dt moves the robot by R dt in the world (R's third row is zero there)
+                a0, a1 = R[0, c], R[1, c]
+                g0 = d_position[0, 0] * a0 + d_position[0, 1] * a1
+                g1 = d_position[1, 0] * a0 + d_position[1, 1] * a1
+                g2 = d_position[2, 0] * a0 + d_position[2, 1] * a1
+                H[i, 0, c] = u_x * g0 + u_z * g2
+                H[i, 1, c] = v_y * g1 + v_z * g2
+                H[i, 2, c] = third * g2
+        else:
+            for c in range(3):
+                H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
+                H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
+                H[i, 2, c] = third * d_position[2, c]
 
 
 @jit
 def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
-    """Predicted measurements z_hat (m, 3) of landmarks (m, 3) from the Euler state x through
-    the sensor mounted at (R_rc, t_rc) with intrinsics (fx, fy, cx, cy, kind), and H (m, 3, 6)."""
+    """Predicted measurements z_hat (m, 3) of landmarks (m, 3 or 4: ``observe_into``) from the
+    state x (n,) through the sensor mounted at (R_rc, t_rc) with intrinsics (fx, fy, cx, cy,
+    kind), and H (m, 3, n)."""
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
     m = landmark_xyz.shape[0]
     z_hat = np.empty((m, 3))
-    H = np.empty((m, 3, 6))
+    H = np.empty((m, 3, x.shape[0]))
     for j in range(m):
         observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position)
     return z_hat, H
@@ -104,7 +135,7 @@ def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
     """``observe`` for pairs whose cameras differ: landmark (p, 3) seen by camera pair_camera (p,)
     (rows of camera_R (C, 3, 3), camera_t (C, 3), camera_K (C, 4))."""
     p = landmark_xyz.shape[0]
-    z_hat, H = np.empty((p, 3)), np.empty((p, 3, 6))
+    z_hat, H = np.empty((p, 3)), np.empty((p, 3, x.shape[0]))
     observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H,
                        np.empty((camera_R.shape[0], 3, 3)), robot_frame(x))
     return z_hat, H
@@ -112,7 +143,7 @@ def observe_pairs(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
 
 @jit
 def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame):
-    """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, 6), with d_position (C, 3, 3) and
+    """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, n), with d_position (C, 3, 3) and
     frame (``robot_frame_into``'s) as scratch: an iterated update predicts its pairs at every
     step into the same buffers."""
     robot_frame_into(x, frame)
@@ -174,6 +205,10 @@ def back_project(z, intrinsics):
 
 @jit
 def camera_pose(x, R_rc, t_rc):
-    """T_world_camera as (R_wc (3, 3), c (3,)) of the Euler state x and the camera mount."""
+    """T_world_camera as (R_wc (3, 3), c (3,)) of the state x and the camera mount (a planar
+    robot's own sensor, point2 or marker, is mounted at the robot: R_rc = I, t_rc = 0)."""
+    if x.shape[0] == SE2_DIM:
+        R, _, t = robot_frame(x)
+        return mm(R, R_rc), t + mv(R, t_rc)
     R = euler_to_matrix(x[3], x[4], x[5])
     return mm(R, R_rc), x[0:3] + mv(R, t_rc)

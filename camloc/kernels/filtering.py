@@ -9,13 +9,14 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import entry, inlined, jit
-from camloc.kernels.camera import camera_pose, cameras_of, observe, observe_pairs
+from camloc.kernels.camera import cameras_of, observe, observe_pairs
 from camloc.kernels.motion import predict
+from camloc.kernels.planar import onto_measured_branch
 from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
 from camloc.kernels.update import updated
-from camloc.kernels.view import visible
+from camloc.kernels.view import sensor_candidates
 
 GIVEN, ORACLE = 0, 1
 
@@ -28,6 +29,7 @@ def oracle_pairs(scene, settings, x, P, obs):
     landmarks = scene.true_index[mapped]
     z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[mapped], scene.camera_R, scene.camera_t,
                              scene.camera_K)
+    onto_measured_branch(scene, mapped, z_hat)
     keep = np.zeros(mapped.size, np.bool_)
     for r in range(mapped.size):
         keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
@@ -47,13 +49,13 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     observation of the pose (obs (m,)) judged by the posterior of the other pairs."""
     keep = np.ones(pair_obs.size, np.bool_)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
-    information = np.zeros((cameras.size, 6, 6))
+    n = x_post.shape[0]                          # the state's size: 6 (Euler), 3 (planar)
+    information = np.zeros((cameras.size, n, n))
     groups = []
     for g in range(cameras.size):
         c = cameras[g]
         mine = obs[scene.obs_camera[obs] == c]
-        R_wc, centre = camera_pose(x_post, scene.camera_R[c], scene.camera_t[c])
-        candidates = visible(scene, R_wc, centre, scene.view_limits[2], 0.0)
+        candidates = sensor_candidates(scene, x_post, c, scene.view_limits[2], 0.0)
         z_hat, H = observe(x_post, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c], scene.landmark_xyz[candidates])
         chosen = np.full(mine.size, -1, np.int64)
         for r in range(mine.size):
@@ -65,11 +67,11 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
             if chosen[r] >= 0:
                 Hc = H[chosen[r]]
                 pair_information = mtm(Hc, mm(scene.R_assoc_inverse[mine[r]], Hc))
-                for a in range(6):
-                    for b in range(6):
+                for a in range(n):
+                    for b in range(n):
                         information[g, a, b] += pair_information[a, b]
         groups.append((mine, z_hat, H, chosen))
-    prior_information = solve(P_prior, np.eye(6))
+    prior_information = solve(P_prior, np.eye(n))
     for g in range(cameras.size):
         mine, z_hat, H, chosen = groups[g]
         if z_hat.shape[0] == 0:
@@ -79,7 +81,7 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
             if g2 != g:
                 others += information[g2]
         cost = leave_one_out_costs(scene.z[mine], scene.R_assoc[mine], scene.R_assoc_inverse[mine], scene.log_det_R[mine],
-                                   z_hat, H, chosen, others, scene.obs_gate[mine[0]])  # a sensor's observations share their dof
+                                   z_hat, H, chosen, others, scene.obs_gate[mine[0]], scene.camera_K[cameras[g], 4])  # a sensor's observations share their dof and kind
         row, steal = assignment_margins(cost, scene.null_cost[mine], chosen)
         for r in range(mine.size):
             for q in range(pair_obs.size):
@@ -91,9 +93,9 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
 @jit
 def record_state(states, covs, k, x, P):
     """states[k] = x, covs[k] = P, entry by entry (as every copy into a slice: see ``_jit``)."""
-    for a in range(6):
+    for a in range(x.shape[0]):
         states[k, a] = x[a]
-        for b in range(6):
+        for b in range(x.shape[0]):
             covs[k, a, b] = P[a, b]
 
 
@@ -104,10 +106,10 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
 
     method: GIVEN (pose k's pairs are pair_obs/pair_landmark[pair_start[k]:pair_start[k + 1]], the
     first the seed of an explanation from a slip, and ``slipped[k]``: the prior is widened by
-    ``slip_inflation`` there) or ORACLE. Writes states (N, 6), covs (N, 6, 6), per observation the
+    ``slip_inflation`` there) or ORACLE. Writes states (N, n), covs (N, n, n), per observation the
     chosen landmark (-1 none) and the pair's Mahalanobis distance, per update its pose, NIS, MAP
     cost and degrees of freedom, and with GIVEN pairs what their chance of being clutter adds to
-    the estimate's covariance (``add_leave_one_out_spread`` into pair_spread (N, 6, 6));
+    the estimate's covariance (``add_leave_one_out_spread`` into pair_spread (N, n, n));
     counters[0] counts updates, counters[1] is the pose being filtered (where an error stopped
     it). Returns (x, P) after pose last - 1."""
     no_start = np.empty(0)                       # ``updated``'s start: none
@@ -130,12 +132,14 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 # the pose where Gauss-Newton from the slip's wide prior can settle metres away
                 seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
                 z_hat, H = observe_pairs(x, scene.landmark_xyz[seed_landmark], scene.obs_camera[seed_obs], scene.camera_R, scene.camera_t, scene.camera_K)
+                onto_measured_branch(scene, seed_obs, z_hat)
                 start = updated(scene, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
                                 no_start)[0]
         if obs.size == 0:
             record_state(states, covs, k, x, P)
             continue
         z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+        onto_measured_branch(scene, obs, z_hat)
         result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
@@ -145,6 +149,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 obs, landmarks = obs[keep], landmarks[keep]
                 if obs.size:
                     z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+                    onto_measured_branch(scene, obs, z_hat)
                     result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
                                      no_start)
         if obs.size:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from camloc.kernels._jit import jit
+from camloc.kernels.planar import SE2_DIM, planar_motion
 from camloc.kernels.rotation import euler_rate, euler_rate_inverse, euler_to_matrix, matrix_to_euler
 
 
@@ -55,22 +56,35 @@ def motion(x, T_increment):
 
 @jit
 def predict(x, P, T_increment, Q):
-    """(x', P'): ``x' = f(x, dT)``, ``P' = F P F' + G Q G'`` (symmetric: its upper triangle mirrored)."""
-    x_next, F, G = motion(x, T_increment)
-    FP, GQ = np.empty((6, 6)), np.empty((6, 6))
-    for a in range(6):
+    """(x', P'): ``x' = f(x, dT)``, ``P' = F P F' + G Q G'`` (symmetric: its upper triangle
+    mirrored), of x's model (its size: the Euler state's ``motion``, the planar one's
+    ``planar.planar_motion``), with F (n, n) and G (n, 6) its Jacobians by the error and by the
+    lifted increment's noise (Q (6, 6))."""
+    n = x.shape[0]
+    if n == SE2_DIM:
+        x_next, F, G = planar_motion(x, T_increment)
+    else:
+        x_next, F, G = motion(x, T_increment)
+    FP, GQ = np.empty((n, n)), np.empty((n, 6))
+    for a in range(n):
         for b in range(6):
             s = t = 0.0
             for q in range(6):
-                s += F[a, q] * P[q, b]
                 t += G[a, q] * Q[q, b]
-            FP[a, b], GQ[a, b] = s, t
-    P_next = np.empty((6, 6))
-    for a in range(6):
-        for b in range(a, 6):
+            GQ[a, b] = t
+            if b < n:
+                for q in range(n):
+                    s += F[a, q] * P[q, b]
+                FP[a, b] = s
+    P_next = np.empty((n, n))
+    for a in range(n):
+        for b in range(a, n):
             s = 0.0
-            for q in range(6):
-                s += FP[a, q] * F[b, q] + GQ[a, q] * G[b, q]
+            for q in range(6):                 # term by term in the order of the 6-DOF sum: Euler's rounding unchanged
+                if q < n:
+                    s += FP[a, q] * F[b, q] + GQ[a, q] * G[b, q]
+                else:
+                    s += GQ[a, q] * G[b, q]
             P_next[a, b] = s
             P_next[b, a] = s
     return x_next, P_next

@@ -21,32 +21,35 @@ import numpy as np
 from camloc.constants import NEGLIGIBLE_MARGIN
 from camloc.kernels._jit import inlined, jit
 from camloc.kernels.camera import observe_pairs
+from camloc.kernels.planar import onto_measured_branch, wrapped_residual
 from camloc.kernels.small import mm, mtm, mv, solve
 from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, mahalanobis, mahalanobis_components, spread
 
 
 @inlined
-def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, information, gate):
+def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, information, gate, kind):
     """Costs (n, m) ``d^2 + ln det S - ln det R`` of n observations (z (n, 3), R, R^-1 (n, 3, 3),
-    ln det R (n,)) against m candidates (z_hat (m, 3), H (m, 3, 6)) at the posterior, each judged
+    ln det R (n,)) against m candidates (z_hat (m, 3), H (m, 3, n)) at the posterior, each judged
     with its own pair (chosen (n,): candidate column, -1 for none) left out; inf beyond the gate.
-    ``information``: the prior's plus that of the update's pairs outside these observations."""
+    ``information``: the prior's plus that of the update's pairs outside these observations;
+    ``kind``: the observations' (a sensor's), whose angle row is wrapped (``wrapped_residual``)."""
     n, m = z.shape[0], z_hat.shape[0]
-    pair_information = np.zeros((n, 6, 6))
+    dim = information.shape[0]              # the state's size: 6 (Euler), 3 (planar)
+    pair_information = np.zeros((n, dim, dim))
     total = information.copy()
     for i in range(n):
         if chosen[i] >= 0:
             Hc = H[chosen[i]]
             information_i = mtm(Hc, mm(R_inverse[i], Hc))
-            for a in range(6):
-                for b in range(6):
+            for a in range(dim):
+                for b in range(dim):
                     pair_information[i, a, b] = information_i[a, b]
             total += information_i
     cost = np.full((n, m), np.inf)
     # Every L_i >= information, so each S is at most H_j information^-1 H_j' + r_max I (r_max: the
     # largest eigenvalue of any R_i): d^2 under that bound is a lower bound, and the pairs it puts
     # beyond the gate (most of a view's) need no factorization.
-    P_bound = solve(information, np.eye(6))
+    P_bound = solve(information, np.eye(dim))
     r_max = 0.0
     for i in range(n):                      # the trace bounds the largest eigenvalue: a valid, looser screen
         r_max = max(r_max, R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2])
@@ -62,17 +65,19 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
              bound_inverse[j, 5]) = inverse_components(a, b, c, d, e, f)
     for i in range(n):
         L = total - pair_information[i]
-        P_i = solve(L, np.eye(6))
+        P_i = solve(L, np.eye(dim))
         P_i = 0.5 * (P_i + P_i.T)
-        delta = np.zeros(6)
+        delta = np.zeros(dim)
         if chosen[i] >= 0:
             Hc = H[chosen[i]]
-            delta = -mv(P_i, mv(Hc.T, mv(R_inverse[i], z[i] - z_hat[chosen[i]])))
+            e = z[i] - z_hat[chosen[i]]
+            e[2] = wrapped_residual(kind, 2, e[2])
+            delta = -mv(P_i, mv(Hc.T, mv(R_inverse[i], e)))
         for j in range(m):
             r0 = z[i, 0] - z_hat[j, 0]
             r1 = z[i, 1] - z_hat[j, 1]
-            r2 = z[i, 2] - z_hat[j, 2]
-            for b in range(6):
+            r2 = wrapped_residual(kind, 2, z[i, 2] - z_hat[j, 2])
+            for b in range(dim):
                 r0 -= H[j, 0, b] * delta[b]
                 r1 -= H[j, 1, b] * delta[b]
                 r2 -= H[j, 2, b] * delta[b]
@@ -137,17 +142,19 @@ def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
     estimate's covariance (each pair's alternative, the posterior of the others, weighed by its
     cost over leaving the observation unassigned)."""
     z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+    onto_measured_branch(scene, obs, z_hat)
     p = obs.size
+    n = x.shape[0]                                 # the state's size: 6 (Euler), 3 (planar)
     margin = np.full(p, np.inf)
-    PHt = np.zeros((p, 6, 3))
+    PHt = np.zeros((p, n, 3))
     B_inverse = np.zeros((p, 3, 3))
     B_inverse_r = np.zeros((p, 3))
     for i in range(p):
         o = obs[i]
-        for a in range(6):                         # P H'
+        for a in range(n):                         # P H'
             for c in range(3):
                 total = 0.0
-                for b in range(6):
+                for b in range(n):
                     total += P[a, b] * H[i, c, b]
                 PHt[i, a, c] = total
         A = mm(H[i], PHt[i])                       # H P H'
@@ -173,11 +180,11 @@ def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
         w = math.exp(-(margin[i] - lowest) / 2.0) / total
         g = mv(PHt[i], B_inverse_r[i])             # x - x_i
         widen = mm(PHt[i], mm(B_inverse[i], PHt[i].T))
-        for a in range(6):
-            for b in range(6):
+        for a in range(n):
+            for b in range(n):
                 spread[k, a, b] += w * (widen[a, b] + g[a] * g[b])
-    for a in range(6):                             # symmetric to rounding, as numpy's symmetrize
-        for b in range(a + 1, 6):
+    for a in range(n):                             # symmetric to rounding, as numpy's symmetrize
+        for b in range(a + 1, n):
             mean = 0.5 * (spread[k, a, b] + spread[k, b, a])
             spread[k, a, b] = mean
             spread[k, b, a] = mean

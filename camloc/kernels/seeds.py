@@ -21,7 +21,7 @@ from camloc.kernels.sym3 import inverse_components, log_det as log_det_3x3, maha
 @entry
 def seeded_explanation_costs(y, H, R, P, pair_obs, pair_landmark, null_cost, seeds, gate):
     """(M,) the approximate cost of explaining a pose's m observations given each seed pair
-    (seeds (M,) indices of pairs) is right. Pairs: innovation y (N, 3), Jacobian H (N, 3, 6),
+    (seeds (M,) indices of pairs) is right. Pairs: innovation y (N, 3), Jacobian H (N, 3, n),
     noise R (N, 3, 3) (each in its own coordinates), observation pair_obs (N,) in 0..m-1 and
     landmark (N,); P the prior covariance; null_cost (m,); gate (N,) on each conditioned pair's d^2 (at its observation's dof).
 
@@ -64,7 +64,10 @@ def pair_spreads(y, H, R, P):
     """Every pair's innovation covariance S = H P H' + R (N, 3, 3), ln det R (N,) and H P
     (N, 3, 6); and every pair's Jacobian, innovation, S and S^-1 by component, each a row over the
     pairs ((18, N), (3, N), (6, N), (6, N)): the costs under one seed are then one loop the
-    compiler turns into vector arithmetic (``conditioned_costs``)."""
+    compiler turns into vector arithmetic (``conditioned_costs``). The loops are written for the
+    largest state (6 entries, the Euler one's): a smaller state's Jacobian and H P are padded with
+    zero columns, which add exact zeros to every product (its seed's correction and U are zero
+    there too), so that one unrolled loop serves both models."""
     N = y.shape[0]
     S = np.empty((N, 3, 3))
     log_det_R = np.empty(N)
@@ -73,12 +76,14 @@ def pair_spreads(y, H, R, P):
     y_rows = np.empty((3, N))
     S_rows = np.empty((6, N))
     S_inverse_rows = np.empty((6, N))
+    n = P.shape[0]                      # the state's size: 6 (Euler), 3 (planar: zero columns from n on)
     for q in range(N):
         for a in range(3):
             for b in range(6):
                 total = 0.0
-                for k in range(6):
-                    total += H[q, a, k] * P[k, b]
+                if b < n:
+                    for k in range(n):
+                        total += H[q, a, k] * P[k, b]
                 HP[q, a, b] = total
         s00, s01, s02, s11, s12, s22 = spread(H, q, P)
         s00, s01, s02 = s00 + R[q, 0, 0], s01 + R[q, 0, 1], s02 + R[q, 0, 2]
@@ -90,7 +95,7 @@ def pair_spreads(y, H, R, P):
         for a in range(3):
             y_rows[a, q] = y[q, a]
             for b in range(6):
-                H_rows[6 * a + b, q] = H[q, a, b]
+                H_rows[6 * a + b, q] = H[q, a, b] if b < n else 0.0
         S_rows[0, q], S_rows[1, q], S_rows[2, q] = s00, s01, s02
         S_rows[3, q], S_rows[4, q], S_rows[5, q] = s11, s12, s22
         a00, a01, a02, a11, a12, a22 = inverse_components(s00, s01, s02, s11, s12, s22)

@@ -63,12 +63,13 @@ def log_det(S):
 
 @inlined
 def spread(H, i, P):
-    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (n, 3, 6) and symmetric P (6, 6):
+    """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (m, 3, n) and symmetric P (n, n):
     a column of H[i] P at a time, then its products with H[i]'s rows (144 products, not 324)."""
+    n = P.shape[0]                       # the state's size: 6 (Euler), 3 (planar)
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    for c in range(6):
+    for c in range(n):
         g0 = g1 = g2 = 0.0
-        for k in range(6):
+        for k in range(n):
             p = P[k, c]
             g0 += H[i, 0, k] * p
             g1 += H[i, 1, k] * p
@@ -86,7 +87,7 @@ def spread(H, i, P):
 @jit
 def innovation_mahalanobis(H, i, P, R, o, y1, y2, y3):
     """``mahalanobis`` of a pair's innovation y = (y1, y2, y3) under S = H[i] P H[i]' + R[o]
-    (H (n, 3, 6), P (6, 6), R (K, 3, 3)), without forming S."""
+    (H (m, 3, n), P (n, n), R (K, 3, 3)), without forming S."""
     a, b, c, d, e, f = spread(H, i, P)
     return mahalanobis_components(a + R[o, 0, 0], b + R[o, 0, 1], c + R[o, 0, 2], d + R[o, 1, 1], e + R[o, 1, 2],
                                   f + R[o, 2, 2], y1, y2, y3)

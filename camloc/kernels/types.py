@@ -7,7 +7,8 @@ from collections import namedtuple
 
 SceneArrays = namedtuple("SceneArrays", [
     # the map and its spatial index (a uniform grid hash: ``camloc.kernels.view``)
-    "landmark_xyz",        # (L, 3) world frame
+    "landmark_xyz",        # (L, 3) world frame; a planar robot's map (L, 4): a marker's heading (radians) fourth, 0 for others
+    "landmark_sensor_kind",  # (L,) int64 the planar kind that observes each landmark (point2, marker), -1 for a camera's
     "grid_origin",         # (3,) corner of cell (0, 0, 0)
     "grid_cell",           # (1,) side of a cell, metres
     "grid_dims",           # (3,) int64 cells along x, y, z
@@ -39,8 +40,9 @@ SceneArrays = namedtuple("SceneArrays", [
     "T_increment",         # (N - 1, 4, 4)
     "odom_cov",            # (N - 1, 6, 6)
     # view limits and consistency bounds
-    "view_limits",         # (5,) min_depth, max_depth, max_angle (rad), and the detection range (low, high:
-                           # ``observation_space.detection_range``; 0, 0 without pixel observations)
+    "view_limits",         # (6,) min_depth, max_depth, max_angle (rad), the detection range (low, high:
+                           # ``observation_space.detection_range``; 0, 0 without pixel observations), and the
+                           # planar sensors' range (``observation_space.planar_range``; 0 without them)
     "nis_bound",           # (3 P + 4,) the 99.9% chi^2 quantile of d degrees of freedom, by d
     "obs_gate",            # (K,) the chi^2 gate of each observation's pairs, at its dof
     "obs_dof",             # (K,) int64 each observation's degrees of freedom

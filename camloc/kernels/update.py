@@ -1,7 +1,8 @@
 """The stacked, iterated EKF update in information form, and what the localizer wraps around it.
 
 A pose's pairs are independent measurements (block-diagonal R), so the update adds their
-information to the prior's, a 6x6 system whatever the number of pairs:
+information to the prior's, an n x n system whatever the number of pairs (n the state's size: 6
+for the Euler state, 3 for the planar one; every kernel here takes it from its arrays):
 
     Lambda = sum H_i' R_i^-1 H_i,  A = (I + P Lambda)^-1
     K y  = A P g,  g = sum H_i' R_i^-1 y_i                          (correction)
@@ -9,8 +10,8 @@ information to the prior's, a 6x6 system whatever the number of pairs:
     P+ = A (P + P Lambda P) A'                                      (Joseph form, I - K H = A)
     ln det S - ln det R = ln det (I + P Lambda)                     (determinant lemma)
 
-With one or two pairs (3p <= 6 rows) the textbook form is used instead: S = H P H' + R is no
-larger than the state's information and better conditioned when the noise is tiny.
+With few pairs (3p <= n rows) the textbook form is used instead: S = H P H' + R is no larger
+than the state's information and better conditioned when the noise is tiny.
 
 Iterations (Bell & Cathey 1993): ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with K_i
 at x_i; the covariance uses the last linearization. The numpy twin is ``camloc.ekf.update``.
@@ -29,8 +30,9 @@ import numpy as np
 from camloc.constants import CONVERGED
 from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
+from camloc.kernels.planar import wrapped_residual
 from camloc.measurement import DEPTH
-from camloc.kernels.rotation import difference_into, retract, retract_into
+from camloc.kernels.state import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
 
@@ -93,21 +95,22 @@ def stacked_quadratic(L, y, scratch):
 
 @jit
 def innovation_system_into(P, H, R, PHt, S):
-    """P H' (6, 3p) and S = H P H' + R (3p, 3p) of pairs with Jacobians H (p, 3, 6) and noise R
+    """P H' (n, 3p) and S = H P H' + R (3p, 3p) of pairs with Jacobians H (p, 3, n) and noise R
     (p, 3, 3), S symmetric."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
     m = 3 * p
-    for c in range(6):
+    for c in range(n):
         for r in range(m):
             s = 0.0
-            for d in range(6):
+            for d in range(n):
                 s += P[c, d] * H[r // 3, r % 3, d]
             PHt[c, r] = s
     for r in range(m):
         i, a = r // 3, r % 3
         for q in range(r, m):
             s = 0.0
-            for c in range(6):
+            for c in range(n):
                 s += H[i, a, c] * PHt[c, q]
             if q // 3 == i:
                 s += 0.5 * (R[i, a, q % 3] + R[i, q % 3, a])
@@ -117,11 +120,12 @@ def innovation_system_into(P, H, R, PHt, S):
 
 @jit
 def gain_into(P, H, R, PHt, S, L, K):
-    """The textbook gain K = P H' S^-1 (6, 3p), with S = H P H' + R and its lower Cholesky
-    factor L (3p, 3p), of pairs with Jacobians H (p, 3, 6) and noise R (p, 3, 3)."""
+    """The textbook gain K = P H' S^-1 (n, 3p), with S = H P H' + R and its lower Cholesky
+    factor L (3p, 3p), of pairs with Jacobians H (p, 3, n) and noise R (p, 3, 3)."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     innovation_system_into(P, H, R, PHt, S)
     cholesky_into(S, L)
-    for c in range(6):
+    for c in range(n):
         for r in range(PHt.shape[1]):
             K[c, r] = PHt[c, r]
         cho_solve_into(L, K[c])                                     # S symmetric: row c of P H' S^-1
@@ -129,25 +133,26 @@ def gain_into(P, H, R, PHt, S, L, K):
 
 @jit
 def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
-    """Joseph form (I - K H) P (I - K H)' + K R K' into out (6, 6), its upper triangle mirrored;
-    H (p, 3, 6) stacked as K's columns; I_KH and scratch (6, 6)."""
+    """Joseph form (I - K H) P (I - K H)' + K R K' into out (n, n), its upper triangle mirrored;
+    H (p, 3, n) stacked as K's columns; I_KH and scratch (n, n)."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
-    for c in range(6):
-        for d in range(6):
+    for c in range(n):
+        for d in range(n):
             s = 0.0
             for r in range(3 * p):
                 s += K[c, r] * H[r // 3, r % 3, d]
             I_KH[c, d] = (1.0 if c == d else 0.0) - s
-    for c in range(6):
-        for d in range(6):
+    for c in range(n):
+        for d in range(n):
             s = 0.0
-            for q in range(6):
+            for q in range(n):
                 s += I_KH[c, q] * P[q, d]
             scratch[c, d] = s
-    for c in range(6):
-        for d in range(c, 6):
+    for c in range(n):
+        for d in range(c, n):
             s = 0.0
-            for q in range(6):
+            for q in range(n):
                 s += scratch[c, q] * I_KH[d, q]
             for i in range(p):
                 for a in range(3):
@@ -160,30 +165,31 @@ def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
 
 @jit
 def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
-    """Of pairs with Jacobians H (p, 3, 6) and noise information R_inverse (p, 3, 3): R^-1 H
-    (p, 3, 6), Lambda (6, 6), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
-    A P = (I + P Lambda)^-1 P (6, 6), symmetrized."""
+    """Of pairs with Jacobians H (p, 3, n) and noise information R_inverse (p, 3, 3): R^-1 H
+    (p, 3, n), Lambda (n, n), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
+    A P = (I + P Lambda)^-1 P (n, n), symmetrized."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
-    for c in range(6):
-        for d in range(6):
+    for c in range(n):
+        for d in range(n):
             information[c, d] = 0.0
     for i in range(p):
         for a in range(3):
-            for c in range(6):
+            for c in range(n):
                 R_inverse_H[i, a, c] = R_inverse[i, a, 0] * H[i, 0, c] + R_inverse[i, a, 1] * H[i, 1, c] + R_inverse[i, a, 2] * H[i, 2, c]
         for a in range(3):
-            for c in range(6):
+            for c in range(n):
                 h = H[i, a, c]
-                for d in range(c, 6):
+                for d in range(c, n):
                     information[c, d] += h * R_inverse_H[i, a, d]
-    for c in range(6):
+    for c in range(n):
         for d in range(c):
             information[c, d] = information[d, c]
     finite = True
-    for c in range(6):
-        for d in range(6):
+    for c in range(n):
+        for d in range(n):
             s = 0.0
-            for q in range(6):
+            for q in range(n):
                 s += P[c, q] * information[q, d]
             M[c, d] = (1.0 if c == d else 0.0) + s
             finite = finite and np.isfinite(M[c, d])
@@ -192,19 +198,20 @@ def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
         raise FloatingPointError("innovation covariance is not positive definite")
     lu_factor(M, pivots)
     lu_solve(M, pivots, AP)
-    for c in range(6):
+    for c in range(n):
         for d in range(c):
             AP[c, d] = AP[d, c] = 0.5 * (AP[c, d] + AP[d, c])
 
 
 @jit
 def gradient_into(R_inverse_H, y, g):
-    """g = sum H_i' R_i^-1 y_i (6,) for innovations y (p, 3)."""
-    for c in range(6):
+    """g = sum H_i' R_i^-1 y_i (n,) for innovations y (p, 3)."""
+    n = g.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    for c in range(n):
         g[c] = 0.0
     for i in range(y.shape[0]):
         for a in range(3):
-            for c in range(6):
+            for c in range(n):
                 g[c] += R_inverse_H[i, a, c] * y[i, a]
 
 
@@ -221,11 +228,12 @@ def block_quadratic(y, R_inverse):
 
 @jit
 def plain_step_into(AP, g, step):
-    """step = A P g (6,), and g' A P g."""
+    """step = A P g (n,), and g' A P g."""
+    n = g.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     total = 0.0
-    for c in range(6):
+    for c in range(n):
         s = 0.0
-        for d in range(6):
+        for d in range(n):
             s += AP[c, d] * g[d]
         step[c] = s
         total += g[c] * s
@@ -234,8 +242,9 @@ def plain_step_into(AP, g, step):
 
 @jit
 def gain_step_into(K, y, step):
-    """step = K v (6,), v the innovations y (p, 3) stacked."""
-    for c in range(6):
+    """step = K v (n,), v the innovations y (p, 3) stacked."""
+    n = step.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    for c in range(n):
         s = 0.0
         for i in range(y.shape[0]):
             for a in range(3):
@@ -245,26 +254,27 @@ def gain_step_into(K, y, step):
 
 @jit
 def posterior_covariance_into(P, information, M, pivots, out, scratch):
-    """A (P + P Lambda P) A' into out (6, 6), symmetric positive definite by construction; I + P
-    Lambda factored into (M, pivots); scratch (6, 6)."""
-    for c in range(6):                                              # P Lambda
-        for d in range(6):
+    """A (P + P Lambda P) A' into out (n, n), symmetric positive definite by construction; I + P
+    Lambda factored into (M, pivots); scratch (n, n)."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    for c in range(n):                                              # P Lambda
+        for d in range(n):
             s = 0.0
-            for q in range(6):
+            for q in range(n):
                 s += P[c, q] * information[q, d]
             scratch[c, d] = s
-    for c in range(6):                                              # P + P Lambda P
-        for d in range(6):
+    for c in range(n):                                              # P + P Lambda P
+        for d in range(n):
             s = 0.0
-            for q in range(6):
+            for q in range(n):
                 s += scratch[c, q] * P[q, d]
             out[c, d] = P[c, d] + s
     lu_solve(M, pivots, out)                                        # A (P + P Lambda P)
-    for c in range(6):
+    for c in range(n):
         for d in range(c):
             out[c, d], out[d, c] = out[d, c], out[c, d]
     lu_solve(M, pivots, out)                                        # A (A (P + P Lambda P))' = (... A')'
-    for c in range(6):
+    for c in range(n):
         for d in range(c):
             out[c, d] = out[d, c] = 0.5 * (out[c, d] + out[d, c])
 
@@ -274,10 +284,11 @@ def innovation_cost(P, H, R, R_inverse, y):
     """``y' S^-1 y + ln det S - ln det R`` of stacked innovations y (p, 3) with Jacobians H and
     noise R, R_inverse (p, 3, 3): twice the negative log-likelihood relative to the noise's own
     spread (the beam's units)."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = y.shape[0]
     m = 3 * p
-    if p <= 2:
-        PHt, S, L = np.empty((6, m)), np.empty((m, m)), np.empty((m, m))
+    if 3 * p <= n:                          # S (3p x 3p) no larger than the state's information
+        PHt, S, L = np.empty((n, m)), np.empty((m, m)), np.empty((m, m))
         innovation_system_into(P, H, R, PHt, S)
         cholesky_into(S, L)
         log_det = 0.0
@@ -286,29 +297,30 @@ def innovation_cost(P, H, R, R_inverse, y):
         for i in range(p):
             log_det -= log_det_3x3(R[i])
         return stacked_quadratic(L, y, np.empty(m)) + log_det
-    R_inverse_H, information = np.empty((p, 3, 6)), np.empty((6, 6))
-    M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
+    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
+    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
     information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
     sign, log_det = lu_log_det(M, pivots)
     if sign <= 0.0:
         raise FloatingPointError("innovation covariance is not positive definite")
     gradient_into(R_inverse_H, y, g)
-    return block_quadratic(y, R_inverse) - plain_step_into(AP, g, np.empty(6)) + log_det
+    return block_quadratic(y, R_inverse) - plain_step_into(AP, g, np.empty(n)) + log_det
 
 
 @jit
 def correction(P, H, R, R_inverse, y):
     """K y of one EKF update."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = y.shape[0]
     m = 3 * p
-    step = np.empty(6)
-    if p <= 2:
-        K = np.empty((6, m))
-        gain_into(P, H, R, np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), K)
+    step = np.empty(n)
+    if 3 * p <= n:                          # S (3p x 3p) no larger than the state's information
+        K = np.empty((n, m))
+        gain_into(P, H, R, np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), K)
         gain_step_into(K, y, step)
         return step
-    R_inverse_H, information = np.empty((p, 3, 6)), np.empty((6, 6))
-    M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
+    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
+    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
     information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
     gradient_into(R_inverse_H, y, g)
     plain_step_into(AP, g, step)
@@ -317,15 +329,16 @@ def correction(P, H, R, R_inverse, y):
 
 @jit
 def prior_quadratic(P, d, M, pivots, b):
-    """d' P^-1 d for d (6,); M (6, 6), pivots (6,) and b (6, 1) scratch."""
-    for c in range(6):
+    """d' P^-1 d for d (n,); M (n, n), pivots (n,) and b (n, 1) scratch."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    for c in range(n):
         b[c, 0] = d[c]
-        for q in range(6):
+        for q in range(n):
             M[c, q] = P[c, q]
     lu_factor(M, pivots)
     lu_solve(M, pivots, b)
     total = 0.0
-    for c in range(6):
+    for c in range(n):
         total += d[c] * b[c, 0]
     return total
 
@@ -335,24 +348,29 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
                     iterations, z_hat, H, start):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
-    predictions at x. With a ``start`` (6,) (none: size 0) the iterations after the first
+    predictions at x. With a ``start`` (n,) (none: size 0) the iterations after the first
     linearize first at start (a state near the MAP estimate, where the prior is too far for
     Gauss-Newton).
 
-    Returns (x+ (6,), P+ (6, 6), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
+    Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
     prior)."""
+    n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = z.shape[0]
     m = 3 * p
-    few = p <= 2                                                     # S (3p x 3p) no larger than 6x6
+    few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
     # every linearization's scratch, allocated once
-    R_inverse_H, information = np.empty((p, 3, 6)), np.empty((6, 6))
-    M, pivots, AP, g = np.empty((6, 6)), np.empty(6, np.int64), np.empty((6, 6)), np.empty(6)
-    PHt, S, L, K = np.empty((6, m)), np.empty((m, m)), np.empty((m, m)), np.empty((6, m))
-    z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, 6)), np.empty((p, 3))
+    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
+    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
+    PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
+    z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
     d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
-    delta, step, moved, x_i = np.empty(6), np.empty(6), np.empty(6), np.empty(6)
+    delta, step, moved, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
 
-    y_prior = z - z_hat
+    y_prior = np.empty((p, 3))
+    for i in range(p):                                               # a marker's psi wrapped (``wrapped_residual``)
+        kind = camera_K[pair_camera[i], 4]
+        for a in range(3):
+            y_prior[i, a] = wrapped_residual(kind, a, z[i, a] - z_hat[i, a])
     if few:
         gain_into(P, H, R, PHt, S, L, K)
         nis = stacked_quadratic(L, y_prior, np.empty(m))             # NIS = y' S^-1 y
@@ -363,7 +381,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         nis = block_quadratic(y_prior, R_inverse) - plain_step_into(AP, g, delta)   # K y = A P g
     retract_into(x, delta, x_i)                                      # x+ = x [+] K y
     if start.size and iterations >= 2:
-        for b in range(6):
+        for b in range(n):
             x_i[b] = start[b]
         difference_into(start, x, delta)
     H_last = H                                                       # the linearization of the gain
@@ -372,8 +390,8 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         difference_into(x_i, x, moved)
         for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
             for a in range(3):
-                s = z[i, a] - z_hat_i[i, a]
-                for b in range(6):
+                s = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
+                for b in range(n):
                     s += H_i[i, a, b] * moved[b]
                 r[i, a] = s
         if few:
@@ -386,23 +404,23 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         H_last = H_i
         retract_into(x, step, x_i)
         change = 0.0
-        for b in range(6):
+        for b in range(n):
             change = max(change, abs(step[b] - delta[b]))
             delta[b] = step[b]
         if change < CONVERGED:
             break                                                    # the linearization no longer moves
-    P_post = np.empty((6, 6))
+    P_post = np.empty((n, n))
     if few:
-        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((6, 6)), np.empty((6, 6)))
+        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((n, n)), np.empty((n, n)))
     else:
-        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((6, 6)))
+        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((n, n)))
     # the MAP cost at x+, predicted into the iterations' buffers (H_last is read above)
     observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
     for i in range(p):
         for a in range(3):
-            r[i, a] = z[i, a] - z_hat_i[i, a]
+            r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
     difference_into(x_i, x, moved)
-    cost = prior_quadratic(P, moved, M, pivots, np.empty((6, 1))) + block_quadratic(r, R_inverse)
+    cost = prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
     return x_i, P_post, nis, cost, y_prior
 
 
@@ -411,8 +429,9 @@ def point_step(scene, x, P, obs, z_hat, H):
     """x after one EKF update with the pairs' measurements as camera-frame points, where the model
     is nearly linear in the position: where Gauss-Newton in (u, v, depth) from a wide prior
     stalls, the iterations restart from here."""
+    n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = obs.size
-    Hp = np.empty((p, 3, 6))
+    Hp = np.empty((p, 3, n))
     y = np.empty((p, 3))
     R = np.empty((p, 3, 3))
     R_inverse = np.empty((p, 3, 3))
@@ -421,10 +440,10 @@ def point_step(scene, x, P, obs, z_hat, H):
         K = scene.camera_K[scene.obs_camera[o]]
         if K[4] != DEPTH:  # no point (``measurement.judged_as_point``): the pair as it is
             for a in range(3):
-                y[i, a] = scene.z[o, a] - z_hat[i, a]
+                y[i, a] = wrapped_residual(K[4], a, scene.z[o, a] - z_hat[i, a])
                 for b in range(3):
                     R[i, a, b], R_inverse[i, a, b] = scene.R_assoc[o, a, b], scene.R_assoc_inverse[o, a, b]
-                for b in range(6):
+                for b in range(n):
                     Hp[i, a, b] = H[i, a, b]
             continue
         p_hat, J = back_project(z_hat[i], K)
@@ -433,7 +452,7 @@ def point_step(scene, x, P, obs, z_hat, H):
             y[i, a] = scene.point[o, a] - p_hat[a]
             for b in range(3):
                 R[i, a, b], R_inverse[i, a, b] = scene.point_cov[o, a, b], scene.point_cov_inverse[o, a, b]
-            for b in range(6):
+            for b in range(n):
                 Hp[i, a, b] = JH[a, b]
     return retract(x, correction(P, Hp, R, R_inverse, y))
 
@@ -446,21 +465,23 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     association judges pairs by (``scene.R_assoc``) for the scratch filters that decide it.
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
-    iterations also run from ``point_step``, and from ``start`` (6,) when given (size 0: none); the
+    iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
     posterior with the lower MAP cost is kept. Returns as ``iterated_update``."""
     p = obs.size
     z = np.empty((p, 3))
     R = np.empty((p, 3, 3))
     R_inverse = np.empty((p, 3, 3))
-    landmark_xyz = np.empty((p, 3))
+    landmark_xyz = np.empty((p, scene.landmark_xyz.shape[1]))   # with a marker's heading (``SceneArrays``)
     pair_camera = np.empty(p, np.int64)
     for i in range(p):
         o = obs[i]
         for a in range(3):
-            z[i, a], landmark_xyz[i, a] = scene.z[o, a], scene.landmark_xyz[landmarks[i], a]
+            z[i, a] = scene.z[o, a]
             for b in range(3):
                 R[i, a, b], R_inverse[i, a, b] = noise[o, a, b], noise_inverse[o, a, b]
         pair_camera[i] = scene.obs_camera[o]
+        for a in range(landmark_xyz.shape[1]):
+            landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = np.empty(0)
     best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)

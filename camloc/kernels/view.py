@@ -1,6 +1,8 @@
 """Which landmarks a camera may see: a uniform grid hash of the map, queried with the smallest
 ball around the view cone, then the cone's own test. The cost grows with the landmarks near the
 view, not with the map (the numpy twin is ``camloc.association.candidate_indices`` over a k-d tree).
+A planar robot's own sensor (point2, marker) sees the landmarks of its kind within a radius of the
+robot (``landmarks_near``; the numpy twin ``AssociationScene._visible_planar``).
 """
 
 from __future__ import annotations
@@ -11,6 +13,9 @@ import numpy as np
 
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.kernels._jit import FIRST, entry, jit
+from camloc.kernels.camera import camera_pose
+from camloc.kernels.planar import SE2_DIM
+from camloc.measurement import MARKER, POINT2
 
 # Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
 MAX_CELLS_PER_AXIS = 1 << 20
@@ -161,7 +166,68 @@ def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, cos_half_angle, 
 @entry
 def widened_view(P, max_angle):
     """(margin metres, half-angle) of a view widened by three standard deviations of the
-    position and of the orientation of P, for a prior too wide for the data's own margins."""
+    position and of the orientation of P, for a prior too wide for the data's own margins (a
+    planar state's: of (x, y) and of the heading)."""
+    if P.shape[0] == SE2_DIM:
+        margin = WIDENED_VIEW_SIGMAS * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[:2, :2]))[-1], 0.0))
+        widened = max_angle + WIDENED_VIEW_SIGMAS * math.sqrt(max(P[2, 2], 0.0))
+        return margin, max(max_angle, min(widened, math.radians(MAX_HALF_ANGLE_DEG)))
     margin = WIDENED_VIEW_SIGMAS * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[:3, :3]))[-1], 0.0))
     widened = max_angle + WIDENED_VIEW_SIGMAS * math.sqrt(max(np.linalg.eigvalsh(np.ascontiguousarray(P[3:6, 3:6]))[-1], 0.0))
     return margin, max(max_angle, min(widened, math.radians(MAX_HALF_ANGLE_DEG)))
+
+
+@jit
+def sensor_candidates(scene, x, c, max_angle, margin):
+    """Sorted landmarks sensor c (a row of the scene's sensor tables) may see from state x: a
+    camera's in its view (``visible``; on a planar robot, only the 3-D points and tags: the floor's
+    landmarks are its own sensor's), a planar sensor's those of its kind within its range
+    (``view_limits[5]``) of the robot; ``margin`` metres widen either."""
+    kind = scene.camera_K[c, 4]
+    if kind == POINT2 or kind == MARKER:
+        return landmarks_near(scene, x[0], x[1], scene.view_limits[5] + margin, kind)
+    R_wc, centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])
+    found = visible(scene, R_wc, centre, max_angle, margin)
+    if x.shape[0] == SE2_DIM:
+        found = found[scene.landmark_sensor_kind[found] < 0]
+    return found
+
+
+@jit
+def landmarks_near(scene, x0, x1, radius, kind):
+    """Sorted indices of the landmarks that sensor ``kind`` (point2 or marker) observes
+    (``scene.landmark_sensor_kind``) within ``radius`` of (x0, x1, 0), through the grid."""
+    cell, origin, dims = scene.grid_cell[0], scene.grid_origin, scene.grid_dims
+    centre = (x0, x1, 0.0)
+    lo, hi = np.empty(3, np.int64), np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = max(0, int(math.floor((centre[a] - radius - origin[a]) / cell)))
+        hi[a] = min(dims[a] - 1, int(math.floor((centre[a] + radius - origin[a]) / cell)))
+        if hi[a] < lo[a]:
+            return np.empty(0, np.int64)
+    found = np.empty(64, np.int64)
+    count = 0
+    r2 = radius * radius
+    for ix in range(lo[0], hi[0] + 1):
+        for iy in range(lo[1], hi[1] + 1):
+            for iz in range(lo[2], hi[2] + 1):
+                key = ix + dims[0] * (iy + dims[1] * iz)
+                if scene.grid_dense_start.size > 0:
+                    first, stop = scene.grid_dense_start[key], scene.grid_dense_start[key + 1]
+                else:
+                    g = np.searchsorted(scene.grid_keys, key)
+                    if g >= scene.grid_keys.size or scene.grid_keys[g] != key:
+                        continue
+                    first, stop = scene.grid_start[g], scene.grid_start[g + 1]
+                for q in range(first, stop):
+                    d0, d1, d2 = scene.grid_xyz[q, 0] - x0, scene.grid_xyz[q, 1] - x1, scene.grid_xyz[q, 2]
+                    landmark = scene.grid_items[q]
+                    if d0 * d0 + d1 * d1 + d2 * d2 <= r2 and scene.landmark_sensor_kind[landmark] == kind:
+                        if count == found.size:
+                            grown = np.empty(2 * count, np.int64)
+                            for i in range(count):
+                                grown[i] = found[i]
+                            found = grown
+                        found[count] = landmark
+                        count += 1
+    return np.sort(found[:count])

@@ -1,0 +1,47 @@
+"""Retraction and difference of the filter's state, whichever model it is: the model's kernel
+picked by the state's size (6: the Euler state, ``camloc.kernels.rotation``; 3: the planar one,
+``camloc.kernels.planar``). The algorithm's kernels call these and size their arrays by the state
+(``x.shape[0]``), so that one compiled algorithm runs both models."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from camloc.kernels._jit import entry, jit
+from camloc.kernels.planar import SE2_DIM, planar_difference_into, planar_retract_into
+from camloc.kernels.rotation import difference_into as euler_difference_into
+from camloc.kernels.rotation import retract_into as euler_retract_into
+
+
+@jit
+def retract(x, delta):
+    """The state x moved by the error delta (x (+) delta), of x's model."""
+    out = np.empty(x.shape[0])
+    retract_into(x, delta, out)
+    return out
+
+
+@jit
+def retract_into(x, delta, out):
+    """``retract`` written into out (not x or delta)."""
+    if x.shape[0] == SE2_DIM:
+        planar_retract_into(x, delta, out)
+    else:
+        euler_retract_into(x, delta, out)
+
+
+@entry
+def difference(a, b):
+    """The error from b to a (a (-) b), of their model."""
+    d = np.empty(a.shape[0])
+    difference_into(a, b, d)
+    return d
+
+
+@jit
+def difference_into(a, b, d):
+    """``difference`` written into d."""
+    if a.shape[0] == SE2_DIM:
+        planar_difference_into(a, b, d)
+    else:
+        euler_difference_into(a, b, d)
