@@ -34,8 +34,9 @@ DONE, SLIP, GROW = 0, 1, 2
 
 
 @entry
-def new_generation(n, cap, dim):
-    """n hypotheses of states of size dim (6: Euler, 3: planar), room for cap pairs each."""
+def new_generation(n, cap, dim=6):
+    """n hypotheses of states of size dim (6: Euler, 3: planar; every kernel passes its state's,
+    the default is for callers outside them), room for cap pairs each."""
     return (np.empty((n, dim)), np.empty((n, dim, dim)), np.empty(n), np.full(n, -1, np.int64), np.zeros(n, np.int64),
             np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
 

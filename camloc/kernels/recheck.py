@@ -27,12 +27,12 @@ from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, maha
 
 
 @inlined
-def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, information, gate, kind):
+def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, information, gate, kind=-1):
     """Costs (n, m) ``d^2 + ln det S - ln det R`` of n observations (z (n, 3), R, R^-1 (n, 3, 3),
     ln det R (n,)) against m candidates (z_hat (m, 3), H (m, 3, n)) at the posterior, each judged
     with its own pair (chosen (n,): candidate column, -1 for none) left out; inf beyond the gate.
     ``information``: the prior's plus that of the update's pairs outside these observations;
-    ``kind``: the observations' (a sensor's), whose angle row is wrapped (``wrapped_residual``)."""
+    ``kind``: the observations' (a sensor's), whose angle row is wrapped (``wrapped_residual``; -1: none)."""
     n, m = z.shape[0], z_hat.shape[0]
     dim = information.shape[0]              # the state's size: 6 (Euler), 3 (planar)
     pair_information = np.zeros((n, dim, dim))
