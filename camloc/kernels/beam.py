@@ -44,10 +44,20 @@ def new_generation(n, cap, dim=6):
 @inlined
 def put_state(gen, j, x, P):
     """Hypothesis j's state x (n,) and covariance P (n, n), entry by entry (as every copy into a
-    slice: see ``_jit``)."""
-    for a in range(x.shape[0]):
+    slice: see ``_jit``); the Euler state's size as a constant, its loops unrolled (every child
+    of every hypothesis is a copy)."""
+    if x.shape[0] == 6:
+        put_state_of_size(gen, j, x, P, 6)
+    else:
+        put_state_of_size(gen, j, x, P, x.shape[0])
+
+
+@inlined
+def put_state_of_size(gen, j, x, P, n):
+    """``put_state`` of a state of n entries."""
+    for a in range(n):
         gen[0][j, a] = x[a]
-        for b in range(x.shape[0]):
+        for b in range(n):
             gen[1][j, a, b] = P[a, b]
 
 

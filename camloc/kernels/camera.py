@@ -83,35 +83,45 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
         # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
         u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
         v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
-        planar = H.shape[2] == SE2_DIM
-        # position columns, then rotation columns: 3 and 3 (Euler), 2 and 1 (planar)
-        rotation_at = 2 if planar else 3
-        for c in range(1 if planar else 3):
-            # d p_robot / d rotation error = [p_robot]x E, column c
-            m0 = -r2 * E[1, c] + r1 * E[2, c]
-            m1 = r2 * E[0, c] - r0 * E[2, c]
-            m2 = -r1 * E[0, c] + r0 * E[1, c]
-            rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rotation = R_c' [p_robot]x E
-            rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
-            rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
-            H[i, 0, rotation_at + c] = u_x * rot0 + u_z * rot2
-            H[i, 1, rotation_at + c] = v_y * rot1 + v_z * rot2
-            H[i, 2, rotation_at + c] = third * rot2
-        if planar:
-            for c in range(2):
-                # a planar error's dt moves the robot by R dt in the world (R's third row is zero there)
-                a0, a1 = R[0, c], R[1, c]
-                g0 = d_position[0, 0] * a0 + d_position[0, 1] * a1
-                g1 = d_position[1, 0] * a0 + d_position[1, 1] * a1
-                g2 = d_position[2, 0] * a0 + d_position[2, 1] * a1
-                H[i, 0, c] = u_x * g0 + u_z * g2
-                H[i, 1, c] = v_y * g1 + v_z * g2
-                H[i, 2, c] = third * g2
+        if H.shape[2] == SE2_DIM:
+            planar_camera_jacobian(R, R_rc, r0, r1, u_x, u_z, v_y, v_z, third, H, i, d_position)
         else:
             for c in range(3):
+                # d p_robot / d rpy = [p_robot]x E, column c
+                m0 = -r2 * E[1, c] + r1 * E[2, c]
+                m1 = r2 * E[0, c] - r0 * E[2, c]
+                m2 = -r1 * E[0, c] + r0 * E[1, c]
+                rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rpy = R_c' [p_robot]x E
+                rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
+                rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
                 H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
                 H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
                 H[i, 2, c] = third * d_position[2, c]
+                H[i, 0, 3 + c] = u_x * rot0 + u_z * rot2
+                H[i, 1, 3 + c] = v_y * rot1 + v_z * rot2
+                H[i, 2, 3 + c] = third * rot2
+
+
+@inlined
+def planar_camera_jacobian(R, R_rc, r0, r1, u_x, u_z, v_y, v_z, third, H, i, d_position):
+    """H[i] (3, 3) of a camera's measurement by a planar robot's right perturbation (dt, dtheta),
+    from the robot-frame point (r0, r1, .), the projection's derivatives (``observe_into``) and
+    d_position = -R_rc' R' (by the world position): dt moves the robot by R dt in the world (R's
+    third row is zero there), dtheta turns it about z, moving the robot-frame point by (r1, -r0, 0)."""
+    for c in range(2):
+        a0, a1 = R[0, c], R[1, c]
+        g0 = d_position[0, 0] * a0 + d_position[0, 1] * a1
+        g1 = d_position[1, 0] * a0 + d_position[1, 1] * a1
+        g2 = d_position[2, 0] * a0 + d_position[2, 1] * a1
+        H[i, 0, c] = u_x * g0 + u_z * g2
+        H[i, 1, c] = v_y * g1 + v_z * g2
+        H[i, 2, c] = third * g2
+    rot0 = R_rc[0, 0] * r1 - R_rc[1, 0] * r0                       # R_c' (r1, -r0, 0)
+    rot1 = R_rc[0, 1] * r1 - R_rc[1, 1] * r0
+    rot2 = R_rc[0, 2] * r1 - R_rc[1, 2] * r0
+    H[i, 0, 2] = u_x * rot0 + u_z * rot2
+    H[i, 1, 2] = v_y * rot1 + v_z * rot2
+    H[i, 2, 2] = third * rot2
 
 
 @jit

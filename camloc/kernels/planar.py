@@ -112,11 +112,12 @@ def wrapped_residual(kind, a, r):
     return wrap_angle(r) if a == 2 and kind == MARKER else r
 
 
-@jit
+@inlined
 def onto_measured_branch(scene, obs, z_hat):
     """z_hat (p, 3), the predictions of observations obs (p,), with each marker's psi moved onto
     its measurement's branch (``z - wrap(z - z_hat)``): every residual z - z_hat taken of them is
-    then wrapped, as the numpy engine's (``StackedUpdate.measurement_function``)."""
+    then wrapped, as the numpy engine's (``StackedUpdate.measurement_function``). Inlined: a call
+    taking the scene counts a reference to each of its arrays (``_jit``)."""
     for i in range(obs.size):
         o = obs[i]
         if scene.camera_K[scene.obs_camera[o], 4] == MARKER:

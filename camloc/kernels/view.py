@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
-from camloc.kernels._jit import FIRST, entry, jit
+from camloc.kernels._jit import FIRST, entry, inlined, jit
 from camloc.kernels.camera import camera_pose
 from camloc.kernels.planar import SE2_DIM
 from camloc.measurement import MARKER, POINT2
@@ -177,12 +177,13 @@ def widened_view(P, max_angle):
     return margin, max(max_angle, min(widened, math.radians(MAX_HALF_ANGLE_DEG)))
 
 
-@jit
+@inlined
 def sensor_candidates(scene, x, c, max_angle, margin):
     """Sorted landmarks sensor c (a row of the scene's sensor tables) may see from state x: a
     camera's in its view (``visible``; on a planar robot, only the 3-D points and tags: the floor's
     landmarks are its own sensor's), a planar sensor's those of its kind within its range
-    (``view_limits[5]``) of the robot; ``margin`` metres widen either."""
+    (``view_limits[5]``) of the robot; ``margin`` metres widen either. Inlined: a call taking the
+    scene counts a reference to each of its arrays (``_jit``), and this runs per hypothesis."""
     kind = scene.camera_K[c, 4]
     if kind == POINT2 or kind == MARKER:
         return landmarks_near(scene, x[0], x[1], scene.view_limits[5] + margin, kind)
