@@ -2,7 +2,7 @@
 
     python benchmarks/planar.py targets [--seeds 5] [--poses 300]
     python benchmarks/planar.py filters [--seeds 5] [--poses 300]
-    python benchmarks/planar.py speed [--poses 20000]
+    python benchmarks/planar.py speed [--poses 20000] [--sensors points] [--engine compiled] [--repeat 1]
     python benchmarks/planar.py tags [--seeds 3] [--poses 300]
 
 ``targets``: per world kind and seed, the position RMSE of the default association (beam) against
@@ -10,7 +10,8 @@ the true association's (oracle), the beam's precision and recall, and the oracle
 NIS verdicts; a summary line per kind. ``filters``: se2 against the 6-DOF filters (euler, se3) on
 planar robots carrying 3-D cameras only (the 6-DOF filters cannot take the planar kinds), the
 beam's association, position and heading RMSE. ``speed``: poses a second of the filter alone on one
-large planar world (beam association). ``tags``: 3-D worlds of tags (``camloc.simulate_tags``,
+large planar world of the given sensors (beam association) in the given engine (the compiled loop
+warm: its kernels compiled before the timed runs; the best of ``--repeat`` runs). ``tags``: 3-D worlds of tags (``camloc.simulate_tags``,
 orientation noise 1 deg) with 1 or 2 tags a pose, the default filter and association with each
 tag's orientation against the same data without it (positions alone): rotation, heading (yaw) and
 position RMSE.
@@ -78,13 +79,18 @@ def filters(seeds: int, poses: int) -> None:
     print("| mean | " + " | ".join(f"{np.mean(v):.4f}" for v in totals.values()) + " | | | |")
 
 
-def speed(poses: int) -> None:
-    dataset = simulate_planar(PlanarSimulationConfig(sensors="points", poses=poses), seed=0)
-    started = time.perf_counter()
-    result = localize(dataset, LocalizerConfig(), engine="numpy", parallel=False)
-    wall = time.perf_counter() - started
-    print(f"{poses} poses, {dataset.num_observations} observations: filter {result.summary['timing']['filter_seconds']:.1f} s "
-          f"({result.summary['timing']['poses_per_second']:.0f} poses/s), wall {wall:.1f} s")
+def speed(poses: int, sensors: str, engine: str, repeat: int) -> None:
+    dataset = simulate_planar(PlanarSimulationConfig(sensors=sensors, poses=poses), seed=0)
+    if engine == "compiled":  # the kernels compiled (or loaded from the cache) before the timed runs
+        localize(simulate_planar(PlanarSimulationConfig(sensors=sensors, poses=50), seed=0), LocalizerConfig(), engine=engine)
+    runs = []
+    for _ in range(repeat):
+        started = time.perf_counter()
+        result = localize(dataset, LocalizerConfig(), engine=engine, parallel=None if engine == "compiled" else False)
+        runs.append((result.summary["timing"]["filter_seconds"], time.perf_counter() - started, result))
+    seconds, wall, result = min(runs, key=lambda run: run[0])
+    print(f"{sensors}: {poses} poses, {dataset.num_observations} observations, engine {result.summary['timing']['engine']}: "
+          f"filter {seconds:.2f} s ({poses / seconds:.0f} poses/s), wall {wall:.1f} s")
 
 
 def tags(seeds: int, poses: int) -> None:
@@ -121,6 +127,9 @@ def main() -> None:
     parser.add_argument("what", choices=("targets", "filters", "speed", "tags"))
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--poses", type=int, default=None)
+    parser.add_argument("--sensors", default="points", help="speed: the world's sensors (points, markers, cameras, comma-separated)")
+    parser.add_argument("--engine", default="compiled", choices=("compiled", "numpy"), help="speed: the engine")
+    parser.add_argument("--repeat", type=int, default=1, help="speed: runs, the best reported")
     args = parser.parse_args()
     if args.what == "targets":
         targets(args.seeds, args.poses or 300)
@@ -129,7 +138,7 @@ def main() -> None:
     elif args.what == "tags":
         tags(args.seeds, args.poses or 300)
     else:
-        speed(args.poses or 20000)
+        speed(args.poses or 20000, args.sensors, args.engine, args.repeat)
 
 
 if __name__ == "__main__":

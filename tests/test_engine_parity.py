@@ -3,8 +3,10 @@
 every model both run: each kind of measurement (depth, pixel, disparity, and cameras of two kinds
 in one file), each association the compiled loop runs (the beam, the oracle), each kind of
 trajectory, with and without clutter, and with an odometry slip where the beam searches from
-seeds. Both must give the same pairs, the same slips, states and covariances to rounding, the
-same NIS and the same estimate covariance (the beam's association spread included)."""
+seeds; and the planar robot's (the se2 filter) with each of its sensors (points, markers, 3-D
+cameras, the three at once). Both must give the same pairs, the same slips, states and
+covariances to rounding, the same NIS and the same estimate covariance (the beam's association
+spread included)."""
 
 from __future__ import annotations
 
@@ -17,9 +19,13 @@ import pytest
 import camloc
 from camloc.localizer import COMPILED_ASSOCIATIONS
 from camloc.simulate import TRAJECTORIES, SimulationConfig, simulate
+from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
 
 MEASUREMENTS = ("depth", "pixel", "disparity", "depth,pixel")
 CASES = list(itertools.product(MEASUREMENTS, COMPILED_ASSOCIATIONS, TRAJECTORIES))
+# a planar robot's sensors (camloc.simulate_planar): its own (point2, marker), 3-D cameras on it, all three
+PLANAR_SENSORS = ("points", "markers", "cameras", "points,markers,cameras")
+PLANAR_CASES = list(itertools.product(PLANAR_SENSORS, COMPILED_ASSOCIATIONS))
 
 
 def _world(measurement: str, trajectory: str, seed: int):
@@ -32,9 +38,26 @@ def _world(measurement: str, trajectory: str, seed: int):
     return dataclasses.replace(dataset, odom_translation=jumped)
 
 
+def _planar_world(sensors: str, seed: int):
+    """A small planar world of these sensors, a tenth of its detections clutter, its odometry
+    slipped on one edge (the seeded search runs there)."""
+    dataset = simulate_planar(PlanarSimulationConfig(sensors=sensors, poses=60, clutter_fraction=0.1), seed=seed)
+    jumped = dataset.odom_translation.copy()
+    jumped[30] += np.array([0.4, -0.3, 0.0])
+    return dataclasses.replace(dataset, odom_translation=jumped)
+
+
 @pytest.mark.parametrize("measurement, association, trajectory", CASES, ids=["-".join(case) for case in CASES])
 def test_both_engines_give_the_same_run(measurement, association, trajectory):
-    dataset = _world(measurement, trajectory, seed=11)
+    _assert_same_run(_world(measurement, trajectory, seed=11), association)
+
+
+@pytest.mark.parametrize("sensors, association", PLANAR_CASES, ids=["-".join(case) for case in PLANAR_CASES])
+def test_both_engines_give_the_same_planar_run(sensors, association):
+    _assert_same_run(_planar_world(sensors, seed=11), association)
+
+
+def _assert_same_run(dataset, association: str) -> None:
     config = camloc.LocalizerConfig(association=association)
     compiled = camloc.localize(dataset, config, engine="compiled")
     reference = camloc.localize(dataset, config, engine="numpy", parallel=False)
