@@ -21,13 +21,14 @@ from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
+from camloc.kernels.planar import planar_observe_into
 from camloc.kernels.motion import predict
-from camloc.kernels.planar import wrapped_residual
+from camloc.kernels.rotation import wrap_angle
 from camloc.kernels.state import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import sensor_candidates
-from camloc.measurement import DEPTH, PIXEL
+from camloc.measurement import DEPTH, MARKER, PIXEL, POINT2
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -136,7 +137,9 @@ def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
     p0, p1, p2, j00, j02, j11, j12 = as_point(z_hat, q, K)
     a00, a01, a02, a11, a12, a22 = spread_q                                # H P H'
     R, C = scene.R_assoc, scene.point_cov
-    r2 = wrapped_residual(K[4], 2, scene.z[o, 2] - z_hat[q, 2])          # a marker's psi wrapped
+    r2 = scene.z[o, 2] - z_hat[q, 2]
+    if K[4] == MARKER:                                                     # a marker's psi wrapped (``planar.wrapped_residual``)
+        r2 = wrap_angle(r2)
     quadratic_pixels, det_pixels = quadratic_and_det(
         a00 + R[o, 0, 0], a01 + R[o, 0, 1], a02 + R[o, 0, 2], a11 + R[o, 1, 1], a12 + R[o, 1, 2], a22 + R[o, 2, 2],
         scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], r2)
@@ -192,10 +195,14 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     for g in range(cameras.size):
         c, f = cameras[g], found[g]
         R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
+        planar_kind = K[4] == POINT2 or K[4] == MARKER
         camera_position_jacobian(R, R_rc, d_position)
         for q in range(f.size):
             cand[at], cand_camera[at] = f[q], c
-            observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f[q], z_hat, H, at, d_position)
+            if planar_kind:                     # a planar robot's own sensor (``camera.observe_into``)
+                planar_observe_into(R, t, scene.landmark_xyz, f[q], K[4], z_hat, H, at)
+            else:
+                observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f[q], z_hat, H, at, d_position)
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(z_hat, at, K)
             spread_q = spread(H, at, P)
             spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
@@ -214,8 +221,8 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
         c = scene.obs_camera[o]
         gate = scene.obs_gate[o]
         pool_gate = settings.pool_gate_factor * gate
-        kind = scene.camera_K[c, 4]
-        as_points = kind == DEPTH
+        as_points = scene.camera_K[c, 4] == DEPTH
+        marker = scene.camera_K[c, 4] == MARKER
         for q in range(total):
             if cand_camera[q] != c:
                 continue
@@ -224,7 +231,9 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             # points is judged in its own coordinates alone
             beyond_pixels, beyond_point = False, not as_points
             for a in range(3):
-                e = wrapped_residual(kind, a, scene.z[o, a] - z_hat[q, a])
+                e = scene.z[o, a] - z_hat[q, a]
+                if marker and a == 2:           # a marker's psi wrapped (``planar.wrapped_residual``)
+                    e = wrap_angle(e)
                 beyond_pixels |= e * e > pool_gate * (diagonal_pixels[q, a] + scene.R_assoc[o, a, a])
                 e = scene.point[o, a] - p_hat[q, a]
                 beyond_point |= e * e > pool_gate * (diagonal_point[q, a] + scene.point_cov[o, a, a])
@@ -265,12 +274,16 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     by pixels more than that)."""
     c = scene.obs_camera[o]
     R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
+    planar_kind = K[4] == POINT2 or K[4] == MARKER
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
     for q in range(pool.size):
         r = at + q
-        observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool[q], z_hat, H, r, d_position)
+        if planar_kind:                         # a planar robot's own sensor (``camera.observe_into``)
+            planar_observe_into(R, t, scene.landmark_xyz, pool[q], K[4], z_hat, H, r)
+        else:
+            observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool[q], z_hat, H, r, d_position)
         d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, scene.obs_gate[o])
         cost[r] = pair_cost if d2 <= scene.obs_gate[o] and not is_taken(pool[q], taken) else np.inf
         in_point[r] = point

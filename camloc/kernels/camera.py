@@ -51,55 +51,55 @@ def robot_frame_into(x, frame):
 
 @inlined
 def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position):
-    """Write the prediction z_hat[i] (3,) of landmark landmarks[j] (x, y, z, and a marker's
-    heading where the array has a fourth column) and its Jacobian H[i] (3, n) with respect to the
-    state's error (robot rotation R, rate matrix E, position t: ``robot_frame``; n = 6, the Euler
-    state, or 3, the planar one); d_position = -R_rc' R', the derivative of the camera-frame point
-    by the world position. Scalar code on whole arrays and indices: this runs for every candidate
-    of every hypothesis, where a temporary array or a row view (counting references) costs more
-    than the arithmetic."""
+    """Write a camera's prediction z_hat[i] (3,) of landmark landmarks[j] (x, y, z, ...) and its
+    Jacobian H[i] (3, n) with respect to the state's error (robot rotation R, rate matrix E,
+    position t: ``robot_frame``; n = 6, the Euler state, or 3, the planar one); d_position =
+    -R_rc' R', the derivative of the camera-frame point by the world position. Scalar code on whole
+    arrays and indices: this runs for every candidate of every hypothesis, where a temporary array
+    or a row view (counting references) costs more than the arithmetic. A planar robot's own
+    sensor (point2, marker) is ``planar.planar_observe_into``, which each caller's loop picks by
+    the sensor's kind: that branch inside this step (or inside a step wrapping both) made the 3-D
+    world's predictions 1.6x as slow (500 -> 800 ns for three pairs), written in the loop it costs
+    nothing measurable."""
     fx, fy, cx, cy, kind = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4]
-    if kind == POINT2 or kind == MARKER:
-        planar_observe_into(R, t, landmarks, j, kind, z_hat, H, i)
+    d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
+    r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
+    r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+    r2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+    q0, q1, q2 = r0 - t_rc[0], r1 - t_rc[1], r2 - t_rc[2]
+    px = R_rc[0, 0] * q0 + R_rc[1, 0] * q1 + R_rc[2, 0] * q2  # p_camera = R_c' (p_robot - t_c)
+    py = R_rc[0, 1] * q0 + R_rc[1, 1] * q1 + R_rc[2, 1] * q2
+    pz = R_rc[0, 2] * q0 + R_rc[1, 2] * q1 + R_rc[2, 2] * q2
+    inverse_depth = 1.0 / pz
+    z_hat[i, 0] = fx * px * inverse_depth + cx
+    z_hat[i, 1] = fy * py * inverse_depth + cy
+    # the third row: depth (d/dz 1), inverse depth (d/dz -1/z^2) or a pixel's inert 0
+    if kind == DEPTH:
+        z_hat[i, 2], third = pz, 1.0
+    elif kind == DISPARITY:
+        z_hat[i, 2], third = inverse_depth, -inverse_depth * inverse_depth
     else:
-        d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
-        r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
-        r1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
-        r2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
-        q0, q1, q2 = r0 - t_rc[0], r1 - t_rc[1], r2 - t_rc[2]
-        px = R_rc[0, 0] * q0 + R_rc[1, 0] * q1 + R_rc[2, 0] * q2  # p_camera = R_c' (p_robot - t_c)
-        py = R_rc[0, 1] * q0 + R_rc[1, 1] * q1 + R_rc[2, 1] * q2
-        pz = R_rc[0, 2] * q0 + R_rc[1, 2] * q1 + R_rc[2, 2] * q2
-        inverse_depth = 1.0 / pz
-        z_hat[i, 0] = fx * px * inverse_depth + cx
-        z_hat[i, 1] = fy * py * inverse_depth + cy
-        # the third row: depth (d/dz 1), inverse depth (d/dz -1/z^2) or a pixel's inert 0
-        if kind == DEPTH:
-            z_hat[i, 2], third = pz, 1.0
-        elif kind == DISPARITY:
-            z_hat[i, 2], third = inverse_depth, -inverse_depth * inverse_depth
-        else:
-            z_hat[i, 2], third = 0.0, 0.0
-        # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
-        u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
-        v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
-        if H.shape[2] == SE2_DIM:
-            planar_camera_jacobian(R, R_rc, r0, r1, u_x, u_z, v_y, v_z, third, H, i, d_position)
-        else:
-            for c in range(3):
-                # d p_robot / d rpy = [p_robot]x E, column c
-                m0 = -r2 * E[1, c] + r1 * E[2, c]
-                m1 = r2 * E[0, c] - r0 * E[2, c]
-                m2 = -r1 * E[0, c] + r0 * E[1, c]
-                rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rpy = R_c' [p_robot]x E
-                rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
-                rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
-                H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
-                H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
-                H[i, 2, c] = third * d_position[2, c]
-                H[i, 0, 3 + c] = u_x * rot0 + u_z * rot2
-                H[i, 1, 3 + c] = v_y * rot1 + v_z * rot2
-                H[i, 2, 3 + c] = third * rot2
+        z_hat[i, 2], third = 0.0, 0.0
+    # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
+    u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
+    v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
+    if H.shape[2] == SE2_DIM:
+        planar_camera_jacobian(R, R_rc, r0, r1, u_x, u_z, v_y, v_z, third, H, i, d_position)
+    else:
+        for c in range(3):
+            # d p_robot / d rpy = [p_robot]x E, column c
+            m0 = -r2 * E[1, c] + r1 * E[2, c]
+            m1 = r2 * E[0, c] - r0 * E[2, c]
+            m2 = -r1 * E[0, c] + r0 * E[1, c]
+            rot0 = R_rc[0, 0] * m0 + R_rc[1, 0] * m1 + R_rc[2, 0] * m2   # d p_camera / d rpy = R_c' [p_robot]x E
+            rot1 = R_rc[0, 1] * m0 + R_rc[1, 1] * m1 + R_rc[2, 1] * m2
+            rot2 = R_rc[0, 2] * m0 + R_rc[1, 2] * m1 + R_rc[2, 2] * m2
+            H[i, 0, c] = u_x * d_position[0, c] + u_z * d_position[2, c]
+            H[i, 1, c] = v_y * d_position[1, c] + v_z * d_position[2, c]
+            H[i, 2, c] = third * d_position[2, c]
+            H[i, 0, 3 + c] = u_x * rot0 + u_z * rot2
+            H[i, 1, 3 + c] = v_y * rot1 + v_z * rot2
+            H[i, 2, 3 + c] = third * rot2
 
 
 @inlined
@@ -135,8 +135,12 @@ def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     m = landmark_xyz.shape[0]
     z_hat = np.empty((m, 3))
     H = np.empty((m, 3, x.shape[0]))
+    planar_kind = intrinsics[4] == POINT2 or intrinsics[4] == MARKER
     for j in range(m):
-        observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position)
+        if planar_kind:
+            planar_observe_into(R, t, landmark_xyz, j, intrinsics[4], z_hat, H, j)
+        else:
+            observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position)
     return z_hat, H
 
 
@@ -162,7 +166,11 @@ def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_
         camera_position_jacobian(R, camera_R[c], d_position[c])
     for i in range(landmark_xyz.shape[0]):
         c = pair_camera[i]
-        observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c])
+        kind = camera_K[c, 4]
+        if kind == POINT2 or kind == MARKER:             # a planar robot's own sensor
+            planar_observe_into(R, t, landmark_xyz, i, kind, z_hat, H, i)
+        else:
+            observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c])
 
 
 @jit

@@ -93,9 +93,18 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
 @jit
 def record_state(states, covs, k, x, P):
     """states[k] = x, covs[k] = P, entry by entry (as every copy into a slice: see ``_jit``)."""
-    for a in range(x.shape[0]):
+    if x.shape[0] == 6:                          # the Euler state's size as a constant (``sym3.spread``)
+        record_state_of_size(states, covs, k, x, P, 6)
+    else:
+        record_state_of_size(states, covs, k, x, P, x.shape[0])
+
+
+@inlined
+def record_state_of_size(states, covs, k, x, P, n):
+    """``record_state`` of a state of n entries."""
+    for a in range(n):
         states[k, a] = x[a]
-        for b in range(x.shape[0]):
+        for b in range(n):
             covs[k, a, b] = P[a, b]
 
 

@@ -1,13 +1,15 @@
 """Retraction and difference of the filter's state, whichever model it is: the model's kernel
 picked by the state's size (6: the Euler state, ``camloc.kernels.rotation``; 3: the planar one,
 ``camloc.kernels.planar``). The algorithm's kernels call these and size their arrays by the state
-(``x.shape[0]``), so that one compiled algorithm runs both models."""
+(``x.shape[0]``), so that one compiled algorithm runs both models. The dispatch is inlined: an
+iterated update retracts and differences at every step, where a call's own cost (counting a
+reference to each array it is passed) would be as large as the arithmetic."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import entry, jit
+from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.planar import SE2_DIM, planar_difference_into, planar_retract_into
 from camloc.kernels.rotation import difference_into as euler_difference_into
 from camloc.kernels.rotation import retract_into as euler_retract_into
@@ -21,7 +23,7 @@ def retract(x, delta):
     return out
 
 
-@jit
+@inlined
 def retract_into(x, delta, out):
     """``retract`` written into out (not x or delta)."""
     if x.shape[0] == SE2_DIM:
@@ -38,7 +40,7 @@ def difference(a, b):
     return d
 
 
-@jit
+@inlined
 def difference_into(a, b, d):
     """``difference`` written into d."""
     if a.shape[0] == SE2_DIM:

@@ -409,17 +409,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
     prior)."""
-    if x.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        return iterated_update_of_size(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                                       iterations, z_hat, H, start, 6)
-    return iterated_update_of_size(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                                   iterations, z_hat, H, start, x.shape[0])
-
-
-@inlined
-def iterated_update_of_size(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                            iterations, z_hat, H, start, n):
-    """``iterated_update`` of a state of n entries."""
+    n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = z.shape[0]
     m = 3 * p
     few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
