@@ -10,6 +10,7 @@ each with the default association (beam) and the true one (oracle), and prints p
 its ratio to ``full``), mean NEES, landmarks added, added twice and made of clutter, and the speed.
 
     nice python benchmarks/mapping.py --trajectories grid,smooth3d,aerial --seeds 0,1,2 --poses 300
+    nice python benchmarks/mapping.py --cases moved --seeds 0,1,2,3 --measurement pixel --cameras 2
 """
 
 from __future__ import annotations
@@ -63,11 +64,16 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=300)
     parser.add_argument("--clutter", type=float, default=0.0)
     parser.add_argument("--associations", default="beam,oracle")
+    parser.add_argument("--cases", default="half,moved,none", help="which imperfect maps (default half,moved,none)")
+    parser.add_argument("--measurement", default="depth", help="the simulator's camera measurement (default depth)")
+    parser.add_argument("--cameras", type=int, default=1, help="cameras on the robot (default 1)")
     args = parser.parse_args()
+    cases = args.cases.split(",")
     print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | s")
     for trajectory in args.trajectories.split(","):
         for seed in [int(s) for s in args.seeds.split(",")]:
-            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter)
+            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter,
+                        measurement=args.measurement, cameras=args.cameras)
             full = simulate_labelled(SimulationConfig(**base), seed=seed)
             truth_map = dict(zip(full.dataset.landmark_ids.tolist(), full.dataset.landmark_xyz))
             worlds = [("half", SimulationConfig(**base, withhold_map=0.5), ("exact", "prior")),
@@ -76,7 +82,7 @@ def main() -> None:
             for association in args.associations.split(","):
                 reference = case(full.dataset, truth_map, full.is_clutter, "exact", association)
                 _print(trajectory, seed, "full exact", association, reference, reference["rmse"])
-                for name, config, modes in worlds:
+                for name, config, modes in [w for w in worlds if w[0] in cases]:
                     world = simulate_labelled(config, seed=seed)
                     ds = world.dataset
                     moved = [int(i) for i in ds.landmark_ids if np.linalg.norm(ds.landmark_xyz[ds.landmark_ids == i][0] - truth_map[int(i)]) > 1e-6]
