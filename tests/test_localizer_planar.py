@@ -113,9 +113,12 @@ def test_filter_choice_and_engine():
     planar_world = simulate_planar(PlanarSimulationConfig(sensors="points", poses=20), seed=0)
     result = localize(planar_world, engine="auto")
     assert result.summary["config"]["filter"] == "se2"
-    assert result.summary["timing"]["engine"] == "numpy"
-    with pytest.raises(ConfigError, match="compiled loop runs the euler filter"):
-        localize(planar_world, engine="compiled")
+    assert result.summary["timing"]["engine"] == "numpy"  # under COMPILED_MIN_POSES
+    compiled = localize(planar_world, engine="compiled")  # the se2 filter runs in the kernels too
+    assert (compiled.summary["config"]["filter"], compiled.summary["timing"]["engine"]) == ("se2", "compiled")
+    np.testing.assert_allclose(compiled.filter_state, result.filter_state, atol=1e-8)
+    with pytest.raises(ConfigError, match="compiled loop runs the euler and se2 filters"):
+        localize(planar_world, LocalizerConfig(association="jcbb"), engine="compiled")
     with pytest.raises(ConfigError, match="cannot use EDGE_SE2_XY observations"):
         localize(planar_world, LocalizerConfig(filter="euler"))
     from camloc.simulate import SimulationConfig, simulate

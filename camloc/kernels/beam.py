@@ -179,12 +179,10 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     dim = x.shape[0]                            # the state's size: 6 (Euler), 3 (planar)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     # every camera's candidates, their predictions and spreads, concatenated
-    found = []
+    found, total = [], 0
     for c in cameras:
         found.append(sensor_candidates(scene, x, c, max_angle, margin))
-    total = 0
-    for f in found:
-        total += f.size
+        total += found[-1].size
     cand, cand_camera = np.empty(total, np.int64), np.empty(total, np.int64)
     z_hat, H = np.empty((total, 3)), np.empty((total, 3, dim))
     p_hat, diagonal_pixels, diagonal_point = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
