@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import inlined, jit
+from camloc.kernels._jit import jit
 from camloc.kernels.planar import SE2_DIM, planar_motion
 from camloc.kernels.rotation import euler_rate, euler_rate_inverse, euler_to_matrix, matrix_to_euler
 
@@ -60,14 +60,7 @@ def predict(x, P, T_increment, Q):
     mirrored), of x's model (its size: the Euler state's ``motion``, the planar one's
     ``planar.planar_motion``), with F (n, n) and G (n, 6) its Jacobians by the error and by the
     lifted increment's noise (Q (6, 6))."""
-    if x.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        return predict_of_size(x, P, T_increment, Q, 6)
-    return predict_of_size(x, P, T_increment, Q, x.shape[0])
-
-
-@inlined
-def predict_of_size(x, P, T_increment, Q, n):
-    """``predict`` of a state of n entries."""
+    n = x.shape[0]
     if n == SE2_DIM:
         x_next, F, G = planar_motion(x, T_increment)
     else:

@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from camloc.constants import CONVERGED
-from camloc.kernels._jit import entry, inlined, jit
+from camloc.kernels._jit import entry, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.planar import wrapped_residual
 from camloc.measurement import DEPTH
@@ -97,15 +97,7 @@ def stacked_quadratic(L, y, scratch):
 def innovation_system_into(P, H, R, PHt, S):
     """P H' (n, 3p) and S = H P H' + R (3p, 3p) of pairs with Jacobians H (p, 3, n) and noise R
     (p, 3, 3), S symmetric."""
-    if P.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        innovation_system_into_of_size(P, H, R, PHt, S, 6)
-    else:
-        innovation_system_into_of_size(P, H, R, PHt, S, P.shape[0])
-
-
-@inlined
-def innovation_system_into_of_size(P, H, R, PHt, S, n):
-    """``innovation_system_into`` of a state of n entries."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
     m = 3 * p
     for c in range(n):
@@ -143,15 +135,7 @@ def gain_into(P, H, R, PHt, S, L, K):
 def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
     """Joseph form (I - K H) P (I - K H)' + K R K' into out (n, n), its upper triangle mirrored;
     H (p, 3, n) stacked as K's columns; I_KH and scratch (n, n)."""
-    if P.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        covariance_posterior_into_of_size(P, K, H, R, out, I_KH, scratch, 6)
-    else:
-        covariance_posterior_into_of_size(P, K, H, R, out, I_KH, scratch, P.shape[0])
-
-
-@inlined
-def covariance_posterior_into_of_size(P, K, H, R, out, I_KH, scratch, n):
-    """``covariance_posterior_into`` of a state of n entries."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
     for c in range(n):
         for d in range(n):
@@ -184,15 +168,7 @@ def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
     """Of pairs with Jacobians H (p, 3, n) and noise information R_inverse (p, 3, 3): R^-1 H
     (p, 3, n), Lambda (n, n), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
     A P = (I + P Lambda)^-1 P (n, n), symmetrized."""
-    if P.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        information_into_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, 6)
-    else:
-        information_into_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, P.shape[0])
-
-
-@inlined
-def information_into_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, n):
-    """``information_into`` of a state of n entries."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
     for c in range(n):
         for d in range(n):
@@ -230,15 +206,7 @@ def information_into_of_size(P, H, R_inverse, R_inverse_H, information, M, pivot
 @jit
 def gradient_into(R_inverse_H, y, g):
     """g = sum H_i' R_i^-1 y_i (n,) for innovations y (p, 3)."""
-    if g.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        gradient_into_of_size(R_inverse_H, y, g, 6)
-    else:
-        gradient_into_of_size(R_inverse_H, y, g, g.shape[0])
-
-
-@inlined
-def gradient_into_of_size(R_inverse_H, y, g, n):
-    """``gradient_into`` of a state of n entries."""
+    n = g.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     for c in range(n):
         g[c] = 0.0
     for i in range(y.shape[0]):
@@ -261,14 +229,7 @@ def block_quadratic(y, R_inverse):
 @jit
 def plain_step_into(AP, g, step):
     """step = A P g (n,), and g' A P g."""
-    if g.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        return plain_step_into_of_size(AP, g, step, 6)
-    return plain_step_into_of_size(AP, g, step, g.shape[0])
-
-
-@inlined
-def plain_step_into_of_size(AP, g, step, n):
-    """``plain_step_into`` of a state of n entries."""
+    n = g.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     total = 0.0
     for c in range(n):
         s = 0.0
@@ -282,15 +243,7 @@ def plain_step_into_of_size(AP, g, step, n):
 @jit
 def gain_step_into(K, y, step):
     """step = K v (n,), v the innovations y (p, 3) stacked."""
-    if step.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        gain_step_into_of_size(K, y, step, 6)
-    else:
-        gain_step_into_of_size(K, y, step, step.shape[0])
-
-
-@inlined
-def gain_step_into_of_size(K, y, step, n):
-    """``gain_step_into`` of a state of n entries."""
+    n = step.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     for c in range(n):
         s = 0.0
         for i in range(y.shape[0]):
@@ -303,15 +256,7 @@ def gain_step_into_of_size(K, y, step, n):
 def posterior_covariance_into(P, information, M, pivots, out, scratch):
     """A (P + P Lambda P) A' into out (n, n), symmetric positive definite by construction; I + P
     Lambda factored into (M, pivots); scratch (n, n)."""
-    if P.shape[0] == 6:                     # the Euler state's size as a constant: loops unrolled (``sym3.spread``)
-        posterior_covariance_into_of_size(P, information, M, pivots, out, scratch, 6)
-    else:
-        posterior_covariance_into_of_size(P, information, M, pivots, out, scratch, P.shape[0])
-
-
-@inlined
-def posterior_covariance_into_of_size(P, information, M, pivots, out, scratch, n):
-    """``posterior_covariance_into`` of a state of n entries."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     for c in range(n):                                              # P Lambda
         for d in range(n):
             s = 0.0
