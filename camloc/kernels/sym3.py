@@ -67,7 +67,8 @@ def spread(H, i, P):
     a column of H[i] P at a time, then its products with H[i]'s rows (144 products, not 324 for
     n = 6). It runs for every candidate of every hypothesis: the Euler state's size is passed as
     a constant, whose loops the compiler unrolls as it did when 6 was the only size (a size only
-    known at run time left the 20k-pose world's beam about a tenth slower)."""
+    known when it runs is not unrolled)."""
+
     if P.shape[0] == 6:
         return spread_of_size(H, i, P, 6)
     return spread_of_size(H, i, P, P.shape[0])
