@@ -67,7 +67,9 @@ def jcbb(P: np.ndarray, candidates: list[list[Candidate]], probability: float, m
         return []
     slot = {id(c): n for n, c in enumerate(flat)}
     H = np.vstack([c.H for c in flat])
-    cross = H @ P @ H.T  # (3C, 3C): every pair of candidates' H P H'
+    cols = np.flatnonzero(np.any(H != 0.0, axis=0))  # the pose and the candidates' landmarks: not the whole state
+    H = H[:, cols]
+    cross = H @ P[np.ix_(cols, cols)] @ H.T  # (3C, 3C): every pair of candidates' H P H'
     for n, c in enumerate(flat):
         cross[3 * n:3 * n + 3, 3 * n:3 * n + 3] += c.R + c.extra
     y_all = np.concatenate([c.y for c in flat])

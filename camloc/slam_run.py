@@ -93,6 +93,7 @@ class MappingLocalizer(LandmarkAdditions):
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
         self.obs_of_pose = [order[bounds[k]:bounds[k + 1]] for k in range(dataset.num_poses)]
 
+        self.T_increments = dataset.T_odometry  # a property that converts every quaternion: once, not per pose
         T0 = dataset.T_world_start
         self.x = slam.SlamMean(T0[:3, :3].copy(), T0[:3, 3].copy(), np.zeros((0, 3)))
         self.P = slam.initial_cov(self.x, config.initial_cov())
@@ -118,8 +119,8 @@ class MappingLocalizer(LandmarkAdditions):
     def _step(self, k: int) -> None:
         ds = self.dataset
         if k > 0:
-            self.x, self.P = slam.predict(self.x, self.P, ds.T_odometry[k - 1], ds.odom_cov[k - 1])
-            self.T_odometry = self.T_odometry @ ds.T_odometry[k - 1]
+            self.x, self.P = slam.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1])
+            self.T_odometry = self.T_odometry @ self.T_increments[k - 1]
         obs = self.obs_of_pose[k]
         if self.config.association == "oracle":
             pairs = self._oracle_pairs(k, obs)
@@ -127,7 +128,8 @@ class MappingLocalizer(LandmarkAdditions):
             given = self.given_pairs[obs]
             pairs = [(int(o), int(lm)) for o, lm in zip(obs[given >= 0].tolist(), given[given >= 0].tolist())]
             self.beam_paired_at[given[given >= 0]] = k
-            self._count_beam_misses(k)
+            if self.config.map != "exact":  # the misses decide which mapped landmarks are tried again: under a prior only
+                self._count_beam_misses(k)
             # under a prior, what the beam left may be a mapped landmark that moved (the beam held
             # the map exactly): the map's landmarks the beam has not paired lately are candidates
             # again, with their prior (one it pairs is where the map says; what it left near one is
@@ -228,7 +230,7 @@ class MappingLocalizer(LandmarkAdditions):
         candidates, xyz = nearby[seen], xyz[seen]
         rows = self.table.state_row[candidates]
         z_hat, H = slam.observe(self.x, sensor, xyz, rows)
-        S = H @ self.P @ np.swapaxes(H, 1, 2)
+        S = column_products(H, self.P)
         extra = np.zeros_like(S)
         outside = rows < 0
         if np.any(outside):  # a landmark outside the state adds its own covariance (zero: exact)
@@ -271,7 +273,7 @@ class MappingLocalizer(LandmarkAdditions):
         ds = self.dataset
         result = ekf.update(self.x, self.P, ds.obs_z[obs].ravel(), ds.obs_cov[obs], measure, retract=slam.retract,
                             difference=slam.difference, iterations=self.config.iterations, map_cost=True,
-                            R_inverse=ds.obs_info[obs])
+                            R_inverse=ds.obs_info[obs], columns=True)
         self.x, self.P = result.state, result.cov
         p = obs.size
         S = result.S if result.S.ndim == 3 else result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]
@@ -308,6 +310,14 @@ class MappingLocalizer(LandmarkAdditions):
             "estimator": "invariant EKF-SLAM", "beam_seconds": 0.0,
         }
         return result
+
+
+def column_products(H: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``H_i P H_i'`` (C, b, b) of Jacobians H (C, b, n) from the columns any of them touches (the
+    pose and a few landmarks of the state): O(C k^2), not O(C n^2)."""
+    cols = np.flatnonzero(np.any(H != 0.0, axis=(0, 1)))
+    H_cols = H[:, :, cols]
+    return H_cols @ P[np.ix_(cols, cols)] @ np.swapaxes(H_cols, 1, 2)
 
 
 def localize_mapping(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback] = None,
