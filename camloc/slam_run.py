@@ -150,10 +150,6 @@ class MappingLocalizer(LandmarkAdditions):
         self.covs[k] = slam.pose_right_cov(self.x, self.P)
         self.poses[k], self.odometry_poses[k] = self.x.pose(), self.T_odometry
 
-    def _position(self, landmark: int) -> np.ndarray:
-        row = self.table.state_row[landmark]
-        return self.x.L[row] if row >= 0 else self.table.xyz[landmark]
-
     def _associated(self, obs: np.ndarray, added_only: bool = False, k: int = 0) -> list[tuple[int, int]]:
         """The pose's (observation, table index) pairs: the largest jointly compatible set among
         the landmarks in view (``slam_association.jcbb``; ``added_only``: the added ones), each
@@ -220,7 +216,9 @@ class MappingLocalizer(LandmarkAdditions):
         sensor = self.sensors[sensor_id]
         if nearby.size == 0:
             return None
-        xyz = np.array([self._position(i) for i in nearby.tolist()])
+        xyz = self.table.xyz[nearby]
+        rows = self.table.state_row[nearby]
+        xyz[rows >= 0] = self.x.L[rows[rows >= 0]]  # the state's estimate where it holds one
         p_camera = slam.camera_points(self.x, sensor, xyz)
         norm = np.linalg.norm(p_camera, axis=1)
         seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)
@@ -261,13 +259,19 @@ class MappingLocalizer(LandmarkAdditions):
         fixed_xyz = self.table.xyz[landmarks]
         sensors = self.obs_sensor[obs]
 
+        rows = self.table.state_row[landmarks]
+        in_state = rows >= 0
+        groups = [(self.sensors[s], sensors == s) for s in np.unique(sensors).tolist()]
+
         def measure(x: slam.SlamMean):
-            rows = self.table.state_row[landmarks]
-            xyz = np.where(rows[:, None] >= 0, x.L[np.maximum(rows, 0)] if x.L.size else fixed_xyz, fixed_xyz)
+            xyz = fixed_xyz.copy()
+            xyz[in_state] = x.L[rows[in_state]]
+            if len(groups) == 1:  # one camera: no gathering
+                z_hat, H = slam.observe(x, groups[0][0], xyz, rows)
+                return z_hat.ravel(), H.reshape(-1, x.dim)
             z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, x.dim))
-            for sensor_id in np.unique(sensors).tolist():
-                at = sensors == sensor_id
-                z_hat[at], H[at] = slam.observe(x, self.sensors[sensor_id], xyz[at], rows[at])
+            for sensor, at in groups:
+                z_hat[at], H[at] = slam.observe(x, sensor, xyz[at], rows[at])
             return z_hat.ravel(), H.reshape(-1, x.dim)
 
         ds = self.dataset
