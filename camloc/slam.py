@@ -194,16 +194,27 @@ def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: 
 def augmented(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
     """The state with one more landmark at xyz (3,) whose error is ``B xi + n`` (B (3, dim) on the
     current error, n ~ N(0, N) independent of it): the new rows are ``B P`` and ``B P B' + N``."""
-    n = P.shape[0]
-    if B.shape[1] < n:
-        B = np.hstack([B, np.zeros((3, n - B.shape[1]))])
-    BP = B @ P
-    P_new = np.zeros((n + 3, n + 3))
+    return augmented_many(x, P, xyz[None, :], B[None, :, :], N[None, :, :])
+
+
+def augmented_many(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+    """The state with q more landmarks at xyz (q, 3), landmark i's error ``B_i xi + n_i`` (B (q, 3,
+    w) on the current error's first w components, the n_i ~ N(0, N_i) independent of it and of one
+    another): one new covariance for all of them, the same as adding them one at a time (the
+    later ones' B is zero on the earlier ones). A B on the pose alone (w = POSE_DIM, as the
+    inverse observation's and a map prior's are) costs O(n), not O(n^2), a row."""
+    n, q, w = P.shape[0], xyz.shape[0], B.shape[2]
+    B = B.reshape(3 * q, w)
+    BP = B @ P[:w, :]  # (3q, n): B is zero beyond its w columns
+    P_new = np.empty((n + 3 * q, n + 3 * q))
     P_new[:n, :n] = P
     P_new[n:, :n] = BP
     P_new[:n, n:] = BP.T
-    P_new[n:, n:] = ekf.symmetrize(BP @ B.T + N)
-    return SlamMean(x.R, x.t, np.vstack([x.L, xyz[None, :]])), P_new
+    block = BP[:, :w] @ B.T
+    for i in range(q):
+        block[3 * i:3 * i + 3, 3 * i:3 * i + 3] += N[i]
+    P_new[n:, n:] = ekf.symmetrize(block)
+    return SlamMean(x.R, x.t, np.vstack([x.L, xyz])), P_new
 
 
 def world_prior_coefficients(x: SlamMean, xyz: np.ndarray) -> np.ndarray:
@@ -222,12 +233,12 @@ def without_landmarks(x: SlamMean, P: np.ndarray, drop: np.ndarray) -> tuple[Sla
 
 
 def landmark_world_cov(x: SlamMean, P: np.ndarray, i: int) -> np.ndarray:
-    """The world-frame covariance (3, 3) of landmark i's position: ``dl = xi_l - [l]x xi_theta``."""
+    """The world-frame covariance (3, 3) of landmark i's position: ``dl = xi_l - [l]x xi_theta``
+    (from the six rows it reads: O(1) in the state's size)."""
     c = POSE_DIM + 3 * i
-    A = np.zeros((3, P.shape[0]))
-    A[:, 3:6] = -geometry.hat(x.L[i])
-    A[:, c:c + 3] = np.eye(3)
-    return ekf.symmetrize(A @ P @ A.T)
+    rows = np.array([3, 4, 5, c, c + 1, c + 2])
+    A = np.hstack([-geometry.hat(x.L[i]), np.eye(3)])
+    return ekf.symmetrize(A @ P[np.ix_(rows, rows)] @ A.T)
 
 
 def pose_right_cov(x: SlamMean, P: np.ndarray) -> np.ndarray:

@@ -242,18 +242,18 @@ class MappingLocalizer(LandmarkAdditions):
         gate = self.gate[self.obs_dof[obs]][:, None]
         return candidates, np.where(np.isfinite(cost) & (d2 <= gate), cost, UNPAIRED), z_hat, H, extra
 
-    def _enter(self, landmark: int) -> None:
-        """Landmark ``landmark`` (outside the state, held with a covariance) joins the state."""
-        xyz = self.table.xyz[landmark]
-        B = slam.world_prior_coefficients(self.x, xyz)
-        self.x, self.P = slam.augmented(self.x, self.P, xyz, B, self.table.cov[landmark])
-        self.table.state_row[landmark] = len(self.state_landmark)
-        self.state_landmark.append(landmark)
+    def _enter(self, landmarks: list[int]) -> None:
+        """Landmarks outside the state, held with a covariance, join it (one new covariance for all)."""
+        xyz = self.table.xyz[landmarks]
+        B = np.stack([slam.world_prior_coefficients(self.x, p) for p in xyz])
+        self.x, self.P = slam.augmented_many(self.x, self.P, xyz, B, self.table.cov[landmarks])
+        self.table.state_row[landmarks] = len(self.state_landmark) + np.arange(len(landmarks))
+        self.state_landmark.extend(landmarks)
 
     def _update(self, k: int, pairs: list[tuple[int, int]]) -> None:
-        for _, landmark in pairs:
-            if self.table.state_row[landmark] < 0 and np.any(self.table.cov[landmark]):
-                self._enter(landmark)
+        entering = [lm for _, lm in pairs if self.table.state_row[lm] < 0 and np.any(self.table.cov[lm])]
+        if entering:
+            self._enter(entering)
         obs = np.array([o for o, _ in pairs], np.int64)
         landmarks = np.array([lm for _, lm in pairs], np.int64)
         fixed_xyz = self.table.xyz[landmarks]
