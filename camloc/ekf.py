@@ -306,13 +306,19 @@ class ColumnGain:
         H_cols = H[:, cols]
         self.U = P[:, cols] @ H_cols.T                                  # P H' (n, m)
         self._S = symmetrize(H_cols @ self.U[cols] + R)
-        self.L = cholesky(self._S)
+        cholesky(self._S)  # the check of definiteness (FilterDivergedError)
+        self._solved: tuple = (None, None)  # (y, S^-1 y) of the last y: an update asks for it up to three times
+
+    def _solve(self, y: np.ndarray) -> np.ndarray:
+        if self._solved[0] is not y:
+            self._solved = (y, np.linalg.solve(self._S, y))
+        return self._solved[1]
 
     def correction(self, y: np.ndarray) -> np.ndarray:
-        return self.U @ cho_solve(self.L, y)
+        return self.U @ self._solve(y)
 
     def nis(self, y: np.ndarray) -> float:
-        return float(y @ cho_solve(self.L, y))
+        return float(y @ self._solve(y))
 
     def S(self) -> np.ndarray:
         return self._S
@@ -320,11 +326,11 @@ class ColumnGain:
     def correction_quadratic(self, y: np.ndarray) -> float:
         """``d' P^-1 d`` of the correction ``d = K y = P H' w`` (w = S^-1 y): ``w' H P H' w =
         w' (S - R) w``, with no inverse of P."""
-        w = cho_solve(self.L, y)
+        w = self._solve(y)
         return float(w @ (self._S - self.R) @ w)
 
     def posterior_cov(self) -> np.ndarray:
-        K = cho_solve(self.L, self.U.T).T
+        K = np.linalg.solve(self._S, self.U.T).T
         KM = K @ (0.5 * (K @ self._S) - self.U).T
         return symmetrize(self.P + (KM + KM.T))
 

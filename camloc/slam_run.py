@@ -91,6 +91,7 @@ class MappingLocalizer(LandmarkAdditions):
         self.next_id = int(all_ids.max()) + 1
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
+        self.obs_order, self.obs_bounds = order, bounds  # pose k's observations: order[bounds[k]:bounds[k + 1]]
         self.obs_of_pose = [order[bounds[k]:bounds[k + 1]] for k in range(dataset.num_poses)]
 
         self.T_increments = dataset.T_odometry  # a property that converts every quaternion: once, not per pose
