@@ -237,7 +237,11 @@ def update(
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
-    gain_at = (lambda H: ColumnGain(P, H, R)) if columns else _gain_for(P, R, z.size, R_inverse)
+    if columns:
+        R_full = block_diagonal(R) if R.ndim == 3 else R
+        gain_at = lambda H: ColumnGain(P, H, R_full)  # noqa: E731
+    else:
+        gain_at = _gain_for(P, R, z.size, R_inverse)
     z_hat, H = measure(x) if at_prior is None else at_prior
     y_prior = z - z_hat
     gain = gain_at(H)
@@ -332,7 +336,7 @@ class ColumnGain:
     def posterior_cov(self) -> np.ndarray:
         K = np.linalg.solve(self._S, self.U.T).T
         KM = K @ (0.5 * (K @ self._S) - self.U).T
-        return symmetrize(self.P + (KM + KM.T))
+        return self.P + (KM + KM.T)  # exactly symmetric where P is (a matrix plus its transpose is, to the bit)
 
 
 class InformationGain:

@@ -105,8 +105,16 @@ def _log(R: np.ndarray) -> np.ndarray:
 
 
 def _left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
-    """``J_l(phi)^-1 = J_r(-phi)^-1`` in closed form (``geometry.so3_right_jacobian_inverse``)."""
-    return geometry.so3_right_jacobian_inverse(-phi)
+    """``J_l(phi)^-1 = J_r(-phi)^-1 = I - K / 2 + c K^2`` in closed form, plain floats
+    (``geometry.so3_right_jacobian_inverse``'s formula; angle below pi)."""
+    x, y, z = phi.tolist()
+    a2 = x * x + y * y + z * z
+    a = math.sqrt(a2)
+    c = 1.0 / 12.0 + a2 / 720.0 if a < _SMALL_ANGLE else 1.0 / a2 - (1.0 + math.cos(a)) / (2.0 * a * math.sin(a))
+    xx, yy, zz, xy, xz, yz = x * x - a2, y * y - a2, z * z - a2, x * y, x * z, y * z  # K^2
+    return np.array([[1.0 + c * xx, 0.5 * z + c * xy, -0.5 * y + c * xz],
+                     [-0.5 * z + c * xy, 1.0 + c * yy, 0.5 * x + c * yz],
+                     [0.5 * y + c * xz, -0.5 * x + c * yz, 1.0 + c * zz]])
 
 
 def retract(x: SlamMean, delta: np.ndarray) -> SlamMean:
@@ -134,7 +142,11 @@ def predict(x: SlamMean, P: np.ndarray, T_increment: np.ndarray, Q: np.ndarray) 
     t_next = x.t + x.R @ T_increment[:3, 3]
     x_next = SlamMean(R_next, t_next, x.L)
     G = noise_coefficients(x_next)
-    return x_next, ekf.symmetrize(P + G @ Q @ G.T)
+    try:  # G Q G' as W W' (W = G chol(Q)): BLAS's symmetric product, exactly symmetric, so P's sum is too
+        W = G @ np.linalg.cholesky(Q)
+        return x_next, P + W @ W.T
+    except np.linalg.LinAlgError:  # a Q not positive definite (a degenerate file's)
+        return x_next, ekf.symmetrize(P + G @ Q @ G.T)
 
 
 def noise_coefficients(x: SlamMean) -> np.ndarray:
@@ -228,8 +240,8 @@ def world_prior_coefficients(x: SlamMean, xyz: np.ndarray) -> np.ndarray:
 def without_landmarks(x: SlamMean, P: np.ndarray, drop: np.ndarray) -> tuple[SlamMean, np.ndarray]:
     """The state without the landmarks whose rows ``drop`` (bool (m,)) marks: marginalized out,
     which for a Gaussian in covariance form is deleting their rows and columns."""
-    keep_rows = np.concatenate([np.ones(POSE_DIM, bool), np.repeat(~drop, 3)])
-    return SlamMean(x.R, x.t, x.L[~drop]), P[np.ix_(keep_rows, keep_rows)]
+    keep_rows = np.flatnonzero(np.concatenate([np.ones(POSE_DIM, bool), np.repeat(~drop, 3)]))
+    return SlamMean(x.R, x.t, x.L[~drop]), P.take(keep_rows, axis=0).take(keep_rows, axis=1)  # (take: faster than np.ix_)
 
 
 def landmark_world_cov(x: SlamMean, P: np.ndarray, i: int) -> np.ndarray:
