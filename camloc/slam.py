@@ -179,14 +179,15 @@ def observe(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, state_row: np.n
     A = Jh @ (sensor.T_robot_camera[:3, :3].T @ x.R.T)  # d z / d p_world-like: Jh Rc' R'
     M = xyz.shape[0]
     H = np.zeros((M, measurement.MAX_DIM, x.dim))
-    H[:, :, 0:3] = -A
+    blocks = H.reshape(M, measurement.MAX_DIM, x.dim // 3, 3)  # the columns in blocks of three: t, theta, l_0, l_1, ..
+    blocks[:, :, 0, :] = -A
     fixed = state_row < 0
-    if np.any(fixed):
-        H[fixed, :, 3:6] = A[fixed] @ geometry.hat(xyz[fixed])
-    mine = np.flatnonzero(~fixed)
-    if mine.size:  # each its own landmark's three columns, in one assignment
-        cols = POSE_DIM + 3 * state_row[mine][:, None, None] + np.arange(3)[None, None, :]
-        H[mine[:, None, None], np.arange(measurement.MAX_DIM)[None, :, None], cols] = A[mine]
+    if fixed.all():
+        blocks[:, :, 1, :] = A @ geometry.hat(xyz)
+    else:
+        blocks[fixed, :, 1, :] = A[fixed] @ geometry.hat(xyz[fixed])
+        mine = np.flatnonzero(~fixed)  # each its own landmark's block, in one assignment
+        blocks[mine, :, 2 + state_row[mine], :] = A[mine]
     return measurement.project(p_camera, sensor.intrinsics, sensor.kind), H
 
 
