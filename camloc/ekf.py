@@ -26,6 +26,10 @@ Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 
+def _whole(delta: np.ndarray) -> np.ndarray:
+    return delta
+
+
 def _add(x: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return x + delta
 
@@ -206,7 +210,7 @@ def update(
     at_prior: tuple[np.ndarray, np.ndarray] | None = None,
     start: np.ndarray | None = None,
     R_inverse: np.ndarray | None = None,
-    columns: bool = False,
+    columns: np.ndarray | None = None,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -230,16 +234,19 @@ def update(
         estimate, and a start near it reaches it where the prior is too far for Gauss-Newton.
     R_inverse : the (p, b, b) inverses of R's blocks, when the caller has them (the information
         matrices of a file's measurements): saves inverting the blocks.
-    columns : H touches few of the state's columns (a SLAM state: the pose and the landmarks
-        observed, ``ColumnGain``): the update costs O(n k m) and its covariance O(n^2 m), never
-        O(n^3); the same posterior to rounding.
+    columns : (k,) the only columns of the state H may touch (a SLAM state: the pose and the
+        landmarks observed); ``measure`` then returns H on those columns only, (m, k), and the
+        update (``ColumnGain``) costs O(n k m) and its covariance O(n^2 m), never O(n^3); the
+        same posterior to rounding.
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
-    if columns:
-        R_full = block_diagonal(R) if R.ndim == 3 else R
-        gain_at = lambda H: ColumnGain(P, H, R_full)  # noqa: E731
+    restrict = _whole
+    if columns is not None:
+        R_full, P_columns = block_diagonal(R) if R.ndim == 3 else R, P[:, columns]
+        gain_at = lambda H: ColumnGain(P, H, R_full, columns, P_columns)  # noqa: E731
+        restrict = lambda d: d[columns]  # noqa: E731
     else:
         gain_at = _gain_for(P, R, z.size, R_inverse)
     z_hat, H = measure(x) if at_prior is None else at_prior
@@ -255,7 +262,7 @@ def update(
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
         gain = gain_at(H_i)
-        last = z - z_hat_i + H_i @ difference(x_i, x)
+        last = z - z_hat_i + H_i @ restrict(difference(x_i, x))
         step = gain.correction(last)
         x_i = retract(x, step)
         if np.max(np.abs(step - delta)) < CONVERGED:
@@ -264,7 +271,7 @@ def update(
     cost = float("nan")
     if map_cost:
         # P^-1 of the correction without P^-1 where the gain knows it (ColumnGain: n^3 saved)
-        prior_term = gain.correction_quadratic(last) if columns and last is not None else None
+        prior_term = gain.correction_quadratic(last) if columns is not None and last is not None else None
         cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse, prior_term=prior_term)
     return UpdateResult(state=x_i, cov=gain.posterior_cov(), innovation=y_prior, S=S, nis=nis, map_cost=cost)
 
@@ -302,14 +309,20 @@ class ColumnGain:
     form), symmetric by construction, and costs two (n, m) x (m, n) products: O(n^2 m) where the
     product form's (n, n) products cost O(n^3) (a state of 300 landmarks: n = 906)."""
 
-    def __init__(self, P: np.ndarray, H: np.ndarray, R: np.ndarray):
+    def __init__(self, P: np.ndarray, H: np.ndarray, R: np.ndarray, columns: np.ndarray | None = None,
+                 P_columns: np.ndarray | None = None):
+        """H (m, n), or (m, k) on the state's ``columns`` (k,) only; ``P_columns``: ``P[:, columns]``
+        when the caller has it (an iterated update's gains share it)."""
         if R.ndim == 3:
             R = block_diagonal(R)
         self.P, self.R = P, R
-        cols = np.flatnonzero(np.any(H != 0.0, axis=0))
-        H_cols = H[:, cols]
-        self.U = P[:, cols] @ H_cols.T                                  # P H' (n, m)
-        self._S = symmetrize(H_cols @ self.U[cols] + R)
+        if columns is None:
+            columns = np.flatnonzero(np.any(H != 0.0, axis=0))
+            H = H[:, columns]
+        if P_columns is None:
+            P_columns = P[:, columns]
+        self.U = P_columns @ H.T                                        # P H' (n, m)
+        self._S = symmetrize(H @ self.U[columns] + R)
         cholesky(self._S)  # the check of definiteness (FilterDivergedError)
         self._solved: tuple = (None, None)  # (y, S^-1 y) of the last y: an update asks for it up to three times
 

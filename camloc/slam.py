@@ -174,21 +174,38 @@ def observe(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, state_row: np.n
     """Predictions (M, MAX_DIM) of points xyz (M, 3) and their Jacobians (M, MAX_DIM, dim) with
     respect to the error: a point with ``state_row`` i >= 0 is the state's landmark i (its xyz
     must be ``x.L[i]``), -1 a point held fixed."""
+    return observe_columns(x, sensor, xyz, np.where(state_row >= 0, 2 + state_row, -1), x.dim)
+
+
+def observe_columns(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, block: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """``observe`` with the Jacobian on ``width`` columns of the error only, in blocks of three:
+    the pose's translation (block 0) and rotation (1), then a landmark of the state wherever
+    ``block`` (M,) puts it (>= 2; -1: the point is held fixed). An update whose pairs touch a few
+    landmarks of a large state works on those columns (``state_columns``)."""
     p_camera = camera_points(x, sensor, xyz)
     Jh = measurement.projection_jacobian(p_camera, sensor.intrinsics, sensor.kind)  # (M, 3, 3)
     A = Jh @ (sensor.T_robot_camera[:3, :3].T @ x.R.T)  # d z / d p_world-like: Jh Rc' R'
     M = xyz.shape[0]
-    H = np.zeros((M, measurement.MAX_DIM, x.dim))
-    blocks = H.reshape(M, measurement.MAX_DIM, x.dim // 3, 3)  # the columns in blocks of three: t, theta, l_0, l_1, ..
+    H = np.zeros((M, measurement.MAX_DIM, width))
+    blocks = H.reshape(M, measurement.MAX_DIM, width // 3, 3)
     blocks[:, :, 0, :] = -A
-    fixed = state_row < 0
+    fixed = block < 0
     if fixed.all():
         blocks[:, :, 1, :] = A @ geometry.hat(xyz)
     else:
         blocks[fixed, :, 1, :] = A[fixed] @ geometry.hat(xyz[fixed])
         mine = np.flatnonzero(~fixed)  # each its own landmark's block, in one assignment
-        blocks[mine, :, 2 + state_row[mine], :] = A[mine]
+        blocks[mine, :, block[mine], :] = A[mine]
     return measurement.project(p_camera, sensor.intrinsics, sensor.kind), H
+
+
+def state_columns(state_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The error's columns (k,) that observations of landmarks ``state_row`` (M,) (-1: held fixed)
+    touch, the pose's and each landmark's once, and each observation's block among them
+    (``observe_columns``)."""
+    in_state = np.unique(state_row[state_row >= 0])
+    columns = np.concatenate([np.arange(POSE_DIM), (POSE_DIM + 3 * in_state[:, None] + np.arange(3)).ravel()])
+    return columns, np.where(state_row >= 0, 2 + np.searchsorted(in_state, state_row), -1)
 
 
 def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

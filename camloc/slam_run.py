@@ -159,22 +159,24 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         rows = self.table.state_row[landmarks]
         in_state = rows >= 0
         groups = [(self.sensors[s], sensors == s) for s in np.unique(sensors).tolist()]
+        # H on the columns the pairs touch (the pose, the landmarks seen), never the whole state's
+        columns, block = slam.state_columns(rows)
 
         def measure(x: slam.SlamMean):
             xyz = fixed_xyz.copy()
             xyz[in_state] = x.L[rows[in_state]]
             if len(groups) == 1:  # one camera: no gathering
-                z_hat, H = slam.observe(x, groups[0][0], xyz, rows)
-                return z_hat.ravel(), H.reshape(-1, x.dim)
-            z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, x.dim))
+                z_hat, H = slam.observe_columns(x, groups[0][0], xyz, block, columns.size)
+                return z_hat.ravel(), H.reshape(-1, columns.size)
+            z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, columns.size))
             for sensor, at in groups:
-                z_hat[at], H[at] = slam.observe(x, sensor, xyz[at], rows[at])
-            return z_hat.ravel(), H.reshape(-1, x.dim)
+                z_hat[at], H[at] = slam.observe_columns(x, sensor, xyz[at], block[at], columns.size)
+            return z_hat.ravel(), H.reshape(-1, columns.size)
 
         ds = self.dataset
         result = ekf.update(self.x, self.P, ds.obs_z[obs].ravel(), ds.obs_cov[obs], measure, retract=slam.retract,
                             difference=slam.difference, iterations=self.config.iterations, map_cost=True,
-                            R_inverse=ds.obs_info[obs], columns=True)
+                            R_inverse=ds.obs_info[obs], columns=columns)
         self.x, self.P = result.state, result.cov
         p = obs.size
         S = result.S if result.S.ndim == 3 else result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]

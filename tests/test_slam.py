@@ -167,6 +167,27 @@ def test_column_gain_equals_the_joseph_product_form():
     np.testing.assert_allclose(d, K @ y, atol=1e-14)
     assert gain.correction_quadratic(y) == pytest.approx(float(d @ np.linalg.solve(P, d)), rel=1e-9)
     assert gain.nis(y) == pytest.approx(float(y @ np.linalg.solve(H @ P @ H.T + R, y)), rel=1e-12)
+    columns = np.r_[0:6, 12:15, 21:24]  # H given on its columns only: the same gain
+    on_columns = ekf.ColumnGain(P, H[:, columns], R, columns)
+    np.testing.assert_allclose(on_columns.posterior_cov(), posterior, atol=1e-15)
+    np.testing.assert_allclose(on_columns.correction(y), d, atol=1e-15)
+
+
+def test_observation_on_its_columns_equals_the_whole_jacobian():
+    """observe_columns (H on the pose's and the seen landmarks' columns, state_columns) is the
+    whole Jacobian's nonzero part: landmarks of the state seen in any order, twice, or held fixed."""
+    rng = np.random.default_rng(14)
+    x = _state(rng, m=5)
+    sensor = _camera(measurement.DEPTH)
+    rows = np.array([3, -1, 1, 3])
+    xyz = np.where(rows[:, None] >= 0, x.L[np.maximum(rows, 0)], x.L[0] + 0.3)
+    z_whole, H_whole = slam.observe(x, sensor, xyz, rows)
+    columns, block = slam.state_columns(rows)
+    np.testing.assert_array_equal(columns, np.r_[0:6, 9:12, 15:18])
+    z, H = slam.observe_columns(x, sensor, xyz, block, columns.size)
+    np.testing.assert_array_equal(z, z_whole)
+    np.testing.assert_array_equal(H, H_whole[:, :, columns])
+    np.testing.assert_array_equal(np.delete(H_whole, columns, axis=2), 0.0)
 
 
 def test_so3_in_plain_floats_equals_geometry():
