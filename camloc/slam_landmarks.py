@@ -152,8 +152,8 @@ class LandmarkAdditions:
         gone = unconfirmed & ((table.last_seen[landmarks] < k - TENTATIVE_GAP) | (table.score[landmarks] < DROP_SCORE))
         if np.any(gone):
             table.drop(landmarks[gone])
-            # their pairs: among the observations since the first of theirs (not the whole run's)
-            since = self.obs_order[self.obs_bounds[int(table.born[landmarks[gone]].min())]:]
+            # their pairs: among the observations from the first of theirs to this pose's (not the whole run's)
+            since = self.obs_order[self.obs_bounds[int(table.born[landmarks[gone]].min())]:self.obs_bounds[k + 1]]
             self.chosen[since[np.isin(self.chosen[since], landmarks[gone])]] = -1
             drop |= gone
         if not np.any(drop):
