@@ -10,6 +10,7 @@ each with the default association (beam) and the true one (oracle), and prints p
 its ratio to ``full``), mean NEES, landmarks added, added twice and made of clutter, and the speed.
 
     nice python benchmarks/mapping.py --trajectories grid,smooth3d,aerial --seeds 0,1,2 --poses 300
+    nice python benchmarks/mapping.py --cases moved --seeds 0,1,2,3 --measurement pixel --cameras 2
 
 ``--speed``: the speed of the mapping run instead (issue 38's target: a 20,000-pose world with a
 fifth of its 20,000 landmarks withheld at 1,000 poses/s): a world of ``--poses`` poses and as many
@@ -73,6 +74,9 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=300)
     parser.add_argument("--clutter", type=float, default=0.0)
     parser.add_argument("--associations", default="beam,oracle")
+    parser.add_argument("--cases", default="half,moved,none", help="which imperfect maps (default half,moved,none)")
+    parser.add_argument("--measurement", default="depth", help="the simulator's camera measurement (default depth)")
+    parser.add_argument("--cameras", type=int, default=1, help="cameras on the robot (default 1)")
     parser.add_argument("--speed", action="store_true", help="measure the speed instead (see above)")
     parser.add_argument("--file", default=None, help="with --speed: a g2o file instead of a simulated world")
     parser.add_argument("--modes", default="exact,prior", help="with --speed: the map modes to run")
@@ -80,10 +84,12 @@ def main() -> None:
     if args.speed:
         speed(args)
         return
+    cases = args.cases.split(",")
     print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | s")
     for trajectory in args.trajectories.split(","):
         for seed in [int(s) for s in args.seeds.split(",")]:
-            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter)
+            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter,
+                        measurement=args.measurement, cameras=args.cameras)
             full = simulate_labelled(SimulationConfig(**base), seed=seed)
             truth_map = dict(zip(full.dataset.landmark_ids.tolist(), full.dataset.landmark_xyz))
             worlds = [("half", SimulationConfig(**base, withhold_map=0.5), ("exact", "prior")),
@@ -92,7 +98,7 @@ def main() -> None:
             for association in args.associations.split(","):
                 reference = case(full.dataset, truth_map, full.is_clutter, "exact", association)
                 _print(trajectory, seed, "full exact", association, reference, reference["rmse"])
-                for name, config, modes in worlds:
+                for name, config, modes in [w for w in worlds if w[0] in cases]:
                     world = simulate_labelled(config, seed=seed)
                     ds = world.dataset
                     moved = [int(i) for i in ds.landmark_ids if np.linalg.norm(ds.landmark_xyz[ds.landmark_ids == i][0] - truth_map[int(i)]) > 1e-6]

@@ -22,7 +22,8 @@ from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
-from camloc.observation_space import candidate_range, detection_range, landmark_rows, observation_noise, planar_range
+from camloc.observation_space import (candidate_range, detection_range, landmark_rows, observation_noise, planar_range,
+                                      with_map_uncertainty)
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
@@ -154,7 +155,10 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     beam_run = given_run
     if beam_run is None and config.association == "beam" and config.map != "none" and dataset.landmark_ids.size:
         halves = (lambda done, total, report=on_progress: report(done // 2, total)) if on_progress is not None else None
-        beam_run = _localize_exact(dataset, replace(config, map="exact"), halves, **hooks)
+        # under a prior, the beam judges each pair with the map's uncertainty in its noise (a moved
+        # landmark would fail every gate of an exact map); only its pairs are taken
+        judged = with_map_uncertainty(dataset, config.map_sigma) if config.map == "prior" else dataset
+        beam_run = _localize_exact(judged, replace(config, map="exact"), halves, **hooks)
     if beam_run is not None:
         given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
         beam_seconds = beam_run.summary["timing"]["filter_seconds"]

@@ -10,12 +10,14 @@ into the other for them.
 - ``observation_noise``: both of those for every observation, and the observation as a
   camera-frame point with its covariance;
 - ``candidate_range``: the depths and angle within which a camera's candidate landmarks lie;
-- ``landmark_rows``: map rows of landmark ids.
+- ``landmark_rows``: map rows of landmark ids;
+- ``with_map_uncertainty``: the observations' noise widened by a map prior's (the beam's pass over
+  a map held as a prior).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -148,6 +150,49 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
     if ranged.any():
         log_det_point_cov[ranged] = sym3.log_abs_det(point_cov[ranged])
     return ObservationNoise(cov, info, log_det, point, point_cov, log_det_point_cov, null_cost)
+
+
+# A pixel's point for ``with_map_uncertainty``: at this fraction of the view's typical reach.
+PIXEL_PRIOR_DEPTH = 1.0
+
+
+def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
+    """``dataset`` with each camera observation's covariance widened by what a landmark known to
+    ``sigma`` metres per axis adds to it: ``R + sigma^2 J J'``, J = d z / d p_camera at the point
+    the observation implies (an isotropic landmark covariance is the same in every frame, so the
+    pose's rotation drops out and no estimate is needed).
+
+    Why: under ``--map prior`` the beam decides the map's pairs on the map as given; judged
+    against the map as exact, a landmark moved by a few sigma fails every gate and its
+    observations are left out (the mapping localizer then finds it late, if at all). With the
+    map's own uncertainty in the noise, its gates are those of a landmark known to ``sigma``.
+
+    A pixel measures no depth: its point is taken at the typical reach of the view
+    (``pixel_reach``; half of it widened the gates too far: more wrong pairs). Observations of other kinds (a
+    planar robot's, a tag's orientation) are not widened: the mapping localizer does not run them.
+    """
+    cov = dataset.obs_cov.copy()
+    intrinsics = observation_intrinsics(dataset)
+    for kind in measurement.CAMERA_KINDS:
+        rows = np.flatnonzero(dataset.obs_kind == kind)
+        if rows.size == 0:
+            continue
+        if kind == measurement.PIXEL:
+            depth = PIXEL_PRIOR_DEPTH * pixel_reach(dataset, _widest_ray(dataset), typical=True)
+            ray_z = np.column_stack([dataset.obs_z[rows, :2], np.ones(rows.size)])
+            points, _ = measurement.back_project(np.column_stack([ray_z[:, :2], np.full(rows.size, depth)]),
+                                                 intrinsics[rows].T, measurement.DEPTH)
+        else:
+            points, _ = measurement.back_project(dataset.obs_z[rows], intrinsics[rows].T, int(kind))
+        points[:, 2] = np.maximum(points[:, 2], measurement.MIN_POINT_DEPTH)
+        J = measurement.projection_jacobian(points, intrinsics[rows].T, int(kind))
+        cov[rows] += sigma**2 * J @ np.swapaxes(J, 1, 2)
+    if np.array_equal(cov, dataset.obs_cov):
+        return dataset
+    info = dataset.obs_info.copy()
+    widened = np.flatnonzero(np.any(cov != dataset.obs_cov, axis=(1, 2)))
+    info[widened] = sym3.inverse(cov[widened])
+    return replace(dataset, obs_cov=cov, obs_info=info)
 
 
 def observation_intrinsics(dataset: Dataset) -> np.ndarray:
