@@ -31,7 +31,6 @@ in tests/test_slam.py.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,68 +66,18 @@ def left_jacobian(phi: np.ndarray) -> np.ndarray:
     return geometry.so3_right_jacobian(-np.asarray(phi, dtype=float))
 
 
-# Below this angle the closed forms lose digits to cancellation; their two-term Taylor series are
-# exact to double precision there (``geometry``'s threshold).
-_SMALL_ANGLE = 1e-4
-
-
-def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``Exp(phi)`` and ``J_l(phi)`` (3, 3) of one rotation vector, in plain floats: ``geometry``'s
-    batched forms cost some 20 numpy calls each, and the filter takes these several times a pose.
-    ``Exp = I + s K + c K^2``, ``J_l = I + c K + j K^2`` with K = [phi]x, ``K^2 = phi phi' - a^2 I``."""
-    x, y, z = phi.tolist()
-    a2 = x * x + y * y + z * z
-    a = math.sqrt(a2)
-    if a < _SMALL_ANGLE:
-        s, c, j = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
-    else:
-        s, c, j = math.sin(a) / a, (1.0 - math.cos(a)) / a2, (a - math.sin(a)) / (a2 * a)
-    xx, yy, zz, xy, xz, yz = x * x - a2, y * y - a2, z * z - a2, x * y, x * z, y * z  # K^2
-    E = np.array([[1.0 + c * xx, -s * z + c * xy, s * y + c * xz],
-                  [s * z + c * xy, 1.0 + c * yy, -s * x + c * yz],
-                  [-s * y + c * xz, s * x + c * yz, 1.0 + c * zz]])
-    J = np.array([[1.0 + j * xx, -c * z + j * xy, c * y + j * xz],
-                  [c * z + j * xy, 1.0 + j * yy, -c * x + j * yz],
-                  [-c * y + j * xz, c * x + j * yz, 1.0 + j * zz]])
-    return E, J
-
-
-def _log(R: np.ndarray) -> np.ndarray:
-    """``Log(R)`` (3,) of one rotation, in plain floats away from pi (``geometry.so3_log`` there)."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    cos_a = min(1.0, max(-1.0, 0.5 * (r00 + r11 + r22 - 1.0)))
-    a = math.acos(cos_a)
-    if a > math.pi - 1e-3:
-        return geometry.so3_log(R)
-    factor = 0.5 + a * a / 12.0 if a < _SMALL_ANGLE else a / (2.0 * math.sin(a))
-    return np.array([factor * (r21 - r12), factor * (r02 - r20), factor * (r10 - r01)])
-
-
-def _left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
-    """``J_l(phi)^-1 = J_r(-phi)^-1 = I - K / 2 + c K^2`` in closed form, plain floats
-    (``geometry.so3_right_jacobian_inverse``'s formula; angle below pi)."""
-    x, y, z = phi.tolist()
-    a2 = x * x + y * y + z * z
-    a = math.sqrt(a2)
-    c = 1.0 / 12.0 + a2 / 720.0 if a < _SMALL_ANGLE else 1.0 / a2 - (1.0 + math.cos(a)) / (2.0 * a * math.sin(a))
-    xx, yy, zz, xy, xz, yz = x * x - a2, y * y - a2, z * z - a2, x * y, x * z, y * z  # K^2
-    return np.array([[1.0 + c * xx, 0.5 * z + c * xy, -0.5 * y + c * xz],
-                     [-0.5 * z + c * xy, 1.0 + c * yy, 0.5 * x + c * yz],
-                     [0.5 * y + c * xz, -0.5 * x + c * yz, 1.0 + c * zz]])
-
-
 def retract(x: SlamMean, delta: np.ndarray) -> SlamMean:
     """``exp(delta) x``: the estimate moved by an error delta (dim,) (the group's exponential)."""
-    E, J = _exp_and_left_jacobian(delta[3:6])
+    E, J = geometry.so3_exp_and_left_jacobian_one(delta[3:6])
     L = x.L @ E.T + delta[6:].reshape(-1, 3) @ J.T if x.L.size else x.L.copy()
     return SlamMean(E @ x.R, E @ x.t + J @ delta[0:3], L)
 
 
 def difference(a: SlamMean, b: SlamMean) -> np.ndarray:
     """The error delta with ``retract(b, delta) == a`` (the group's logarithm of a b^-1)."""
-    phi = _log(a.R @ b.R.T)
-    E, _ = _exp_and_left_jacobian(phi)
-    J_inverse = _left_jacobian_inverse(phi)
+    phi = geometry.so3_log_one(a.R @ b.R.T)
+    E, _ = geometry.so3_exp_and_left_jacobian_one(phi)
+    J_inverse = geometry.so3_left_jacobian_inverse_one(phi)
     dt = J_inverse @ (a.t - E @ b.t)
     dl = (a.L - b.L @ E.T) @ J_inverse.T if a.L.size else np.zeros((0, 3))
     return np.concatenate([dt, phi, dl.ravel()])
