@@ -11,6 +11,16 @@ its ratio to ``full``), mean NEES, landmarks added, added twice and made of clut
 
     nice python benchmarks/mapping.py --trajectories grid,smooth3d,aerial --seeds 0,1,2 --poses 300
     nice python benchmarks/mapping.py --cases moved --seeds 0,1,2,3 --measurement pixel --cameras 2
+
+``--speed``: the speed of the mapping run instead (issue 38's target: a 20,000-pose world with a
+fifth of its 20,000 landmarks withheld at 1,000 poses/s): a world of ``--poses`` poses and as many
+landmarks, a fifth withheld (``--seeds``' first; or ``--file``, a g2o file), run under each of
+``--modes``; prints poses/s of wall time and of the process's CPU time (the latter less
+sensitive to other work on the machine), the beam's part and the landmarks added.
+
+    nice python benchmarks/mapping.py --speed --poses 2000 --seeds 1 --modes exact,prior
+    camloc simulate -o w20k.g2o --poses 20000 --landmarks 20000 --withhold-map 0.2
+    nice python benchmarks/mapping.py --speed --file w20k.g2o --modes exact,prior
 """
 
 from __future__ import annotations
@@ -67,7 +77,13 @@ def main() -> None:
     parser.add_argument("--cases", default="half,moved,none", help="which imperfect maps (default half,moved,none)")
     parser.add_argument("--measurement", default="depth", help="the simulator's camera measurement (default depth)")
     parser.add_argument("--cameras", type=int, default=1, help="cameras on the robot (default 1)")
+    parser.add_argument("--speed", action="store_true", help="measure the speed instead (see above)")
+    parser.add_argument("--file", default=None, help="with --speed: a g2o file instead of a simulated world")
+    parser.add_argument("--modes", default="exact,prior", help="with --speed: the map modes to run")
     args = parser.parse_args()
+    if args.speed:
+        speed(args)
+        return
     cases = args.cases.split(",")
     print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | s")
     for trajectory in args.trajectories.split(","):
@@ -89,6 +105,30 @@ def main() -> None:
                     for mode in modes:
                         row = case(ds, truth_map, world.is_clutter, mode, association, moved if name == "moved" else ())
                         _print(trajectory, seed, f"{name} {mode}", association, row, reference["rmse"])
+
+
+def speed(args) -> None:
+    """Poses per second of the mapping run (``--speed``), wall and CPU, per map mode."""
+    from camloc.simulate import simulate
+
+    if args.file:
+        from camloc.g2o import read_g2o
+
+        dataset, name = read_g2o(args.file), args.file
+    else:
+        seed = int(args.seeds.split(",")[0])
+        dataset = simulate(SimulationConfig(poses=args.poses, landmarks=args.poses, withhold_map=0.2), seed=seed)
+        name = f"simulate(poses={args.poses}, landmarks={args.poses}, withhold_map=0.2, seed={seed})"
+    # numba's kernels loaded (compiled, on a first run) before timing, as in a process that ran before
+    localize(simulate(SimulationConfig(poses=300), seed=0), LocalizerConfig())
+    print("world | mode | poses/s wall | poses/s CPU | seconds wall | beam s | landmarks added")
+    for mode in args.modes.split(","):
+        wall, cpu = time.perf_counter(), time.process_time()
+        result = localize(dataset, LocalizerConfig(map=mode))
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        block = result.summary.get("map") or {}
+        print(f"{name} | {mode} | {dataset.num_poses / wall:.0f} | {dataset.num_poses / cpu:.0f} | {wall:.1f} | "
+              f"{block.get('beam_seconds', float('nan')):.1f} | {block.get('added', 0)}", flush=True)
 
 
 def _print(trajectory, seed, name, association, row, full_rmse) -> None:

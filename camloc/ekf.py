@@ -26,6 +26,10 @@ Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 
+def _whole(delta: np.ndarray) -> np.ndarray:
+    return delta
+
+
 def _add(x: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return x + delta
 
@@ -206,6 +210,7 @@ def update(
     at_prior: tuple[np.ndarray, np.ndarray] | None = None,
     start: np.ndarray | None = None,
     R_inverse: np.ndarray | None = None,
+    columns: np.ndarray | None = None,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -229,11 +234,21 @@ def update(
         estimate, and a start near it reaches it where the prior is too far for Gauss-Newton.
     R_inverse : the (p, b, b) inverses of R's blocks, when the caller has them (the information
         matrices of a file's measurements): saves inverting the blocks.
+    columns : (k,) the only columns of the state H may touch (a SLAM state: the pose and the
+        landmarks observed); ``measure`` then returns H on those columns only, (m, k), and the
+        update (``ColumnGain``) costs O(n k m) and its covariance O(n^2 m), never O(n^3); the
+        same posterior to rounding.
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
-    gain_at = _gain_for(P, R, z.size, R_inverse)
+    restrict = _whole
+    if columns is not None:
+        R_full, P_columns = block_diagonal(R) if R.ndim == 3 else R, P[:, columns]
+        gain_at = lambda H: ColumnGain(P, H, R_full, columns, P_columns)  # noqa: E731
+        restrict = lambda d: d[columns]  # noqa: E731
+    else:
+        gain_at = _gain_for(P, R, z.size, R_inverse)
     z_hat, H = measure(x) if at_prior is None else at_prior
     y_prior = z - z_hat
     gain = gain_at(H)
@@ -241,17 +256,23 @@ def update(
     S = gain.S()
     delta = gain.correction(y_prior)
     x_i = retract(x, delta)  # x+ = x [+] K y
+    last = y_prior  # the innovation whose correction x_i is
     if start is not None and iterations >= 2:
-        x_i, delta = start, difference(start, x)
+        x_i, delta, last = start, difference(start, x), None
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
         gain = gain_at(H_i)
-        step = gain.correction(z - z_hat_i + H_i @ difference(x_i, x))
+        last = z - z_hat_i + H_i @ restrict(difference(x_i, x))
+        step = gain.correction(last)
         x_i = retract(x, step)
         if np.max(np.abs(step - delta)) < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
-    cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse) if map_cost else float("nan")
+    cost = float("nan")
+    if map_cost:
+        # P^-1 of the correction without P^-1 where the gain knows it (ColumnGain: n^3 saved)
+        prior_term = gain.correction_quadratic(last) if columns is not None and last is not None else None
+        cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse, prior_term=prior_term)
     return UpdateResult(state=x_i, cov=gain.posterior_cov(), innovation=y_prior, S=S, nis=nis, map_cost=cost)
 
 
@@ -274,6 +295,64 @@ class CovarianceGain:
 
     def posterior_cov(self) -> np.ndarray:
         return joseph_update(self.P, self.K, self.H, self.R)
+
+
+class ColumnGain:
+    """The covariance-form gain for an H whose nonzero columns are few: k of the state's n (an
+    EKF-SLAM update touches the pose and the landmarks observed). With ``U = P H'`` (n, m) from
+    those k columns of P, ``S = H U + R``, ``K = U S^-1``, the Joseph form expanded,
+
+        (I - K H) P (I - K H)' + K R K' = P - K U' - U K' + K S K' = P + K M' + M K',
+        M = K S / 2 - U,
+
+    is the same matrix for any K (so rounding in K stays second order in P, as in the product
+    form), symmetric by construction, and costs two (n, m) x (m, n) products: O(n^2 m) where the
+    product form's (n, n) products cost O(n^3) (a state of 300 landmarks: n = 906). Its rounding
+    is of P's size (a difference of terms like P), where the product form's is of the posterior's:
+    an update that shrinks a variance by ~1e-12 or more would lose definiteness here first (a
+    mapping run's, from a prior of centimetres to millimetres, is far from that)."""
+
+    def __init__(self, P: np.ndarray, H: np.ndarray, R: np.ndarray, columns: np.ndarray | None = None,
+                 P_columns: np.ndarray | None = None):
+        """H (m, n), or (m, k) on the state's ``columns`` (k,) only; ``P_columns``: ``P[:, columns]``
+        when the caller has it (an iterated update's gains share it)."""
+        if R.ndim == 3:
+            R = block_diagonal(R)
+        self.P, self.R = P, R
+        if columns is None:
+            columns = np.flatnonzero(np.any(H != 0.0, axis=0))
+            H = H[:, columns]
+        if P_columns is None:
+            P_columns = P[:, columns]
+        self.U = P_columns @ H.T                                        # P H' (n, m)
+        self._S = symmetrize(H @ self.U[columns] + R)
+        cholesky(self._S)  # the check of definiteness (FilterDivergedError)
+        self._solved: tuple = (None, None)  # (y, S^-1 y) of the last y: an update asks for it up to three times
+
+    def _solve(self, y: np.ndarray) -> np.ndarray:
+        if self._solved[0] is not y:
+            self._solved = (y, np.linalg.solve(self._S, y))
+        return self._solved[1]
+
+    def correction(self, y: np.ndarray) -> np.ndarray:
+        return self.U @ self._solve(y)
+
+    def nis(self, y: np.ndarray) -> float:
+        return float(y @ self._solve(y))
+
+    def S(self) -> np.ndarray:
+        return self._S
+
+    def correction_quadratic(self, y: np.ndarray) -> float:
+        """``d' P^-1 d`` of the correction ``d = K y = P H' w`` (w = S^-1 y): ``w' H P H' w =
+        w' (S - R) w``, with no inverse of P."""
+        w = self._solve(y)
+        return float(w @ (self._S - self.R) @ w)
+
+    def posterior_cov(self) -> np.ndarray:
+        K = np.linalg.solve(self._S, self.U.T).T
+        KM = K @ (0.5 * (K @ self._S) - self.U).T
+        return self.P + (KM + KM.T)  # exactly symmetric where P is (a matrix plus its transpose is, to the bit)
 
 
 class InformationGain:
@@ -383,13 +462,15 @@ def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) 
 def posterior_cost(
     x_post: np.ndarray, x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
     measure: MeasurementFunction, difference: StateDifference = _subtract, R_inverse: np.ndarray | None = None,
+    prior_term: float | None = None,
 ) -> float:
     """The MAP cost ``d' P^-1 d + r' R^-1 r`` of a posterior x_post: d its correction from the
     prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``); R_inverse: the
-    inverses of R's blocks, when known."""
-    moved = difference(x_post, x)
+    inverses of R's blocks, when known; prior_term: ``d' P^-1 d`` when the caller has it."""
     residual = z - measure(x_post)[0]
-    prior_term = moved @ np.linalg.solve(P, moved)
+    if prior_term is None:
+        moved = difference(x_post, x)
+        prior_term = moved @ np.linalg.solve(P, moved)
     if R.ndim == 3 and R_inverse is not None:
         return float(prior_term + _block_quadratic(residual, R_inverse))
     if R.ndim == 3:  # blocks: each solves its own rows

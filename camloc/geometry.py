@@ -253,6 +253,54 @@ def so3_right_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + 0.5 * K + c2 * (K @ K)
 
 
+# One rotation vector at a time, in plain floats (the same formulas as the batched forms above).
+
+
+def so3_exp_and_left_jacobian_one(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Exp(phi)`` and ``J_l(phi)`` (3, 3) of one rotation vector, in plain floats: the batched
+    forms above cost some 20 numpy calls each, and the mapping filter takes these several times a pose.
+    ``Exp = I + s K + c K^2``, ``J_l = I + c K + j K^2`` with K = [phi]x, ``K^2 = phi phi' - a^2 I``."""
+    x, y, z = phi.tolist()
+    a2 = x * x + y * y + z * z
+    a = math.sqrt(a2)
+    if a < _SMALL_ANGLE:
+        s, c, j = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
+    else:
+        s, c, j = math.sin(a) / a, (1.0 - math.cos(a)) / a2, (a - math.sin(a)) / (a2 * a)
+    xx, yy, zz, xy, xz, yz = x * x - a2, y * y - a2, z * z - a2, x * y, x * z, y * z  # K^2
+    E = np.array([[1.0 + c * xx, -s * z + c * xy, s * y + c * xz],
+                  [s * z + c * xy, 1.0 + c * yy, -s * x + c * yz],
+                  [-s * y + c * xz, s * x + c * yz, 1.0 + c * zz]])
+    J = np.array([[1.0 + j * xx, -c * z + j * xy, c * y + j * xz],
+                  [c * z + j * xy, 1.0 + j * yy, -c * x + j * yz],
+                  [-c * y + j * xz, c * x + j * yz, 1.0 + j * zz]])
+    return E, J
+
+
+def so3_log_one(R: np.ndarray) -> np.ndarray:
+    """``Log(R)`` (3,) of one rotation, in plain floats away from pi (``so3_log`` there)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    cos_a = min(1.0, max(-1.0, 0.5 * (r00 + r11 + r22 - 1.0)))
+    a = math.acos(cos_a)
+    if a > math.pi - 1e-3:
+        return so3_log(R)
+    factor = 0.5 + a * a / 12.0 if a < _SMALL_ANGLE else a / (2.0 * math.sin(a))
+    return np.array([factor * (r21 - r12), factor * (r02 - r20), factor * (r10 - r01)])
+
+
+def so3_left_jacobian_inverse_one(phi: np.ndarray) -> np.ndarray:
+    """``J_l(phi)^-1 = J_r(-phi)^-1 = I - K / 2 + c K^2`` in closed form, plain floats
+    (``so3_right_jacobian_inverse``'s formula; angle below pi)."""
+    x, y, z = phi.tolist()
+    a2 = x * x + y * y + z * z
+    a = math.sqrt(a2)
+    c = 1.0 / 12.0 + a2 / 720.0 if a < _SMALL_ANGLE else 1.0 / a2 - (1.0 + math.cos(a)) / (2.0 * a * math.sin(a))
+    xx, yy, zz, xy, xz, yz = x * x - a2, y * y - a2, z * z - a2, x * y, x * z, y * z  # K^2
+    return np.array([[1.0 + c * xx, 0.5 * z + c * xy, -0.5 * y + c * xz],
+                     [-0.5 * z + c * xy, 1.0 + c * yy, 0.5 * x + c * yz],
+                     [0.5 * y + c * xz, -0.5 * x + c * yz, 1.0 + c * zz]])
+
+
 def retract_right(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Pose(s) (..., 4, 4) moved by a right perturbation delta (..., 6) = (dt, dtheta).
 

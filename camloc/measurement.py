@@ -142,6 +142,12 @@ def project(p_camera: np.ndarray, intrinsics, kind) -> np.ndarray:
     out = np.zeros((p_camera.shape[0], MAX_DIM))
     out[:, 0] = fx * p_camera[:, 0] / z + cx
     out[:, 1] = fy * p_camera[:, 1] / z + cy
+    if isinstance(kind, (int, np.integer)):  # one camera's kind: no broadcast (the mapping filter's hot path)
+        if kind == DEPTH:
+            out[:, 2] = z
+        elif kind == DISPARITY:
+            out[:, 2] = 1.0 / z
+        return out
     kind = np.broadcast_to(np.asarray(kind), z.shape)
     out[:, 2] = np.where(kind == DEPTH, z, np.where(kind == DISPARITY, 1.0 / z, 0.0))
     return out
@@ -156,6 +162,12 @@ def projection_jacobian(p_camera: np.ndarray, intrinsics, kind) -> np.ndarray:
     J[:, 0, 2] = -fx * x / z**2
     J[:, 1, 1] = fy / z
     J[:, 1, 2] = -fy * y / z**2
+    if isinstance(kind, (int, np.integer)):  # one camera's kind: no broadcast
+        if kind == DEPTH:
+            J[:, 2, 2] = 1.0
+        elif kind == DISPARITY:
+            J[:, 2, 2] = -1.0 / z**2
+        return J
     kind = np.broadcast_to(np.asarray(kind), z.shape)
     J[:, 2, 2] = np.where(kind == DEPTH, 1.0, np.where(kind == DISPARITY, -1.0 / z**2, 0.0))
     return J

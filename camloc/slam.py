@@ -68,16 +68,16 @@ def left_jacobian(phi: np.ndarray) -> np.ndarray:
 
 def retract(x: SlamMean, delta: np.ndarray) -> SlamMean:
     """``exp(delta) x``: the estimate moved by an error delta (dim,) (the group's exponential)."""
-    phi = delta[3:6]
-    E, J = geometry.so3_exp(phi), left_jacobian(phi)
+    E, J = geometry.so3_exp_and_left_jacobian_one(delta[3:6])
     L = x.L @ E.T + delta[6:].reshape(-1, 3) @ J.T if x.L.size else x.L.copy()
     return SlamMean(E @ x.R, E @ x.t + J @ delta[0:3], L)
 
 
 def difference(a: SlamMean, b: SlamMean) -> np.ndarray:
     """The error delta with ``retract(b, delta) == a`` (the group's logarithm of a b^-1)."""
-    phi = geometry.so3_log(a.R @ b.R.T)
-    E, J_inverse = geometry.so3_exp(phi), np.linalg.inv(left_jacobian(phi))
+    phi = geometry.so3_log_one(a.R @ b.R.T)
+    E, _ = geometry.so3_exp_and_left_jacobian_one(phi)
+    J_inverse = geometry.so3_left_jacobian_inverse_one(phi)
     dt = J_inverse @ (a.t - E @ b.t)
     dl = (a.L - b.L @ E.T) @ J_inverse.T if a.L.size else np.zeros((0, 3))
     return np.concatenate([dt, phi, dl.ravel()])
@@ -91,7 +91,11 @@ def predict(x: SlamMean, P: np.ndarray, T_increment: np.ndarray, Q: np.ndarray) 
     t_next = x.t + x.R @ T_increment[:3, 3]
     x_next = SlamMean(R_next, t_next, x.L)
     G = noise_coefficients(x_next)
-    return x_next, ekf.symmetrize(P + G @ Q @ G.T)
+    try:  # G Q G' as W W' (W = G chol(Q)): BLAS's symmetric product, exactly symmetric, so P's sum is too
+        W = G @ np.linalg.cholesky(Q)
+        return x_next, P + W @ W.T
+    except np.linalg.LinAlgError:  # a Q not positive definite (a degenerate file's)
+        return x_next, ekf.symmetrize(P + G @ Q @ G.T)
 
 
 def noise_coefficients(x: SlamMean) -> np.ndarray:
@@ -119,19 +123,38 @@ def observe(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, state_row: np.n
     """Predictions (M, MAX_DIM) of points xyz (M, 3) and their Jacobians (M, MAX_DIM, dim) with
     respect to the error: a point with ``state_row`` i >= 0 is the state's landmark i (its xyz
     must be ``x.L[i]``), -1 a point held fixed."""
+    return observe_columns(x, sensor, xyz, np.where(state_row >= 0, 2 + state_row, -1), x.dim)
+
+
+def observe_columns(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, block: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """``observe`` with the Jacobian on ``width`` columns of the error only, in blocks of three:
+    the pose's translation (block 0) and rotation (1), then a landmark of the state wherever
+    ``block`` (M,) puts it (>= 2; -1: the point is held fixed). An update whose pairs touch a few
+    landmarks of a large state works on those columns (``state_columns``)."""
     p_camera = camera_points(x, sensor, xyz)
     Jh = measurement.projection_jacobian(p_camera, sensor.intrinsics, sensor.kind)  # (M, 3, 3)
     A = Jh @ (sensor.T_robot_camera[:3, :3].T @ x.R.T)  # d z / d p_world-like: Jh Rc' R'
     M = xyz.shape[0]
-    H = np.zeros((M, measurement.MAX_DIM, x.dim))
-    H[:, :, 0:3] = -A
-    fixed = state_row < 0
-    if np.any(fixed):
-        H[fixed, :, 3:6] = A[fixed] @ geometry.hat(xyz[fixed])
-    for j in np.flatnonzero(~fixed):
-        col = POSE_DIM + 3 * int(state_row[j])
-        H[j, :, col:col + 3] = A[j]
+    H = np.zeros((M, measurement.MAX_DIM, width))
+    blocks = H.reshape(M, measurement.MAX_DIM, width // 3, 3)
+    blocks[:, :, 0, :] = -A
+    fixed = block < 0
+    if fixed.all():
+        blocks[:, :, 1, :] = A @ geometry.hat(xyz)
+    else:
+        blocks[fixed, :, 1, :] = A[fixed] @ geometry.hat(xyz[fixed])
+        mine = np.flatnonzero(~fixed)  # each its own landmark's block, in one assignment
+        blocks[mine, :, block[mine], :] = A[mine]
     return measurement.project(p_camera, sensor.intrinsics, sensor.kind), H
+
+
+def state_columns(state_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The error's columns (k,) that observations of landmarks ``state_row`` (M,) (-1: held fixed)
+    touch, the pose's and each landmark's once, and each observation's block among them
+    (``observe_columns``)."""
+    in_state = np.unique(state_row[state_row >= 0])
+    columns = np.concatenate([np.arange(POSE_DIM), (POSE_DIM + 3 * in_state[:, None] + np.arange(3)).ravel()])
+    return columns, np.where(state_row >= 0, 2 + np.searchsorted(in_state, state_row), -1)
 
 
 def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -150,16 +173,27 @@ def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: 
 def augmented(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
     """The state with one more landmark at xyz (3,) whose error is ``B xi + n`` (B (3, dim) on the
     current error, n ~ N(0, N) independent of it): the new rows are ``B P`` and ``B P B' + N``."""
-    n = P.shape[0]
-    if B.shape[1] < n:
-        B = np.hstack([B, np.zeros((3, n - B.shape[1]))])
-    BP = B @ P
-    P_new = np.zeros((n + 3, n + 3))
+    return augmented_many(x, P, xyz[None, :], B[None, :, :], N[None, :, :])
+
+
+def augmented_many(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+    """The state with q more landmarks at xyz (q, 3), landmark i's error ``B_i xi + n_i`` (B (q, 3,
+    w) on the current error's first w components, the n_i ~ N(0, N_i) independent of it and of one
+    another): one new covariance for all of them, the same as adding them one at a time (the
+    later ones' B is zero on the earlier ones). A B on the pose alone (w = POSE_DIM, as the
+    inverse observation's and a map prior's are) costs O(n), not O(n^2), a row."""
+    n, q, w = P.shape[0], xyz.shape[0], B.shape[2]
+    B = B.reshape(3 * q, w)
+    BP = B @ P[:w, :]  # (3q, n): B is zero beyond its w columns
+    P_new = np.empty((n + 3 * q, n + 3 * q))
     P_new[:n, :n] = P
     P_new[n:, :n] = BP
     P_new[:n, n:] = BP.T
-    P_new[n:, n:] = ekf.symmetrize(BP @ B.T + N)
-    return SlamMean(x.R, x.t, np.vstack([x.L, xyz[None, :]])), P_new
+    block = BP[:, :w] @ B.T
+    for i in range(q):
+        block[3 * i:3 * i + 3, 3 * i:3 * i + 3] += N[i]
+    P_new[n:, n:] = ekf.symmetrize(block)
+    return SlamMean(x.R, x.t, np.vstack([x.L, xyz])), P_new
 
 
 def world_prior_coefficients(x: SlamMean, xyz: np.ndarray) -> np.ndarray:
@@ -173,17 +207,17 @@ def world_prior_coefficients(x: SlamMean, xyz: np.ndarray) -> np.ndarray:
 def without_landmarks(x: SlamMean, P: np.ndarray, drop: np.ndarray) -> tuple[SlamMean, np.ndarray]:
     """The state without the landmarks whose rows ``drop`` (bool (m,)) marks: marginalized out,
     which for a Gaussian in covariance form is deleting their rows and columns."""
-    keep_rows = np.concatenate([np.ones(POSE_DIM, bool), np.repeat(~drop, 3)])
-    return SlamMean(x.R, x.t, x.L[~drop]), P[np.ix_(keep_rows, keep_rows)]
+    keep_rows = np.flatnonzero(np.concatenate([np.ones(POSE_DIM, bool), np.repeat(~drop, 3)]))
+    return SlamMean(x.R, x.t, x.L[~drop]), P.take(keep_rows, axis=0).take(keep_rows, axis=1)  # (take: faster than np.ix_)
 
 
 def landmark_world_cov(x: SlamMean, P: np.ndarray, i: int) -> np.ndarray:
-    """The world-frame covariance (3, 3) of landmark i's position: ``dl = xi_l - [l]x xi_theta``."""
+    """The world-frame covariance (3, 3) of landmark i's position: ``dl = xi_l - [l]x xi_theta``
+    (from the six rows it reads: O(1) in the state's size)."""
     c = POSE_DIM + 3 * i
-    A = np.zeros((3, P.shape[0]))
-    A[:, 3:6] = -geometry.hat(x.L[i])
-    A[:, c:c + 3] = np.eye(3)
-    return ekf.symmetrize(A @ P @ A.T)
+    rows = np.array([3, 4, 5, c, c + 1, c + 2])
+    A = np.hstack([-geometry.hat(x.L[i]), np.eye(3)])
+    return ekf.symmetrize(A @ P[np.ix_(rows, rows)] @ A.T)
 
 
 def pose_right_cov(x: SlamMean, P: np.ndarray) -> np.ndarray:

@@ -50,43 +50,61 @@ MAX_STATE_LANDMARKS = 600
 class LandmarkTable:
     """Every landmark of the run: the map's (in file order) then the added ones; where each is
     (its row in the state, -1 outside), its position and world covariance while outside the state
-    (a zero covariance: held exactly), when it was last seen and how many observations it took."""
+    (a zero covariance: held exactly), when it was last seen and how many observations it took.
+
+    Its columns (``ids``, ``xyz``, ``cov``, ``added``, ``state_row``, ``last_seen``, ``born``,
+    ``observations``, ``tentative``, ``score``, ``dead``) are views of arrays with room to grow:
+    a run adds a tentative landmark for most unexplained observations (16,000 on a 20,000-pose
+    world), and growing every column by one each time copied the whole table."""
+
+    # name, dtype, shape of a row, the value a new row starts with
+    _COLUMNS = (("ids", np.int64, (), 0), ("xyz", float, (3,), 0.0), ("cov", float, (3, 3), 0.0),
+                ("added", bool, (), True), ("state_row", np.int64, (), -1), ("last_seen", np.int64, (), -1),
+                ("born", np.int64, (), -1),  # the first pose of its observations (added ones)
+                ("observations", np.int64, (), 0),
+                ("tentative", bool, (), False),  # added from one observation, not yet confirmed by its score
+                ("score", float, (), 0.0),       # a tentative landmark's log-likelihood ratio over clutter
+                ("dead", bool, (), False))       # a tentative landmark dropped (clutter): out of the map
 
     def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
         n = ids.size
-        self.ids, self.xyz, self.cov = ids.astype(np.int64), xyz.astype(float).reshape(n, 3), cov.reshape(n, 3, 3)
-        self.added = np.zeros(n, bool)
-        self.state_row = np.full(n, -1, np.int64)
-        self.last_seen = np.full(n, -1, np.int64)
-        self.observations = np.zeros(n, np.int64)
-        self.tentative = np.zeros(n, bool)  # added, not yet seen CONFIRM_OBSERVATIONS times
-        self.score = np.zeros(n)  # a tentative landmark's log-likelihood ratio over clutter
-        self.dead = np.zeros(n, bool)       # a tentative landmark dropped (clutter): out of the map
-        self.num_mapped = n
+        self.size = self.num_mapped = n
+        self._columns = {name: np.full((max(2 * n, 64),) + shape, fill, dtype) for name, dtype, shape, fill in self._COLUMNS}
+        self.ids[:], self.xyz[:], self.cov[:] = ids, xyz.reshape(n, 3), cov.reshape(n, 3, 3)
+        self.added[:] = False
+        self._live = None  # the added landmarks not dropped (``in_range``), rebuilt when that changes
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        columns = self.__dict__.get("_columns")
+        if columns is None or name not in columns:
+            raise AttributeError(name)
+        return columns[name][:self.size]
 
     def __len__(self) -> int:
-        return int(self.ids.size)
+        return self.size
 
     def append(self, landmark_id: int) -> int:
         """A new (added) landmark, in the state: its index."""
-        self.ids = np.append(self.ids, landmark_id)
-        self.xyz = np.vstack([self.xyz, np.zeros((1, 3))])
-        self.cov = np.concatenate([self.cov, np.zeros((1, 3, 3))])
-        self.added = np.append(self.added, True)
-        self.state_row = np.append(self.state_row, -1)
-        self.last_seen = np.append(self.last_seen, -1)
-        self.observations = np.append(self.observations, 0)
-        self.tentative = np.append(self.tentative, False)
-        self.score = np.append(self.score, 0.0)
-        self.dead = np.append(self.dead, False)
-        return self.ids.size - 1
+        if self.size == self._columns["ids"].shape[0]:
+            self._columns = {name: np.concatenate([c, np.full_like(c, fill)]) for (name, c), (_, _, _, fill)
+                             in zip(self._columns.items(), self._COLUMNS)}
+        self.size += 1
+        self.ids[-1] = landmark_id
+        self._live = None
+        return self.size - 1
+
+    def drop(self, landmarks: np.ndarray) -> None:
+        """Tentative landmarks found to be clutter leave the map."""
+        self.dead[landmarks] = True
+        self._live = None
 
     def in_range(self, centre: np.ndarray, radius: float, mapped_index) -> np.ndarray:
         """Indices of the landmarks within ``radius`` of ``centre`` (the map's through its index)."""
         mapped = mapped_index.within(centre, radius) if mapped_index is not None else np.zeros(0, np.int64)
-        offset = self.xyz[self.num_mapped:] - centre
-        added = self.num_mapped + np.flatnonzero((np.einsum("ij,ij->i", offset, offset) <= radius * radius)
-                                                 & ~self.dead[self.num_mapped:])
+        if self._live is None:
+            self._live = self.num_mapped + np.flatnonzero(~self.dead[self.num_mapped:])
+        offset = self.xyz[self._live] - centre
+        added = self._live[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
         return np.concatenate([mapped, added]).astype(np.int64)
 
 class LandmarkAdditions:
@@ -133,8 +151,10 @@ class LandmarkAdditions:
         unconfirmed = table.tentative[landmarks]
         gone = unconfirmed & ((table.last_seen[landmarks] < k - TENTATIVE_GAP) | (table.score[landmarks] < DROP_SCORE))
         if np.any(gone):
-            table.dead[landmarks[gone]] = True
-            self.chosen[np.isin(self.chosen, landmarks[gone])] = -1
+            table.drop(landmarks[gone])
+            # their pairs: among the observations from the first of theirs to this pose's (not the whole run's)
+            since = self.obs_order[self.obs_bounds[int(table.born[landmarks[gone]].min())]:self.obs_bounds[k + 1]]
+            self.chosen[since[np.isin(self.chosen[since], landmarks[gone])]] = -1
             drop |= gone
         if not np.any(drop):
             return
@@ -175,7 +195,8 @@ class LandmarkAdditions:
         if not self.state_landmark or self.sure_view is None:
             return
         landmarks = np.array(self.state_landmark, np.int64)
-        rows = np.flatnonzero(table.tentative[landmarks] & ~np.isin(landmarks, list(seen)))
+        unseen = np.array([landmark not in seen for landmark in self.state_landmark])
+        rows = np.flatnonzero(table.tentative[landmarks] & unseen)
         if rows.size == 0:
             return
         in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
@@ -257,6 +278,7 @@ class LandmarkAdditions:
         self.state_landmark.append(landmark)
         self.table.last_seen[landmark] = k
         self.table.observations[landmark] = len(track.observations)
+        self.table.born[landmark] = int(self.dataset.obs_pose_index[np.array(track.observations, np.int64)].min())
         self.table.tentative[landmark] = tentative
         self.chosen[np.array(track.observations, np.int64)] = landmark
         return True

@@ -41,26 +41,14 @@ from camloc.observation_space import candidate_range, observation_noise
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
-from camloc.slam_association import Candidate, jcbb
-from camloc.slam_landmarks import UNPAIRED, LandmarkAdditions, LandmarkTable, sure_view, surely_in_view
+from camloc.slam_association import BEAM_RECENT, PoseAssociation
+from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, sure_view
 from camloc.slam_tracks import Tracks
 from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-# A candidate costing more than the observation's null cost (clutter) by this much is not tried:
-# the pair is then far less likely than clutter (odds below e^-10 / 2).
-_NULL_SLACK = 20.0
-# Under a prior, an observation the beam left out is tried against the map's landmarks again (one
-# may have moved) where the pair is likelier than clutter, and only against a landmark the beam has
-# not paired within BEAM_RECENT poses but missed where it was surely in view: one it pairs is where
-# the map says, and an observation left near it is of another landmark or clutter (on simulated worlds: moved landmarks' error 0.09-0.13 m after the
-# run instead of 0.28 m, and half-withheld maps' RMSE within 4% of never trying the map again).
-BEAM_RECENT = 30
-BEAM_MISSES = 1  # ... and that the beam left out at least this many times where it was surely in view
-
-
-class MappingLocalizer(LandmarkAdditions):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None):
@@ -91,8 +79,10 @@ class MappingLocalizer(LandmarkAdditions):
         self.next_id = int(all_ids.max()) + 1
         order = np.argsort(dataset.obs_pose_index, kind="stable")
         bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
+        self.obs_order, self.obs_bounds = order, bounds  # pose k's observations: order[bounds[k]:bounds[k + 1]]
         self.obs_of_pose = [order[bounds[k]:bounds[k + 1]] for k in range(dataset.num_poses)]
 
+        self.T_increments = dataset.T_odometry  # a property that converts every quaternion: once, not per pose
         T0 = dataset.T_world_start
         self.x = slam.SlamMean(T0[:3, :3].copy(), T0[:3, 3].copy(), np.zeros((0, 3)))
         self.P = slam.initial_cov(self.x, config.initial_cov())
@@ -118,8 +108,8 @@ class MappingLocalizer(LandmarkAdditions):
     def _step(self, k: int) -> None:
         ds = self.dataset
         if k > 0:
-            self.x, self.P = slam.predict(self.x, self.P, ds.T_odometry[k - 1], ds.odom_cov[k - 1])
-            self.T_odometry = self.T_odometry @ ds.T_odometry[k - 1]
+            self.x, self.P = slam.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1])
+            self.T_odometry = self.T_odometry @ self.T_increments[k - 1]
         obs = self.obs_of_pose[k]
         if self.config.association == "oracle":
             pairs = self._oracle_pairs(k, obs)
@@ -127,7 +117,8 @@ class MappingLocalizer(LandmarkAdditions):
             given = self.given_pairs[obs]
             pairs = [(int(o), int(lm)) for o, lm in zip(obs[given >= 0].tolist(), given[given >= 0].tolist())]
             self.beam_paired_at[given[given >= 0]] = k
-            self._count_beam_misses(k)
+            if self.config.map != "exact":  # the misses decide which mapped landmarks are tried again: under a prior only
+                self._count_beam_misses(k)
             # under a prior, what the beam left may be a mapped landmark that moved (the beam held
             # the map exactly): the map's landmarks the beam has not paired lately are candidates
             # again, with their prior (one it pairs is where the map says; what it left near one is
@@ -148,130 +139,44 @@ class MappingLocalizer(LandmarkAdditions):
         self.covs[k] = slam.pose_right_cov(self.x, self.P)
         self.poses[k], self.odometry_poses[k] = self.x.pose(), self.T_odometry
 
-    def _position(self, landmark: int) -> np.ndarray:
-        row = self.table.state_row[landmark]
-        return self.x.L[row] if row >= 0 else self.table.xyz[landmark]
-
-    def _associated(self, obs: np.ndarray, added_only: bool = False, k: int = 0) -> list[tuple[int, int]]:
-        """The pose's (observation, table index) pairs: the largest jointly compatible set among
-        the landmarks in view (``slam_association.jcbb``; ``added_only``: the added ones), each
-        observation free to stay unassigned."""
-        if obs.size == 0:
-            return []
-        self._sync_positions()
-        nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, None if added_only else self.mapped_index)
-        if self.given_pairs is not None and not added_only:
-            mapped = nearby < self.table.num_mapped
-            trusted = np.zeros(nearby.size, bool)
-            trusted[mapped] = ((self.beam_paired_at[nearby[mapped]] >= k - BEAM_RECENT)
-                               | (self.beam_missed[nearby[mapped]] < BEAM_MISSES))
-            nearby = nearby[~trusted]
-        candidates: list[list[Candidate]] = []
-        for sensor_id in np.unique(self.obs_sensor[obs]).tolist():
-            mine = obs[self.obs_sensor[obs] == sensor_id]
-            gated = self.landmark_costs(sensor_id, mine, nearby)
-            if gated is None:
-                continue
-            landmarks, cost, z_hat, H, extra = gated
-            for i, o in enumerate(mine.tolist()):
-                options = [Candidate(o, int(landmarks[j]), self.dataset.obs_z[o] - z_hat[j], H[j], extra[j],
-                                     self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]))
-                           for j in np.flatnonzero(cost[i] < UNPAIRED).tolist()
-                           if cost[i, j] < self.null_cost[o] + self._slack(int(landmarks[j]))]
-                candidates.append(options)
-        if not any(candidates):
-            return []
-        chosen = jcbb(self.P, candidates, self.config.gate)
-        for c in chosen:
-            if self.table.tentative[c.landmark]:
-                self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - c.cost)
-        return [(c.obs, c.landmark) for c in chosen]
-
-    def _count_beam_misses(self, k: int) -> None:
-        """The map's landmarks surely in view (``sure_view``) that the beam did not pair at pose k
-        miss once more (``beam_missed``)."""
-        if self.sure_view is None or self.mapped_index is None:
-            return
-        nearby = self.mapped_index.within(self.x.t, self.sure_view[1] + 1.0)
-        in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
-        missed = nearby[in_view & (self.beam_paired_at[nearby] != k)]
-        self.beam_missed[missed] += 1
-
-    def _sync_positions(self) -> None:
-        """The table's positions of the landmarks in the state, for the search by place."""
-        if self.state_landmark:
-            self.table.xyz[np.array(self.state_landmark)] = self.x.L
-
-    def _slack(self, landmark: int) -> float:
-        """How much costlier than clutter a pair with ``landmark`` may be and still be tried: a
-        tentative landmark must be likelier than clutter, and so must a mapped one where the beam
-        already judged the map's pairs (it left this observation out)."""
-        if self.table.tentative[landmark] or self.given_pairs is not None and landmark < self.table.num_mapped:
-            return 0.0
-        return _NULL_SLACK
-
-    def landmark_costs(self, sensor_id: int, obs: np.ndarray, nearby: np.ndarray):
-        """(candidates (C,), costs (O, C), predictions (C, 3), Jacobians (C, 3, n), the extra
-        covariance (C, 3, 3) of a landmark held outside the state) of observations ``obs`` of one
-        sensor against the landmarks of ``nearby`` in its view; costs ``UNPAIRED`` outside the
-        gate. None: no candidate."""
-        sensor = self.sensors[sensor_id]
-        if nearby.size == 0:
-            return None
-        xyz = np.array([self._position(i) for i in nearby.tolist()])
-        p_camera = slam.camera_points(self.x, sensor, xyz)
-        norm = np.linalg.norm(p_camera, axis=1)
-        seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)
-                & (p_camera[:, 2] >= np.cos(self.max_angle) * norm))
-        if not np.any(seen):
-            return None
-        candidates, xyz = nearby[seen], xyz[seen]
-        rows = self.table.state_row[candidates]
-        z_hat, H = slam.observe(self.x, sensor, xyz, rows)
-        S = H @ self.P @ np.swapaxes(H, 1, 2)
-        extra = np.zeros_like(S)
-        outside = rows < 0
-        if np.any(outside):  # a landmark outside the state adds its own covariance (zero: exact)
-            A = -H[outside, :, 0:3]
-            extra[outside] = A @ self.table.cov[candidates[outside]] @ np.swapaxes(A, 1, 2)
-        S = S + extra
-        y = self.dataset.obs_z[obs][:, None, :] - z_hat[None, :, :]
-        S_pair = S[None, :, :, :] + self.association_cov[obs][:, None, :, :]
-        d2, log_det = mahalanobis_3x3(S_pair, y)
-        cost = d2 + log_det - self.log_det_R[obs][:, None]
-        gate = self.gate[self.obs_dof[obs]][:, None]
-        return candidates, np.where(np.isfinite(cost) & (d2 <= gate), cost, UNPAIRED), z_hat, H, extra
-
-    def _enter(self, landmark: int) -> None:
-        """Landmark ``landmark`` (outside the state, held with a covariance) joins the state."""
-        xyz = self.table.xyz[landmark]
-        B = slam.world_prior_coefficients(self.x, xyz)
-        self.x, self.P = slam.augmented(self.x, self.P, xyz, B, self.table.cov[landmark])
-        self.table.state_row[landmark] = len(self.state_landmark)
-        self.state_landmark.append(landmark)
+    def _enter(self, landmarks: list[int]) -> None:
+        """Landmarks outside the state, held with a covariance, join it (one new covariance for all)."""
+        xyz = self.table.xyz[landmarks]
+        B = np.stack([slam.world_prior_coefficients(self.x, p) for p in xyz])
+        self.x, self.P = slam.augmented_many(self.x, self.P, xyz, B, self.table.cov[landmarks])
+        self.table.state_row[landmarks] = len(self.state_landmark) + np.arange(len(landmarks))
+        self.state_landmark.extend(landmarks)
 
     def _update(self, k: int, pairs: list[tuple[int, int]]) -> None:
-        for _, landmark in pairs:
-            if self.table.state_row[landmark] < 0 and np.any(self.table.cov[landmark]):
-                self._enter(landmark)
+        entering = [lm for _, lm in pairs if self.table.state_row[lm] < 0 and np.any(self.table.cov[lm])]
+        if entering:
+            self._enter(entering)
         obs = np.array([o for o, _ in pairs], np.int64)
         landmarks = np.array([lm for _, lm in pairs], np.int64)
         fixed_xyz = self.table.xyz[landmarks]
         sensors = self.obs_sensor[obs]
 
+        rows = self.table.state_row[landmarks]
+        in_state = rows >= 0
+        groups = [(self.sensors[s], sensors == s) for s in np.unique(sensors).tolist()]
+        # H on the columns the pairs touch (the pose, the landmarks seen), never the whole state's
+        columns, block = slam.state_columns(rows)
+
         def measure(x: slam.SlamMean):
-            rows = self.table.state_row[landmarks]
-            xyz = np.where(rows[:, None] >= 0, x.L[np.maximum(rows, 0)] if x.L.size else fixed_xyz, fixed_xyz)
-            z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, x.dim))
-            for sensor_id in np.unique(sensors).tolist():
-                at = sensors == sensor_id
-                z_hat[at], H[at] = slam.observe(x, self.sensors[sensor_id], xyz[at], rows[at])
-            return z_hat.ravel(), H.reshape(-1, x.dim)
+            xyz = fixed_xyz.copy()
+            xyz[in_state] = x.L[rows[in_state]]
+            if len(groups) == 1:  # one camera: no gathering
+                z_hat, H = slam.observe_columns(x, groups[0][0], xyz, block, columns.size)
+                return z_hat.ravel(), H.reshape(-1, columns.size)
+            z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, columns.size))
+            for sensor, at in groups:
+                z_hat[at], H[at] = slam.observe_columns(x, sensor, xyz[at], block[at], columns.size)
+            return z_hat.ravel(), H.reshape(-1, columns.size)
 
         ds = self.dataset
         result = ekf.update(self.x, self.P, ds.obs_z[obs].ravel(), ds.obs_cov[obs], measure, retract=slam.retract,
                             difference=slam.difference, iterations=self.config.iterations, map_cost=True,
-                            R_inverse=ds.obs_info[obs])
+                            R_inverse=ds.obs_info[obs], columns=columns)
         self.x, self.P = result.state, result.cov
         p = obs.size
         S = result.S if result.S.ndim == 3 else result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]

@@ -139,3 +139,106 @@ def test_jcbb_joint_test_equals_the_plain_statement():
     assert joint_distance(P, pairs) == pytest.approx(float(y @ np.linalg.solve(S, y)))
     chosen = jcbb(P, [[p] for p in pairs], 0.99)
     assert len(chosen) == 2 and {c.obs for c in chosen} == {0, 1}
+
+
+def test_column_gain_equals_the_joseph_product_form():
+    """The update from H's few columns (ekf.ColumnGain: the Joseph form expanded, O(n^2 m)) gives
+    the covariance of the textbook product form, exactly symmetric, the same correction, and
+    the MAP cost's prior term d' P^-1 d without P^-1."""
+    from camloc import ekf
+
+    rng = np.random.default_rng(11)
+    n, m = 30, 6
+    A = rng.normal(size=(n, n))
+    P = A @ A.T * 0.01 + np.eye(n) * 1e-3
+    H = np.zeros((m, n))
+    H[:, 0:6] = rng.normal(size=(m, 6))       # the pose
+    H[0:3, 12:15] = rng.normal(size=(3, 3))   # and two landmarks of the state
+    H[3:6, 21:24] = rng.normal(size=(3, 3))
+    R = np.kron(np.eye(2), np.diag([0.02, 0.03, 0.05]))
+    y = rng.normal(size=m) * 0.1
+    gain = ekf.ColumnGain(P, H, R)
+    K, _, _ = ekf.kalman_gain(P, H, R)
+    posterior = gain.posterior_cov()
+    np.testing.assert_allclose(posterior, ekf.joseph_update(P, K, H, R), atol=1e-14)
+    assert np.array_equal(posterior, posterior.T)
+    assert np.linalg.eigvalsh(posterior)[0] > 0
+    d = gain.correction(y)
+    np.testing.assert_allclose(d, K @ y, atol=1e-14)
+    assert gain.correction_quadratic(y) == pytest.approx(float(d @ np.linalg.solve(P, d)), rel=1e-9)
+    assert gain.nis(y) == pytest.approx(float(y @ np.linalg.solve(H @ P @ H.T + R, y)), rel=1e-12)
+    columns = np.r_[0:6, 12:15, 21:24]  # H given on its columns only: the same gain
+    on_columns = ekf.ColumnGain(P, H[:, columns], R, columns)
+    np.testing.assert_allclose(on_columns.posterior_cov(), posterior, atol=1e-15)
+    np.testing.assert_allclose(on_columns.correction(y), d, atol=1e-15)
+
+
+def test_observation_on_its_columns_equals_the_whole_jacobian():
+    """observe_columns (H on the pose's and the seen landmarks' columns, state_columns) is the
+    whole Jacobian's nonzero part: landmarks of the state seen in any order, twice, or held fixed."""
+    rng = np.random.default_rng(14)
+    x = _state(rng, m=5)
+    sensor = _camera(measurement.DEPTH)
+    rows = np.array([3, -1, 1, 3])
+    xyz = np.where(rows[:, None] >= 0, x.L[np.maximum(rows, 0)], x.L[0] + 0.3)
+    z_whole, H_whole = slam.observe(x, sensor, xyz, rows)
+    columns, block = slam.state_columns(rows)
+    np.testing.assert_array_equal(columns, np.r_[0:6, 9:12, 15:18])
+    z, H = slam.observe_columns(x, sensor, xyz, block, columns.size)
+    np.testing.assert_array_equal(z, z_whole)
+    np.testing.assert_array_equal(H, H_whole[:, :, columns])
+    np.testing.assert_array_equal(np.delete(H_whole, columns, axis=2), 0.0)
+
+
+def test_so3_in_plain_floats_equals_geometry():
+    """retract/difference's one-vector SO(3) forms equal geometry's batched ones, on both sides
+    of the small-angle switch and near pi."""
+    rng = np.random.default_rng(12)
+    for angle in (1e-7, 5e-5, 2e-4, 1e-2, 1.0, 3.0):
+        phi = rng.normal(size=3)
+        phi *= angle / np.linalg.norm(phi)
+        E, J = geometry.so3_exp_and_left_jacobian_one(phi)
+        np.testing.assert_allclose(E, geometry.so3_exp(phi), atol=1e-15)
+        np.testing.assert_allclose(J, slam.left_jacobian(phi), atol=1e-15)
+        np.testing.assert_allclose(geometry.so3_left_jacobian_inverse_one(phi), np.linalg.inv(slam.left_jacobian(phi)), atol=1e-12)
+        np.testing.assert_allclose(geometry.so3_log_one(E), geometry.so3_log(E), atol=1e-15)
+
+
+def test_landmarks_entering_together_equal_one_at_a_time():
+    """augmented_many (one new covariance for the landmarks entering at a pose) equals adding
+    them one at a time, and marginalizing one out deletes its rows and columns."""
+    rng = np.random.default_rng(13)
+    x = _state(rng, m=2)
+    A = rng.normal(size=(x.dim, x.dim))
+    P = A @ A.T * 0.01 + np.eye(x.dim) * 1e-3
+    xyz = rng.normal(size=(2, 3))
+    B = np.stack([slam.world_prior_coefficients(x, p) for p in xyz])
+    N = np.stack([np.diag([0.01, 0.02, 0.03]), np.diag([0.04, 0.05, 0.06])])
+    x_one, P_one = slam.augmented(x, P, xyz[0], B[0], N[0])
+    x_one, P_one = slam.augmented(x_one, P_one, xyz[1], B[1], N[1])
+    x_both, P_both = slam.augmented_many(x, P, xyz, B, N)
+    np.testing.assert_allclose(P_both, P_one, atol=1e-15)
+    np.testing.assert_array_equal(x_both.L, x_one.L)
+    x_less, P_less = slam.without_landmarks(x_both, P_both, np.array([False, True, False, False]))
+    keep = np.r_[0:9, 12:18]
+    np.testing.assert_array_equal(P_less, P_both[np.ix_(keep, keep)])
+    np.testing.assert_array_equal(x_less.L, x_both.L[[0, 2, 3]])
+
+
+def test_landmark_table_grows_keeping_its_rows():
+    """The table's columns are views of arrays with room: appending past the room keeps every row,
+    and the added ones start outside the state, unseen, not tentative."""
+    from camloc.slam_landmarks import LandmarkTable
+
+    table = LandmarkTable(np.arange(3), np.arange(9.0).reshape(3, 3), np.zeros((3, 3, 3)))
+    for i in range(100):
+        landmark = table.append(1000 + i)
+        table.xyz[landmark] = [i, i, i]
+    assert len(table) == 103 and table.num_mapped == 3
+    np.testing.assert_array_equal(table.xyz[:3], np.arange(9.0).reshape(3, 3))
+    np.testing.assert_array_equal(table.xyz[-1], [99.0, 99.0, 99.0])
+    np.testing.assert_array_equal(table.ids[[0, 3, 102]], [0, 1000, 1099])
+    assert not table.added[:3].any() and table.added[3:].all()
+    assert (table.state_row[3:] == -1).all() and (table.last_seen[3:] == -1).all() and not table.tentative.any()
+    table.drop(np.array([5]))
+    assert 5 not in table.in_range(np.zeros(3), 1e9, None).tolist() and 6 in table.in_range(np.zeros(3), 1e9, None).tolist()
