@@ -18,11 +18,14 @@ import pytest  # noqa: E402
 os.environ["CAMLOC_BACKGROUND_COMPILE"] = "0"
 
 
-@pytest.fixture(scope="session", autouse=True)
-def compiled_kernels():
-    """Where the kernels are not yet cached (a fresh clone, as in CI), compile them before the first
+def pytest_configure(config):
+    """Where the kernels are not yet cached (a fresh clone, as in CI), compile them once before any
     test, as a first run does on two cores (the filter's kernels in a second process: about a minute
-    rather than one and a half), instead of in one process in whichever test first calls them."""
+    rather than one and a half), instead of in one process in whichever test first calls them. With
+    ``-n N`` (pytest-xdist, the README's command) this runs in the controlling process before its
+    workers start, so they all find the cache warm; a worker never compiles here."""
+    if hasattr(config, "workerinput"):  # an xdist worker: its controller compiled already
+        return
     from camloc import warmup
     from camloc.kernels import cache_is_warm
 
@@ -32,7 +35,6 @@ def compiled_kernels():
             warmup.compile_kernels()
         finally:
             os.environ[warmup.ENVIRONMENT_SWITCH] = "0"
-    yield
 
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
