@@ -282,7 +282,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
                         "singularity at +-90 deg; its estimate may degrade from here (--filter se3 has no singularity)")
     landmark = np.where(chosen >= 0, dataset.landmark_ids[np.maximum(chosen, 0)] if dataset.landmark_ids.size else UNASSOCIATED, UNASSOCIATED)
     return build_result(
-        dataset, config, model, states, covs, model.pose(states) if model.name == "se2" else geometry.pose_from_euler(states), odometry, landmark.astype(np.int64), distance,
+        dataset, config, model, states, covs, model.pose(states), odometry, landmark.astype(np.int64), distance,
         dataset.pose_ids[update_k], nis, map_cost, dof, warnings=warnings,
         slip_pose_ids=[int(i) for i in dataset.pose_ids[slipped]], candidate_range=view_range,
         association_spread=spread if config.association == "beam" else None,

@@ -171,26 +171,23 @@ def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
     (``pixel_reach``; half of it widened the gates too far: more wrong pairs). Observations of other kinds (a
     planar robot's, a tag's orientation) are not widened: the mapping localizer does not run them.
     """
-    cov = dataset.obs_cov.copy()
-    intrinsics = observation_intrinsics(dataset)
-    for kind in measurement.CAMERA_KINDS:
-        rows = np.flatnonzero(dataset.obs_kind == kind)
-        if rows.size == 0:
-            continue
-        if kind == measurement.PIXEL:
-            depth = PIXEL_PRIOR_DEPTH * pixel_reach(dataset, _widest_ray(dataset), typical=True)
-            ray_z = np.column_stack([dataset.obs_z[rows, :2], np.ones(rows.size)])
-            points, _ = measurement.back_project(np.column_stack([ray_z[:, :2], np.full(rows.size, depth)]),
-                                                 intrinsics[rows].T, measurement.DEPTH)
-        else:
-            points, _ = measurement.back_project(dataset.obs_z[rows], intrinsics[rows].T, int(kind))
-        points[:, 2] = np.maximum(points[:, 2], measurement.MIN_POINT_DEPTH)
-        J = measurement.projection_jacobian(points, intrinsics[rows].T, int(kind))
-        cov[rows] += sigma**2 * J @ np.swapaxes(J, 1, 2)
-    if np.array_equal(cov, dataset.obs_cov):
+    widened = np.flatnonzero(np.isin(dataset.obs_kind, measurement.CAMERA_KINDS))
+    if widened.size == 0:
         return dataset
-    info = dataset.obs_info.copy()
-    widened = np.flatnonzero(np.any(cov != dataset.obs_cov, axis=(1, 2)))
+    cov, info = dataset.obs_cov.copy(), dataset.obs_info.copy()
+    intrinsics = observation_intrinsics(dataset)
+    for kind in np.unique(dataset.obs_kind[widened]).tolist():
+        rows = widened[dataset.obs_kind[widened] == kind]
+        z = dataset.obs_z[rows]
+        if kind == measurement.PIXEL:  # the ray's point at the typical reach, back-projected as a depth
+            depth = PIXEL_PRIOR_DEPTH * pixel_reach(dataset, _widest_ray(dataset), typical=True)
+            z, kind_of_z = np.column_stack([z[:, :2], np.full(rows.size, depth)]), measurement.DEPTH
+        else:
+            kind_of_z = kind
+        points, _ = measurement.back_project(z, intrinsics[rows].T, kind_of_z)
+        points[:, 2] = np.maximum(points[:, 2], measurement.MIN_POINT_DEPTH)
+        J = measurement.projection_jacobian(points, intrinsics[rows].T, kind)
+        cov[rows] += sigma**2 * J @ np.swapaxes(J, 1, 2)
     info[widened] = sym3.inverse(cov[widened])
     return replace(dataset, obs_cov=cov, obs_info=info)
 

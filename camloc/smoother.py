@@ -122,7 +122,8 @@ _FACTOR_REUSE = 5e-3
 # ... and a Newton step is solved with it (conjugate gradients, ``_preconditioned_step``: to the
 # same tolerance as a direct solve, so the minimum reached is the same) while they have moved less
 # than this: a preconditioner a few centimetres away still converges in a few iterations, and one
-# that does not falls back to a new factor (20,000 poses: the fifth of seven factorizations saved).
+# that does not falls back to a new factor (20,000 poses under a prior: 4 factorizations, not 6,
+# with the convergence below).
 _PRECONDITIONER_REUSE = 1e-2
 
 
