@@ -54,7 +54,12 @@ def run_console_script(load_app: Callable[[], Callable[[], None]]) -> None:
     try:
         app = load_app()
         app()
-    except SystemExit:
+    except SystemExit as exit_request:
+        # typer turns a Ctrl-C outside the command's own call (while it parses the arguments and
+        # imports its adapters) into a silent exit status 130; say the one line there too. Our own
+        # 130 (``CamlocGroup.invoke``, after its line) cuts the chain, so it is not said twice.
+        if exit_request.code == EXIT_INTERRUPTED and caused_by_interrupt(exit_request.__context__):
+            sys.stderr.write("interrupted\n")
         raise
     except BaseException as error:
         if not caused_by_interrupt(error):
