@@ -11,11 +11,12 @@ column by column from the last, that gives Takahashi's recurrence (Takahashi, Fa
 
 where struct(j) are the rows below the diagonal of L's column j. Every Z[i, k] it reads lies on
 L's symbolic pattern (its rows form a clique of the filled graph), so Z is computed there only,
-at about the cost of the factorization, never the dense inverse. L and D are SuperLU's in
-symmetric mode (``camloc.schur.factor``: the same permutation of rows and columns, diagonal
-pivots), where ``U = D L^T``. SuperLU's L as scipy hands it over leaves out entries that came out
-exactly zero, so its pattern is first closed again (``_closed_pattern``: each column's rows
-include its elimination-tree children's, Liu 1990) with zeros where entries were missing.
+at about the cost of the factorization, never the dense inverse. L and D come from the sparse
+Cholesky ``P A P^T = L_c L_c^T`` (``camloc.cholesky``: ``L = L_c diag(L_c)^-1``, ``D =
+diag(L_c)^2``). Its pattern is closed already (CHOLMOD's supernodes), but the pairs asked for
+(``needed``) may lie off it, so the pattern with them is closed again (``_closed_pattern``: each
+column's rows include its elimination-tree children's, Liu 1990) with zeros where entries were
+missing.
 
 The loops are compiled with numba (a few seconds the first time, cached beside this file).
 """
@@ -35,13 +36,17 @@ class PatternError(RuntimeError):
     """The factor's pattern lacks an entry the recurrence needs (a factor that dropped zeros)."""
 
 
-def selected_inverse(lu, needed: sp.spmatrix | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
-    """``Z`` (lower triangle, on L's pattern, CSC) of the inverse of ``P A P^T``, and ``perm``
-    (n,) with ``A^-1[u, v] = Z[perm[u], perm[v]]`` (read the lower triangle: max row, min column).
+def selected_inverse(L: sp.csc_matrix, D: np.ndarray, perm: np.ndarray,
+                     needed: sp.spmatrix | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``Z`` (lower triangle, on L's pattern, CSC) of the inverse of ``P A P^T = L diag(D) L^T``,
+    and ``perm`` (n,) with ``A^-1[u, v] = Z[perm[u], perm[v]]`` (read the lower triangle: max row,
+    min column).
 
     Parameters
     ----------
-    lu : scipy's SuperLU of a symmetric positive definite A in symmetric mode.
+    L : (n, n) unit lower triangular, CSC (``Cholesky.ldl``).
+    D : (n,) positive.
+    perm : (n,) int, A's index u is row and column ``perm[u]`` of the factor.
     needed : (n, n) a pattern (A's indices) whose entries of A^-1 are wanted: added to the
         pattern before it is closed. scipy's sparse arithmetic drops entries that come out
         exactly zero (a grid world's axis-aligned poses give such), so A's own pattern, and
@@ -49,13 +54,10 @@ def selected_inverse(lu, needed: sp.spmatrix | None = None) -> tuple[sp.csc_matr
 
     Raises
     ------
-    PatternError : the factor is not of that kind (other row and column permutations, or a
-        pattern the recurrence cannot run on).
+    PatternError : a pattern the recurrence cannot run on (a column without its diagonal first).
     """
-    if not np.array_equal(lu.perm_r, lu.perm_c):
-        raise PatternError("the factor permutes rows and columns differently")
-    L = sp.csc_matrix(lu.L)
-    perm = np.asarray(lu.perm_c)
+    L = sp.csc_matrix(L)
+    perm = np.asarray(perm)
     if needed is not None:  # zeros on the pattern of the needed pairs, in L's (permuted, lower) indices
         E = sp.coo_matrix(needed)
         u, v = perm[E.row], perm[E.col]
@@ -65,7 +67,6 @@ def selected_inverse(lu, needed: sp.spmatrix | None = None) -> tuple[sp.csc_matr
         L = sp.coo_matrix((np.concatenate([Lc.data, np.zeros(len(u))]), (rows, cols)), shape=L.shape).tocsc()
         L.sum_duplicates()  # zeros added to an entry L has leave its value as it is
     L.sort_indices()
-    D = lu.U.diagonal()
     indptr, indices, data = _closed_pattern(L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
     Z = np.zeros(len(data))
     if not _takahashi(indptr, indices, data, D, Z):
