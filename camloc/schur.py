@@ -140,7 +140,7 @@ class SchurSolver:
                 raise PatternError("asked for solves")
             coupled = self.W.copy()
             coupled.data[:] = 1.0  # positive: the pattern of W W^T, pairs of poses a landmark couples, without cancellation
-            Z, perm = selected_inverse(*self.factor.ldl(), coupled @ coupled.T)
+            Z, perm = selected_inverse(*self.factor.ldl(), coupled @ coupled.T, closed=True)  # supernodal: closed
             cov += quadratic_forms(Z, perm, self.W, LANDMARK_DOF)
         except PatternError:
             cov += self._quadratic_forms_by_solves()
