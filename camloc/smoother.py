@@ -60,12 +60,16 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             quadratically where IRLS creeps (50 iterations were not enough on 20,000 poses, 8
             are now). A step that does not lower the cost is retried as IRLS, then with
             Levenberg-Marquardt damping. The normal matrix is scaled to unit diagonal (Jacobi)
-            and factored with SuperLU; with landmark variables, each landmark's 3x3 block is
-            eliminated first (its Schur complement, ``camloc.schur``) and SuperLU factors the
-            reduced pose system. Before the first step the graph is checked for poses tied to
-            nothing and the matrix's 1-norm condition number is estimated, and a problem that
-            does not determine every pose (and landmark) is refused with a ``CamlocError``
-            instead of solved. A landmark variable whose own observations do not place it (a
+            and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
+            landmark variables, each landmark's 3x3 block is eliminated first (its Schur
+            complement, ``camloc.schur``) and the Cholesky factors the reduced pose system. Near
+            the solution a step is solved by conjugate gradients preconditioned with the last
+            factor (``_PRECONDITIONER_REUSE``). Before the first step the graph is checked for
+            poses tied to nothing and the matrix's 1-norm condition number is estimated, and a
+            problem that does not determine every pose (and landmark) is refused with a
+            ``CamlocError`` instead of solved (one so near singular that the factorization finds
+            no positive pivot is refused there, naming that unknown). A landmark variable whose
+            own observations do not place it (a
             single pixel ray, rays of under ~0.006 degrees of parallax) and that no prior holds
             is left out with its observations and named (``undetermined_landmarks``), not
             refused: an online map adds such landmarks as a matter of course. A step whose
@@ -73,7 +77,8 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             Huber threshold) is retried as IRLS, then damped.
 Covariance  of the landmark variables: the landmark blocks of the inverse Gauss-Newton Hessian of
             the robust cost at the solution, by the Schur complement and selected inversion of
-            the reduced system's factor (``camloc.selected_inverse``), never a dense inverse.
+            the reduced system's Cholesky factor (``camloc.selected_inverse``, on the factor's
+            own supernodal pattern), never a dense inverse.
 
 Pure: no I/O, no printing.
 """
