@@ -1,5 +1,5 @@
 """Ctrl-C in camloc's commands: one line and exit status 130, never a traceback, wherever it
-lands (``run_console_script``, ``caused_by_interrupt``), and ignored once a command's outcome is
+lands (``run_console_script``; ``camloc.errors.caused_by_interrupt``), and ignored once a command's outcome is
 settled (``command_settled``)."""
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ import sys
 import threading
 import time
 from typing import Callable, Optional
+
+from camloc.errors import caused_by_interrupt  # noqa: F401 (the commands import it from here too)
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for a job stopped by Ctrl-C
 
@@ -35,24 +37,6 @@ def command_settled() -> None:
     the process silently (status -2) after a complete run."""
     if _console_script:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def caused_by_interrupt(error: Optional[BaseException]) -> bool:
-    """Whether ``error`` is a ``KeyboardInterrupt`` or was raised because of one: its chain (the
-    causes and contexts Python would print, ``raise ... from None`` cutting it) holds one.
-
-    A Ctrl-C that arrives while numba's compiled code runs is not raised as itself: the kernel's
-    dispatcher returns with the interrupt pending and Python raises ``SystemError: CPUDispatcher(...)
-    returned a result with an exception set`` (several of them, one per level of compiled calls),
-    the ``KeyboardInterrupt`` at the bottom of the chain.
-    """
-    seen: set[int] = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
-            return True
-        seen.add(id(error))
-        error = error.__cause__ if error.__cause__ is not None else None if error.__suppress_context__ else error.__context__
-    return False
 
 
 def run_console_script(load_app: Callable[[], Callable[[], None]]) -> None:
