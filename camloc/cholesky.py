@@ -3,8 +3,9 @@
 
 CHOLMOD orders A with approximate minimum degree (AMD), finds its supernodes (runs of columns of
 L with a common pattern) and factors each as one dense block with BLAS (the wheels' own): at
-20,000 poses the reduced pose system (``camloc.schur``) factored in 1.6-3 s where SuperLU in
-symmetric mode took 11 s on the same machine (docs/performance.md). A solve is a forward and a
+20,000 poses the reduced pose system (``camloc.schur``) factored in 1.6-3 s (after about 1 s of
+ordering and symbolic analysis) where SuperLU in symmetric mode took 11 s on the same machine
+(docs/performance.md). A solve is a forward and a
 back substitution with L, never an inverse.
 
 The factor itself, for the selected inversion of the landmarks' covariances
@@ -23,7 +24,7 @@ from cvxopt import cholmod, matrix, spmatrix
 
 class NotPositiveDefinite(np.linalg.LinAlgError):
     """No positive pivot at A's row and column ``index``: A is singular, indefinite, or so nearly
-    singular that rounding made the pivot non-positive (condition about 1e16 and beyond)."""
+    singular that rounding made the pivot non-positive."""
 
     def __init__(self, index: int) -> None:
         super().__init__(f"the matrix is not positive definite (no positive pivot at its unknown {index})")
