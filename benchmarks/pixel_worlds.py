@@ -54,12 +54,17 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=500)
     parser.add_argument("--seeds", default="1,2,3,4")
     parser.add_argument("--width", type=int, default=None, help="the beam's width (default: the library's)")
+    parser.add_argument("--recheck-margin", type=float, default=None, help="the re-check's margin (default: the library's)")
     args = parser.parse_args()
     rows, recalls = [], []
     for name in args.worlds.split(","):
         for seed in [int(s) for s in args.seeds.split(",")]:
             dataset = world(name, args.poses, seed)
-            config = None if args.width is None else dict(beam=camloc.BeamOptions(width=args.width))
+            config = {}
+            if args.width is not None:
+                config["beam"] = camloc.BeamOptions(width=args.width)
+            if args.recheck_margin is not None:
+                config["recheck"] = camloc.RecheckOptions(margin=args.recheck_margin)
             beam, scores, seconds = run(dataset, "beam", config)
             oracle_rmse = run(dataset, "oracle")[1]["estimate"]["ate"]["rmse"]
             rmse, precision = scores["estimate"]["ate"]["rmse"], scores["association"]["precision"]

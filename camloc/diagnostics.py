@@ -72,10 +72,14 @@ def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJ
     return min(1.0, float(binomial_tail(rejected - 1, observations, rate)))  # its rounding can pass 1
 
 
-def run_warnings(counts: Mapping[str, int], *, mapped: bool = False) -> list[str]:
+def run_warnings(counts: Mapping[str, int], *, mapped: bool = False, map_size: Optional[int] = None,
+                 unmappable: Optional[str] = None) -> list[str]:
     """The warnings a run's counts call for (``summary["counts"]``: ``observations``, ``rejected``,
     ``updates``), each one line: the estimate is odometry alone, or the map looks incomplete (not
-    said of a run that ``mapped``: it added what the map lacks, its summary's ``map`` says how much)."""
+    said of a run that ``mapped``: it added what the map lacks, its summary's ``map`` says how much).
+    ``map_size``: the map's landmarks, where known (an empty map is said by the reader; what is
+    said here is why nothing was mapped); ``unmappable``: why the mapping localizer cannot run the
+    dataset (``localizer.unmappable_reason``), said with the incomplete map it would have mended."""
     observations, rejected, updates = counts["observations"], counts["rejected"], counts["updates"]
     found = []
     if observations == 0:
@@ -84,10 +88,15 @@ def run_warnings(counts: Mapping[str, int], *, mapped: bool = False) -> list[str
     elif updates == 0:
         found.append(f"all {observations} observations were rejected, so the filter made no update: the estimate "
                       "is odometry alone, not corrected by the camera")
-    if observations and not mapped and rejection_tail(rejected, observations) < INCOMPLETE_MAP_PROBABILITY:
+    cannot_map = (f"; camloc adds the landmarks a map lacks only for a 3-D robot's point landmarks, and {unmappable}"
+                  if unmappable else "")
+    if observations and not mapped and map_size == 0:
+        found.append(f"the file has no map, and camloc maps (EKF-SLAM) only a 3-D robot's point landmarks: {unmappable}"
+                     if unmappable else "the file has no map: '--map none' maps what the camera sees (EKF-SLAM)")
+    elif observations and not mapped and rejection_tail(rejected, observations) < INCOMPLETE_MAP_PROBABILITY:
         found.append(
             f"{rejected} of {observations} observations ({rejected / observations:.0%}) were rejected, far more than "
             f"a complete map and ordinary clutter leave (at most about {REFERENCE_REJECTED_SHARE:.0%}): the map may "
             "lack landmarks the camera sees, or the detections are heavily cluttered; 'camloc info' on the dataset "
-            "counts the observations of ids absent from the map")
+            f"counts the observations of ids absent from the map{cannot_map}")
     return found

@@ -215,7 +215,17 @@ def _stage(on_progress, stage: int, stages: int):
 def _mappable(dataset: Dataset) -> bool:
     """Whether the mapping localizer runs the dataset: a 3-D robot's point landmarks (a planar
     robot's and tags' orientations are not in its model)."""
-    return not dataset.planar and not np.any(dataset.obs_kind == measurement.TAG_ROTATION)
+    return unmappable_reason(dataset) is None
+
+
+def unmappable_reason(dataset: Dataset) -> Optional[str]:
+    """Why the mapping localizer (EKF-SLAM: landmarks the map lacks added) cannot run ``dataset``,
+    as the end of a sentence, or None where it can."""
+    if dataset.planar:
+        return "this dataset's robot is planar"
+    if np.any(dataset.obs_kind == measurement.TAG_ROTATION):
+        return "this dataset's tags carry orientations"
+    return None
 
 
 def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfig:
@@ -230,8 +240,8 @@ def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfi
     if config.map == AUTO_MAP:
         config = replace(config, map="none" if mappable and dataset.landmark_ids.size == 0 else "exact")
     if config.map != "exact" and not mappable:
-        raise ConfigError(f"map {config.map!r} (mapping) runs a 3-D robot's point landmarks; this dataset's "
-                          + ("robot is planar" if dataset.planar else "tags carry orientations") + ": use --map exact")
+        raise ConfigError(f"map {config.map!r} (mapping) runs a 3-D robot's point landmarks; {unmappable_reason(dataset)}: "
+                          "use --map exact")
     planar_kinds = [measurement.KINDS[int(k)].tag for k in np.unique(dataset.obs_kind) if int(k) in measurement.PLANAR_KINDS]
     if planar_kinds and config.filter != "se2":
         raise ConfigError(f"filter {config.filter!r} cannot use {', '.join(planar_kinds)} observations (a planar robot's, "

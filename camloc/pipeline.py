@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping, Optional
 from camloc.bundled import bundled_dataset
 from camloc.diagnostics import run_warnings
 from camloc.ekf import FilterDivergedError
-from camloc.localizer import ProgressCallback, localize
+from camloc.localizer import ProgressCallback, localize, unmappable_reason
 from camloc.localizer_config import LocalizerConfig
 from camloc.results import RunResult
 
@@ -67,7 +67,9 @@ def run_dataset(
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
     # What the numbers do not say by themselves (odometry alone, an incomplete map): said once,
     # in the summary's warnings, which the command line prints and summary.json keeps.
-    summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"], mapped=summary.get("map") is not None)]
+    summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"], mapped=summary.get("map") is not None,
+                                                                map_size=int(dataset.landmark_ids.size),
+                                                                unmappable=unmappable_reason(dataset))]
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None

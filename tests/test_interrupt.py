@@ -39,7 +39,7 @@ def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
     # threads and processes included). The first delay falls in camloc's imports, after the
     # interpreter's own start: a signal during Python's site import (0.05 s did hit it with the
     # tests on two processes) ends the interpreter before any program runs.
-    for delay in (0.25, 0.4, 0.9, 1.4, 1.9, 2.4, 3.0):
+    for delay in (0.15, 0.25, 0.4, 0.9, 1.4, 1.9, 2.4, 3.0):
         run_dir = tmp_path / f"run-{delay}"
         process = subprocess.Popen([*_camloc_script(), "run", str(dataset), "-o", str(run_dir), "--quiet"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=tmp_path,
@@ -58,3 +58,61 @@ def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
         assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temporary sibling
         shutil.rmtree(run_dir, ignore_errors=True)
     assert interrupted >= 3  # the delays hit the run, not only its end
+
+
+@pytest.fixture
+def console_script_handler():
+    """The console script's SIGINT handler, installed for one test in this (main) thread."""
+    from camloc.cli import interrupts
+
+    previous = signal.signal(signal.SIGINT, interrupts._interrupt_outside_kernel_loads)
+    yield interrupts
+    signal.signal(signal.SIGINT, previous)
+    interrupts._deferred_since = None
+
+
+def _busy(seconds: float) -> None:
+    """Python bytecode for ``seconds`` (where a pending signal's handler runs)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+def test_ctrl_c_while_numba_loads_a_kernel_is_raised_once_the_load_ends(console_script_handler):
+    # Raised inside LLVM's object-cache callback, a KeyboardInterrupt is swallowed there and the
+    # process crashes; the handler waits for numba's compiler lock to be released.
+    from numba.core.compiler_lock import global_compiler_lock
+
+    raised_inside = False
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        try:
+            with global_compiler_lock:
+                os.kill(os.getpid(), signal.SIGINT)
+                _busy(0.3)
+        except KeyboardInterrupt:
+            raised_inside = True
+            raise
+        _busy(1.0)
+    assert not raised_inside
+    assert time.monotonic() - started < 1.0  # raised soon after the lock's release, not after the loop
+
+
+def test_ctrl_c_during_a_long_compile_is_raised_after_the_grace(console_script_handler):
+    from numba.core.compiler_lock import global_compiler_lock
+
+    grace = console_script_handler.KERNEL_LOAD_GRACE_SECONDS
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        with global_compiler_lock:
+            os.kill(os.getpid(), signal.SIGINT)
+            _busy(grace + 2.0)
+    assert grace <= time.monotonic() - started < grace + 1.0
+
+
+def test_ctrl_c_outside_numba_is_raised_at_once(console_script_handler):
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), signal.SIGINT)
+        _busy(2.0)
+    assert time.monotonic() - started < 0.5

@@ -22,6 +22,8 @@ every file, but an editable checkout changes one at a time.
 
 import os
 
+from camloc.errors import caused_by_interrupt
+
 
 def cache_is_warm() -> bool:
     """Whether the main kernels are already compiled in numba's cache (the first run after an
@@ -32,6 +34,8 @@ def cache_is_warm() -> bool:
         for kernel in (beam.run_poses, filtering.filter_poses):
             if not os.path.exists(kernel._cache._cache_file._index_path):
                 return False
-    except Exception:  # numba's cache layout is not public: never claim a compile that is not one
+    except Exception as error:  # numba's cache layout is not public: never claim a compile that is not one
+        if caused_by_interrupt(error):  # a Ctrl-C during numba's import can surface as another error
+            raise
         return True
     return True

@@ -10,13 +10,15 @@ import hashlib
 import os
 from pathlib import Path
 
+from camloc.errors import caused_by_interrupt
+
 # Written in the cache folder: the digest of the kernels' sources its files were compiled from.
 SOURCE_STAMP = "camloc-kernels-source.sha256"
 
 # The files of the package (beside the kernels' folder) whose values the kernels read: numba
 # compiles a global as a constant, so a changed constant must clear the cache too
 # (``tests/test_structure.py`` keeps this list to what the kernels import, transitively).
-KERNEL_INPUTS = ("constants.py", "measurement.py", "tails.py")
+KERNEL_INPUTS = ("constants.py", "errors.py", "measurement.py", "tails.py")
 
 
 def source_digest(folder: Path) -> str:
@@ -66,7 +68,9 @@ def _numba_cache_folder() -> Path | None:
             locator = locator_class.from_function(source_digest, __file__)
             if locator is not None:
                 return Path(locator.get_cache_path())
-    except Exception:  # numba's locators are not public API: never break a run over them
+    except Exception as error:  # numba's locators are not public API: never break a run over them
+        if caused_by_interrupt(error):  # a Ctrl-C during numba's import can surface as another error
+            raise
         return None
     return None
 
