@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import subprocess
 import sys
 import tempfile
@@ -73,7 +74,7 @@ def breakdown(dataset, run, mode: str) -> dict[str, float]:
     parts["normal equations"] = time.perf_counter() - started
     started = time.perf_counter()
     smoother._solve_step(H, g, 0.0, problem.num_pose_unknowns if problem.num_landmarks else None)
-    parts["scaled sparse solve" + (" (Schur + LU)" if problem.num_landmarks else " (LU)")] = time.perf_counter() - started
+    parts["scaled sparse solve" + (" (Schur + Cholesky)" if problem.num_landmarks else " (Cholesky)")] = time.perf_counter() - started
     Hs, _ = smoother._scaled(H)
     if problem.num_landmarks:
         solver = SchurSolver(Hs, problem.num_pose_unknowns)
@@ -112,27 +113,31 @@ def main() -> None:
         for name, seconds in setup.items():
             print(f"setup    {name}: {seconds:.1f} s")
         for mode in args.map.split(","):
-            times, result = [], None
+            times, cpu, result = [], [], None
             for _ in range(args.repeats):
-                started = time.perf_counter()
+                started, started_cpu = time.perf_counter(), time.process_time()
                 result = smooth_run(dataset, run, SmootherConfig(map=mode))
                 times.append(time.perf_counter() - started)
+                cpu.append(time.process_time() - started_cpu)
             parts = breakdown(dataset, run, mode)
-            started = time.perf_counter()
+            started, children = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
             report = json.loads(camloc("smooth", str(run_dir), "--json", "--map", mode))
             cli_seconds = time.perf_counter() - started
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cli_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
 
             landmarks = 0 if result.landmarks is None else len(result.landmarks.ids)
             print(f"--map {mode}")
             print(f"problem  {dataset.num_poses} poses, {landmarks} landmark variables "
                   f"({6 * (dataset.num_poses - 1) + 3 * landmarks} unknowns), "
                   f"{result.odometry_factors} odometry and {result.observation_factors} observation factors")
-            print(f"solve    {min(times):.2f} s best of {args.repeats} (all: {', '.join(f'{t:.2f}' for t in times)}), "
+            print(f"solve    {min(times):.2f} s best of {args.repeats} (all: {', '.join(f'{t:.2f}' for t in times)}; "
+                  f"CPU {', '.join(f'{t:.2f}' for t in cpu)} s), "
                   f"{result.iterations} iterations, converged: {result.converged}, "
                   f"{min(times) / max(result.iterations, 1):.2f} s per iteration")
             for name, seconds in parts.items():
                 print(f"  {name:<36} {seconds:.3f} s")
-            print(f"cli      camloc smooth --json --map {mode}: {cli_seconds:.2f} s end to end "
+            print(f"cli      camloc smooth --json --map {mode}: {cli_seconds:.2f} s end to end, CPU {cli_cpu:.2f} s "
                   f"(reading {report['timing']['read_seconds']:.2f} s, smoothing {report['timing']['smooth_seconds']:.2f} s)")
             print(f"machine  {_bench.machine_load()}")
             print(f"accuracy position RMSE filter {rmse(run.estimate_xyz, dataset.truth_xyz):.4f} m, smoothed "

@@ -18,9 +18,10 @@ and the landmarks' marginal covariances are the diagonal blocks of H^-1,
 
     (H^-1)_ll = Hll^-1 + Hll^-1 Hlp S^-1 Hpl Hll^-1,
 
-computed from solves with the factor of S (a block of right-hand sides at a time), never from a
-dense inverse of H. The factor is scipy's SuperLU in symmetric mode (a fill-reducing minimum
-degree ordering of S, diagonal pivots), the solver the smoother always used for poses alone.
+computed from the factor of S by selected inversion (``camloc.selected_inverse``), never from a
+dense inverse of H. The factor is a sparse Cholesky, CHOLMOD's supernodal one
+(``camloc.cholesky``: an approximate minimum degree ordering of S, dense BLAS blocks), for poses
+alone as for the reduced system.
 
 Pure: no I/O, no printing.
 """
@@ -29,25 +30,23 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+
+from camloc.cholesky import Cholesky
 
 LANDMARK_DOF = 3
-# Right-hand sides solved at once for the covariances: a dense (unknowns, 256) block, about 250 MB
-# at 20,000 poses; fewer columns are slower per column (SuperLU's solve is then memory bound).
+# Right-hand sides solved at once for the covariances where selected inversion cannot run: a dense
+# (unknowns, 256) block, about 250 MB at 20,000 poses.
 _COVARIANCE_BLOCK = 256
 
 
-def factor(H: sp.csc_matrix):
-    """SuperLU of a symmetric positive definite sparse matrix.
-
-    Symmetric mode: a fill-reducing ordering of H + H^T and diagonal pivots, which suit a
-    symmetric positive definite matrix (a banded one for an odometry chain).
+def factor(H: sp.spmatrix) -> Cholesky:
+    """The sparse Cholesky factor of a symmetric positive definite H (``camloc.cholesky``).
 
     Raises
     ------
-    RuntimeError : H is exactly singular (SuperLU's own error).
+    np.linalg.LinAlgError : H is not positive definite.
     """
-    return splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return Cholesky(H)
 
 
 def landmark_blocks(H: sp.spmatrix, first: int) -> np.ndarray:
@@ -92,8 +91,8 @@ class SchurSolver:
 
     Raises
     ------
-    np.linalg.LinAlgError : a landmark block that is not positive definite.
-    RuntimeError : the reduced pose system is exactly singular.
+    np.linalg.LinAlgError : a landmark block, or the reduced pose system, that is not positive
+        definite.
     """
 
     def __init__(self, H: sp.csc_matrix, num_pose: int, damping: float = 0.0) -> None:
@@ -108,15 +107,15 @@ class SchurSolver:
             S = S + damping * sp.identity(num_pose, format="csr")
         self.S = sp.csc_matrix(S)
         self.S.sort_indices()
-        self.lu = factor(self.S) if num_pose else None
+        self.factor = factor(self.S) if num_pose else None
 
     def solve(self, b: np.ndarray, trans: str = "N") -> np.ndarray:
         """x (n,) of ``H x = b``: the poses' part from the reduced system, then each landmark's
-        (``trans``, SuperLU's argument, changes nothing: H is symmetric)."""
+        (``trans`` asks for the transpose's, the same: H is symmetric)."""
         b = np.asarray(b, dtype=float)
         columns = b.reshape(b.shape[0], -1)  # (n,) or (n, k) right-hand sides
         b_p, b_l = columns[: self.num_pose], columns[self.num_pose:]
-        x_p = self.lu.solve(b_p - self.W @ b_l) if self.num_pose else np.zeros((0, columns.shape[1]))
+        x_p = self.factor.solve(b_p - self.W @ b_l) if self.num_pose else np.zeros((0, columns.shape[1]))
         rhs = (b_l - self.H_pl.T @ x_p).reshape(-1, LANDMARK_DOF, columns.shape[1])
         x_l = np.einsum("lij,ljk->lik", self.landmark_inverse, rhs).reshape(-1, columns.shape[1])
         return np.concatenate([x_p, x_l]).reshape(b.shape)
@@ -141,7 +140,7 @@ class SchurSolver:
                 raise PatternError("asked for solves")
             coupled = self.W.copy()
             coupled.data[:] = 1.0  # positive: the pattern of W W^T, pairs of poses a landmark couples, without cancellation
-            Z, perm = selected_inverse(self.lu, coupled @ coupled.T)
+            Z, perm = selected_inverse(*self.factor.ldl(), coupled @ coupled.T, closed=True)  # supernodal: closed
             cov += quadratic_forms(Z, perm, self.W, LANDMARK_DOF)
         except PatternError:
             cov += self._quadratic_forms_by_solves()
@@ -155,7 +154,7 @@ class SchurSolver:
         for start in range(0, count, per_block):
             stop = min(start + per_block, count)
             W_block = W[:, LANDMARK_DOF * start: LANDMARK_DOF * stop].toarray()  # (num_pose, 3 k)
-            X = self.lu.solve(W_block)  # S^-1 W_l for the k landmarks
+            X = self.factor.solve(W_block)  # S^-1 W_l for the k landmarks
             out[start:stop] = np.einsum("pla,plb->lab", W_block.reshape(self.num_pose, -1, LANDMARK_DOF),
                                         X.reshape(self.num_pose, -1, LANDMARK_DOF))
         return out

@@ -11,11 +11,12 @@ column by column from the last, that gives Takahashi's recurrence (Takahashi, Fa
 
 where struct(j) are the rows below the diagonal of L's column j. Every Z[i, k] it reads lies on
 L's symbolic pattern (its rows form a clique of the filled graph), so Z is computed there only,
-at about the cost of the factorization, never the dense inverse. L and D are SuperLU's in
-symmetric mode (``camloc.schur.factor``: the same permutation of rows and columns, diagonal
-pivots), where ``U = D L^T``. SuperLU's L as scipy hands it over leaves out entries that came out
-exactly zero, so its pattern is first closed again (``_closed_pattern``: each column's rows
-include its elimination-tree children's, Liu 1990) with zeros where entries were missing.
+at about the cost of the factorization, never the dense inverse. L and D come from the sparse
+Cholesky ``P A P^T = L_c L_c^T`` (``camloc.cholesky``: ``L = L_c diag(L_c)^-1``, ``D =
+diag(L_c)^2``). Its pattern is closed already (CHOLMOD's supernodes), but the pairs asked for
+(``needed``) may lie off it, so the pattern with them is closed again (``_closed_pattern``: each
+column's rows include its elimination-tree children's, Liu 1990) with zeros where entries were
+missing.
 
 The loops are compiled with numba (a few seconds the first time, cached beside this file).
 """
@@ -35,42 +36,72 @@ class PatternError(RuntimeError):
     """The factor's pattern lacks an entry the recurrence needs (a factor that dropped zeros)."""
 
 
-def selected_inverse(lu, needed: sp.spmatrix | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
-    """``Z`` (lower triangle, on L's pattern, CSC) of the inverse of ``P A P^T``, and ``perm``
-    (n,) with ``A^-1[u, v] = Z[perm[u], perm[v]]`` (read the lower triangle: max row, min column).
+def selected_inverse(L: sp.csc_matrix, D: np.ndarray, perm: np.ndarray, needed: sp.spmatrix | None = None, *,
+                     closed: bool = False) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``Z`` (lower triangle, on L's pattern, CSC) of the inverse of ``P A P^T = L diag(D) L^T``,
+    and ``perm`` (n,) with ``A^-1[u, v] = Z[perm[u], perm[v]]`` (read the lower triangle: max row,
+    min column).
 
     Parameters
     ----------
-    lu : scipy's SuperLU of a symmetric positive definite A in symmetric mode.
+    L : (n, n) unit lower triangular, CSC with sorted rows (``Cholesky.ldl``).
+    D : (n,) positive.
+    perm : (n,) int, A's index u is row and column ``perm[u]`` of the factor.
     needed : (n, n) a pattern (A's indices) whose entries of A^-1 are wanted: added to the
-        pattern before it is closed. scipy's sparse arithmetic drops entries that come out
-        exactly zero (a grid world's axis-aligned poses give such), so A's own pattern, and
-        so L's, can lack a pair of poses that see a common landmark.
+        pattern where L lacks them, and the pattern closed again. scipy's sparse arithmetic
+        drops entries that come out exactly zero (a grid world's axis-aligned poses can give
+        such), so A's own pattern, and so L's, can lack a pair of poses that see a common landmark.
+    closed : L's pattern is closed under elimination already (a supernodal factor's is), so
+        that, where it holds every needed pair, it is used as it is.
 
     Raises
     ------
-    PatternError : the factor is not of that kind (other row and column permutations, or a
-        pattern the recurrence cannot run on).
+    PatternError : a pattern the recurrence cannot run on (a column without its diagonal first).
     """
-    if not np.array_equal(lu.perm_r, lu.perm_c):
-        raise PatternError("the factor permutes rows and columns differently")
-    L = sp.csc_matrix(lu.L)
-    perm = np.asarray(lu.perm_c)
-    if needed is not None:  # zeros on the pattern of the needed pairs, in L's (permuted, lower) indices
+    L = sp.csc_matrix(L)
+    perm = np.asarray(perm, dtype=np.int64)
+    if needed is not None:
         E = sp.coo_matrix(needed)
         u, v = perm[E.row], perm[E.col]
-        Lc = L.tocoo()
-        rows = np.concatenate([Lc.row, np.maximum(u, v)])
-        cols = np.concatenate([Lc.col, np.minimum(u, v)])
-        L = sp.coo_matrix((np.concatenate([Lc.data, np.zeros(len(u))]), (rows, cols)), shape=L.shape).tocsc()
-        L.sum_duplicates()  # zeros added to an entry L has leave its value as it is
-    L.sort_indices()
-    D = lu.U.diagonal()
-    indptr, indices, data = _closed_pattern(L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
+        rows, cols = np.maximum(u, v), np.minimum(u, v)
+        if not _holds(L.indptr.astype(np.int64), L.indices.astype(np.int64), rows, cols):
+            L = _with_zeros_at(L, rows, cols)
+            closed = False
+    indptr, indices, data = L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data
+    Z = np.zeros(len(data))
+    if closed and _takahashi(indptr, indices, data, D, Z):
+        return sp.csc_matrix((Z, indices, indptr), shape=L.shape), perm
+    indptr, indices, data = _closed_pattern(indptr, indices, data)  # a pattern said closed that was not, too
     Z = np.zeros(len(data))
     if not _takahashi(indptr, indices, data, D, Z):
         raise PatternError("the factor's pattern is not closed under the recurrence")
     return sp.csc_matrix((Z, indices, indptr), shape=L.shape), perm
+
+
+def _with_zeros_at(L: sp.csc_matrix, rows: np.ndarray, cols: np.ndarray) -> sp.csc_matrix:
+    """L (CSC, sorted rows) with explicit zeros added at (rows, cols) where it has no entry."""
+    Lc = L.tocoo()
+    L = sp.coo_matrix((np.concatenate([Lc.data, np.zeros(len(rows))]),
+                       (np.concatenate([Lc.row, rows]), np.concatenate([Lc.col, cols]))), shape=L.shape).tocsc()
+    L.sum_duplicates()  # zeros added to an entry L has leave its value as it is
+    L.sort_indices()
+    return L
+
+
+@_jit
+def _holds(indptr, indices, rows, cols):  # pragma: no cover - compiled
+    """Whether the pattern (CSC, sorted rows) has every entry (rows[k], cols[k]): binary search."""
+    for k in range(rows.shape[0]):
+        lo, hi = indptr[cols[k]], indptr[cols[k] + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if indices[mid] < rows[k]:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo == indptr[cols[k] + 1] or indices[lo] != rows[k]:
+            return False
+    return True
 
 
 @_jit
@@ -146,10 +177,9 @@ def _supernode_widths(indptr, indices):  # pragma: no cover - compiled
 
 @_jit
 def _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):  # pragma: no cover - compiled
-    """The upper triangle of Z_RR (m, m) (its diagonal halved) for the rows R of a supernode
+    """The upper triangle of Z_RR (m, m) for the rows R of a supernode
     (``indices[base:base + m]``), a row at a time (contiguous writes), an ancestor supernode K
     at a time; False when a needed entry is off the pattern."""
-    Z_RR[:, :] = 0.0
     a = 0
     while a < m:  # the upper triangle of Z_RR, a row at a time, an ancestor supernode K at a time
         k0 = indices[base + a]
@@ -170,7 +200,7 @@ def _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):  # pragma
         for r in range(a, a1):  # column k of K holds rows k..end-1, then K's rows below
             k = indices[base + r]
             column = indptr[k]
-            Z_RR[r, r] = 0.5 * Z[column]  # halved: the diagonal is counted twice below
+            Z_RR[r, r] = Z[column]
             for b in range(r + 1, a1):
                 Z_RR[r, b] = Z[column + (indices[base + b] - k)]
             tail = column + (end - k)
@@ -221,36 +251,55 @@ def _takahashi(indptr, indices, L, D, Z):  # pragma: no cover - compiled
         Z_RR = ZRR[: m * m].reshape((m, m))  # contiguous, for BLAS
         if not _gather_upper(indptr, indices, Z, width, base, m, Z_RR, position):
             return False
-        # Z_RR = U + U^T with U that upper triangle: two BLAS products, the arithmetic of the recurrence
-        Y = np.dot(Z_RR, LR) + np.dot(Z_RR.T, LR)
-        Linv = np.zeros((w, w))  # L_JJ^-1, unit lower: w^3 scalar steps, where w is a few columns
-        for t in range(w):
-            Linv[t, t] = 1.0
-            for s in range(t + 1, w):
-                total = 0.0
-                for r in range(t, s):
-                    total += L[indptr[c0 + r] + (s - r)] * Linv[r, t]
-                Linv[s, t] = -total
+        for r in range(m):  # the lower triangle mirrored, for one BLAS product (U + U^T took two)
+            for b in range(r + 1, m):
+                Z_RR[b, r] = Z_RR[r, b]
+        Y = np.dot(Z_RR, LR)
+        LinvT = _diagonal_block_inverse(indptr, L, c0, w)  # (L_JJ^-1)^T
+        Linv = LinvT.T.copy()
         # Z_RJ = -Y L_JJ^-1, a BLAS product (a triangular solve in scalar loops, strided over the
         # m rows, took a third of the recurrence at 20,000 poses)
         X = -np.dot(Y, Linv)
-        # Z_JJ = L_JJ^-T (D^-1 L_JJ^-1 - L_RJ^T Z_RJ)
+        # Z_JJ = L_JJ^-T (D^-1 L_JJ^-1 - L_RJ^T Z_RJ), both products BLAS's
         B = -np.dot(LR.T.copy(), X)  # -L_RJ^T Z_RJ
         for s in range(w):
             for t in range(w):
                 B[s, t] += Linv[s, t] / D[c0 + s]
-        for s in range(w):
-            for t in range(s + 1):  # the lower triangle, (s, t) with s >= t
-                total = 0.0
-                for r in range(s, w):  # (L_JJ^-T)[s, r] = Linv[r, s]
-                    total += Linv[r, s] * B[r, t]
-                Z[indptr[c0 + t] + (s - t)] = total
+        Z_JJ = np.dot(LinvT, B)
+        for t in range(w):
+            column = indptr[c0 + t]
+            for s in range(t, w):  # the lower triangle, (s, t) with s >= t
+                Z[column + (s - t)] = Z_JJ[s, t]
         for t in range(w):
             off = indptr[c0 + t] + (w - t)
             for b in range(m):
                 Z[off + b] = X[b, t]
         c1 = c0
     return True
+
+
+
+@_jit
+def _diagonal_block_inverse(indptr, L, c0, w):  # pragma: no cover - compiled
+    """``(L_JJ^-1)^T`` (w, w) for the unit lower triangle L_JJ of the supernode at columns
+    c0..c0+w-1: row t (column t of L_JJ^-1) by forward substitution, reading L_JJ and the row
+    along their rows (contiguous). The same recurrence down L's columns read L a column apart at
+    every step: a cache miss each, and a supernode of CHOLMOD's is up to 1,566 columns wide at
+    20,000 poses."""
+    LJJ = np.zeros((w, w))
+    for t in range(w):
+        column = indptr[c0 + t]
+        for s in range(t + 1, w):
+            LJJ[s, t] = L[column + (s - t)]
+    LinvT = np.zeros((w, w))
+    for t in range(w):
+        LinvT[t, t] = 1.0
+        for s in range(t + 1, w):
+            total = 0.0
+            for r in range(t, s):  # L_JJ^-1[s, t] = -sum_r L_JJ[s, r] L_JJ^-1[r, t]
+                total += LJJ[s, r] * LinvT[t, r]
+            LinvT[t, s] = -total
+    return LinvT
 
 
 def quadratic_forms(Z: sp.csc_matrix, perm: np.ndarray, W: sp.csc_matrix, width: int) -> np.ndarray:

@@ -60,12 +60,16 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             quadratically where IRLS creeps (50 iterations were not enough on 20,000 poses, 8
             are now). A step that does not lower the cost is retried as IRLS, then with
             Levenberg-Marquardt damping. The normal matrix is scaled to unit diagonal (Jacobi)
-            and factored with SuperLU; with landmark variables, each landmark's 3x3 block is
-            eliminated first (its Schur complement, ``camloc.schur``) and SuperLU factors the
-            reduced pose system. Before the first step the graph is checked for poses tied to
-            nothing and the matrix's 1-norm condition number is estimated, and a problem that
-            does not determine every pose (and landmark) is refused with a ``CamlocError``
-            instead of solved. A landmark variable whose own observations do not place it (a
+            and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
+            landmark variables, each landmark's 3x3 block is eliminated first (its Schur
+            complement, ``camloc.schur``) and the Cholesky factors the reduced pose system. Near
+            the solution a step is solved by conjugate gradients preconditioned with the last
+            factor (``_PRECONDITIONER_REUSE``). Before the first step the graph is checked for
+            poses tied to nothing and the matrix's 1-norm condition number is estimated, and a
+            problem that does not determine every pose (and landmark) is refused with a
+            ``CamlocError`` instead of solved (one so near singular that the factorization finds
+            no positive pivot is refused there, naming that unknown). A landmark variable whose
+            own observations do not place it (a
             single pixel ray, rays of under ~0.006 degrees of parallax) and that no prior holds
             is left out with its observations and named (``undetermined_landmarks``), not
             refused: an online map adds such landmarks as a matter of course. A step whose
@@ -73,7 +77,8 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             Huber threshold) is retried as IRLS, then damped.
 Covariance  of the landmark variables: the landmark blocks of the inverse Gauss-Newton Hessian of
             the robust cost at the solution, by the Schur complement and selected inversion of
-            the reduced system's factor (``camloc.selected_inverse``), never a dense inverse.
+            the reduced system's Cholesky factor (``camloc.selected_inverse``, on the factor's
+            own supernodal pattern), never a dense inverse.
 
 Pure: no I/O, no printing.
 """
@@ -88,9 +93,10 @@ from typing import Callable, Optional
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import LinearOperator, onenormest, splu
+from scipy.sparse.linalg import LinearOperator, onenormest
 
 from camloc import geometry, measurement, tags
+from camloc.cholesky import NotPositiveDefinite
 from camloc.dataset import Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
@@ -642,18 +648,16 @@ def _scaled(H: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
 
 
 def _factor(Hs: sp.csc_matrix):
-    # SuperLU in symmetric mode: a fill-reducing ordering of H + H^T and diagonal pivots, which
-    # suit a symmetric positive definite matrix (a banded one for an odometry chain).
-    return factor(Hs)
+    return factor(Hs)  # the sparse Cholesky (camloc.cholesky)
 
 
 def _factorization(Hs: sp.csc_matrix, num_pose: int, damping: float = 0.0):
-    """A factor of ``Hs + damping I`` with a ``solve``: SuperLU of the whole matrix when every
-    unknown is a pose (the smoother as it always was), else the landmarks' Schur complement.
+    """A factor of ``Hs + damping I`` with a ``solve``: the sparse Cholesky of the whole matrix
+    when every unknown is a pose, else of the reduced system left by the landmarks' Schur complement.
 
     Raises
     ------
-    RuntimeError : a singular pose system; np.linalg.LinAlgError : a singular landmark block.
+    np.linalg.LinAlgError : a pose system or a landmark block that is not positive definite.
     """
     if Hs.shape[0] == num_pose:
         if damping > 0.0:
@@ -695,10 +699,13 @@ def _conditioned_factor(problem: SmoothingProblem, H: sp.csc_matrix, config: Smo
     what = "pose" if not problem.num_landmarks else "pose and landmark"
     try:
         lu = _factorization(Hs, problem.num_pose_unknowns)
-    except (RuntimeError, np.linalg.LinAlgError):
+    except np.linalg.LinAlgError as error:
+        # The sparse Cholesky names where elimination found no positive pivot (the reduced
+        # system's unknowns are H's first ones); a landmark's own 3x3 block does not.
+        at = f" (no positive pivot at {_unknown_name(problem, error.index)})" if isinstance(error, NotPositiveDefinite) else ""
         raise CamlocError(
-            f"cannot smooth: the normal matrix ({unknowns} unknowns) is singular: the odometry and the accepted "
-            f"observations do not determine every {what}"
+            f"cannot smooth: the normal matrix ({unknowns} unknowns) is singular or nearly so{at}: the odometry and "
+            f"the accepted observations do not determine every {what}"
         ) from None
     condition, worst = condition_estimate(Hs, lu)
     if not condition <= config.max_condition:
@@ -722,7 +729,7 @@ def _solve_step(H: sp.csc_matrix, g: np.ndarray, damping: float, num_pose: int |
     Hs, d = _scaled(H)
     try:
         lu = factored or _factorization(Hs, Hs.shape[0] if num_pose is None else num_pose, damping)
-    except (RuntimeError, np.linalg.LinAlgError):
+    except np.linalg.LinAlgError:
         raise CamlocError("cannot smooth: the normal matrix became singular during the iterations") from None
     return d * lu.solve(-d * g)
 
@@ -899,7 +906,7 @@ class _SingularStep(CamlocError):
 def _step_factor(Hs: sp.csc_matrix, num_pose: int, damping: float):
     try:
         return _factorization(Hs, num_pose, damping)
-    except (RuntimeError, np.linalg.LinAlgError):
+    except np.linalg.LinAlgError:
         error = _SingularStep if num_pose < Hs.shape[0] else CamlocError
         raise error("cannot smooth: the normal matrix became singular during the iterations") from None
 
@@ -917,7 +924,7 @@ def _landmark_estimate(problem: SmoothingProblem, lin: Linearization, X: np.ndar
         Hs, d = _scaled(H)
         try:
             factor = (SchurSolver(Hs, problem.num_pose_unknowns), d)
-        except (RuntimeError, np.linalg.LinAlgError):
+        except np.linalg.LinAlgError:
             raise CamlocError("cannot smooth: the normal matrix is singular at the solution") from None
     solver, d = factor
     cov = solver.landmark_covariances()

@@ -132,6 +132,36 @@ def test_the_steps_of_the_schur_solver_equal_superlu_on_the_whole_system(world):
     np.testing.assert_allclose(smoother._solve_step(H, g, 0.0, problem.num_pose_unknowns), whole, rtol=1e-7, atol=1e-10)
 
 
+class _DenseSolver:
+    """Dense linear algebra in the place of the sparse Cholesky (and the Schur complement)."""
+
+    def __init__(self, Hs, num_pose: int, damping: float = 0.0) -> None:
+        self.num_pose = num_pose
+        self.H = Hs.toarray() + damping * np.eye(Hs.shape[0])
+
+    def solve(self, b, trans="N"):
+        return np.linalg.solve(self.H, b)
+
+    def landmark_covariances(self):
+        inverse, n = np.linalg.inv(self.H), self.num_pose
+        return np.array([inverse[k: k + 3, k: k + 3] for k in range(n, self.H.shape[0], 3)])
+
+
+@pytest.mark.parametrize("config", [smoother.SmootherConfig(), PRIOR], ids=["exact", "prior"])
+def test_the_smoother_on_the_sparse_cholesky_equals_it_on_dense_solves(world, monkeypatch, config):
+    dataset, run = world
+    sparse = smoother.smooth_run(dataset, run, config)
+    monkeypatch.setattr(smoother, "_factorization", _DenseSolver)
+    monkeypatch.setattr(smoother, "SchurSolver", _DenseSolver)  # the covariances' factor, where made afresh
+    dense = smoother.smooth_run(dataset, run, config)
+    assert sparse.converged and dense.iterations == sparse.iterations
+    np.testing.assert_allclose(sparse.T_world_robot, dense.T_world_robot, rtol=0, atol=1e-9)
+    assert sparse.final_cost == pytest.approx(dense.final_cost, rel=1e-12)
+    if config.map == "prior":
+        np.testing.assert_allclose(sparse.landmarks.xyz, dense.landmarks.xyz, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(sparse.landmarks.cov, dense.landmarks.cov, rtol=1e-8, atol=1e-15)
+
+
 def test_a_prior_far_tighter_than_the_data_gives_the_exact_maps_result(world):
     dataset, run = world
     exact = smoother.smooth_run(dataset, run)
