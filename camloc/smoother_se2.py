@@ -23,7 +23,8 @@ Observation one factor per accepted observation: r = z - h(x_k) (an angle row wr
 Loss        as ``camloc.smoother``: 1/2 sum |r_odo|^2 + 1/2 sum rho(|r_obs|^2), Huber rho on each
             observation's Mahalanobis distance (``SmootherConfig.huber``).
 Solver      Gauss-Newton on the IRLS weights with Levenberg-Marquardt damping when a step does not
-            lower the cost; sparse normal equations (SuperLU). Converged when the largest step
+            lower the cost; sparse normal equations (a sparse Cholesky,
+            ``camloc.cholesky``, as the 3-D smoother's). Converged when the largest step
             component is below ``step_tolerance``.
 Every Jacobian is checked against central finite differences in tests/test_smoother_se2.py.
 
@@ -39,9 +40,9 @@ from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 from camloc import geometry, planar, tags
+from camloc.cholesky import Cholesky, NotPositiveDefinite
 from camloc.dataset import Dataset
 from camloc.errors import CamlocError
 from camloc.filters import SE2Filter
@@ -180,8 +181,8 @@ def _step(H: sp.csc_matrix, g: np.ndarray, damping: float) -> np.ndarray:
     scale = 1.0 / np.sqrt(np.maximum(d, 1e-300))  # Jacobi scaling, as camloc.smoother
     Hs = sp.diags(scale) @ H @ sp.diags(scale) + damping * sp.identity(H.shape[0], format="csc")
     try:
-        return -scale * splu(sp.csc_matrix(Hs)).solve(scale * g)
-    except RuntimeError as error:  # a singular system: a pose nothing determines
+        return -scale * Cholesky(Hs).solve(scale * g)
+    except NotPositiveDefinite as error:  # a singular system: a pose nothing determines
         raise CamlocError(f"the planar smoothing problem does not determine every pose ({error})") from None
 
 
