@@ -153,6 +153,14 @@ def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, p
 # can lose the robot for good (one pixel world: NIS per dof 1.2 -> 7.8, RMSE 0.36 -> 4.4 m).
 PRIOR_PASSES = 2
 PASS_NIS_SLACK = 1.2
+# A pass after the first runs only where the first moved the map: more than MOVED_SHARE of the
+# mapped landmarks it observed (and more than MOVED_LEAST of them) left their map positions by over
+# MOVED_SIGMAS map sigmas. Measured after a first pass (docs/performance.md): maps that are right,
+# 0-1 of 168-689 landmarks on 300-pose worlds of every kind (depth and pixel cameras) and 20 of
+# 1,594 (1.3%) on a 2,000-pose world with a fifth withheld; a quarter moved 0.3 m, 13-22%.
+MOVED_SIGMAS = 1.5
+MOVED_SHARE = 0.03
+MOVED_LEAST = 2
 
 
 def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Optional[RunResult] = None) -> RunResult:
@@ -186,6 +194,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             kept = result, warnings
         estimated = result.landmark_map
         rows = landmark_rows(estimated.ids, dataset.landmark_ids)
+        if not _map_moved(dataset, estimated, rows, config.map_sigma):
+            break  # the next pass would judge against the map as given: the same pairs, twice the time
         judged_map = replace(dataset, landmark_xyz=np.where((rows >= 0)[:, None], estimated.xyz[rows], dataset.landmark_xyz))
     result, warnings = kept
     timing = result.summary["timing"]
@@ -196,6 +206,17 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     timing["poses_per_second"] = dataset.num_poses / seconds if seconds > 0 else float("inf")
     result.summary["warnings"] += warnings
     return result
+
+
+def _map_moved(dataset: Dataset, estimated, rows: np.ndarray, sigma: float) -> bool:
+    """Whether a mapping pass moved the map (``MOVED_SIGMAS``, ``MOVED_SHARE``, ``MOVED_LEAST``):
+    ``estimated`` its map, ``rows`` each mapped landmark's row in it (-1: not kept)."""
+    kept = rows >= 0
+    observed = kept.copy()
+    observed[kept] = estimated.observations[rows[kept]] > 0
+    shift = np.linalg.norm(estimated.xyz[rows[observed]] - dataset.landmark_xyz[observed], axis=1)
+    moved = int(np.count_nonzero(shift > MOVED_SIGMAS * sigma))
+    return moved > max(MOVED_LEAST, MOVED_SHARE * int(np.count_nonzero(observed)))
 
 
 def _nis_per_dof(result: RunResult) -> float:

@@ -316,9 +316,43 @@ def test_a_later_pass_less_consistent_than_the_first_is_not_kept(monkeypatch):
 
     _, world, _ = _moved_pixel_world(poses=60)
     config = LocalizerConfig(map="prior", map_sigma=0.1)
+    monkeypatch.setattr(localizer, "MOVED_LEAST", -1)  # a second pass whatever the first moved
+    monkeypatch.setattr(localizer, "MOVED_SHARE", 0.0)
     monkeypatch.setattr(localizer, "PASS_NIS_SLACK", 0.0)
     refused = localize(world, config, engine="compiled")
     monkeypatch.setattr(localizer, "PRIOR_PASSES", 1)
     first = localize(world, config, engine="compiled")
     assert np.array_equal(refused.associations.landmark, first.associations.landmark)
     assert np.allclose(refused.estimate_xyz, first.estimate_xyz)
+
+
+def test_a_second_pass_runs_only_where_the_first_moved_the_map():
+    """Under a prior the second pass judges against the first's map; where that map is the given
+    one to within its noise (no landmark moved), the second pass would pair the same and is not
+    run. Moved: more than MOVED_SHARE (and MOVED_LEAST) of the observed mapped landmarks left their
+    map positions by over MOVED_SIGMAS sigmas."""
+    from types import SimpleNamespace
+
+    from camloc.localizer import MOVED_LEAST, _map_moved
+
+    rng = np.random.default_rng(3)
+    given = SimpleNamespace(landmark_xyz=rng.uniform(-5.0, 5.0, (200, 3)))
+    rows = np.arange(200)
+    seen = np.full(200, 3)
+
+    def estimated(xyz, observations=seen):
+        return SimpleNamespace(xyz=xyz, observations=observations)
+
+    noisy = given.landmark_xyz + rng.normal(0.0, 0.02, (200, 3))
+    assert not _map_moved(given, estimated(noisy), rows, 0.1)
+    moved = noisy.copy()
+    moved[:20] += [0.3, 0.0, 0.0]  # a tenth of the map, 3 sigma
+    assert _map_moved(given, estimated(moved), rows, 0.1)
+    assert not _map_moved(given, estimated(moved), rows, 0.5)  # within 1.5 of a wider prior's sigmas
+    few = noisy.copy()
+    few[:MOVED_LEAST] += [0.3, 0.0, 0.0]
+    assert not _map_moved(given, estimated(few), rows, 0.1)
+    unseen = seen.copy()
+    unseen[:20] = 0  # the moved ones never observed: their estimates are not the run's evidence
+    assert not _map_moved(given, estimated(moved, unseen), rows, 0.1)
+    assert not _map_moved(given, estimated(moved), np.where(rows < 20, -1, rows), 0.1)  # not kept in the map
