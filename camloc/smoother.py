@@ -647,10 +647,6 @@ def _scaled(H: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
     return (D @ H @ D).tocsc(), d
 
 
-def _factor(Hs: sp.csc_matrix):
-    return factor(Hs)  # the sparse Cholesky (camloc.cholesky)
-
-
 def _factorization(Hs: sp.csc_matrix, num_pose: int, damping: float = 0.0):
     """A factor of ``Hs + damping I`` with a ``solve``: the sparse Cholesky of the whole matrix
     when every unknown is a pose, else of the reduced system left by the landmarks' Schur complement.
@@ -662,7 +658,7 @@ def _factorization(Hs: sp.csc_matrix, num_pose: int, damping: float = 0.0):
     if Hs.shape[0] == num_pose:
         if damping > 0.0:
             Hs = (Hs + damping * sp.identity(Hs.shape[0], format="csc")).tocsc()
-        return _factor(Hs)
+        return factor(Hs)
     return SchurSolver(Hs, num_pose, damping)
 
 
