@@ -177,6 +177,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     passes = PRIOR_PASSES if beamed and config.map == "prior" else 1
     stages = 2 * passes if beamed else 1
     judged_map, seconds, kept = dataset, 0.0, None
+    # the update compiled as the localizer's loop is: not for a short run (numba's first compile, ~15 s)
+    compiled = hooks["engine"] == "compiled" or (hooks["engine"] == "auto" and dataset.num_poses >= COMPILED_MIN_POSES)
     for n in range(passes):
         given, warnings, beam_run = None, [], given_run
         if beamed:
@@ -188,7 +190,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
             seconds += beam_run.summary["timing"]["filter_seconds"]
             warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
-        result = localize_mapping(dataset, config, _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress, given)
+        result = localize_mapping(dataset, config, _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress, given,
+                                  compiled=compiled)
         seconds += result.summary["timing"]["filter_seconds"]
         if kept is None or _nis_per_dof(result) <= PASS_NIS_SLACK * _nis_per_dof(kept[0]):
             kept = result, warnings

@@ -202,6 +202,12 @@ class PoseAssociation:
         xyz = self.table.xyz[nearby]
         rows = self.table.state_row[nearby]
         xyz[rows >= 0] = self.x.L[rows[rows >= 0]]  # the state's estimate where it holds one
+        if self.compiled is not None:  # the same costs compiled (camloc.slam_compiled); this numpy one is its reference
+            seen, z_hat, H, extra, cost = self.compiled.costs(
+                self.x, self.P, xyz, rows, self.table.cov[nearby], sensor_id, max(self.min_depth, 1e-6), self.max_depth,
+                np.cos(self.max_angle), self.dataset.obs_z[obs], self.association_cov[obs], self.log_det_R[obs],
+                self.gate[self.obs_dof[obs]], UNPAIRED)
+            return (nearby[seen], cost, z_hat, H, extra) if np.any(seen) else None
         p_camera = slam.camera_points(self.x, sensor, xyz)
         norm = np.linalg.norm(p_camera, axis=1)
         seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)
