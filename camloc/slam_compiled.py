@@ -207,7 +207,8 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     """``ekf.update(..., map_cost=True, columns=...)`` of p pairs (z (p, 3), their noise R_z and
     its inverse (p, 3, 3), the fixed points xyz (p, 3) or state rows ``rows`` (p,), each pair's
     sensor) on the estimate (R, t, L) with covariance P: (ok, R, t, L, P, the innovation at the
-    prior (3 p,), S's diagonal blocks (p, 3, 3), NIS, MAP cost). ok False: a step near a half
+    prior (3 p,), S's diagonal blocks (p, 3, 3), NIS, MAP cost, each pair's squared Mahalanobis
+    distance (p,) in its block). ok False: a step near a half
     turn, which the numpy update takes instead (its logarithm switches formula there)."""
     p = z.shape[0]
     in_state, columns, block = state_columns(rows)
@@ -231,7 +232,7 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
         U, S = column_gain(P_columns, columns, H_i, R_full)
         moved, ok = difference_columns(R_i, t_i, L_i, R, t, L, in_state, small)
         if not ok:
-            return False, R, t, L, P, y_prior, np.zeros((p, 3, 3)), 0.0, 0.0
+            return False, R, t, L, P, y_prior, np.zeros((p, 3, 3)), 0.0, 0.0, np.zeros(p)
         last = z_flat - z_hat_i.ravel() + H_i @ moved
         w = np.linalg.solve(S, last)
         step = U @ w
@@ -248,9 +249,25 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     K = np.linalg.solve(S, U.T).T
     KM = K @ (0.5 * (K @ S) - U).T
     S_blocks = np.empty((p, 3, 3))
+    d2 = np.empty(p)
     for o in range(p):
         S_blocks[o] = S_prior[3 * o:3 * o + 3, 3 * o:3 * o + 3]
-    return True, R_i, t_i, L_i, P + (KM + KM.T), y_prior, S_blocks, nis, cost
+        d2[o] = block_distance(S_blocks[o], y_prior[3 * o:3 * o + 3])
+    return True, R_i, t_i, L_i, P + (KM + KM.T), y_prior, S_blocks, nis, cost, d2
+
+
+@_jit
+def block_distance(S, y):
+    """``y' S^-1 y`` of a symmetric 3x3 S from its upper triangle in closed form, inf where S has
+    no positive determinant (``association.mahalanobis_3x3``'s formula)."""
+    a, b, c, d, e, f = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
+    A11, A12, A13 = d * f - e * e, c * e - b * f, b * e - c * d
+    A22, A23, A33 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A11 + b * A12 + c * A13
+    if not det > 0.0:
+        return np.inf
+    y1, y2, y3 = y[0], y[1], y[2]
+    return (A11 * y1 * y1 + A22 * y2 * y2 + A33 * y3 * y3 + 2.0 * (A12 * y1 * y2 + A13 * y1 * y3 + A23 * y2 * y3)) / det
 
 
 
@@ -334,6 +351,117 @@ def pair_cost(S, extra, R_z, y, log_det_R, gate, unpaired):
         return unpaired
     return cost
 
+
+@_jit
+def predicted_cov(P, R, t, L, C):
+    """``slam.predict``'s covariance ``P + W W'``, W = G C (G: ``slam.noise_coefficients`` of the
+    predicted estimate (R, t, L), C: the Cholesky factor of the increment's noise), each entry of
+    W W' computed once for both triangles: exactly symmetric, as numpy's symmetric product is."""
+    n = P.shape[0]
+    G = np.zeros((n, 6))
+    for r in range(3):
+        for c in range(3):
+            G[r, c] = R[r, c]
+            G[3 + r, 3 + c] = R[r, c]
+    _lever_into(G, 0, t, R)
+    for i in range(L.shape[0]):
+        _lever_into(G, 6 + 3 * i, L[i], R)
+    W = G @ C
+    P_new = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            total = 0.0
+            for k in range(6):
+                total += W[i, k] * W[j, k]
+            P_new[i, j] = P[i, j] + total
+            P_new[j, i] = P[j, i] + total
+    return P_new
+
+
+@_jit
+def _lever_into(G, at, v, R):
+    """G[at:at + 3, 3:6] = [v]x R: a point's error under the robot's turn (``noise_coefficients``)."""
+    for c in range(3):
+        G[at, 3 + c] = -v[2] * R[1, c] + v[1] * R[2, c]
+        G[at + 1, 3 + c] = v[2] * R[0, c] - v[0] * R[2, c]
+        G[at + 2, 3 + c] = -v[1] * R[0, c] + v[0] * R[1, c]
+
+
+@_jit
+def live_within(xyz, live, centre, radius):
+    """The entries of ``live`` (indices into xyz (N, 3)) whose points are within ``radius`` of
+    ``centre``, in order (``LandmarkTable.in_range``'s scan of the added landmarks)."""
+    out = np.empty(live.size, np.int64)
+    count = 0
+    r2 = radius * radius
+    for n in range(live.size):
+        i = live[n]
+        d0, d1, d2 = xyz[i, 0] - centre[0], xyz[i, 1] - centre[1], xyz[i, 2] - centre[2]
+        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+            out[count] = i
+            count += 1
+    return out[:count]
+
+
+@_jit
+def augmented_inverse(P, R, t, Rc, tc, K, inverse, z, R_z):
+    """``slam.inverse_observation`` of one measurement z (3,) with range (the depth, or its
+    inverse where ``inverse``) and noise R_z, then ``slam.augmented``: the new landmark's position
+    (3,) and the covariance with it (n + 3, n + 3). Its error is the robot's translation error
+    plus the measurement's (B = [I, 0]): its rows are P's first three, exactly."""
+    fx, fy, cx, cy = K[0], K[1], K[2], K[3]
+    x_over_z, y_over_z = (z[0] - cx) / fx, (z[1] - cy) / fy
+    if inverse:
+        depth = 1.0 / z[2] if z[2] > 0.0 else -1.0
+        d_depth = -depth * depth
+    else:
+        depth, d_depth = z[2], 1.0
+    p_camera = np.array([x_over_z * depth, y_over_z * depth, depth])
+    G = np.zeros((3, 3))
+    G[0, 0], G[0, 2] = depth / fx, x_over_z * d_depth
+    G[1, 1], G[1, 2] = depth / fy, y_over_z * d_depth
+    G[2, 2] = d_depth
+    xyz = t + R @ (tc + Rc @ p_camera)
+    W = R @ Rc @ G
+    N = W @ R_z @ W.T
+    n = P.shape[0]
+    P_new = np.empty((n + 3, n + 3))
+    P_new[:n, :n] = P
+    P_new[n:, :n] = P[0:3, :]
+    P_new[:n, n:] = P[0:3, :].T
+    for i in range(3):
+        for j in range(3):
+            # symmetrize(P_tt + symmetrize(N)), as slam.augmented_many
+            a = P[i, j] + 0.5 * (N[i, j] + N[j, i])
+            b = P[j, i] + 0.5 * (N[j, i] + N[i, j])
+            P_new[n + i, n + j] = 0.5 * (a + b)
+    return xyz, P_new
+
+
+@_jit
+def world_covs(L, P, rows):
+    """``slam.landmark_world_cov`` of the state's landmarks ``rows`` (q,): (q, 3, 3), each
+    ``A P_rows A'`` with A = [-[l]x, I] on the heading's and the landmark's rows."""
+    out = np.empty((rows.size, 3, 3))
+    A = np.zeros((3, 6))
+    index = np.empty(6, np.int64)
+    for n in range(rows.size):
+        i = rows[n]
+        l0, l1, l2 = L[i, 0], L[i, 1], L[i, 2]
+        A[0, 0], A[0, 1], A[0, 2] = 0.0, l2, -l1
+        A[1, 0], A[1, 1], A[1, 2] = -l2, 0.0, l0
+        A[2, 0], A[2, 1], A[2, 2] = l1, -l0, 0.0
+        A[0, 3], A[1, 4], A[2, 5] = 1.0, 1.0, 1.0
+        index[0], index[1], index[2] = 3, 4, 5
+        index[3], index[4], index[5] = 6 + 3 * i, 7 + 3 * i, 8 + 3 * i
+        block = np.empty((6, 6))
+        for a in range(6):
+            for b in range(6):
+                block[a, b] = P[index[a], index[b]]
+        C = A @ block @ A.T
+        out[n] = 0.5 * (C + C.T)
+    return out
+
 class CompiledUpdate:
     """The cameras of a run as the compiled update takes them (arrays indexed by sensor id), and
     the call of ``iterated_update`` from the mapping localizer's arrays; ``usable`` False where a
@@ -366,3 +494,31 @@ class CompiledUpdate:
                                c(cov, float), int(sensor), self.cam_R, self.cam_t, self.cam_K, self.cam_third, float(near),
                                float(far), float(cos_angle), c(z, float), c(R_z, float), c(log_det_R, float), c(gate, float),
                                float(unpaired))
+
+    def predict(self, x, P, T_increment, Q):
+        """``slam.predict`` with the covariance compiled (``predicted_cov``); None where Q has no
+        Cholesky factor (``slam.predict`` then takes the pose, as it does)."""
+        try:
+            C = np.linalg.cholesky(Q)
+        except np.linalg.LinAlgError:
+            return None
+        R_next = x.R @ T_increment[:3, :3]
+        t_next = x.t + x.R @ T_increment[:3, 3]
+        c = np.ascontiguousarray
+        return R_next, t_next, predicted_cov(c(P, float), c(R_next, float), c(t_next, float), c(x.L, float), c(C, float))
+
+    def augmented(self, x, P, sensor, z, R_z):
+        """``augmented_inverse`` of camera model ``sensor`` (its kind: depth or disparity)."""
+        c = np.ascontiguousarray
+        T = sensor.T_robot_camera
+        return augmented_inverse(c(P, float), c(x.R, float), c(x.t, float), c(T[:3, :3], float), c(T[:3, 3], float),
+                                 np.asarray(sensor.intrinsics, float), sensor.kind == measurement.DISPARITY, c(z, float),
+                                 c(R_z, float))
+
+    def world_covs(self, x, P, rows):
+        """``world_covs`` of the state's landmarks ``rows``."""
+        return world_covs(np.ascontiguousarray(x.L, float), np.ascontiguousarray(P, float), np.asarray(rows, np.int64))
+
+    @staticmethod
+    def live_within(xyz, live, centre, radius: float):
+        return live_within(xyz, live, np.ascontiguousarray(centre, float), float(radius))

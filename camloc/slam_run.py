@@ -73,6 +73,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         sigma2 = config.map_sigma ** 2 if config.map == "prior" else 0.0
         self.table = LandmarkTable(ids, xyz, np.tile(sigma2 * np.eye(3), (ids.size, 1, 1)))
         self.mapped_index = PointIndex(xyz) if ids.size else None
+        self.table.scan = self.compiled.live_within if self.compiled is not None else None
         self.state_landmark: list[int] = []  # table index of each landmark in the state
         self.tracks = Tracks(chi2_quantile(3, 1.0 - config.gate), self.min_depth, self.max_depth)
         self.oracle_tracks: dict[int, object] = {}
@@ -110,7 +111,11 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
     def _step(self, k: int) -> None:
         ds = self.dataset
         if k > 0:
-            self.x, self.P = slam.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1])
+            predicted = self.compiled.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1]) if self.compiled else None
+            if predicted is None:
+                self.x, self.P = slam.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1])
+            else:
+                self.x, self.P = slam.SlamMean(predicted[0], predicted[1], self.x.L), predicted[2]
             self.T_odometry = self.T_odometry @ self.T_increments[k - 1]
         obs = self.obs_of_pose[k]
         if self.config.association == "oracle":
@@ -150,11 +155,12 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.state_landmark.extend(landmarks)
 
     def _update(self, k: int, pairs: list[tuple[int, int]]) -> None:
-        entering = [lm for _, lm in pairs if self.table.state_row[lm] < 0 and np.any(self.table.cov[lm])]
+        obs, landmarks = np.array(pairs, np.int64).T
+        # landmarks outside the state held with a covariance (not exactly) enter it
+        outside = landmarks[self.table.state_row[landmarks] < 0]
+        entering = outside[np.any(self.table.cov[outside] != 0.0, axis=(1, 2))].tolist()
         if entering:
             self._enter(entering)
-        obs = np.array([o for o, _ in pairs], np.int64)
-        landmarks = np.array([lm for _, lm in pairs], np.int64)
         rows = self.table.state_row[landmarks]
         ds = self.dataset
         done = None
@@ -165,12 +171,11 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
             except np.linalg.LinAlgError:  # S not positive definite: the numpy update raises the run's error
                 done = None
         if done is not None and done[0]:
-            _, R, t, L, self.P, innovation, S, nis, map_cost = done
+            _, R, t, L, self.P, _, _, nis, map_cost, d2 = done
             self.x = slam.SlamMean(R, t, L)
         else:
             innovation, S, nis, map_cost = self._numpy_update(obs, landmarks, rows)
-        p = obs.size
-        d2, _ = mahalanobis_3x3(S, innovation.reshape(p, 3))
+            d2, _ = mahalanobis_3x3(S, innovation.reshape(obs.size, 3))
         self.chosen[obs], self.mahalanobis[obs] = landmarks, np.sqrt(d2)
         self.table.last_seen[landmarks] = k
         np.add.at(self.table.observations, landmarks, 1)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from camloc import ekf, geometry, measurement, slam
+from camloc.association import mahalanobis_3x3
 from camloc.constants import CONVERGED
 from camloc.sensors import CameraModel
 from camloc.slam_compiled import CompiledUpdate, difference_columns, observe_columns, retract
@@ -88,7 +89,7 @@ def test_compiled_update_equals_the_numpy_update(kinds, iterations):
         reference = _numpy_update(x, P, sensors, sensor, rows, xyz, z, R_z, iterations)
         update = CompiledUpdate(sensors, geometry._SMALL_ANGLE, CONVERGED)
         assert update.usable
-        ok, R, t, L, P_new, innovation, S, nis, cost = update(x.R, x.t, x.L, P, z, R_z, np.linalg.inv(R_z), xyz, rows, sensor,
+        ok, R, t, L, P_new, innovation, S, nis, cost, d2 = update(x.R, x.t, x.L, P, z, R_z, np.linalg.inv(R_z), xyz, rows, sensor,
                                                               iterations)
         assert ok
         p = rows.size
@@ -101,6 +102,7 @@ def test_compiled_update_equals_the_numpy_update(kinds, iterations):
         np.testing.assert_allclose(S, reference.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :], atol=1e-12)
         assert nis == pytest.approx(reference.nis, rel=1e-10)
         assert cost == pytest.approx(reference.map_cost, rel=1e-10)
+        np.testing.assert_allclose(d2, mahalanobis_3x3(S, innovation.reshape(p, 3))[0], rtol=1e-12)
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -218,3 +220,57 @@ def test_a_compiled_mapping_run_equals_the_numpy_run(kind, map_mode):
     np.testing.assert_allclose(compiled_run.landmark_map.xyz, numpy_run.landmark_map.xyz, atol=1e-10)
     np.testing.assert_allclose(compiled_run.landmark_map.cov, numpy_run.landmark_map.cov, atol=1e-10)
     assert compiled_run.summary["map"]["added"] > 0
+
+
+def test_compiled_prediction_equals_the_numpy_one():
+    rng = np.random.default_rng(11)
+    x = _state(rng, 5)
+    A = rng.normal(size=(x.dim, x.dim)) * 0.1
+    P = A @ A.T
+    T = geometry.make_pose(geometry.so3_exp(np.array([0.01, -0.02, 0.1])), np.array([0.3, 0.02, -0.01]))
+    B = rng.normal(size=(6, 6)) * 0.05
+    Q = B @ B.T + 1e-4 * np.eye(6)
+    reference, P_reference = slam.predict(x, P, T, Q)
+    update = CompiledUpdate({0: _camera(measurement.DEPTH)}, geometry._SMALL_ANGLE, CONVERGED)
+    R, t, P_new = update.predict(x, P, T, Q)
+    np.testing.assert_array_equal(R, reference.R)
+    np.testing.assert_array_equal(t, reference.t)
+    np.testing.assert_allclose(P_new, P_reference, rtol=1e-13, atol=1e-15)
+    np.testing.assert_array_equal(P_new, P_new.T)
+    assert update.predict(x, P, T, -Q) is None  # no Cholesky factor: slam.predict's own fallback takes it
+
+
+@pytest.mark.parametrize("kind", [measurement.DEPTH, measurement.DISPARITY])
+def test_compiled_new_landmark_equals_the_inverse_observation_and_augmentation(kind):
+    rng = np.random.default_rng(12)
+    x = _state(rng, 3)
+    A = rng.normal(size=(x.dim, x.dim)) * 0.1
+    P = A @ A.T
+    camera = _camera(kind)
+    z = measurement.project(slam.camera_points(x, camera, (x.t + x.R @ np.array([4.0, 0.5, -0.3]))[None, :]),
+                            camera.intrinsics, kind)[0]
+    R_z = _noise(kind, rng, 1)[0]
+    xyz_ref, B, N = slam.inverse_observation(x, camera, z, R_z)
+    reference, P_reference = slam.augmented(x, P, xyz_ref, B, N)
+    xyz, P_new = CompiledUpdate({0: camera}, geometry._SMALL_ANGLE, CONVERGED).augmented(x, P, camera, z, R_z)
+    np.testing.assert_allclose(xyz, xyz_ref, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(P_new, P_reference, rtol=1e-13, atol=1e-15)
+    np.testing.assert_array_equal(P_new, P_new.T)
+
+
+def test_compiled_world_covariances_and_scan_equal_the_numpy_ones():
+    rng = np.random.default_rng(13)
+    x = _state(rng, 6)
+    A = rng.normal(size=(x.dim, x.dim)) * 0.1
+    P = A @ A.T
+    update = CompiledUpdate({0: _camera(measurement.DEPTH)}, geometry._SMALL_ANGLE, CONVERGED)
+    rows = np.array([4, 0, 5])
+    covs = update.world_covs(x, P, rows)
+    for n, row in enumerate(rows.tolist()):
+        np.testing.assert_allclose(covs[n], slam.landmark_world_cov(x, P, row), rtol=1e-13, atol=1e-15)
+    points = rng.normal(size=(300, 3)) * 5.0
+    live = np.sort(rng.choice(300, 200, replace=False))
+    centre = np.array([1.0, -1.0, 0.5])
+    offset = points[live] - centre
+    np.testing.assert_array_equal(update.live_within(points, live, centre, 4.0),
+                                  live[np.einsum("ij,ij->i", offset, offset) <= 16.0])
