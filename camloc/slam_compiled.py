@@ -284,8 +284,14 @@ def candidate_costs(R, t, L, P, xyz, rows, cov, sensor, cam_R, cam_t, cam_K, cam
     Rc, tc = cam_R[sensor], cam_t[sensor]
     C = xyz.shape[0]
     seen = np.zeros(C, np.bool_)
-    for c in range(C):
-        pc = Rc.T @ (R.T @ (xyz[c] - t) - tc)
+    pc = np.empty(3)
+    for c in range(C):  # in loops: numba's @ of 3-vectors allocates and calls BLAS, per point
+        v0, v1, v2 = xyz[c, 0] - t[0], xyz[c, 1] - t[1], xyz[c, 2] - t[2]
+        r0 = R[0, 0] * v0 + R[1, 0] * v1 + R[2, 0] * v2 - tc[0]
+        r1 = R[0, 1] * v0 + R[1, 1] * v1 + R[2, 1] * v2 - tc[1]
+        r2 = R[0, 2] * v0 + R[1, 2] * v1 + R[2, 2] * v2 - tc[2]
+        for r in range(3):
+            pc[r] = Rc[0, r] * r0 + Rc[1, r] * r1 + Rc[2, r] * r2
         norm = math.sqrt(pc[0] * pc[0] + pc[1] * pc[1] + pc[2] * pc[2])
         seen[c] = pc[2] > near and pc[2] <= far and pc[2] >= cos_angle * norm
     index = np.flatnonzero(seen)
@@ -377,6 +383,31 @@ def predicted_cov(P, R, t, L, C):
             P_new[j, i] = P[j, i] + total
     return P_new
 
+
+
+@_jit
+def predicted(R, t, L, P, T_increment, Q):
+    """``slam.predict``: the estimate (R, t) after the odometry increment and the covariance
+    ``predicted_cov``; raises numpy's LinAlgError where Q has no Cholesky factor."""
+    C = np.linalg.cholesky(Q)
+    R_next = R @ np.ascontiguousarray(T_increment[:3, :3])
+    t_next = t + R @ np.ascontiguousarray(T_increment[:3, 3])
+    return R_next, t_next, predicted_cov(P, R_next, t_next, L, C)
+
+
+@_jit
+def right_cov(R, t, P):
+    """``slam.pose_right_cov``: the pose block as the SE(3) filter's right perturbation's
+    covariance, J P J' symmetrized (J = [[R', -R' [t]x], [0, R']])."""
+    J = np.zeros((6, 6))
+    Rt = np.ascontiguousarray(R.T)
+    lever = np.zeros((3, 3))
+    lever[0, 1], lever[0, 2], lever[1, 0], lever[1, 2], lever[2, 0], lever[2, 1] = -t[2], t[1], t[2], -t[0], -t[1], t[0]
+    J[0:3, 0:3] = Rt
+    J[0:3, 3:6] = -(Rt @ lever)
+    J[3:6, 3:6] = Rt
+    C = J @ np.ascontiguousarray(P[:6, :6]) @ J.T
+    return 0.5 * (C + C.T)
 
 @_jit
 def _lever_into(G, at, v, R):
@@ -496,16 +527,13 @@ class CompiledUpdate:
                                float(unpaired))
 
     def predict(self, x, P, T_increment, Q):
-        """``slam.predict`` with the covariance compiled (``predicted_cov``); None where Q has no
-        Cholesky factor (``slam.predict`` then takes the pose, as it does)."""
+        """``slam.predict`` compiled (``predicted``); None where Q has no Cholesky factor
+        (``slam.predict`` then takes the pose, as it does)."""
+        c = np.ascontiguousarray
         try:
-            C = np.linalg.cholesky(Q)
+            return predicted(c(x.R, float), c(x.t, float), c(x.L, float), c(P, float), c(T_increment, float), c(Q, float))
         except np.linalg.LinAlgError:
             return None
-        R_next = x.R @ T_increment[:3, :3]
-        t_next = x.t + x.R @ T_increment[:3, 3]
-        c = np.ascontiguousarray
-        return R_next, t_next, predicted_cov(c(P, float), c(R_next, float), c(t_next, float), c(x.L, float), c(C, float))
 
     def augmented(self, x, P, sensor, z, R_z):
         """``augmented_inverse`` of camera model ``sensor`` (its kind: depth or disparity)."""
@@ -522,3 +550,7 @@ class CompiledUpdate:
     @staticmethod
     def live_within(xyz, live, centre, radius: float):
         return live_within(xyz, live, np.ascontiguousarray(centre, float), float(radius))
+
+    def pose_right_cov(self, x, P):
+        """``right_cov``: ``slam.pose_right_cov`` compiled."""
+        return right_cov(np.ascontiguousarray(x.R, float), np.ascontiguousarray(x.t, float), P)

@@ -143,7 +143,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         else:
             self._tracked(k, unassigned)
         self._retire(k)
-        self.covs[k] = slam.pose_right_cov(self.x, self.P)
+        self.covs[k] = self.compiled.pose_right_cov(self.x, self.P) if self.compiled else slam.pose_right_cov(self.x, self.P)
         self.poses[k], self.odometry_poses[k] = self.x.pose(), self.T_odometry
 
     def _enter(self, landmarks: list[int]) -> None:

@@ -238,6 +238,8 @@ def test_compiled_prediction_equals_the_numpy_one():
     np.testing.assert_allclose(P_new, P_reference, rtol=1e-13, atol=1e-15)
     np.testing.assert_array_equal(P_new, P_new.T)
     assert update.predict(x, P, T, -Q) is None  # no Cholesky factor: slam.predict's own fallback takes it
+    np.testing.assert_allclose(update.pose_right_cov(reference, P_reference), slam.pose_right_cov(reference, P_reference),
+                               rtol=1e-13, atol=1e-16)
 
 
 @pytest.mark.parametrize("kind", [measurement.DEPTH, measurement.DISPARITY])
