@@ -177,8 +177,7 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     passes = PRIOR_PASSES if beamed and config.map == "prior" else 1
     stages = 2 * passes if beamed else 1
     judged_map, seconds, kept = dataset, 0.0, None
-    # the update compiled as the localizer's loop is: not for a short run (numba's first compile, ~15 s)
-    compiled = hooks["engine"] == "compiled" or (hooks["engine"] == "auto" and dataset.num_poses >= COMPILED_MIN_POSES)
+    compiled = _mapping_compiled(dataset, hooks)
     for n in range(passes):
         given, warnings, beam_run = None, [], given_run
         if beamed:
@@ -209,6 +208,27 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     timing["poses_per_second"] = dataset.num_poses / seconds if seconds > 0 else float("inf")
     result.summary["warnings"] += warnings
     return result
+
+
+def _mapping_compiled(dataset: Dataset, hooks: dict) -> bool:
+    """Whether the mapping pass runs its compiled steps (``camloc.slam_compiled``), as the
+    localizer decides for its loop: not on a short run (``COMPILED_MIN_POSES``), and, where
+    ``camloc run`` asks for a background compile, not while their cache is cold (numpy, which
+    gives the same result, runs then, and a detached process compiles them: ~25 s of CPU)."""
+    engine = hooks["engine"]
+    if engine == "numpy" or (engine == "auto" and dataset.num_poses < COMPILED_MIN_POSES):
+        return False
+    if engine == "compiled" or hooks["on_background_compile"] is None:
+        return True
+    from camloc.slam_compiled import cache_folder, cache_is_warm
+
+    if cache_is_warm():
+        return True
+    state = warmup.start_background_compile(cache_folder(), mapping=True)
+    if state is None:  # it cannot run in the background: in the foreground
+        return True
+    hooks["on_background_compile"](state == warmup.STARTED)
+    return False
 
 
 def _map_moved(dataset: Dataset, estimated, rows: np.ndarray, sigma: float) -> bool:

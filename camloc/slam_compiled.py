@@ -19,6 +19,8 @@ Pure: no I/O.
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from typing import Optional
 
 import numba
 import numpy as np
@@ -31,6 +33,25 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 # A camera's third measurement row: none (a pixel's inert row), the depth, or its inverse.
 THIRD_NONE, THIRD_DEPTH, THIRD_INVERSE = 0, 1, 2
+
+
+def cache_folder() -> Optional[Path]:
+    """Where numba caches these kernels; None where that cannot be told (numba's cache objects
+    are not public API)."""
+    try:
+        return Path(iterated_update._cache._cache_path)
+    except Exception:
+        return None
+
+
+def cache_is_warm() -> bool:
+    """Whether these kernels are in numba's cache (a first compile takes ~25 s of CPU, loading
+    them under a second); True where that cannot be told."""
+    try:
+        kernels = (iterated_update, candidate_costs, predicted, right_cov, augmented_inverse, world_covs, live_within)
+        return all(Path(kernel._cache._cache_file._index_path).exists() for kernel in kernels)
+    except Exception:
+        return True
 
 
 @_jit
