@@ -67,6 +67,16 @@ def jcbb(P: np.ndarray, candidates: list[list[Candidate]], probability: float, m
     landmark once), ties by the lower sum of the pairs' own costs. Every candidate's H P H' block
     against every other's is computed once (``H P H'`` over all of them), so that a node's joint
     test costs what its few pairs do, not the state's size."""
+    with_options = [options for options in candidates if options]
+    if len(with_options) == 1:
+        # one observation with candidates (most poses under an exact map): the search takes its
+        # cheapest (the first of the cheapest: a stable sort's), with no joint test to make
+        return [min(with_options[0], key=lambda c: c.cost)]
+    return jcbb_search(P, candidates, probability, max_nodes)
+
+
+def jcbb_search(P: np.ndarray, candidates: list[list[Candidate]], probability: float, max_nodes: int = 2000) -> list[Candidate]:
+    """``jcbb``'s depth-first search (every case: ``jcbb`` answers a lone observation itself)."""
     order = sorted(range(len(candidates)), key=lambda i: (len(candidates[i]) == 0, len(candidates[i])))
     lists = [sorted(candidates[i], key=lambda c: c.cost) for i in order]
     flat = [c for options in lists for c in options]
