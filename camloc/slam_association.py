@@ -184,7 +184,10 @@ class PoseAssociation:
         if self.sure_view is None or self.mapped_index is None:
             return
         nearby = self.mapped_index.within(self.x.t, self.sure_view[1] + 1.0)
-        in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
+        if self.compiled is not None:
+            in_view = self.compiled.surely_in_view(self.x, self.table.xyz[nearby], self.sure_view)
+        else:
+            in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
         missed = nearby[in_view & (self.beam_paired_at[nearby] != k)]
         self.beam_missed[missed] += 1
 

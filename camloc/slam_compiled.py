@@ -514,6 +514,29 @@ def world_covs(L, P, rows):
         out[n] = 0.5 * (C + C.T)
     return out
 
+
+@_jit
+def in_sure_view(R, t, xyz, cam_R, cam_t, near, far, cos_angle):
+    """``slam_landmarks.surely_in_view``: which points xyz (M, 3) some camera sees from (R, t)
+    within distances [near, far] and the angle whose cosine is ``cos_angle``."""
+    out = np.zeros(xyz.shape[0], np.bool_)
+    for c in range(xyz.shape[0]):
+        v0, v1, v2 = xyz[c, 0] - t[0], xyz[c, 1] - t[1], xyz[c, 2] - t[2]
+        r0 = R[0, 0] * v0 + R[1, 0] * v1 + R[2, 0] * v2
+        r1 = R[0, 1] * v0 + R[1, 1] * v1 + R[2, 1] * v2
+        r2 = R[0, 2] * v0 + R[1, 2] * v1 + R[2, 2] * v2
+        for s in range(cam_R.shape[0]):
+            Rc, tc = cam_R[s], cam_t[s]
+            q0, q1, q2 = r0 - tc[0], r1 - tc[1], r2 - tc[2]
+            p0 = Rc[0, 0] * q0 + Rc[1, 0] * q1 + Rc[2, 0] * q2
+            p1 = Rc[0, 1] * q0 + Rc[1, 1] * q1 + Rc[2, 1] * q2
+            p2 = Rc[0, 2] * q0 + Rc[1, 2] * q1 + Rc[2, 2] * q2
+            distance = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+            if distance >= near and distance <= far and p2 >= cos_angle * distance:
+                out[c] = True
+                break
+    return out
+
 class CompiledUpdate:
     """The cameras of a run as the compiled update takes them (arrays indexed by sensor id), and
     the call of ``iterated_update`` from the mapping localizer's arrays; ``usable`` False where a
@@ -575,3 +598,9 @@ class CompiledUpdate:
     def pose_right_cov(self, x, P):
         """``right_cov``: ``slam.pose_right_cov`` compiled."""
         return right_cov(np.ascontiguousarray(x.R, float), np.ascontiguousarray(x.t, float), P)
+
+    def surely_in_view(self, x, xyz, view):
+        """``in_sure_view`` of every camera (``view``: ``slam_landmarks.sure_view``'s)."""
+        near, far, angle = view
+        return in_sure_view(np.ascontiguousarray(x.R, float), np.ascontiguousarray(x.t, float), np.ascontiguousarray(xyz, float),
+                            self.cam_R, self.cam_t, float(near), float(far), float(np.cos(angle)))

@@ -220,7 +220,10 @@ class LandmarkAdditions:
         rows = np.flatnonzero(table.tentative[landmarks] & unseen)
         if rows.size == 0:
             return
-        in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
+        if self.compiled is not None:
+            in_view = self.compiled.surely_in_view(self.x, self.x.L[rows], self.sure_view)
+        else:
+            in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
         table.score[landmarks[rows[in_view]]] += np.log(1.0 - DETECTION_PROBABILITY)
 
     def _unexplained(self, obs: list[int]) -> list[int]:

@@ -276,3 +276,18 @@ def test_compiled_world_covariances_and_scan_equal_the_numpy_ones():
     offset = points[live] - centre
     np.testing.assert_array_equal(update.live_within(points, live, centre, 4.0),
                                   live[np.einsum("ij,ij->i", offset, offset) <= 16.0])
+
+
+def test_compiled_sure_view_equals_the_numpy_one():
+    from camloc.slam_landmarks import surely_in_view
+
+    rng = np.random.default_rng(15)
+    x = _state(rng, 1)
+    sensors = {0: _camera(measurement.DEPTH, 0), 1: _camera(measurement.PIXEL, 1)}
+    sensors[1] = CameraModel(np.linalg.inv(sensors[1].T_robot_camera), sensors[1].intrinsics, measurement.PIXEL, 1)
+    xyz = x.t + rng.normal(size=(400, 3)) * 6.0
+    view = (1.0, 8.0, 0.6)
+    expected = surely_in_view(x, sensors, xyz, view)
+    assert 20 < np.count_nonzero(expected) < 380
+    update = CompiledUpdate(sensors, geometry._SMALL_ANGLE, CONVERGED)
+    np.testing.assert_array_equal(update.surely_in_view(x, xyz, view), expected)
