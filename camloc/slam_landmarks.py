@@ -172,7 +172,8 @@ class LandmarkAdditions:
             table.drop(landmarks[gone])
             # their pairs: among the observations from the first of theirs to this pose's (not the whole run's)
             since = self.obs_order[self.obs_bounds[int(table.born[landmarks[gone]].min())]:self.obs_bounds[k + 1]]
-            self.chosen[since[np.isin(self.chosen[since], landmarks[gone])]] = -1
+            # (a comparison with the few dropped, not np.isin: its set-up cost more than this search)
+            self.chosen[since[(self.chosen[since][:, None] == landmarks[gone][None, :]).any(axis=1)]] = -1
             drop |= gone
         if not np.any(drop):
             return
