@@ -71,7 +71,9 @@ def localize(
         or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
         loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
         dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
-        which ran.
+        which ran. The mapping pass (``config.map`` prior or none, or a map lacking landmarks)
+        follows it: its steps compiled (``camloc.slam_compiled``, "compiled update") or in numpy,
+        their reference (``_mapping_compiled``).
     on_compile : called once before the compiled loop starts when its kernels are not yet in
         numba's cache (the first run after an install compiles them: a minute or two).
     on_background_compile : given, a run that "auto" would give to the compiled loop while its
@@ -86,7 +88,7 @@ def localize(
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
     hooks = dict(parallel=parallel, engine=engine, on_compile=on_compile, on_background_compile=on_background_compile)
-    if config.map != "exact":  # landmarks in the state: the mapping localizer (numpy)
+    if config.map != "exact":  # landmarks in the state: the mapping localizer
         return _localize_mapping(dataset, config, on_progress, hooks)
     result = _localize_exact(dataset, config, on_progress, **hooks)
     if _mappable(dataset) and config.association != "oracle":

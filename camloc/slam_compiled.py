@@ -1,17 +1,24 @@
-"""The mapping localizer's iterated update compiled (numba): the same arithmetic as
-``ekf.update`` over ``slam.observe_columns``, ``slam.retract`` and ``slam.difference`` with
-``ekf.ColumnGain`` (``camloc.slam_run``'s ``_update``), in one call a pose.
+"""The mapping localizer's per-pose arithmetic compiled (numba), each step one call a pose from
+``camloc.slam_run``'s Python loop: the prediction (``predicted``: ``slam.predict``), the iterated
+update (``iterated_update``: ``ekf.update`` over ``slam.observe_columns``, ``slam.retract`` and
+``slam.difference`` with ``ekf.ColumnGain``), the association's candidates and costs
+(``candidate_costs``: ``PoseAssociation.landmark_costs``), a new landmark's entry
+(``augmented_inverse``: ``slam.inverse_observation`` and ``slam.augmented``), retiring landmarks'
+world covariances (``world_covs``), the pose's right covariance (``right_cov``) and the scans of
+the added landmarks and of what is surely in view (``live_within``, ``in_sure_view``).
 
-Why: the state is small (the pose and some 10-40 landmarks), so the numpy update's cost was its
-~500 numpy calls a pose (3 linearizations and the MAP cost's, each an observation model, a gain
-and a retraction), not its arithmetic; compiled, a pose's update costs microseconds. The numpy
-update stays the reference: ``tests/test_slam_compiled.py`` compares the two on depth, pixel and
-disparity cameras, and this module's Jacobian with finite differences.
+Why: the state is small (the pose and some 10-80 landmarks under an exact map), so the numpy
+steps' cost was their ~1,400 numpy calls a pose, not their arithmetic. The numpy steps stay the
+reference (``engine="numpy"``, and runs under 300 poses): ``tests/test_slam_compiled.py`` compares
+each with its twin on depth, pixel and disparity cameras and whole runs, and the Jacobian with
+finite differences. Small products are written as loops: numba's ``@`` of 3x3 matrices and
+3-vectors allocates and calls BLAS each time.
 
 Not in ``camloc/kernels``: that folder's sources decide when the localizer's kernels are compiled
 again (``kernels.stale_cache``), and these compile only where mapping runs (``cache=True``: once,
-beside this file). The functions read nothing but their arguments (no module constant is compiled
-in): a camera's measurement kind arrives as its third row's form (``THIRD_*``, set in Python).
+beside this file; about 22 s of CPU, ``camloc.warmup.compile_mapping_kernels``). The functions read
+nothing but their arguments (no module constant is compiled in): a camera's measurement kind
+arrives as its third row's form (``THIRD_*``, set in Python).
 
 Pure: no I/O.
 """
