@@ -387,40 +387,24 @@ def pair_cost(S, extra, R_z, y, log_det_R, gate, unpaired):
 
 
 @_jit
-def predicted_cov(P, R, t, L, C):
-    """``slam.predict``'s covariance ``P + W W'``, W = G C (G: ``slam.noise_coefficients`` of the
-    predicted estimate (R, t, L), C: the Cholesky factor of the increment's noise), each entry of
-    W W' computed once for both triangles: exactly symmetric, as numpy's symmetric product is."""
-    n = P.shape[0]
-    G = np.zeros((n, 6))
-    for r in range(3):
-        for c in range(3):
-            G[r, c] = R[r, c]
-            G[3 + r, 3 + c] = R[r, c]
-    _lever_into(G, 0, t, R)
-    for i in range(L.shape[0]):
-        _lever_into(G, 6 + 3 * i, L[i], R)
-    W = G @ C
-    P_new = np.empty((n, n))
-    for i in range(n):
-        for j in range(i, n):
-            total = 0.0
-            for k in range(6):
-                total += W[i, k] * W[j, k]
-            P_new[i, j] = P[i, j] + total
-            P_new[j, i] = P[j, i] + total
-    return P_new
-
-
-
-@_jit
-def predicted(R, t, L, P, T_increment, Q):
-    """``slam.predict``: the estimate (R, t) after the odometry increment and the covariance
-    ``predicted_cov``; raises numpy's LinAlgError where Q has no Cholesky factor."""
+def predicted(R, t, L, T_increment, Q):
+    """``slam.predict``'s estimate (R, t) after the odometry increment and W = G chol(Q) (n, 6),
+    G its noise coefficients (``slam.noise_coefficients``); raises numpy's LinAlgError where Q
+    has no Cholesky factor. ``P + W W'`` is numpy's (``CompiledUpdate.predict``): its symmetric
+    product beat numba's here from n ~ 300 on (a prior's state)."""
     C = np.linalg.cholesky(Q)
     R_next = R @ np.ascontiguousarray(T_increment[:3, :3])
     t_next = t + R @ np.ascontiguousarray(T_increment[:3, 3])
-    return R_next, t_next, predicted_cov(P, R_next, t_next, L, C)
+    n = 6 + 3 * L.shape[0]
+    G = np.zeros((n, 6))
+    for r in range(3):
+        for c in range(3):
+            G[r, c] = R_next[r, c]
+            G[3 + r, 3 + c] = R_next[r, c]
+    _lever_into(G, 0, t_next, R_next)
+    for i in range(L.shape[0]):
+        _lever_into(G, 6 + 3 * i, L[i], R_next)
+    return R_next, t_next, G @ C
 
 
 @_jit
@@ -436,6 +420,7 @@ def right_cov(R, t, P):
     J[3:6, 3:6] = Rt
     C = J @ np.ascontiguousarray(P[:6, :6]) @ J.T
     return 0.5 * (C + C.T)
+
 
 @_jit
 def _lever_into(G, at, v, R):
@@ -578,13 +563,15 @@ class CompiledUpdate:
                                float(unpaired))
 
     def predict(self, x, P, T_increment, Q):
-        """``slam.predict`` compiled (``predicted``); None where Q has no Cholesky factor
+        """``slam.predict`` with its estimate and noise coefficients compiled (``predicted``) and
+        ``P + W W'`` numpy's symmetric product, as there; None where Q has no Cholesky factor
         (``slam.predict`` then takes the pose, as it does)."""
         c = np.ascontiguousarray
         try:
-            return predicted(c(x.R, float), c(x.t, float), c(x.L, float), c(P, float), c(T_increment, float), c(Q, float))
+            R, t, W = predicted(c(x.R, float), c(x.t, float), c(x.L, float), c(T_increment, float), c(Q, float))
         except np.linalg.LinAlgError:
             return None
+        return R, t, P + W @ W.T
 
     def augmented(self, x, P, sensor, z, R_z):
         """``augmented_inverse`` of camera model ``sensor`` (its kind: depth or disparity)."""
