@@ -28,9 +28,9 @@ import math
 import numpy as np
 
 from camloc.constants import CONVERGED
-from camloc.kernels._jit import entry, jit
+from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
-from camloc.kernels.planar import wrapped_residual
+from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
@@ -97,7 +97,15 @@ def stacked_quadratic(L, y, scratch):
 def innovation_system_into(P, H, R, PHt, S):
     """P H' (n, 3p) and S = H P H' + R (3p, 3p) of pairs with Jacobians H (p, 3, n) and noise R
     (p, 3, 3), S symmetric."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``innovation_system_of_size``
+        innovation_system_of_size(P, H, R, PHt, S, 6)
+    else:
+        innovation_system_of_size(P, H, R, PHt, S, SE2_DIM)
+
+
+@inlined
+def innovation_system_of_size(P, H, R, PHt, S, n):
+    """``innovation_system_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     p = H.shape[0]
     m = 3 * p
     for c in range(n):
@@ -135,7 +143,15 @@ def gain_into(P, H, R, PHt, S, L, K):
 def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
     """Joseph form (I - K H) P (I - K H)' + K R K' into out (n, n), its upper triangle mirrored;
     H (p, 3, n) stacked as K's columns; I_KH and scratch (n, n)."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``covariance_posterior_of_size``
+        covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, 6)
+    else:
+        covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, SE2_DIM)
+
+
+@inlined
+def covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, n):
+    """``covariance_posterior_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     p = H.shape[0]
     for c in range(n):
         for d in range(n):
@@ -168,7 +184,15 @@ def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
     """Of pairs with Jacobians H (p, 3, n) and noise information R_inverse (p, 3, 3): R^-1 H
     (p, 3, n), Lambda (n, n), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
     A P = (I + P Lambda)^-1 P (n, n), symmetrized."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``information_of_size``
+        information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, 6)
+    else:
+        information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, SE2_DIM)
+
+
+@inlined
+def information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, n):
+    """``information_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     p = H.shape[0]
     for c in range(n):
         for d in range(n):
@@ -256,7 +280,15 @@ def gain_step_into(K, y, step):
 def posterior_covariance_into(P, information, M, pivots, out, scratch):
     """A (P + P Lambda P) A' into out (n, n), symmetric positive definite by construction; I + P
     Lambda factored into (M, pivots); scratch (n, n)."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``posterior_covariance_of_size``
+        posterior_covariance_of_size(P, information, M, pivots, out, scratch, 6)
+    else:
+        posterior_covariance_of_size(P, information, M, pivots, out, scratch, SE2_DIM)
+
+
+@inlined
+def posterior_covariance_of_size(P, information, M, pivots, out, scratch, n):
+    """``posterior_covariance_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     for c in range(n):                                              # P Lambda
         for d in range(n):
             s = 0.0
