@@ -244,8 +244,9 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= gate else np.inf, point
             for a in range(3):
                 zh[n, a] = z_hat[q, a]
-                for b in range(dim):
-                    Hs[n, a, b] = H[q, a, b]
+                for b in range(6):              # unrolled, the smaller state's columns skipped (``same_state``)
+                    if b < dim:
+                        Hs[n, a, b] = H[q, a, b]
             n += 1
         start[r + 1] = n
     return start, lm[:n], cost[:n], zh[:n], Hs[:n], ys[:n], Hcs[:n], in_point[:n]
@@ -430,8 +431,9 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
         point = in_point[j]
         for a in range(3):
             z_hat[t, a], y[t, a] = zh[j, a], ys[j, a]
-            for b in range(dim):
-                H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
+            for b in range(6):                  # unrolled, the smaller state's columns skipped (``same_state``)
+                if b < dim:
+                    H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
             for b in range(3):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
@@ -464,10 +466,14 @@ def branch_order(scene, obs, pending, start, cost):
 @inlined
 def same_state(gen, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
-    every axis (the cheaper is kept)."""
+    every axis (the cheaper is kept). Its loop counts to the larger state's size, the smaller's
+    entries skipped: a loop to a size read when it runs is a cycle, across which numba does not
+    prune the references counted to the arrays an inlined step is passed (``sym3.spread``), and
+    this runs for every pair of partial explanations compared."""
     d = difference(gen[0][a], gen[0][b])
-    for i in range(d.size):
-        if d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
+    n = d.size
+    for i in range(6):
+        if i < n and d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
             return False
     return True
 
@@ -738,8 +744,9 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children
         pending[0][at], pending[1][at], pending[2][at] = p, o, landmarks[j]
         for a in range(3):
             pending[3][at, a] = z_hat[j, a]
-            for b in range(H.shape[2]):
-                pending[4][at, a, b] = H[j, a, b]
+            for b in range(6):                  # unrolled, the smaller state's columns skipped (``same_state``)
+                if b < H.shape[2]:
+                    pending[4][at, a, b] = H[j, a, b]
         pending[5][at] = True
         at += 1
     return at
