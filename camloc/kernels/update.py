@@ -235,8 +235,9 @@ def gradient_into(R_inverse_H, y, g):
         g[c] = 0.0
     for i in range(y.shape[0]):
         for a in range(3):
-            for c in range(n):
-                g[c] += R_inverse_H[i, a, c] * y[i, a]
+            for c in range(6):            # unrolled, the smaller state's entries skipped (``information_into``)
+                if c < n:
+                    g[c] += R_inverse_H[i, a, c] * y[i, a]
 
 
 @jit
@@ -257,8 +258,9 @@ def plain_step_into(AP, g, step):
     total = 0.0
     for c in range(n):
         s = 0.0
-        for d in range(n):
-            s += AP[c, d] * g[d]
+        for d in range(6):                # unrolled, the smaller state's entries skipped (``information_into``)
+            if d < n:
+                s += AP[c, d] * g[d]
         step[c] = s
         total += g[c] * s
     return total
@@ -423,8 +425,9 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
             for a in range(3):
                 s = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
-                for b in range(n):
-                    s += H_i[i, a, b] * moved[b]
+                for b in range(6):                                   # unrolled, the smaller state's columns skipped
+                    if b < n:
+                        s += H_i[i, a, b] * moved[b]
                 r[i, a] = s
         if few:
             gain_into(P, H_i, R, PHt, S, L, K)
