@@ -39,7 +39,8 @@ SEGMENT_POSES = 256
 
 
 def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None, *, initial_x, initial_P,
-                 concurrent: bool = False, filter_ready: Optional[Callable[[], None]] = None, view_range=None):
+                 concurrent: bool = False, filter_ready: Optional[Callable[[], None]] = None, view_range=None,
+                 null_cost_offset: float = 0.0):
     """Localize every pose of ``dataset``; returns the arrays ``camloc.localizer`` assembles into
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
     observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices, association
@@ -47,8 +48,9 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     ``concurrent``: with the beam, filter the settled poses in a second thread (same result).
     ``filter_ready``: with the beam, called once before the filter's first stretch (a first
     compile waits there for the process compiling the filter's kernels: ``camloc.warmup``).
-    ``view_range``: ``observation_space.candidate_range`` of the run, when the caller has it."""
-    scene = build_scene(dataset, config, view_range)
+    ``view_range``: ``observation_space.candidate_range`` of the run, when the caller has it;
+    ``null_cost_offset``: ``observation_space.observation_noise``'s."""
+    scene = build_scene(dataset, config, view_range, null_cost_offset)
     settings = build_settings(config)
     n = dataset.num_poses
     if config.association == "beam":

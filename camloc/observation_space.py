@@ -125,9 +125,10 @@ def landmark_rows(landmark_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return np.where(found, order[at] if sorted_ids.size else -1, -1).astype(np.int64)
 
 
-def observation_noise(dataset: Dataset, config) -> ObservationNoise:
+def observation_noise(dataset: Dataset, config, null_cost_offset: float = 0.0) -> ObservationNoise:
     """The ``ObservationNoise`` of ``dataset``'s observations under ``config`` (its ``null_cost``,
-    or clutter uniform over the measured volume where that is None). An observation whose sensor
+    or clutter uniform over the measured volume where that is None), the null cost lowered by
+    ``null_cost_offset`` (``localizer.LACKING_NULL_OFFSET``: a map that lacks landmarks). An observation whose sensor
     measures no range (a pixel: a ray) has no point: its point and point covariance are zeros
     (a singular spread, which fits nothing; its pair is judged in its own coordinates), as is a
     disparity's (``measurement.judged_as_point``)."""
@@ -145,6 +146,7 @@ def observation_noise(dataset: Dataset, config) -> ObservationNoise:
         null_cost = clutter_null_cost(dataset.obs_z, cov, log_det, dataset.obs_camera, dataset.obs_kind)
     else:
         null_cost = np.full(K, float(config.null_cost))
+    null_cost = null_cost - null_cost_offset
     ranged = measurement.judged_as_point(dataset.obs_kind)
     log_det_point_cov = np.zeros(K)
     if ranged.any():

@@ -59,7 +59,7 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
                 replay_gone = True
 
         try:
-            send((localizer.dataset, localizer.config))
+            send((localizer.dataset, localizer.config, localizer.null_cost_offset))
             localizer.search_beam(on_pose, on_decided=lambda first, chosen, slipped: send((first, chosen, slipped)))
             send(None)  # no more poses
             try:
@@ -113,12 +113,12 @@ _replay(sys.stdin.buffer, sys.stdout.buffer, _Localizer)
 
 def _replay(incoming, outgoing, make_localizer) -> None:
     """The second process: filter each batch of decided poses as it arrives, with the localizer
-    ``make_localizer(dataset, config)`` builds (``camloc.localizer._Localizer``, named by the
+    ``make_localizer(dataset, config, null_cost_offset)`` builds (``camloc.localizer._Localizer``, named by the
     worker's script: this module imports nothing of the localizer that imports it); send back the
     state."""
     try:
-        dataset, config = pickle.load(incoming)
-        localizer = make_localizer(dataset, config)
+        dataset, config, null_cost_offset = pickle.load(incoming)
+        localizer = make_localizer(dataset, config, null_cost_offset)
         n = dataset.num_poses
         localizer.beam_pairs = [np.zeros((0, 2), np.int64)] * n
         localizer.beam_slipped = np.zeros(n, dtype=bool)

@@ -19,10 +19,11 @@ from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
 from camloc.kernels.types import SceneArrays, Settings
 from camloc.tails import chi2_quantile
 
-def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float] | None = None) -> SceneArrays:
+def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float] | None = None,
+                null_cost_offset: float = 0.0) -> SceneArrays:
     """The run's fixed arrays for ``dataset`` under ``config`` (a ``LocalizerConfig``);
     ``view_range``: its ``candidate_range``, when the caller has it (a pixel-only file's estimate
-    of it builds a k-d tree of the map)."""
+    of it builds a k-d tree of the map); ``null_cost_offset``: ``observation_noise``'s."""
     from camloc.kernels.view import build_grid, view_cone_ball  # numba: imported where the compiled loop runs
 
     # numba's start in a fresh process (its registries, then a first kernel: about 0.5 s) goes on in
@@ -37,7 +38,7 @@ def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float]
     sensors, obs_camera = sensors_of(dataset)
     cameras = [sensors[i] for i in range(len(sensors))]
     camera_K = np.array([(*c.intrinsics, float(c.kind)) for c in cameras], dtype=float).reshape(-1, 5)
-    noise = observation_noise(dataset, config)
+    noise = observation_noise(dataset, config, null_cost_offset)
     true_index = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
     pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
     pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)

@@ -75,7 +75,7 @@ def test_replay_process_protocol_filters_the_batches_it_is_sent():
     localizer = _Localizer(dataset, config)
     localizer.search_beam()
     chosen, slipped = localizer.beam_pairs, localizer.beam_slipped
-    status, payload = _replay_answer([(dataset, config), (0, chosen[:25], slipped[:25]), (25, chosen[25:], slipped[25:]), None])
+    status, payload = _replay_answer([(dataset, config, 0.0), (0, chosen[:25], slipped[:25]), (25, chosen[25:], slipped[25:]), None])
     assert status == "ok"
     sequential = localize(dataset, config, parallel=False)
     np.testing.assert_array_equal(payload["states"], sequential.filter_state)
@@ -85,7 +85,7 @@ def test_replay_process_protocol_filters_the_batches_it_is_sent():
 def test_replay_process_reports_an_error_instead_of_dying_silently():
     dataset = simulate(SimulationConfig(trajectory="grid", poses=20), seed=3)
     bad_pairs = [np.array([[0, 10**9]])] * dataset.num_poses  # a landmark index beyond the map
-    status, error = _replay_answer([(dataset, LocalizerConfig()), (0, bad_pairs, np.zeros(dataset.num_poses, bool)), None])
+    status, error = _replay_answer([(dataset, LocalizerConfig(), 0.0), (0, bad_pairs, np.zeros(dataset.num_poses, bool)), None])
     assert status == "error" and isinstance(error, IndexError)
 
 
