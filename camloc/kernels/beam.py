@@ -271,7 +271,7 @@ def predict_candidates(R, E, t, R_rc, t_rc, K, landmarks, pool, z_hat, H, at, d_
     R_rc, t_rc, intrinsics K) from the robot at (R, E, t) (``camera.robot_frame``). The sensor's
     kind and the state's size pick the loop, not each step of one loop: a branch inside the loop
     left the arrays each step is passed counted once more per candidate (numba's reference-count
-    pruning gives up on it), 2.5 times the beam's reference counts of before the planar kernels."""
+    pruning gives up on it): 3.3 times ``condition_into``'s reference counts of before the planar kernels."""
     if K[4] == POINT2 or K[4] == MARKER:         # a planar robot's own sensor (``camera.observe_into``)
         for q in range(pool.size):
             planar_observe_into(R, t, landmarks, pool[q], K[4], z_hat, H, at + q)
