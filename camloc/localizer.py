@@ -92,7 +92,7 @@ def localize(
     if _mappable(dataset) and config.association != "oracle":
         # in every mode, landmarks the map lacks are added: where the rejected observations agree
         # on places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
-        places = _lacking_places(dataset, result)
+        places = _lacking_places(dataset, result, config)
         if places:
             if config.association == "beam":
                 result = _lacking_map_beam(dataset, config, on_progress, hooks, result)
@@ -115,13 +115,19 @@ def localize(
 LACKING_NULL_OFFSET = 4.0
 
 
-def _lacking_places(dataset: Dataset, run: RunResult) -> int:
+# Under a prior, a rejected observation within this many map sigmas of a mapped landmark (more than
+# the screening's own radius) may be of that landmark, moved: not a landmark the map lacks.
+PRIOR_REACH_SIGMAS = 3.0
+
+
+def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -> int:
     """How many places the map lacks a landmark at, by ``run``'s rejected observations
     (``slam_landmarks.lacking_landmarks``)."""
     from camloc.slam_landmarks import lacking_landmarks
 
     T = geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw)
-    return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED)
+    reach = PRIOR_REACH_SIGMAS * config.map_sigma if config.map == "prior" else 0.0
+    return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED, reach)
 
 
 def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult) -> RunResult:
@@ -215,7 +221,7 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             judged = with_map_uncertainty(judged_map, config.map_sigma) if config.map == "prior" else judged_map
             beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
                                        null_cost_offset=offset, **hooks)
-            if n == 0 and _lacking_places(dataset, beam_run):  # the map lacks landmarks: as under exact
+            if n == 0 and _lacking_places(dataset, beam_run, config):  # the map lacks landmarks: as under exact
                 offset = LACKING_NULL_OFFSET
                 beam_run = _lacking_map_beam(judged, config, _stage(on_progress, 2 * n, stages), hooks, beam_run)
         if beam_run is not None:
