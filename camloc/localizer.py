@@ -108,10 +108,9 @@ def localize(
 # observation as rare clutter spread over all the camera measures; a map that lacks landmarks
 # makes them common and near the mapped ones (the same places hold landmarks), and the beam, to
 # explain them, pairs them with mapped neighbours and loses the robot where it sees few landmarks.
-# Measured (docs/performance.md, "A map that lacks landmarks: the beam again"), 300-pose depth worlds,
-# grid/smooth3d/aerial x seeds 0-3: half withheld, 4 worlds lost (RMSE 0.38-4.3 m against the
-# true association's 0.13-0.28) -> 1 (0.52 m); a fifth withheld, aerial 0 0.35 -> 0.10 m; the rest
-# within 0.02 m. 2 lost more than it saved, 6 lost other worlds.
+# Measured (docs/performance.md, "A map that lacks landmarks: the beam decides its pairs again"):
+# 300-pose depth worlds, grid/smooth3d/aerial x seeds 0-3, half withheld: runs over 3x the complete
+# map's 5 of 12 -> 1 under exact; an offset of 2 lost another (aerial 2: 12 m), 6 cost the grid ones (grid 1: 0.34 m).
 LACKING_NULL_OFFSET = 4.0
 
 
