@@ -94,7 +94,7 @@ def localize(
     if _mappable(dataset) and config.association != "oracle":
         # in every mode, landmarks the map lacks are added: where the rejected observations agree
         # on places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
-        places = _lacking_places(dataset, result)
+        places = _lacking_places(dataset, result, config)
         if places:
             if config.association == "beam":
                 result = _lacking_map_beam(dataset, config, on_progress, hooks, result)
@@ -110,20 +110,25 @@ def localize(
 # observation as rare clutter spread over all the camera measures; a map that lacks landmarks
 # makes them common and near the mapped ones (the same places hold landmarks), and the beam, to
 # explain them, pairs them with mapped neighbours and loses the robot where it sees few landmarks.
-# Measured (docs/performance.md, "A map that lacks landmarks: the beam again"), 300-pose depth worlds,
-# grid/smooth3d/aerial x seeds 0-3: half withheld, 4 worlds lost (RMSE 0.38-4.3 m against the
-# true association's 0.13-0.28) -> 1 (0.52 m); a fifth withheld, aerial 0 0.35 -> 0.10 m; the rest
-# within 0.02 m. 2 lost more than it saved, 6 lost other worlds.
+# Measured (docs/performance.md, "A map that lacks landmarks: the beam decides its pairs again"):
+# 300-pose depth worlds, grid/smooth3d/aerial x seeds 0-3, half withheld: runs over 3x the complete
+# map's 5 of 12 -> 1 under exact; an offset of 2 lost another (aerial 2: 12 m), 6 cost the grid ones (grid 1: 0.34 m).
 LACKING_NULL_OFFSET = 4.0
 
 
-def _lacking_places(dataset: Dataset, run: RunResult) -> int:
+# Under a prior, a rejected observation within this many map sigmas of a mapped landmark (more than
+# the screening's own radius) may be of that landmark, moved: not a landmark the map lacks.
+PRIOR_REACH_SIGMAS = 3.0
+
+
+def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -> int:
     """How many places the map lacks a landmark at, by ``run``'s rejected observations
     (``slam_landmarks.lacking_landmarks``)."""
     from camloc.slam_landmarks import lacking_landmarks
 
     T = geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw)
-    return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED)
+    reach = PRIOR_REACH_SIGMAS * config.map_sigma if config.map == "prior" else 0.0
+    return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED, reach)
 
 
 def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult) -> RunResult:
@@ -218,7 +223,7 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             judged = with_map_uncertainty(judged_map, config.map_sigma) if config.map == "prior" else judged_map
             beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
                                        null_cost_offset=offset, **hooks)
-            if n == 0 and _lacking_places(dataset, beam_run):  # the map lacks landmarks: as under exact
+            if n == 0 and _lacking_places(dataset, beam_run, config):  # the map lacks landmarks: as under exact
                 offset = LACKING_NULL_OFFSET
                 beam_run = _lacking_map_beam(judged, config, _stage(on_progress, 2 * n, stages), hooks, beam_run)
         if beam_run is not None:

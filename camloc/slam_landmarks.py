@@ -387,13 +387,16 @@ SCREEN_POSES = 3
 SCREEN_SIGMAS = 3.0
 
 
-def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray) -> int:
+def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray,
+                      map_reach: float = 0.0) -> int:
     """How many places away from every mapped landmark the run's rejected observations
     (``rejected`` (K,) bool) point at from ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
     see, almost never agrees with itself three times). Each observation with range becomes a world
     point through its pose's estimate (N, 4, 4); they agree within ``SCREEN_SIGMAS`` of the spread
-    of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world). Rays (pixels)
-    are not screened."""
+    of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world), and away
+    from every mapped landmark by that and ``map_reach`` more (how far a mapped landmark may be from
+    its map position: under a prior, a moved landmark's rejected observations are not a landmark
+    the map lacks). Rays (pixels) are not screened."""
     from camloc.association import PointIndex  # a scan below a few thousand points: no scipy for a small run
     from camloc.sensors import sensors_of
 
@@ -420,7 +423,7 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
     obs, points = obs[sure], points[sure]
     if dataset.landmark_ids.size:  # a rejected observation near a mapped landmark is one the run missed, not one the map lacks
         landmarks = PointIndex(dataset.landmark_xyz)
-        lone = np.array([landmarks.within(p, radius).size == 0 for p in points], dtype=bool)
+        lone = np.array([landmarks.within(p, radius + map_reach).size == 0 for p in points], dtype=bool)
         obs, points = obs[lone], points[lone]
         if obs.size < SCREEN_POSES:
             return 0

@@ -415,3 +415,30 @@ def test_half_a_map_withheld_no_longer_loses_the_robot_where_it_sees_few_landmar
         assert result.summary["map"]["added"] > 0
         lost += _position_rmse(result, world) > 2.0 * _position_rmse(oracle, world)
     assert lost <= 1
+
+
+def test_the_screening_counts_a_moved_landmark_as_lacking_only_beyond_the_map_reach():
+    """Observations of one landmark, rejected from many poses, agree on a place: a landmark the
+    map lacks where no mapped landmark is near. Written 0.3 m off in the map instead, it is
+    lacking for an exact map (nothing within the screening's radius) and not under a prior whose
+    reach (3 sigma of 0.1 m) covers it."""
+    from camloc.slam_landmarks import lacking_landmarks
+
+    dataset = _world(seed=2).dataset
+    seen = _most_seen(dataset, count=len(dataset.landmark_ids))
+    xyz_of = lambda i: dataset.landmark_xyz[dataset.landmark_ids == i][0]  # noqa: E731
+    nearest = [np.sort(np.linalg.norm(dataset.landmark_xyz - xyz_of(i), axis=1))[1] for i in seen[:40]]
+    target = seen[int(np.argmax(np.array(nearest) > 1.0))]  # a well seen landmark with no other within 1 m
+    assert np.max(nearest) > 1.0
+    rejected = dataset.obs_true_landmark == target
+    T, pose_cov = dataset.T_world_truth, np.tile(1e-6 * np.eye(6), (dataset.num_poses, 1, 1))
+    keep = dataset.landmark_ids != target
+    withheld = replace(dataset, landmark_ids=dataset.landmark_ids[keep], landmark_xyz=dataset.landmark_xyz[keep])
+    assert lacking_landmarks(withheld, T, pose_cov, rejected) == 1
+    assert lacking_landmarks(withheld, T, pose_cov, rejected, map_reach=0.3) == 1  # no mapped landmark near
+    moved_xyz = dataset.landmark_xyz.copy()
+    moved_xyz[~keep] += [0.0, 0.3, 0.0]
+    moved = replace(dataset, landmark_xyz=moved_xyz)
+    assert lacking_landmarks(moved, T, pose_cov, rejected) == 1
+    assert lacking_landmarks(moved, T, pose_cov, rejected, map_reach=0.3) == 0
+    assert lacking_landmarks(dataset, T, pose_cov, rejected) == 0  # where the map has it: missed, not lacking

@@ -56,6 +56,14 @@ jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTI
 # beam.pair_in_best_coordinates) are inlined: a call that is not increfs every array it is passed
 # on entry and decrefs it on return, which cost them more than their arithmetic (the warm 20k
 # world 3.49 -> 3.09 s); a step run once per grid cell takes the two arrays it reads, not the scene.
+# An inlined step's arguments are counted too, as it binds them, and numba's pruning pass removes
+# those counts only where nothing between them and their release defeats it: a loop to a count read
+# when it runs (a cycle), or a branch whose two arms release different arrays (LLVM merges the
+# releases into one of either). With the planar state's size read from the arrays, both stood inside
+# the candidates' loops and the 20k depth world's beam ran a fifth slower, its reference counts
+# 3.3 times as many in ``condition_into``. Hence: the sensor's kind and the state's size pick the
+# loop, not each step of one loop (``beam.predict_candidates``), and a size-long loop takes the
+# size as a constant (``sym3.spread``) or counts to 6 skipping the smaller state's entries.
 inlined = partial(numba.njit, inline="always", **OPTIONS)
 
 _FROM_PYTHON: dict = {}

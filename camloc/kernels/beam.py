@@ -21,7 +21,7 @@ from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
-from camloc.kernels.planar import planar_observe_into
+from camloc.kernels.planar import SE2_DIM, planar_observe_into
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import wrap_angle
 from camloc.kernels.state import difference
@@ -45,12 +45,12 @@ def new_generation(n, cap, dim=6):
 @inlined
 def put_state(gen, j, x, P):
     """Hypothesis j's state x (n,) and covariance P (n, n), entry by entry (as every copy into a
-    slice: see ``_jit``); the Euler state's size as a constant, its loops unrolled (every child
-    of every hypothesis is a copy)."""
+    slice: see ``_jit``); the state's size as a constant, its loops unrolled (every child of
+    every hypothesis is a copy; ``sym3.spread``)."""
     if x.shape[0] == 6:
         put_state_of_size(gen, j, x, P, 6)
     else:
-        put_state_of_size(gen, j, x, P, x.shape[0])
+        put_state_of_size(gen, j, x, P, SE2_DIM)
 
 
 @inlined
@@ -154,17 +154,22 @@ def pair_in_best_coordinates(scene, o, z_hat, H, q, spread_q, y, Hc, n, gate):
         return np.inf, np.inf, False
     cost_pixels = d2_pixels + math.log(det_pixels) - scene.log_det_R[o] if det_pixels > 0.0 else np.inf
     cost_point = d2_point + math.log(det_point) - scene.log_det_point_cov[o] if det_point > 0.0 else np.inf
+    # loops of the larger state's count, the smaller's columns skipped: a loop over a count known
+    # only when it runs would be a cycle across which the scene's references are not pruned (``sym3.spread``)
+    dim = H.shape[2]
     if cost_point < cost_pixels:
         y[n, 0], y[n, 1], y[n, 2] = p0, p1, p2
-        for i in range(H.shape[2]):
-            Hc[n, 0, i] = j00 * H[q, 0, i] + j02 * H[q, 2, i]
-            Hc[n, 1, i] = j11 * H[q, 1, i] + j12 * H[q, 2, i]
-            Hc[n, 2, i] = H[q, 2, i]
+        for i in range(6):
+            if i < dim:
+                Hc[n, 0, i] = j00 * H[q, 0, i] + j02 * H[q, 2, i]
+                Hc[n, 1, i] = j11 * H[q, 1, i] + j12 * H[q, 2, i]
+                Hc[n, 2, i] = H[q, 2, i]
         return d2_point, cost_point, True
     y[n, 0], y[n, 1], y[n, 2] = scene.z[o, 0] - z_hat[q, 0], scene.z[o, 1] - z_hat[q, 1], r2
     for a in range(3):
-        for i in range(H.shape[2]):
-            Hc[n, a, i] = H[q, a, i]
+        for i in range(6):
+            if i < dim:
+                Hc[n, a, i] = H[q, a, i]
     return d2_pixels, cost_pixels, False
 
 
@@ -193,14 +198,10 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     for g in range(cameras.size):
         c, f = cameras[g], found[g]
         R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
-        planar_kind = K[4] == POINT2 or K[4] == MARKER
         camera_position_jacobian(R, R_rc, d_position)
+        predict_candidates(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f, z_hat, H, at, d_position)
         for q in range(f.size):
             cand[at], cand_camera[at] = f[q], c
-            if planar_kind:                     # a planar robot's own sensor (``camera.observe_into``)
-                planar_observe_into(R, t, scene.landmark_xyz, f[q], K[4], z_hat, H, at)
-            else:
-                observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f[q], z_hat, H, at, d_position)
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(z_hat, at, K)
             spread_q = spread(H, at, P)
             spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
@@ -243,8 +244,9 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= gate else np.inf, point
             for a in range(3):
                 zh[n, a] = z_hat[q, a]
-                for b in range(dim):
-                    Hs[n, a, b] = H[q, a, b]
+                for b in range(6):              # unrolled, the smaller state's columns skipped (``same_state``)
+                    if b < dim:
+                        Hs[n, a, b] = H[q, a, b]
             n += 1
         start[r + 1] = n
     return start, lm[:n], cost[:n], zh[:n], Hs[:n], ys[:n], Hcs[:n], in_point[:n]
@@ -263,6 +265,24 @@ def is_taken(landmark, taken):
     return False
 
 
+@inlined
+def predict_candidates(R, E, t, R_rc, t_rc, K, landmarks, pool, z_hat, H, at, d_position):
+    """Predictions z_hat and Jacobians H (rows at..) of landmarks pool (g,) by one sensor (mount
+    R_rc, t_rc, intrinsics K) from the robot at (R, E, t) (``camera.robot_frame``). The sensor's
+    kind and the state's size pick the loop, not each step of one loop: a branch inside the loop
+    left the arrays each step is passed counted once more per candidate (numba's reference-count
+    pruning gives up on it): 3.3 times ``condition_into``'s reference counts of before the planar kernels."""
+    if K[4] == POINT2 or K[4] == MARKER:         # a planar robot's own sensor (``camera.observe_into``)
+        for q in range(pool.size):
+            planar_observe_into(R, t, landmarks, pool[q], K[4], z_hat, H, at + q)
+    elif H.shape[2] == SE2_DIM:
+        for q in range(pool.size):
+            observe_into(R, E, t, R_rc, t_rc, K, landmarks, pool[q], z_hat, H, at + q, d_position, SE2_DIM)
+    else:
+        for q in range(pool.size):
+            observe_into(R, E, t, R_rc, t_rc, K, landmarks, pool[q], z_hat, H, at + q, d_position, 6)
+
+
 @jit
 def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, at):
     """The options of observation o over its pool (g,) under a hypothesis (x, P) conditioned on
@@ -272,16 +292,12 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     by pixels more than that)."""
     c = scene.obs_camera[o]
     R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
-    planar_kind = K[4] == POINT2 or K[4] == MARKER
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
+    predict_candidates(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool, z_hat, H, at, d_position)
     for q in range(pool.size):
         r = at + q
-        if planar_kind:                         # a planar robot's own sensor (``camera.observe_into``)
-            planar_observe_into(R, t, scene.landmark_xyz, pool[q], K[4], z_hat, H, r)
-        else:
-            observe_into(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool[q], z_hat, H, r, d_position)
         d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, scene.obs_gate[o])
         cost[r] = pair_cost if d2 <= scene.obs_gate[o] and not is_taken(pool[q], taken) else np.inf
         in_point[r] = point
@@ -415,8 +431,9 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
         point = in_point[j]
         for a in range(3):
             z_hat[t, a], y[t, a] = zh[j, a], ys[j, a]
-            for b in range(dim):
-                H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
+            for b in range(6):                  # unrolled, the smaller state's columns skipped (``same_state``)
+                if b < dim:
+                    H[t, a, b], Hc[t, a, b] = Hs[j, a, b], Hcs[j, a, b]
             for b in range(3):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
@@ -449,10 +466,14 @@ def branch_order(scene, obs, pending, start, cost):
 @inlined
 def same_state(gen, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
-    every axis (the cheaper is kept)."""
+    every axis (the cheaper is kept). Its loop counts to the larger state's size, the smaller's
+    entries skipped: a loop to a size read when it runs is a cycle, across which numba does not
+    prune the references counted to the arrays an inlined step is passed (``sym3.spread``), and
+    this runs for every pair of partial explanations compared."""
     d = difference(gen[0][a], gen[0][b])
-    for i in range(d.size):
-        if d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
+    n = d.size
+    for i in range(6):
+        if i < n and d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
             return False
     return True
 
@@ -723,8 +744,9 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children
         pending[0][at], pending[1][at], pending[2][at] = p, o, landmarks[j]
         for a in range(3):
             pending[3][at, a] = z_hat[j, a]
-            for b in range(H.shape[2]):
-                pending[4][at, a, b] = H[j, a, b]
+            for b in range(6):                  # unrolled, the smaller state's columns skipped (``same_state``)
+                if b < H.shape[2]:
+                    pending[4][at, a, b] = H[j, a, b]
         pending[5][at] = True
         at += 1
     return at

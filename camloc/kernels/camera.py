@@ -50,7 +50,7 @@ def robot_frame_into(x, frame):
 
 
 @inlined
-def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position):
+def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_position, dim):
     """Write a camera's prediction z_hat[i] (3,) of landmark landmarks[j] (x, y, z, ...) and its
     Jacobian H[i] (3, n) with respect to the state's error (robot rotation R, rate matrix E,
     position t: ``robot_frame``; n = 6, the Euler state, or 3, the planar one); d_position =
@@ -59,8 +59,10 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
     or a row view (counting references) costs more than the arithmetic. A planar robot's own
     sensor (point2, marker) is ``planar.planar_observe_into``, which each caller's loop picks by
     the sensor's kind: that branch inside this step (or inside a step wrapping both) made the 3-D
-    world's predictions 1.6x as slow (500 -> 800 ns for three pairs), written in the loop it costs
-    nothing measurable."""
+    world's predictions 1.6x as slow (500 -> 800 ns for three pairs). The state's size ``dim`` (H's
+    columns) is a constant at each call, each caller looping once per size: a branch on a size read
+    when it runs, inside the caller's loop, left the arrays passed to this step counted once more
+    per candidate (numba's reference-count pruning gives up on the two paths' ends)."""
     fx, fy, cx, cy, kind = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4]
     d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
     r0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2           # p_robot = R' (l - t)
@@ -83,7 +85,7 @@ def observe_into(R, E, t, R_rc, t_rc, intrinsics, landmarks, j, z_hat, H, i, d_p
     # d z / d p_camera = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2], [0, 0, third]]
     u_x, u_z = fx * inverse_depth, -fx * px * inverse_depth * inverse_depth
     v_y, v_z = fy * inverse_depth, -fy * py * inverse_depth * inverse_depth
-    if H.shape[2] == SE2_DIM:
+    if dim == SE2_DIM:
         planar_camera_jacobian(R, R_rc, r0, r1, u_x, u_z, v_y, v_z, third, H, i, d_position)
     else:
         for c in range(3):
@@ -135,12 +137,15 @@ def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     m = landmark_xyz.shape[0]
     z_hat = np.empty((m, 3))
     H = np.empty((m, 3, x.shape[0]))
-    planar_kind = intrinsics[4] == POINT2 or intrinsics[4] == MARKER
-    for j in range(m):
-        if planar_kind:
+    if intrinsics[4] == POINT2 or intrinsics[4] == MARKER:   # one loop per kind and size: ``beam.predict_candidates``
+        for j in range(m):
             planar_observe_into(R, t, landmark_xyz, j, intrinsics[4], z_hat, H, j)
-        else:
-            observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position)
+    elif x.shape[0] == SE2_DIM:
+        for j in range(m):
+            observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position, SE2_DIM)
+    else:
+        for j in range(m):
+            observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position, 6)
     return z_hat, H
 
 
@@ -164,13 +169,18 @@ def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_
     R, E, t = frame
     for c in range(camera_R.shape[0]):
         camera_position_jacobian(R, camera_R[c], d_position[c])
+    if x.shape[0] != SE2_DIM:                            # the Euler robot: cameras only (``localizer.resolved_config``)
+        for i in range(landmark_xyz.shape[0]):
+            c = pair_camera[i]
+            observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c], 6)
+        return
     for i in range(landmark_xyz.shape[0]):
         c = pair_camera[i]
         kind = camera_K[c, 4]
         if kind == POINT2 or kind == MARKER:             # a planar robot's own sensor
             planar_observe_into(R, t, landmark_xyz, i, kind, z_hat, H, i)
         else:
-            observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c])
+            observe_into(R, E, t, camera_R[c], camera_t[c], camera_K[c], landmark_xyz, i, z_hat, H, i, d_position[c], SE2_DIM)
 
 
 @jit

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import jit
+from camloc.kernels._jit import inlined, jit
 from camloc.kernels.planar import SE2_DIM, planar_motion
 from camloc.kernels.rotation import euler_rate, euler_rate_inverse, euler_to_matrix, matrix_to_euler
 
@@ -60,11 +60,17 @@ def predict(x, P, T_increment, Q):
     mirrored), of x's model (its size: the Euler state's ``motion``, the planar one's
     ``planar.planar_motion``), with F (n, n) and G (n, 6) its Jacobians by the error and by the
     lifted increment's noise (Q (6, 6))."""
-    n = x.shape[0]
-    if n == SE2_DIM:
+    if x.shape[0] == SE2_DIM:
         x_next, F, G = planar_motion(x, T_increment)
-    else:
-        x_next, F, G = motion(x, T_increment)
+        return x_next, propagated(P, F, G, Q, SE2_DIM)
+    x_next, F, G = motion(x, T_increment)
+    return x_next, propagated(P, F, G, Q, 6)
+
+
+@inlined
+def propagated(P, F, G, Q, n):
+    """``F P F' + G Q G'`` (n, n) of ``predict``, n the state's size as a constant (its loops
+    unrolled, the update's dense steps: ``update.information_into``)."""
     FP, GQ = np.empty((n, n)), np.empty((n, 6))
     for a in range(n):
         for b in range(6):
@@ -87,4 +93,4 @@ def predict(x, P, T_increment, Q):
                     s += GQ[a, q] * G[b, q]
             P_next[a, b] = s
             P_next[b, a] = s
-    return x_next, P_next
+    return P_next

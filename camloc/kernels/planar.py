@@ -113,12 +113,14 @@ def wrapped_residual(kind, a, r):
 
 
 @inlined
-def onto_measured_branch(scene, obs, z_hat):
-    """z_hat (p, 3), the predictions of observations obs (p,), with each marker's psi moved onto
-    its measurement's branch (``z - wrap(z - z_hat)``): every residual z - z_hat taken of them is
-    then wrapped, as the numpy engine's (``StackedUpdate.measurement_function``). Inlined: a call
-    taking the scene counts a reference to each of its arrays (``_jit``)."""
+def onto_measured_branch(z, obs_camera, camera_K, obs, z_hat):
+    """z_hat (p, 3), the predictions of observations obs (p,) (measured z, by sensors obs_camera:
+    rows of camera_K, the scene's), with each marker's psi moved onto its measurement's branch
+    (``z - wrap(z - z_hat)``): every residual z - z_hat taken of them is then wrapped, as the
+    numpy engine's (``StackedUpdate.measurement_function``). Inlined, and passed three of the
+    scene's arrays, not the scene: its loop is a cycle across which numba does not prune the
+    references counted to what an inlined step is passed (34 for the scene, at every update)."""
     for i in range(obs.size):
         o = obs[i]
-        if scene.camera_K[scene.obs_camera[o], 4] == MARKER:
-            z_hat[i, 2] = scene.z[o, 2] - wrap_angle(scene.z[o, 2] - z_hat[i, 2])
+        if camera_K[obs_camera[o], 4] == MARKER:
+            z_hat[i, 2] = z[o, 2] - wrap_angle(z[o, 2] - z_hat[i, 2])

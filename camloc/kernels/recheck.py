@@ -77,10 +77,11 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
             r0 = z[i, 0] - z_hat[j, 0]
             r1 = z[i, 1] - z_hat[j, 1]
             r2 = wrapped_residual(kind, 2, z[i, 2] - z_hat[j, 2])
-            for b in range(dim):
-                r0 -= H[j, 0, b] * delta[b]
-                r1 -= H[j, 1, b] * delta[b]
-                r2 -= H[j, 2, b] * delta[b]
+            for b in range(6):              # the larger state's count, unrolled; the smaller's columns skipped
+                if b < dim:
+                    r0 -= H[j, 0, b] * delta[b]
+                    r1 -= H[j, 1, b] * delta[b]
+                    r2 -= H[j, 2, b] * delta[b]
             if screened[j]:
                 w = bound_inverse[j]
                 bound = (w[0] * r0 * r0 + w[3] * r1 * r1 + w[5] * r2 * r2
@@ -142,7 +143,7 @@ def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
     estimate's covariance (each pair's alternative, the posterior of the others, weighed by its
     cost over leaving the observation unassigned)."""
     z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-    onto_measured_branch(scene, obs, z_hat)
+    onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, obs, z_hat)
     p = obs.size
     n = x.shape[0]                                 # the state's size: 6 (Euler), 3 (planar)
     margin = np.full(p, np.inf)

@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import inlined, jit
+from camloc.kernels.planar import SE2_DIM
 
 
 @jit
@@ -65,13 +66,14 @@ def log_det(S):
 def spread(H, i, P):
     """The upper triangle (a, b, c, d, e, f) of H[i] P H[i]' for H (m, 3, n) and symmetric P (n, n):
     a column of H[i] P at a time, then its products with H[i]'s rows (144 products, not 324 for
-    n = 6). It runs for every candidate of every hypothesis: the Euler state's size is passed as
-    a constant, whose loops the compiler unrolls as it did when 6 was the only size (a size only
-    known when it runs is not unrolled)."""
+    n = 6). It runs for every candidate of every hypothesis: either state's size is passed as a
+    constant, whose loops the compiler unrolls. A loop over a size known only when it runs is a
+    cycle in the caller's code, across which numba's reference-count pruning gives up: every array
+    of the candidate's loop was then counted once more per candidate (``_jit``)."""
 
     if P.shape[0] == 6:
         return spread_of_size(H, i, P, 6)
-    return spread_of_size(H, i, P, P.shape[0])
+    return spread_of_size(H, i, P, SE2_DIM)
 
 
 @inlined

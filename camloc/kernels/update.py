@@ -28,9 +28,9 @@ import math
 import numpy as np
 
 from camloc.constants import CONVERGED
-from camloc.kernels._jit import entry, jit
+from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
-from camloc.kernels.planar import wrapped_residual
+from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
@@ -97,7 +97,15 @@ def stacked_quadratic(L, y, scratch):
 def innovation_system_into(P, H, R, PHt, S):
     """P H' (n, 3p) and S = H P H' + R (3p, 3p) of pairs with Jacobians H (p, 3, n) and noise R
     (p, 3, 3), S symmetric."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``innovation_system_of_size``
+        innovation_system_of_size(P, H, R, PHt, S, 6)
+    else:
+        innovation_system_of_size(P, H, R, PHt, S, SE2_DIM)
+
+
+@inlined
+def innovation_system_of_size(P, H, R, PHt, S, n):
+    """``innovation_system_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     p = H.shape[0]
     m = 3 * p
     for c in range(n):
@@ -135,7 +143,15 @@ def gain_into(P, H, R, PHt, S, L, K):
 def covariance_posterior_into(P, K, H, R, out, I_KH, scratch):
     """Joseph form (I - K H) P (I - K H)' + K R K' into out (n, n), its upper triangle mirrored;
     H (p, 3, n) stacked as K's columns; I_KH and scratch (n, n)."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``covariance_posterior_of_size``
+        covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, 6)
+    else:
+        covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, SE2_DIM)
+
+
+@inlined
+def covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, n):
+    """``covariance_posterior_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     p = H.shape[0]
     for c in range(n):
         for d in range(n):
@@ -168,7 +184,15 @@ def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
     """Of pairs with Jacobians H (p, 3, n) and noise information R_inverse (p, 3, 3): R^-1 H
     (p, 3, n), Lambda (n, n), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
     A P = (I + P Lambda)^-1 P (n, n), symmetrized."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``information_of_size``
+        information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, 6)
+    else:
+        information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, SE2_DIM)
+
+
+@inlined
+def information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, n):
+    """``information_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     p = H.shape[0]
     for c in range(n):
         for d in range(n):
@@ -211,8 +235,9 @@ def gradient_into(R_inverse_H, y, g):
         g[c] = 0.0
     for i in range(y.shape[0]):
         for a in range(3):
-            for c in range(n):
-                g[c] += R_inverse_H[i, a, c] * y[i, a]
+            for c in range(6):            # unrolled, the smaller state's entries skipped (``information_into``)
+                if c < n:
+                    g[c] += R_inverse_H[i, a, c] * y[i, a]
 
 
 @jit
@@ -233,8 +258,9 @@ def plain_step_into(AP, g, step):
     total = 0.0
     for c in range(n):
         s = 0.0
-        for d in range(n):
-            s += AP[c, d] * g[d]
+        for d in range(6):                # unrolled, the smaller state's entries skipped (``information_into``)
+            if d < n:
+                s += AP[c, d] * g[d]
         step[c] = s
         total += g[c] * s
     return total
@@ -256,7 +282,15 @@ def gain_step_into(K, y, step):
 def posterior_covariance_into(P, information, M, pivots, out, scratch):
     """A (P + P Lambda P) A' into out (n, n), symmetric positive definite by construction; I + P
     Lambda factored into (M, pivots); scratch (n, n)."""
-    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
+    if P.shape[0] == 6:                   # the state's size a constant: ``posterior_covariance_of_size``
+        posterior_covariance_of_size(P, information, M, pivots, out, scratch, 6)
+    else:
+        posterior_covariance_of_size(P, information, M, pivots, out, scratch, SE2_DIM)
+
+
+@inlined
+def posterior_covariance_of_size(P, information, M, pivots, out, scratch, n):
+    """``posterior_covariance_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
     for c in range(n):                                              # P Lambda
         for d in range(n):
             s = 0.0
@@ -391,8 +425,9 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
             for a in range(3):
                 s = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
-                for b in range(n):
-                    s += H_i[i, a, b] * moved[b]
+                for b in range(6):                                   # unrolled, the smaller state's columns skipped
+                    if b < n:
+                        s += H_i[i, a, b] * moved[b]
                 r[i, a] = s
         if few:
             gain_into(P, H_i, R, PHt, S, L, K)
