@@ -71,7 +71,9 @@ def localize(
         or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
         loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
         dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
-        which ran.
+        which ran. The mapping pass (``config.map`` prior or none, or a map lacking landmarks)
+        follows it: its steps compiled (``camloc.slam_compiled``, "compiled update") or in numpy,
+        their reference (``_mapping_compiled``).
     on_compile : called once before the compiled loop starts when its kernels are not yet in
         numba's cache (the first run after an install compiles them: a minute or two).
     on_background_compile : given, a run that "auto" would give to the compiled loop while its
@@ -86,7 +88,7 @@ def localize(
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
     hooks = dict(parallel=parallel, engine=engine, on_compile=_once(on_compile), on_background_compile=_once(on_background_compile))
-    if config.map != "exact":  # landmarks in the state: the mapping localizer (numpy)
+    if config.map != "exact":  # landmarks in the state: the mapping localizer
         return _localize_mapping(dataset, config, on_progress, hooks)
     offset = _lacking_at_start(dataset, config, hooks)
     result = _localize_exact(dataset, config, on_progress, null_cost_offset=offset, **hooks)
@@ -249,6 +251,7 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     passes = PRIOR_PASSES if beamed and config.map == "prior" else 1
     stages = 2 * passes if beamed else 1
     judged_map, seconds, kept, offset = dataset, 0.0, None, 0.0
+    compiled = _mapping_compiled(dataset, hooks)
     for n in range(passes):
         given, warnings, beam_run = None, [], given_run
         if beamed:
@@ -264,7 +267,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
             seconds += beam_run.summary["timing"]["filter_seconds"]
             warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
-        result = localize_mapping(dataset, config, _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress, given)
+        result = localize_mapping(dataset, config, _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress, given,
+                                  compiled=compiled)
         seconds += result.summary["timing"]["filter_seconds"]
         if kept is None or _nis_per_dof(result) <= PASS_NIS_SLACK * _nis_per_dof(kept[0]):
             kept = result, warnings
@@ -282,6 +286,27 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     timing["poses_per_second"] = dataset.num_poses / seconds if seconds > 0 else float("inf")
     result.summary["warnings"] += warnings
     return result
+
+
+def _mapping_compiled(dataset: Dataset, hooks: dict) -> bool:
+    """Whether the mapping pass runs its compiled steps (``camloc.slam_compiled``), as the
+    localizer decides for its loop: not on a short run (``COMPILED_MIN_POSES``), and, where
+    ``camloc run`` asks for a background compile, not while their cache is cold (numpy, which
+    gives the same result, runs then, and a detached process compiles them: ~25 s of CPU)."""
+    engine = hooks["engine"]
+    if engine == "numpy" or (engine == "auto" and dataset.num_poses < COMPILED_MIN_POSES):
+        return False
+    if engine == "compiled" or hooks["on_background_compile"] is None:
+        return True
+    from camloc.slam_compiled import cache_folder, cache_is_warm
+
+    if cache_is_warm():
+        return True
+    state = warmup.start_background_compile(cache_folder(), mapping=True)
+    if state is None:  # it cannot run in the background: in the foreground
+        return True
+    hooks["on_background_compile"](state == warmup.STARTED)
+    return False
 
 
 def _map_moved(dataset: Dataset, estimated, rows: np.ndarray, sigma: float) -> bool:

@@ -67,6 +67,16 @@ def jcbb(P: np.ndarray, candidates: list[list[Candidate]], probability: float, m
     landmark once), ties by the lower sum of the pairs' own costs. Every candidate's H P H' block
     against every other's is computed once (``H P H'`` over all of them), so that a node's joint
     test costs what its few pairs do, not the state's size."""
+    with_options = [options for options in candidates if options]
+    if len(with_options) == 1:
+        # one observation with candidates (most poses under an exact map): the search takes its
+        # cheapest (the first of the cheapest: a stable sort's), with no joint test to make
+        return [min(with_options[0], key=lambda c: c.cost)]
+    return jcbb_search(P, candidates, probability, max_nodes)
+
+
+def jcbb_search(P: np.ndarray, candidates: list[list[Candidate]], probability: float, max_nodes: int = 2000) -> list[Candidate]:
+    """``jcbb``'s depth-first search (every case: ``jcbb`` answers a lone observation itself)."""
     order = sorted(range(len(candidates)), key=lambda i: (len(candidates[i]) == 0, len(candidates[i])))
     lists = [sorted(candidates[i], key=lambda c: c.cost) for i in order]
     flat = [c for options in lists for c in options]
@@ -174,7 +184,10 @@ class PoseAssociation:
         if self.sure_view is None or self.mapped_index is None:
             return
         nearby = self.mapped_index.within(self.x.t, self.sure_view[1] + 1.0)
-        in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
+        if self.compiled is not None:
+            in_view = self.compiled.surely_in_view(self.x, self.table.xyz[nearby], self.sure_view)
+        else:
+            in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
         missed = nearby[in_view & (self.beam_paired_at[nearby] != k)]
         self.beam_missed[missed] += 1
 
@@ -202,6 +215,12 @@ class PoseAssociation:
         xyz = self.table.xyz[nearby]
         rows = self.table.state_row[nearby]
         xyz[rows >= 0] = self.x.L[rows[rows >= 0]]  # the state's estimate where it holds one
+        if self.compiled is not None:  # the same costs compiled (camloc.slam_compiled); this numpy one is its reference
+            seen, z_hat, H, extra, cost = self.compiled.costs(
+                self.x, self.P, xyz, rows, self.table.cov[nearby], sensor_id, max(self.min_depth, 1e-6), self.max_depth,
+                np.cos(self.max_angle), self.dataset.obs_z[obs], self.association_cov[obs], self.log_det_R[obs],
+                self.gate[self.obs_dof[obs]], UNPAIRED)
+            return (nearby[seen], cost, z_hat, H, extra) if np.any(seen) else None
         p_camera = slam.camera_points(self.x, sensor, xyz)
         norm = np.linalg.norm(p_camera, axis=1)
         seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)

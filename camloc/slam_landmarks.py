@@ -66,19 +66,33 @@ class LandmarkTable:
                 ("score", float, (), 0.0),       # a tentative landmark's log-likelihood ratio over clutter
                 ("dead", bool, (), False))       # a tentative landmark dropped (clutter): out of the map
 
+    ids: np.ndarray
+    xyz: np.ndarray
+    cov: np.ndarray
+    added: np.ndarray
+    state_row: np.ndarray
+    last_seen: np.ndarray
+    born: np.ndarray
+    observations: np.ndarray
+    tentative: np.ndarray
+    score: np.ndarray
+    dead: np.ndarray
+
     def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
         n = ids.size
         self.size = self.num_mapped = n
         self._columns = {name: np.full((max(2 * n, 64),) + shape, fill, dtype) for name, dtype, shape, fill in self._COLUMNS}
+        self._views()
         self.ids[:], self.xyz[:], self.cov[:] = ids, xyz.reshape(n, 3), cov.reshape(n, 3, 3)
         self.added[:] = False
         self._live = None  # the added landmarks not dropped (``in_range``), rebuilt when that changes
+        self.scan = None  # the compiled scan of ``in_range`` (``slam_compiled.live_within``), where the run has it
 
-    def __getattr__(self, name: str) -> np.ndarray:
-        columns = self.__dict__.get("_columns")
-        if columns is None or name not in columns:
-            raise AttributeError(name)
-        return columns[name][:self.size]
+    def _views(self) -> None:
+        """Each column as an attribute, a view of its first ``size`` rows: set again when the size
+        changes (a run reads them a million times: a view made at each read cost 0.6 s of 20,000 poses)."""
+        for name, column in self._columns.items():
+            self.__dict__[name] = column[:self.size]
 
     def __len__(self) -> int:
         return self.size
@@ -89,6 +103,7 @@ class LandmarkTable:
             self._columns = {name: np.concatenate([c, np.full_like(c, fill)]) for (name, c), (_, _, _, fill)
                              in zip(self._columns.items(), self._COLUMNS)}
         self.size += 1
+        self._views()
         self.ids[-1] = landmark_id
         self._live = None
         return self.size - 1
@@ -103,8 +118,11 @@ class LandmarkTable:
         mapped = mapped_index.within(centre, radius) if mapped_index is not None else np.zeros(0, np.int64)
         if self._live is None:
             self._live = self.num_mapped + np.flatnonzero(~self.dead[self.num_mapped:])
-        offset = self.xyz[self._live] - centre
-        added = self._live[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
+        if self.scan is not None:  # compiled (camloc.slam_compiled.live_within): no gathered copy of the added ones
+            added = self.scan(self._columns["xyz"], self._live, centre, radius)
+        else:
+            offset = self.xyz[self._live] - centre
+            added = self._live[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
         return np.concatenate([mapped, added]).astype(np.int64)
 
 class LandmarkAdditions:
@@ -154,14 +172,18 @@ class LandmarkAdditions:
             table.drop(landmarks[gone])
             # their pairs: among the observations from the first of theirs to this pose's (not the whole run's)
             since = self.obs_order[self.obs_bounds[int(table.born[landmarks[gone]].min())]:self.obs_bounds[k + 1]]
-            self.chosen[since[np.isin(self.chosen[since], landmarks[gone])]] = -1
+            # (a comparison with the few dropped, not np.isin: its set-up cost more than this search)
+            self.chosen[since[(self.chosen[since][:, None] == landmarks[gone][None, :]).any(axis=1)]] = -1
             drop |= gone
         if not np.any(drop):
             return
-        for row in np.flatnonzero(drop).tolist():
-            landmark = int(landmarks[row])
-            self.table.xyz[landmark] = self.x.L[row]
-            self.table.cov[landmark] = slam.landmark_world_cov(self.x, self.P, row)
+        rows = np.flatnonzero(drop)
+        self.table.xyz[landmarks[rows]] = self.x.L[rows]
+        if self.compiled is not None:
+            self.table.cov[landmarks[rows]] = self.compiled.world_covs(self.x, self.P, rows)
+        else:
+            for row in rows.tolist():
+                self.table.cov[int(landmarks[row])] = slam.landmark_world_cov(self.x, self.P, row)
         self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
         self.table.state_row[landmarks[drop]] = -1
         self.state_landmark = landmarks[~drop].tolist()
@@ -199,7 +221,10 @@ class LandmarkAdditions:
         rows = np.flatnonzero(table.tentative[landmarks] & unseen)
         if rows.size == 0:
             return
-        in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
+        if self.compiled is not None:
+            in_view = self.compiled.surely_in_view(self.x, self.x.L[rows], self.sure_view)
+        else:
+            in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
         table.score[landmarks[rows[in_view]]] += np.log(1.0 - DETECTION_PROBABILITY)
 
     def _unexplained(self, obs: list[int]) -> list[int]:
@@ -270,8 +295,12 @@ class LandmarkAdditions:
             z[2], R_z[2, :], R_z[:, 2] = depth, 0.0, 0.0
             R_z[2, 2] = DEPTH_VARIANCE_INFLATION * float(depth_axis @ fix[1] @ depth_axis)
             sensor = replace(sensor, kind=measurement.DEPTH)
-        xyz, B, N = slam.inverse_observation(self.x, sensor, z, R_z)
-        self.x, self.P = slam.augmented(self.x, self.P, xyz, B, N)
+        if self.compiled is not None:
+            xyz, self.P = self.compiled.augmented(self.x, self.P, sensor, z, R_z)
+            self.x = slam.SlamMean(self.x.R, self.x.t, np.vstack([self.x.L, xyz]))
+        else:
+            xyz, B, N = slam.inverse_observation(self.x, sensor, z, R_z)
+            self.x, self.P = slam.augmented(self.x, self.P, xyz, B, N)
         landmark = self.table.append(self.next_id)
         self.next_id += 1
         self.table.state_row[landmark] = len(self.state_landmark)

@@ -51,7 +51,8 @@ ProgressCallback = Callable[[int, int], None]
 class MappingLocalizer(PoseAssociation, LandmarkAdditions):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
-    def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None):
+    def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
+                 compiled: bool = True):
         from camloc.association import PointIndex
 
         self.dataset, self.config = dataset, config
@@ -59,6 +60,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.beam_paired_at = np.full(dataset.landmark_ids.size, -BEAM_RECENT - 1, np.int64)  # the last pose it did so, per landmark
         self.beam_missed = np.zeros(dataset.landmark_ids.size, np.int64)  # poses it was surely in view and not paired
         self.sensors, self.obs_sensor = sensors_of(dataset)
+        self.compiled = _compiled_update(self.sensors) if compiled else None  # None: the numpy update
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
         noise = observation_noise(dataset, config)
         self.association_cov, self.log_det_R, self.null_cost = noise.cov, noise.log_det, noise.null_cost
@@ -71,6 +73,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         sigma2 = config.map_sigma ** 2 if config.map == "prior" else 0.0
         self.table = LandmarkTable(ids, xyz, np.tile(sigma2 * np.eye(3), (ids.size, 1, 1)))
         self.mapped_index = PointIndex(xyz) if ids.size else None
+        self.table.scan = self.compiled.live_within if self.compiled is not None else None
         self.state_landmark: list[int] = []  # table index of each landmark in the state
         self.tracks = Tracks(chi2_quantile(3, 1.0 - config.gate), self.min_depth, self.max_depth)
         self.oracle_tracks: dict[int, object] = {}
@@ -108,7 +111,11 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
     def _step(self, k: int) -> None:
         ds = self.dataset
         if k > 0:
-            self.x, self.P = slam.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1])
+            predicted = self.compiled.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1]) if self.compiled else None
+            if predicted is None:
+                self.x, self.P = slam.predict(self.x, self.P, self.T_increments[k - 1], ds.odom_cov[k - 1])
+            else:
+                self.x, self.P = slam.SlamMean(predicted[0], predicted[1], self.x.L), predicted[2]
             self.T_odometry = self.T_odometry @ self.T_increments[k - 1]
         obs = self.obs_of_pose[k]
         if self.config.association == "oracle":
@@ -136,7 +143,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         else:
             self._tracked(k, unassigned)
         self._retire(k)
-        self.covs[k] = slam.pose_right_cov(self.x, self.P)
+        self.covs[k] = self.compiled.pose_right_cov(self.x, self.P) if self.compiled else slam.pose_right_cov(self.x, self.P)
         self.poses[k], self.odometry_poses[k] = self.x.pose(), self.T_odometry
 
     def _enter(self, landmarks: list[int]) -> None:
@@ -148,15 +155,40 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.state_landmark.extend(landmarks)
 
     def _update(self, k: int, pairs: list[tuple[int, int]]) -> None:
-        entering = [lm for _, lm in pairs if self.table.state_row[lm] < 0 and np.any(self.table.cov[lm])]
+        obs, landmarks = np.array(pairs, np.int64).T
+        # landmarks outside the state held with a covariance (not exactly) enter it
+        outside = landmarks[self.table.state_row[landmarks] < 0]
+        entering = outside[np.any(self.table.cov[outside] != 0.0, axis=(1, 2))].tolist()
         if entering:
             self._enter(entering)
-        obs = np.array([o for o, _ in pairs], np.int64)
-        landmarks = np.array([lm for _, lm in pairs], np.int64)
+        rows = self.table.state_row[landmarks]
+        ds = self.dataset
+        done = None
+        if self.compiled is not None:
+            try:
+                done = self.compiled(self.x.R, self.x.t, self.x.L, self.P, ds.obs_z[obs], ds.obs_cov[obs], ds.obs_info[obs],
+                                     self.table.xyz[landmarks], rows, self.obs_sensor[obs], self.config.iterations)
+            except np.linalg.LinAlgError:  # S not positive definite: the numpy update raises the run's error
+                done = None
+        if done is not None and done[0]:
+            _, R, t, L, self.P, _, _, nis, map_cost, d2 = done
+            self.x = slam.SlamMean(R, t, L)
+        else:
+            innovation, S, nis, map_cost = self._numpy_update(obs, landmarks, rows)
+            d2, _ = mahalanobis_3x3(S, innovation.reshape(obs.size, 3))
+        self.chosen[obs], self.mahalanobis[obs] = landmarks, np.sqrt(d2)
+        self.table.last_seen[landmarks] = k
+        np.add.at(self.table.observations, landmarks, 1)
+        self.update_pose_ids.append(int(ds.pose_ids[k]))
+        self.nis.append(recorded_nis(nis, map_cost, self.config.iterations))
+        self.map_costs.append(map_cost)
+        self.nis_dof.append(int(self.obs_dof[obs].sum()))
+
+    def _numpy_update(self, obs: np.ndarray, landmarks: np.ndarray, rows: np.ndarray):
+        """The pose's iterated update in numpy (the compiled one's reference, ``camloc.slam_compiled``):
+        (innovation (3 p,), S's diagonal blocks (p, 3, 3), NIS, MAP cost); sets x and P."""
         fixed_xyz = self.table.xyz[landmarks]
         sensors = self.obs_sensor[obs]
-
-        rows = self.table.state_row[landmarks]
         in_state = rows >= 0
         groups = [(self.sensors[s], sensors == s) for s in np.unique(sensors).tolist()]
         # H on the columns the pairs touch (the pose, the landmarks seen), never the whole state's
@@ -180,14 +212,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.x, self.P = result.state, result.cov
         p = obs.size
         S = result.S if result.S.ndim == 3 else result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]
-        d2, _ = mahalanobis_3x3(S, result.innovation.reshape(p, 3))
-        self.chosen[obs], self.mahalanobis[obs] = landmarks, np.sqrt(d2)
-        self.table.last_seen[landmarks] = k
-        np.add.at(self.table.observations, landmarks, 1)
-        self.update_pose_ids.append(int(ds.pose_ids[k]))
-        self.nis.append(recorded_nis(result.nis, result.map_cost, self.config.iterations))
-        self.map_costs.append(result.map_cost)
-        self.nis_dof.append(int(self.obs_dof[obs].sum()))
+        return result.innovation, S, result.nis, result.map_cost
 
     # -- landmarks the map lacks ----------------------------------------------------------------
 
@@ -202,7 +227,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
             self.poses, self.odometry_poses,
             chosen_ids.astype(np.int64), self.mahalanobis, self.update_pose_ids, self.nis, self.map_costs, self.nis_dof,
             warnings=[], slip_pose_ids=[], candidate_range=(self.min_depth, self.max_depth, self.max_angle),
-            timing={"filter_seconds": filter_seconds, "engine": "numpy", "replay_process": False,
+            timing={"filter_seconds": filter_seconds, "engine": "numpy" if self.compiled is None else "compiled update", "replay_process": False,
                     "replay_process_peak_mb": None, "replay_thread": False})
         landmark_map = self.estimated_map()
         result = replace(result, landmark_map=landmark_map)
@@ -215,15 +240,25 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         return result
 
 
+def _compiled_update(sensors: dict):
+    """The compiled update of these sensors (``camloc.slam_compiled``: numba, imported here so that
+    the numpy update loads none), or None where it does not model one of them."""
+    from camloc.constants import CONVERGED
+    from camloc.slam_compiled import CompiledUpdate
+
+    update = CompiledUpdate(sensors, geometry._SMALL_ANGLE, CONVERGED)  # the numpy update's thresholds
+    return update if update.usable else None
+
+
 def localize_mapping(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback] = None,
-                     given_pairs: Optional[np.ndarray] = None) -> RunResult:
+                     given_pairs: Optional[np.ndarray] = None, compiled: bool = True) -> RunResult:
     """Localize and map every pose of ``dataset`` (``config.map`` "prior" or "none"); the
     RunResult carries the estimated map (``landmark_map``). ``given_pairs`` (K,): the map landmark
     (row) each observation is paired with, -1 for none, where another association (the beam, over
     the whole run) decided the map's pairs; the rest are decided here among added landmarks, new
-    ones and clutter."""
+    ones and clutter. ``compiled``: each pose's update compiled (``camloc.slam_compiled``), else in numpy."""
     started = time.perf_counter()
-    localizer = MappingLocalizer(dataset, config, given_pairs)
+    localizer = MappingLocalizer(dataset, config, given_pairs, compiled)
     n = dataset.num_poses
     stride = max(1, n // 200)
     for k in range(n):

@@ -60,6 +60,10 @@ STARTED, RUNNING, FAILED = "started", "running", "failed"
 # compile: the filter's kernels, then the beam's that the first process reaches last.
 FILTER_ONLY = "--filter"
 
+# The argument of ``python -m camloc.warmup MAPPING_ONLY LOCK``: the mapping pass's kernels
+# (``camloc.slam_compiled``), with their own lock in their own cache folder.
+MAPPING_ONLY = "--mapping"
+
 # That share takes 35-55 s on this project's 2-core machine; a process that has not ended after
 # this long is stopped, and the run compiles what it still needs itself.
 FILTER_COMPILE_TIMEOUT = 600.0
@@ -118,8 +122,9 @@ def compiling(folder: Optional[Path] = None) -> bool:
     return lock_state(folder) == RUNNING
 
 
-def start_background_compile(folder: Optional[Path] = None) -> Optional[str]:
-    """Start compiling the kernels in a detached, lowest-priority process, unless one is running.
+def start_background_compile(folder: Optional[Path] = None, mapping: bool = False) -> Optional[str]:
+    """Start compiling the kernels in a detached, lowest-priority process, unless one is running
+    (``mapping``: the mapping pass's, ``compile_mapping_kernels``, locked in their ``folder``).
 
     Returns
     -------
@@ -148,7 +153,7 @@ def start_background_compile(folder: Optional[Path] = None) -> Optional[str]:
     with os.fdopen(descriptor, "w") as handle:
         handle.write(f"compiling since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
     try:
-        _spawn([sys.executable, "-m", "camloc.warmup", str(lock)], _environment())
+        _spawn([sys.executable, "-m", "camloc.warmup"] + ([MAPPING_ONLY] if mapping else []) + [str(lock)], _environment())
     except OSError:
         lock.unlink(missing_ok=True)
         return None
@@ -229,6 +234,18 @@ def compile_kernels() -> list[int]:
     return [int(i) for i in dataset.pose_ids[slip_poses]]
 
 
+def compile_mapping_kernels() -> None:
+    """Compile, and so cache, the mapping pass's kernels (``camloc.slam_compiled``): a small world
+    with half its map withheld, mapped under a prior (every step runs: landmarks enter, are added
+    and retire)."""
+    from camloc.localizer_config import LocalizerConfig
+    from camloc.simulate import SimulationConfig, simulate
+    from camloc.slam_run import localize_mapping
+
+    dataset = simulate(SimulationConfig(poses=80, withhold_map=0.5), seed=0)
+    localize_mapping(dataset, LocalizerConfig(map="prior", filter="euler"), compiled=True)
+
+
 def compile_filter_kernels() -> None:
     """The second process's share of a first compile, cached for the first process to load: the
     filter's kernels (a bundled world localized with the oracle association, which runs only the
@@ -293,7 +310,8 @@ def main(argv: list[str]) -> int:
     if argv[1:] == [FILTER_ONLY]:
         compile_filter_kernels()
         return 0
-    lock = Path(argv[1])
+    mapping = argv[1] == MAPPING_ONLY
+    lock = Path(argv[-1])
     try:
         os.nice(19)
     except (AttributeError, OSError):  # not on this system: the compile still runs
@@ -303,7 +321,7 @@ def main(argv: list[str]) -> int:
     except OSError:
         pass
     try:
-        compile_kernels()
+        compile_mapping_kernels() if mapping else compile_kernels()
     except Exception as error:  # whatever it was, the foreground compile of a later run will say it
         try:
             lock.write_text(f"{FAILED} at {time.strftime('%Y-%m-%d %H:%M:%S')}: {type(error).__name__}: {error}\n")

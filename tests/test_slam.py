@@ -141,6 +141,23 @@ def test_jcbb_joint_test_equals_the_plain_statement():
     assert len(chosen) == 2 and {c.obs for c in chosen} == {0, 1}
 
 
+def test_jcbb_of_one_observation_is_the_search_s_answer():
+    """``jcbb`` answers a lone observation (candidates for one observation, the others none) by its
+    cheapest candidate, with ties to the first: what ``jcbb_search`` finds."""
+    from camloc.slam_association import Candidate, jcbb, jcbb_search
+
+    rng = np.random.default_rng(9)
+    n = 12
+    A = rng.normal(size=(n, n))
+    P = A @ A.T * 0.01 + np.eye(n) * 1e-3
+    for trial in range(20):
+        costs = rng.integers(0, 4, size=rng.integers(1, 6)).astype(float)  # ties among them
+        options = [Candidate(7, 100 + i, rng.normal(size=3), rng.normal(size=(3, n)), np.zeros((3, 3)), np.eye(3), 3, c)
+                   for i, c in enumerate(costs)]
+        candidates = [[]] * (trial % 3) + [options] + [[]] * (trial % 2)
+        assert [id(c) for c in jcbb(P, candidates, 0.99)] == [id(c) for c in jcbb_search(P, candidates, 0.99)]
+
+
 def test_column_gain_equals_the_joseph_product_form():
     """The update from H's few columns (ekf.ColumnGain: the Joseph form expanded, O(n^2 m)) gives
     the covariance of the textbook product form, exactly symmetric, the same correction, and

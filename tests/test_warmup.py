@@ -313,3 +313,41 @@ def test_a_first_run_goes_to_numpy_where_numpy_is_quick_and_compiles_first_where
     assert warmup.numpy_seconds(24_000, 0) <= warmup.NUMPY_FIRST_RUN_SECONDS
     assert warmup.numpy_seconds(24_000, 24_000) > warmup.NUMPY_FIRST_RUN_SECONDS
     assert warmup.numpy_seconds(24_000, 0) < warmup.numpy_seconds(24_000, 1_000) < warmup.numpy_seconds(24_000, 24_000)
+
+
+@pytest.fixture
+def cold_mapping_cache(tmp_path, monkeypatch, cold_cache):
+    """The mapping pass's kernels (camloc.slam_compiled) looking cold, their lock folder the test's."""
+    import camloc.slam_compiled
+
+    folder = tmp_path / "mapping"
+    monkeypatch.setattr(camloc.slam_compiled, "cache_is_warm", lambda: False)
+    monkeypatch.setattr(camloc.slam_compiled, "cache_folder", lambda: folder)
+    return folder, cold_cache[1]
+
+
+def test_a_cold_mapping_pass_runs_in_numpy_and_compiles_its_kernels_in_the_background(cold_mapping_cache):
+    folder, spawned = cold_mapping_cache
+    dataset = simulate(SimulationConfig(poses=COMPILED_MIN_POSES, withhold_map=0.5), seed=5)
+    told = []
+    hooks = dict(engine="auto", on_background_compile=told.append)
+    assert not camloc.localizer._mapping_compiled(dataset, hooks)
+    assert told == [True] and spawned[-1][-2:] == [warmup.MAPPING_ONLY, str(folder / warmup.LOCK_NAME)]
+    assert not camloc.localizer._mapping_compiled(dataset, hooks)  # one compile at a time
+    assert told == [True, False] and len(spawned) == 1
+    # a library call without the hook, and engine "compiled", compile in the foreground; numpy and short runs never
+    assert camloc.localizer._mapping_compiled(dataset, dict(engine="auto", on_background_compile=None))
+    assert camloc.localizer._mapping_compiled(dataset, dict(engine="compiled", on_background_compile=told.append))
+    assert not camloc.localizer._mapping_compiled(dataset, dict(engine="numpy", on_background_compile=None))
+    short = simulate(SimulationConfig(poses=COMPILED_MIN_POSES - 100, withhold_map=0.5), seed=5)
+    assert not camloc.localizer._mapping_compiled(short, dict(engine="auto", on_background_compile=None))
+
+
+def test_the_mapping_background_process_compiles_the_mapping_kernels(tmp_path, monkeypatch):
+    lock = tmp_path / warmup.LOCK_NAME
+    lock.write_text("compiling since now\n")
+    called = []
+    monkeypatch.setattr(warmup, "compile_mapping_kernels", lambda: called.append("mapping"))
+    monkeypatch.setattr(warmup, "compile_kernels", lambda: called.append("localizer"))
+    assert warmup.main(["camloc.warmup", warmup.MAPPING_ONLY, str(lock)]) == 0
+    assert called == ["mapping"] and not lock.exists()
