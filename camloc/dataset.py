@@ -183,3 +183,23 @@ class Dataset:
     def T_odometry(self) -> np.ndarray:
         """(N-1, 4, 4) odometry increments ``T_k_k+1``."""
         return geometry.pose_from_quat(self.odom_translation, self.odom_quat_xyzw)
+
+
+def first_poses(dataset: Dataset, count: int) -> Dataset:
+    """``dataset`` cut to its first ``count`` poses: their odometry and observations, the whole
+    map (a tag observation's partner renumbered with the observations kept)."""
+    from dataclasses import replace
+
+    count = max(1, min(int(count), dataset.num_poses))
+    kept = dataset.obs_pose_index < count
+    renumbered = np.cumsum(kept) - 1
+    partner = np.where(dataset.obs_partner[kept] >= 0, renumbered[np.maximum(dataset.obs_partner[kept], 0)], -1)
+    truth = (lambda a: None if a is None else a[:count])
+    return replace(
+        dataset, pose_ids=dataset.pose_ids[:count], truth_xyz=truth(dataset.truth_xyz), truth_quat_xyzw=truth(dataset.truth_quat_xyzw),
+        odom_translation=dataset.odom_translation[:count - 1], odom_quat_xyzw=dataset.odom_quat_xyzw[:count - 1],
+        odom_info=dataset.odom_info[:count - 1], odom_cov=dataset.odom_cov[:count - 1],
+        obs_pose_index=dataset.obs_pose_index[kept], obs_camera=dataset.obs_camera[kept], obs_z=dataset.obs_z[kept],
+        obs_info=dataset.obs_info[kept], obs_cov=dataset.obs_cov[kept], obs_true_landmark=dataset.obs_true_landmark[kept],
+        obs_kind=dataset.obs_kind[kept], obs_partner=partner.astype(np.int64),
+    )

@@ -27,7 +27,7 @@ from camloc.observation_space import (candidate_range, detection_range, landmark
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
-from camloc.dataset import Dataset
+from camloc.dataset import Dataset, first_poses
 from camloc.errors import ConfigError
 from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
 from camloc.results import UNASSOCIATED, RunResult
@@ -87,16 +87,17 @@ def localize(
     config = resolved_config(config or LocalizerConfig(), dataset)
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
-    hooks = dict(parallel=parallel, engine=engine, on_compile=on_compile, on_background_compile=on_background_compile)
+    hooks = dict(parallel=parallel, engine=engine, on_compile=_once(on_compile), on_background_compile=_once(on_background_compile))
     if config.map != "exact":  # landmarks in the state: the mapping localizer
         return _localize_mapping(dataset, config, on_progress, hooks)
-    result = _localize_exact(dataset, config, on_progress, **hooks)
+    offset = _lacking_at_start(dataset, config, hooks)
+    result = _localize_exact(dataset, config, on_progress, null_cost_offset=offset, **hooks)
     if _mappable(dataset) and config.association != "oracle":
         # in every mode, landmarks the map lacks are added: where the rejected observations agree
         # on places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
         places = _lacking_places(dataset, result, config)
         if places:
-            if config.association == "beam":
+            if config.association == "beam" and offset == 0.0:
                 result = _lacking_map_beam(dataset, config, on_progress, hooks, result)
             result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
             result.summary["warnings"].append(
@@ -119,6 +120,42 @@ LACKING_NULL_OFFSET = 4.0
 # Under a prior, a rejected observation within this many map sigmas of a mapped landmark (more than
 # the screening's own radius) may be of that landmark, moved: not a landmark the map lacks.
 PRIOR_REACH_SIGMAS = 3.0
+
+
+# A run of at least LACKING_PREFIX_MIN_POSES poses screens its first LACKING_PREFIX_SHARE first:
+# where the map lacks landmarks there, the whole run's beam judges with LACKING_NULL_OFFSET at
+# once, one pass of the beam instead of two (the 20,000-pose world with a fifth withheld: the
+# second beam pass had taken it from about 1,150 to 500 poses/s); a complete map pays the
+# prefix, a fortieth of its beam. Shorter runs are screened after their run (the prefix would
+# cost more than its share: the compiled loop's least is COMPILED_MIN_POSES), as is a map that
+# lacks landmarks only later in a long run.
+LACKING_PREFIX_MIN_POSES = 12000
+LACKING_PREFIX_SHARE = 0.025
+
+
+def _lacking_at_start(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> float:
+    """The null cost's offset for the run: ``LACKING_NULL_OFFSET`` where the beam's run over the
+    start of a long run finds the map lacking, else 0."""
+    if config.association != "beam" or not _mappable(dataset) or dataset.num_poses < LACKING_PREFIX_MIN_POSES:
+        return 0.0
+    # at least the compiled loop's least (numpy runs shorter ones, at ~2 ms a pose more)
+    start = first_poses(dataset, max(COMPILED_MIN_POSES, int(LACKING_PREFIX_SHARE * dataset.num_poses)))
+    run = _localize_exact(start, config, None, **hooks)
+    return LACKING_NULL_OFFSET if _lacking_places(start, run, config) else 0.0
+
+
+def _once(callback: Optional[Callable]) -> Optional[Callable]:
+    """``callback`` called at most once (a run's engines may start twice: the prefix screened
+    first, ``_lacking_at_start``), None for None."""
+    if callback is None:
+        return None
+    called = []
+
+    def once(*args):
+        if not called:
+            called.append(True)
+            callback(*args)
+    return once
 
 
 def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -> int:

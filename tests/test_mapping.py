@@ -442,3 +442,37 @@ def test_the_screening_counts_a_moved_landmark_as_lacking_only_beyond_the_map_re
     assert lacking_landmarks(moved, T, pose_cov, rejected) == 1
     assert lacking_landmarks(moved, T, pose_cov, rejected, map_reach=0.3) == 0
     assert lacking_landmarks(dataset, T, pose_cov, rejected) == 0  # where the map has it: missed, not lacking
+
+
+def test_first_poses_keeps_the_start_of_a_run_whole():
+    from camloc.dataset import first_poses
+
+    dataset = _world(seed=1, poses=60, clutter_fraction=0.1).dataset
+    start = first_poses(dataset, 25)
+    assert start.num_poses == 25 and start.odom_translation.shape[0] == 24 and start.truth_xyz.shape[0] == 25
+    kept = dataset.obs_pose_index < 25
+    assert start.num_observations == int(kept.sum()) > 0
+    assert np.array_equal(start.obs_z, dataset.obs_z[kept]) and np.array_equal(start.obs_true_landmark, dataset.obs_true_landmark[kept])
+    assert np.array_equal(start.landmark_ids, dataset.landmark_ids)
+    assert first_poses(dataset, 10**6).num_poses == dataset.num_poses
+
+
+@pytest.mark.parametrize("withheld", [0.3, 0.0])
+def test_a_long_run_screens_its_start_and_gives_what_screening_after_gives(monkeypatch, withheld):
+    """Where the start of a long run shows the map lacking, the whole run's beam judges with the
+    lower null cost at once: the same result as the run screened after and run again; a complete
+    map's result is the same with or without the prefix."""
+    from camloc import localizer
+
+    world = _world(seed=1, poses=700, trajectory="smooth3d", withhold_map=withheld).dataset
+    monkeypatch.setattr(localizer, "LACKING_PREFIX_MIN_POSES", 10**9)
+    after = localize(world, LocalizerConfig(), engine="compiled", parallel=False)
+    monkeypatch.setattr(localizer, "LACKING_PREFIX_MIN_POSES", 600)
+    monkeypatch.setattr(localizer, "LACKING_PREFIX_SHARE", 0.5)
+    config = localizer.resolved_config(LocalizerConfig(), world)
+    hooks = dict(parallel=False, engine="compiled", on_compile=None, on_background_compile=None)
+    assert localizer._lacking_at_start(world, config, hooks) == (localizer.LACKING_NULL_OFFSET if withheld else 0.0)
+    first = localize(world, LocalizerConfig(), engine="compiled", parallel=False)
+    assert np.array_equal(first.associations.landmark >= 0, after.associations.landmark >= 0)
+    assert np.allclose(first.estimate_xyz, after.estimate_xyz, atol=1e-9)
+    assert (first.summary.get("map") or {}).get("added") == (after.summary.get("map") or {}).get("added")
