@@ -291,3 +291,21 @@ def test_compiled_sure_view_equals_the_numpy_one():
     assert 20 < np.count_nonzero(expected) < 380
     update = CompiledUpdate(sensors, geometry._SMALL_ANGLE, CONVERGED)
     np.testing.assert_array_equal(update.surely_in_view(x, xyz, view), expected)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 0.3, 2.0, np.pi - 2e-3])
+def test_compiled_so3_steps_equal_geometry_s_at_every_angle(angle):
+    """The compiled SO(3) exponential, log and their Jacobians are twins of geometry's one-vector
+    forms: equal on both sides of the small-angle switch and near a half turn."""
+    from camloc.slam_compiled import exp_and_left_jacobian, log_and_left_jacobian_inverse
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    phi = angle * axis
+    E, J = exp_and_left_jacobian(phi, geometry._SMALL_ANGLE)
+    E_ref, J_ref = geometry.so3_exp_and_left_jacobian_one(phi)
+    np.testing.assert_allclose(E, E_ref, atol=1e-15)
+    np.testing.assert_allclose(J, J_ref, atol=1e-15)
+    back, Ji, ok = log_and_left_jacobian_inverse(E_ref, geometry._SMALL_ANGLE)
+    assert ok
+    np.testing.assert_allclose(back, geometry.so3_log_one(E_ref), atol=1e-12)
+    np.testing.assert_allclose(Ji, geometry.so3_left_jacobian_inverse_one(back), atol=1e-12)
