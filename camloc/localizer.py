@@ -90,19 +90,14 @@ def localize(
     hooks = dict(parallel=parallel, engine=engine, on_compile=_once(on_compile), on_background_compile=_once(on_background_compile))
     if config.map != "exact":  # landmarks in the state: the mapping localizer
         return _localize_mapping(dataset, config, on_progress, hooks)
-    offset = _lacking_at_start(dataset, config, hooks)
-    result = _localize_exact(dataset, config, on_progress, null_cost_offset=offset, **hooks)
-    if _mappable(dataset) and config.association != "oracle":
-        # in every mode, landmarks the map lacks are added: where the rejected observations agree
-        # on places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
-        places = _lacking_places(dataset, result, config)
-        if places:
-            if config.association == "beam" and offset == 0.0:
-                result = _lacking_map_beam(dataset, config, on_progress, hooks, result)
-            result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
-            result.summary["warnings"].append(
-                f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
-                f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
+    # in every mode, landmarks the map lacks are added: where the rejected observations agree on
+    # places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
+    result, _, places = _map_run(dataset, dataset, config, on_progress, hooks)
+    if places:
+        result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
+        result.summary["warnings"].append(
+            f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
+            f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
     return result
 
 
@@ -133,15 +128,31 @@ LACKING_PREFIX_MIN_POSES = 12000
 LACKING_PREFIX_SHARE = 0.025
 
 
-def _lacking_at_start(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> float:
+def _map_run(judged: Dataset, dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict) -> tuple[RunResult, float, int]:
+    """The localizer's run against the map held exactly, its association judging ``judged``
+    (``dataset``, or under a prior the same with the map's uncertainty in the noise), with the
+    null cost lowered by ``LACKING_NULL_OFFSET`` where the map lacks landmarks (the start of a
+    long run screened first, ``_lacking_at_start``; otherwise the run screened, and the beam's run
+    again). Returns the run, the offset it used and the places the map lacks a landmark at (0
+    where it is not screened: the oracle, or a dataset the mapping localizer does not run)."""
+    offset = _lacking_at_start(judged, dataset, config, hooks)
+    run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset, **hooks)
+    places = _lacking_places(dataset, run, config) if _mappable(dataset) and config.association != "oracle" else 0
+    if places and offset == 0.0 and config.association == "beam":
+        offset = LACKING_NULL_OFFSET
+        run = _lacking_map_beam(judged, config, on_progress, hooks, run)
+    return run, offset, places
+
+
+def _lacking_at_start(judged: Dataset, dataset: Dataset, config: LocalizerConfig, hooks: dict) -> float:
     """The null cost's offset for the run: ``LACKING_NULL_OFFSET`` where the beam's run over the
-    start of a long run finds the map lacking, else 0."""
+    start of a long run (judging ``judged``) finds ``dataset``'s map lacking, else 0."""
     if config.association != "beam" or not _mappable(dataset) or dataset.num_poses < LACKING_PREFIX_MIN_POSES:
         return 0.0
     # at least the compiled loop's least (numpy runs shorter ones, at ~2 ms a pose more)
-    start = first_poses(dataset, max(COMPILED_MIN_POSES, int(LACKING_PREFIX_SHARE * dataset.num_poses)))
-    run = _localize_exact(start, config, None, **hooks)
-    return LACKING_NULL_OFFSET if _lacking_places(start, run, config) else 0.0
+    count = max(COMPILED_MIN_POSES, int(LACKING_PREFIX_SHARE * dataset.num_poses))
+    run = _localize_exact(first_poses(judged, count), replace(config, map="exact"), None, **hooks)
+    return LACKING_NULL_OFFSET if _lacking_places(first_poses(dataset, count), run, config) else 0.0
 
 
 def _once(callback: Optional[Callable]) -> Optional[Callable]:
@@ -258,11 +269,11 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             # under a prior, the beam judges each pair with the map's uncertainty in its noise (a moved
             # landmark would fail every gate of an exact map); only its pairs are taken
             judged = with_map_uncertainty(judged_map, config.map_sigma) if config.map == "prior" else judged_map
-            beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
-                                       null_cost_offset=offset, **hooks)
-            if n == 0 and _lacking_places(dataset, beam_run, config):  # the map lacks landmarks: as under exact
-                offset = LACKING_NULL_OFFSET
-                beam_run = _lacking_map_beam(judged, config, _stage(on_progress, 2 * n, stages), hooks, beam_run)
+            if n == 0:  # where the map lacks landmarks, as under exact
+                beam_run, offset, _ = _map_run(judged, dataset, config, _stage(on_progress, 0, stages), hooks)
+            else:
+                beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
+                                           null_cost_offset=offset, **hooks)
         if beam_run is not None:
             given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
             seconds += beam_run.summary["timing"]["filter_seconds"]

@@ -471,7 +471,7 @@ def test_a_long_run_screens_its_start_and_gives_what_screening_after_gives(monke
     monkeypatch.setattr(localizer, "LACKING_PREFIX_SHARE", 0.5)
     config = localizer.resolved_config(LocalizerConfig(), world)
     hooks = dict(parallel=False, engine="compiled", on_compile=None, on_background_compile=None)
-    assert localizer._lacking_at_start(world, config, hooks) == (localizer.LACKING_NULL_OFFSET if withheld else 0.0)
+    assert localizer._lacking_at_start(world, world, config, hooks) == (localizer.LACKING_NULL_OFFSET if withheld else 0.0)
     first = localize(world, LocalizerConfig(), engine="compiled", parallel=False)
     assert np.array_equal(first.associations.landmark >= 0, after.associations.landmark >= 0)
     assert np.allclose(first.estimate_xyz, after.estimate_xyz, atol=1e-9)
