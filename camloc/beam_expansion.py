@@ -147,7 +147,8 @@ class PoseExpansion:
 
     def viable(self, costs: np.ndarray, null_cost: float) -> tuple[np.ndarray, bool]:
         """Which pair options (inf: excluded) and whether the null option lie within branch_delta
-        of the best."""
+        of the best, the null option at its cost before ``null_offset``."""
+        null_cost = null_cost + self.settings.null_offset
         best = min(null_cost, float(costs.min()) if costs.size else np.inf)
         limit = best + self.settings.branch_delta
         return costs <= limit, null_cost <= limit

@@ -44,6 +44,12 @@ class BeamSettings:
     miss_cost : what an explanation pays for each landmark near a pixel observation's ray, within
         the range where a camera surely detects what it sees (``observation_space.detection_range``), that it
         leaves unclaimed (``PoseExpansion.missed``); 0: no such term.
+    null_offset : how much the run's null cost was lowered (``localizer.LACKING_NULL_OFFSET``: a
+        map that lacks landmarks). Whether leaving an observation unassigned is explored (within
+        ``branch_delta`` of its best option) is judged at the null cost before the lowering, so the
+        lower price decides between the explanations the default would grow without growing more
+        of them (judged at the lowered cost, the beam grew 14x the children and ran 4x as long;
+        ``docs/performance.md``, 2026-12-04).
     """
 
     beam_width: int = 16
@@ -58,6 +64,7 @@ class BeamSettings:
     partial_budget: int = PARTIAL_BUDGET
     state_gate: float = STATE_GATE
     miss_cost: float = MISS_COST
+    null_offset: float = 0.0
 
 
 class PartialPruning(NamedTuple):

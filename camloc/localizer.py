@@ -578,7 +578,7 @@ class _Localizer:
         c = self.config
         return BeamSettings(
             beam_width=c.beam.width, beam_delta=c.beam.delta, branch_delta=c.beam.branch_delta,
-            slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost,
+            slip_inflation=c.beam.slip_inflation, slip_cost=c.beam.slip_cost, null_offset=self.null_cost_offset,
         )
 
     def search_beam(

@@ -51,7 +51,7 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     ``view_range``: ``observation_space.candidate_range`` of the run, when the caller has it;
     ``null_cost_offset``: ``observation_space.observation_noise``'s."""
     scene = build_scene(dataset, config, view_range, null_cost_offset)
-    settings = build_settings(config)
+    settings = build_settings(config, null_cost_offset)
     n = dataset.num_poses
     if config.association == "beam":
         replay = _Filter(scene, settings, GIVEN, initial_x, initial_P, ready=filter_ready)

@@ -108,16 +108,16 @@ def point_cov_inverse(noise: ObservationNoise, kinds: np.ndarray) -> np.ndarray:
     return inverse
 
 
-def build_settings(config) -> Settings:
+def build_settings(config, null_cost_offset: float = 0.0) -> Settings:
     """The kernels' settings of a ``LocalizerConfig`` (its gate is each observation's, at its
-    dof: the scene's ``obs_gate``)."""
+    dof: the scene's ``obs_gate``); ``null_cost_offset``: ``build_scene``'s."""
     from camloc.constants import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
     return Settings(
         int(config.iterations), bool(config.recheck.enabled), float(config.recheck.margin),
         float(config.recheck.steal_margin), float(config.beam.slip_inflation), int(config.beam.width),
         float(config.beam.delta), float(config.beam.branch_delta), MERGE_SIGMA, float(config.beam.slip_cost),
-        PARTIAL_BUDGET, POOL_GATE_FACTOR,
+        PARTIAL_BUDGET, POOL_GATE_FACTOR, float(null_cost_offset),
     )
 
 

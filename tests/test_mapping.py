@@ -401,6 +401,50 @@ def test_where_the_map_lacks_landmarks_the_beam_decides_again_with_the_lower_nul
     assert np.allclose(parallel.estimate_xyz, result.estimate_xyz, atol=1e-9)
 
 
+def test_the_lowered_null_cost_prices_explanations_without_growing_many_more_of_them():
+    """The beam judged with LACKING_NULL_OFFSET explores the null option where the default would
+    (its viability judged at the null cost before the offset, ``BeamSettings.null_offset``): on a
+    half-withheld world it grows well under half the children it grew with the viability judged at
+    the lowered cost, and the compiled beam, judged so too, pairs as the numpy one does."""
+    from camloc import localizer
+
+    world = _world(seed=2, poses=120, withhold_map=0.5).dataset
+    config = localizer.resolved_config(LocalizerConfig(), world)
+    grown = {}
+    for null_offset in (localizer.LACKING_NULL_OFFSET, 0.0):
+        lowered = localizer._Localizer(world, config, null_cost_offset=localizer.LACKING_NULL_OFFSET)
+        assert lowered.beam_settings().null_offset == localizer.LACKING_NULL_OFFSET
+        lowered.search_beam(settings=replace(lowered.beam_settings(), null_offset=null_offset))
+        grown[null_offset] = lowered.beam_statistics.children_created
+    assert grown[localizer.LACKING_NULL_OFFSET] < 0.5 * grown[0.0]
+    runs = [localizer._localize_exact(world, config, None, null_cost_offset=localizer.LACKING_NULL_OFFSET, parallel=False,
+                                      engine=engine, on_compile=None, on_background_compile=None)
+            for engine in ("numpy", "compiled")]
+    assert np.array_equal(runs[0].associations.landmark, runs[1].associations.landmark)
+    np.testing.assert_allclose(runs[0].filter_state, runs[1].filter_state, atol=1e-8)
+
+
+def test_the_null_option_is_explored_as_before_its_offset():
+    """A pair 6 below its lowered null cost (10 before the offset of 4): with branch_delta 8 the
+    null option is not explored under the offset (both engines), and is without it."""
+    from camloc.beam_expansion import PoseExpansion
+    from camloc.beam_types import BeamSettings
+    from camloc.kernels import _jit
+    from camloc.kernels.beam import clear_choices as compiled_only
+    from camloc.scene import build_settings
+
+    clear_choices = _jit.from_python(compiled_only)  # a step without numba's Python wrapper
+    costs, lowered_null = np.array([0.0]), 6.0
+    for offset, explored in ((4.0, False), (0.0, True)):
+        expansion = PoseExpansion.__new__(PoseExpansion)
+        expansion.settings = BeamSettings(branch_delta=8.0, null_offset=offset)
+        assert expansion.viable(costs, lowered_null)[1] is explored
+        settings = build_settings(LocalizerConfig(), offset)
+        assert settings.branch_delta == 8.0
+        choice = clear_choices(settings, np.array([lowered_null]), np.array([0, 1]), np.array([7]), costs, np.array([0]))
+        assert bool(choice[0] < 0) is explored  # AMBIGUOUS (negative) where the null option is explored too
+
+
 @pytest.mark.slow
 def test_half_a_map_withheld_no_longer_loses_the_robot_where_it_sees_few_landmarks():
     """Aerial worlds (about 3.6 observations a pose, half of them of landmarks the map lacks): with

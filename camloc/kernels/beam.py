@@ -334,7 +334,8 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
     viable = 0
     for k in range(n):
         i = positions[k]
-        limit = least_cost(cost[start[i]:start[i + 1]], null_cost[k]) + settings.branch_delta
+        null_before = null_cost[k] + settings.null_offset   # viability at the null cost before its offset
+        limit = least_cost(cost[start[i]:start[i + 1]], null_before) + settings.branch_delta
         count, last = 0, -1
         for j in range(start[i], start[i + 1]):
             if cost[j] <= limit:
@@ -342,7 +343,7 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
                 last = j
                 viable_landmarks[viable] = lm[j]
                 viable += 1
-        null = null_cost[k] <= limit
+        null = null_before <= limit
         if count + int(null) == 1:
             choice[k] = UNASSIGNED if null else last
     for k in range(n):
@@ -727,7 +728,7 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children
     with a viable landmark (its state pending); returns the next free index."""
     landmarks, cost, z_hat, H = options_of(scene, settings, gen, p, obs, opt, i, moved)
     o = obs[i]
-    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o], settings.branch_delta)
+    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o] + settings.null_offset, settings.branch_delta)
     null = null or contested(opt, later, landmarks, pairs)
     if null:
         copy_hypothesis(gen, p, children, at)

@@ -56,4 +56,6 @@ Settings = namedtuple("Settings", [
     # the beam
     "beam_width", "beam_delta", "branch_delta", "merge_sigma", "slip_cost", "partial_budget",
     "pool_gate_factor",
+    "null_offset",          # how much the scene's null cost was lowered: the null option's viability is
+                            # judged before it (``beam_types.BeamSettings.null_offset``)
 ])
