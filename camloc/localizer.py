@@ -151,8 +151,9 @@ def _lacking_at_start(judged: Dataset, dataset: Dataset, config: LocalizerConfig
         return 0.0
     # at least the compiled loop's least (numpy runs shorter ones, at ~2 ms a pose more)
     count = max(COMPILED_MIN_POSES, int(LACKING_PREFIX_SHARE * dataset.num_poses))
-    run = _localize_exact(first_poses(judged, count), replace(config, map="exact"), None, **hooks)
-    return LACKING_NULL_OFFSET if _lacking_places(first_poses(dataset, count), run, config) else 0.0
+    prefix = first_poses(dataset, count)
+    run = _localize_exact(prefix if judged is dataset else first_poses(judged, count), replace(config, map="exact"), None, **hooks)
+    return LACKING_NULL_OFFSET if _lacking_places(prefix, run, config) else 0.0
 
 
 def _once(callback: Optional[Callable]) -> Optional[Callable]:
