@@ -18,6 +18,20 @@ trajectory and seed), made in memory. Experiments (``--experiments``, comma-sepa
   triangulation's), then the default localizer (which then screens points, lowers the null cost and
   maps). Grouped by the file's landmark ids (``ids``: an upper bound, the grouping is the oracle's)
   or by ``slam_tracks.Tracks`` (``tracks``: what a localizer could do).
+- ``bound``: the beam with every ray of a landmark the map lacks left out (the file's ids): what a
+  perfect screening of rays would reach.
+- ``depthz``: the beam's pairs up to 10 poses past where it leaves the true association's estimate,
+  right and wrong, and how many the depth of the pair's track tells apart (the rays of the same
+  true landmark within 5 poses triangulated through the run's poses, against the paired
+  landmark's depth along the ray; the grouping is the oracle's).
+- ``chunked``: screening as the run goes: the beam over the poses so far, then the latest 20
+  poses' rays of ``slam_tracks.Tracks`` tracks far from every mapped landmark (placed through that
+  estimate) left out of every later pass.
+- ``chunked_ids``: the same every 10 poses, leaving out each pair whose track's depth (``depthz``,
+  the oracle's grouping) disagrees with its landmark's by over 3 sigma: an upper bound of judging
+  a pair by its track, pose by pose. Slow (6-10 min a world: a beam pass every 10 poses).
+
+2026-12-04 (branch issue38-pixel-track): docs/performance.md, "Judging a pair by its track".
 
     nice python benchmarks/pixel_lacking.py --experiments screen,diverge --seeds 0,1,2,3
     nice python benchmarks/pixel_lacking.py --experiments variants,pseudo --trajectories grid --seeds 0
@@ -33,6 +47,7 @@ import numpy as np
 
 from camloc import geometry, measurement
 from camloc.association import PointIndex
+from camloc.dataset import first_poses
 from camloc.localizer import _localize_exact, localize
 from camloc.localizer_config import LocalizerConfig
 from camloc.observation_space import candidate_range, landmark_rows
@@ -223,7 +238,111 @@ def pseudo(trajectory: str, seed: int, poses: int) -> None:
               f"{time.perf_counter() - started:.1f} s", flush=True)
 
 
-EXPERIMENTS = {"screen": screen, "diverge": diverge, "variants": variants, "pseudo": pseudo, "veto": veto}
+# --- 2026-12-04 (branch issue38-pixel-track): the track lead measured ---------------------------
+
+TRACK_WINDOW_POSES, DEPTH_Z = 5, 3.0
+
+
+def _depth_z(dataset, run_T, run_cov, T_odometry, rays, o: int, landmark_xyz: np.ndarray, group: np.ndarray):
+    """How far (in sigmas) the depth along ray ``o`` at which its ``group`` of rays meets (placed
+    through the run's poses ``run_T``, or with ``T_odometry`` by the odometry relative to ``o``'s
+    pose there: that flagged 30% of the right pairs on grid 0, the odometry's drift) is from ``landmark_xyz``'s depth along
+    it (its variance: the triangulation's, 4x, and the pose's along the ray); nan where the group
+    fixes no point (under 3 rays or 0.5 degree of parallax)."""
+    if group.size < 3:
+        return np.nan
+    k = int(dataset.obs_pose_index[o])
+    T = run_T.copy()
+    if T_odometry is not None:
+        for j in np.unique(dataset.obs_pose_index[group]):
+            T[j] = run_T[k] @ np.linalg.inv(T_odometry[k]) @ T_odometry[j]
+    origins, directions, sigmas = world_rays(dataset, T, group)
+    if parallax_deg(directions) < 0.5:
+        return np.nan
+    fix = triangulate(origins, directions, sigmas)
+    if fix is None:
+        return np.nan
+    m = int(np.flatnonzero(group == o)[0])
+    d = directions[m]
+    depth, variance = float(d @ (fix[0] - origins[m])), PSEUDO_INFLATION * float(d @ fix[1] @ d)
+    along = float(d @ run_cov[k][:3, :3] @ d)
+    return (depth - float(d @ (landmark_xyz - origins[m]))) / np.sqrt(variance + along)
+
+
+def bound(trajectory: str, seed: int, poses: int) -> None:
+    """The beam with every ray of a landmark the map lacks left out (the file's ids): what a
+    perfect screening of rays would give."""
+    ds = world(trajectory, seed, poses, withhold_map=0.5)
+    mapped = np.isin(ds.obs_true_landmark, ds.landmark_ids)
+    run = _localize_exact(subset(ds, mapped), LocalizerConfig(), None, **HOOKS)
+    print(f"{trajectory}/{seed} | bound | lacking rays left out: beam {rmse(ds, run):.3f} m", flush=True)
+
+
+def depthz(trajectory: str, seed: int, poses: int) -> None:
+    """The beam's pairs up to 10 poses past where it leaves the true association's estimate:
+    right and wrong ones, and how many a track's depth tells apart (``_depth_z`` over the rays of
+    the same true landmark within ``TRACK_WINDOW_POSES``: the grouping is the oracle's)."""
+    ds = world(trajectory, seed, poses, withhold_map=0.5)
+    beam = _localize_exact(ds, LocalizerConfig(), None, **HOOKS)
+    oracle = _localize_exact(ds, LocalizerConfig(association="oracle"), None, **HOOKS)
+    worse = np.flatnonzero(np.linalg.norm(beam.estimate_xyz - ds.truth_xyz, axis=1)
+                           - np.linalg.norm(oracle.estimate_xyz - ds.truth_xyz, axis=1) > 0.3)
+    first = int(worse[0]) if worse.size else ds.num_poses
+    T, To = geometry.pose_from_quat(beam.estimate_xyz, beam.estimate_quat_xyzw), odometry_poses(ds)
+    rays = np.flatnonzero(measurement.is_ray(ds.obs_kind))
+    paired, truth, k = beam.associations.landmark, ds.obs_true_landmark, ds.obs_pose_index
+    xyz = dict(zip(ds.landmark_ids.tolist(), ds.landmark_xyz))
+    rows = {"right": [], "wrong": []}
+    for o in np.flatnonzero((paired >= 0) & (k < first + 10)).tolist():
+        group = rays[(truth[rays] == truth[o]) & (np.abs(k[rays] - k[o]) <= TRACK_WINDOW_POSES)]
+        rows["wrong" if paired[o] != truth[o] else "right"].append(abs(_depth_z(ds, T, beam.estimate_cov, None, rays, o, xyz[int(paired[o])], group)))
+    text = []
+    for name, z in rows.items():
+        z = np.array(z)
+        known = np.isfinite(z)
+        text.append(f"{name} {z.size} (depth known {np.mean(known):.2f}, over {DEPTH_Z:g} sigma {np.mean(z[known] > DEPTH_Z) if known.any() else 0:.2f})")
+    print(f"{trajectory}/{seed} | depthz | leaves at pose {first} | {' | '.join(text)}", flush=True)
+
+
+def chunked(trajectory: str, seed: int, poses: int, chunk: int = 20, ids: bool = False) -> None:
+    """Screening as the run goes: the beam over the poses so far (rays left out so far left out),
+    then the latest ``chunk`` poses' rays screened through its estimate and left out of every later
+    pass: by ``lacking_tracks`` (rays of tracks far from every mapped landmark), or with ``ids`` by
+    ``_depth_z`` of each pair over its true landmark's rays (the oracle's grouping: an upper bound
+    of judging a pair by its track)."""
+    ds = world(trajectory, seed, poses, withhold_map=0.5)
+    kept, k, truth = np.ones(ds.num_observations, bool), ds.obs_pose_index, ds.obs_true_landmark
+    To, rays = odometry_poses(ds), np.flatnonzero(measurement.is_ray(ds.obs_kind))
+    xyz = dict(zip(ds.landmark_ids.tolist(), ds.landmark_xyz))
+    for t in range(chunk, ds.num_poses + chunk, chunk):
+        part = first_poses(ds, min(t, ds.num_poses))
+        n = part.num_observations  # the observations are in pose order
+        run = _localize_exact(subset(part, kept[:n]), LocalizerConfig(), None, **HOOKS)
+        T = geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw)
+        if ids:
+            paired = np.full(n, -1)
+            paired[kept[:n]] = run.associations.landmark
+            mine = rays[rays < n]
+            for o in np.flatnonzero((paired >= 0) & (k[:n] >= t - chunk)).tolist():
+                group = mine[(truth[mine] == truth[o]) & (np.abs(k[mine] - k[o]) <= TRACK_WINDOW_POSES)]
+                if abs(_depth_z(part, T, run.estimate_cov, None, rays, o, xyz[int(paired[o])], group)) > DEPTH_Z:
+                    kept[o] = False
+        else:
+            screened = kept[:n] & (k[:n] >= t - chunk - 10)
+            for track in lacking_tracks(part, T, run.estimate_cov, screened):
+                kept[[o for o in track if k[o] >= t - chunk]] = False
+    run = _localize_exact(subset(ds, kept), LocalizerConfig(), None, **HOOKS)
+    mapped = np.isin(truth, ds.landmark_ids)
+    print(f"{trajectory}/{seed} | chunked{' ids' if ids else ''} | {rmse(ds, run):.3f} m | left out: rays of lacking landmarks "
+          f"{int(np.sum(~kept & ~mapped))} of {int(np.sum(~mapped))}, of mapped ones {int(np.sum(~kept & mapped))} of {int(np.sum(mapped))}", flush=True)
+
+
+def chunked_ids(trajectory: str, seed: int, poses: int) -> None:
+    chunked(trajectory, seed, poses, chunk=10, ids=True)
+
+
+EXPERIMENTS = {"screen": screen, "diverge": diverge, "variants": variants, "pseudo": pseudo, "veto": veto,
+               "bound": bound, "depthz": depthz, "chunked": chunked, "chunked_ids": chunked_ids}
 
 
 def main() -> None:
