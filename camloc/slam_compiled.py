@@ -220,34 +220,13 @@ def state_columns(rows):
 
 @_jit
 def column_gain(P_columns, columns, H, R_full):
-    """``ekf.ColumnGain``: U = P H' (n, m), S = H P H' + R (m, m), exactly symmetric, and S's
-    lower Cholesky factor; raises numpy's LinAlgError where S is not positive definite."""
+    """``ekf.ColumnGain``: U = P H' (n, m) and S = H P H' + R (m, m), exactly symmetric;
+    raises numpy's LinAlgError where S is not positive definite (its Cholesky check)."""
     U = P_columns @ H.T
     HU = H @ U[columns]
     S = 0.5 * ((HU + R_full) + (HU + R_full).T)
-    return U, S, np.linalg.cholesky(S)
-
-
-@_jit
-def cho_solve_rows(L, B):
-    """B (k, m) <- B S^-1 in place (each row solved; S symmetric), L the lower Cholesky factor of
-    S (m, m). Substitution in loops: ``np.linalg.solve``'s LAPACK call (an LU of S, copies of both
-    operands) cost more than the arithmetic of these 6-60-row systems, three times an update.
-    (Not the kernels' ``cho_solve_into``: numba checks a cache against its own file only, and
-    these kernels keep theirs apart from ``camloc/kernels``, see the module's docstring.)"""
-    m = L.shape[0]
-    for r in range(B.shape[0]):
-        b = B[r]
-        for i in range(m):
-            s = b[i]
-            for j in range(i):
-                s -= L[i, j] * b[j]
-            b[i] = s / L[i, i]
-        for i in range(m - 1, -1, -1):
-            s = b[i]
-            for j in range(i + 1, m):
-                s -= L[j, i] * b[j]
-            b[i] = s / L[i, i]
+    np.linalg.cholesky(S)
+    return U, S
 
 
 @_jit
@@ -269,10 +248,8 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     z_flat = z.ravel()
     z_hat, H = observe_columns(R, t, L, xyz, rows, block, sensor, cam_R, cam_t, cam_K, cam_third, width)
     y_prior = z_flat - z_hat.ravel()
-    U, S, L_S = column_gain(P_columns, columns, H, R_full)
-    w = y_prior.copy().reshape(1, -1)
-    cho_solve_rows(L_S, w)
-    w = w[0]
+    U, S = column_gain(P_columns, columns, H, R_full)
+    w = np.linalg.solve(S, y_prior)
     nis = y_prior @ w
     S_prior = S
     delta = U @ w
@@ -280,14 +257,12 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     last = y_prior
     for _ in range(iterations - 1):
         z_hat_i, H_i = observe_columns(R_i, t_i, L_i, xyz, rows, block, sensor, cam_R, cam_t, cam_K, cam_third, width)
-        U, S, L_S = column_gain(P_columns, columns, H_i, R_full)
+        U, S = column_gain(P_columns, columns, H_i, R_full)
         moved, ok = difference_columns(R_i, t_i, L_i, R, t, L, in_state, small)
         if not ok:
             return False, R, t, L, P, y_prior, np.zeros((p, 3, 3)), 0.0, 0.0, np.zeros(p)
         last = z_flat - z_hat_i.ravel() + H_i @ moved
-        w = last.copy().reshape(1, -1)
-        cho_solve_rows(L_S, w)
-        w = w[0]
+        w = np.linalg.solve(S, last)
         step = U @ w
         R_i, t_i, L_i = retract(R, t, L, step, small)
         if np.max(np.abs(step - delta)) < converged:
@@ -299,7 +274,7 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     residual = z - z_post
     for o in range(p):
         cost += residual[o] @ (R_inverse[o] @ residual[o])
-    K = np.linalg.solve(S, U.T).T  # LAPACK's blocked solve: faster than substitution in loops for the n rows
+    K = np.linalg.solve(S, U.T).T
     KM = K @ (0.5 * (K @ S) - U).T
     S_blocks = np.empty((p, 3, 3))
     d2 = np.empty(p)

@@ -9,7 +9,7 @@ from camloc import ekf, geometry, measurement, slam
 from camloc.association import mahalanobis_3x3
 from camloc.constants import CONVERGED
 from camloc.sensors import CameraModel
-from camloc.slam_compiled import CompiledUpdate, cho_solve_rows, difference_columns, observe_columns, retract
+from camloc.slam_compiled import CompiledUpdate, difference_columns, observe_columns, retract
 
 KINDS = [measurement.DEPTH, measurement.PIXEL, measurement.DISPARITY]
 
@@ -132,18 +132,6 @@ def test_compiled_jacobian_matches_finite_differences(kind):
         minus = predict(*retract(x.R, x.t, x.L, -e, geometry._SMALL_ANGLE))[0].ravel()
         numeric[:, i] = (plus - minus) / (2 * step)
     np.testing.assert_allclose(H, numeric, atol=1e-5 * np.abs(numeric).max())
-
-
-@pytest.mark.parametrize("m", [1, 3, 12, 40])
-def test_rows_solved_through_the_cholesky_factor_equal_numpy_s_solve(m):
-    rng = np.random.default_rng(m)
-    A = rng.normal(size=(m, m))
-    S = A @ A.T + m * np.eye(m)
-    B = rng.normal(size=(7, m))
-    X = B.copy()
-    cho_solve_rows(np.linalg.cholesky(S), X)
-    np.testing.assert_allclose(X, np.linalg.solve(S, B.T).T, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(X @ S, B, rtol=1e-9, atol=1e-10)
 
 
 def test_compiled_retraction_and_difference_equal_the_numpy_ones():
