@@ -38,8 +38,12 @@ def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
     # as a terminal's Ctrl-C does, to the whole process group (the replay's and the kernels'
     # threads and processes included). The first delay falls in camloc's imports, after the
     # interpreter's own start: a signal during Python's site import (0.05 s did hit it with the
-    # tests on two processes) ends the interpreter before any program runs.
-    for delay in (0.15, 0.25, 0.4, 0.9, 1.4, 1.9, 2.4, 3.0):
+    # tests on two processes) ends the interpreter before any program runs; a loaded machine starts
+    # it slower, so the delays begin after a bare interpreter's start as measured here, twice over.
+    started = time.monotonic()
+    subprocess.run([sys.executable, "-c", "pass"], check=True)
+    start = max(0.15, 2.0 * (time.monotonic() - started))
+    for delay in (start, start + 0.1, start + 0.25, 0.9, 1.4, 1.9, 2.4, 3.0):
         run_dir = tmp_path / f"run-{delay}"
         process = subprocess.Popen([*_camloc_script(), "run", str(dataset), "-o", str(run_dir), "--quiet"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=tmp_path,
