@@ -243,20 +243,16 @@ def pseudo(trajectory: str, seed: int, poses: int) -> None:
 TRACK_WINDOW_POSES, DEPTH_Z = 5, 3.0
 
 
-def _depth_z(dataset, run_T, run_cov, T_odometry, rays, o: int, landmark_xyz: np.ndarray, group: np.ndarray):
+def _depth_z(dataset, run_T, run_cov, o: int, landmark_xyz: np.ndarray, group: np.ndarray):
     """How far (in sigmas) the depth along ray ``o`` at which its ``group`` of rays meets (placed
-    through the run's poses ``run_T``, or with ``T_odometry`` by the odometry relative to ``o``'s
-    pose there: that flagged 30% of the right pairs on grid 0, the odometry's drift) is from ``landmark_xyz``'s depth along
-    it (its variance: the triangulation's, 4x, and the pose's along the ray); nan where the group
-    fixes no point (under 3 rays or 0.5 degree of parallax)."""
+    through the run's poses ``run_T``; placed by the odometry relative to ``o``'s pose instead, in
+    a scratch version, it flagged 30% of the right pairs on grid 0: the odometry's drift) is from
+    ``landmark_xyz``'s depth along it (its variance: the triangulation's, 4x, and the pose's along
+    the ray); nan where the group fixes no point (under 3 rays or 0.5 degree of parallax)."""
     if group.size < 3:
         return np.nan
     k = int(dataset.obs_pose_index[o])
-    T = run_T.copy()
-    if T_odometry is not None:
-        for j in np.unique(dataset.obs_pose_index[group]):
-            T[j] = run_T[k] @ np.linalg.inv(T_odometry[k]) @ T_odometry[j]
-    origins, directions, sigmas = world_rays(dataset, T, group)
+    origins, directions, sigmas = world_rays(dataset, run_T, group)
     if parallax_deg(directions) < 0.5:
         return np.nan
     fix = triangulate(origins, directions, sigmas)
@@ -288,14 +284,14 @@ def depthz(trajectory: str, seed: int, poses: int) -> None:
     worse = np.flatnonzero(np.linalg.norm(beam.estimate_xyz - ds.truth_xyz, axis=1)
                            - np.linalg.norm(oracle.estimate_xyz - ds.truth_xyz, axis=1) > 0.3)
     first = int(worse[0]) if worse.size else ds.num_poses
-    T, To = geometry.pose_from_quat(beam.estimate_xyz, beam.estimate_quat_xyzw), odometry_poses(ds)
+    T = geometry.pose_from_quat(beam.estimate_xyz, beam.estimate_quat_xyzw)
     rays = np.flatnonzero(measurement.is_ray(ds.obs_kind))
     paired, truth, k = beam.associations.landmark, ds.obs_true_landmark, ds.obs_pose_index
     xyz = dict(zip(ds.landmark_ids.tolist(), ds.landmark_xyz))
     rows = {"right": [], "wrong": []}
     for o in np.flatnonzero((paired >= 0) & (k < first + 10)).tolist():
         group = rays[(truth[rays] == truth[o]) & (np.abs(k[rays] - k[o]) <= TRACK_WINDOW_POSES)]
-        rows["wrong" if paired[o] != truth[o] else "right"].append(abs(_depth_z(ds, T, beam.estimate_cov, None, rays, o, xyz[int(paired[o])], group)))
+        rows["wrong" if paired[o] != truth[o] else "right"].append(abs(_depth_z(ds, T, beam.estimate_cov, o, xyz[int(paired[o])], group)))
     text = []
     for name, z in rows.items():
         z = np.array(z)
@@ -312,7 +308,7 @@ def chunked(trajectory: str, seed: int, poses: int, chunk: int = 20, ids: bool =
     of judging a pair by its track)."""
     ds = world(trajectory, seed, poses, withhold_map=0.5)
     kept, k, truth = np.ones(ds.num_observations, bool), ds.obs_pose_index, ds.obs_true_landmark
-    To, rays = odometry_poses(ds), np.flatnonzero(measurement.is_ray(ds.obs_kind))
+    rays = np.flatnonzero(measurement.is_ray(ds.obs_kind))
     xyz = dict(zip(ds.landmark_ids.tolist(), ds.landmark_xyz))
     for t in range(chunk, ds.num_poses + chunk, chunk):
         part = first_poses(ds, min(t, ds.num_poses))
@@ -325,7 +321,7 @@ def chunked(trajectory: str, seed: int, poses: int, chunk: int = 20, ids: bool =
             mine = rays[rays < n]
             for o in np.flatnonzero((paired >= 0) & (k[:n] >= t - chunk)).tolist():
                 group = mine[(truth[mine] == truth[o]) & (np.abs(k[mine] - k[o]) <= TRACK_WINDOW_POSES)]
-                if abs(_depth_z(part, T, run.estimate_cov, None, rays, o, xyz[int(paired[o])], group)) > DEPTH_Z:
+                if abs(_depth_z(part, T, run.estimate_cov, o, xyz[int(paired[o])], group)) > DEPTH_Z:
                     kept[o] = False
         else:
             screened = kept[:n] & (k[:n] >= t - chunk - 10)
