@@ -12,6 +12,13 @@ its ratio to ``full``), mean NEES, landmarks added, added twice and made of clut
     nice python benchmarks/mapping.py --trajectories grid,smooth3d,aerial --seeds 0,1,2 --poses 300
     nice python benchmarks/mapping.py --cases moved --seeds 0,1,2,3 --measurement pixel --cameras 2
 
+``--robot planar --sensors points|cameras|points,cameras``: planar worlds (``camloc.simulate_planar``,
+the trajectory option unused) instead; ``half ignore`` is the exact map's localizer with the map's
+lacking landmarks ignored (what camloc did for a planar robot before it mapped them), and every row
+prints the largest |z| of the estimated trajectory (a planar run's must stay 0).
+
+    nice python benchmarks/mapping.py --robot planar --sensors points --seeds 0,1,2 --poses 300
+
 ``--speed``: the speed of the mapping run instead (issue 38's target: a 20,000-pose world with a
 fifth of its 20,000 landmarks withheld at 1,000 poses/s): a world of ``--poses`` poses and as many
 landmarks, a fifth withheld (``--seeds``' first; or ``--file``, a g2o file), run under each of
@@ -32,9 +39,10 @@ from collections import Counter
 import numpy as np
 
 from camloc import metrics
-from camloc.localizer import localize
+from camloc.localizer import _localize_exact, localize, resolved_config
 from camloc.localizer_config import LocalizerConfig
 from camloc.simulate import SimulationConfig, simulate_labelled
+from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
 
 
 def stands_for(result) -> dict:
@@ -49,11 +57,16 @@ def stands_for(result) -> dict:
 
 def case(dataset, truth_map, is_clutter, map_mode: str, association: str, moved_ids=()) -> dict:
     started = time.perf_counter()
-    result = localize(dataset, LocalizerConfig(map=map_mode, association=association))
+    if map_mode == "ignore":  # the exact map's localizer alone: landmarks the map lacks not screened for, not added
+        hooks = dict(parallel=None, engine="auto", on_compile=None, on_background_compile=None)
+        config = resolved_config(LocalizerConfig(association=association), dataset)
+        result = _localize_exact(dataset, config, None, **hooks)
+    else:
+        result = localize(dataset, LocalizerConfig(map=map_mode, association=association))
     seconds = time.perf_counter() - started
     rmse = float(np.sqrt(np.mean(np.sum((result.estimate_xyz - dataset.truth_xyz) ** 2, axis=1))))
     row = {"rmse": rmse, "nees": float(np.nanmean(metrics.run_nees(result))), "seconds": seconds, "added": 0,
-           "twice": 0, "clutter_landmarks": 0, "moved_error": None}
+           "twice": 0, "clutter_landmarks": 0, "moved_error": None, "max_z": float(np.abs(result.estimate_xyz[:, 2]).max())}
     if result.landmark_map is not None:
         stands = stands_for(result)
         real = [v for v in stands.values() if v is not None and v in truth_map]
@@ -77,6 +90,8 @@ def main() -> None:
     parser.add_argument("--cases", default="half,moved,none", help="which imperfect maps (default half,moved,none)")
     parser.add_argument("--measurement", default="depth", help="the simulator's camera measurement (default depth)")
     parser.add_argument("--cameras", type=int, default=1, help="cameras on the robot (default 1)")
+    parser.add_argument("--robot", default="3d", choices=("3d", "planar"), help="3d (default) or planar worlds")
+    parser.add_argument("--sensors", default="points", help="with --robot planar: the planar simulator's sensors")
     parser.add_argument("--speed", action="store_true", help="measure the speed instead (see above)")
     parser.add_argument("--file", default=None, help="with --speed: a g2o file instead of a simulated world")
     parser.add_argument("--modes", default="exact,prior", help="with --speed: the map modes to run")
@@ -85,25 +100,30 @@ def main() -> None:
         speed(args)
         return
     cases = args.cases.split(",")
-    print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | s")
-    for trajectory in args.trajectories.split(","):
+    print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | max abs z | s")
+    planar = args.robot == "planar"
+    for trajectory in ([args.sensors] if planar else args.trajectories.split(",")):
         for seed in [int(s) for s in args.seeds.split(",")]:
-            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter,
-                        measurement=args.measurement, cameras=args.cameras)
-            full = simulate_labelled(SimulationConfig(**base), seed=seed)
-            truth_map = dict(zip(full.dataset.landmark_ids.tolist(), full.dataset.landmark_xyz))
-            worlds = [("half", SimulationConfig(**base, withhold_map=0.5), ("exact", "prior")),
-                      ("moved", SimulationConfig(**base, move_map=0.25), ("exact", "prior")),
-                      ("none", SimulationConfig(**base, no_map=True), ("none",))]
+            if planar:
+                base = dict(sensors=args.sensors, poses=args.poses, clutter_fraction=args.clutter)
+                make = lambda c, seed=seed: simulate_planar(PlanarSimulationConfig(**c), seed=seed)  # noqa: E731
+            else:
+                base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter,
+                            measurement=args.measurement, cameras=args.cameras)
+                make = lambda c, seed=seed: simulate_labelled(SimulationConfig(**c), seed=seed).dataset  # noqa: E731
+            full = make(base)
+            truth_map = dict(zip(full.landmark_ids.tolist(), full.landmark_xyz))
+            worlds = [("half", dict(base, withhold_map=0.5), ("ignore", "exact", "prior") if planar else ("exact", "prior")),
+                      ("moved", dict(base, move_map=0.25), ("exact", "prior")),
+                      ("none", dict(base, no_map=True), ("none",))]
             for association in args.associations.split(","):
-                reference = case(full.dataset, truth_map, full.is_clutter, "exact", association)
+                reference = case(full, truth_map, None, "exact", association)
                 _print(trajectory, seed, "full exact", association, reference, reference["rmse"])
                 for name, config, modes in [w for w in worlds if w[0] in cases]:
-                    world = simulate_labelled(config, seed=seed)
-                    ds = world.dataset
+                    ds = make(config)
                     moved = [int(i) for i in ds.landmark_ids if np.linalg.norm(ds.landmark_xyz[ds.landmark_ids == i][0] - truth_map[int(i)]) > 1e-6]
                     for mode in modes:
-                        row = case(ds, truth_map, world.is_clutter, mode, association, moved if name == "moved" else ())
+                        row = case(ds, truth_map, None, mode, association, moved if name == "moved" else ())
                         _print(trajectory, seed, f"{name} {mode}", association, row, reference["rmse"])
 
 
@@ -136,7 +156,7 @@ def speed(args) -> None:
 def _print(trajectory, seed, name, association, row, full_rmse) -> None:
     moved = f"{row['moved_error']:.3f}" if row["moved_error"] is not None else "-"
     print(f"{trajectory}/{seed} | {name} | {association} | {row['rmse']:.3f} | {row['rmse'] / full_rmse:.2f} | {row['nees']:.2f} | "
-          f"{row['added']} | {row['twice']} | {row['clutter_landmarks']} | {moved} | {row['seconds']:.1f}", flush=True)
+          f"{row['added']} | {row['twice']} | {row['clutter_landmarks']} | {moved} | {row['max_z']:.1e} | {row['seconds']:.1f}", flush=True)
 
 
 if __name__ == "__main__":

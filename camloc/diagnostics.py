@@ -72,6 +72,10 @@ def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJ
     return min(1.0, float(binomial_tail(rejected - 1, observations, rate)))  # its rounding can pass 1
 
 
+# What the mapping localizer maps (``localizer.unmappable_reason`` says why a dataset is not that)
+MAPPED_LANDMARKS = "point landmarks (cameras', and a planar robot's points; not markers or tags)"
+
+
 def run_warnings(counts: Mapping[str, int], *, mapped: bool = False, map_size: Optional[int] = None,
                  unmappable: Optional[str] = None) -> list[str]:
     """The warnings a run's counts call for (``summary["counts"]``: ``observations``, ``rejected``,
@@ -88,10 +92,10 @@ def run_warnings(counts: Mapping[str, int], *, mapped: bool = False, map_size: O
     elif updates == 0:
         found.append(f"all {observations} observations were rejected, so the filter made no update: the estimate "
                       "is odometry alone, not corrected by the camera")
-    cannot_map = (f"; camloc adds the landmarks a map lacks only for a 3-D robot's point landmarks, and {unmappable}"
+    cannot_map = (f"; camloc adds the landmarks a map lacks only for {MAPPED_LANDMARKS}, and {unmappable}"
                   if unmappable else "")
     if observations and not mapped and map_size == 0:
-        found.append(f"the file has no map, and camloc maps (EKF-SLAM) only a 3-D robot's point landmarks: {unmappable}"
+        found.append(f"the file has no map, and camloc maps (EKF-SLAM) only {MAPPED_LANDMARKS}: {unmappable}"
                      if unmappable else "the file has no map: '--map none' maps what the camera sees (EKF-SLAM)")
     elif observations and not mapped and rejection_tail(rejected, observations) < INCOMPLETE_MAP_PROBABILITY:
         found.append(

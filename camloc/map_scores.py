@@ -114,11 +114,18 @@ def stands_for(added_ids: np.ndarray, obs_landmark: np.ndarray, category: np.nda
 
 def _errors(xyz: np.ndarray, cov: np.ndarray, true_xyz: np.ndarray) -> dict:
     """``count``, ``rmse``, ``max`` of the position errors (m), ``nees``: mean ``e^T C^-1 e`` over the
-    landmarks with a positive definite covariance (3 where consistent; None when none)."""
+    landmarks with a positive definite covariance (3 where consistent; None when none). A point of
+    a planar robot's floor (its z pinned: zero variance and no correlation in z, on the floor as
+    its truth is) is scored on its x and y, that 2-dof NEES times 3/2 (so 3 where consistent too)."""
     error = xyz - true_xyz
     distance = np.linalg.norm(error, axis=1)
     definite = np.linalg.eigvalsh(cov)[:, 0] > 0.0 if len(cov) else np.zeros(0, dtype=bool)
     nees = np.einsum("ni,ni->n", error[definite], np.linalg.solve(cov[definite], error[definite][:, :, None])[:, :, 0])
+    floor = ~definite & np.all(cov[:, 2, :] == 0.0, axis=1) & (error[:, 2] == 0.0) if len(cov) else definite
+    floor &= np.linalg.eigvalsh(cov[:, :2, :2])[:, 0] > 0.0 if len(cov) else floor
+    if np.any(floor):
+        planar = np.einsum("ni,ni->n", error[floor, :2], np.linalg.solve(cov[floor, :2, :2], error[floor, :2][:, :, None])[:, :, 0])
+        nees = np.concatenate([nees, 1.5 * planar])
     return {
         "count": int(len(distance)),
         "rmse": _number(np.sqrt(np.mean(distance**2))) if len(distance) else None,

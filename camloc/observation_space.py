@@ -170,13 +170,18 @@ def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
     map's own uncertainty in the noise, its gates are those of a landmark known to ``sigma``.
 
     A pixel measures no depth: its point is taken at the typical reach of the view
-    (``pixel_reach``; half of it widened the gates too far: more wrong pairs). Observations of other kinds (a
-    planar robot's, a tag's orientation) are not widened: the mapping localizer does not run them.
+    (``pixel_reach``; half of it widened the gates too far: more wrong pairs). A planar robot's point
+    (point2, a point of the floor known to ``sigma`` in x and y) adds ``sigma^2`` to its x and y
+    (the rotation drops out too). Observations of other kinds (a marker, a tag's orientation) are
+    not widened: the mapping localizer does not run them.
     """
+    floor = np.flatnonzero(dataset.obs_kind == measurement.POINT2)
     widened = np.flatnonzero(np.isin(dataset.obs_kind, measurement.CAMERA_KINDS))
-    if widened.size == 0:
+    if widened.size == 0 and floor.size == 0:
         return dataset
     cov, info = dataset.obs_cov.copy(), dataset.obs_info.copy()
+    cov[floor, 0, 0] += sigma**2
+    cov[floor, 1, 1] += sigma**2
     intrinsics = observation_intrinsics(dataset)
     for kind in np.unique(dataset.obs_kind[widened]).tolist():
         rows = widened[dataset.obs_kind[widened] == kind]
@@ -190,6 +195,7 @@ def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
         points[:, 2] = np.maximum(points[:, 2], measurement.MIN_POINT_DEPTH)
         J = measurement.projection_jacobian(points, intrinsics[rows].T, kind)
         cov[rows] += sigma**2 * J @ np.swapaxes(J, 1, 2)
+    widened = np.union1d(widened, floor)
     info[widened] = sym3.inverse(cov[widened])
     return replace(dataset, obs_cov=cov, obs_info=info)
 

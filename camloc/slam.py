@@ -24,6 +24,16 @@ Measure    p_robot = R' (l - t) of a landmark in the state: d p_robot / d xi = R
 Inverse    a new landmark from a measurement with range: l = t + R (t_c + R_c g(z)) with g the
            back-projection; its error is xi_l = xi_t + R^ R_c G dz: the robot's translation error
            plus the measurement's noise, no heading term (``inverse_observation``).
+Planar     a planar robot (``Dataset.planar``) runs this model lifted: its pose a rotation about z
+           at z = 0, its odometry noise Q and start covariance zero in z, roll and pitch
+           (``planar_initial_cov``). G Q G' then spans only xi_t's x, y, xi_theta's z and the
+           landmarks' x, y (``[l]x R e_z = (l_y, -l_x, 0)``), so P is zero in the other pose rows
+           and every correction P H' w keeps the robot in the plane, exactly (tests/test_slam.py).
+           A point of the floor (``EDGE_SE2_XY``, kind point2) is a landmark with z = 0 measured in
+           the robot frame, z = the first two rows of R' (l - t) (``project``: the third row
+           inert); its inverse observation puts no noise in z, so its z is pinned at 0 with zero
+           variance: not information claimed, a point of the floor has no height, and no
+           measurement's Jacobian reaches it (the third row of R' (l - t) is never measured).
 
 Pure: no I/O, no printing. Every Jacobian is checked against finite differences of ``retract``
 in tests/test_slam.py.
@@ -37,7 +47,7 @@ import numpy as np
 
 from typing import TYPE_CHECKING
 
-from camloc import ekf, geometry, measurement
+from camloc import ekf, geometry, measurement, planar
 
 if TYPE_CHECKING:
     from camloc.sensors import CameraModel  # a camera: T_robot_camera, intrinsics, kind
@@ -94,6 +104,12 @@ def predict(x: SlamMean, P: np.ndarray, T_increment: np.ndarray, Q: np.ndarray) 
     try:  # G Q G' as W W' (W = G chol(Q)): BLAS's symmetric product, exactly symmetric, so P's sum is too
         W = G @ np.linalg.cholesky(Q)
         return x_next, P + W @ W.T
+    except np.linalg.LinAlgError:
+        pass
+    support = np.flatnonzero(np.any(Q != 0.0, axis=0))  # a planar robot's: zero in z, roll and pitch
+    try:
+        W = G[:, support] @ np.linalg.cholesky(Q[np.ix_(support, support)])
+        return x_next, P + W @ W.T
     except np.linalg.LinAlgError:  # a Q not positive definite (a degenerate file's)
         return x_next, ekf.symmetrize(P + G @ Q @ G.T)
 
@@ -111,6 +127,39 @@ def noise_coefficients(x: SlamMean) -> np.ndarray:
     if x.L.size:
         G[POSE_DIM:, 3:6] = (geometry.hat(x.L) @ RW).reshape(-1, 3)
     return G
+
+
+def planar_initial_cov(x: SlamMean, world_cov: np.ndarray) -> np.ndarray:
+    """``initial_cov`` of a planar robot: ``world_cov`` (6, 6) kept on (x, y, yaw) only, zero in
+    z, roll and pitch (``planar.planar_block``, ``planar.lifted_cov``)."""
+    return initial_cov(x, planar.lifted_cov(planar.planar_block(world_cov)))
+
+
+# A planar point's measurement, d z / d p_robot: its x and y rows (the third inert)
+_POINT2_JACOBIAN = np.diag([1.0, 1.0, 0.0])
+
+
+def project(p_camera: np.ndarray, sensor: "CameraModel") -> tuple[np.ndarray, np.ndarray]:
+    """Points in the sensor's frame (M, 3) -> its measurements (M, MAX_DIM) and their Jacobians
+    d z / d p (M, MAX_DIM, 3): a camera's (``measurement.project``), or a planar robot's point
+    sensor's (point2: the point's x and y in the robot frame, the third row inert)."""
+    if sensor.kind == measurement.POINT2:
+        z = np.zeros((p_camera.shape[0], measurement.MAX_DIM))
+        z[:, :2] = p_camera[:, :2]
+        return z, np.broadcast_to(_POINT2_JACOBIAN, (p_camera.shape[0], 3, 3))
+    return (measurement.project(p_camera, sensor.intrinsics, sensor.kind),
+            measurement.projection_jacobian(p_camera, sensor.intrinsics, sensor.kind))
+
+
+def back_project(z: np.ndarray, sensor: "CameraModel") -> tuple[np.ndarray, np.ndarray]:
+    """``project``'s inverse for a measurement with range (M, MAX_DIM) -> points in the sensor's
+    frame (M, 3) and d p / d z (M, 3, MAX_DIM): a camera's (``measurement.back_project``), a
+    point2's on the floor (z = 0, no noise in it)."""
+    if sensor.kind == measurement.POINT2:
+        p = np.zeros((z.shape[0], 3))
+        p[:, :2] = z[:, :2]
+        return p, np.broadcast_to(_POINT2_JACOBIAN, (z.shape[0], 3, measurement.MAX_DIM)).copy()
+    return measurement.back_project(z, sensor.intrinsics, sensor.kind)
 
 
 def camera_points(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray) -> np.ndarray:
@@ -132,7 +181,7 @@ def observe_columns(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, block: 
     ``block`` (M,) puts it (>= 2; -1: the point is held fixed). An update whose pairs touch a few
     landmarks of a large state works on those columns (``state_columns``)."""
     p_camera = camera_points(x, sensor, xyz)
-    Jh = measurement.projection_jacobian(p_camera, sensor.intrinsics, sensor.kind)  # (M, 3, 3)
+    z_hat, Jh = project(p_camera, sensor)  # (M, MAX_DIM), (M, 3, 3)
     A = Jh @ (sensor.T_robot_camera[:3, :3].T @ x.R.T)  # d z / d p_world-like: Jh Rc' R'
     M = xyz.shape[0]
     H = np.zeros((M, measurement.MAX_DIM, width))
@@ -145,7 +194,7 @@ def observe_columns(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, block: 
         blocks[fixed, :, 1, :] = A[fixed] @ geometry.hat(xyz[fixed])
         mine = np.flatnonzero(~fixed)  # each its own landmark's block, in one assignment
         blocks[mine, :, block[mine], :] = A[mine]
-    return measurement.project(p_camera, sensor.intrinsics, sensor.kind), H
+    return z_hat, H
 
 
 def state_columns(state_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -161,7 +210,7 @@ def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: 
     """A new landmark from one measurement with range z (MAX_DIM,) of noise R_z (MAX_DIM,
     MAX_DIM): its position (3,), the coefficients B (3, POSE_DIM) of its error on the pose's
     (xi_l = B xi_pose + noise: [I, 0]) and the noise's covariance N (3, 3)."""
-    p_camera, G = measurement.back_project(z[None, :], sensor.intrinsics, sensor.kind)
+    p_camera, G = back_project(z[None, :], sensor)
     Rc, tc = sensor.T_robot_camera[:3, :3], sensor.T_robot_camera[:3, 3]
     xyz = x.t + x.R @ (tc + Rc @ p_camera[0])
     W = x.R @ Rc @ G[0]  # d l / d z

@@ -23,7 +23,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from camloc import slam
+from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
 from camloc.slam_landmarks import UNPAIRED, surely_in_view
 from camloc.tails import chi2_quantile
@@ -150,7 +150,7 @@ class PoseAssociation:
         if obs.size == 0:
             return []
         self._sync_positions()
-        nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, None if added_only else self.mapped_index)
+        nearby = self.table.in_range(self.x.t, self.reach, None if added_only else self.mapped_index)
         if self.given_pairs is not None and not added_only:
             mapped = nearby < self.table.num_mapped
             trusted = np.zeros(nearby.size, bool)
@@ -210,6 +210,8 @@ class PoseAssociation:
         sensor against the landmarks of ``nearby`` in its view; costs ``UNPAIRED`` outside the
         gate. None: no candidate."""
         sensor = self.sensors[sensor_id]
+        if self.dataset.planar:  # a planar robot's point sensor sees the floor's points, a camera the others
+            nearby = nearby[self.table.planar[nearby] == (sensor.kind == measurement.POINT2)]
         if nearby.size == 0:
             return None
         xyz = self.table.xyz[nearby]
@@ -223,8 +225,11 @@ class PoseAssociation:
             return (nearby[seen], cost, z_hat, H, extra) if np.any(seen) else None
         p_camera = slam.camera_points(self.x, sensor, xyz)
         norm = np.linalg.norm(p_camera, axis=1)
-        seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)
-                & (p_camera[:, 2] >= np.cos(self.max_angle) * norm))
+        if sensor.kind == measurement.POINT2:  # within the point sensor's reach, any bearing (its field of view is not in the file)
+            seen = norm <= self.planar_range
+        else:
+            seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)
+                    & (p_camera[:, 2] >= np.cos(self.max_angle) * norm))
         if not np.any(seen):
             return None
         candidates, xyz = nearby[seen], xyz[seen]

@@ -64,7 +64,8 @@ class LandmarkTable:
                 ("observations", np.int64, (), 0),
                 ("tentative", bool, (), False),  # added from one observation, not yet confirmed by its score
                 ("score", float, (), 0.0),       # a tentative landmark's log-likelihood ratio over clutter
-                ("dead", bool, (), False))       # a tentative landmark dropped (clutter): out of the map
+                ("dead", bool, (), False),       # a tentative landmark dropped (clutter): out of the map
+                ("planar", bool, (), False))     # a point of a planar robot's floor (VERTEX_XY, seen by point2 only)
 
     ids: np.ndarray
     xyz: np.ndarray
@@ -77,6 +78,7 @@ class LandmarkTable:
     tentative: np.ndarray
     score: np.ndarray
     dead: np.ndarray
+    planar: np.ndarray
 
     def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
         n = ids.size
@@ -124,6 +126,19 @@ class LandmarkTable:
             offset = self.xyz[self._live] - centre
             added = self._live[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
         return np.concatenate([mapped, added]).astype(np.int64)
+
+def places_points(kinds: np.ndarray) -> np.ndarray:
+    """(K,) bool: whether one measurement of each of ``kinds`` (K,) places its landmark as a point:
+    a camera's with range (depth, disparity) or a planar robot's point (point2, on the floor); a
+    pixel is a ray, a marker is not mapped."""
+    kinds = np.asarray(kinds, dtype=np.int64)
+    return measurement.measures_range(kinds) | (kinds == measurement.POINT2)
+
+
+def places_point(kind: int) -> bool:
+    """``places_points`` of one kind."""
+    return bool(places_points(np.array([kind]))[0])
+
 
 class LandmarkAdditions:
     """The mapping localizer's additions (a mix-in of ``slam_run.MappingLocalizer``, whose state
@@ -200,7 +215,7 @@ class LandmarkAdditions:
         unassigned = self._unexplained(unassigned)
         for o in unassigned:
             kind = int(self.dataset.obs_kind[o])
-            if measurement.measures_range(np.array([kind]))[0]:
+            if places_point(kind):
                 # a point enters the state at once, tentative (``_retire`` drops it unless seen again):
                 # the filter then judges its next observations with the correlations it holds
                 self._add_landmark(k, o, SingleObservation(o), tentative=True)
@@ -233,7 +248,7 @@ class LandmarkAdditions:
             return obs
         obs_array = np.array(obs, np.int64)
         self._sync_positions()
-        nearby = self.table.in_range(self.x.t, self.max_depth + 1.0, self.mapped_index)
+        nearby = self.table.in_range(self.x.t, self.reach, self.mapped_index)
         fits = np.zeros(obs_array.size, bool)
         for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():
             at = self.obs_sensor[obs_array] == sensor_id
@@ -253,7 +268,7 @@ class LandmarkAdditions:
             track = self.oracle_tracks.get(true_id)
             if track is None:
                 track = self.oracle_tracks[true_id] = OracleTrack(self.tracks)
-            if measurement.measures_range(np.array([kind]))[0]:
+            if places_point(kind):
                 track.observations.append(o)
                 ready = len(track.observations) >= 2
             else:
@@ -284,7 +299,7 @@ class LandmarkAdditions:
         ray's track fixes no depth in front of the camera."""
         sensor = self.sensors[int(self.obs_sensor[o])]
         z, R_z = self.dataset.obs_z[o].copy(), self.dataset.obs_cov[o].copy()
-        if not measurement.measures_range(np.array([sensor.kind]))[0]:
+        if not places_point(sensor.kind):
             fix = triangulate(np.array(track.origins), np.array(track.directions), np.array(track.sigma_angle))
             if fix is None:
                 return False
@@ -309,6 +324,7 @@ class LandmarkAdditions:
         self.table.observations[landmark] = len(track.observations)
         self.table.born[landmark] = int(self.dataset.obs_pose_index[np.array(track.observations, np.int64)].min())
         self.table.tentative[landmark] = tentative
+        self.table.planar[landmark] = sensor.kind == measurement.POINT2
         self.chosen[np.array(track.observations, np.int64)] = landmark
         return True
 
@@ -396,11 +412,11 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
     of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world), and away
     from every mapped landmark by that and ``map_reach`` more (how far a mapped landmark may be from
     its map position: under a prior, a moved landmark's rejected observations are not a landmark
-    the map lacks). Rays (pixels) are not screened."""
+    the map lacks). Rays (pixels) are not screened; a planar robot's points are (on the floor)."""
     from camloc.association import PointIndex  # a scan below a few thousand points: no scipy for a small run
     from camloc.sensors import sensors_of
 
-    obs = np.flatnonzero(rejected & measurement.measures_range(dataset.obs_kind))
+    obs = np.flatnonzero(rejected & places_points(dataset.obs_kind))
     if obs.size < SCREEN_POSES:
         return 0
     sensors, obs_sensor = sensors_of(dataset)
@@ -409,7 +425,7 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
         at = obs_sensor[obs] == sensor_id
         mine = obs[at]
         sensor = sensors[sensor_id]
-        p_camera, G = measurement.back_project(dataset.obs_z[mine], sensor.intrinsics, sensor.kind)
+        p_camera, G = slam.back_project(dataset.obs_z[mine], sensor)
         T = T_world_robot[dataset.obs_pose_index[mine]] @ sensor.T_robot_camera
         points[at] = np.einsum("nij,nj->ni", T[:, :3, :3], p_camera) + T[:, :3, 3]
         noise = np.einsum("nij,njk,nlk->nil", G, dataset.obs_cov[mine], G)

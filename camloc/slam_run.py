@@ -32,12 +32,12 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import ekf, geometry, measurement, slam
+from camloc import ekf, geometry, measurement, planar, slam
 from camloc.association import mahalanobis_3x3
-from camloc.dataset import Dataset
+from camloc.dataset import LANDMARK_POINT2, Dataset
 from camloc.filters import make_filter
 from camloc.localizer_config import LocalizerConfig
-from camloc.observation_space import candidate_range, observation_noise
+from camloc.observation_space import candidate_range, observation_noise, planar_range
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
@@ -65,6 +65,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         noise = observation_noise(dataset, config)
         self.association_cov, self.log_det_R, self.null_cost = noise.cov, noise.log_det, noise.null_cost
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
+        self.planar_range = planar_range(dataset)  # how far a planar robot's point sensor sees (0: none)
+        self.reach = max(self.max_depth, self.planar_range) + 1.0  # the landmarks searched around the robot
         self.sure_view = sure_view(dataset)
         self.gate = np.array([chi2_quantile(int(d), 1.0 - config.gate) for d in range(measurement.MAX_DIM + 1)])
         held = config.map != "none"
@@ -72,6 +74,9 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         xyz = dataset.landmark_xyz if held else np.zeros((0, 3))
         sigma2 = config.map_sigma ** 2 if config.map == "prior" else 0.0
         self.table = LandmarkTable(ids, xyz, np.tile(sigma2 * np.eye(3), (ids.size, 1, 1)))
+        if held and dataset.planar:  # a point of the floor: pinned at z = 0 (``slam`` model card), its prior in the plane
+            self.table.planar[:] = dataset.landmark_kind == LANDMARK_POINT2
+            self.table.cov[self.table.planar, 2, 2] = 0.0
         self.mapped_index = PointIndex(xyz) if ids.size else None
         self.table.scan = self.compiled.live_within if self.compiled is not None else None
         self.state_landmark: list[int] = []  # table index of each landmark in the state
@@ -88,7 +93,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.T_increments = dataset.T_odometry  # a property that converts every quaternion: once, not per pose
         T0 = dataset.T_world_start
         self.x = slam.SlamMean(T0[:3, :3].copy(), T0[:3, 3].copy(), np.zeros((0, 3)))
-        self.P = slam.initial_cov(self.x, config.initial_cov())
+        self.P = (slam.planar_initial_cov if dataset.planar else slam.initial_cov)(self.x, config.initial_cov())
         self.T_odometry = T0
         n, K = dataset.num_poses, dataset.num_observations
         self.covs = np.zeros((n, 6, 6))  # the SE(3) filter's right perturbation (its states: the poses, at the end)
@@ -222,8 +227,12 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         left_out = (self.chosen >= 0) & unmapped[np.maximum(self.chosen, 0)] if len(table) else np.zeros(self.chosen.size, bool)
         self.chosen[left_out], self.mahalanobis[left_out] = -1, np.nan  # pairs with what the map does not keep
         chosen_ids = np.where(self.chosen >= 0, self.table.ids[np.maximum(self.chosen, 0)] if len(self.table) else 0, UNASSOCIATED)
+        if self.dataset.planar:  # a planar robot's run is recorded as the SE(2) filter's: (x, y, theta), 3 dof
+            filter_model, states, covs = make_filter("se2"), planar.flatten(self.poses), planar.planar_block(self.covs)
+        else:
+            filter_model, states, covs = make_filter("se3"), np.concatenate(geometry.pose_to_quat(self.poses), axis=1), self.covs
         result = build_result(
-            self.dataset, self.config, make_filter("se3"), np.concatenate(geometry.pose_to_quat(self.poses), axis=1), self.covs,
+            self.dataset, self.config, filter_model, states, covs,
             self.poses, self.odometry_poses,
             chosen_ids.astype(np.int64), self.mahalanobis, self.update_pose_ids, self.nis, self.map_costs, self.nis_dof,
             warnings=[], slip_pose_ids=[], candidate_range=(self.min_depth, self.max_depth, self.max_angle),

@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from camloc.cli.app import app
 from camloc.diagnostics import (
+    MAPPED_LANDMARKS,
     ODOMETRY_ALONE,
     estimate_name,
     filter_name,
@@ -153,16 +154,16 @@ def test_the_tables_name_the_filter_that_ran(tmp_path, world, args, name):
 def test_a_run_that_cannot_map_says_why_beside_the_incomplete_map():
     counts = {"observations": 801, "rejected": 400, "updates": 300}
     (plain,) = run_warnings(counts)
-    (planar,) = run_warnings(counts, map_size=70, unmappable="this dataset's robot is planar")
-    assert planar.startswith(plain) and planar.endswith("only for a 3-D robot's point landmarks, and this dataset's robot is planar")
+    (planar,) = run_warnings(counts, map_size=70, unmappable="this dataset's robot observes markers")
+    assert planar.startswith(plain) and planar.endswith(f"only for {MAPPED_LANDMARKS}, and this dataset's robot observes markers")
     assert run_warnings(counts, mapped=True, unmappable="x") == []
 
 
 def test_an_empty_map_is_not_called_incomplete_but_says_what_maps_it():
     counts = {"observations": 295, "rejected": 295, "updates": 0}
-    odometry, no_map = run_warnings(counts, map_size=0, unmappable="this dataset's robot is planar")
+    odometry, no_map = run_warnings(counts, map_size=0, unmappable="this dataset's robot observes markers")
     assert "odometry alone" in odometry and "the map may lack" not in no_map
-    assert no_map == "the file has no map, and camloc maps (EKF-SLAM) only a 3-D robot's point landmarks: this dataset's robot is planar"
+    assert no_map == f"the file has no map, and camloc maps (EKF-SLAM) only {MAPPED_LANDMARKS}: this dataset's robot observes markers"
     assert "'--map none'" in run_warnings(counts, map_size=0)[1]
 
 
@@ -174,8 +175,9 @@ def test_a_planar_file_without_a_map_runs_on_odometry_and_says_why(tmp_path):
     from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
 
     dataset = tmp_path / "nomap.g2o"
-    write_g2o(simulate_planar(PlanarSimulationConfig(poses=30, no_map=True), seed=1), dataset)
+    write_g2o(simulate_planar(PlanarSimulationConfig(sensors="markers", poses=30, no_map=True), seed=1), dataset)
     result = CliRunner().invoke(app, ["run", str(dataset), "-o", str(tmp_path / "run"), "--quiet"])
     assert result.exit_code == 0, result.output
-    assert "camloc maps (EKF-SLAM) only a 3-D robot's point landmarks: this dataset's robot is planar" in result.output
+    assert "camloc maps (EKF-SLAM) only point landmarks" in " ".join(result.output.split())
+    assert "this dataset's robot observes markers" in " ".join(result.output.split())
     assert "the map may lack" not in result.output

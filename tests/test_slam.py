@@ -259,3 +259,78 @@ def test_landmark_table_grows_keeping_its_rows():
     assert (table.state_row[3:] == -1).all() and (table.last_seen[3:] == -1).all() and not table.tentative.any()
     table.drop(np.array([5]))
     assert 5 not in table.in_range(np.zeros(3), 1e9, None).tolist() and 6 in table.in_range(np.zeros(3), 1e9, None).tolist()
+
+
+# -- a planar robot (its pose a turn about z at z = 0; a point2 sensor in the robot frame) ------------------
+
+def _planar_state(rng, m=2):
+    theta = rng.uniform(-np.pi, np.pi)
+    R = geometry.so3_exp(np.array([0.0, 0.0, theta]))
+    t = np.array([*rng.normal(size=2), 0.0])
+    L = np.zeros((m, 3))
+    L[:, :2] = t[:2] + rng.normal(size=(m, 2)) * 2.0
+    return slam.SlamMean(R, t, L)
+
+
+POINT2_SENSOR = CameraModel(np.eye(4), (1.0, 1.0, 0.0, 0.0), measurement.POINT2, measurement.ROBOT_FRAME_SENSOR)
+
+
+def test_point2_observation_and_jacobians_match_finite_differences():
+    """A point of the floor measured in the robot frame: the first two rows of R' (l - t), the third
+    inert (0, with a zero Jacobian row); its Jacobian on every column of the error (also z, roll,
+    pitch, which a planar run never moves) against finite differences of ``retract``."""
+    rng = np.random.default_rng(11)
+    x = _planar_state(rng)
+    fixed = np.array([1.5, -0.7, 0.0])
+    for row, xyz_of in [(0, lambda s: s.L[0]), (1, lambda s: s.L[1]), (-1, lambda s: fixed)]:
+        z, H = slam.observe(x, POINT2_SENSOR, xyz_of(x)[None, :], np.array([row]))
+        np.testing.assert_allclose(z[0, :2], (x.R.T @ (xyz_of(x) - x.t))[:2], atol=1e-12)
+        assert z[0, 2] == 0.0 and np.all(H[0, 2] == 0.0)
+        numeric = _numeric(lambda s: slam.observe(s, POINT2_SENSOR, xyz_of(s)[None, :], np.array([row]))[0][0], x, x.dim)
+        np.testing.assert_allclose(H[0], numeric, atol=1e-6)
+        assert np.abs(H[0]).max() > 0.5  # not a trivially zero Jacobian
+        if row >= 0:  # no heading term for a landmark of the state, and nothing in its z
+            np.testing.assert_allclose(H[0][:, 3:6], 0.0, atol=1e-12)
+            assert np.all(H[0][:, 6 + 3 * row + 2] == 0.0)
+
+
+def test_point2_inverse_observation_pins_the_landmark_on_the_floor():
+    """The landmark a point2 measurement implies is on the floor (z = 0), measures back to it, its
+    error is the pose's translation error (B = [I, 0], checked numerically) plus the measurement's
+    noise in x and y only: zero variance in z, which no measurement reaches."""
+    rng = np.random.default_rng(12)
+    x = _planar_state(rng, m=0)
+    z = np.array([1.2, -0.4, 0.0])
+    R_z = np.array([[0.01, 0.002, 0.0], [0.002, 0.02, 0.0], [0.0, 0.0, 1.0]])  # the inert row's unit variance
+    xyz, B, N = slam.inverse_observation(x, POINT2_SENSOR, z, R_z)
+    assert xyz[2] == 0.0
+    np.testing.assert_allclose(slam.observe(x, POINT2_SENSOR, xyz[None, :], np.array([-1]))[0][0], z, atol=1e-12)
+
+    def landmark_error(s):
+        l_new, _, _ = slam.inverse_observation(s, POINT2_SENSOR, z, R_z)
+        return slam.difference(slam.SlamMean(s.R, s.t, l_new[None, :]), slam.SlamMean(x.R, x.t, xyz[None, :]))[6:9]
+    np.testing.assert_allclose(B, _numeric(landmark_error, x, 6), atol=1e-6)
+    assert np.all(N[2] == 0.0) and np.all(N[:, 2] == 0.0)
+    np.testing.assert_allclose(N[:2, :2], x.R[:2, :2] @ R_z[:2, :2] @ x.R[:2, :2].T, atol=1e-15)
+
+
+def test_planar_noise_and_start_stay_in_the_plane():
+    """A planar robot's odometry noise (zero in z, roll, pitch) and start covariance give a P that
+    is exactly zero on the error's z, roll and pitch rows, also with landmarks of any height in the
+    state; the prediction with such a singular Q is exactly ``P + G Q G'``."""
+    from camloc import planar
+
+    rng = np.random.default_rng(13)
+    x = _planar_state(rng, m=2)
+    x.L[1, 2] = 1.3  # a camera's landmark, off the floor
+    P = slam.planar_initial_cov(x, np.diag([0.01, 0.02, 0.03, 1e-3, 2e-3, 3e-3]))
+    P = np.pad(P, (0, 6))
+    P[6:, 6:] = np.eye(6) * 0.1
+    P[8, :] = P[:, 8] = 0.0  # the floor landmark's z: pinned
+    Q = planar.lifted_cov(np.diag([0.0025, 0.0016, 4e-4]))
+    T_inc = planar.lift(np.array([0.3, 0.05, 0.1]))
+    a, P1 = slam.predict(x, P, T_inc, Q)
+    G = slam.noise_coefficients(a)
+    np.testing.assert_allclose(P1, P + G @ Q @ G.T, atol=1e-15)
+    assert np.all(P1[2:5] == 0.0) and np.all(P1[:, 2:5] == 0.0) and np.all(P1[8] == 0.0)
+    assert P1[0, 0] > P[0, 0] and P1[5, 5] > P[5, 5]
