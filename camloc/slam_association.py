@@ -25,7 +25,7 @@ import numpy as np
 
 from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
-from camloc.slam_landmarks import UNPAIRED, surely_in_view
+from camloc.slam_landmarks import UNPAIRED
 from camloc.tails import chi2_quantile
 
 
@@ -181,13 +181,11 @@ class PoseAssociation:
     def _count_beam_misses(self, k: int) -> None:
         """The map's landmarks surely in view (``sure_view``) that the beam did not pair at pose k
         miss once more (``beam_missed``)."""
-        if self.sure_view is None or self.mapped_index is None:
+        if (self.sure_view is None and self.floor_view is None) or self.mapped_index is None:
             return
-        nearby = self.mapped_index.within(self.x.t, self.sure_view[1] + 1.0)
-        if self.compiled is not None:
-            in_view = self.compiled.surely_in_view(self.x, self.table.xyz[nearby], self.sure_view)
-        else:
-            in_view = surely_in_view(self.x, self.sensors, self.table.xyz[nearby], self.sure_view)
+        far = max(view[1] for view in (self.sure_view, self.floor_view) if view is not None)
+        nearby = self.mapped_index.within(self.x.t, far + 1.0)
+        in_view = self._in_sure_view(nearby, self.table.xyz[nearby])
         missed = nearby[in_view & (self.beam_paired_at[nearby] != k)]
         self.beam_missed[missed] += 1
 

@@ -229,18 +229,31 @@ class LandmarkAdditions:
         """A tentative landmark in the state that was surely in view (``sure_view``) and not
         seen at this pose: its score takes the miss."""
         table = self.table
-        if not self.state_landmark or self.sure_view is None:
+        if not self.state_landmark or (self.sure_view is None and self.floor_view is None):
             return
         landmarks = np.array(self.state_landmark, np.int64)
         unseen = np.array([landmark not in seen for landmark in self.state_landmark])
         rows = np.flatnonzero(table.tentative[landmarks] & unseen)
         if rows.size == 0:
             return
-        if self.compiled is not None:
-            in_view = self.compiled.surely_in_view(self.x, self.x.L[rows], self.sure_view)
-        else:
-            in_view = surely_in_view(self.x, self.sensors, self.x.L[rows], self.sure_view)
+        in_view = self._in_sure_view(landmarks[rows], self.x.L[rows])
         table.score[landmarks[rows[in_view]]] += np.log(1.0 - DETECTION_PROBABILITY)
+
+    def _in_sure_view(self, landmarks: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(M,) bool: which of the table's ``landmarks`` (M,), at ``xyz`` (M, 3), a sensor of their
+        kind surely sees from the estimate: a camera (``sure_view``), or a planar robot's point
+        sensor a point of the floor (``floor_sure_view``)."""
+        floor = self.table.planar[landmarks]
+        in_view = np.zeros(landmarks.size, bool)
+        if self.sure_view is not None and not floor.all():
+            cameras = ~floor
+            if self.compiled is not None:
+                in_view[cameras] = self.compiled.surely_in_view(self.x, xyz[cameras], self.sure_view)
+            else:
+                in_view[cameras] = surely_in_view(self.x, self.sensors, xyz[cameras], self.sure_view)
+        if self.floor_view is not None and floor.any():
+            in_view[floor] = floor_in_view(self.x, xyz[floor], self.floor_view)
+        return in_view
 
     def _unexplained(self, obs: list[int]) -> list[int]:
         """The observations of ``obs`` that no landmark in view fits within its chi^2 gate."""
@@ -366,6 +379,27 @@ def sure_view(dataset: Dataset) -> Optional[tuple[float, float, float]]:
     angle = np.arccos(np.clip(points[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
     near, far = np.quantile(distance, _SURE_QUANTILES)
     return float(near), float(far), float(np.quantile(angle, _SURE_QUANTILES[1]))
+
+
+def floor_sure_view(dataset: Dataset) -> Optional[tuple[float, float, float]]:
+    """``sure_view`` of a planar robot's point sensor (point2): the 10th and 90th percentiles of its
+    observations' distances from the robot, the 90th of their bearings from its x axis. None
+    with fewer than 10 such observations."""
+    mine = np.flatnonzero(dataset.obs_kind == measurement.POINT2)
+    if mine.size < 10:
+        return None
+    z = dataset.obs_z[mine]
+    near, far = np.quantile(np.hypot(z[:, 0], z[:, 1]), _SURE_QUANTILES)
+    return float(near), float(far), float(np.quantile(np.abs(np.arctan2(z[:, 1], z[:, 0])), _SURE_QUANTILES[1]))
+
+
+def floor_in_view(x: slam.SlamMean, xyz: np.ndarray, view: tuple[float, float, float]) -> np.ndarray:
+    """(M,) bool: which points of the floor (M, 3) the planar robot's point sensor surely sees
+    from x (within ``floor_sure_view``'s distances and bearing)."""
+    near, far, angle = view
+    p = (xyz - x.t) @ x.R  # in the robot frame
+    distance = np.hypot(p[:, 0], p[:, 1])
+    return (distance >= near) & (distance <= far) & (np.abs(np.arctan2(p[:, 1], p[:, 0])) <= angle)
 
 
 class SingleObservation:

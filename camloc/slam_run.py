@@ -42,7 +42,7 @@ from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
 from camloc.slam_association import BEAM_RECENT, PoseAssociation
-from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, sure_view
+from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, floor_sure_view, sure_view
 from camloc.slam_tracks import Tracks
 from camloc.tails import chi2_quantile
 
@@ -68,6 +68,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.planar_range = planar_range(dataset)  # how far a planar robot's point sensor sees (0: none)
         self.reach = max(self.max_depth, self.planar_range) + 1.0  # the landmarks searched around the robot
         self.sure_view = sure_view(dataset)
+        self.floor_view = floor_sure_view(dataset)  # a planar robot's point sensor's (None: no such sensor)
         self.gate = np.array([chi2_quantile(int(d), 1.0 - config.gate) for d in range(measurement.MAX_DIM + 1)])
         held = config.map != "none"
         ids = dataset.landmark_ids if held else np.zeros(0, np.int64)

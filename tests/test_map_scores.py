@@ -130,3 +130,17 @@ def test_cli_eval_scores_the_hand_built_run_folder(tmp_path, synthetic_run):
     assert rows["landmarks made of clutter"] == ["1", "5 added", "20.0%"]
     assert rows["clutter observations in them"] == ["3", "7 clutter", "42.9%"]
     assert rows["never added"] == ["1", "3 seen 2+ times", "33.3%"]
+
+
+def test_a_point_of_the_floor_is_scored_on_its_x_and_y():
+    """A planar robot's floor point (z pinned: zero variance in z, on the floor as its truth) has a
+    singular covariance: its NEES is that of x and y, times 3/2 (3 where consistent, as a 3-D one's);
+    a 3-D landmark beside it keeps its own."""
+    true_xyz = np.array([[1.0, 2.0, 0.0], [3.0, 1.0, 0.5]])
+    floor_cov = np.diag([0.04, 0.01, 0.0])
+    estimated = LandmarkMap(np.array([0, 1]), true_xyz + [[0.2, 0.1, 0.0], [0.0, 0.0, 0.3]],
+                            np.stack([floor_cov, 0.09 * np.eye(3)]), np.array([False, False]), np.array([3, 3]))
+    score = map_score(estimated, given_ids=np.array([0, 1]), given_xyz=true_xyz, true_ids=np.array([0, 1]), true_xyz=true_xyz,
+                      obs_landmark=np.array([0, 1]), obs_true=np.array([0, 1]))
+    floor_nees = 1.5 * (0.2**2 / 0.04 + 0.1**2 / 0.01)  # 3.0
+    assert score["mapped"]["nees"] == pytest.approx((floor_nees + 0.3**2 / 0.09) / 2)

@@ -216,14 +216,6 @@ def test_a_file_without_a_map_is_mapped_from_scratch(tmp_path):
     assert summary["map"]["mapped"] == 0 and summary["counts"]["updates"] > 40
 
 
-def test_mapping_a_planar_file_is_refused_clearly(tmp_path):
-    world = tmp_path / "p.g2o"
-    assert _cli("simulate", "-o", world, "--robot", "planar", "--poses", "30", "-q").exit_code == 0
-    run = _cli("run", world, "--map", "prior", "-o", tmp_path / "r")
-    assert run.exit_code != 0
-    assert "planar" in run.output and "--map exact" in run.output and "Traceback" not in run.output
-
-
 def test_map_uncertainty_widens_each_observation_by_the_landmark_spread_it_implies():
     """``with_map_uncertainty``: a depth camera's covariance grows by the spread of the projections
     of a landmark scattered with sigma per axis about the observed point (sampled), a pixel's
