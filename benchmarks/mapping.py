@@ -13,11 +13,12 @@ its ratio to ``full``), mean NEES, landmarks added, added twice and made of clut
     nice python benchmarks/mapping.py --cases moved --seeds 0,1,2,3 --measurement pixel --cameras 2
 
 ``--robot planar --sensors points|cameras|points,cameras``: planar worlds (``camloc.simulate_planar``,
-the trajectory option unused) instead; ``half ignore`` is the exact map's localizer with the map's
+the trajectory option unused; ``--measurement`` and ``--cameras`` those of its 3-D cameras) instead; ``half ignore`` is the exact map's localizer with the map's
 lacking landmarks ignored (what camloc did for a planar robot before it mapped them), and every row
 prints the largest |z| of the estimated trajectory (a planar run's must stay 0).
 
     nice python benchmarks/mapping.py --robot planar --sensors points --seeds 0,1,2 --poses 300
+    nice python benchmarks/mapping.py --speed --robot planar --sensors points --poses 2000 --modes exact,prior,none
 
 ``--speed``: the speed of the mapping run instead (issue 38's target: a 20,000-pose world with a
 fifth of its 20,000 landmarks withheld at 1,000 poses/s): a world of ``--poses`` poses and as many
@@ -105,7 +106,8 @@ def main() -> None:
     for trajectory in ([args.sensors] if planar else args.trajectories.split(",")):
         for seed in [int(s) for s in args.seeds.split(",")]:
             if planar:
-                base = dict(sensors=args.sensors, poses=args.poses, clutter_fraction=args.clutter)
+                base = dict(sensors=args.sensors, poses=args.poses, clutter_fraction=args.clutter,
+                            cameras=SimulationConfig(measurement=args.measurement, cameras=args.cameras))
                 make = lambda c, seed=seed: simulate_planar(PlanarSimulationConfig(**c), seed=seed)  # noqa: E731
             else:
                 base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter,
@@ -135,6 +137,10 @@ def speed(args) -> None:
         from camloc.g2o import read_g2o
 
         dataset, name = read_g2o(args.file), args.file
+    elif args.robot == "planar":  # the planar simulator's own map size
+        seed = int(args.seeds.split(",")[0])
+        dataset = simulate_planar(PlanarSimulationConfig(sensors=args.sensors, poses=args.poses, withhold_map=0.2), seed=seed)
+        name = f"simulate_planar(sensors={args.sensors}, poses={args.poses}, withhold_map=0.2, seed={seed})"
     else:
         seed = int(args.seeds.split(",")[0])
         dataset = simulate(SimulationConfig(poses=args.poses, landmarks=args.poses, withhold_map=0.2), seed=seed)
