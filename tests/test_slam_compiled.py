@@ -309,3 +309,27 @@ def test_compiled_so3_steps_equal_geometry_s_at_every_angle(angle):
     assert ok
     np.testing.assert_allclose(back, geometry.so3_log_one(E_ref), atol=1e-12)
     np.testing.assert_allclose(Ji, geometry.so3_left_jacobian_inverse_one(back), atol=1e-12)
+
+
+@pytest.mark.parametrize("map_mode", ["prior", "none"])
+def test_a_planar_robot_s_compiled_mapping_run_equals_the_numpy_run(map_mode):
+    """A planar robot with a depth camera (its Q zero in z, roll and pitch: the compiled prediction
+    falls back to numpy's): the compiled steps and numpy give the same run, in the plane; a point
+    sensor has no compiled step (numpy runs)."""
+    from camloc.localizer import resolved_config
+    from camloc.localizer_config import LocalizerConfig
+    from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
+    from camloc.slam_run import localize_mapping
+
+    edit = dict(no_map=True) if map_mode == "none" else dict(withhold_map=0.5)
+    ds = simulate_planar(PlanarSimulationConfig(sensors="cameras", poses=80, **edit), seed=3)
+    config = resolved_config(LocalizerConfig(map=map_mode), ds)
+    numpy_run, compiled_run = (localize_mapping(ds, config, compiled=c) for c in (False, True))
+    assert compiled_run.summary["timing"]["engine"] == "compiled update"
+    np.testing.assert_array_equal(compiled_run.associations.landmark, numpy_run.associations.landmark)
+    np.testing.assert_allclose(compiled_run.filter_state, numpy_run.filter_state, atol=1e-10)
+    np.testing.assert_allclose(compiled_run.filter_cov, numpy_run.filter_cov, atol=1e-10)
+    np.testing.assert_allclose(compiled_run.landmark_map.xyz, numpy_run.landmark_map.xyz, atol=1e-10)
+    assert np.all(compiled_run.estimate_xyz[:, 2] == 0.0) and compiled_run.summary["map"]["added"] > 0
+    points = simulate_planar(PlanarSimulationConfig(sensors="points", poses=20), seed=3)
+    assert localize_mapping(points, resolved_config(LocalizerConfig(map="prior"), points)).summary["timing"]["engine"] == "numpy"
