@@ -212,10 +212,15 @@ def test_a_compiled_mapping_run_equals_the_numpy_run(kind, map_mode):
                                   no_map=map_mode == "none"), seed=3)
     config = resolved_config(LocalizerConfig(map=map_mode), ds)
     numpy_run, compiled_run = (localize_mapping(ds, config, compiled=c) for c in (False, True))
+    _assert_same_run(compiled_run, numpy_run)
+
+
+def _assert_same_run(compiled_run, numpy_run):
+    """The compiled mapping pass's run and numpy's: the same pairs, poses, covariances and map to rounding."""
     assert compiled_run.summary["timing"]["engine"] == "compiled update"
     np.testing.assert_array_equal(compiled_run.associations.landmark, numpy_run.associations.landmark)
-    np.testing.assert_allclose(compiled_run.estimate_xyz, numpy_run.estimate_xyz, atol=1e-10)
-    np.testing.assert_allclose(compiled_run.estimate_cov, numpy_run.estimate_cov, atol=1e-10)
+    for name in ("estimate_xyz", "estimate_cov", "filter_state", "filter_cov"):
+        np.testing.assert_allclose(getattr(compiled_run, name), getattr(numpy_run, name), atol=1e-10)
     np.testing.assert_array_equal(compiled_run.landmark_map.ids, numpy_run.landmark_map.ids)
     np.testing.assert_allclose(compiled_run.landmark_map.xyz, numpy_run.landmark_map.xyz, atol=1e-10)
     np.testing.assert_allclose(compiled_run.landmark_map.cov, numpy_run.landmark_map.cov, atol=1e-10)
@@ -325,11 +330,7 @@ def test_a_planar_robot_s_compiled_mapping_run_equals_the_numpy_run(map_mode):
     ds = simulate_planar(PlanarSimulationConfig(sensors="cameras", poses=80, **edit), seed=3)
     config = resolved_config(LocalizerConfig(map=map_mode), ds)
     numpy_run, compiled_run = (localize_mapping(ds, config, compiled=c) for c in (False, True))
-    assert compiled_run.summary["timing"]["engine"] == "compiled update"
-    np.testing.assert_array_equal(compiled_run.associations.landmark, numpy_run.associations.landmark)
-    np.testing.assert_allclose(compiled_run.filter_state, numpy_run.filter_state, atol=1e-10)
-    np.testing.assert_allclose(compiled_run.filter_cov, numpy_run.filter_cov, atol=1e-10)
-    np.testing.assert_allclose(compiled_run.landmark_map.xyz, numpy_run.landmark_map.xyz, atol=1e-10)
-    assert np.all(compiled_run.estimate_xyz[:, 2] == 0.0) and compiled_run.summary["map"]["added"] > 0
+    _assert_same_run(compiled_run, numpy_run)
+    assert np.all(compiled_run.estimate_xyz[:, 2] == 0.0) and compiled_run.filter_state.shape == (80, 3)
     points = simulate_planar(PlanarSimulationConfig(sensors="points", poses=20), seed=3)
     assert localize_mapping(points, resolved_config(LocalizerConfig(map="prior"), points)).summary["timing"]["engine"] == "numpy"
