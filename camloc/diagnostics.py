@@ -73,7 +73,7 @@ def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJ
 
 
 # What the mapping localizer maps (``localizer.unmappable_reason`` says why a dataset is not that)
-MAPPED_LANDMARKS = "point landmarks (cameras', and a planar robot's points; not markers or tags)"
+MAPPED_LANDMARKS = "point landmarks and a planar robot's markers (not tags' orientations)"
 
 
 def run_warnings(counts: Mapping[str, int], *, mapped: bool = False, map_size: Optional[int] = None,

@@ -27,7 +27,7 @@ from camloc.observation_space import (candidate_range, detection_range, landmark
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
-from camloc.dataset import LANDMARK_MARKER, Dataset, first_poses
+from camloc.dataset import Dataset, first_poses
 from camloc.errors import ConfigError
 from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
 from camloc.results import UNASSOCIATED, RunResult
@@ -348,15 +348,14 @@ def _stage(on_progress, stage: int, stages: int):
 
 def _mappable(dataset: Dataset) -> bool:
     """Whether the mapping localizer runs the dataset: point landmarks, of a 3-D robot's cameras or
-    a planar robot's cameras and point sensor (markers' and tags' orientations are not in its model)."""
+    a planar robot's cameras and point sensor, and a planar robot's markers (tags' orientations are
+    not in its model)."""
     return unmappable_reason(dataset) is None
 
 
 def unmappable_reason(dataset: Dataset) -> Optional[str]:
     """Why the mapping localizer (EKF-SLAM: landmarks the map lacks added) cannot run ``dataset``,
     as the end of a sentence, or None where it can."""
-    if np.any(dataset.obs_kind == measurement.MARKER) or np.any(dataset.landmark_kind == LANDMARK_MARKER):
-        return "this dataset's robot observes markers (EDGE_SE2_MARKER: a heading is not in its model)"
     if np.any(dataset.obs_kind == measurement.TAG_ROTATION):
         return "this dataset's tags carry orientations"
     return None
@@ -374,7 +373,7 @@ def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfi
     if config.map == AUTO_MAP:
         config = replace(config, map="none" if mappable and dataset.landmark_ids.size == 0 else "exact")
     if config.map != "exact" and not mappable:
-        raise ConfigError(f"map {config.map!r} (mapping) runs point landmarks (cameras', a planar robot's points); {unmappable_reason(dataset)}: "
+        raise ConfigError(f"map {config.map!r} (mapping) runs point landmarks and a planar robot's markers; {unmappable_reason(dataset)}: "
                           "use --map exact")
     planar_kinds = [measurement.KINDS[int(k)].tag for k in np.unique(dataset.obs_kind) if int(k) in measurement.PLANAR_KINDS]
     if planar_kinds and config.filter != "se2":

@@ -172,16 +172,17 @@ def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
     A pixel measures no depth: its point is taken at the typical reach of the view
     (``pixel_reach``; half of it widened the gates too far: more wrong pairs). A planar robot's point
     (point2, a point of the floor known to ``sigma`` in x and y) adds ``sigma^2`` to its x and y
-    (the rotation drops out too). Observations of other kinds (a marker, a tag's orientation) are
-    not widened: the mapping localizer does not run them.
+    (the rotation drops out too), a marker also ``sigma^2`` to its heading (``sigma`` radians). A
+    tag's orientation is not widened: the mapping localizer does not run it.
     """
-    floor = np.flatnonzero(dataset.obs_kind == measurement.POINT2)
+    floor = np.flatnonzero(np.isin(dataset.obs_kind, measurement.PLANAR_KINDS))
     widened = np.flatnonzero(np.isin(dataset.obs_kind, measurement.CAMERA_KINDS))
     if widened.size == 0 and floor.size == 0:
         return dataset
     cov, info = dataset.obs_cov.copy(), dataset.obs_info.copy()
     cov[floor, 0, 0] += sigma**2
     cov[floor, 1, 1] += sigma**2
+    cov[floor, 2, 2] += np.where(dataset.obs_kind[floor] == measurement.MARKER, sigma**2, 0.0)  # a marker's heading: sigma radians
     intrinsics = observation_intrinsics(dataset)
     for kind in np.unique(dataset.obs_kind[widened]).tolist():
         rows = widened[dataset.obs_kind[widened] == kind]

@@ -34,6 +34,11 @@ Planar     a planar robot (``Dataset.planar``) runs this model lifted: its pose 
            inert); its inverse observation puts no noise in z, so its z is pinned at 0 with zero
            variance: not information claimed, a point of the floor has no height, and no
            measurement's Jacobian reaches it (the third row of R' (l - t) is never measured).
+           A marker (``EDGE_SE2_MARKER``) is a landmark whose third coordinate is its heading psi
+           (its position on the floor), its error there psi's own (psi_true = psi^ + e: no turn of
+           the world moves it, so G has no row for it); z = (R' (l - t) in x and y, psi - theta):
+           d z_psi / d (e, xi_theta_z) = (1, -1), and in its inverse observation B puts xi_theta_z
+           into e.
 
 Pure: no I/O, no printing. Every Jacobian is checked against finite differences of ``retract``
 in tests/test_slam.py.
@@ -135,18 +140,19 @@ def planar_initial_cov(x: SlamMean, world_cov: np.ndarray) -> np.ndarray:
     return initial_cov(x, planar.lifted_cov(planar.planar_block(world_cov)))
 
 
-# A planar point's measurement, d z / d p_robot: its x and y rows (the third inert)
-_POINT2_JACOBIAN = np.diag([1.0, 1.0, 0.0])
+# A planar robot's own measurements, d z / d p_robot: a point2's x and y rows (the third inert); a
+# marker's x, y and its heading, stored as the landmark's third coordinate (less the robot's: ``observe_columns``)
+_ROBOT_FRAME_JACOBIAN = {measurement.POINT2: np.diag([1.0, 1.0, 0.0]), measurement.MARKER: np.eye(3)}
 
 
 def project(p_camera: np.ndarray, sensor: "CameraModel") -> tuple[np.ndarray, np.ndarray]:
     """Points in the sensor's frame (M, 3) -> its measurements (M, MAX_DIM) and their Jacobians
-    d z / d p (M, MAX_DIM, 3): a camera's (``measurement.project``), or a planar robot's point
-    sensor's (point2: the point's x and y in the robot frame, the third row inert)."""
-    if sensor.kind == measurement.POINT2:
-        z = np.zeros((p_camera.shape[0], measurement.MAX_DIM))
-        z[:, :2] = p_camera[:, :2]
-        return z, np.broadcast_to(_POINT2_JACOBIAN, (p_camera.shape[0], 3, 3))
+    d z / d p (M, MAX_DIM, 3): a camera's (``measurement.project``), or a planar robot's own
+    (point2: the point's x and y in the robot frame, the third row inert; marker: x, y and the
+    third coordinate, its heading, which ``observe_columns`` turns into the robot frame)."""
+    if sensor.kind in _ROBOT_FRAME_JACOBIAN:
+        Jh = _ROBOT_FRAME_JACOBIAN[sensor.kind]
+        return p_camera @ Jh.T, np.broadcast_to(Jh, (p_camera.shape[0], 3, 3))
     return (measurement.project(p_camera, sensor.intrinsics, sensor.kind),
             measurement.projection_jacobian(p_camera, sensor.intrinsics, sensor.kind))
 
@@ -154,12 +160,26 @@ def project(p_camera: np.ndarray, sensor: "CameraModel") -> tuple[np.ndarray, np
 def back_project(z: np.ndarray, sensor: "CameraModel") -> tuple[np.ndarray, np.ndarray]:
     """``project``'s inverse for a measurement with range (M, MAX_DIM) -> points in the sensor's
     frame (M, 3) and d p / d z (M, 3, MAX_DIM): a camera's (``measurement.back_project``), a
-    point2's on the floor (z = 0, no noise in it)."""
-    if sensor.kind == measurement.POINT2:
-        p = np.zeros((z.shape[0], 3))
-        p[:, :2] = z[:, :2]
-        return p, np.broadcast_to(_POINT2_JACOBIAN, (z.shape[0], 3, measurement.MAX_DIM)).copy()
+    point2's on the floor (z = 0, no noise in it), a marker's with its heading in the robot frame
+    as the third coordinate."""
+    if sensor.kind in _ROBOT_FRAME_JACOBIAN:
+        Jh = _ROBOT_FRAME_JACOBIAN[sensor.kind]
+        return z @ Jh.T, np.broadcast_to(Jh, (z.shape[0], 3, measurement.MAX_DIM)).copy()
     return measurement.back_project(z, sensor.intrinsics, sensor.kind)
+
+
+def heading(x: SlamMean) -> float:
+    """The heading of a planar robot's pose (its x axis's angle in the world plane)."""
+    return float(np.arctan2(x.R[1, 0], x.R[0, 0]))
+
+
+def wrapped_predictions(z_hat: np.ndarray, z: np.ndarray, kinds) -> np.ndarray:
+    """Predictions (..., MAX_DIM) with a marker's heading row moved by whole turns so that
+    ``z - z_hat`` is wrapped into [-pi, pi) (``planar.wrap_residuals``); ``z_hat`` itself, bit for
+    bit, where no kind has an angle."""
+    if not np.any(np.asarray(kinds) == measurement.MARKER):
+        return z_hat
+    return z - planar.wrap_residuals(z - z_hat, kinds)
 
 
 def camera_points(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray) -> np.ndarray:
@@ -194,6 +214,9 @@ def observe_columns(x: SlamMean, sensor: "CameraModel", xyz: np.ndarray, block: 
         blocks[fixed, :, 1, :] = A[fixed] @ geometry.hat(xyz[fixed])
         mine = np.flatnonzero(~fixed)  # each its own landmark's block, in one assignment
         blocks[mine, :, block[mine], :] = A[mine]
+    if sensor.kind == measurement.MARKER:  # psi - theta: the robot's heading error enters with -1
+        z_hat[:, 2] -= heading(x)
+        H[:, 2, 5] -= 1.0
     return z_hat, H
 
 
@@ -216,6 +239,9 @@ def inverse_observation(x: SlamMean, sensor: "CameraModel", z: np.ndarray, R_z: 
     W = x.R @ Rc @ G[0]  # d l / d z
     B = np.zeros((3, POSE_DIM))
     B[:, 0:3] = np.eye(3)
+    if sensor.kind == measurement.MARKER:  # its heading in the world: the robot's plus the measured one
+        xyz[2] += heading(x)
+        B[2, 5] = 1.0
     return xyz, B, ekf.symmetrize(W @ R_z @ W.T)
 
 

@@ -25,7 +25,8 @@ import numpy as np
 
 from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
-from camloc.slam_landmarks import UNPAIRED
+from camloc.planar import wrap_residuals
+from camloc.slam_landmarks import UNPAIRED, landmark_kind_of
 from camloc.tails import chi2_quantile
 
 
@@ -165,7 +166,7 @@ class PoseAssociation:
                 continue
             landmarks, cost, z_hat, H, extra = gated
             for i, o in enumerate(mine.tolist()):
-                options = [Candidate(o, int(landmarks[j]), self.dataset.obs_z[o] - z_hat[j], H[j], extra[j],
+                options = [Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
                                      self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]))
                            for j in np.flatnonzero(cost[i] < UNPAIRED).tolist()
                            if cost[i, j] < self.null_cost[o] + self._slack(int(landmarks[j]))]
@@ -177,6 +178,11 @@ class PoseAssociation:
             if self.table.tentative[c.landmark]:
                 self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - c.cost)
         return [(c.obs, c.landmark) for c in chosen]
+
+    def _innovation(self, o: int, z_hat: np.ndarray, sensor_id: int) -> np.ndarray:
+        """Observation o's innovation against the prediction z_hat (a marker's heading wrapped)."""
+        y = self.dataset.obs_z[o] - z_hat
+        return wrap_residuals(y, measurement.MARKER) if self.sensors[sensor_id].kind == measurement.MARKER else y
 
     def _count_beam_misses(self, k: int) -> None:
         """The map's landmarks surely in view (``sure_view``) that the beam did not pair at pose k
@@ -208,8 +214,8 @@ class PoseAssociation:
         sensor against the landmarks of ``nearby`` in its view; costs ``UNPAIRED`` outside the
         gate. None: no candidate."""
         sensor = self.sensors[sensor_id]
-        if self.dataset.planar:  # a planar robot's point sensor sees the floor's points, a camera the others
-            nearby = nearby[self.table.planar[nearby] == (sensor.kind == measurement.POINT2)]
+        if self.dataset.planar:  # a planar robot's point sensor sees the floor's points, its marker sensor markers, a camera the others
+            nearby = nearby[self.table.kind[nearby] == landmark_kind_of(sensor.kind)]
         if nearby.size == 0:
             return None
         xyz = self.table.xyz[nearby]
@@ -223,8 +229,8 @@ class PoseAssociation:
             return (nearby[seen], cost, z_hat, H, extra) if np.any(seen) else None
         p_camera = slam.camera_points(self.x, sensor, xyz)
         norm = np.linalg.norm(p_camera, axis=1)
-        if sensor.kind == measurement.POINT2:  # within the point sensor's reach, any bearing (its field of view is not in the file)
-            seen = norm <= self.planar_range
+        if sensor.kind in measurement.PLANAR_KINDS:  # within the sensor's reach on the floor, any bearing (its view is not in the file)
+            seen = np.hypot(p_camera[:, 0], p_camera[:, 1]) <= self.planar_range
         else:
             seen = ((p_camera[:, 2] > max(self.min_depth, 1e-6)) & (p_camera[:, 2] <= self.max_depth)
                     & (p_camera[:, 2] >= np.cos(self.max_angle) * norm))
@@ -240,7 +246,7 @@ class PoseAssociation:
             A = -H[outside, :, 0:3]
             extra[outside] = A @ self.table.cov[candidates[outside]] @ np.swapaxes(A, 1, 2)
         S = S + extra
-        y = self.dataset.obs_z[obs][:, None, :] - z_hat[None, :, :]
+        y = wrap_residuals(self.dataset.obs_z[obs][:, None, :] - z_hat[None, :, :], sensor.kind)
         S_pair = S[None, :, :, :] + self.association_cov[obs][:, None, :, :]
         d2, log_det = mahalanobis_3x3(S_pair, y)
         cost = d2 + log_det - self.log_det_R[obs][:, None]

@@ -21,7 +21,7 @@ from typing import Optional
 import numpy as np
 
 from camloc import measurement, slam
-from camloc.dataset import Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset
 from camloc.results import LandmarkMap
 from camloc.slam_tracks import DEPTH_VARIANCE_INFLATION, Tracks, triangulate
 
@@ -65,7 +65,7 @@ class LandmarkTable:
                 ("tentative", bool, (), False),  # added from one observation, not yet confirmed by its score
                 ("score", float, (), 0.0),       # a tentative landmark's log-likelihood ratio over clutter
                 ("dead", bool, (), False),       # a tentative landmark dropped (clutter): out of the map
-                ("planar", bool, (), False))     # a point of a planar robot's floor (VERTEX_XY, seen by point2 only)
+                ("kind", np.int64, (), LANDMARK_POINT3))  # a camera's point, a floor point (point2) or a marker (``Dataset.landmark_kind``)
 
     ids: np.ndarray
     xyz: np.ndarray
@@ -78,7 +78,7 @@ class LandmarkTable:
     tentative: np.ndarray
     score: np.ndarray
     dead: np.ndarray
-    planar: np.ndarray
+    kind: np.ndarray
 
     def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
         n = ids.size
@@ -88,6 +88,7 @@ class LandmarkTable:
         self.ids[:], self.xyz[:], self.cov[:] = ids, xyz.reshape(n, 3), cov.reshape(n, 3, 3)
         self.added[:] = False
         self._live = None  # the added landmarks not dropped (``in_range``), rebuilt when that changes
+        self.has_markers = False  # whether a landmark is a marker (its third coordinate a heading)
         self.scan = None  # the compiled scan of ``in_range`` (``slam_compiled.live_within``), where the run has it
 
     def _views(self) -> None:
@@ -124,16 +125,23 @@ class LandmarkTable:
             added = self.scan(self._columns["xyz"], self._live, centre, radius)
         else:
             offset = self.xyz[self._live] - centre
+            if self.has_markers:  # a marker's third coordinate is its heading: on the floor
+                offset[self.kind[self._live] == LANDMARK_MARKER, 2] = 0.0
             added = self._live[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
         return np.concatenate([mapped, added]).astype(np.int64)
 
 
 def places_points(kinds: np.ndarray) -> np.ndarray:
-    """(K,) bool: whether one measurement of each of ``kinds`` (K,) places its landmark as a point:
-    a camera's with range (depth, disparity) or a planar robot's point (point2, on the floor); a
-    pixel is a ray, a marker is not mapped."""
+    """(K,) bool: whether one measurement of each of ``kinds`` (K,) places its landmark: a camera's
+    with range (depth, disparity) or a planar robot's own (point2, on the floor; a marker, with its
+    heading); a pixel is a ray."""
     kinds = np.asarray(kinds, dtype=np.int64)
-    return measurement.measures_range(kinds) | (kinds == measurement.POINT2)
+    return measurement.measures_range(kinds) | np.isin(kinds, measurement.PLANAR_KINDS)
+
+
+def landmark_kind_of(sensor_kind: int) -> int:
+    """The kind of landmark (``Dataset.landmark_kind``) a measurement of ``sensor_kind`` sees."""
+    return {measurement.POINT2: LANDMARK_POINT2, measurement.MARKER: LANDMARK_MARKER}.get(int(sensor_kind), LANDMARK_POINT3)
 
 
 def places_point(kind: int) -> bool:
@@ -164,6 +172,9 @@ class LandmarkAdditions:
         xyz, cov = table.xyz.copy(), table.cov.copy()
         for row, landmark in enumerate(self.state_landmark):
             xyz[landmark], cov[landmark] = self.x.L[row], slam.landmark_world_cov(self.x, self.P, row)
+        markers = table.kind == LANDMARK_MARKER  # on the floor (its heading, the third coordinate, is not written)
+        xyz[markers, 2] = 0.0
+        cov[markers, 2, :] = cov[markers, :, 2] = 0.0
         keep = ~table.dead & ~table.tentative
         return LandmarkMap(ids=table.ids[keep], xyz=xyz[keep], cov=cov[keep], added=table.added[keep],
                            observations=table.observations[keep])
@@ -244,10 +255,10 @@ class LandmarkAdditions:
         """(M,) bool: which of the table's ``landmarks`` (M,), at ``xyz`` (M, 3), a sensor of their
         kind surely sees from the estimate: a camera (``sure_view``), or a planar robot's point
         sensor a point of the floor (``floor_sure_view``)."""
-        floor = self.table.planar[landmarks]
-        in_view = np.zeros(landmarks.size, bool)
-        if self.sure_view is not None and not floor.all():
-            cameras = ~floor
+        floor = self.table.kind[landmarks] == LANDMARK_POINT2
+        cameras = self.table.kind[landmarks] == LANDMARK_POINT3
+        in_view = np.zeros(landmarks.size, bool)  # a marker: never surely (its detection depends on its heading)
+        if self.sure_view is not None and cameras.any():
             if self.compiled is not None:
                 in_view[cameras] = self.compiled.surely_in_view(self.x, xyz[cameras], self.sure_view)
             else:
@@ -338,7 +349,8 @@ class LandmarkAdditions:
         self.table.observations[landmark] = len(track.observations)
         self.table.born[landmark] = int(self.dataset.obs_pose_index[np.array(track.observations, np.int64)].min())
         self.table.tentative[landmark] = tentative
-        self.table.planar[landmark] = sensor.kind == measurement.POINT2
+        self.table.kind[landmark] = landmark_kind_of(sensor.kind)
+        self.table.has_markers |= sensor.kind == measurement.MARKER
         self.chosen[np.array(track.observations, np.int64)] = landmark
         return True
 
@@ -460,7 +472,8 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
         at = obs_sensor[obs] == sensor_id
         mine = obs[at]
         sensor = sensors[sensor_id]
-        p_camera, G = slam.back_project(dataset.obs_z[mine], sensor)
+        # a marker's position, as a floor point's (its heading is not screened)
+        p_camera, G = slam.back_project(dataset.obs_z[mine], replace(sensor, kind=measurement.POINT2) if sensor.kind == measurement.MARKER else sensor)
         T = T_world_robot[dataset.obs_pose_index[mine]] @ sensor.T_robot_camera
         points[at] = np.einsum("nij,nj->ni", T[:, :3, :3], p_camera) + T[:, :3, 3]
         noise = np.einsum("nij,njk,nlk->nil", G, dataset.obs_cov[mine], G)
@@ -480,7 +493,7 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
             return 0
     index = PointIndex(points)
     pose = dataset.obs_pose_index[obs]
-    floor = dataset.obs_kind[obs] == measurement.POINT2
+    floor = np.isin(dataset.obs_kind[obs], measurement.PLANAR_KINDS)
     chance = FLOOR_CHANCE / max(1, int(np.count_nonzero(floor)))  # each floor point's share of the run's
     places = 0
     claimed = np.zeros(obs.size, bool)

@@ -34,7 +34,7 @@ import numpy as np
 
 from camloc import ekf, geometry, measurement, planar, slam
 from camloc.association import mahalanobis_3x3
-from camloc.dataset import LANDMARK_POINT2, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
 from camloc.filters import make_filter
 from camloc.localizer_config import LocalizerConfig
 from camloc.observation_space import candidate_range, observation_noise, planar_range
@@ -75,9 +75,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         xyz = dataset.landmark_xyz if held else np.zeros((0, 3))
         sigma2 = config.map_sigma ** 2 if config.map == "prior" else 0.0
         self.table = LandmarkTable(ids, xyz, np.tile(sigma2 * np.eye(3), (ids.size, 1, 1)))
-        if held and dataset.planar:  # a point of the floor: pinned at z = 0 (``slam`` model card), its prior in the plane
-            self.table.planar[:] = dataset.landmark_kind == LANDMARK_POINT2
-            self.table.cov[self.table.planar, 2, 2] = 0.0
+        if held and dataset.planar:
+            self._planar_landmarks(dataset)
         self.mapped_index = PointIndex(xyz) if ids.size else None
         self.table.scan = self.compiled.live_within if self.compiled is not None else None
         self.state_landmark: list[int] = []  # table index of each landmark in the state
@@ -105,6 +104,17 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.nis: list[float] = []
         self.map_costs: list[float] = []
         self.nis_dof: list[int] = []
+
+    def _planar_landmarks(self, dataset: Dataset) -> None:
+        """A planar map's kinds in the table: a point of the floor pinned at z = 0 (``slam``'s model
+        card), its prior in the plane; a marker with its heading as its third coordinate, held to
+        ``map_sigma`` radians under a prior."""
+        table = self.table
+        table.kind[:] = dataset.landmark_kind
+        table.cov[table.kind == LANDMARK_POINT2, 2, 2] = 0.0
+        markers = table.kind == LANDMARK_MARKER
+        table.xyz[markers, 2] = dataset.landmark_heading[markers]
+        table.has_markers = bool(markers.any())
 
     # -- one pose -------------------------------------------------------------------------------
 
@@ -200,18 +210,20 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         # H on the columns the pairs touch (the pose, the landmarks seen), never the whole state's
         columns, block = slam.state_columns(rows)
 
+        ds = self.dataset
+        kinds = ds.obs_kind[obs]
+
         def measure(x: slam.SlamMean):
             xyz = fixed_xyz.copy()
             xyz[in_state] = x.L[rows[in_state]]
             if len(groups) == 1:  # one camera: no gathering
                 z_hat, H = slam.observe_columns(x, groups[0][0], xyz, block, columns.size)
-                return z_hat.ravel(), H.reshape(-1, columns.size)
-            z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, columns.size))
-            for sensor, at in groups:
-                z_hat[at], H[at] = slam.observe_columns(x, sensor, xyz[at], block[at], columns.size)
-            return z_hat.ravel(), H.reshape(-1, columns.size)
+            else:
+                z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, columns.size))
+                for sensor, at in groups:
+                    z_hat[at], H[at] = slam.observe_columns(x, sensor, xyz[at], block[at], columns.size)
+            return slam.wrapped_predictions(z_hat, ds.obs_z[obs], kinds).ravel(), H.reshape(-1, columns.size)
 
-        ds = self.dataset
         result = ekf.update(self.x, self.P, ds.obs_z[obs].ravel(), ds.obs_cov[obs], measure, retract=slam.retract,
                             difference=slam.difference, iterations=self.config.iterations, map_cost=True,
                             R_inverse=ds.obs_info[obs], columns=columns)

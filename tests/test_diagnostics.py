@@ -167,17 +167,18 @@ def test_an_empty_map_is_not_called_incomplete_but_says_what_maps_it():
     assert "'--map none'" in run_warnings(counts, map_size=0)[1]
 
 
-def test_a_planar_file_without_a_map_runs_on_odometry_and_says_why(tmp_path):
+def test_a_tag_file_without_a_map_runs_on_odometry_and_says_why(tmp_path):
+    """Tags' orientations are not mapped: a tag file without a map runs on odometry and says why
+    (a planar file without a map is mapped: tests/test_mapping_planar.py)."""
     from typer.testing import CliRunner
 
     from camloc.cli.app import app
-    from camloc.g2o import write_g2o
-    from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
 
     dataset = tmp_path / "nomap.g2o"
-    write_g2o(simulate_planar(PlanarSimulationConfig(sensors="markers", poses=30, no_map=True), seed=1), dataset)
+    made = CliRunner().invoke(app, ["simulate", "-o", str(dataset), "--tag-sigma-deg", "1", "--no-map", "--poses", "30", "-q"])
+    assert made.exit_code == 0, made.output
     result = CliRunner().invoke(app, ["run", str(dataset), "-o", str(tmp_path / "run"), "--quiet"])
     assert result.exit_code == 0, result.output
-    assert "camloc maps (EKF-SLAM) only point landmarks" in " ".join(result.output.split())
-    assert "this dataset's robot observes markers" in " ".join(result.output.split())
+    text = " ".join(result.output.split())
+    assert f"camloc maps (EKF-SLAM) only {MAPPED_LANDMARKS}: this dataset's tags carry orientations" in text
     assert "the map may lack" not in result.output

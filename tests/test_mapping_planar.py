@@ -12,8 +12,10 @@ import pytest
 from typer.testing import CliRunner
 
 from camloc.cli.app import app
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2
 from camloc.localizer import _localize_exact, localize, resolved_config
 from camloc.localizer_config import LocalizerConfig
+from camloc.results import UNASSOCIATED
 from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
 from camloc.slam_run import MappingLocalizer
 
@@ -66,12 +68,13 @@ def test_a_long_planar_run_stays_in_the_plane_with_a_symmetric_psd_covariance():
             assert np.all(P[2:5] == 0.0) and np.all(P[:, 2:5] == 0.0)
             assert np.array_equal(P, P.T)
             assert np.linalg.eigvalsh(P)[0] >= -1e-9 * np.abs(P).max()
-            floor = np.flatnonzero(run.table.planar[np.array(run.state_landmark, np.int64)]) if run.state_landmark else []
+            floor = np.flatnonzero(run.table.kind[np.array(run.state_landmark, np.int64)] == LANDMARK_POINT2) if run.state_landmark else []
             for row in floor:
                 assert np.all(P[6 + 3 * row + 2] == 0.0) and run.x.L[row, 2] == 0.0
             assert run.x.t[2] == 0.0 and np.all(run.x.R[2, :2] == 0.0) and np.all(run.x.R[:2, 2] == 0.0)
             assert abs(run.x.R[2, 2] - 1.0) < 1e-12  # (a rotation's rounding: 6e-14 at most over 1,000 poses)
-    assert np.count_nonzero(run.table.planar) > 20 and np.count_nonzero(~run.table.planar & ~run.table.dead) > 20
+    floor = run.table.kind == LANDMARK_POINT2
+    assert np.count_nonzero(floor) > 20 and np.count_nonzero(~floor & ~run.table.dead) > 20
 
 
 @pytest.mark.parametrize("sensors", ["points", "cameras"])
@@ -139,10 +142,39 @@ def test_cli_map_prior_on_a_planar_file_writes_its_map_and_eval_scores_it(tmp_pa
     assert (tmp_path / "r" / "fig-map.png").is_file()
 
 
-def test_markers_are_still_not_mapped_and_say_so(tmp_path):
+@pytest.mark.parametrize("association", ["oracle", "beam"])
+def test_a_planar_robot_without_a_map_maps_its_markers_and_points(association):
+    """Markers (EDGE_SE2_MARKER: a heading too) and points with no map: both mapped, each kind
+    paired with its own, the markers on the floor in map.csv's terms (z = 0), near the truth."""
+    kw = dict(sensors="points,markers", poses=120, **QUIET)
+    full = simulate_planar(PlanarSimulationConfig(**kw), seed=2)
+    dataset = simulate_planar(PlanarSimulationConfig(no_map=True, **kw), seed=2)
+    result = localize(dataset, LocalizerConfig(association=association))
+    assert result.summary["config"]["map"] == "none" and np.all(result.estimate_xyz[:, 2] == 0.0)
+    truth = dict(zip(full.landmark_ids.tolist(), full.landmark_xyz))
+    kind = dict(zip(full.landmark_ids.tolist(), full.landmark_kind.tolist()))
+    a = result.associations
+    markers = [lid for lid in result.landmark_map.ids.tolist()
+               if Counter(a.true_landmark[a.landmark == lid].tolist()).most_common(1)[0][0] in kind
+               and kind[Counter(a.true_landmark[a.landmark == lid].tolist()).most_common(1)[0][0]] == LANDMARK_MARKER]
+    assert len(markers) >= 20 and np.all(result.landmark_map.xyz[:, 2] == 0.0)
+    errors = _landmark_errors(result, truth)
+    assert np.median(errors) < 0.12 and errors.max() < 0.4
+    paired = a.landmark != UNASSOCIATED
+    kinds_of = {lid: set(dataset.obs_kind[paired & (a.landmark == lid)].tolist()) for lid in result.landmark_map.ids.tolist()}
+    assert all(len(k) == 1 for k in kinds_of.values())  # each landmark paired with one kind of observation
+    odometry = float(np.sqrt(np.mean(np.sum((result.odometry_xyz - dataset.truth_xyz) ** 2, axis=1))))
+    assert _rmse(result, dataset) < 0.6 * odometry
+
+
+def test_cli_map_none_on_a_planar_file_with_markers(tmp_path):
     world = tmp_path / "m.g2o"
-    assert _cli("simulate", "--robot", "planar", "--sensors", "points,markers", "--poses", 30, "-o", world, "-q").exit_code == 0
-    run = _cli("run", world, "--map", "none", "-o", tmp_path / "r")
-    assert run.exit_code != 0
-    text = " ".join(run.output.split())
-    assert "markers" in text and "--map exact" in text and "Traceback" not in text
+    assert _cli("simulate", "--robot", "planar", "--sensors", "points,markers", "--poses", 60, "--no-map", "-o", world, "-q").exit_code == 0
+    run = _cli("run", world, "-o", tmp_path / "r", "--json")
+    assert run.exit_code == 0, run.output
+    summary = json.loads(run.output)
+    assert summary["config"]["map"] == "none" and summary["map"]["added"] > 20
+    scored = _cli("eval", tmp_path / "r", "--true-map", tmp_path / "m.true-map.g2o", "--json")
+    assert scored.exit_code == 0, scored.output
+    report = json.loads(scored.output)["map"]
+    assert report["added"]["count"] > 20 and report["added"]["rmse"] < 0.5 and report["clutter"]["landmarks"] == 0

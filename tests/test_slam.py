@@ -334,3 +334,50 @@ def test_planar_noise_and_start_stay_in_the_plane():
     np.testing.assert_allclose(P1, P + G @ Q @ G.T, atol=1e-15)
     assert np.all(P1[2:5] == 0.0) and np.all(P1[:, 2:5] == 0.0) and np.all(P1[8] == 0.0)
     assert P1[0, 0] > P[0, 0] and P1[5, 5] > P[5, 5]
+
+
+MARKER_SENSOR = CameraModel(np.eye(4), (1.0, 1.0, 0.0, 0.0), measurement.MARKER, measurement.ROBOT_FRAME_SENSOR)
+
+
+def test_marker_observation_and_jacobians_match_finite_differences():
+    """A marker: its heading psi the landmark's third coordinate; z = (R' (l - t) in x and y,
+    psi - theta). Its Jacobian against finite differences at a planar pose (the only kind a
+    marker run has): d z_psi / d (its own third error, xi_theta_z) = (1, -1)."""
+    rng = np.random.default_rng(14)
+    x = _planar_state(rng)
+    x.L[:, 2] = [0.7, -2.9]  # headings
+    fixed = np.array([1.5, -0.7, 2.5])
+    for row, xyz_of in [(0, lambda s: s.L[0]), (1, lambda s: s.L[1]), (-1, lambda s: fixed)]:
+        z, H = slam.observe(x, MARKER_SENSOR, xyz_of(x)[None, :], np.array([row]))
+        np.testing.assert_allclose(z[0, :2], (x.R.T @ (xyz_of(x) - x.t))[:2], atol=1e-12)
+        assert z[0, 2] == pytest.approx(xyz_of(x)[2] - slam.heading(x))
+        numeric = _numeric(lambda s: slam.observe(s, MARKER_SENSOR, xyz_of(s)[None, :], np.array([row]))[0][0], x, x.dim)
+        planar_columns = [0, 1, 5] + ([6 + 3 * row, 7 + 3 * row, 8 + 3 * row] if row >= 0 else [])
+        np.testing.assert_allclose(H[0][:, planar_columns], numeric[:, planar_columns], atol=1e-6)
+        assert H[0, 2, 5] == -1.0 and (row < 0 or H[0, 2, 8 + 3 * row] == 1.0)
+
+
+def test_marker_inverse_observation_and_wrapped_residuals():
+    """A marker's inverse observation: on the floor, its world heading the robot's plus the
+    measured one, its error the pose's translation error and xi_theta_z on the heading (B checked
+    numerically); a heading residual across -pi/pi is wrapped (``wrapped_predictions``) and other
+    kinds' predictions are returned bit for bit."""
+    rng = np.random.default_rng(15)
+    x = _planar_state(rng, m=0)
+    z = np.array([1.2, -0.4, 0.3])
+    R_z = np.diag([0.01, 0.02, 0.003])
+    xyz, B, N = slam.inverse_observation(x, MARKER_SENSOR, z, R_z)
+    assert xyz[2] == pytest.approx(slam.heading(x) + 0.3)
+    np.testing.assert_allclose(slam.observe(x, MARKER_SENSOR, xyz[None, :], np.array([-1]))[0][0], z, atol=1e-12)
+
+    def landmark_error(s):
+        l_new, _, _ = slam.inverse_observation(s, MARKER_SENSOR, z, R_z)
+        return slam.difference(slam.SlamMean(s.R, s.t, l_new[None, :]), slam.SlamMean(x.R, x.t, xyz[None, :]))[6:9]
+    numeric = _numeric(landmark_error, x, 6)
+    np.testing.assert_allclose(B[:2, [0, 1, 5]], numeric[:2, [0, 1, 5]], atol=1e-6)
+    np.testing.assert_allclose(B[2, [0, 1, 5]], numeric[2, [0, 1, 5]], atol=1e-6)
+    assert N[2, 2] == pytest.approx(0.003) and N[2, 0] == 0.0
+    z_hat = np.array([[0.0, 0.0, np.pi - 0.1]])
+    measured = np.array([[0.0, 0.0, -np.pi + 0.1]])
+    np.testing.assert_allclose(measured - slam.wrapped_predictions(z_hat, measured, measurement.MARKER), [[0, 0, 0.2]], atol=1e-12)
+    assert slam.wrapped_predictions(z_hat, measured, measurement.POINT2) is z_hat
