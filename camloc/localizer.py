@@ -140,15 +140,16 @@ def _map_run(judged: Dataset, dataset: Dataset, config: LocalizerConfig, on_prog
     long run screened first, ``_lacking_at_start``; otherwise the run screened, and the beam's run
     again). Returns the run, the offset it used and the places the map lacks a landmark at (0
     where it is not screened: the oracle, or a dataset the mapping localizer does not run).
-    ``follower``: the mapping pass to run beside the run where the start found the map lacking
-    (then no second run of the beam follows: the pairs it settles are the mapping pass's)."""
+    ``follower``: the mapping pass to run beside the run whose pairs it takes: the run where the
+    start found the map lacking (no second run of the beam follows), or the beam's second run."""
     offset = _lacking_at_start(judged, dataset, config, hooks)
-    follow = follower.on_replay if follower is not None and offset > 0.0 else None
-    run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset, on_replay=follow, **hooks)
+    follow = follower.on_replay if follower is not None else None
+    run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset,
+                          on_replay=follow if offset > 0.0 else None, **hooks)
     places = _lacking_places(dataset, run, config) if _mappable(dataset) and config.association != "oracle" else 0
     if places and offset == 0.0 and config.association == "beam":
         offset = LACKING_NULL_OFFSET
-        run = _lacking_map_beam(judged, config, on_progress, hooks, run)
+        run = _lacking_map_beam(judged, config, on_progress, hooks, run, on_replay=follow)
     return run, offset, places
 
 
@@ -188,10 +189,12 @@ def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -
     return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED, reach)
 
 
-def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult) -> RunResult:
+def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult,
+                     on_replay=None) -> RunResult:
     """The exact map's run again, its beam judging with ``LACKING_NULL_OFFSET`` (the map lacks
     landmarks: ``first``, the run that found so, is replaced; its time is counted)."""
-    again = _localize_exact(dataset, replace(config, map="exact"), on_progress, null_cost_offset=LACKING_NULL_OFFSET, **hooks)
+    again = _localize_exact(dataset, replace(config, map="exact"), on_progress, null_cost_offset=LACKING_NULL_OFFSET,
+                            on_replay=on_replay, **hooks)
     again.summary["timing"]["filter_seconds"] += first.summary["timing"]["filter_seconds"]
     return again
 

@@ -19,12 +19,15 @@ def _world(withheld=0.3, poses=700):
     return simulate_labelled(SimulationConfig(poses=poses, trajectory="smooth3d", withhold_map=withheld), seed=1).dataset
 
 
-def test_the_mapping_pass_beside_the_beam_gives_the_run_of_one_pass_after_the_other(monkeypatch):
-    """A long run whose start shows the map lacking (the prefix shortened to fit a test) maps
-    beside its beam's run: every pair, pose and landmark is the sequential run's, bit for bit."""
+@pytest.mark.parametrize("screened", ["start", "after"])
+def test_the_mapping_pass_beside_the_beam_gives_the_run_of_one_pass_after_the_other(monkeypatch, screened):
+    """The mapping pass beside the beam's run whose pairs it takes: a long run whose start shows
+    the map lacking (the prefix shortened to fit a test), or the beam's second run of a run
+    screened after it. Every pair, pose and landmark is the sequential run's, bit for bit."""
     world = _world()
-    monkeypatch.setattr(localizer, "LACKING_PREFIX_MIN_POSES", 600)
-    monkeypatch.setattr(localizer, "LACKING_PREFIX_SHARE", 0.5)
+    if screened == "start":
+        monkeypatch.setattr(localizer, "LACKING_PREFIX_MIN_POSES", 600)
+        monkeypatch.setattr(localizer, "LACKING_PREFIX_SHARE", 0.5)
     monkeypatch.setattr(localizer, "_cpus", lambda: 2)
     followed = []
     follow = MappingFollower.follow
