@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import nullcontext
 from dataclasses import replace
 from typing import Callable, Optional
 
@@ -30,6 +31,7 @@ from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset, first_poses
 from camloc.errors import ConfigError
 from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
+from camloc.mapping_follower import MappingFollower
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 
@@ -92,9 +94,11 @@ def localize(
         return _localize_mapping(dataset, config, on_progress, hooks)
     # in every mode, landmarks the map lacks are added: where the rejected observations agree on
     # places the map has no landmark at, the mapping localizer takes the run's pairs and adds them
-    result, _, places = _map_run(dataset, dataset, config, on_progress, hooks)
+    with _follower(dataset, config, hooks) as follower:
+        result, _, places = _map_run(dataset, dataset, config, on_progress, hooks, follower)
+        if places:
+            result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result, follower=follower)
     if places:
-        result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result)
         result.summary["warnings"].append(
             f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
             f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
@@ -128,19 +132,24 @@ LACKING_PREFIX_MIN_POSES = 12000
 LACKING_PREFIX_SHARE = 0.025
 
 
-def _map_run(judged: Dataset, dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict) -> tuple[RunResult, float, int]:
+def _map_run(judged: Dataset, dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict,
+             follower: Optional[MappingFollower] = None) -> tuple[RunResult, float, int]:
     """The localizer's run against the map held exactly, its association judging ``judged``
     (``dataset``, or under a prior the same with the map's uncertainty in the noise), with the
     null cost lowered by ``LACKING_NULL_OFFSET`` where the map lacks landmarks (the start of a
     long run screened first, ``_lacking_at_start``; otherwise the run screened, and the beam's run
     again). Returns the run, the offset it used and the places the map lacks a landmark at (0
-    where it is not screened: the oracle, or a dataset the mapping localizer does not run)."""
+    where it is not screened: the oracle, or a dataset the mapping localizer does not run).
+    ``follower``: the mapping pass to run beside the run whose pairs it takes: the run where the
+    start found the map lacking (no second run of the beam follows), or the beam's second run."""
     offset = _lacking_at_start(judged, dataset, config, hooks)
-    run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset, **hooks)
+    follow = follower.on_replay if follower is not None else None
+    run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset,
+                          on_replay=follow if offset > 0.0 else None, **hooks)
     places = _lacking_places(dataset, run, config) if _mappable(dataset) and config.association != "oracle" else 0
     if places and offset == 0.0 and config.association == "beam":
         offset = LACKING_NULL_OFFSET
-        run = _lacking_map_beam(judged, config, on_progress, hooks, run)
+        run = _lacking_map_beam(judged, config, on_progress, hooks, run, on_replay=follow)
     return run, offset, places
 
 
@@ -180,18 +189,21 @@ def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -
     return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED, reach)
 
 
-def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult) -> RunResult:
+def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult,
+                     on_replay=None) -> RunResult:
     """The exact map's run again, its beam judging with ``LACKING_NULL_OFFSET`` (the map lacks
     landmarks: ``first``, the run that found so, is replaced; its time is counted)."""
-    again = _localize_exact(dataset, replace(config, map="exact"), on_progress, null_cost_offset=LACKING_NULL_OFFSET, **hooks)
+    again = _localize_exact(dataset, replace(config, map="exact"), on_progress, null_cost_offset=LACKING_NULL_OFFSET,
+                            on_replay=on_replay, **hooks)
     again.summary["timing"]["filter_seconds"] += first.summary["timing"]["filter_seconds"]
     return again
 
 
 def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, parallel, engine, on_compile,
-                    on_background_compile, null_cost_offset: float = 0.0) -> RunResult:
+                    on_background_compile, null_cost_offset: float = 0.0, on_replay=None) -> RunResult:
     """The localizer against the map held exactly (``localize``'s engines); ``null_cost_offset``
-    lowers the cost of leaving an observation unexplained (``LACKING_NULL_OFFSET``)."""
+    lowers the cost of leaving an observation unexplained (``LACKING_NULL_OFFSET``); ``on_replay``:
+    ``loop.run_compiled``'s, where the compiled loop runs the beam."""
     # a tag's orientation is the numpy engine's only (camloc.tags)
     compilable = (config.filter in COMPILED_FILTERS and config.association in COMPILED_ASSOCIATIONS
                   and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
@@ -223,7 +235,7 @@ def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, p
     if use_compiled:
         result = _localize_compiled(dataset, config, on_progress, concurrent,
                                     filter_ready=(lambda: warmup.wait_for(filter_compile)) if filter_compile else None,
-                                    null_cost_offset=null_cost_offset)
+                                    null_cost_offset=null_cost_offset, on_replay=on_replay)
     else:
         result = _localize_numpy(dataset, config, on_progress, parallel, null_cost_offset)
     result.summary["timing"]["background_compile"] = background is not None
@@ -249,7 +261,16 @@ MOVED_SHARE = 0.03
 MOVED_LEAST = 2
 
 
-def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Optional[RunResult] = None) -> RunResult:
+def _follower(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> MappingFollower:
+    """A mapping pass that may run beside the beam's run (``camloc.mapping_follower``): it follows
+    a run only where the compiled loop runs the beam, with two CPUs or more and ``parallel`` not
+    False; otherwise it never starts and the pass runs after."""
+    able = config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
+    return MappingFollower(dataset, config, lambda: _mapping_compiled(dataset, hooks), enabled=able)
+
+
+def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Optional[RunResult] = None,
+                      follower: Optional[MappingFollower] = None) -> RunResult:
     """The mapping localizer (``camloc.slam_run``): ``config.map`` prior or none, or exact where
     the map lacks landmarks (``given_run``: the exact map's run). With the beam and a map, the beam
     first decides which observations are the map's, over the whole run and on the map as given
@@ -266,21 +287,25 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
     compiled = _mapping_compiled(dataset, hooks)
     for n in range(passes):
         given, warnings, beam_run = None, [], given_run
-        if beamed:
-            # under a prior, the beam judges each pair with the map's uncertainty in its noise (a moved
-            # landmark would fail every gate of an exact map); only its pairs are taken
-            judged = with_map_uncertainty(judged_map, config.map_sigma) if config.map == "prior" else judged_map
-            if n == 0:  # where the map lacks landmarks, as under exact
-                beam_run, offset, _ = _map_run(judged, dataset, config, _stage(on_progress, 0, stages), hooks)
-            else:
-                beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
-                                           null_cost_offset=offset, **hooks)
-        if beam_run is not None:
-            given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
-            seconds += beam_run.summary["timing"]["filter_seconds"]
-            warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
-        result = localize_mapping(dataset, config, _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress, given,
-                                  compiled=compiled)
+        # each pass's mapping may run beside its beam's run (``camloc.mapping_follower``)
+        with _follower(dataset, config, hooks) if beamed else nullcontext(follower) as following:
+            if beamed:
+                # under a prior, the beam judges each pair with the map's uncertainty in its noise (a moved
+                # landmark would fail every gate of an exact map); only its pairs are taken
+                judged = with_map_uncertainty(judged_map, config.map_sigma) if config.map == "prior" else judged_map
+                if n == 0:  # where the map lacks landmarks, as under exact
+                    beam_run, offset, _ = _map_run(judged, dataset, config, _stage(on_progress, 0, stages), hooks, following)
+                else:
+                    beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
+                                               null_cost_offset=offset, on_replay=following.on_replay, **hooks)
+            if beam_run is not None:
+                given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
+                seconds += beam_run.summary["timing"]["filter_seconds"]
+                warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
+            stage = _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress
+            result = following.result(given, stage) if following is not None and given is not None else None
+            if result is None:
+                result = localize_mapping(dataset, config, stage, given, compiled=compiled)
         seconds += result.summary["timing"]["filter_seconds"]
         if kept is None or _nis_per_dof(result) <= PASS_NIS_SLACK * _nis_per_dof(kept[0]):
             kept = result, warnings
@@ -432,7 +457,7 @@ COMPILED_ASSOCIATIONS = ("beam", "oracle")
 
 def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: Optional[ProgressCallback],
                        concurrent: bool, filter_ready: Optional[Callable[[], None]] = None,
-                       null_cost_offset: float = 0.0) -> RunResult:
+                       null_cost_offset: float = 0.0, on_replay=None) -> RunResult:
     from camloc.loop import PoseFailure, run_compiled
 
     model = make_filter(config.filter)
@@ -442,7 +467,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
     try:
         states, covs, chosen, distance, update_k, nis, map_cost, dof, slipped, spread = run_compiled(
             dataset, config, on_progress, initial_x=x0, initial_P=initial_cov(config, model), concurrent=concurrent,
-            filter_ready=filter_ready, view_range=view_range, null_cost_offset=null_cost_offset)
+            filter_ready=filter_ready, view_range=view_range, null_cost_offset=null_cost_offset, on_replay=on_replay)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
         raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k])) from None

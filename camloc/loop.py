@@ -40,7 +40,7 @@ SEGMENT_POSES = 256
 
 def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None, *, initial_x, initial_P,
                  concurrent: bool = False, filter_ready: Optional[Callable[[], None]] = None, view_range=None,
-                 null_cost_offset: float = 0.0):
+                 null_cost_offset: float = 0.0, on_replay: Optional[Callable[["_Filter"], None]] = None):
     """Localize every pose of ``dataset``; returns the arrays ``camloc.localizer`` assembles into
     a RunResult: (states, covs, chosen landmark index per observation, Mahalanobis distance per
     observation, update pose indices, NIS, MAP costs, NIS dof, slipped pose indices, association
@@ -49,12 +49,17 @@ def run_compiled(dataset, config, on_progress: Optional[ProgressCallback] = None
     ``filter_ready``: with the beam, called once before the filter's first stretch (a first
     compile waits there for the process compiling the filter's kernels: ``camloc.warmup``).
     ``view_range``: ``observation_space.candidate_range`` of the run, when the caller has it;
-    ``null_cost_offset``: ``observation_space.observation_noise``'s."""
+    ``null_cost_offset``: ``observation_space.observation_noise``'s.
+    ``on_replay``: with the beam, called with the filter's replay (``_Filter``: its ``chosen`` and
+    ``filtered`` tell which poses' pairs are final) before the beam starts
+    (``camloc.mapping_follower``)."""
     scene = build_scene(dataset, config, view_range, null_cost_offset)
     settings = build_settings(config, null_cost_offset)
     n = dataset.num_poses
     if config.association == "beam":
         replay = _Filter(scene, settings, GIVEN, initial_x, initial_P, ready=filter_ready)
+        if on_replay is not None:
+            on_replay(replay)
         progress = _Progress(n, on_progress, halves=2, most=SEGMENT_POSES if concurrent else None)
         if concurrent:
             progress.filtered = lambda: replay.filtered

@@ -373,9 +373,9 @@ def test_where_the_map_lacks_landmarks_the_beam_decides_again_with_the_lower_nul
     taken = {}
     real_mapping = localizer._localize_mapping
 
-    def spy(dataset, config, on_progress, hooks, given_run=None):
+    def spy(dataset, config, on_progress, hooks, given_run=None, follower=None):
         taken["pairs"] = None if given_run is None else given_run.associations.landmark.copy()
-        return real_mapping(dataset, config, on_progress, hooks, given_run)
+        return real_mapping(dataset, config, on_progress, hooks, given_run, follower)
 
     monkeypatch.setattr(localizer, "_localize_mapping", spy)
     result = localize(world, LocalizerConfig(), engine=engine, parallel=False)
