@@ -306,6 +306,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             result = following.result(given, stage) if following is not None and given is not None else None
             if result is None:
                 result = localize_mapping(dataset, config, stage, given, compiled=compiled)
+                if following is not None and following.failure:
+                    warnings.append(f"the mapping pass's second process {following.failure}; it ran after the beam's run instead")
         seconds += result.summary["timing"]["filter_seconds"]
         if kept is None or _nis_per_dof(result) <= PASS_NIS_SLACK * _nis_per_dof(kept[0]):
             kept = result, warnings
