@@ -36,7 +36,6 @@ from typing import Callable, Optional
 import numpy as np
 
 from camloc.dataset import Dataset
-from camloc.errors import CamlocError
 from camloc.localizer_config import LocalizerConfig
 from camloc.results import RunResult
 
@@ -194,11 +193,9 @@ def serve(incoming, outgoing) -> None:
             k = last
         answer = ("ok", localizer.result(time.perf_counter() - started))
     except BaseException as error:  # reported to the caller, which raises it
-        answer = ("error", error)
-        try:
-            pickle.dumps(error)
-        except Exception:
-            answer = ("error", CamlocError(f"the mapping pass failed: {type(error).__name__}: {error}"))
+        from camloc.replay import error_answer
+
+        answer = error_answer(error, "the mapping pass")
     _send(outgoing, answer)
 
 

@@ -138,13 +138,19 @@ def _replay(incoming, outgoing, make_localizer) -> None:
         payload["peak_mb"] = peak_memory_mb()
         answer = ("ok", payload)
     except BaseException as error:  # reported to the caller, which raises it
-        answer = ("error", error)
-        try:
-            pickle.dumps(error)
-        except Exception:
-            answer = ("error", CamlocError(f"the filter's replay failed: {type(error).__name__}: {error}"))
+        answer = error_answer(error, "the filter's replay")
     pickle.dump(answer, outgoing, protocol=pickle.HIGHEST_PROTOCOL)
     outgoing.flush()
+
+
+def error_answer(error: BaseException, what: str) -> tuple:
+    """A worker's answer reporting ``error``: the error itself where it pickles (the caller raises
+    it as it would its own), else a CamlocError saying that ``what`` failed and how."""
+    try:
+        pickle.dumps(error)
+    except Exception:
+        return ("error", CamlocError(f"{what} failed: {type(error).__name__}: {error}"))
+    return ("error", error)
 
 
 def peak_memory_mb() -> Optional[float]:
