@@ -261,11 +261,21 @@ MOVED_SHARE = 0.03
 MOVED_LEAST = 2
 
 
+# The mapping pass runs beside the beam's run (a second process) only on runs of at least this
+# many poses: its process costs about 1.5 s to start (an interpreter, camloc, the dataset, the
+# kernels from the cache), more than the overlap saves on shorter runs (docs/performance.md,
+# 2026-12-04, "The mapping pass beside the beam": 5,000 poses 3.9 -> 5.2 s, 20,000 poses 19.4-22.0
+# -> 14.5-17.3 s).
+FOLLOW_MIN_POSES = 12000
+
+
 def _follower(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> MappingFollower:
     """A mapping pass that may run beside the beam's run (``camloc.mapping_follower``): it follows
-    a run only where the compiled loop runs the beam, with two CPUs or more and ``parallel`` not
-    False; otherwise it never starts and the pass runs after."""
-    able = config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
+    a run only where the compiled loop runs the beam over at least ``FOLLOW_MIN_POSES`` poses,
+    with two CPUs or more and ``parallel`` not False; otherwise it never starts and the pass runs
+    after."""
+    able = (config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
+            and dataset.num_poses >= FOLLOW_MIN_POSES)
     return MappingFollower(dataset, config, lambda: _mapping_compiled(dataset, hooks), enabled=able)
 
 

@@ -29,6 +29,7 @@ def test_the_mapping_pass_beside_the_beam_gives_the_run_of_one_pass_after_the_ot
         monkeypatch.setattr(localizer, "LACKING_PREFIX_MIN_POSES", 600)
         monkeypatch.setattr(localizer, "LACKING_PREFIX_SHARE", 0.5)
     monkeypatch.setattr(localizer, "_cpus", lambda: 2)
+    monkeypatch.setattr(localizer, "FOLLOW_MIN_POSES", 600)
     followed = []
     follow = MappingFollower.follow
 
@@ -91,6 +92,16 @@ def test_a_mapping_process_lost_leaves_the_pass_to_its_caller_and_says_why():
         follower.worker.kill()
         assert follower.result(source.chosen) is None
         assert "ended without a result" in follower.failure
+
+
+def test_a_short_run_maps_after_its_beam_s_run(monkeypatch):
+    """Below ``FOLLOW_MIN_POSES`` the process would cost more than it saves: no follower starts."""
+    monkeypatch.setattr(localizer, "_cpus", lambda: 2)
+    world = _world(poses=400)
+    hooks = dict(parallel=True, engine="compiled", on_compile=None, on_background_compile=None)
+    assert localizer._follower(world, localizer.resolved_config(LocalizerConfig(), world), hooks).on_replay is None
+    monkeypatch.setattr(localizer, "FOLLOW_MIN_POSES", 400)
+    assert localizer._follower(world, localizer.resolved_config(LocalizerConfig(), world), hooks).on_replay is not None
 
 
 def test_a_follower_that_did_not_follow_leaves_the_pass_to_its_caller():
