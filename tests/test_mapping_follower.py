@@ -29,6 +29,7 @@ def test_the_mapping_pass_beside_the_beam_gives_the_run_of_one_pass_after_the_ot
         monkeypatch.setattr(localizer, "LACKING_PREFIX_MIN_POSES", 600)
         monkeypatch.setattr(localizer, "LACKING_PREFIX_SHARE", 0.5)
     monkeypatch.setattr(localizer, "_cpus", lambda: 2)
+    monkeypatch.setattr(localizer, "_cpu_free", lambda: True)
     monkeypatch.setattr(localizer, "FOLLOW_MIN_POSES", 600)
     followed = []
     follow = MappingFollower.follow
@@ -97,11 +98,14 @@ def test_a_mapping_process_lost_leaves_the_pass_to_its_caller_and_says_why():
 def test_a_short_run_maps_after_its_beam_s_run(monkeypatch):
     """Below ``FOLLOW_MIN_POSES`` the process would cost more than it saves: no follower starts."""
     monkeypatch.setattr(localizer, "_cpus", lambda: 2)
+    monkeypatch.setattr(localizer, "_cpu_free", lambda: True)
     world = _world(poses=400)
     hooks = dict(parallel=True, engine="compiled", on_compile=None, on_background_compile=None)
     assert localizer._follower(world, localizer.resolved_config(LocalizerConfig(), world), hooks).on_replay is None
     monkeypatch.setattr(localizer, "FOLLOW_MIN_POSES", 400)
     assert localizer._follower(world, localizer.resolved_config(LocalizerConfig(), world), hooks).on_replay is not None
+    monkeypatch.setattr(localizer, "_cpu_free", lambda: False)  # other work takes the second CPU
+    assert localizer._follower(world, localizer.resolved_config(LocalizerConfig(), world), hooks).on_replay is None
 
 
 def test_a_follower_that_did_not_follow_leaves_the_pass_to_its_caller():
