@@ -261,11 +261,21 @@ MOVED_SHARE = 0.03
 MOVED_LEAST = 2
 
 
+# The mapping pass runs beside the beam's run (a second process) only on runs of at least this
+# many poses: its process costs about 1.5 s to start (an interpreter, camloc, the dataset, the
+# kernels from the cache), more than the overlap saves on shorter runs (docs/performance.md,
+# 2026-12-04, "The mapping pass beside the beam": 5,000 poses 3.9 -> 5.2 s, 20,000 poses 19.4-22.0
+# -> 14.5-17.3 s).
+FOLLOW_MIN_POSES = 12000
+
+
 def _follower(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> MappingFollower:
     """A mapping pass that may run beside the beam's run (``camloc.mapping_follower``): it follows
-    a run only where the compiled loop runs the beam, with two CPUs or more and ``parallel`` not
-    False; otherwise it never starts and the pass runs after."""
-    able = config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
+    a run only where the compiled loop runs the beam over at least ``FOLLOW_MIN_POSES`` poses,
+    with two CPUs or more and ``parallel`` not False; otherwise it never starts and the pass runs
+    after."""
+    able = (config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
+            and dataset.num_poses >= FOLLOW_MIN_POSES and _cpu_free())
     return MappingFollower(dataset, config, lambda: _mapping_compiled(dataset, hooks), enabled=able)
 
 
@@ -306,6 +316,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             result = following.result(given, stage) if following is not None and given is not None else None
             if result is None:
                 result = localize_mapping(dataset, config, stage, given, compiled=compiled)
+                if following is not None and following.failure:
+                    warnings.append(f"the mapping pass's second process {following.failure}; it ran after the beam's run instead")
         seconds += result.summary["timing"]["filter_seconds"]
         if kept is None or _nis_per_dof(result) <= PASS_NIS_SLACK * _nis_per_dof(kept[0]):
             kept = result, warnings
@@ -502,6 +514,18 @@ PARALLEL_MIN_POSES = 500
 
 def _parallel_worthwhile(num_poses: int) -> bool:
     return num_poses >= PARALLEL_MIN_POSES and _cpus() >= 2
+
+
+def _cpu_free() -> bool:
+    """Whether a CPU is free beside the one this run keeps busy: the 1-minute load average (this
+    process's running threads included) at least one below the CPUs; True where the system does
+    not say. A second process on a machine whose CPUs other work already takes slows the run
+    (the 20,000-pose world with a fifth withheld, load 2 on 2 CPUs: 19-24 s -> 22-24 s)."""
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # not on this system
+        return True
+    return load <= _cpus() - 1.0
 
 
 def _cpus() -> int:

@@ -43,7 +43,8 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
     ``step`` for every pose."""
     with tempfile.TemporaryFile() as errors:
         worker = subprocess.Popen(
-            [sys.executable, "-c", _WORKER_SOURCE.format(package=str(Path(__file__).resolve().parent))],
+            worker_command("from camloc.localizer import _Localizer\nfrom camloc.replay import _replay\n"
+                           "_replay(sys.stdin.buffer, sys.stdout.buffer, _Localizer)"),
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=errors,
         )
         replay_gone = False
@@ -96,19 +97,22 @@ def search_and_replay(localizer, on_pose: Optional[Callable[[int], None]] = None
     localizer.warnings.extend(payload["warnings"])  # after the beam's own, as in the sequential run
 
 
-# The worker imports this very camloc package, from its folder, however the caller found it (an
+# A worker imports this very camloc package, from its folder, however the caller found it (an
 # install, an editable install, a path added by hand), without putting that folder's parent in
 # front of the standard library on sys.path.
-_WORKER_SOURCE = """
+_WORKER_HEADER = """
 import importlib.util, sys
 spec = importlib.util.spec_from_file_location("camloc", {package!r} + "/__init__.py", submodule_search_locations=[{package!r}])
 module = importlib.util.module_from_spec(spec)
 sys.modules["camloc"] = module
 spec.loader.exec_module(module)
-from camloc.localizer import _Localizer
-from camloc.replay import _replay
-_replay(sys.stdin.buffer, sys.stdout.buffer, _Localizer)
 """
+
+
+def worker_command(code: str) -> list[str]:
+    """The command of a fresh interpreter that imports this camloc package, then runs ``code``
+    (``sys`` imported): the replay's process here, the mapping pass's (``camloc.mapping_follower``)."""
+    return [sys.executable, "-c", _WORKER_HEADER.format(package=str(Path(__file__).resolve().parent)) + code + "\n"]
 
 
 def _replay(incoming, outgoing, make_localizer) -> None:
@@ -134,13 +138,19 @@ def _replay(incoming, outgoing, make_localizer) -> None:
         payload["peak_mb"] = peak_memory_mb()
         answer = ("ok", payload)
     except BaseException as error:  # reported to the caller, which raises it
-        answer = ("error", error)
-        try:
-            pickle.dumps(error)
-        except Exception:
-            answer = ("error", CamlocError(f"the filter's replay failed: {type(error).__name__}: {error}"))
+        answer = error_answer(error, "the filter's replay")
     pickle.dump(answer, outgoing, protocol=pickle.HIGHEST_PROTOCOL)
     outgoing.flush()
+
+
+def error_answer(error: BaseException, what: str) -> tuple:
+    """A worker's answer reporting ``error``: the error itself where it pickles (the caller raises
+    it as it would its own), else a CamlocError saying that ``what`` failed and how."""
+    try:
+        pickle.dumps(error)
+    except Exception:
+        return ("error", CamlocError(f"{what} failed: {type(error).__name__}: {error}"))
+    return ("error", error)
 
 
 def peak_memory_mb() -> Optional[float]:
