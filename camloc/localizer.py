@@ -517,15 +517,16 @@ def _parallel_worthwhile(num_poses: int) -> bool:
 
 
 def _cpu_free() -> bool:
-    """Whether a CPU is free beside the one this run keeps busy: the 1-minute load average (this
-    process's running threads included) at least one below the CPUs; True where the system does
-    not say. A second process on a machine whose CPUs other work already takes slows the run
-    (the 20,000-pose world with a fifth withheld, load 2 on 2 CPUs: 19-24 s -> 22-24 s)."""
+    """Whether a CPU is free beside the one this run keeps busy: the 1-minute load average at
+    most the CPUs less one half (it counts this process's own busy thread, about 1 over runs back
+    to back); True where the system does not say. A second process on a machine whose CPUs other
+    work already takes slows the run (the 20,000-pose world with a fifth withheld, load 2 on 2
+    CPUs: 19-24 s -> 22-24 s)."""
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # not on this system
         return True
-    return load <= _cpus() - 1.0
+    return load <= _cpus() - 0.5
 
 
 def _cpus() -> int:
