@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
 from camloc.bundled import bundled_dataset
-from camloc.diagnostics import run_warnings
+from camloc.diagnostics import rays_only, run_warnings
 from camloc.ekf import FilterDivergedError
 from camloc.localizer import ProgressCallback, localize, unmappable_reason
 from camloc.localizer_config import LocalizerConfig
@@ -69,7 +69,8 @@ def run_dataset(
     # in the summary's warnings, which the command line prints and summary.json keeps.
     summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"], mapped=summary.get("map") is not None,
                                                                 map_size=int(dataset.landmark_ids.size),
-                                                                unmappable=unmappable_reason(dataset))]
+                                                                unmappable=unmappable_reason(dataset),
+                                                                rays_only=rays_only(dataset.obs_kind))]
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None

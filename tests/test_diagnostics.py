@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 import pytest
 from typer.testing import CliRunner
 
@@ -157,6 +159,24 @@ def test_a_run_that_cannot_map_says_why_beside_the_incomplete_map():
     (planar,) = run_warnings(counts, map_size=70, unmappable="this dataset's robot observes markers")
     assert planar.startswith(plain) and planar.endswith(f"only for {MAPPED_LANDMARKS}, and this dataset's robot observes markers")
     assert run_warnings(counts, mapped=True, unmappable="x") == []
+
+
+def test_a_pixel_only_run_on_an_incomplete_map_says_its_lacking_landmarks_are_not_found():
+    """Rays do not place their landmarks: a pixel-only file whose map looks incomplete is told so
+    (its run may be lost), a file with range or a planar robot's points is not."""
+    from camloc import measurement
+    from camloc.diagnostics import RAYS_NOT_MAPPED, rays_only
+    from camloc.simulate import SimulationConfig, simulate
+
+    counts = {"observations": 801, "rejected": 400, "updates": 300}
+    (plain,) = run_warnings(counts)
+    (rays,) = run_warnings(counts, rays_only=True)
+    assert rays == plain + RAYS_NOT_MAPPED and "pixel-only" in rays
+    assert run_warnings({"observations": 801, "rejected": 20, "updates": 300}, rays_only=True) == []  # a complete map
+    pixel = simulate(SimulationConfig(poses=20, measurement="pixel", cameras=2), seed=0)
+    depth = simulate(SimulationConfig(poses=20), seed=0)
+    assert rays_only(pixel.obs_kind) and not rays_only(depth.obs_kind) and not rays_only(pixel.obs_kind[:0])
+    assert not rays_only(np.array([measurement.PIXEL, measurement.POINT2]))  # a planar robot's points place theirs
 
 
 def test_an_empty_map_is_not_called_incomplete_but_says_what_maps_it():
