@@ -53,7 +53,7 @@ class PairGating:
             candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
             if candidates.size == 0:
                 for r in rows:
-                    out[r] = empty_options()
+                    out[r] = empty_options(h.x.size)
                 continue
             z_hat, H = self.ctx.observe(h.x, camera_id, candidates)
             o = obs[rows]
@@ -190,6 +190,8 @@ def member(values: np.ndarray, few: np.ndarray) -> np.ndarray:
     return (values[:, None] == few[None, :]).any(axis=1)
 
 
-def empty_options() -> PairOptions:
-    return PairOptions(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 6)), np.zeros((0, 3)),
-                       np.zeros((0, 3, 6)), np.zeros((0, 3, 3)))
+def empty_options(dim: int) -> PairOptions:
+    """No option, for a state of ``dim`` entries (6: Euler; 3: planar): its Jacobians' columns
+    match the other observations' options, which a pose's seeded search concatenates."""
+    return PairOptions(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, dim)), np.zeros((0, 3)),
+                       np.zeros((0, 3, dim)), np.zeros((0, 3, 3)))

@@ -144,3 +144,37 @@ def test_the_beam_explains_an_odometry_slip_on_a_planar_robot(sensors):
     assert result.summary["slip_poses"] and abs(result.summary["slip_poses"][0] - int(dataset.pose_ids[71])) <= 1
     assert report["association"]["precision"] >= 0.99
     assert report["estimate"]["ate"]["rmse"] < 0.5 * metrics.evaluate(localize(dataset, LocalizerConfig(association="oracle")))["estimate"]["ate"]["rmse"]
+
+
+def test_the_seeded_search_takes_a_sensor_that_sees_no_landmark_beside_the_others():
+    """A planar robot's pose seen by its camera, its point sensor and its marker sensor, the map
+    without the floor's points: the point sensor's observations have no option at all, and the
+    seeded search (``beam_seeded.explain_from_seeds``) concatenates every observation's options.
+    Their Jacobians all have the planar state's 3 columns (an empty option's had the Euler
+    state's 6, and the search raised on such a pose)."""
+    import dataclasses
+
+    from camloc import geometry
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import Hypothesis
+    from camloc.dataset import LANDMARK_POINT2
+    from camloc.localizer import _Localizer
+
+    world = simulate_planar(PlanarSimulationConfig(sensors="points,markers,cameras", poses=40), seed=2)
+    keep = world.landmark_kind != LANDMARK_POINT2
+    world = dataclasses.replace(world, **{name: getattr(world, name)[keep] for name in (
+        "landmark_ids", "landmark_xyz", "landmark_kind", "landmark_heading", "landmark_quat_xyzw")})
+    counts = np.bincount(world.obs_pose_index, minlength=world.num_poses)
+    k = next(k for k in np.argsort(-counts, kind="stable")
+             if len(np.unique(world.obs_kind[world.obs_pose_index == k])) == 3)  # all three sensors
+    obs = np.flatnonzero(world.obs_pose_index == k)
+    localizer = _Localizer(world, LocalizerConfig())
+    search = BeamSearch(localizer, localizer.beam_settings())
+    yaw = geometry.matrix_to_euler(geometry.quat_to_matrix(world.truth_quat_xyzw[k]))[2]
+    h = Hypothesis(np.r_[world.truth_xyz[k, :2], yaw], np.diag([0.05**2, 0.05**2, np.radians(2.0) ** 2]), 0.0, 0)
+    options = search.gating.options(h, obs, widened_view=True)
+    assert any(o.landmarks.size == 0 for o in options) and any(o.landmarks.size for o in options)
+    assert {o.Hc.shape[2] for o in options} == {3}
+    children = search.seeded.explain_from_seeds(h, obs, slipped=False)
+    assert children and all(c.x.size == 3 for c in children)
+    assert max(len(c.pairs) for c in children) >= 2  # the markers and the camera's landmarks paired
