@@ -102,10 +102,13 @@ _NULL_COST = typer.Option(
     "data (clutter uniform over the measured volume; about 18 for the real file's camera).", show_default=False
 )
 _MAP = library_option(
-    "How the file's map is held: exact (landmarks where the map says them; observations of landmarks it lacks "
-    "are left as clutter), prior (mapped landmarks are estimated too, pulled toward the map with --map-sigma), "
-    "none (the map's positions unused); prior and none map what the map lacks (EKF-SLAM: added landmarks in "
-    "map.csv of the run folder; docs/mapping.md). auto: exact for a file with a map, none for one without.",
+    "How the file's map is held: exact (landmarks where the map says them; where the rejected observations "
+    "agree on places the map has no landmark at, those landmarks are added), prior (mapped landmarks are "
+    "estimated too, pulled toward the map with --map-sigma), none (the map's positions unused: everything is "
+    "mapped). Landmarks added (EKF-SLAM) are in map.csv of the run folder (docs/mapping.md): point landmarks of "
+    "3-D cameras with depth or disparity and a planar robot's points and markers; a pixel-only camera's rays "
+    "are mapped under prior and none only; tags' orientations are not mapped (prior and none are refused). "
+    "auto: exact for a file with a map, none for one without.",
     "localizer.map", "--map"
 )
 _MAP_SIGMA = library_option(
@@ -226,7 +229,7 @@ def run(
 ) -> None:
     """Localize the robot of DATASET in its landmark map and write the run folder.
 
-    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json (and map.csv with --map prior or none), written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
+    The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json (and map.csv where landmarks were mapped), written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
 
     The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset numpy takes under about 20 s over (some 4,500 poses of 8 observations with depth) it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
