@@ -185,6 +185,14 @@ class Dataset:
         return geometry.pose_from_quat(self.odom_translation, self.odom_quat_xyzw)
 
 
+def observations_by_pose(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """The observations in pose order, (K,) int64 (within a pose, in the file's order), and where
+    each pose's start in it, (N + 1,) int64: pose k's are ``order[bounds[k]:bounds[k + 1]]``."""
+    order = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
+    bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1)).astype(np.int64)
+    return order, bounds
+
+
 def first_poses(dataset: Dataset, count: int) -> Dataset:
     """``dataset`` cut to its first ``count`` poses: their odometry and observations, the whole
     map (a tag observation's partner renumbered with the observations kept)."""

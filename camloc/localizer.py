@@ -272,8 +272,8 @@ FOLLOW_MIN_POSES = 12000
 def _follower(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> MappingFollower:
     """A mapping pass that may run beside the beam's run (``camloc.mapping_follower``): it follows
     a run only where the compiled loop runs the beam over at least ``FOLLOW_MIN_POSES`` poses,
-    with two CPUs or more and ``parallel`` not False; otherwise it never starts and the pass runs
-    after."""
+    with two CPUs or more, one of them free (``_cpu_free``), and ``parallel`` not False; otherwise
+    it never starts and the pass runs after."""
     able = (config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
             and dataset.num_poses >= FOLLOW_MIN_POSES and _cpu_free())
     return MappingFollower(dataset, config, lambda: _mapping_compiled(dataset, hooks), enabled=able)

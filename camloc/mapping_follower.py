@@ -35,7 +35,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc.dataset import Dataset
+from camloc.dataset import Dataset, observations_by_pose
 from camloc.localizer_config import LocalizerConfig
 from camloc.results import RunResult
 
@@ -87,8 +87,7 @@ class MappingFollower:
     def _feed(self, compiled: bool) -> None:
         """Send the process the run, then each stretch of poses' pairs once the replay has filtered it."""
         dataset = self.dataset
-        order = np.argsort(dataset.obs_pose_index, kind="stable")
-        bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
+        order, bounds = observations_by_pose(dataset)
         try:
             _send(self.worker.stdin, (dataset, self.config, compiled))
             n = dataset.num_poses

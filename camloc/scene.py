@@ -15,7 +15,7 @@ from camloc import measurement, sym3
 from camloc.observation_space import ObservationNoise, candidate_range, detection_range, landmark_rows, observation_noise, planar_range
 from camloc.sensors import sensors_of
 from camloc.measurement import observation_gates
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
 from camloc.kernels.types import SceneArrays, Settings
 from camloc.tails import chi2_quantile
 
@@ -40,8 +40,7 @@ def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float]
     camera_K = np.array([(*c.intrinsics, float(c.kind)) for c in cameras], dtype=float).reshape(-1, 5)
     noise = observation_noise(dataset, config, null_cost_offset)
     true_index = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
-    pose_obs = np.argsort(dataset.obs_pose_index, kind="stable").astype(np.int64)
-    pose_obs_start = np.searchsorted(dataset.obs_pose_index[pose_obs], np.arange(dataset.num_poses + 1)).astype(np.int64)
+    pose_obs, pose_obs_start = observations_by_pose(dataset)
     view = np.array(candidate_range(dataset, config) if view_range is None else view_range)
     view = np.concatenate([view, detection_range(dataset, float(view[2])), [planar_range(dataset)]])  # the beam's miss term, the planar range
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))

@@ -34,7 +34,7 @@ import numpy as np
 
 from camloc import ekf, geometry, measurement, planar, slam
 from camloc.association import mahalanobis_3x3
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
 from camloc.filters import make_filter
 from camloc.localizer_config import LocalizerConfig
 from camloc.observation_space import candidate_range, observation_noise, planar_range
@@ -85,8 +85,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.oracle_landmark: dict[int, int] = {int(i): n for n, i in enumerate(ids.tolist())}
         all_ids = np.concatenate([dataset.landmark_ids, dataset.pose_ids, dataset.obs_true_landmark, [-1]])
         self.next_id = int(all_ids.max()) + 1
-        order = np.argsort(dataset.obs_pose_index, kind="stable")
-        bounds = np.searchsorted(dataset.obs_pose_index[order], np.arange(dataset.num_poses + 1))
+        order, bounds = observations_by_pose(dataset)
         self.obs_order, self.obs_bounds = order, bounds  # pose k's observations: order[bounds[k]:bounds[k + 1]]
         self.obs_of_pose = [order[bounds[k]:bounds[k + 1]] for k in range(dataset.num_poses)]
 
