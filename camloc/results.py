@@ -838,6 +838,7 @@ def read_map(path: str | Path) -> LandmarkMap:
     if np.any(tag):
         rotvec[tag] = geometry.so3_log(geometry.quat_to_matrix(o[tag, :4]))
     cov = o[:, [4, 5, 6, 5, 7, 8, 6, 8, 9]].reshape(-1, 3, 3)
+    cov[~tag] = 0.0  # not a tag: no orientation, nothing uncertain about it (as the run holds it)
     return dataclasses.replace(landmarks, orientation=rotvec, orientation_cov=cov)
 
 

@@ -254,7 +254,7 @@ class PoseAssociation:
         S_pair = S[None, :, :, :] + self.association_cov[obs][:, None, :, :]
         d2, log_det = mahalanobis_3x3(S_pair, y)
         cost = d2 + log_det - self.log_det_R[obs][:, None]
-        gate = self.gate[self.obs_dof[obs]][:, None]
+        gate = self._position_gates(obs)[:, None]
         return candidates, np.where(np.isfinite(cost) & (d2 <= gate), cost, UNPAIRED), z_hat, H, extra
 
 

@@ -51,8 +51,21 @@ class TagStates:
             self.table.kind[tag] = LANDMARK_POINT3  # seen by cameras as a point is (a planar map's tags too)
         self.rotation_clutter = np.zeros(ds.num_observations)
         self.rotation_clutter[ds.obs_partner[rotation]] = rotation_clutter_cost(self.association_cov[rotation])
-        self.joint_gate = chi2_quantile_of(measurement.dof_of(ds.obs_kind) + 3, min(1.0 - self.config.gate, TAG_GATE_TAIL))
+        tail = min(1.0 - self.config.gate, TAG_GATE_TAIL)
+        self.tag_position_gate = np.array([chi2_quantile(d, tail) if d else 0.0 for d in range(measurement.MAX_DIM + 1)])
+        self.joint_gate = chi2_quantile_of(measurement.dof_of(ds.obs_kind) + 3, tail)
         return null_cost + self.rotation_clutter
+
+    def _position_gates(self, obs: np.ndarray) -> np.ndarray:
+        """The chi^2 gate (M,) of each observation's position alone: its dof's at the association's
+        probability, a tag's at its joint gate's tail (``TAG_GATE_TAIL``: its orientation then
+        judges the pair with it, ``_orientation_costs``; at 99% the position alone left out right
+        pairs that then became a second landmark beside the first)."""
+        gates = self.gate[self.obs_dof[obs]]
+        if self.has_tags:
+            tags = self.rotation_of[obs] >= 0
+            gates = np.where(tags, self.tag_position_gate[self.obs_dof[obs]], gates)
+        return gates
 
     def _is_tag(self, landmarks) -> np.ndarray:
         return np.isfinite(self.table.rotvec[landmarks, 0])
