@@ -39,6 +39,11 @@ Planar     a planar robot (``Dataset.planar``) runs this model lifted: its pose 
            the world moves it, so G has no row for it); z = (R' (l - t) in x and y, psi - theta):
            d z_psi / d (e, xi_theta_z) = (1, -1), and in its inverse observation B puts xi_theta_z
            into e.
+Tags       a tag in the state is two rows of L: its centre and its orientation's rotation vector
+           (``SlamMean.orientation`` marks the latter), with the left error
+           R_tag = Exp(xi_theta) Exp(xi_o) R^_tag: ``camloc.slam_tags``' model card (its
+           measurement, inverse observation, prior and world covariance). Here: ``retract``,
+           ``difference``, ``noise_coefficients`` (xi_o -= R w_theta) and the rows' bookkeeping.
 
 Pure: no I/O, no printing. Every Jacobian is checked against finite differences of ``retract``
 in tests/test_slam.py.
