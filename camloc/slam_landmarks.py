@@ -265,7 +265,7 @@ class LandmarkAdditions:
                 self._add_landmark(k, o, SingleObservation(o), tentative=True)
                 continue
             origin, direction, sigma = self._ray(o)
-            track = self.tracks.add_ray(k, o, origin, direction, sigma)
+            track = self.tracks.add_ray(k, o, origin, direction, sigma, self._ray_fits(o))
             if self.tracks.confirmed(track) and self._add_landmark(k, o, track):
                 self.tracks.remove(track)
 
@@ -310,8 +310,8 @@ class LandmarkAdditions:
         for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():
             at = self.obs_sensor[obs_array] == sensor_id
             gated = self.landmark_costs(sensor_id, obs_array[at], nearby)
-            if gated is not None:
-                fits[at] = np.any(gated[1] < UNPAIRED, axis=1)
+            if gated is not None:  # (a tag's: with its orientation, so a tag beside another is a new one)
+                fits[at] = np.any(self._orientation_costs(obs_array[at], *gated) < UNPAIRED, axis=1)
         return obs_array[~fits].tolist()
 
     def _oracle_new(self, k: int, unassigned: list[int]) -> None:

@@ -40,6 +40,7 @@ class TagStates:
         ds = self.dataset
         rotation = np.flatnonzero(ds.obs_kind == measurement.TAG_ROTATION)
         self.has_tags = bool(rotation.size)
+        self.ray_turns: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # a tag's ray: its world orientation and spread
         self.rotation_of = np.full(ds.num_observations, -1, np.int64)
         self.rotation_of[ds.obs_partner[rotation]] = rotation
         if not self.has_tags:
@@ -178,6 +179,30 @@ class TagStates:
         self.state_landmark.append(landmark)
         riders = self.rotation_of[np.array(observations, np.int64)]
         self.chosen[riders[riders >= 0]] = landmark
+
+    def _ray_fits(self, o: int):
+        """Where pixel observation o is a tag's, whether a track's observations are of a tag o's
+        orientation agrees with (``_turns_agree``), None otherwise: rays of two tags that meet
+        by chance are not one track (measured: such a track made a tag 120-150 degrees off)."""
+        if not self.has_tags or self.rotation_of[o] < 0:
+            return None
+        r = int(self.rotation_of[o])
+        R_world = self.x.R @ self.sensors[int(self.obs_sensor[r])].T_robot_camera[:3, :3] @ geometry.so3_exp(self.dataset.obs_z[r])
+        # its world orientation, and the spread of it: the measurement's and the robot's heading's
+        self.ray_turns[o] = (R_world, R_world @ self.dataset.obs_cov[r] @ R_world.T + self.P[3:6, 3:6])
+        return lambda observations: self._turns_agree(o, observations)
+
+    def _turns_agree(self, o: int, observations: list) -> bool:
+        """Whether every one of ``observations`` with a world orientation (``ray_turns``) is within
+        ``VETO_GATE`` of o's."""
+        R_o, C_o = self.ray_turns[o]
+        for other in observations:
+            if other in self.ray_turns:
+                R_i, C_i = self.ray_turns[other]
+                e = geometry.so3_log(R_o @ R_i.T)
+                if float(e @ np.linalg.solve(C_o + C_i, e)) > VETO_GATE:
+                    return False
+        return True
 
     def _position_rows(self) -> np.ndarray:
         """(m,) bool: which of the state's landmark rows are positions (not a tag's orientation)."""

@@ -36,8 +36,9 @@ from camloc import geometry, tags
 from camloc.ekf import symmetrize
 
 if TYPE_CHECKING:
-    from camloc.slam import SlamMean
     from camloc.sensors import CameraModel
+
+# (the estimate ``x`` below is ``camloc.slam.SlamMean``: not imported, slam imports this module)
 
 POSE_DIM = 6  # xi_t, xi_theta (``camloc.slam``'s)
 
@@ -53,7 +54,7 @@ def turn_between(a: np.ndarray, b: np.ndarray, E: np.ndarray) -> np.ndarray:
     return geometry.so3_log(E.T @ geometry.so3_exp(a) @ np.swapaxes(geometry.so3_exp(b), -1, -2))
 
 
-def observe_orientations(x: "SlamMean", sensor: "CameraModel", rotvec: np.ndarray, block: np.ndarray, width: int,
+def observe_orientations(x, sensor: "CameraModel", rotvec: np.ndarray, block: np.ndarray, width: int,
                          z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Predictions (M, 3) of orientation measurements z (M, 3) (``Log(R_meas)``) of tags whose
     orientations are ``rotvec`` (M, 3), in the filter's ``z - z_hat`` form (``tags.aligned``), and
@@ -72,7 +73,7 @@ def observe_orientations(x: "SlamMean", sensor: "CameraModel", rotvec: np.ndarra
     return tags.aligned(z, R_pred, H_R)
 
 
-def inverse_orientation(x: "SlamMean", sensor: "CameraModel", z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def inverse_orientation(x, sensor: "CameraModel", z: np.ndarray, R_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A new tag's orientation from one measurement z (3,) (``Log(R_meas)``) of noise R_z (3, 3):
     its rotation vector (3,) (world), the coefficients B (3, POSE_DIM) of its error on the pose's
     (zero: ``xi_o = -R_tag n``) and the noise's covariance (3, 3)."""
