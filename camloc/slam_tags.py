@@ -23,7 +23,7 @@ Prior      a map's tag R_tag = Exp(e) R_map with e ~ N(0, sigma^2 I) (world, ind
            pose): xi_o = e - xi_theta to first order (B = [0, -I]).
 World      the world error of an estimated orientation, e = Log(R_tag R^_tag^T) = xi_theta + xi_o
            to first order (``orientation_world_cov``).
-Every Jacobian is checked against finite differences of ``slam.retract`` in tests/test_slam_tags.py.
+Every Jacobian is checked against finite differences of ``slam.retract`` in tests/test_slam.py.
 """
 
 from __future__ import annotations
