@@ -134,22 +134,26 @@ def _cli(*args):
     return CliRunner().invoke(app, [str(arg) for arg in args])
 
 
-@pytest.mark.parametrize("mode", ["none", "prior", "exact"])
-def test_a_withheld_tag_world_through_the_command_line(tmp_path, mode):
-    """simulate (tags, half the map withheld) -> run --map MODE -> map.csv with orientations ->
-    eval --true-map scores them -> plot draws the map; no traceback anywhere."""
+@pytest.mark.parametrize("mode, edit", [("none", "--withhold-map"), ("prior", "--withhold-map"), ("exact", "--withhold-map"),
+                                        ("prior", "--move-map")])
+def test_a_tag_world_through_the_command_line(tmp_path, mode, edit):
+    """simulate (tags, half the map withheld or moved and turned) -> run --map MODE -> map.csv with
+    orientations -> eval --true-map scores them -> plot draws the map; no traceback anywhere."""
     world = tmp_path / "tags.g2o"
-    made = _cli("simulate", "-o", world, "--tag-sigma-deg", "1", "--poses", "80", "--seed", "3", "--withhold-map", "0.5", "-q")
+    made = _cli("simulate", "-o", world, "--tag-sigma-deg", "1", "--poses", "80", "--seed", "3", edit, "0.5", "-q")
     assert made.exit_code == 0, made.output
     run = _cli("run", world, "--map", mode, "--map-sigma", "0.1", "-o", tmp_path / "r", "--json")
     assert run.exit_code == 0 and run.exception is None, run.output
-    assert json.loads(run.output)["map"]["added"] >= 1
     header = (tmp_path / "r" / "map.csv").read_text().splitlines()[0]
     assert header.endswith("qx,qy,qz,qw,crxx,crxy,crxz,cryy,cryz,crzz")
     scored = _cli("eval", tmp_path / "r", "--true-map", tmp_path / "tags.true-map.g2o", "--json")
     assert scored.exit_code == 0 and scored.exception is None, scored.output
     orientation = json.loads(scored.output)["map"]["orientation"]
-    assert orientation["added"]["count"] >= 1 and orientation["added"]["rmse_deg"] < 5.0
+    if edit == "--withhold-map":
+        assert json.loads(run.output)["map"]["added"] >= 1
+        assert orientation["added"]["count"] >= 1 and orientation["added"]["rmse_deg"] < 5.0
+    else:  # moved 0.3 m and turned 0.3 rad (17.2 degrees): corrected under the prior
+        assert orientation["moved"]["count"] >= 1 and orientation["moved"]["rmse_deg"] < 8.0
     drawn = _cli("plot", tmp_path / "r", "--true-map", tmp_path / "tags.true-map.g2o")
     assert drawn.exit_code == 0 and drawn.exception is None, drawn.output
     assert (tmp_path / "r" / "fig-map.png").is_file() or any((tmp_path / "r").glob("fig-map*"))
