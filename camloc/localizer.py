@@ -419,7 +419,7 @@ def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfi
     if config.map == AUTO_MAP:
         config = replace(config, map="none" if mappable and dataset.landmark_ids.size == 0 else "exact")
     if config.map != "exact" and not mappable:
-        raise ConfigError(f"map {config.map!r} (mapping) runs point landmarks and a planar robot's markers; {unmappable_reason(dataset)}: "
+        raise ConfigError(f"map {config.map!r} (mapping) cannot run this dataset: {unmappable_reason(dataset)}: "
                           "use --map exact")
     planar_kinds = [measurement.KINDS[int(k)].tag for k in np.unique(dataset.obs_kind) if int(k) in measurement.PLANAR_KINDS]
     if planar_kinds and config.filter != "se2":
