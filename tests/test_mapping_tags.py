@@ -177,3 +177,19 @@ def test_pixel_tags_rays_of_two_tags_are_not_one_tag():
                                  obs_landmark=result.associations.landmark, obs_true=dataset.obs_true_landmark[rows],
                                  true_quat_xyzw=whole.landmark_quat_xyzw)["orientation"]["added"]
     assert score["count"] >= 20 and score["max_deg"] < 10.0
+
+
+@pytest.mark.parametrize("cells, expected", [("1,0,0,0,0,0,0,0,0", "expected 22 fields"),
+                                             ("0.5,0,0,0,0,0,0,0,0,0", "a unit quaternion"),
+                                             ("x,0,0,1,0,0,0,0,0,0", "ten numbers or ten empty cells")])
+def test_a_malformed_orientation_in_map_csv_is_refused_with_its_line(tmp_path, cells, expected):
+    """A map.csv row whose orientation cells are not ten numbers (a unit quaternion first) or ten
+    empty cells is refused with its line, never a traceback."""
+    from camloc.errors import DatasetError
+    from camloc.results import MAP_HEADER, MAP_ORIENTATION_HEADER, read_map
+
+    path = tmp_path / "map.csv"
+    path.write_text(",".join(MAP_HEADER + MAP_ORIENTATION_HEADER) + "\n" + "3,0,0,0,0,0,0,0,0,0,added,2," + cells + "\n")
+    with pytest.raises(DatasetError, match=expected) as error:
+        read_map(path)
+    assert error.value.line == 2  # the row's line, as every malformed map.csv is told
