@@ -49,8 +49,10 @@ def test_simulate_run_eval_plot_smooth(tmp_path, sensors):
     assert smooth_report["converged"]
     assert smooth_report["smoothed"]["ate"]["rmse"] <= 1.05 * smooth_report["estimate"]["ate"]["rmse"]
     assert (run_dir / "map.csv").is_file()
-    refused = invoke("smooth", run_dir, "--map", "prior")  # the SE(2) smoother estimates poses only
-    assert refused.exit_code == 2 and "holds its map exact" in refused.output
+    for mode in ("prior", "none"):  # the landmarks estimated with the poses (tests/test_smoother_se2.py)
+        with_map = invoke("smooth", run_dir, "--map", mode, "--json")
+        assert with_map.exit_code == 0, with_map.output
+        assert json.loads(with_map.output)["landmarks"]["estimated"] > 0
 
     info = invoke("info", world, "--json")
     assert info.exit_code == 0, info.output
