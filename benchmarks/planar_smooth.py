@@ -15,6 +15,7 @@ default association, the beam) and smooths the run:
 
 and prints position RMSE (x, y; no alignment) of the filter and of the smoothed path, their ratio,
 the smoothed path's over the complete map's smoothed one, and the added landmarks' median error.
+``--association oracle`` runs every case with the true association instead.
 
     nice python benchmarks/planar_smooth.py accuracy --sensors points,markers,cameras,points+markers+cameras --seeds 0,1,2,3
 
@@ -80,17 +81,17 @@ def landmark_errors(result, run, whole, ids=None) -> list[float]:
     return errors
 
 
-def one_world(sensors: str, seed: int, poses: int, clutter: float) -> list[str]:
+def one_world(sensors: str, seed: int, poses: int, clutter: float, association: str = "beam") -> list[str]:
     config = PlanarSimulationConfig(sensors=sensors, poses=poses, clutter_fraction=clutter)
     whole = simulate_planar(config, seed=seed)
     truth = whole.truth_xyz
-    full_run = localize(whole)
+    full_run = localize(whole, LocalizerConfig(association=association))
     full = rmse(smooth_planar_run(whole, full_run).xyz, truth)
     lines = [f"{sensors:24s} {seed:2d} full   filter {rmse(full_run.estimate_xyz, truth):.4f}  smoothed {full:.4f}"]
     for name, edits in CASES.items():
         edited = edit_map(whole, dataclasses.replace(config, **edits), seed=seed)
         started = time.perf_counter()
-        run = localize(edited.dataset, LocalizerConfig(map=RUN_MAP[name], map_sigma=0.1))
+        run = localize(edited.dataset, LocalizerConfig(map=RUN_MAP[name], map_sigma=0.1, association=association))
         run_seconds = time.perf_counter() - started
         mode = "prior" if name == "moved" else RUN_MAP[name]
         started = time.perf_counter()
@@ -117,7 +118,7 @@ def one_world(sensors: str, seed: int, poses: int, clutter: float) -> list[str]:
 def accuracy(args) -> None:
     for sensors in args.sensors.split(","):
         for seed in (int(s) for s in args.seeds.split(",")):
-            for line in one_world(sensors.replace("+", ","), seed, args.poses, args.clutter):
+            for line in one_world(sensors.replace("+", ","), seed, args.poses, args.clutter, args.association):
                 print(line, flush=True)
 
 
@@ -157,6 +158,7 @@ def main() -> None:
     parser.add_argument("--seeds", default="0,1,2,3")
     parser.add_argument("--poses", type=int, default=None, help="default 300 (accuracy), 20000 (speed)")
     parser.add_argument("--clutter", type=float, default=0.1)
+    parser.add_argument("--association", default="beam", help="accuracy: the runs' association (oracle: the file's ids)")
     parser.add_argument("--dir", default="/tmp/planar-smooth")
     parser.add_argument("--modes", default="exact,prior,none")
     parser.add_argument("--withhold", type=float, default=0.2)

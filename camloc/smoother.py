@@ -102,7 +102,7 @@ from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
-from camloc.schur import SchurSolver, factor
+from camloc.schur import SchurSolver, factor, landmark_blocks
 from camloc.smoother_landmarks import (MAP_MODES, LandmarkEstimate, LandmarkVariables, initial_positions,
                                        landmark_variables)
 
@@ -611,7 +611,8 @@ def _row_weights(lin: Linearization, huber: float) -> np.ndarray:
                            np.ones(LANDMARK_DOF * len(lin.prior_sq))])
 
 
-def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple[sp.csc_matrix, np.ndarray]:
+def normal_equations(lin: Linearization, huber: float, *, newton: bool,
+                     majorized: np.ndarray | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
     """Normal equations ``H delta = -g`` of the robust cost at a linearization.
 
     ``g = J^T W r`` with ``W = rho'`` per row (the exact gradient). For H, ``newton=False`` gives
@@ -622,12 +623,15 @@ def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple
     linear in the distance |r|, so an observation has no curvature along its own residual and
     contributes ``rho' J^T (I - u u^T) J`` with ``u = r / |r|``. Near the solution it converges
     quadratically where IRLS creeps (linear convergence, rate set by the share downweighted).
+    ``majorized`` (M,) bool: observations whose IRLS rows are kept in the Newton Hessian
+    (``newton_equations``).
     """
     weights = _row_weights(lin, huber)
     g = lin.jacobian.T @ (weights * lin.residual)
     sqrt_w = np.sqrt(weights)
     rows = sp.diags(sqrt_w)
-    beyond = np.flatnonzero(lin.obs_sq > huber * huber)
+    beyond = lin.obs_sq > huber * huber
+    beyond = np.flatnonzero(beyond if majorized is None else beyond & ~majorized)
     if newton and beyond.size:
         # Project the whitened rows of each downweighted observation off its residual direction:
         # (sqrt(rho') P J)^T (sqrt(rho') P J) = rho' J^T P J since P = I - u u^T is a projector.
@@ -644,6 +648,24 @@ def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple
         rows = (projector + sp.diags(np.where(plain, sqrt_w, 0.0))).tocsr()
     J_w = rows @ lin.jacobian
     return (J_w.T @ J_w).tocsc(), g
+
+
+def newton_equations(problem: SmoothingProblem, lin: Linearization, huber: float) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``normal_equations(newton=True)``, with the IRLS rows kept for the observations of every
+    landmark variable whose own block of that Hessian is singular (condition beyond
+    ``_MAX_LANDMARK_CONDITION``): all its observations beyond the Huber threshold with their
+    residuals on one line (a marker seen twice, each pulling it half way: at such a minimum the
+    two residuals are opposite), where the robust cost has no curvature along that line and the
+    Newton step would be unbounded. The others keep the Newton rows (quadratic convergence)."""
+    H, g = normal_equations(lin, huber, newton=True)
+    if not problem.num_landmarks:
+        return H, g
+    eig = np.linalg.eigvalsh(landmark_blocks(H, problem.num_pose_unknowns))
+    flat = ~(eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION)
+    if not np.any(flat):
+        return H, g
+    majorized = (problem.obs_landmark >= 0) & flat[np.maximum(problem.obs_landmark, 0)]
+    return normal_equations(lin, huber, newton=True, majorized=majorized)
 
 
 # --------------------------------------------------------------------------------------------
@@ -846,7 +868,7 @@ def _minimize(problem, T, X, config, on_iteration):
     num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
     factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
     while not converged and iterations < config.max_iterations:
-        H, g = normal_equations(lin, config.huber, newton=not majorize)
+        H, g = normal_equations(lin, config.huber, newton=False) if majorize else newton_equations(problem, lin, config.huber)
         Hs, d = _scaled(H)
         try:
             step = None
@@ -954,7 +976,7 @@ def _landmark_estimate(problem: SmoothingProblem, lin: Linearization, X: np.ndar
     Hessian is the one at the solution to within the last step (below ``step_tolerance``), and
     refactoring it would cost a step's time again."""
     if factor is None:
-        H, _ = normal_equations(lin, config.huber, newton=True)
+        H, _ = newton_equations(problem, lin, config.huber)
         Hs, d = _scaled(H)
         try:
             factor = (SchurSolver(Hs, problem.num_pose_unknowns), d)

@@ -309,3 +309,18 @@ def test_tag_orientation_lowers_the_smoothed_heading_error(planar_tag_world):
         heading = planar.flatten(geometry.pose_from_quat(result.xyz, result.quat_xyzw))[:, 2]
         errors.append(float(np.sqrt(np.mean(planar.wrap(heading - planar.flatten(dataset.T_world_truth)[:, 2]) ** 2))))
     assert errors[0] <= 0.7 * errors[1], errors
+
+
+def test_a_marker_whose_observations_all_lie_beyond_the_huber_threshold():
+    """Markers seen twice, both observations beyond the Huber threshold, end with their residuals
+    opposite: the Newton Hessian of the robust cost has no curvature along that line (its block
+    singular). ``smoother.newton_equations`` keeps those observations' IRLS rows, so the solve and
+    the covariances go through (this world failed with "singular at the solution" before)."""
+    dataset = simulate_planar(PlanarSimulationConfig(sensors="markers", poses=150), seed=0)
+    run = localize(dataset, LocalizerConfig(association="oracle"))
+    config = SmootherConfig(map="none", huber=1.0)
+    result = smooth_planar_run(dataset, run, config)
+    assert result.converged and len(result.undetermined_landmarks) == 0
+    assert len(result.landmarks.ids) == len(planar_problem(dataset, run, config).landmarks)
+    cov = result.landmarks.cov[:, :2, :2]
+    assert np.all(np.linalg.eigvalsh(cov) > 0.0) and np.allclose(cov, np.swapaxes(cov, 1, 2))
