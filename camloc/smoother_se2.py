@@ -115,7 +115,7 @@ class PlanarProblem(SmoothingProblem):
     def reported_landmarks(self, estimate: LandmarkEstimate) -> LandmarkEstimate:
         """Floor points and markers on the floor (z = 0, no z variance): a floor point's z is
         pinned, a marker's third coordinate is its heading, which ``map.csv`` has no column for."""
-        on_floor = self.landmarks.kind != LANDMARK_POINT3
+        on_floor = on_the_floor(self.landmarks.kind)
         xyz, cov = estimate.xyz.copy(), estimate.cov.copy()
         xyz[on_floor, 2] = 0.0
         cov[on_floor, 2, :] = cov[on_floor, :, 2] = 0.0
@@ -196,7 +196,13 @@ def _flat_landmarks(problem: PlanarProblem, rows: np.ndarray) -> np.ndarray:
     if problem.landmarks is None or problem.landmarks.kind is None:
         return np.zeros(rows.size, dtype=bool)
     variable = problem.obs_landmark[rows]
-    return (variable >= 0) & (problem.landmarks.kind[np.maximum(variable, 0)] != LANDMARK_POINT3)
+    return (variable >= 0) & on_the_floor(problem.landmarks.kind[np.maximum(variable, 0)])
+
+
+def on_the_floor(kind: np.ndarray) -> np.ndarray:
+    """(L,) bool: which landmark kinds (L,) lie on the floor, without a height: floor points and
+    markers (a camera's 3-D point and a tag's centre have one)."""
+    return np.isin(kind, (LANDMARK_POINT2, LANDMARK_MARKER))
 
 
 def prior_weights(landmarks) -> np.ndarray:

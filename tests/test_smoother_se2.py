@@ -324,3 +324,17 @@ def test_a_marker_whose_observations_all_lie_beyond_the_huber_threshold():
     assert len(result.landmarks.ids) == len(planar_problem(dataset, run, config).landmarks)
     cov = result.landmarks.cov[:, :2, :2]
     assert np.all(np.linalg.eigvalsh(cov) > 0.0) and np.allclose(cov, np.swapaxes(cov, 1, 2))
+
+
+def test_tags_under_a_prior_are_points_in_space(planar_tag_world):
+    """Under a prior a tag's orientation is not estimated (as in 3-D) and its centre is a 3-D
+    point: its height estimated with a variance, not put on the floor as a marker's is."""
+    from camloc.dataset import LANDMARK_TAG
+
+    dataset, run = planar_tag_world
+    result = smooth_planar_run(dataset, run, PRIOR)
+    tag_ids = dataset.landmark_ids[dataset.landmark_kind == LANDMARK_TAG]
+    tags = np.isin(result.landmarks.ids, tag_ids)
+    assert tags.sum() > 5 and result.converged
+    assert np.all(result.landmarks.xyz[tags, 2] != 0.0) and np.all(result.landmarks.cov[tags, 2, 2] > 0.0)
+    assert np.all(np.linalg.eigvalsh(result.landmarks.cov[tags]) > 0.0)
