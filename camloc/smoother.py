@@ -1276,7 +1276,10 @@ def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, con
     map's position, with a zero covariance under ``exact`` and the prior's ``map_sigma^2 I``
     under ``prior``; under ``none`` only the landmarks it estimated are listed (the map gives no
     position). Estimated ones (mapped under ``prior`` or ``none``, and added ones in every mode)
-    carry the smoother's position and marginal covariance. Undetermined ones are left out.
+    carry the smoother's position and marginal covariance. A landmark the smoother left
+    undetermined (``undetermined_landmarks``: one ray, rays too parallel) keeps the run's own row
+    of its map (``run.landmark_map``, the filter's estimate) where it has one, so that every
+    landmark ``associations.csv`` points at stays in ``map.csv``; without one it is left out.
     """
     landmark = np.asarray(run.associations.landmark)
     counts = dict(zip(*np.unique(landmark[landmark != UNASSOCIATED], return_counts=True)))
@@ -1300,6 +1303,10 @@ def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, con
         lm = result.landmarks
         ids.append(lm.ids), xyz.append(lm.xyz), cov.append(lm.cov), added.append(lm.added)
         observations.append(np.asarray(lm.observations, dtype=np.int64))
+    kept = _run_rows(run, result.undetermined_landmarks)
+    if kept is not None:
+        ids.append(kept.ids), xyz.append(kept.xyz), cov.append(kept.cov), added.append(kept.added)
+        observations.append(np.asarray(kept.observations, dtype=np.int64))
     if not ids:
         return LandmarkMap(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, dtype=bool),
                            np.zeros(0, dtype=np.int64))
@@ -1307,6 +1314,15 @@ def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, con
     order = np.argsort(all_ids, kind="stable")
     return LandmarkMap(all_ids[order], np.concatenate(xyz)[order], np.concatenate(cov)[order],
                        np.concatenate(added)[order], np.concatenate(observations)[order])
+
+
+def _run_rows(run: RunResult, landmark_ids: np.ndarray) -> Optional[LandmarkMap]:
+    """The rows of the run's own map (``run.landmark_map``) of ``landmark_ids``, or None."""
+    own = run.landmark_map
+    if own is None or len(landmark_ids) == 0:
+        return None
+    rows = np.isin(own.ids, landmark_ids)
+    return LandmarkMap(own.ids[rows], own.xyz[rows], own.cov[rows], own.added[rows], own.observations[rows])
 
 
 def smoothing_report(run: RunResult, result: SmoothingResult, config: SmootherConfig) -> dict:

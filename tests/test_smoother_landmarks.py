@@ -215,6 +215,15 @@ def test_a_landmark_seen_once_by_a_pixel_camera_is_left_out_not_guessed():
     assert result.observation_factors == len(seen) - 1
     table = smoother.estimated_map(dataset, with_associations(run, landmark), result, smoother.SmootherConfig())
     assert 777_777 not in table.ids.tolist()
+    # where the run's own map has it (a mapping run added it), its row stays, the run's estimate
+    own = LandmarkMap(np.array([777_777]), np.array([[1.0, 2.0, 0.5]]), 0.04 * np.eye(3)[None], np.array([True]),
+                      np.array([1]))
+    mapped_run = dataclasses.replace(with_associations(run, landmark), landmark_map=own)
+    table = smoother.estimated_map(dataset, mapped_run, result, smoother.SmootherConfig())
+    row = table.ids.tolist().index(777_777)
+    assert table.added[row] and table.observations[row] == 1
+    np.testing.assert_array_equal(table.xyz[row], own.xyz[0])
+    np.testing.assert_array_equal(table.cov[row], own.cov[0])
     # with no map, landmarks seen by a single ray are left out the same way, and named
     result = smoother.smooth_run(dataset, run, NONE)
     counts = np.bincount(np.searchsorted(dataset.landmark_ids, run.associations.landmark[seen]))
@@ -473,3 +482,27 @@ def test_selected_inversion_needs_no_fallback_on_a_grid_world(monkeypatch):
 
     monkeypatch.setattr(SchurSolver, "_quadratic_forms_by_solves", no_fallback)
     np.testing.assert_allclose(solver.landmark_covariances(), expected, rtol=1e-8, atol=1e-14)
+
+
+def test_cli_smooth_keeps_the_folder_whole_where_an_added_landmark_is_one_ray(tmp_path):
+    """A mapping run added a landmark seen by a single pixel ray (the smoother cannot place it):
+    after 'camloc smooth', map.csv still holds every landmark associations.csv points at, so the
+    folder loads, and 'camloc eval' and a second smooth run (they refused it as inconsistent)."""
+    from camloc.results import save_run
+
+    dataset, run = pixel_world(5)
+    landmark = run.associations.landmark.copy()
+    lone = np.flatnonzero(landmark >= 0)[0]
+    landmark[lone] = 777_777
+    own = LandmarkMap(np.array([777_777]), np.array([[1.0, 2.0, 0.5]]), 0.04 * np.eye(3)[None], np.array([True]),
+                      np.array([1]))
+    write_g2o(dataset, tmp_path / "world.g2o")
+    run_dir = save_run(tmp_path / "run", dataclasses.replace(with_associations(run, landmark), landmark_map=own))
+    for mode in ("exact", "prior", "none"):
+        outcome = invoke("smooth", run_dir, "--dataset", tmp_path / "world.g2o", "--map", mode, "--json")
+        assert outcome.exit_code == 0, outcome.output
+        assert json.loads(outcome.stdout)["landmarks"]["undetermined"] >= 1
+        table = read_map(run_dir / MAP_CSV)
+        assert 777_777 in table.ids.tolist()
+        outcome = invoke("eval", run_dir, "--json")
+        assert outcome.exit_code == 0, outcome.output
