@@ -74,7 +74,13 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             is left out with its observations and named (``undetermined_landmarks``), not
             refused: an online map adds such landmarks as a matter of course. A step whose
             Newton system cannot be factored (a landmark whose observations are all beyond the
-            Huber threshold) is retried as IRLS, then damped.
+            Huber threshold) is retried as IRLS, then damped; a landmark whose own block of the
+            Newton Hessian is singular (its observations all beyond the threshold, their residuals
+            on one line: a planar marker seen twice) keeps its observations' IRLS rows in it
+            (``newton_equations``), so that the step and the covariances go through.
+Planar      ``camloc.smoother_se2.PlanarProblem`` is this problem with SE(2) poses: ``smooth`` calls
+            the problem's own ``linearize``, ``retract``, ``lifted``, ``landmark_information`` and
+            ``reported_landmarks``; the solver, the Schur complement and the covariances are shared.
 Covariance  of the landmark variables: the landmark blocks of the inverse Gauss-Newton Hessian of
             the robust cost at the solution, by the Schur complement and selected inversion of
             the reduced system's Cholesky factor (``camloc.selected_inverse``, on the factor's
