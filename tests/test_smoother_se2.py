@@ -338,3 +338,20 @@ def test_tags_under_a_prior_are_points_in_space(planar_tag_world):
     assert tags.sum() > 5 and result.converged
     assert np.all(result.landmarks.xyz[tags, 2] != 0.0) and np.all(result.landmarks.cov[tags, 2, 2] > 0.0)
     assert np.all(np.linalg.eigvalsh(result.landmarks.cov[tags]) > 0.0)
+
+
+def test_initial_positions_of_floor_points_and_markers():
+    """A floor point or marker starts where its first observation puts it: the measured point
+    in the robot's frame, on the floor, and a marker's heading the robot's plus the measured one."""
+    from camloc.smoother_landmarks import initial_positions
+
+    x = np.array([[1.0, -2.0, 3.0], [0.5, 0.2, -2.5]])
+    coords = np.array([[2.0, -1.0, 0.0], [0.0, 1.0, 3.1]])  # a floor point, a marker heading 3.1 rad
+    kinds = np.array([measurement.POINT2, measurement.MARKER])
+    z = np.zeros((2, 3))
+    z[:, :2] = np.einsum("mji,mj->mi", planar.rotation(x[:, 2]), coords[:, :2] - x[:, :2])
+    z[1, 2] = planar.wrap(coords[1, 2] - x[1, 2])
+    found = initial_positions(planar.lift(x), np.broadcast_to(np.eye(4), (2, 4, 4)), np.tile([1.0, 1.0, 0.0, 0.0], (2, 1)),
+                              z, kinds, np.array([0, 1]), 2)
+    assert found[:, :2] == pytest.approx(coords[:, :2], abs=1e-12)
+    assert found[0, 2] == 0.0 and planar.wrap(found[1, 2] - coords[1, 2]) == pytest.approx(0.0, abs=1e-12)
