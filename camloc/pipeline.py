@@ -70,7 +70,8 @@ def run_dataset(
     summary["warnings"] = [*summary["warnings"], *run_warnings(summary["counts"], mapped=summary.get("map") is not None,
                                                                 map_size=int(dataset.landmark_ids.size),
                                                                 unmappable=unmappable_reason(dataset),
-                                                                rays_only=rays_only(dataset.obs_kind))]
+                                                                rays_only=rays_only(dataset.obs_kind),
+                                                                map_mode=(summary.get("map") or {}).get("mode"))]
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None

@@ -74,7 +74,13 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             is left out with its observations and named (``undetermined_landmarks``), not
             refused: an online map adds such landmarks as a matter of course. A step whose
             Newton system cannot be factored (a landmark whose observations are all beyond the
-            Huber threshold) is retried as IRLS, then damped.
+            Huber threshold) is retried as IRLS, then damped; a landmark whose own block of the
+            Newton Hessian is singular (its observations all beyond the threshold, their residuals
+            on one line: a planar marker seen twice) keeps its observations' IRLS rows in it
+            (``newton_equations``), so that the step and the covariances go through.
+Planar      ``camloc.smoother_se2.PlanarProblem`` is this problem with SE(2) poses: ``smooth`` calls
+            the problem's own ``linearize``, ``retract``, ``lifted``, ``landmark_information`` and
+            ``reported_landmarks``; the solver, the Schur complement and the covariances are shared.
 Covariance  of the landmark variables: the landmark blocks of the inverse Gauss-Newton Hessian of
             the robust cost at the solution, by the Schur complement and selected inversion of
             the reduced system's Cholesky factor (``camloc.selected_inverse``, on the factor's
@@ -88,7 +94,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Optional
+from typing import Callable, ClassVar, Optional
 
 import numpy as np
 import scipy.sparse as sp
@@ -97,12 +103,12 @@ from scipy.sparse.linalg import LinearOperator, onenormest
 
 from camloc import geometry, measurement, tags
 from camloc.cholesky import NotPositiveDefinite
-from camloc.dataset import Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
-from camloc.schur import SchurSolver, factor
+from camloc.schur import SchurSolver, factor, landmark_blocks
 from camloc.smoother_landmarks import (MAP_MODES, LandmarkEstimate, LandmarkVariables, initial_positions,
                                        landmark_variables)
 
@@ -237,9 +243,12 @@ class SmoothingProblem:
         """Landmark variables (0 when every landmark is held fixed)."""
         return 0 if self.landmarks is None else len(self.landmarks)
 
+    # a pose's unknowns (its right perturbation); ``camloc.smoother_se2.PlanarProblem``'s: 3
+    pose_dof: ClassVar[int] = POSE_DOF
+
     @property
     def num_pose_unknowns(self) -> int:
-        return POSE_DOF * (self.num_poses - 1)
+        return self.pose_dof * (self.num_poses - 1)
 
     @property
     def num_unknowns(self) -> int:
@@ -255,6 +264,39 @@ class SmoothingProblem:
         variable = self.obs_landmark >= 0
         xyz[variable] = X[self.obs_landmark[variable]]
         return xyz
+
+    # The model's own operations, which ``smooth`` calls (a planar problem overrides them):
+    @property
+    def start_state(self) -> np.ndarray:
+        """The fixed first pose in the form ``smooth``'s poses take: (4, 4)."""
+        return self.T_start
+
+    def lifted(self, T: np.ndarray) -> np.ndarray:
+        """Poses (..., 4, 4) of states T: here poses already."""
+        return T
+
+    def linearize(self, T: np.ndarray, X: np.ndarray | None = None) -> "Linearization":
+        return linearize(self, T, X)
+
+    def retract(self, T: np.ndarray, X: np.ndarray | None, step: np.ndarray):
+        return _retract(self, T, X, step)
+
+    def landmark_information(self, T: np.ndarray) -> np.ndarray:
+        """(L, 3, 3) each landmark variable's information from its own observations at poses T and
+        its map prior (the poses held): ``sum J' J`` of the whitened landmark Jacobians."""
+        rows = np.flatnonzero(self.obs_landmark >= 0)
+        lm = self.landmarks
+        _, _, J, _ = observation_factors(T[self.obs_pose[rows]], self.obs_T_robot_camera[rows], self.obs_intrinsics[rows],
+                                         lm.xyz[self.obs_landmark[rows]], self.obs_z[rows],
+                                         None if self.obs_kind is None else self.obs_kind[rows])
+        J = self.obs_whiten[rows] @ J
+        blocks = np.zeros((len(lm), LANDMARK_DOF, LANDMARK_DOF))
+        np.add.at(blocks, self.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)
+        return blocks + np.where(lm.has_prior, 1.0 / lm.prior_sigma**2, 0.0)[:, None, None] * np.eye(LANDMARK_DOF)
+
+    def reported_landmarks(self, estimate: LandmarkEstimate) -> LandmarkEstimate:
+        """The landmark variables' estimate as ``map.csv`` takes it: positions, as they are here."""
+        return estimate
 
 
 @dataclass(frozen=True)
@@ -477,20 +519,22 @@ class Linearization:
     odom_sq: np.ndarray
     obs_sq: np.ndarray
     prior_sq: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    odom_dim: int = POSE_DOF  # rows of an odometry residual (a planar robot's: 3)
 
 
-def _block_coo(first_row: np.ndarray, pose: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
-    """COO triplets of dense blocks (F, d, 6) at rows ``first_row + 0..d-1`` and the columns of
-    ``pose`` (index >= 1; pose 0 is fixed and has no columns, so its blocks are dropped)."""
+def block_coo(first_row: np.ndarray, pose: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
+    """COO triplets of dense blocks (F, d, p) at rows ``first_row + 0..d-1`` and the p columns of
+    ``pose`` (index >= 1; pose 0 is fixed and has no columns, so its blocks are dropped); p the
+    pose's unknowns (6, or a planar robot's 3)."""
     keep = pose > 0
     first_row, pose, blocks = first_row[keep], pose[keep], blocks[keep]
-    d = blocks.shape[1]
+    d, dof = blocks.shape[1], blocks.shape[2]
     rows = np.broadcast_to(first_row[:, None, None] + np.arange(d)[None, :, None], blocks.shape)
-    cols = np.broadcast_to(POSE_DOF * (pose[:, None, None] - 1) + np.arange(POSE_DOF)[None, None, :], blocks.shape)
+    cols = np.broadcast_to(dof * (pose[:, None, None] - 1) + np.arange(dof)[None, None, :], blocks.shape)
     return rows.ravel(), cols.ravel(), blocks.ravel()
 
 
-def _landmark_coo(first_row: np.ndarray, first_col: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
+def landmark_coo(first_row: np.ndarray, first_col: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, ...]:
     """COO triplets of dense blocks (F, d, 3) at rows ``first_row + 0..d-1``, columns ``first_col + 0..2``."""
     d = blocks.shape[1]
     rows = np.broadcast_to(first_row[:, None, None] + np.arange(d)[None, :, None], blocks.shape)
@@ -515,22 +559,22 @@ def linearize(problem: SmoothingProblem, T: np.ndarray, X: np.ndarray | None = N
     num_odom = len(p.odom_from)
     odom_rows = POSE_DOF * np.arange(num_odom)
     obs_rows = POSE_DOF * num_odom + OBS_DIM * np.arange(len(p.obs_pose))
-    parts = [_block_coo(odom_rows, p.odom_from, J_from), _block_coo(odom_rows, p.odom_to, J_to),
-             _block_coo(obs_rows, p.obs_pose, J_obs)]
+    parts = [block_coo(odom_rows, p.odom_from, J_from), block_coo(odom_rows, p.odom_to, J_to),
+             block_coo(obs_rows, p.obs_pose, J_obs)]
     residuals = [r_odom.ravel(), r_obs.ravel()]
     num_rows = POSE_DOF * num_odom + OBS_DIM * len(p.obs_pose)
     r_prior = np.zeros((0, LANDMARK_DOF))
     if p.num_landmarks:
         variable = np.flatnonzero(p.obs_landmark >= 0)
         first_col = p.num_pose_unknowns + LANDMARK_DOF * p.obs_landmark[variable]
-        parts.append(_landmark_coo(obs_rows[variable], first_col, p.obs_whiten[variable] @ J_lm[variable]))
+        parts.append(landmark_coo(obs_rows[variable], first_col, p.obs_whiten[variable] @ J_lm[variable]))
         # The map prior r = (l - l_map) / sigma, J = I / sigma.
         held = np.flatnonzero(p.landmarks.has_prior)
         sigma = p.landmarks.prior_sigma[held]
         r_prior = (X[held] - p.landmarks.prior_xyz[held]) / sigma[:, None]
         prior_rows = num_rows + LANDMARK_DOF * np.arange(len(held))
         J_prior = np.eye(LANDMARK_DOF)[None] / sigma[:, None, None]
-        parts.append(_landmark_coo(prior_rows, p.num_pose_unknowns + LANDMARK_DOF * held, J_prior))
+        parts.append(landmark_coo(prior_rows, p.num_pose_unknowns + LANDMARK_DOF * held, J_prior))
         residuals.append(r_prior.ravel())
         num_rows += LANDMARK_DOF * len(held)
     rows, cols, values = (np.concatenate(column) for column in zip(*parts))
@@ -569,11 +613,12 @@ def robust_cost(lin: Linearization, huber: float) -> float:
 
 
 def _row_weights(lin: Linearization, huber: float) -> np.ndarray:
-    return np.concatenate([np.ones(POSE_DOF * len(lin.odom_sq)), np.repeat(huber_weight(lin.obs_sq, huber), OBS_DIM),
+    return np.concatenate([np.ones(lin.odom_dim * len(lin.odom_sq)), np.repeat(huber_weight(lin.obs_sq, huber), OBS_DIM),
                            np.ones(LANDMARK_DOF * len(lin.prior_sq))])
 
 
-def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple[sp.csc_matrix, np.ndarray]:
+def normal_equations(lin: Linearization, huber: float, *, newton: bool,
+                     majorized: np.ndarray | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
     """Normal equations ``H delta = -g`` of the robust cost at a linearization.
 
     ``g = J^T W r`` with ``W = rho'`` per row (the exact gradient). For H, ``newton=False`` gives
@@ -584,16 +629,19 @@ def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple
     linear in the distance |r|, so an observation has no curvature along its own residual and
     contributes ``rho' J^T (I - u u^T) J`` with ``u = r / |r|``. Near the solution it converges
     quadratically where IRLS creeps (linear convergence, rate set by the share downweighted).
+    ``majorized`` (M,) bool: observations whose IRLS rows are kept in the Newton Hessian
+    (``newton_equations``).
     """
     weights = _row_weights(lin, huber)
     g = lin.jacobian.T @ (weights * lin.residual)
     sqrt_w = np.sqrt(weights)
     rows = sp.diags(sqrt_w)
-    beyond = np.flatnonzero(lin.obs_sq > huber * huber)
+    beyond = lin.obs_sq > huber * huber
+    beyond = np.flatnonzero(beyond if majorized is None else beyond & ~majorized)
     if newton and beyond.size:
         # Project the whitened rows of each downweighted observation off its residual direction:
         # (sqrt(rho') P J)^T (sqrt(rho') P J) = rho' J^T P J since P = I - u u^T is a projector.
-        first = POSE_DOF * len(lin.odom_sq) + OBS_DIM * beyond
+        first = lin.odom_dim * len(lin.odom_sq) + OBS_DIM * beyond
         u = lin.residual.reshape(-1)[first[:, None] + np.arange(OBS_DIM)] / np.sqrt(lin.obs_sq[beyond])[:, None]
         P = np.eye(OBS_DIM) - u[:, :, None] * u[:, None, :]
         P *= sqrt_w[first][:, None, None]
@@ -606,6 +654,24 @@ def normal_equations(lin: Linearization, huber: float, *, newton: bool) -> tuple
         rows = (projector + sp.diags(np.where(plain, sqrt_w, 0.0))).tocsr()
     J_w = rows @ lin.jacobian
     return (J_w.T @ J_w).tocsc(), g
+
+
+def newton_equations(problem: SmoothingProblem, lin: Linearization, huber: float) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``normal_equations(newton=True)``, with the IRLS rows kept for the observations of every
+    landmark variable whose own block of that Hessian is singular (condition beyond
+    ``_MAX_LANDMARK_CONDITION``): all its observations beyond the Huber threshold with their
+    residuals on one line (a marker seen twice, each pulling it half way: at such a minimum the
+    two residuals are opposite), where the robust cost has no curvature along that line and the
+    Newton step would be unbounded. The others keep the Newton rows (quadratic convergence)."""
+    H, g = normal_equations(lin, huber, newton=True)
+    if not problem.num_landmarks:
+        return H, g
+    eig = np.linalg.eigvalsh(landmark_blocks(H, problem.num_pose_unknowns))
+    flat = ~(eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION)
+    if not np.any(flat):
+        return H, g
+    majorized = (problem.obs_landmark >= 0) & flat[np.maximum(problem.obs_landmark, 0)]
+    return normal_equations(lin, huber, newton=True, majorized=majorized)
 
 
 # --------------------------------------------------------------------------------------------
@@ -674,7 +740,7 @@ def condition_estimate(Hs: sp.csc_matrix, lu) -> tuple[float, int]:
 def _unknown_name(problem: SmoothingProblem, column: int) -> str:
     """``pose <id>`` or ``landmark <id>``: what the normal matrix's ``column`` belongs to."""
     if column < problem.num_pose_unknowns:
-        return f"pose {problem.pose_ids[column // POSE_DOF + 1]}"
+        return f"pose {problem.pose_ids[column // problem.pose_dof + 1]}"
     return f"landmark {problem.landmarks.ids[(column - problem.num_pose_unknowns) // LANDMARK_DOF]}"
 
 
@@ -771,7 +837,7 @@ def smooth(
     config.validate()
     started = time.perf_counter()
     T = np.array(T_initial, dtype=float)
-    T[0] = problem.T_start
+    T[0] = problem.start_state
     problem, undetermined = _with_initial_landmarks(problem, T)
     problem, dropped = _without_unprojectable(problem, T)
     problem, weak = _without_undetermined_landmarks(problem, T)
@@ -781,7 +847,7 @@ def smooth(
     T, X, lin, cost, initial_cost, counts = _minimize(problem, T, X, config, on_iteration)
     landmarks = _landmark_estimate(problem, lin, X, config, counts["factor"]) if problem.num_landmarks else None
     return SmoothingResult(
-        T_world_robot=T,
+        T_world_robot=problem.lifted(T),
         iterations=counts["iterations"],
         converged=counts["converged"],
         initial_cost=initial_cost,
@@ -792,7 +858,7 @@ def smooth(
         dropped_observations=dropped,
         downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
         seconds=time.perf_counter() - started,
-        landmarks=landmarks,
+        landmarks=None if landmarks is None else problem.reported_landmarks(landmarks),
         undetermined_landmarks=np.concatenate([undetermined, weak]),
     )
 
@@ -801,14 +867,14 @@ def _minimize(problem, T, X, config, on_iteration):
     """The Gauss-Newton / Levenberg-Marquardt loop (model card, "Solver"): the poses and
     landmarks at the end, their linearization and cost, the initial cost, and the counts (with
     ``factor``: the scaled factor and scale of the last step when it was a plain Newton step)."""
-    lin = linearize(problem, T, X)
+    lin = problem.linearize(T, X)
     cost = initial_cost = robust_cost(lin, config.huber)
     condition = math.nan
     damping, majorize, iterations, converged = 0.0, True, 0, problem.num_unknowns == 0
     num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
     factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
     while not converged and iterations < config.max_iterations:
-        H, g = normal_equations(lin, config.huber, newton=not majorize)
+        H, g = normal_equations(lin, config.huber, newton=False) if majorize else newton_equations(problem, lin, config.huber)
         Hs, d = _scaled(H)
         try:
             step = None
@@ -829,8 +895,8 @@ def _minimize(problem, T, X, config, on_iteration):
             step = None
         iterations += 1
         if step is not None:
-            candidate, candidate_X = _retract(problem, T, X, step)
-            candidate_lin = linearize(problem, candidate, candidate_X)
+            candidate, candidate_X = problem.retract(T, X, step)
+            candidate_lin = problem.linearize(candidate, candidate_X)
             candidate_cost = robust_cost(candidate_lin, config.huber)
         accepted = step is not None and candidate_cost <= cost
         max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
@@ -916,7 +982,7 @@ def _landmark_estimate(problem: SmoothingProblem, lin: Linearization, X: np.ndar
     Hessian is the one at the solution to within the last step (below ``step_tolerance``), and
     refactoring it would cost a step's time again."""
     if factor is None:
-        H, _ = normal_equations(lin, config.huber, newton=True)
+        H, _ = newton_equations(problem, lin, config.huber)
         Hs, d = _scaled(H)
         try:
             factor = (SchurSolver(Hs, problem.num_pose_unknowns), d)
@@ -944,7 +1010,7 @@ def _with_initial_landmarks(problem: SmoothingProblem, T: np.ndarray) -> tuple[S
     if np.any(unknown):
         rows = np.flatnonzero(unknown[np.maximum(problem.obs_landmark, 0)] & (problem.obs_landmark >= 0))
         kinds = problem.obs_kind if problem.obs_kind is not None else np.zeros(len(problem.obs_pose), dtype=np.int64)
-        found = initial_positions(T[problem.obs_pose[rows]], problem.obs_T_robot_camera[rows],
+        found = initial_positions(problem.lifted(T[problem.obs_pose[rows]]), problem.obs_T_robot_camera[rows],
                                   problem.obs_intrinsics[rows], problem.obs_z[rows], kinds[rows],
                                   problem.obs_landmark[rows], len(lm))
         xyz[unknown] = found[unknown]
@@ -960,16 +1026,7 @@ def _without_undetermined_landmarks(problem: SmoothingProblem, T: np.ndarray) ->
     condition number beyond ``_MAX_LANDMARK_CONDITION`` (rays with too little parallax)."""
     if not problem.num_landmarks:
         return problem, np.zeros(0, dtype=np.int64)
-    p, lm = problem, problem.landmarks
-    rows = np.flatnonzero(p.obs_landmark >= 0)
-    _, _, J, _ = observation_factors(T[p.obs_pose[rows]], p.obs_T_robot_camera[rows], p.obs_intrinsics[rows],
-                                     lm.xyz[p.obs_landmark[rows]], p.obs_z[rows],
-                                     None if p.obs_kind is None else p.obs_kind[rows])
-    J = p.obs_whiten[rows] @ J
-    blocks = np.zeros((len(lm), LANDMARK_DOF, LANDMARK_DOF))
-    np.add.at(blocks, p.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)  # J^T J of each landmark's observations
-    blocks += np.where(lm.has_prior, 1.0 / lm.prior_sigma**2, 0.0)[:, None, None] * np.eye(LANDMARK_DOF)
-    eig = np.linalg.eigvalsh(blocks)
+    eig = np.linalg.eigvalsh(problem.landmark_information(T))
     keep = eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION
     if np.all(keep):
         return problem, np.zeros(0, dtype=np.int64)
@@ -991,11 +1048,16 @@ def _select_landmarks(problem: SmoothingProblem, keep: np.ndarray) -> SmoothingP
 
 
 def _without_unprojectable(problem: SmoothingProblem, T: np.ndarray) -> tuple[SmoothingProblem, int]:
-    """The problem without observations whose landmark is behind the camera at poses T."""
+    """The problem without camera observations whose landmark is behind the camera at poses T
+    (a planar robot's own kinds, in its frame, have no camera)."""
     X = None if problem.landmarks is None else problem.landmarks.xyz
-    _, _, _, depth = observation_factors(T[problem.obs_pose], problem.obs_T_robot_camera, problem.obs_intrinsics,
-                                         problem.observed_xyz(X), problem.obs_z, problem.obs_kind, problem.obs_tag_rotation)
-    keep = depth > MIN_DEPTH
+    keep = np.ones(len(problem.obs_pose), dtype=bool)
+    cameras = np.flatnonzero(~measurement.is_planar(problem.obs_kind)) if problem.obs_kind is not None else np.arange(keep.size)
+    _, _, _, depth = observation_factors(problem.lifted(T[problem.obs_pose[cameras]]), problem.obs_T_robot_camera[cameras],
+                                         problem.obs_intrinsics[cameras], problem.observed_xyz(X)[cameras],
+                                         problem.obs_z[cameras], None if problem.obs_kind is None else problem.obs_kind[cameras],
+                                         None if problem.obs_tag_rotation is None else problem.obs_tag_rotation[cameras])
+    keep[cameras] = depth > MIN_DEPTH
     if np.all(keep):
         return problem, 0
     return _select_observations(problem, keep), int(np.count_nonzero(~keep))
@@ -1043,6 +1105,25 @@ def problem_from_run(
     """
     config = config or SmootherConfig()
     check_run_matches(dataset, run)
+    num_poses = dataset.num_poses
+    return SmoothingProblem(
+        pose_ids=np.asarray(dataset.pose_ids, dtype=np.int64),
+        T_start=dataset.T_world_start,
+        odom_from=np.arange(num_poses - 1, dtype=np.int64),
+        odom_to=np.arange(1, num_poses, dtype=np.int64),
+        T_odometry=dataset.T_odometry,
+        odom_whiten=whitening(dataset.odom_cov),
+        **observation_fields(dataset, run, config, dataset.landmark_xyz, added_xyz),
+    )
+
+
+def observation_fields(dataset: Dataset, run: RunResult, config: SmootherConfig, landmark_coords: np.ndarray,
+                       added_xyz: Optional[dict[int, np.ndarray]] = None) -> dict:
+    """The observation factors of the observations ``run`` accepted and the landmark variables
+    ``config.map`` makes, as ``SmoothingProblem``'s fields by name (``obs_*``, ``landmarks``,
+    ``obs_landmark``, ``obs_tag_rotation``); ``landmark_coords`` (K, 3) the map's landmarks' coordinates
+    (their positions; a planar robot's marker's third its heading). A planar robot's own sensor
+    (``measurement.ROBOT_FRAME_SENSOR``) is given the identity mount."""
     chosen = _chosen_landmarks(dataset, run, config)
     rows = np.flatnonzero(chosen != UNASSOCIATED)
     order = np.argsort(dataset.landmark_ids, kind="stable")
@@ -1055,22 +1136,16 @@ def problem_from_run(
     obs_landmark = np.full(len(rows), -1, dtype=np.int64)
     obs_landmark[variable] = np.searchsorted(variable_ids, chosen[rows][variable])
     obs_xyz = np.full((len(rows), 3), np.nan)
-    obs_xyz[found] = dataset.landmark_xyz[order][position[found]]
+    obs_xyz[found] = landmark_coords[order][position[found]]
     landmarks = None
     if len(variable_ids):
-        landmarks = landmark_variables(variable_ids, dataset.landmark_ids, dataset.landmark_xyz, config.map,
+        landmarks = landmark_variables(variable_ids, dataset.landmark_ids, landmark_coords, config.map,
                                        config.map_sigma, added_xyz)
     cameras = dataset.obs_camera[rows]
-    mounts = {cid: cam.T_robot_camera for cid, cam in dataset.cameras.items()}
+    mounts = {cid: cam.T_robot_camera for cid, cam in dataset.cameras.items()} | {measurement.ROBOT_FRAME_SENSOR: np.eye(4)}
     intrinsics = {cid: (cam.fx, cam.fy, cam.cx, cam.cy) for cid, cam in dataset.cameras.items()}
-    num_poses = dataset.num_poses
-    return SmoothingProblem(
-        pose_ids=np.asarray(dataset.pose_ids, dtype=np.int64),
-        T_start=dataset.T_world_start,
-        odom_from=np.arange(num_poses - 1, dtype=np.int64),
-        odom_to=np.arange(1, num_poses, dtype=np.int64),
-        T_odometry=dataset.T_odometry,
-        odom_whiten=whitening(dataset.odom_cov),
+    intrinsics[measurement.ROBOT_FRAME_SENSOR] = (1.0, 1.0, 0.0, 0.0)
+    return dict(
         obs_pose=np.asarray(dataset.obs_pose_index[rows], dtype=np.int64),
         obs_T_robot_camera=np.array([mounts[int(c)] for c in cameras]).reshape(-1, 4, 4),
         obs_intrinsics=np.array([intrinsics[int(c)] for c in cameras], dtype=float).reshape(-1, 4),
@@ -1224,7 +1299,10 @@ def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, con
         ids.append(dataset.landmark_ids[rows])
         xyz.append(dataset.landmark_xyz[rows])
         variance = 0.0 if config.map == "exact" else config.map_sigma**2
-        cov.append(np.broadcast_to(variance * np.eye(3), (int(rows.sum()), 3, 3)))
+        held_cov = np.tile(variance * np.eye(3), (int(rows.sum()), 1, 1))
+        on_floor = np.isin(dataset.landmark_kind[rows], (LANDMARK_POINT2, LANDMARK_MARKER))  # no height: z = 0
+        held_cov[on_floor, 2, :] = held_cov[on_floor, :, 2] = 0.0
+        cov.append(held_cov)
         added.append(np.zeros(int(rows.sum()), dtype=bool))
         observations.append(np.array([counts.get(i, 0) for i in dataset.landmark_ids[rows].tolist()], dtype=np.int64))
     if result.landmarks is not None:

@@ -22,11 +22,11 @@ Pure: no I/O, no printing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from camloc import measurement
+from camloc import geometry, measurement
 
 MAP_MODES = ("exact", "prior", "none")
 # Rays whose normal matrix sum(I - d d^T) has a smallest eigenvalue below this share of its
@@ -45,6 +45,10 @@ class LandmarkVariables:
     added : (L,) bool, True for a landmark the map lacks.
     prior_xyz : (L, 3) the map's position, pulling the estimate when ``prior_sigma`` is finite.
     prior_sigma : (L,) the prior's standard deviation per axis, metres; inf: no prior (free).
+    kind : (L,) int64 each landmark's kind (``dataset.LANDMARK_POINT3``, ``LANDMARK_POINT2``,
+        ``LANDMARK_MARKER``), read by the planar smoother; None: every one a 3-D point. A planar
+        robot's landmarks are its coordinates: a floor point's third is its z (0, pinned), a
+        marker's its heading (radians; its prior's sigma read as radians there).
     """
 
     ids: np.ndarray
@@ -52,6 +56,7 @@ class LandmarkVariables:
     added: np.ndarray
     prior_xyz: np.ndarray
     prior_sigma: np.ndarray
+    kind: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -59,10 +64,10 @@ class LandmarkVariables:
     def select(self, keep: np.ndarray) -> "LandmarkVariables":
         """The landmarks where the boolean (L,) ``keep`` is True."""
         return LandmarkVariables(self.ids[keep], self.xyz[keep], self.added[keep], self.prior_xyz[keep],
-                                 self.prior_sigma[keep])
+                                 self.prior_sigma[keep], None if self.kind is None else self.kind[keep])
 
     def with_xyz(self, xyz: np.ndarray) -> "LandmarkVariables":
-        return LandmarkVariables(self.ids, np.asarray(xyz, dtype=float), self.added, self.prior_xyz, self.prior_sigma)
+        return replace(self, xyz=np.asarray(xyz, dtype=float))
 
     @property
     def has_prior(self) -> np.ndarray:
@@ -146,13 +151,25 @@ def initial_positions(
     -------
     (count, 3): the back-projection of each landmark's first observation with a range; for a
     landmark seen by pixels alone, the least-squares intersection of its rays; NaN where neither
-    fixes a point (no observation, a single ray, parallel rays, or a point behind a camera).
+    fixes a point (no observation, a single ray, parallel rays, or a point behind a camera). A
+    planar robot's floor point or marker (kinds ``POINT2``, ``MARKER``, in the robot's frame: T_pose
+    the lifted pose, the mount the identity) is its measured point on the floor, z = 0; a marker's
+    third coordinate is its heading, the robot's plus the measured one.
     """
     xyz = np.full((count, 3), np.nan)
     R_world_camera = T_pose[:, :3, :3] @ T_robot_camera[:, :3, :3]
     centre = np.einsum("mij,mj->mi", T_pose[:, :3, :3], T_robot_camera[:, :3, 3]) + T_pose[:, :3, 3]
     ranged = np.zeros(len(landmark), dtype=bool)
     points = np.full((len(landmark), 3), np.nan)
+    on_floor = measurement.is_planar(kinds)
+    if np.any(on_floor):
+        rows = np.flatnonzero(on_floor)
+        in_robot = np.concatenate([z[rows, :2], np.zeros((rows.size, 1))], axis=1)
+        points[rows] = np.einsum("mij,mj->mi", R_world_camera[rows], in_robot) + centre[rows]
+        marker = rows[np.asarray(kinds)[rows] == measurement.MARKER]
+        heading = np.arctan2(R_world_camera[marker, 1, 0], R_world_camera[marker, 0, 0]) + z[marker, 2]
+        points[marker, 2] = geometry.wrap_angle(heading)
+        ranged[rows] = True
     for kind in (measurement.DEPTH, measurement.DISPARITY):
         rows = np.flatnonzero(kinds == kind)
         if rows.size:

@@ -1,31 +1,47 @@
-"""The planar smoother: the maximum a posteriori trajectory of a planar robot (SE(2)) over all
-poses at once, given the associations a run accepted. ``camloc smooth`` runs it for planar
-datasets; ``camloc.smoother`` is the 6-DOF one (a planar file's odometry has no noise in z, roll
-and pitch, which the 6-DOF problem cannot whiten).
+"""The planar smoother: the maximum a posteriori trajectory of a planar robot (SE(2)) and, unless
+the map is held exact, its landmarks, over all poses at once, given the associations a run
+accepted. ``camloc smooth`` runs it for planar datasets; ``camloc.smoother`` is the 6-DOF one (a
+planar file's odometry has no noise in z, roll and pitch, which the 6-DOF problem cannot whiten),
+and this problem is that one's with SE(2) poses: the same solver (``smoother.smooth``), the same
+landmark variables (``camloc.smoother_landmarks``) and the same camera factors.
 
-    result = smooth_planar_run(dataset, run, SmootherConfig())
+    result = smooth_planar_run(dataset, run, SmootherConfig(map="prior", map_sigma=0.1))
 
 Model card
 ----------
-Variables   x_k = (x, y, theta), k = 0..N-1; x_0 FIXED at the dataset's start pose; 3 (N-1) unknowns.
-Update      the right perturbation of ``camloc.planar``: t <- t + R(theta) dt, theta <- theta + dtheta.
+Variables   x_k = (x, y, theta), k = 0..N-1; x_0 FIXED at the dataset's start pose (it also fixes
+            the frame when no map does); 3 (N-1) unknowns. Then L landmark variables, three
+            coordinates each (``SmootherConfig.map``, ``camloc.smoother_landmarks``: under ``exact``
+            the ones the map lacks, under ``prior`` and ``none`` every observed one):
+              a camera's 3-D point    l = (x, y, z)
+              a floor point (VERTEX_XY, kind point2)   l = (x, y, 0): its z PINNED at 0 (a factor
+                                      ``r = z`` of unit weight that nothing else touches, so its
+                                      step and its value stay exactly 0: 2 unknowns in effect)
+              a marker (VERTEX_MARKER_SE2)             l = (x, y, psi), psi its heading (radians)
+Update      the right perturbation of ``camloc.planar``: t <- t + R(theta) dt, theta <- theta + dtheta;
+            a landmark l <- l + dl (a marker's heading wrapped).
 Odometry    one factor per edge (a, b) with measured increment u (``EDGE_SE2``):
               d = between(x_a, x_b),   r = between(u, d) = (R(u_theta)^T (d_t - u_t), wrap(d_theta - u_theta))
             (g2o's ``EdgeSE2`` error, u^-1 (x_a^-1 x_b) as (t, theta)), whitened by the edge's
             covariance (the file's information inverted). Jacobians, J the rotation by +90 deg:
               dr/d delta_a = [[-R_u^T, -R_u^T J d_t], [0, 0, -1]],  dr/d delta_b = [[R_u^T R(d_theta), 0], [0, 0, 1]]
-Observation one factor per accepted observation: r = z - h(x_k) (an angle row wrapped), h and its
-            Jacobian H those of the filter (``filters.SE2Filter.observe``: point2, marker (its
-            heading psi a row), or a 3-D camera on the lifted pose); dr/d delta = -H. A tag's
-            orientation seen by a camera is a factor of its own beside its centre's, the filter's
-            error state r = e = Log(R_pred^-1 R_meas) with H through Jl^-1(e) (``tags.aligned``:
-            the 1-DOF turn about z of the planar robot). Whitened by the file's covariance.
-Loss        as ``camloc.smoother``: 1/2 sum |r_odo|^2 + 1/2 sum rho(|r_obs|^2), Huber rho on each
-            observation's Mahalanobis distance (``SmootherConfig.huber``).
-Solver      Gauss-Newton on the IRLS weights with Levenberg-Marquardt damping when a step does not
-            lower the cost; sparse normal equations (a sparse Cholesky,
-            ``camloc.cholesky``, as the 3-D smoother's). Converged when the largest step
-            component is below ``step_tolerance``.
+Observation one factor per accepted observation, r = z - h(x_k, l) (an angle row wrapped):
+              point2  h = p = R(theta)^T (l_xy - t)      dr/d delta = [[I, J p]],  dr/dl = [-R^T, 0]
+              marker  h = (p, psi - theta)               dr/d delta = [[I, J p], [0, 0, 1]],
+                                                         dr/dl = [[-R^T, 0], [0, 0, -1]]
+            (a point2's third row inert), and a 3-D camera's (and a tag's orientation, under
+            ``exact``) that of ``camloc.smoother.observation_factors`` at the lifted pose, its pose
+            Jacobian the (x, y, yaw) columns of the SE(3) right perturbation's. Whitened by the
+            file's covariance.
+Map prior   under ``prior``, each observed mapped landmark: r = (l - l_map) / sigma (3,), a
+            marker's heading difference wrapped and its sigma read as radians (as the online
+            mapping's); a floor point's z row is its pin.
+Loss, solver, covariances: ``camloc.smoother``'s (Huber on each observation's Mahalanobis
+            distance; Gauss-Newton on the robust cost with Levenberg-Marquardt damping; the
+            landmarks eliminated by their Schur complement, ``camloc.schur``, and the reduced
+            pose system factored by the sparse Cholesky, ``camloc.cholesky``; the landmarks'
+            marginal covariances by selected inversion). ``map.csv`` gets a floor point's and a
+            marker's position on the floor (z = 0, no z variance; a marker's heading has no column).
 Every Jacobian is checked against central finite differences in tests/test_smoother_se2.py.
 
 Pure: no I/O, no printing.
@@ -33,58 +49,77 @@ Pure: no I/O, no printing.
 
 from __future__ import annotations
 
-import math
-import time
-from dataclasses import dataclass
-from typing import Optional
+from dataclasses import dataclass, replace
+from typing import ClassVar, Optional
 
 import numpy as np
 import scipy.sparse as sp
 
-from camloc import geometry, planar, tags
-from camloc.cholesky import Cholesky, NotPositiveDefinite
-from camloc.dataset import Dataset
+from camloc import planar
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset
 from camloc.errors import CamlocError
-from camloc.filters import SE2Filter
-from camloc.measurement import TAG_ROTATION
-from camloc.results import UNASSOCIATED, RunResult
-from camloc.sensors import sensors_of
-from camloc.smoother import IterationCallback, Iteration, SmootherConfig, SmoothingResult, check_run_matches, huber_rho, huber_weight
+from camloc.measurement import MARKER, POINT2, is_planar
+from camloc.results import RunResult
+from camloc.smoother import (IterationCallback, Linearization, SmootherConfig, SmoothingProblem, SmoothingResult,
+                             block_coo, check_run_matches, landmark_coo, observation_factors, observation_fields, smooth,
+                             whitening)
+from camloc.smoother_landmarks import LandmarkEstimate
 
-DOF = 3
-_MAX_DAMPING = 1e8
+DOF = planar.STATE_SIZE
+LANDMARK_DOF = 3
+# the landmark kind each observation kind makes (an added landmark's, from its observations)
+_LANDMARK_OF = {POINT2: LANDMARK_POINT2, MARKER: LANDMARK_MARKER}
 
 
 @dataclass(frozen=True)
-class PlanarProblem:
-    """The planar factor graph: N poses (the first fixed), N-1 odometry factors, M observations.
+class PlanarProblem(SmoothingProblem):
+    """``camloc.smoother.SmoothingProblem`` with SE(2) poses: ``T_start`` and ``T_odometry``
+    lifted (``planar.lift``), ``odom_whiten`` (E, 3, 3) of the planar increment's (x, y, theta);
+    a landmark's coordinates (``obs_landmark_xyz``, ``landmarks``) as the model card says, their
+    kinds in ``landmarks.kind``. Poses are (N, 3) planar states wherever ``smooth`` handles them."""
 
-    Attributes
-    ----------
-    x_start : (3,) the fixed first pose. u : (N-1, 3) measured increments; odom_whiten (N-1, 3, 3).
-    obs_pose : (M,) observing pose; obs_sensor : (M,) its sensor (``sensors.sensors_of``), with
-    ``sensors`` the table; obs_landmark : (M,) map rows; obs_z (M, 3), obs_kind (M,),
-    obs_whiten (M, 3, 3); landmark_quat_xyzw : (L, 4) the tags' orientations (NaN for the
-    others), read for a tag's orientation (``measurement.TAG_ROTATION``).
-    """
-
-    x_start: np.ndarray
-    u: np.ndarray
-    odom_whiten: np.ndarray
-    obs_pose: np.ndarray
-    obs_sensor: np.ndarray
-    sensors: dict
-    landmark_xyz: np.ndarray
-    landmark_heading: np.ndarray
-    obs_landmark: np.ndarray
-    obs_z: np.ndarray
-    obs_kind: np.ndarray
-    obs_whiten: np.ndarray
-    landmark_quat_xyzw: np.ndarray | None = None
+    pose_dof: ClassVar[int] = DOF
 
     @property
-    def num_poses(self) -> int:
-        return int(self.u.shape[0]) + 1
+    def start_state(self) -> np.ndarray:
+        return planar.flatten(self.T_start)
+
+    def lifted(self, T: np.ndarray) -> np.ndarray:
+        return planar.lift(T)
+
+    def linearize(self, T: np.ndarray, X: np.ndarray | None = None) -> Linearization:
+        return linearize(self, T, X)
+
+    def retract(self, T: np.ndarray, X: np.ndarray | None, step: np.ndarray):
+        n = self.num_pose_unknowns
+        moved = T.copy()
+        moved[1:] = retract_poses(T[1:], step[:n].reshape(-1, DOF))
+        if X is None:
+            return moved, None
+        X = X + step[n:].reshape(-1, LANDMARK_DOF)
+        marker = self.landmarks.kind == LANDMARK_MARKER
+        X[marker, 2] = planar.wrap(X[marker, 2])
+        return moved, X
+
+    def landmark_information(self, T: np.ndarray) -> np.ndarray:
+        """(L, 3, 3) each landmark variable's information from its own observations at poses T,
+        its map prior and its pin (the poses held)."""
+        rows = np.flatnonzero(self.obs_landmark >= 0)
+        _, _, J = observation_residuals(self, T, self.landmarks.xyz, rows)
+        J = self.obs_whiten[rows] @ J
+        blocks = np.zeros((len(self.landmarks), LANDMARK_DOF, LANDMARK_DOF))
+        np.add.at(blocks, self.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)
+        weight = prior_weights(self.landmarks)
+        return blocks + weight[:, :, None] ** 2 * np.eye(LANDMARK_DOF)
+
+    def reported_landmarks(self, estimate: LandmarkEstimate) -> LandmarkEstimate:
+        """Floor points and markers on the floor (z = 0, no z variance): a floor point's z is
+        pinned, a marker's third coordinate is its heading, which ``map.csv`` has no column for."""
+        on_floor = on_the_floor(self.landmarks.kind)
+        xyz, cov = estimate.xyz.copy(), estimate.cov.copy()
+        xyz[on_floor, 2] = 0.0
+        cov[on_floor, 2, :] = cov[on_floor, :, 2] = 0.0
+        return replace(estimate, xyz=xyz, cov=cov)
 
 
 def odometry_residual(x_a: np.ndarray, x_b: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -105,170 +140,185 @@ def odometry_residual(x_a: np.ndarray, x_b: np.ndarray, u: np.ndarray) -> tuple[
     return r, A, B
 
 
-def observation_residuals(problem: PlanarProblem, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (M, 3) ``z - h(x_k)`` (angles wrapped) and their Jacobians (M, 3, 3) ``-H``,
-    computed a pose and a sensor at a time (the filter's models take one pose)."""
-    filter_model = SE2Filter()
-    m = problem.obs_pose.size
-    r, J = np.zeros((m, 3)), np.zeros((m, 3, 3))
-    order = np.lexsort((problem.obs_sensor, problem.obs_pose))
-    key = problem.obs_pose[order] * (len(problem.sensors) + 1) + problem.obs_sensor[order]
-    bounds = np.flatnonzero(np.diff(key)) + 1
-    for rows in np.split(order, bounds) if m else []:
-        sensor = problem.sensors[int(problem.obs_sensor[rows[0]])]
-        landmarks = problem.obs_landmark[rows]
-        z_hat, H = filter_model.observe(x[problem.obs_pose[rows[0]]], sensor.T_robot_camera, sensor.intrinsics,
-                                        problem.landmark_xyz[landmarks], sensor.kind, heading=problem.landmark_heading[landmarks],
-                                        tag_quat=None if problem.landmark_quat_xyzw is None else problem.landmark_quat_xyzw[landmarks])
-        if sensor.kind == TAG_ROTATION:  # z - z_hat the error state e = Log(R_pred^-1 R_meas), H through Jl^-1(e)
-            z_hat, H = tags.aligned(problem.obs_z[rows], geometry.so3_exp(z_hat), H)
-        r[rows] = planar.wrap_residuals(problem.obs_z[rows] - z_hat, problem.obs_kind[rows])
-        J[rows] = -H
-    return r, J
+def floor_factors(x: np.ndarray, coords: np.ndarray, z: np.ndarray, kinds: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Residuals (M, 3) ``z - h`` of point2 and marker observations (model card) from poses x
+    (M, 3) of landmarks with coordinates (M, 3) (a marker's third its heading), and their
+    Jacobians (M, 3, 3) with respect to the pose's right perturbation and to the landmark's
+    coordinates. A point2's third row is inert (0)."""
+    R = planar.rotation(x[:, 2])
+    p = np.einsum("mji,mj->mi", R, coords[:, :2] - x[:, :2])  # R^T (l - t)
+    marker = kinds == MARKER
+    r = np.zeros_like(z, dtype=float)
+    r[:, :2] = z[:, :2] - p
+    r[marker, 2] = planar.wrap(z[marker, 2] - planar.wrap(coords[marker, 2] - x[marker, 2]))
+    J_pose = np.zeros((len(x), 3, DOF))
+    J_pose[:, 0, 0] = J_pose[:, 1, 1] = 1.0
+    J_pose[:, :2, 2] = p @ planar.J.T  # a turn by dtheta moves p by -J p dtheta
+    J_pose[marker, 2, 2] = 1.0
+    J_landmark = np.zeros((len(x), 3, LANDMARK_DOF))
+    J_landmark[:, :2, :2] = -np.swapaxes(R, 1, 2)
+    J_landmark[marker, 2, 2] = -1.0
+    return r, J_pose, J_landmark
 
 
-@dataclass(frozen=True)
-class _Linearization:
-    odom_r: np.ndarray   # (E, 3) whitened
-    odom_A: np.ndarray   # (E, 3, 3) whitened, w.r.t. pose a
-    odom_B: np.ndarray   # (E, 3, 3) w.r.t. pose b
-    obs_r: np.ndarray    # (M, 3) whitened
-    obs_J: np.ndarray    # (M, 3, 3)
-
-    @property
-    def obs_sq(self) -> np.ndarray:
-        return np.einsum("mi,mi->m", self.obs_r, self.obs_r)
-
-
-def linearize(problem: PlanarProblem, x: np.ndarray) -> _Linearization:
-    """Every factor's whitened residual and Jacobians at the poses x (N, 3)."""
-    r, A, B = odometry_residual(x[:-1], x[1:], problem.u)
-    W = problem.odom_whiten
-    obs_r, obs_J = observation_residuals(problem, x)
-    Wo = problem.obs_whiten
-    return _Linearization(np.einsum("eij,ej->ei", W, r), W @ A, W @ B, np.einsum("mij,mj->mi", Wo, obs_r), Wo @ obs_J)
-
-
-def robust_cost(lin: _Linearization, huber: float) -> float:
-    return 0.5 * float(np.sum(lin.odom_r**2)) + 0.5 * float(np.sum(huber_rho(lin.obs_sq, huber)))
-
-
-def normal_equations(problem: PlanarProblem, lin: _Linearization, huber: float) -> tuple[sp.csc_matrix, np.ndarray]:
-    """The IRLS Gauss-Newton system ``H step = -g`` over the free poses 1..N-1, (3(N-1),):
-    every factor's 3x3 blocks ``J_i' w J_j`` summed into a sparse matrix at once."""
-    n = problem.num_poses
-    k = np.arange(problem.u.shape[0])
-    weight = huber_weight(lin.obs_sq, huber)
-    WJ = weight[:, None, None] * lin.obs_J
-    At, Bt = np.swapaxes(lin.odom_A, 1, 2), np.swapaxes(lin.odom_B, 1, 2)
-    Jt = np.swapaxes(lin.obs_J, 1, 2)
-    # (block row, block column, 3x3 block) of every term
-    rows = np.concatenate([k, k + 1, k, k + 1, problem.obs_pose])
-    cols = np.concatenate([k, k + 1, k + 1, k, problem.obs_pose])
-    blocks = np.concatenate([At @ lin.odom_A, Bt @ lin.odom_B, At @ lin.odom_B, Bt @ lin.odom_A, Jt @ WJ])
-    r_index = (DOF * rows[:, None, None] + np.arange(DOF)[None, :, None]) + np.zeros((1, 1, DOF), np.int64)
-    c_index = (DOF * cols[:, None, None] + np.arange(DOF)[None, None, :]) + np.zeros((1, DOF, 1), np.int64)
-    H = sp.coo_matrix((blocks.ravel(), (r_index.ravel(), c_index.ravel())), shape=(DOF * n, DOF * n)).tocsc()
-    g = np.zeros((n, DOF))
-    np.add.at(g, k, np.einsum("eji,ej->ei", lin.odom_A, lin.odom_r))
-    np.add.at(g, k + 1, np.einsum("eji,ej->ei", lin.odom_B, lin.odom_r))
-    np.add.at(g, problem.obs_pose, np.einsum("mji,mj->mi", WJ, lin.obs_r))
-    return H[DOF:, DOF:], g.ravel()[DOF:]  # the first pose is fixed
+def observation_residuals(problem: PlanarProblem, x: np.ndarray, X: np.ndarray | None,
+                          rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observation factors ``rows`` (default: all) at poses x (N, 3) and landmark variables
+    X (L, 3): residuals (M, 3) (angle rows wrapped) and Jacobians (M, 3, 3) with respect to the
+    pose's right perturbation and to the landmark's coordinates. A camera's landmark is its
+    position: a floor point's or marker's seen by a camera (never paired so online) at z = 0,
+    its third coordinate not read."""
+    p = problem
+    rows = np.arange(len(p.obs_pose)) if rows is None else rows
+    coords = p.observed_xyz(X)[rows]
+    kinds = p.obs_kind[rows]
+    r, J_pose, J_landmark = np.zeros((rows.size, 3)), np.zeros((rows.size, 3, DOF)), np.zeros((rows.size, 3, LANDMARK_DOF))
+    floor = is_planar(kinds)
+    if np.any(floor):
+        f = np.flatnonzero(floor)
+        r[f], J_pose[f], J_landmark[f] = floor_factors(x[p.obs_pose[rows[f]]], coords[f], p.obs_z[rows[f]], kinds[f])
+    if not np.all(floor):
+        c = np.flatnonzero(~floor)
+        flat = _flat_landmarks(p, rows[c])
+        positions = coords[c].copy()
+        positions[flat, 2] = 0.0
+        rc = rows[c]
+        r[c], J6, J_landmark[c], _ = observation_factors(
+            planar.lift(x[p.obs_pose[rc]]), p.obs_T_robot_camera[rc], p.obs_intrinsics[rc], positions, p.obs_z[rc],
+            kinds[c], None if p.obs_tag_rotation is None else p.obs_tag_rotation[rc])
+        J_pose[c] = J6[:, :, list(planar.PLANAR_AXES)]
+        J_landmark[c[flat], :, 2] = 0.0
+    return r, J_pose, J_landmark
 
 
-def _step(H: sp.csc_matrix, g: np.ndarray, damping: float) -> np.ndarray:
-    d = H.diagonal()
-    scale = 1.0 / np.sqrt(np.maximum(d, 1e-300))  # Jacobi scaling, as camloc.smoother
-    Hs = sp.diags(scale) @ H @ sp.diags(scale) + damping * sp.identity(H.shape[0], format="csc")
-    try:
-        return -scale * Cholesky(Hs).solve(scale * g)
-    except NotPositiveDefinite as error:  # a singular system: a pose nothing determines
-        raise CamlocError(f"the planar smoothing problem does not determine every pose ({error})") from None
+def _flat_landmarks(problem: PlanarProblem, rows: np.ndarray) -> np.ndarray:
+    """(len(rows),) bool: the observations' landmark is a floor point's or marker's variable."""
+    if problem.landmarks is None or problem.landmarks.kind is None:
+        return np.zeros(rows.size, dtype=bool)
+    variable = problem.obs_landmark[rows]
+    return (variable >= 0) & on_the_floor(problem.landmarks.kind[np.maximum(variable, 0)])
 
 
-def _retract_all(x: np.ndarray, step: np.ndarray) -> np.ndarray:
-    out = x.copy()
-    for k, delta in enumerate(step.reshape(-1, DOF), start=1):
-        out[k] = planar.retract(x[k], delta)
+def on_the_floor(kind: np.ndarray) -> np.ndarray:
+    """(L,) bool: which landmark kinds (L,) lie on the floor, without a height: floor points and
+    markers (a camera's 3-D point and a tag's centre have one)."""
+    return np.isin(kind, (LANDMARK_POINT2, LANDMARK_MARKER))
+
+
+def prior_weights(landmarks) -> np.ndarray:
+    """(L, 3) the whitening of each landmark's prior and pin rows: ``1 / sigma`` on each
+    coordinate under a map prior, 1 on a floor point's z (its pin), 0 where there is no row."""
+    weight = np.where(landmarks.has_prior, 1.0 / landmarks.prior_sigma, 0.0)[:, None] * np.ones(LANDMARK_DOF)
+    weight[landmarks.kind == LANDMARK_POINT2, 2] = 1.0
+    return weight
+
+
+def _prior_residuals(landmarks, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The landmarks with a prior or pin row (P,), their whitened residuals (P, 3) and weights (P, 3)."""
+    weight = prior_weights(landmarks)
+    held = np.flatnonzero(np.any(weight > 0.0, axis=1))
+    target = np.nan_to_num(landmarks.prior_xyz[held])  # a pin's target: 0
+    target[landmarks.kind[held] == LANDMARK_POINT2, 2] = 0.0
+    difference = X[held] - target
+    marker = landmarks.kind[held] == LANDMARK_MARKER
+    difference[marker, 2] = planar.wrap(difference[marker, 2])
+    return held, weight[held] * difference, weight[held]
+
+
+def linearize(problem: PlanarProblem, x: np.ndarray, X: np.ndarray | None = None) -> Linearization:
+    """Whitened residuals and the sparse Jacobian of every factor at poses x (N, 3) and landmark
+    variables X (L, 3) (None: ``problem.landmarks.xyz``), in ``camloc.smoother``'s layout
+    (odometry rows, observation rows, prior rows; pose columns, then landmark columns)."""
+    p = problem
+    if X is None and p.landmarks is not None:
+        X = p.landmarks.xyz
+    u = planar.flatten(p.T_odometry)
+    r_odom, A, B = odometry_residual(x[p.odom_from], x[p.odom_to], u)
+    r_obs, J_obs, J_lm = observation_residuals(p, x, X)
+    r_odom = np.einsum("nij,nj->ni", p.odom_whiten, r_odom)
+    r_obs = np.einsum("nij,nj->ni", p.obs_whiten, r_obs)
+    odom_rows = DOF * np.arange(len(p.odom_from))
+    obs_rows = odom_rows.size * DOF + 3 * np.arange(len(p.obs_pose))
+    parts = [block_coo(odom_rows, p.odom_from, p.odom_whiten @ A), block_coo(odom_rows, p.odom_to, p.odom_whiten @ B),
+             block_coo(obs_rows, p.obs_pose, p.obs_whiten @ J_obs)]
+    residuals = [r_odom.ravel(), r_obs.ravel()]
+    num_rows = DOF * len(p.odom_from) + 3 * len(p.obs_pose)
+    r_prior = np.zeros((0, LANDMARK_DOF))
+    if p.num_landmarks:
+        variable = np.flatnonzero(p.obs_landmark >= 0)
+        first_col = p.num_pose_unknowns + LANDMARK_DOF * p.obs_landmark[variable]
+        parts.append(landmark_coo(obs_rows[variable], first_col, p.obs_whiten[variable] @ J_lm[variable]))
+        held, r_prior, weight = _prior_residuals(p.landmarks, X)
+        prior_rows = num_rows + LANDMARK_DOF * np.arange(held.size)
+        parts.append(landmark_coo(prior_rows, p.num_pose_unknowns + LANDMARK_DOF * held, weight[:, :, None] * np.eye(LANDMARK_DOF)))
+        residuals.append(r_prior.ravel())
+        num_rows += LANDMARK_DOF * held.size
+    rows, cols, values = (np.concatenate(column) for column in zip(*parts))
+    return Linearization(
+        residual=np.concatenate(residuals),
+        jacobian=sp.csr_matrix((values, (rows, cols)), shape=(num_rows, p.num_unknowns)),
+        odom_sq=np.einsum("ni,ni->n", r_odom, r_odom), obs_sq=np.einsum("ni,ni->n", r_obs, r_obs),
+        prior_sq=np.einsum("ni,ni->n", r_prior, r_prior), odom_dim=DOF,
+    )
+
+
+def retract_poses(x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Poses (N, 3) moved by right perturbations (N, 3): ``planar.retract`` over all at once."""
+    out = np.empty_like(x)
+    out[:, :2] = x[:, :2] + np.einsum("nij,nj->ni", planar.rotation(x[:, 2]), delta[:, :2])
+    out[:, 2] = planar.wrap(x[:, 2] + delta[:, 2])
     return out
 
 
 def smooth_planar(problem: PlanarProblem, x_initial: np.ndarray, config: Optional[SmootherConfig] = None, *,
                   on_iteration: Optional[IterationCallback] = None) -> SmoothingResult:
-    """The MAP poses of ``problem`` from ``x_initial`` (N, 3) (the first replaced by the start),
-    as a ``camloc.smoother.SmoothingResult`` (poses lifted to (N, 4, 4))."""
-    config = config or SmootherConfig()
-    config.validate()
-    started = time.perf_counter()
-    x = np.array(x_initial, dtype=float)
-    x[0] = problem.x_start
-    lin = linearize(problem, x)
-    cost = initial_cost = robust_cost(lin, config.huber)
-    damping, iterations, converged = 0.0, 0, problem.num_poses < 2
-    while not converged and iterations < config.max_iterations:
-        H, g = normal_equations(problem, lin, config.huber)
-        step = _step(H, g, damping)
-        candidate = _retract_all(x, step)
-        candidate_lin = linearize(problem, candidate)
-        candidate_cost = robust_cost(candidate_lin, config.huber)
-        iterations += 1
-        accepted = candidate_cost <= cost
-        max_step = float(np.max(np.abs(step))) if step.size else 0.0
-        if accepted:
-            x, lin, cost = candidate, candidate_lin, candidate_cost
-            damping = damping / 10.0 if damping > 1e-9 else 0.0
-            converged = max_step < config.step_tolerance
-        else:  # the linearization is poor here: damp towards gradient descent (Levenberg-Marquardt)
-            damping = max(10.0 * damping, 1e-4)
-            converged = damping > _MAX_DAMPING
-        if on_iteration is not None:
-            on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
-    return SmoothingResult(
-        T_world_robot=planar.lift(x), iterations=iterations, converged=bool(converged), initial_cost=initial_cost,
-        final_cost=cost, condition=math.nan, odometry_factors=int(problem.u.shape[0]),
-        observation_factors=int(problem.obs_pose.size), dropped_observations=0,
-        downweighted_observations=int(np.count_nonzero(lin.obs_sq > config.huber * config.huber)),
-        seconds=time.perf_counter() - started,
-    )
+    """The MAP poses (and landmark variables) of ``problem`` from ``x_initial`` (N, 3) (the first
+    replaced by the start), as a ``camloc.smoother.SmoothingResult`` (poses lifted to (N, 4, 4))."""
+    return smooth(problem, np.asarray(x_initial, dtype=float), config, on_iteration=on_iteration)
 
 
-def planar_problem(dataset: Dataset, run: RunResult) -> PlanarProblem:
+def planar_problem(dataset: Dataset, run: RunResult, config: Optional[SmootherConfig] = None) -> PlanarProblem:
     """The planar factor graph of a planar dataset's odometry and the observations the run
-    accepted (``camloc.smoother.check_run_matches`` first)."""
+    accepted (``camloc.smoother.check_run_matches`` first), with the landmark variables
+    ``config.map`` says (None: ``SmootherConfig()``, the map held exact)."""
     if not dataset.planar:
         raise CamlocError(f"{dataset.source}: the planar smoother needs a planar dataset (VERTEX_SE2 / EDGE_SE2)")
+    config = config or SmootherConfig()
     check_run_matches(dataset, run)
-    chosen = tags.observation_landmarks(run.associations.landmark, dataset.obs_kind, dataset.obs_partner, orientations=True)
-    rows = np.flatnonzero(chosen != UNASSOCIATED)
-    order = np.argsort(dataset.landmark_ids, kind="stable")
-    landmark = order[np.searchsorted(dataset.landmark_ids[order], chosen[rows])] if rows.size else np.zeros(0, np.int64)
-    # a tag's orientation is a factor beside its centre's where its landmark has one (a tag)
-    keep = (dataset.obs_kind[rows] != TAG_ROTATION) | np.isfinite(dataset.landmark_quat_xyzw[landmark, 0])
-    rows, landmark = rows[keep], landmark[keep]
-    sensors, obs_sensor = sensors_of(dataset)
-    odom_cov = planar.planar_block(dataset.odom_cov)
+    coords = dataset.landmark_xyz.copy()
+    marker = dataset.landmark_kind == LANDMARK_MARKER
+    coords[marker, 2] = dataset.landmark_heading[marker]
+    fields = observation_fields(dataset, run, config, coords)
+    landmarks = fields["landmarks"]
+    if landmarks is not None:
+        fields["landmarks"] = replace(landmarks, kind=_variable_kinds(dataset, landmarks.ids, fields))
+    num_poses = dataset.num_poses
     return PlanarProblem(
-        x_start=planar.flatten(dataset.T_world_start), u=planar.flatten(dataset.T_odometry).reshape(-1, 3),
-        odom_whiten=_whitening(odom_cov), obs_pose=dataset.obs_pose_index[rows].astype(np.int64),
-        obs_sensor=obs_sensor[rows], sensors=sensors, landmark_xyz=dataset.landmark_xyz,
-        landmark_heading=dataset.landmark_heading, obs_landmark=landmark.astype(np.int64), obs_z=dataset.obs_z[rows],
-        obs_kind=dataset.obs_kind[rows], obs_whiten=_whitening(dataset.obs_cov[rows]), landmark_quat_xyzw=dataset.landmark_quat_xyzw,
+        pose_ids=np.asarray(dataset.pose_ids, dtype=np.int64), T_start=dataset.T_world_start,
+        odom_from=np.arange(num_poses - 1, dtype=np.int64), odom_to=np.arange(1, num_poses, dtype=np.int64),
+        T_odometry=dataset.T_odometry, odom_whiten=whitening(planar.planar_block(dataset.odom_cov)), **fields,
     )
 
 
-def _whitening(cov: np.ndarray) -> np.ndarray:
-    """(..., d, d) ``L^-1`` with ``L L^T = cov`` (Cholesky; a solve, not an inverse of cov)."""
-    if cov.shape[0] == 0:
-        return np.zeros_like(cov)
-    L = np.linalg.cholesky(cov)
-    return np.linalg.solve(L, np.broadcast_to(np.eye(cov.shape[-1]), cov.shape))
+def _variable_kinds(dataset: Dataset, ids: np.ndarray, fields: dict) -> np.ndarray:
+    """(L,) the landmark variables' kinds: a mapped one's the map's, an added one's that of the
+    observations of it (a floor point's, a marker's, else a camera's 3-D point)."""
+    kind = np.full(ids.size, LANDMARK_POINT3, dtype=np.int64)
+    mapped = np.isin(ids, dataset.landmark_ids)
+    order = np.argsort(dataset.landmark_ids, kind="stable")
+    kind[mapped] = dataset.landmark_kind[order[np.searchsorted(dataset.landmark_ids[order], ids[mapped])]]
+    for obs_kind, landmark_kind in _LANDMARK_OF.items():
+        seen = np.unique(fields["obs_landmark"][fields["obs_kind"] == obs_kind])
+        seen = seen[seen >= 0]
+        kind[seen[~mapped[seen]]] = landmark_kind
+    return kind
 
 
 def smooth_planar_run(dataset: Dataset, run: RunResult, config: Optional[SmootherConfig] = None, *,
                       on_iteration: Optional[IterationCallback] = None) -> SmoothingResult:
     """``smooth_planar`` the run's accepted associations over the planar dataset, from the
-    filter's estimate."""
+    filter's estimate, with the map held as ``config.map`` says."""
     from camloc import geometry
 
     x0 = planar.flatten(geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw))
-    return smooth_planar(planar_problem(dataset, run), x0, config, on_iteration=on_iteration)
+    return smooth_planar(planar_problem(dataset, run, config), x0, config, on_iteration=on_iteration)

@@ -53,7 +53,8 @@ def smooth(
         "smoother.map", "--map"
     ),
     map_sigma: Optional[float] = library_option(
-        "Standard deviation of the map prior per axis, metres (with --map prior).", "smoother.map_sigma",
+        "Standard deviation of the map prior per axis, metres (with --map prior; a planar marker's heading is "
+        "held to the same number read as radians, as 'camloc run' holds it).", "smoother.map_sigma",
         "--map-sigma"
     ),
     json_output: bool = json_option("the report"),
@@ -61,7 +62,7 @@ def smooth(
 ) -> None:
     """Smooth a run: the most probable trajectory given all the odometry and every observation the run accepted, all poses at once (the filter only used the past).
 
-    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. With --map prior or none the landmarks are estimated too. A planar dataset (VERTEX_SE2 / EDGE_SE2) is smoothed in SE(2) (x, y, heading: camloc/smoother_se2.py) with its map exact, any other in SE(3). Writes smoothed.tum and map.csv (the map after smoothing: a row per landmark with its covariance) into RUN_DIR (each whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation (a planar robot's: heading) RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
+    The first pose stays at the dataset's start pose; observations beyond the Huber threshold are down-weighted. With --map prior or none the landmarks are estimated too. A planar dataset (VERTEX_SE2 / EDGE_SE2) is smoothed in SE(2) (x, y, heading: camloc/smoother_se2.py), its landmarks as --map says (cameras' 3-D points; floor points and markers on the floor, a marker's heading estimated too, though map.csv has no column for it), any other in SE(3). Writes smoothed.tum and map.csv (the map after smoothing: a row per landmark with its covariance) into RUN_DIR (each whole or not at all); 'camloc eval' and 'camloc plot' then show the smoothed path beside the filter's and odometry. Prints position and rotation (a planar robot's: heading) RMSE of the filter and of the smoothed path when there is ground truth, iterations, final cost and time.
     """
     import warnings
 
@@ -84,7 +85,7 @@ def smooth(
     read_seconds = time.perf_counter() - started
 
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
-        result = _smoothed(data, run, config, dataset_path, on_iteration)
+        result = _smoothed(data, run, config, on_iteration)
     written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
     map_file = write_map(run_dir, smoother.estimated_map(data, run, result, config))
 
@@ -102,17 +103,14 @@ def smooth(
         print_warnings(["stopped at --max-iterations before the steps became tiny"], run_dir)
 
 
-def _smoothed(data, run, config, dataset_path: Path, on_iteration):
-    """The smoothing of ``run``: SE(2) for a planar robot (its odometry has no z, roll or pitch
-    noise; its map held exact), SE(3) with the landmarks as ``config.map`` says otherwise."""
+def _smoothed(data, run, config, on_iteration):
+    """The smoothing of ``run`` with the landmarks as ``config.map`` says: in SE(2) for a planar
+    robot (its odometry has no z, roll or pitch noise), in SE(3) otherwise."""
     from camloc import smoother
 
     if data.planar:
         from camloc.smoother_se2 import smooth_planar_run
 
-        if config.map != "exact":
-            raise CamlocError(f"{dataset_path}: --map {config.map}: a planar robot's smoother holds its map exact "
-                              "(it estimates the poses only); use --map exact")
         return smooth_planar_run(data, run, config, on_iteration=on_iteration)
     return smoother.smooth_run(data, run, config, on_iteration=on_iteration)
 

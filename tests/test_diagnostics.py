@@ -179,6 +179,34 @@ def test_a_pixel_only_run_on_an_incomplete_map_says_its_lacking_landmarks_are_no
     assert not rays_only(np.array([measurement.PIXEL, measurement.POINT2]))  # a planar robot's points place theirs
 
 
+def test_a_pixel_only_run_with_no_map_is_told_its_estimate_may_be_worse_than_odometry(tmp_path):
+    """Pixel-only cameras with no map (EKF-SLAM of rays): the run says its estimate is not reliable;
+    a depth camera's run with no map, or a pixel-only run on its map, does not."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from camloc.cli.app import app
+    from camloc.diagnostics import RAYS_NO_MAP
+
+    counts = {"observations": 801, "rejected": 400, "updates": 300}
+    assert run_warnings(counts, mapped=True, rays_only=True, map_mode="none") == [RAYS_NO_MAP]
+    assert run_warnings(counts, mapped=True, rays_only=False, map_mode="none") == []
+    assert run_warnings(counts, mapped=True, rays_only=True, map_mode="prior") == []
+    runner = CliRunner()
+    for measurement_kind, said in (("pixel", True), ("depth", False)):
+        world = tmp_path / f"{measurement_kind}.g2o"
+        made = runner.invoke(app, ["simulate", "-o", str(world), "--poses", "40", "--cameras", "2", "--measurement",
+                                   measurement_kind, "--no-map", "-q"])
+        assert made.exit_code == 0, made.output
+        run = runner.invoke(app, ["run", str(world), "-o", str(tmp_path / measurement_kind), "-q"])
+        assert run.exit_code == 0, run.output
+        summary = json.loads((tmp_path / measurement_kind / "summary.json").read_text())
+        assert summary["map"]["mode"] == "none"
+        assert (RAYS_NO_MAP in summary["warnings"]) == said
+        assert (f"warning: {world}: {RAYS_NO_MAP}" in run.stderr) == said
+
+
 def test_an_empty_map_is_not_called_incomplete_but_says_what_maps_it():
     counts = {"observations": 295, "rejected": 295, "updates": 0}
     odometry, no_map = run_warnings(counts, map_size=0, unmappable="this dataset's robot observes markers")
