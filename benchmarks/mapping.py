@@ -20,6 +20,14 @@ prints the largest |z| of the estimated trajectory (a planar run's must stay 0).
     nice python benchmarks/mapping.py --robot planar --sensors points --seeds 0,1,2 --poses 300
     nice python benchmarks/mapping.py --speed --robot planar --sensors points --poses 2000 --modes exact,prior,none
 
+``--tags SIGMA_DEG``: 3-D worlds of tags (``camloc.simulate_tags``: every landmark a tag whose
+orientation each detection measures with that noise); a moved tag is also turned 0.3 rad, and the
+``moved deg`` column is the moved tags' orientation error after the run (mean angle, degrees);
+``half ignore`` is the exact map's localizer alone (what camloc did with a tag file's lacking tags
+before it mapped tags).
+
+    nice python benchmarks/mapping.py --tags 1 --trajectories grid,smooth3d --seeds 0,1,2,3 --clutter 0.1
+
 ``--speed``: the speed of the mapping run instead (issue 38's target: a 20,000-pose world with a
 fifth of its 20,000 landmarks withheld at 1,000 poses/s): a world of ``--poses`` poses and as many
 landmarks, a fifth withheld (``--seeds``' first; or ``--file``, a g2o file), run under each of
@@ -56,7 +64,7 @@ def stands_for(result) -> dict:
     return out
 
 
-def case(dataset, truth_map, is_clutter, map_mode: str, association: str, moved_ids=()) -> dict:
+def case(dataset, truth_map, is_clutter, map_mode: str, association: str, moved_ids=(), truth_quat=None) -> dict:
     started = time.perf_counter()
     if map_mode == "ignore":  # the exact map's localizer alone: landmarks the map lacks not screened for, not added
         hooks = dict(parallel=None, engine="auto", on_compile=None, on_background_compile=None)
@@ -67,7 +75,7 @@ def case(dataset, truth_map, is_clutter, map_mode: str, association: str, moved_
     seconds = time.perf_counter() - started
     rmse = float(np.sqrt(np.mean(np.sum((result.estimate_xyz - dataset.truth_xyz) ** 2, axis=1))))
     row = {"rmse": rmse, "nees": float(np.nanmean(metrics.run_nees(result))), "seconds": seconds, "added": 0,
-           "twice": 0, "clutter_landmarks": 0, "moved_error": None, "max_z": float(np.abs(result.estimate_xyz[:, 2]).max())}
+           "twice": 0, "clutter_landmarks": 0, "moved_error": None, "moved_turn": None, "max_z": float(np.abs(result.estimate_xyz[:, 2]).max())}
     if result.landmark_map is not None:
         stands = stands_for(result)
         real = [v for v in stands.values() if v is not None and v in truth_map]
@@ -78,7 +86,23 @@ def case(dataset, truth_map, is_clutter, map_mode: str, association: str, moved_
             m = result.landmark_map
             at = np.isin(m.ids, moved_ids) & (m.observations > 0)  # the moved landmarks the run saw
             row["moved_error"] = float(np.mean([np.linalg.norm(m.xyz[i] - truth_map[int(m.ids[i])]) for i in np.flatnonzero(at)]))
+            if truth_quat is not None:
+                row["moved_turn"] = moved_turn_deg(m, dataset, at, truth_quat)
     return row
+
+
+def moved_turn_deg(landmark_map, dataset, at: np.ndarray, truth_quat: dict) -> float:
+    """The mean angle (degrees) between the moved tags' orientations after the run (``at``: the
+    map's rows; the given map's where the run's map holds no orientation) and their truth."""
+    from camloc import geometry
+
+    ids = landmark_map.ids[at]
+    if landmark_map.orientation is not None:
+        R = geometry.so3_exp(landmark_map.orientation[at])
+    else:
+        R = geometry.quat_to_matrix(dataset.landmark_quat_xyzw[np.searchsorted(dataset.landmark_ids, ids)])
+    R_true = geometry.quat_to_matrix(np.array([truth_quat[int(i)] for i in ids]).reshape(-1, 4))
+    return float(np.degrees(np.mean(np.linalg.norm(geometry.so3_log(R_true @ np.swapaxes(R, 1, 2)), axis=1))))
 
 
 def main() -> None:
@@ -93,6 +117,7 @@ def main() -> None:
     parser.add_argument("--cameras", type=int, default=1, help="cameras on the robot (default 1)")
     parser.add_argument("--robot", default="3d", choices=("3d", "planar"), help="3d (default) or planar worlds")
     parser.add_argument("--sensors", default="points", help="with --robot planar: the planar simulator's sensors")
+    parser.add_argument("--tags", type=float, default=0.0, help="3-D worlds of tags, their orientation noise in degrees (0: points)")
     parser.add_argument("--speed", action="store_true", help="measure the speed instead (see above)")
     parser.add_argument("--file", default=None, help="with --speed: a g2o file instead of a simulated world")
     parser.add_argument("--modes", default="exact,prior", help="with --speed: the map modes to run")
@@ -101,7 +126,7 @@ def main() -> None:
         speed(args)
         return
     cases = args.cases.split(",")
-    print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | max abs z | s")
+    print("world | case | association | RMSE m | / full | NEES | added | twice | clutter-made | moved err m | moved deg | max abs z | s")
     planar = args.robot == "planar"
     for trajectory in ([args.sensors] if planar else args.trajectories.split(",")):
         for seed in [int(s) for s in args.seeds.split(",")]:
@@ -113,9 +138,15 @@ def main() -> None:
                 base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter,
                             measurement=args.measurement, cameras=args.cameras)
                 make = lambda c, seed=seed: simulate_labelled(SimulationConfig(**c), seed=seed).dataset  # noqa: E731
+                if args.tags:
+                    from camloc.simulate_tags import simulate_tags
+
+                    make = lambda c, seed=seed: simulate_tags(SimulationConfig(**c), seed=seed, sigma_rad=np.radians(args.tags))  # noqa: E731
             full = make(base)
             truth_map = dict(zip(full.landmark_ids.tolist(), full.landmark_xyz))
-            worlds = [("half", dict(base, withhold_map=0.5), ("ignore", "exact", "prior") if planar else ("exact", "prior")),
+            truth_quat = dict(zip(full.landmark_ids.tolist(), full.landmark_quat_xyzw)) if args.tags else None
+            # "ignore": what camloc did before it mapped planar robots' and tags' landmarks
+            worlds = [("half", dict(base, withhold_map=0.5), ("ignore", "exact", "prior") if planar or args.tags else ("exact", "prior")),
                       ("moved", dict(base, move_map=0.25), ("exact", "prior")),
                       ("none", dict(base, no_map=True), ("none",))]
             for association in args.associations.split(","):
@@ -125,7 +156,7 @@ def main() -> None:
                     ds = make(config)
                     moved = [int(i) for i in ds.landmark_ids if np.linalg.norm(ds.landmark_xyz[ds.landmark_ids == i][0] - truth_map[int(i)]) > 1e-6]
                     for mode in modes:
-                        row = case(ds, truth_map, None, mode, association, moved if name == "moved" else ())
+                        row = case(ds, truth_map, None, mode, association, moved if name == "moved" else (), truth_quat)
                         _print(trajectory, seed, f"{name} {mode}", association, row, reference["rmse"])
 
 
@@ -170,8 +201,9 @@ def _cpu_seconds() -> float:
 
 def _print(trajectory, seed, name, association, row, full_rmse) -> None:
     moved = f"{row['moved_error']:.3f}" if row["moved_error"] is not None else "-"
+    turn = f"{row['moved_turn']:.2f}" if row.get("moved_turn") is not None else "-"
     print(f"{trajectory}/{seed} | {name} | {association} | {row['rmse']:.3f} | {row['rmse'] / full_rmse:.2f} | {row['nees']:.2f} | "
-          f"{row['added']} | {row['twice']} | {row['clutter_landmarks']} | {moved} | {row['max_z']:.1e} | {row['seconds']:.1f}", flush=True)
+          f"{row['added']} | {row['twice']} | {row['clutter_landmarks']} | {moved} | {turn} | {row['max_z']:.1e} | {row['seconds']:.1f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -75,7 +75,7 @@ def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJ
 
 
 # What the mapping localizer maps (``localizer.unmappable_reason`` says why a dataset is not that)
-MAPPED_LANDMARKS = "point landmarks and a planar robot's markers (not tags' orientations)"
+MAPPED_LANDMARKS = "point landmarks, a planar robot's markers and tags with their orientations"
 
 
 # Said of a pixel-only file whose map looks incomplete (docs/mapping.md, "What it reaches"): measured

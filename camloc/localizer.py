@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, measurement, planar, warmup
+from camloc import association, associators, ekf, geometry, measurement, planar, tags, warmup
 from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
@@ -186,7 +186,7 @@ def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -
 
     T = geometry.pose_from_quat(run.estimate_xyz, run.estimate_quat_xyzw)
     reach = PRIOR_REACH_SIGMAS * config.map_sigma if config.map == "prior" else 0.0
-    return lacking_landmarks(dataset, T, run.estimate_cov, run.associations.landmark == UNASSOCIATED, reach)
+    return lacking_landmarks(dataset, T, run.estimate_cov, _observation_landmarks(dataset, run) == UNASSOCIATED, reach)
 
 
 def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult,
@@ -274,7 +274,9 @@ def _follower(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> Mapping
     a run only where the compiled loop runs the beam over at least ``FOLLOW_MIN_POSES`` poses,
     with two CPUs or more, one of them free (``_cpu_free``), and ``parallel`` not False; otherwise
     it never starts and the pass runs after."""
+    # (not tags: a tag's orientation is the numpy mapping pass's only, and the follower runs the compiled one)
     able = (config.association == "beam" and hooks["parallel"] is not False and _cpus() >= 2 and _mappable(dataset)
+            and not np.any(dataset.obs_kind == measurement.TAG_ROTATION)
             and dataset.num_poses >= FOLLOW_MIN_POSES and _cpu_free())
     return MappingFollower(dataset, config, lambda: _mapping_compiled(dataset, hooks), enabled=able)
 
@@ -309,7 +311,7 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
                     beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
                                                null_cost_offset=offset, on_replay=following.on_replay, **hooks)
             if beam_run is not None:
-                given = landmark_rows(dataset.landmark_ids, beam_run.associations.landmark)
+                given = landmark_rows(dataset.landmark_ids, _observation_landmarks(dataset, beam_run))
                 seconds += beam_run.summary["timing"]["filter_seconds"]
                 warnings = [w for w in beam_run.summary["warnings"] if w not in dataset.warnings]
             stage = _stage(on_progress, 2 * n + 1, stages) if beamed else on_progress
@@ -385,17 +387,24 @@ def _stage(on_progress, stage: int, stages: int):
 
 def _mappable(dataset: Dataset) -> bool:
     """Whether the mapping localizer runs the dataset: point landmarks, of a 3-D robot's cameras or
-    a planar robot's cameras and point sensor, and a planar robot's markers (tags' orientations are
-    not in its model)."""
+    a planar robot's cameras and point sensor, a planar robot's markers, and tags with their
+    orientations (``camloc.slam_tags``)."""
     return unmappable_reason(dataset) is None
 
 
 def unmappable_reason(dataset: Dataset) -> Optional[str]:
     """Why the mapping localizer (EKF-SLAM: landmarks the map lacks added) cannot run ``dataset``,
-    as the end of a sentence, or None where it can."""
-    if np.any(dataset.obs_kind == measurement.TAG_ROTATION):
-        return "this dataset's tags carry orientations"
+    as the end of a sentence, or None where it can: every dataset camloc reads is mapped now (the
+    reason stays for the kinds a later reader may add)."""
     return None
+
+
+def _observation_landmarks(dataset: Dataset, run: RunResult) -> np.ndarray:
+    """The landmark id (K,) ``run`` paired each observation of ``dataset`` with (``UNASSOCIATED``:
+    none), from its rows (one a tag, its position's: a tag's orientation gets none here)."""
+    if not np.any(dataset.obs_kind == measurement.TAG_ROTATION):
+        return run.associations.landmark
+    return tags.observation_landmarks(run.associations.landmark, dataset.obs_kind, dataset.obs_partner, orientations=False)
 
 
 def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfig:
@@ -410,7 +419,7 @@ def resolved_config(config: LocalizerConfig, dataset: Dataset) -> LocalizerConfi
     if config.map == AUTO_MAP:
         config = replace(config, map="none" if mappable and dataset.landmark_ids.size == 0 else "exact")
     if config.map != "exact" and not mappable:
-        raise ConfigError(f"map {config.map!r} (mapping) runs point landmarks and a planar robot's markers; {unmappable_reason(dataset)}: "
+        raise ConfigError(f"map {config.map!r} (mapping) cannot run this dataset: {unmappable_reason(dataset)}: "
                           "use --map exact")
     planar_kinds = [measurement.KINDS[int(k)].tag for k in np.unique(dataset.obs_kind) if int(k) in measurement.PLANAR_KINDS]
     if planar_kinds and config.filter != "se2":

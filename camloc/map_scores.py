@@ -19,6 +19,9 @@ absent from the true map).
   observations assigned to them as a share of every clutter observation.
 - **Never added**: true landmarks the given map lacks, observed at least ``MIN_OBSERVATIONS_TO_ADD``
   times, that no added landmark stands for.
+- **Orientation** (a map of tags, where the true map has their orientations): the angle between
+  each estimated tag's orientation and its true landmark's (mapped, moved and added as above), and
+  the NEES of the world rotation error ``e = Log(R_true R_est^T)`` under its covariance.
 
 Pure numpy: no I/O; ``map_score`` returns a JSON-serializable dict (undefined values are None).
 """
@@ -38,7 +41,7 @@ NOTHING = -2  # what an added landmark without observations nor a true id stands
 
 
 def map_score(estimated, *, given_ids: np.ndarray, given_xyz: np.ndarray, true_ids: np.ndarray, true_xyz: np.ndarray,
-              obs_landmark: np.ndarray, obs_true: np.ndarray) -> dict:
+              obs_landmark: np.ndarray, obs_true: np.ndarray, true_quat_xyzw: np.ndarray | None = None) -> dict:
     """The score of an estimated map (see the module for the definitions).
 
     Parameters
@@ -50,11 +53,13 @@ def map_score(estimated, *, given_ids: np.ndarray, given_xyz: np.ndarray, true_i
     true_ids, true_xyz : (T,), (T, 3) the true, complete map.
     obs_landmark : (O,) the landmark each observation was assigned (-1: none).
     obs_true : (O,) each observation's id in the file (its true landmark, or clutter's id).
+    true_quat_xyzw : (T, 4) the true map's orientations (NaN: not a tag), None: not known.
 
     Returns
     -------
     dict with ``mapped``, ``moved``, ``added`` (position errors), ``added_twice``, ``clutter``
-    and ``never_added`` (counts), keys as docs/json.md lists them.
+    and ``never_added`` (counts), ``orientation`` (tags' orientation errors, None without tags
+    in the estimated map or orientations in the true one), keys as docs/json.md lists them.
     """
     ids, xyz, cov, added = (np.asarray(a) for a in (estimated.ids, estimated.xyz, estimated.cov, estimated.added))
     given = ~np.isin(given_ids, ids[added])
@@ -69,6 +74,7 @@ def map_score(estimated, *, given_ids: np.ndarray, given_xyz: np.ndarray, true_i
         "added_twice": _added_twice(stands, given_ids),
         "clutter": _clutter(ids[added], stands, obs_landmark, category),
         "never_added": _never_added(stands, category, given_ids),
+        "orientation": _orientations(estimated, stands, truth, true_quat_xyzw, _moved_mask(ids, ~added, truth, _Lookup(given_ids, given_xyz))),
     }
 
 
@@ -141,14 +147,26 @@ def _mapped(ids, xyz, cov, mapped, truth: _Lookup) -> dict:
     return {**_errors(xyz[scored], cov[scored], truth.xyz[rows[scored]]), "unknown": int(np.count_nonzero(mapped & (rows < 0)))}
 
 
-def _moved(ids, xyz, cov, mapped, truth: _Lookup, given: _Lookup) -> dict:
-    """Mapped landmarks the given map put away from the truth: their error after the run, and
-    ``given_rmse``, how far the given map had them."""
+def _moved_offsets(ids, mapped, truth: _Lookup, given: _Lookup) -> np.ndarray:
+    """(K,) how far the given map put each mapped landmark from the truth (0: not known)."""
     rows, given_rows = truth.rows(ids), given.rows(ids)
     both = mapped & (rows >= 0) & (given_rows >= 0)
     offset = np.zeros(len(ids))
     offset[both] = np.linalg.norm(given.xyz[given_rows[both]] - truth.xyz[rows[both]], axis=1)
-    moved = both & (offset >= MOVED_FROM_M)
+    return offset
+
+
+def _moved_mask(ids, mapped, truth: _Lookup, given: _Lookup) -> np.ndarray:
+    """(K,) bool: the mapped landmarks the given map put away from the truth."""
+    return _moved_offsets(ids, mapped, truth, given) >= MOVED_FROM_M
+
+
+def _moved(ids, xyz, cov, mapped, truth: _Lookup, given: _Lookup) -> dict:
+    """Mapped landmarks the given map put away from the truth: their error after the run, and
+    ``given_rmse``, how far the given map had them."""
+    rows = truth.rows(ids)
+    offset = _moved_offsets(ids, mapped, truth, given)
+    moved = offset >= MOVED_FROM_M
     report = _errors(xyz[moved], cov[moved], truth.xyz[rows[moved]])
     report["given_rmse"] = _number(np.sqrt(np.mean(offset[moved] ** 2))) if moved.any() else None
     return report
@@ -193,6 +211,39 @@ def _never_added(stands: np.ndarray, category: np.ndarray, given_ids: np.ndarray
     candidates = seen[(times >= MIN_OBSERVATIONS_TO_ADD) & ~np.isin(seen, given_ids)]
     missing = int(np.count_nonzero(~np.isin(candidates, stands)))
     return {"count": missing, "of": int(len(candidates)), "share": _ratio(missing, len(candidates))}
+
+
+def _orientations(estimated, stands: np.ndarray, truth: _Lookup, true_quat: np.ndarray | None, moved: np.ndarray) -> dict | None:
+    """The tags' orientation errors (``mapped``, ``moved``, ``added``: ``_angle_errors``) of the
+    estimated map against the true one's, None where either has no orientation."""
+    rotvec = getattr(estimated, "orientation", None)
+    if rotvec is None or true_quat is None or not np.any(np.isfinite(np.asarray(true_quat, dtype=float)[:, 0])):
+        return None
+    from camloc import geometry
+
+    ids, added = np.asarray(estimated.ids), np.asarray(estimated.added, dtype=bool)
+    rows = truth.rows(ids)
+    rows[added] = np.where(stands >= 0, truth.rows(np.maximum(stands, 0)), -1)
+    true_quat = np.asarray(true_quat, dtype=float)
+    scored = (rows >= 0) & np.isfinite(rotvec[:, 0])
+    scored[scored] &= np.isfinite(true_quat[rows[scored], 0])
+    error = np.full((len(ids), 3), np.nan)
+    if np.any(scored):
+        R_true = geometry.quat_to_matrix(true_quat[rows[scored]])
+        error[scored] = geometry.so3_log(R_true @ np.swapaxes(geometry.so3_exp(rotvec[scored]), -1, -2))
+    cov = np.asarray(estimated.orientation_cov, dtype=float)
+    return {name: _angle_errors(error[mask & scored], cov[mask & scored])
+            for name, mask in (("mapped", ~added), ("moved", moved & ~added), ("added", added))}
+
+
+def _angle_errors(error: np.ndarray, cov: np.ndarray) -> dict:
+    """``count``, ``rmse_deg``, ``max_deg`` of rotation errors (M, 3) (world rotation vectors), and
+    ``nees``: mean ``e^T C^-1 e`` over those with a positive definite covariance (3 if consistent)."""
+    angle = np.degrees(np.linalg.norm(error, axis=1))
+    definite = np.linalg.eigvalsh(cov)[:, 0] > 0.0 if len(cov) else np.zeros(0, dtype=bool)
+    nees = np.einsum("ni,ni->n", error[definite], np.linalg.solve(cov[definite], error[definite][:, :, None])[:, :, 0])
+    return {"count": int(len(angle)), "rmse_deg": _number(np.sqrt(np.mean(angle**2))) if len(angle) else None,
+            "max_deg": _number(angle.max()) if len(angle) else None, "nees": _number(nees.mean()) if len(nees) else None}
 
 
 def _number(value: float) -> float | None:

@@ -172,14 +172,17 @@ def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
     A pixel measures no depth: its point is taken at the typical reach of the view
     (``pixel_reach``; half of it widened the gates too far: more wrong pairs). A planar robot's point
     (point2, a point of the floor known to ``sigma`` in x and y) adds ``sigma^2`` to its x and y
-    (the rotation drops out too), a marker also ``sigma^2`` to its heading (``sigma`` radians). A
-    tag's orientation is not widened: the mapping localizer does not run it.
+    (the rotation drops out too), a marker also ``sigma^2`` to its heading (``sigma`` radians), a
+    tag's orientation ``sigma^2`` per axis (a tag's orientation is held to ``sigma`` radians under
+    a prior, as a marker's heading: isotropic, so the same in the tag's frame).
     """
     floor = np.flatnonzero(np.isin(dataset.obs_kind, measurement.PLANAR_KINDS))
     widened = np.flatnonzero(np.isin(dataset.obs_kind, measurement.CAMERA_KINDS))
+    turned = np.flatnonzero(dataset.obs_kind == measurement.TAG_ROTATION)
     if widened.size == 0 and floor.size == 0:
         return dataset
     cov, info = dataset.obs_cov.copy(), dataset.obs_info.copy()
+    cov[turned] += sigma**2 * np.eye(3)
     cov[floor, 0, 0] += sigma**2
     cov[floor, 1, 1] += sigma**2
     cov[floor, 2, 2] += np.where(dataset.obs_kind[floor] == measurement.MARKER, sigma**2, 0.0)  # a marker's heading: sigma radians
@@ -196,7 +199,7 @@ def with_map_uncertainty(dataset: Dataset, sigma: float) -> Dataset:
         points[:, 2] = np.maximum(points[:, 2], measurement.MIN_POINT_DEPTH)
         J = measurement.projection_jacobian(points, intrinsics[rows].T, kind)
         cov[rows] += sigma**2 * J @ np.swapaxes(J, 1, 2)
-    widened = np.union1d(widened, floor)
+    widened = np.union1d(np.union1d(widened, floor), turned)
     info[widened] = sym3.inverse(cov[widened])
     return replace(dataset, obs_cov=cov, obs_info=info)
 

@@ -46,6 +46,7 @@ import shutil
 import tempfile
 import zipfile
 import zlib
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -68,6 +69,9 @@ SUMMARY_JSON = "summary.json"
 SMOOTHED_TUM = "smoothed.tum"
 MAP_CSV = "map.csv"
 MAP_HEADER = ("id", "x", "y", "z", "cxx", "cxy", "cxz", "cyy", "cyz", "czz", "origin", "observations")
+# after MAP_HEADER where the map has tags: a tag's orientation (world) and its covariance (rad^2,
+# the world rotation error e of R_true = Exp(e) R_tag), empty for a landmark that is not a tag
+MAP_ORIENTATION_HEADER = ("qx", "qy", "qz", "qw", "crxx", "crxy", "crxz", "cryy", "cryz", "crzz")
 ASSOCIATIONS_HEADER = ("pose", "camera", "u", "v", "depth", "landmark", "true_landmark", "mahalanobis")
 TUM_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
 RUN_FORMAT_VERSION = 2
@@ -733,6 +737,10 @@ class LandmarkMap:
     cov : (K, 3, 3) covariance of each position, m^2 (zero for a landmark held exactly at the map).
     added : (K,) bool: ``added`` (the map lacked it) or ``mapped``.
     observations : (K,) int64 observations the estimate used.
+    orientation : (K, 3) a tag's orientation (rotation vector of R_tag, world), NaN for a landmark
+        that is not a tag; None: no tag in the map (``map.csv`` then has no orientation columns).
+    orientation_cov : (K, 3, 3) its covariance, rad^2, of the world rotation error e
+        (``R_true = Exp(e) R_tag``; zero where held exactly), None with ``orientation``.
     """
 
     ids: np.ndarray
@@ -740,6 +748,8 @@ class LandmarkMap:
     cov: np.ndarray
     added: np.ndarray
     observations: np.ndarray
+    orientation: "np.ndarray | None" = None
+    orientation_cov: "np.ndarray | None" = None
 
 
 def map_text(landmarks: LandmarkMap) -> str:
@@ -753,8 +763,23 @@ def map_text(landmarks: LandmarkMap) -> str:
         ("added" if added else "mapped" for added in np.asarray(m.added, dtype=bool).tolist()),
         map(str, np.asarray(m.observations, dtype=np.int64).tolist()),
     ]
-    lines = [",".join(MAP_HEADER), *map(",".join, zip(*columns))]
+    header = MAP_HEADER
+    if m.orientation is not None:  # a map of tags: their orientations in columns after the others
+        header = MAP_HEADER + MAP_ORIENTATION_HEADER
+        columns += _orientation_columns(np.asarray(m.orientation, dtype=float), np.asarray(m.orientation_cov, dtype=float))
+    lines = [",".join(header), *map(",".join, zip(*columns))]
     return "\n".join(lines) + "\n"
+
+
+def _orientation_columns(rotvec: np.ndarray, cov: np.ndarray) -> list:
+    """``MAP_ORIENTATION_HEADER``'s columns: a tag's quaternion and covariance, empty cells for a
+    landmark that is not a tag."""
+    tag = np.isfinite(rotvec[:, 0])
+    quat = np.full((rotvec.shape[0], 4), np.nan)
+    if np.any(tag):
+        quat[tag] = geometry.matrix_to_quat(geometry.so3_exp(rotvec[tag]))
+    values = [quat[:, i] for i in range(4)] + [cov[:, i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    return [[repr(float(v)) if is_tag else "" for v, is_tag in zip(column.tolist(), tag.tolist())] for column in values]
 
 
 def write_map(run_dir: str | Path, landmarks: LandmarkMap) -> Path:
@@ -770,7 +795,7 @@ def write_map(run_dir: str | Path, landmarks: LandmarkMap) -> Path:
 
 
 def read_map(path: str | Path) -> LandmarkMap:
-    """Read a ``map.csv`` written by ``map_text``.
+    """Read a ``map.csv`` written by ``map_text`` (with its tags' orientation columns, where it has them).
 
     Raises
     ------
@@ -778,13 +803,15 @@ def read_map(path: str | Path) -> LandmarkMap:
     """
     path = Path(path)
     lines = _read_text(path).splitlines()
-    if not lines or tuple(cell.strip() for cell in lines[0].split(",")) != MAP_HEADER:
-        raise DatasetError(path, 1, f"expected the header {','.join(MAP_HEADER)}, found {lines[0] if lines else 'nothing'}")
-    ids, values, added, observations = [], [], [], []
+    header = tuple(cell.strip() for cell in lines[0].split(",")) if lines else ()
+    if header not in (MAP_HEADER, MAP_HEADER + MAP_ORIENTATION_HEADER):
+        raise DatasetError(path, 1, f"expected the header {','.join(MAP_HEADER)} (then {','.join(MAP_ORIENTATION_HEADER)} "
+                                    f"for a map of tags), found {lines[0] if lines else 'nothing'}")
+    ids, values, added, observations, turned = [], [], [], [], []
     for number, line in enumerate(lines[1:], start=2):
         cells = [cell.strip() for cell in line.split(",")]
-        if len(cells) != len(MAP_HEADER):
-            raise DatasetError(path, number, f"expected {len(MAP_HEADER)} fields, found {len(cells)}")
+        if len(cells) != len(header):
+            raise DatasetError(path, number, f"expected {len(header)} fields, found {len(cells)}")
         if cells[10] not in ("mapped", "added"):
             raise DatasetError(path, number, f"origin: expected mapped or added, found {cells[10]!r}")
         try:
@@ -797,10 +824,36 @@ def read_map(path: str | Path) -> LandmarkMap:
             raise DatasetError(path, number, "expected finite numbers")
         values.append(row)
         added.append(cells[10] == "added")
+        if len(header) > len(MAP_HEADER):
+            turned.append(_orientation_cells(path, number, cells[len(MAP_HEADER):]))
     v = np.array(values, dtype=float).reshape(-1, 9)
     upper = v[:, [3, 4, 5, 4, 6, 7, 5, 7, 8]].reshape(-1, 3, 3)
-    return LandmarkMap(np.array(ids, dtype=np.int64), v[:, :3], upper, np.array(added, dtype=bool),
-                       np.array(observations, dtype=np.int64))
+    landmarks = LandmarkMap(np.array(ids, dtype=np.int64), v[:, :3], upper, np.array(added, dtype=bool),
+                            np.array(observations, dtype=np.int64))
+    if len(header) == len(MAP_HEADER):
+        return landmarks
+    o = np.array(turned, dtype=float).reshape(-1, 10)
+    tag = np.isfinite(o[:, 0])
+    rotvec = np.full((o.shape[0], 3), np.nan)
+    if np.any(tag):
+        rotvec[tag] = geometry.so3_log(geometry.quat_to_matrix(o[tag, :4]))
+    cov = o[:, [4, 5, 6, 5, 7, 8, 6, 8, 9]].reshape(-1, 3, 3)
+    cov[~tag] = 0.0  # not a tag: no orientation, nothing uncertain about it (as the run holds it)
+    return dataclasses.replace(landmarks, orientation=rotvec, orientation_cov=cov)
+
+
+def _orientation_cells(path: Path, number: int, cells: list[str]) -> list[float]:
+    """A row's orientation cells (``MAP_ORIENTATION_HEADER``): ten numbers, a unit quaternion
+    first, or ten empty cells (not a tag: NaN)."""
+    if all(cell == "" for cell in cells):
+        return [math.nan] * len(cells)
+    try:
+        numbers = [float(cell) for cell in cells]
+    except ValueError:
+        raise DatasetError(path, number, "orientation: expected ten numbers or ten empty cells") from None
+    if not all(math.isfinite(v) for v in numbers) or abs(math.hypot(*numbers[:4]) - 1.0) > 1e-6:
+        raise DatasetError(path, number, "orientation: expected a unit quaternion and finite covariances")
+    return numbers
 
 
 def load_smoothed(run_dir: str | Path, pose_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:

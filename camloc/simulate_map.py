@@ -10,7 +10,11 @@ moved since, no survey at all):
   map, as it sees clutter (``camloc.g2o``), and only the true map tells the two apart.
 - **moved**: a random ``move_map`` share of the landmarks (none of the withheld ones) is written
   ``move_distance`` metres from its true position, in a random direction (uniform on the sphere;
-  in the floor's plane for a planar landmark). The detections are of the true positions.
+  in the floor's plane for a planar landmark). The detections are of the true positions. A moved
+  **tag** is also turned, by ``move_distance`` read as radians about a random axis (uniform on the
+  sphere): a tag put back by hand is rarely put back at its old orientation, and the angle is the
+  distance's number as ``--map-sigma`` holds a tag's orientation to its number in radians (0.3 m and
+  0.3 rad: three sigmas of a 0.1 prior each). A marker's heading is kept.
 - **no map**: no landmark is written at all (``no_map``).
 
 The edit draws from its own stream (``np.random.default_rng([seed, MAP_STREAM])``), so a world with
@@ -28,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from camloc import geometry
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Dataset
 from camloc.g2o import TAG_LANDMARK, TAG_LANDMARK_XY, TAG_MARKER, TAG_TAG
 
@@ -51,8 +56,8 @@ class MapEdits:
     dataset : the world as written: its map edited, its observations those of ``whole``.
     whole : the same world with its true, complete map.
     withheld : (W,) int64 ids of the landmarks left out of ``dataset``'s map.
-    moved : (M,) int64 ids of the landmarks written away from their true position.
-    move_distance : how far, metres.
+    moved : (M,) int64 ids of the landmarks written away from their true position (a tag also turned).
+    move_distance : how far, metres (and how far a moved tag is turned, radians).
     """
 
     dataset: Dataset
@@ -104,14 +109,28 @@ def edit_map(whole: Dataset, config: Any, *, seed: int) -> MapEdits:
     xyz = whole.landmark_xyz.copy()
     planar = np.isin(whole.landmark_kind[moved_rows], (LANDMARK_POINT2, LANDMARK_MARKER))
     xyz[moved_rows] += config.move_distance * random_directions(rng, planar)
+    quat = _turned_tags(rng, whole.landmark_quat_xyzw, moved_rows, config.move_distance)
     dataset = dataclasses.replace(
         whole, source=_described(whole.source, config),
         landmark_ids=whole.landmark_ids[kept], landmark_xyz=xyz[kept], landmark_kind=whole.landmark_kind[kept],
-        landmark_heading=whole.landmark_heading[kept], landmark_quat_xyzw=whole.landmark_quat_xyzw[kept],
+        landmark_heading=whole.landmark_heading[kept], landmark_quat_xyzw=quat[kept],
         tag_counts=_landmark_counts(whole.tag_counts, whole.landmark_kind[kept]),
     )
     return MapEdits(dataset, whole, np.sort(whole.landmark_ids[withheld_rows]), np.sort(whole.landmark_ids[moved_rows]),
                     float(config.move_distance))
+
+
+def _turned_tags(rng: np.random.Generator, quat_xyzw: np.ndarray, moved_rows: np.ndarray, angle: float) -> np.ndarray:
+    """The map's orientations (L, 4) with the moved tags (of ``moved_rows``) turned by ``angle``
+    radians about random axes (drawn only where a moved landmark is a tag: other worlds' edits
+    stay the same draws)."""
+    tags = moved_rows[np.isfinite(quat_xyzw[moved_rows, 0])]
+    if tags.size == 0:
+        return quat_xyzw
+    axes = random_directions(rng, np.zeros(tags.size, bool))
+    out = quat_xyzw.copy()
+    out[tags] = geometry.matrix_to_quat(geometry.so3_exp(angle * axes) @ geometry.quat_to_matrix(quat_xyzw[tags]))
+    return out
 
 
 def _described(source: str, config: Any) -> str:

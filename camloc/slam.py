@@ -39,6 +39,11 @@ Planar     a planar robot (``Dataset.planar``) runs this model lifted: its pose 
            the world moves it, so G has no row for it); z = (R' (l - t) in x and y, psi - theta):
            d z_psi / d (e, xi_theta_z) = (1, -1), and in its inverse observation B puts xi_theta_z
            into e.
+Tags       a tag in the state is two rows of L: its centre and its orientation's rotation vector
+           (``SlamMean.orientation`` marks the latter), with the left error
+           R_tag = Exp(xi_theta) Exp(xi_o) R^_tag: ``camloc.slam_tags``' model card (its
+           measurement, inverse observation, prior and world covariance). Here: ``retract``,
+           ``difference``, ``noise_coefficients`` (xi_o -= R w_theta) and the rows' bookkeeping.
 
 Pure: no I/O, no printing. Every Jacobian is checked against finite differences of ``retract``
 in tests/test_slam.py.
@@ -50,9 +55,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
-from camloc import ekf, geometry, measurement, planar
+from camloc import ekf, geometry, measurement, planar, slam_tags
 
 if TYPE_CHECKING:
     from camloc.sensors import CameraModel  # a camera: T_robot_camera, intrinsics, kind
@@ -62,11 +67,18 @@ POSE_DIM = 6  # xi_t, xi_theta
 
 @dataclass
 class SlamMean:
-    """The estimate's mean: the robot pose (R (3, 3), t (3,)) and the landmarks in the state L (m, 3)."""
+    """The estimate's mean: the robot pose (R (3, 3), t (3,)) and the landmarks in the state L (m, 3).
+    ``orientation`` (m,) bool marks the rows of L that are a tag's orientation (the rotation vector
+    of R_tag, world; ``camloc.slam_tags``), None where no row is (every row a position)."""
 
     R: np.ndarray
     t: np.ndarray
     L: np.ndarray
+    orientation: Optional[np.ndarray] = None
+
+    def orientation_rows(self) -> np.ndarray:
+        """The rows (q,) of L that are a tag's orientation."""
+        return np.zeros(0, np.int64) if self.orientation is None else np.flatnonzero(self.orientation)
 
     @property
     def dim(self) -> int:
@@ -85,7 +97,10 @@ def retract(x: SlamMean, delta: np.ndarray) -> SlamMean:
     """``exp(delta) x``: the estimate moved by an error delta (dim,) (the group's exponential)."""
     E, J = geometry.so3_exp_and_left_jacobian_one(delta[3:6])
     L = x.L @ E.T + delta[6:].reshape(-1, 3) @ J.T if x.L.size else x.L.copy()
-    return SlamMean(E @ x.R, E @ x.t + J @ delta[0:3], L)
+    rows = x.orientation_rows()
+    if rows.size:  # a tag's orientation: R_tag = Exp(xi_theta) Exp(xi_o) R^_tag (slam_tags)
+        L[rows] = slam_tags.turned(x.L[rows], delta[6:].reshape(-1, 3)[rows], E)
+    return SlamMean(E @ x.R, E @ x.t + J @ delta[0:3], L, x.orientation)
 
 
 def difference(a: SlamMean, b: SlamMean) -> np.ndarray:
@@ -95,6 +110,9 @@ def difference(a: SlamMean, b: SlamMean) -> np.ndarray:
     J_inverse = geometry.so3_left_jacobian_inverse_one(phi)
     dt = J_inverse @ (a.t - E @ b.t)
     dl = (a.L - b.L @ E.T) @ J_inverse.T if a.L.size else np.zeros((0, 3))
+    rows = b.orientation_rows()
+    if rows.size:
+        dl[rows] = slam_tags.turn_between(a.L[rows], b.L[rows], E)
     return np.concatenate([dt, phi, dl.ravel()])
 
 
@@ -104,7 +122,7 @@ def predict(x: SlamMean, P: np.ndarray, T_increment: np.ndarray, Q: np.ndarray) 
     new estimate (``noise_coefficients``)."""
     R_next = x.R @ T_increment[:3, :3]
     t_next = x.t + x.R @ T_increment[:3, 3]
-    x_next = SlamMean(R_next, t_next, x.L)
+    x_next = SlamMean(R_next, t_next, x.L, x.orientation)
     G = noise_coefficients(x_next)
     try:  # G Q G' as W W' (W = G chol(Q)): BLAS's symmetric product, exactly symmetric, so P's sum is too
         W = G @ np.linalg.cholesky(Q)
@@ -123,7 +141,8 @@ def noise_coefficients(x: SlamMean) -> np.ndarray:
     """G (dim, 6): how the increment's right perturbation w = (w_t, w_theta) moves the error: the
     body-frame noise seen in the world, ``xi_theta += R w_theta``, ``xi_t += R w_t + [t]x R w_theta``,
     and every landmark's ``xi_l += [l]x R w_theta`` (a turn of the robot about itself is, in this
-    error, a turn of the world about its origin and a shift back; the adjoint of SE_{m+1}(3))."""
+    error, a turn of the world about its origin and a shift back; the adjoint of SE_{m+1}(3)); a
+    tag's orientation ``xi_o -= R w_theta`` (``slam_tags``: it rides on xi_theta, which moved)."""
     G = np.zeros((x.dim, POSE_DIM))
     RW = x.R
     G[0:3, 0:3] = RW
@@ -131,6 +150,9 @@ def noise_coefficients(x: SlamMean) -> np.ndarray:
     G[3:6, 3:6] = RW
     if x.L.size:
         G[POSE_DIM:, 3:6] = (geometry.hat(x.L) @ RW).reshape(-1, 3)
+    rows = x.orientation_rows()
+    if rows.size:
+        G[(POSE_DIM + 3 * rows[:, None] + np.arange(3)).ravel(), 3:6] = np.tile(-RW, (rows.size, 1))
     return G
 
 
@@ -251,12 +273,14 @@ def augmented(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.
     return augmented_many(x, P, xyz[None, :], B[None, :, :], N[None, :, :])
 
 
-def augmented_many(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+def augmented_many(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N: np.ndarray,
+                   orientation: Optional[np.ndarray] = None) -> tuple[SlamMean, np.ndarray]:
     """The state with q more landmarks at xyz (q, 3), landmark i's error ``B_i xi + n_i`` (B (q, 3,
     w) on the current error's first w components, the n_i ~ N(0, N_i) independent of it and of one
     another): one new covariance for all of them, the same as adding them one at a time (the
     later ones' B is zero on the earlier ones). A B on the pose alone (w = POSE_DIM, as the
-    inverse observation's and a map prior's are) costs O(n), not O(n^2), a row."""
+    inverse observation's and a map prior's are) costs O(n), not O(n^2), a row. ``orientation``
+    (q,) bool: which new rows are a tag's orientation (None: none)."""
     n, q, w = P.shape[0], xyz.shape[0], B.shape[2]
     B = B.reshape(3 * q, w)
     BP = B @ P[:w, :]  # (3q, n): B is zero beyond its w columns
@@ -268,7 +292,15 @@ def augmented_many(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N
     for i in range(q):
         block[3 * i:3 * i + 3, 3 * i:3 * i + 3] += N[i]
     P_new[n:, n:] = ekf.symmetrize(block)
-    return SlamMean(x.R, x.t, np.vstack([x.L, xyz])), P_new
+    return SlamMean(x.R, x.t, np.vstack([x.L, xyz]), _joined_mask(x, q, orientation)), P_new
+
+
+def _joined_mask(x: SlamMean, q: int, orientation: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """The orientation mask of x's rows and q new ones (``orientation``, None: positions)."""
+    if x.orientation is None and orientation is None:
+        return None
+    old = x.orientation if x.orientation is not None else np.zeros(x.L.shape[0], bool)
+    return np.concatenate([old, orientation if orientation is not None else np.zeros(q, bool)])
 
 
 def world_prior_coefficients(x: SlamMean, xyz: np.ndarray) -> np.ndarray:
@@ -283,7 +315,8 @@ def without_landmarks(x: SlamMean, P: np.ndarray, drop: np.ndarray) -> tuple[Sla
     """The state without the landmarks whose rows ``drop`` (bool (m,)) marks: marginalized out,
     which for a Gaussian in covariance form is deleting their rows and columns."""
     keep_rows = np.flatnonzero(np.concatenate([np.ones(POSE_DIM, bool), np.repeat(~drop, 3)]))
-    return SlamMean(x.R, x.t, x.L[~drop]), P.take(keep_rows, axis=0).take(keep_rows, axis=1)  # (take: faster than np.ix_)
+    kept = x.orientation[~drop] if x.orientation is not None else None
+    return SlamMean(x.R, x.t, x.L[~drop], kept), P.take(keep_rows, axis=0).take(keep_rows, axis=1)  # (take: faster than np.ix_)
 
 
 def landmark_world_cov(x: SlamMean, P: np.ndarray, i: int) -> np.ndarray:

@@ -165,6 +165,7 @@ class PoseAssociation:
             if gated is None:
                 continue
             landmarks, cost, z_hat, H, extra = gated
+            cost = self._orientation_costs(mine, landmarks, cost, z_hat, H, extra)  # a tag's judged with its orientation
             for i, o in enumerate(mine.tolist()):
                 options = [Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
                                      self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]))
@@ -197,7 +198,10 @@ class PoseAssociation:
 
     def _sync_positions(self) -> None:
         """The table's positions of the landmarks in the state, for the search by place."""
-        if self.state_landmark:
+        if self.state_landmark and self.x.orientation is not None:  # a tag's orientation rows are not positions
+            position = ~self.x.orientation
+            self.table.xyz[np.array(self.state_landmark)[position]] = self.x.L[position]
+        elif self.state_landmark:
             self.table.xyz[np.array(self.state_landmark)] = self.x.L
 
     def _slack(self, landmark: int) -> float:
@@ -250,7 +254,7 @@ class PoseAssociation:
         S_pair = S[None, :, :, :] + self.association_cov[obs][:, None, :, :]
         d2, log_det = mahalanobis_3x3(S_pair, y)
         cost = d2 + log_det - self.log_det_R[obs][:, None]
-        gate = self.gate[self.obs_dof[obs]][:, None]
+        gate = self._position_gates(obs)[:, None]
         return candidates, np.where(np.isfinite(cost) & (d2 <= gate), cost, UNPAIRED), z_hat, H, extra
 
 

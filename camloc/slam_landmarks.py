@@ -65,7 +65,10 @@ class LandmarkTable:
                 ("tentative", bool, (), False),  # added from one observation, not yet confirmed by its score
                 ("score", float, (), 0.0),       # a tentative landmark's log-likelihood ratio over clutter
                 ("dead", bool, (), False),       # a tentative landmark dropped (clutter): out of the map
-                ("kind", np.int64, (), LANDMARK_POINT3))  # a camera's point, a floor point (point2) or a marker (``Dataset.landmark_kind``)
+                ("kind", np.int64, (), LANDMARK_POINT3),  # a camera's point, a floor point (point2) or a marker (``Dataset.landmark_kind``)
+                # a tag's orientation (``camloc.slam_tags``): its rotation vector (world; NaN: not a
+                # tag), world covariance while outside the state, and its row in the state (-1: outside)
+                ("rotvec", float, (3,), np.nan), ("rot_cov", float, (3, 3), 0.0), ("rot_row", np.int64, (), -1))
 
     ids: np.ndarray
     xyz: np.ndarray
@@ -79,6 +82,9 @@ class LandmarkTable:
     score: np.ndarray
     dead: np.ndarray
     kind: np.ndarray
+    rotvec: np.ndarray
+    rot_cov: np.ndarray
+    rot_row: np.ndarray
 
     def __init__(self, ids: np.ndarray, xyz: np.ndarray, cov: np.ndarray):
         n = ids.size
@@ -170,14 +176,20 @@ class LandmarkAdditions:
         those in it)."""
         table = self.table
         xyz, cov = table.xyz.copy(), table.cov.copy()
+        positions = self._position_rows()
         for row, landmark in enumerate(self.state_landmark):
-            xyz[landmark], cov[landmark] = self.x.L[row], slam.landmark_world_cov(self.x, self.P, row)
+            if positions[row]:
+                xyz[landmark], cov[landmark] = self.x.L[row], slam.landmark_world_cov(self.x, self.P, row)
         markers = table.kind == LANDMARK_MARKER  # on the floor (its heading, the third coordinate, is not written)
         xyz[markers, 2] = 0.0
         cov[markers, 2, :] = cov[markers, :, 2] = 0.0
         keep = ~table.dead & ~table.tentative
-        return LandmarkMap(ids=table.ids[keep], xyz=xyz[keep], cov=cov[keep], added=table.added[keep],
-                           observations=table.observations[keep])
+        landmark_map = LandmarkMap(ids=table.ids[keep], xyz=xyz[keep], cov=cov[keep], added=table.added[keep],
+                                   observations=table.observations[keep])
+        if not self.has_tags:
+            return landmark_map
+        rotvec, rot_cov = self._estimated_orientations()
+        return replace(landmark_map, orientation=rotvec[keep], orientation_cov=rot_cov[keep])
 
     def _retire(self, k: int) -> None:
         """Landmarks unseen for ``RETIRE_AFTER`` poses leave the state, keeping their estimate."""
@@ -204,6 +216,9 @@ class LandmarkAdditions:
             drop |= gone
         if not np.any(drop):
             return
+        if self.x.orientation is not None:  # a tag's orientation rows leave with its centre's
+            self._retire_tags(landmarks, drop)
+            return
         rows = np.flatnonzero(drop)
         self.table.xyz[landmarks[rows]] = self.x.L[rows]
         if self.compiled is not None:
@@ -215,6 +230,23 @@ class LandmarkAdditions:
         self.table.state_row[landmarks[drop]] = -1
         self.state_landmark = landmarks[~drop].tolist()
         self.table.state_row[landmarks[~drop]] = np.arange(int(np.count_nonzero(~drop)))
+
+    def _retire_tags(self, landmarks: np.ndarray, drop: np.ndarray) -> None:
+        """``_retire``'s leaving of the rows ``drop`` (m,) of a state that holds tags' orientations
+        (numpy: the compiled steps do not run tags): positions and orientations each to their columns."""
+        position = self._position_rows()
+        for row in np.flatnonzero(drop & position).tolist():
+            self.table.xyz[int(landmarks[row])] = self.x.L[row]
+            self.table.cov[int(landmarks[row])] = slam.landmark_world_cov(self.x, self.P, row)
+        turned = np.flatnonzero(drop & ~position)
+        self._leave_orientations(landmarks[turned], turned)
+        self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
+        self.table.state_row[landmarks[drop & position]] = -1
+        self.table.rot_row[landmarks[drop & ~position]] = -1
+        self.state_landmark = landmarks[~drop].tolist()
+        kept_position = position[~drop]
+        self.table.state_row[landmarks[~drop][kept_position]] = np.flatnonzero(kept_position)
+        self.table.rot_row[landmarks[~drop][~kept_position]] = np.flatnonzero(~kept_position)
 
     # -- the run's records ------------------------------------------------------------------------
 
@@ -233,7 +265,7 @@ class LandmarkAdditions:
                 self._add_landmark(k, o, SingleObservation(o), tentative=True)
                 continue
             origin, direction, sigma = self._ray(o)
-            track = self.tracks.add_ray(k, o, origin, direction, sigma)
+            track = self.tracks.add_ray(k, o, origin, direction, sigma, self._ray_fits(o))
             if self.tracks.confirmed(track) and self._add_landmark(k, o, track):
                 self.tracks.remove(track)
 
@@ -245,7 +277,7 @@ class LandmarkAdditions:
             return
         landmarks = np.array(self.state_landmark, np.int64)
         unseen = np.array([landmark not in seen for landmark in self.state_landmark])
-        rows = np.flatnonzero(table.tentative[landmarks] & unseen)
+        rows = np.flatnonzero(table.tentative[landmarks] & unseen & self._position_rows())
         if rows.size == 0:
             return
         in_view = self._in_sure_view(landmarks[rows], self.x.L[rows])
@@ -278,8 +310,8 @@ class LandmarkAdditions:
         for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():
             at = self.obs_sensor[obs_array] == sensor_id
             gated = self.landmark_costs(sensor_id, obs_array[at], nearby)
-            if gated is not None:
-                fits[at] = np.any(gated[1] < UNPAIRED, axis=1)
+            if gated is not None:  # (a tag's: with its orientation, so a tag beside another is a new one)
+                fits[at] = np.any(self._orientation_costs(obs_array[at], *gated) < UNPAIRED, axis=1)
         return obs_array[~fits].tolist()
 
     def _oracle_new(self, k: int, unassigned: list[int]) -> None:
@@ -352,6 +384,8 @@ class LandmarkAdditions:
         self.table.kind[landmark] = landmark_kind_of(sensor.kind)
         self.table.has_markers |= sensor.kind == measurement.MARKER
         self.chosen[np.array(track.observations, np.int64)] = landmark
+        if self.has_tags:
+            self._add_orientation(o, landmark, track.observations)
         return True
 
 

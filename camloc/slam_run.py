@@ -32,7 +32,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import ekf, geometry, measurement, planar, slam
+from camloc import ekf, geometry, measurement, planar, slam, slam_tags
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
 from camloc.filters import make_filter
@@ -43,12 +43,13 @@ from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
 from camloc.slam_association import BEAM_RECENT, PoseAssociation
 from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, floor_sure_view, sure_view
+from camloc.slam_tag_states import TagStates
 from camloc.slam_tracks import Tracks
 from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, TagStates):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -60,7 +61,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.beam_paired_at = np.full(dataset.landmark_ids.size, -BEAM_RECENT - 1, np.int64)  # the last pose it did so, per landmark
         self.beam_missed = np.zeros(dataset.landmark_ids.size, np.int64)  # poses it was surely in view and not paired
         self.sensors, self.obs_sensor = sensors_of(dataset)
-        self.compiled = _compiled_update(self.sensors) if compiled else None  # None: the numpy update
+        # None: the numpy update (a tag's orientation is the numpy update's only, as in the localizer)
+        self.compiled = _compiled_update(self.sensors) if compiled and not np.any(dataset.obs_kind == measurement.TAG_ROTATION) else None
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
         noise = observation_noise(dataset, config)
         self.association_cov, self.log_det_R, self.null_cost = noise.cov, noise.log_det, noise.null_cost
@@ -77,6 +79,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.table = LandmarkTable(ids, xyz, np.tile(sigma2 * np.eye(3), (ids.size, 1, 1)))
         if held and dataset.planar:
             self._planar_landmarks(dataset)
+        self.null_cost = self._init_tags(held, self.null_cost)  # a tag's orientation in the table, its clutter cost
         self.mapped_index = PointIndex(xyz) if ids.size else None
         self.table.scan = self.compiled.live_within if self.compiled is not None else None
         self.state_landmark: list[int] = []  # table index of each landmark in the state
@@ -88,6 +91,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         order, bounds = observations_by_pose(dataset)
         self.obs_order, self.obs_bounds = order, bounds  # pose k's observations: order[bounds[k]:bounds[k + 1]]
         self.obs_of_pose = [order[bounds[k]:bounds[k + 1]] for k in range(dataset.num_poses)]
+        if self.has_tags:  # what association sees of a pose: a tag's orientation rides with its position (``TagStates``)
+            self.obs_of_pose = [obs[dataset.obs_kind[obs] != measurement.TAG_ROTATION] for obs in self.obs_of_pose]
 
         self.T_increments = dataset.T_odometry  # a property that converts every quaternion: once, not per pose
         T0 = dataset.T_world_start
@@ -148,6 +153,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
             pairs += self._associated(obs[given < 0], added_only=self.config.map == "exact", k=k)
         else:
             pairs = self._associated(obs)
+        pairs = self._with_orientations(pairs)  # a tag pair's orientation joins it
         if pairs:
             self._update(k, pairs)
         paired = {o for o, _ in pairs}
@@ -168,15 +174,17 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         self.x, self.P = slam.augmented_many(self.x, self.P, xyz, B, self.table.cov[landmarks])
         self.table.state_row[landmarks] = len(self.state_landmark) + np.arange(len(landmarks))
         self.state_landmark.extend(landmarks)
+        self._enter_orientations(landmarks)
 
     def _update(self, k: int, pairs: list[tuple[int, int]]) -> None:
         obs, landmarks = np.array(pairs, np.int64).T
         # landmarks outside the state held with a covariance (not exactly) enter it
-        outside = landmarks[self.table.state_row[landmarks] < 0]
+        positions = landmarks if not self.has_tags else landmarks[self.dataset.obs_kind[obs] != measurement.TAG_ROTATION]
+        outside = positions[self.table.state_row[positions] < 0]
         entering = outside[np.any(self.table.cov[outside] != 0.0, axis=(1, 2))].tolist()
         if entering:
             self._enter(entering)
-        rows = self.table.state_row[landmarks]
+        rows = self._state_rows(obs, landmarks)
         ds = self.dataset
         done = None
         if self.compiled is not None:
@@ -193,7 +201,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
             d2, _ = mahalanobis_3x3(S, innovation.reshape(obs.size, 3))
         self.chosen[obs], self.mahalanobis[obs] = landmarks, np.sqrt(d2)
         self.table.last_seen[landmarks] = k
-        np.add.at(self.table.observations, landmarks, 1)
+        np.add.at(self.table.observations, positions, 1)
         self.update_pose_ids.append(int(ds.pose_ids[k]))
         self.nis.append(recorded_nis(nis, map_cost, self.config.iterations))
         self.map_costs.append(map_cost)
@@ -203,6 +211,9 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
         """The pose's iterated update in numpy (the compiled one's reference, ``camloc.slam_compiled``):
         (innovation (3 p,), S's diagonal blocks (p, 3, 3), NIS, MAP cost); sets x and P."""
         fixed_xyz = self.table.xyz[landmarks]
+        if self.has_tags:  # a tag's orientation: its rotation vector where the state does not hold it
+            rotation = self.dataset.obs_kind[obs] == measurement.TAG_ROTATION
+            fixed_xyz[rotation] = self.table.rotvec[landmarks[rotation]]
         sensors = self.obs_sensor[obs]
         in_state = rows >= 0
         groups = [(self.sensors[s], sensors == s) for s in np.unique(sensors).tolist()]
@@ -220,7 +231,10 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions):
             else:
                 z_hat, H = np.zeros((obs.size, measurement.MAX_DIM)), np.zeros((obs.size, measurement.MAX_DIM, columns.size))
                 for sensor, at in groups:
-                    z_hat[at], H[at] = slam.observe_columns(x, sensor, xyz[at], block[at], columns.size)
+                    if sensor.kind == measurement.TAG_ROTATION:
+                        z_hat[at], H[at] = slam_tags.observe_orientations(x, sensor, xyz[at], block[at], columns.size, ds.obs_z[obs[at]])
+                    else:
+                        z_hat[at], H[at] = slam.observe_columns(x, sensor, xyz[at], block[at], columns.size)
             return slam.wrapped_predictions(z_hat, ds.obs_z[obs], kinds).ravel(), H.reshape(-1, columns.size)
 
         result = ekf.update(self.x, self.P, ds.obs_z[obs].ravel(), ds.obs_cov[obs], measure, retract=slam.retract,

@@ -22,6 +22,7 @@ Pure: no I/O, no printing.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -115,11 +116,13 @@ class Tracks:
         """Drop the tracks not extended within ``TRACK_WINDOW`` poses of pose k."""
         self.tracks = [t for t in self.tracks if k - t.last_pose <= TRACK_WINDOW]
 
-    def add_ray(self, k: int, obs: int, origin: np.ndarray, direction: np.ndarray, sigma_angle: float) -> Track:
+    def add_ray(self, k: int, obs: int, origin: np.ndarray, direction: np.ndarray, sigma_angle: float,
+                fits: Optional[Callable[[list], bool]] = None) -> Track:
         """A pixel observation, the ray from ``origin`` along the unit ``direction``: joins a
-        track whose rays it meets, or starts one."""
+        track whose rays it meets (and, given ``fits``, whose observations it fits otherwise: a
+        tag's orientation), or starts one."""
         for track in self.tracks:
-            if obs in track.observations:
+            if obs in track.observations or (fits is not None and not fits(track.observations)):
                 continue
             origins = np.array(track.origins + [origin])
             directions = np.array(track.directions + [direction])

@@ -106,4 +106,5 @@ def _map_score(run_dir: Path, result, true_map: Path) -> dict:
     associations = result.associations
     return map_score(estimated, given_ids=result.map_landmark_ids, given_xyz=result.map_landmark_xyz,
                      true_ids=truth.landmark_ids, true_xyz=truth.landmark_xyz,
-                     obs_landmark=associations.landmark, obs_true=associations.true_landmark)
+                     obs_landmark=associations.landmark, obs_true=associations.true_landmark,
+                     true_quat_xyzw=truth.landmark_quat_xyzw)

@@ -146,6 +146,12 @@ def _map_table(score: Mapping[str, Any]) -> Table:
             ("of no true landmark", "unknown", "d"))
     for label, key, spec in rows:
         table.add_row(Text(label), *(cell(block, key, spec) for block in ("mapped", "moved", "added")))
+    turned = score.get("orientation")
+    if turned is not None:  # a map of tags: their orientations' errors under the positions'
+        for label, key, spec in (("tags scored", "count", "d"), ("orientation RMSE [deg]", "rmse_deg", ".2f"),
+                                 ("largest [deg]", "max_deg", ".2f"), ("orientation NEES (3)", "nees", ".2f")):
+            table.add_row(Text(label), *("-" if turned[block][key] is None else format(turned[block][key], spec)
+                                         for block in ("mapped", "moved", "added")))
     return table
 
 

@@ -107,7 +107,7 @@ _MAP = library_option(
     "estimated too, pulled toward the map with --map-sigma), none (the map's positions unused: everything is "
     "mapped). Landmarks added (EKF-SLAM) are in map.csv of the run folder (docs/mapping.md): point landmarks of "
     "3-D cameras with depth or disparity and a planar robot's points and markers; a pixel-only camera's rays "
-    "are mapped under prior and none only; tags' orientations are not mapped (prior and none are refused). "
+    "are mapped under prior and none only; tags are mapped with their orientations (map.csv's orientation columns). "
     "auto: exact for a file with a map, none for one without.",
     "localizer.map", "--map"
 )

@@ -215,9 +215,11 @@ def test_an_empty_map_is_not_called_incomplete_but_says_what_maps_it():
     assert "'--map none'" in run_warnings(counts, map_size=0)[1]
 
 
-def test_a_tag_file_without_a_map_runs_on_odometry_and_says_why(tmp_path):
-    """Tags' orientations are not mapped: a tag file without a map runs on odometry and says why
-    (a planar file without a map is mapped: tests/test_mapping_planar.py)."""
+def test_a_tag_file_without_a_map_is_mapped_and_not_warned_about(tmp_path):
+    """Tags are mapped with their orientations (tests/test_mapping_tags.py): a tag file without a
+    map runs --map none by default, adds its tags, and says nothing of an unmapped dataset."""
+    import json
+
     from typer.testing import CliRunner
 
     from camloc.cli.app import app
@@ -225,8 +227,8 @@ def test_a_tag_file_without_a_map_runs_on_odometry_and_says_why(tmp_path):
     dataset = tmp_path / "nomap.g2o"
     made = CliRunner().invoke(app, ["simulate", "-o", str(dataset), "--tag-sigma-deg", "1", "--no-map", "--poses", "30", "-q"])
     assert made.exit_code == 0, made.output
-    result = CliRunner().invoke(app, ["run", str(dataset), "-o", str(tmp_path / "run"), "--quiet"])
+    result = CliRunner().invoke(app, ["run", str(dataset), "-o", str(tmp_path / "run"), "--json"])
     assert result.exit_code == 0, result.output
-    text = " ".join(result.output.split())
-    assert f"camloc maps (EKF-SLAM) only {MAPPED_LANDMARKS}: this dataset's tags carry orientations" in text
-    assert "the map may lack" not in result.output
+    summary = json.loads(result.output)
+    assert summary["map"]["mode"] == "none" and summary["map"]["added"] >= 1
+    assert not any("camloc maps (EKF-SLAM) only" in w or "the map may lack" in w for w in summary["warnings"])

@@ -72,6 +72,7 @@ def _expected() -> dict:
         "added_twice": {"landmarks": 1, "true_landmarks": 1, "share": pytest.approx(1 / 5), "mapped_copies": 1},
         "clutter": {"landmarks": 1, "observations": 3, "clutter_observations": 7, "share": pytest.approx(3 / 7)},
         "never_added": {"count": 1, "of": 3, "share": pytest.approx(1 / 3)},
+        "orientation": None,  # no tag in the map
     }
 
 
@@ -144,3 +145,24 @@ def test_a_point_of_the_floor_is_scored_on_its_x_and_y():
                       obs_landmark=np.array([0, 1]), obs_true=np.array([0, 1]))
     floor_nees = 1.5 * (0.2**2 / 0.04 + 0.1**2 / 0.01)  # 3.0
     assert score["mapped"]["nees"] == pytest.approx((floor_nees + 0.3**2 / 0.09) / 2)
+
+
+def test_tags_orientation_errors_of_mapped_moved_and_added_tags():
+    """A map of tags: each tag's angle to its true orientation (an added one to the tag it stands
+    for), grouped as the positions are, with the NEES of the world rotation error."""
+    from camloc import geometry
+
+    true_quat = geometry.matrix_to_quat(geometry.so3_exp(np.array([[0.1, 0.2, 0.3], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])))
+    truth_xyz = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    turns = np.array([[0.0, 0.0, 0.02], [0.03, 0.0, 0.0], [0.0, 0.04, 0.0]])  # R_est = Exp(-turn) R_true
+    rotvec = geometry.so3_log(geometry.so3_exp(-turns) @ geometry.quat_to_matrix(true_quat))
+    estimated = LandmarkMap(np.array([0, 1, 50]), truth_xyz + 0.01, np.tile(np.eye(3) * 1e-4, (3, 1, 1)), np.array([False, False, True]),
+                            np.array([3, 3, 3]), orientation=rotvec, orientation_cov=np.tile(np.eye(3) * 1e-4, (3, 1, 1)))
+    score = map_score(estimated, given_ids=np.array([0, 1]), given_xyz=truth_xyz[:2] + [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]],
+                      true_ids=np.arange(3), true_xyz=truth_xyz, obs_landmark=np.array([50, 50]), obs_true=np.array([2, 2]),
+                      true_quat_xyzw=true_quat)["orientation"]
+    assert score["mapped"]["count"] == 2 and score["moved"]["count"] == 1 and score["added"]["count"] == 1
+    assert score["mapped"]["max_deg"] == pytest.approx(np.degrees(0.03))
+    assert score["moved"]["rmse_deg"] == pytest.approx(np.degrees(0.03))
+    assert score["added"]["rmse_deg"] == pytest.approx(np.degrees(0.04))
+    assert score["added"]["nees"] == pytest.approx(0.04**2 / 1e-4)
