@@ -1318,8 +1318,27 @@ def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, con
                            np.zeros(0, dtype=np.int64))
     all_ids = np.concatenate(ids)
     order = np.argsort(all_ids, kind="stable")
-    return LandmarkMap(all_ids[order], np.concatenate(xyz)[order], np.concatenate(cov)[order],
-                       np.concatenate(added)[order], np.concatenate(observations)[order])
+    table = LandmarkMap(all_ids[order], np.concatenate(xyz)[order], np.concatenate(cov)[order],
+                        np.concatenate(added)[order], np.concatenate(observations)[order])
+    return _with_run_orientations(table, run)
+
+
+def _with_run_orientations(table: LandmarkMap, run: RunResult) -> LandmarkMap:
+    """``table`` with the tags' orientations of the run's own map (``run.landmark_map``: the
+    filter's estimate, or the map's where it held a tag exactly), where that map has orientation
+    columns: the smoother does not estimate a tag's orientation, and rewriting ``map.csv`` without
+    them would lose the run's. A row the run's map lacks, or that is not a tag there: none (NaN)."""
+    own = run.landmark_map
+    if own is None or own.orientation is None:
+        return table
+    rows = landmark_rows(own.ids, table.ids)
+    found = rows >= 0
+    orientation = np.full((len(table.ids), 3), np.nan)
+    orientation_cov = np.zeros((len(table.ids), 3, 3))
+    orientation[found] = own.orientation[rows[found]]
+    orientation_cov[found] = own.orientation_cov[rows[found]]
+    orientation_cov[~np.isfinite(orientation[:, 0])] = 0.0
+    return replace(table, orientation=orientation, orientation_cov=orientation_cov)
 
 
 def _run_rows(run: RunResult, landmark_ids: np.ndarray) -> Optional[LandmarkMap]:

@@ -157,6 +157,23 @@ def test_a_tag_world_through_the_command_line(tmp_path, mode, edit):
     drawn = _cli("plot", tmp_path / "r", "--true-map", tmp_path / "tags.true-map.g2o")
     assert drawn.exit_code == 0 and drawn.exception is None, drawn.output
     assert (tmp_path / "r" / "fig-map.png").is_file() or any((tmp_path / "r").glob("fig-map*"))
+    # smoothing rewrites map.csv: the tags' orientations the run estimated stay in it (the smoother
+    # does not estimate them), and eval still scores them
+    from camloc.results import read_map
+
+    before = read_map(tmp_path / "r" / "map.csv")
+    smoothed = _cli("smooth", tmp_path / "r", "--map", mode, "--json")
+    assert smoothed.exit_code == 0 and smoothed.exception is None, smoothed.output
+    after = read_map(tmp_path / "r" / "map.csv")
+    assert after.orientation is not None
+    common, at_before, at_after = np.intersect1d(before.ids, after.ids, return_indices=True)
+    assert common.size >= 1
+    # (map.csv holds quaternions: a rotation vector read back is the same to rounding)
+    np.testing.assert_allclose(after.orientation[at_after], before.orientation[at_before], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(after.orientation_cov[at_after], before.orientation_cov[at_before], rtol=0, atol=1e-15)
+    rescored = _cli("eval", tmp_path / "r", "--true-map", tmp_path / "tags.true-map.g2o", "--json")
+    assert rescored.exit_code == 0, rescored.output
+    assert json.loads(rescored.output)["map"]["orientation"] is not None
 
 
 def test_pixel_tags_rays_of_two_tags_are_not_one_tag():
