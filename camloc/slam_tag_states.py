@@ -54,7 +54,7 @@ class TagStates:
         self.rotation_clutter[ds.obs_partner[rotation]] = rotation_clutter_cost(self.association_cov[rotation])
         tail = min(1.0 - self.config.gate, TAG_GATE_TAIL)
         self.tag_position_gate = np.array([chi2_quantile(d, tail) if d else 0.0 for d in range(measurement.MAX_DIM + 1)])
-        self.joint_gate = chi2_quantile_of(measurement.dof_of(ds.obs_kind) + 3, tail)
+        self.joint_gate = chi2_quantile(measurement.dof_of(ds.obs_kind) + 3, tail)
         return null_cost + self.rotation_clutter
 
     def _position_gates(self, obs: np.ndarray) -> np.ndarray:
@@ -224,8 +224,3 @@ class TagStates:
                 rotvec[landmark], cov[landmark] = self.x.L[row], slam_tags.orientation_world_cov(self.P, row)
         return rotvec, cov
 
-
-def chi2_quantile_of(dof: np.ndarray, tail: float) -> np.ndarray:
-    """The chi^2 quantile (K,) of each degree of freedom (K,) at the upper ``tail``."""
-    table = {int(d): chi2_quantile(int(d), tail) for d in np.unique(dof).tolist()}
-    return np.array([table[int(d)] for d in np.asarray(dof).tolist()], dtype=float)
