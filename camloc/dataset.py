@@ -22,6 +22,12 @@ LANDMARK_POINT3, LANDMARK_POINT2, LANDMARK_MARKER = 0, 1, 2
 LANDMARK_TAG = 3
 
 
+def on_the_floor(kind: np.ndarray) -> np.ndarray:
+    """(L,) bool: which landmark kinds (L,) lie on the floor, without a height: floor points and
+    markers (a camera's 3-D point and a tag's centre have one)."""
+    return np.isin(kind, (LANDMARK_POINT2, LANDMARK_MARKER))
+
+
 @dataclass(frozen=True)
 class Camera:
     """A camera rigidly mounted on the robot.

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from camloc import geometry
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Dataset, on_the_floor
 from camloc.g2o import TAG_LANDMARK, TAG_LANDMARK_XY, TAG_MARKER, TAG_TAG
 
 # The configs' fields that edit the map (``camloc.simulate.SimulationConfig`` and
@@ -107,7 +107,7 @@ def edit_map(whole: Dataset, config: Any, *, seed: int) -> MapEdits:
     kept = np.setdiff1d(np.arange(count), withheld_rows)
     moved_rows = _pick(rng, kept, config.move_map * count)
     xyz = whole.landmark_xyz.copy()
-    planar = np.isin(whole.landmark_kind[moved_rows], (LANDMARK_POINT2, LANDMARK_MARKER))
+    planar = on_the_floor(whole.landmark_kind[moved_rows])
     xyz[moved_rows] += config.move_distance * random_directions(rng, planar)
     quat = _turned_tags(rng, whole.landmark_quat_xyzw, moved_rows, config.move_distance)
     dataset = dataclasses.replace(

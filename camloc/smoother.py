@@ -103,7 +103,7 @@ from scipy.sparse.linalg import LinearOperator, onenormest
 
 from camloc import geometry, measurement, tags
 from camloc.cholesky import NotPositiveDefinite
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset
+from camloc.dataset import Dataset, on_the_floor
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.observation_space import landmark_rows
@@ -285,14 +285,23 @@ class SmoothingProblem:
         """(L, 3, 3) each landmark variable's information from its own observations at poses T and
         its map prior (the poses held): ``sum J' J`` of the whitened landmark Jacobians."""
         rows = np.flatnonzero(self.obs_landmark >= 0)
+        J = self.obs_whiten[rows] @ self.landmark_jacobians(T, rows)
+        blocks = np.zeros((len(self.landmarks), LANDMARK_DOF, LANDMARK_DOF))
+        np.add.at(blocks, self.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)
+        return blocks + self.prior_information()
+
+    def landmark_jacobians(self, T: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(R, d, 3) the observations ``rows``' Jacobians by their landmark variable, at poses T."""
         lm = self.landmarks
         _, _, J, _ = observation_factors(T[self.obs_pose[rows]], self.obs_T_robot_camera[rows], self.obs_intrinsics[rows],
                                          lm.xyz[self.obs_landmark[rows]], self.obs_z[rows],
                                          None if self.obs_kind is None else self.obs_kind[rows])
-        J = self.obs_whiten[rows] @ J
-        blocks = np.zeros((len(lm), LANDMARK_DOF, LANDMARK_DOF))
-        np.add.at(blocks, self.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)
-        return blocks + np.where(lm.has_prior, 1.0 / lm.prior_sigma**2, 0.0)[:, None, None] * np.eye(LANDMARK_DOF)
+        return J
+
+    def prior_information(self) -> np.ndarray:
+        """(L, 3, 3) the information of each landmark variable's map prior (zero without one)."""
+        lm = self.landmarks
+        return np.where(lm.has_prior, 1.0 / lm.prior_sigma**2, 0.0)[:, None, None] * np.eye(LANDMARK_DOF)
 
     def reported_landmarks(self, estimate: LandmarkEstimate) -> LandmarkEstimate:
         """The landmark variables' estimate as ``map.csv`` takes it: positions, as they are here."""
@@ -1300,7 +1309,7 @@ def estimated_map(dataset: Dataset, run: RunResult, result: SmoothingResult, con
         xyz.append(dataset.landmark_xyz[rows])
         variance = 0.0 if config.map == "exact" else config.map_sigma**2
         held_cov = np.tile(variance * np.eye(3), (int(rows.sum()), 1, 1))
-        on_floor = np.isin(dataset.landmark_kind[rows], (LANDMARK_POINT2, LANDMARK_MARKER))  # no height: z = 0
+        on_floor = on_the_floor(dataset.landmark_kind[rows])  # no height: z = 0
         held_cov[on_floor, 2, :] = held_cov[on_floor, :, 2] = 0.0
         cov.append(held_cov)
         added.append(np.zeros(int(rows.sum()), dtype=bool))

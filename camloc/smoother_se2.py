@@ -56,7 +56,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from camloc import planar
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, on_the_floor
 from camloc.errors import CamlocError
 from camloc.measurement import MARKER, POINT2, is_planar
 from camloc.results import RunResult
@@ -101,16 +101,13 @@ class PlanarProblem(SmoothingProblem):
         X[marker, 2] = planar.wrap(X[marker, 2])
         return moved, X
 
-    def landmark_information(self, T: np.ndarray) -> np.ndarray:
-        """(L, 3, 3) each landmark variable's information from its own observations at poses T,
-        its map prior and its pin (the poses held)."""
-        rows = np.flatnonzero(self.obs_landmark >= 0)
-        _, _, J = observation_residuals(self, T, self.landmarks.xyz, rows)
-        J = self.obs_whiten[rows] @ J
-        blocks = np.zeros((len(self.landmarks), LANDMARK_DOF, LANDMARK_DOF))
-        np.add.at(blocks, self.obs_landmark[rows], np.swapaxes(J, 1, 2) @ J)
-        weight = prior_weights(self.landmarks)
-        return blocks + weight[:, :, None] ** 2 * np.eye(LANDMARK_DOF)
+    def landmark_jacobians(self, T: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(R, d, 3) the observations ``rows``' Jacobians by their landmark variable, at states T."""
+        return observation_residuals(self, T, self.landmarks.xyz, rows)[2]
+
+    def prior_information(self) -> np.ndarray:
+        """(L, 3, 3) each landmark variable's map prior and its pin (a floor point's z)."""
+        return prior_weights(self.landmarks)[:, :, None] ** 2 * np.eye(LANDMARK_DOF)
 
     def reported_landmarks(self, estimate: LandmarkEstimate) -> LandmarkEstimate:
         """Floor points and markers on the floor (z = 0, no z variance): a floor point's z is
@@ -197,12 +194,6 @@ def _flat_landmarks(problem: PlanarProblem, rows: np.ndarray) -> np.ndarray:
         return np.zeros(rows.size, dtype=bool)
     variable = problem.obs_landmark[rows]
     return (variable >= 0) & on_the_floor(problem.landmarks.kind[np.maximum(variable, 0)])
-
-
-def on_the_floor(kind: np.ndarray) -> np.ndarray:
-    """(L,) bool: which landmark kinds (L,) lie on the floor, without a height: floor points and
-    markers (a camera's 3-D point and a tag's centre have one)."""
-    return np.isin(kind, (LANDMARK_POINT2, LANDMARK_MARKER))
 
 
 def prior_weights(landmarks) -> np.ndarray:
