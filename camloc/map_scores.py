@@ -67,14 +67,15 @@ def map_score(estimated, *, given_ids: np.ndarray, given_xyz: np.ndarray, true_i
     truth = _Lookup(true_ids, true_xyz)
     category = np.where(truth.has(obs_true), obs_true, CLUTTER)
     stands = stands_for(ids[added], obs_landmark, category, truth)
+    offset = _moved_offsets(ids, ~added, truth, _Lookup(given_ids, given_xyz))
     return {
         "mapped": _mapped(ids, xyz, cov, ~added, truth),
-        "moved": _moved(ids, xyz, cov, ~added, truth, _Lookup(given_ids, given_xyz)),
+        "moved": _moved(ids, xyz, cov, offset, truth),
         "added": _added(xyz[added], cov[added], stands, truth),
         "added_twice": _added_twice(stands, given_ids),
         "clutter": _clutter(ids[added], stands, obs_landmark, category),
         "never_added": _never_added(stands, category, given_ids),
-        "orientation": _orientations(estimated, stands, truth, true_quat_xyzw, _moved_mask(ids, ~added, truth, _Lookup(given_ids, given_xyz))),
+        "orientation": _orientations(estimated, stands, truth, true_quat_xyzw, offset >= MOVED_FROM_M),
     }
 
 
@@ -125,8 +126,7 @@ def _errors(xyz: np.ndarray, cov: np.ndarray, true_xyz: np.ndarray) -> dict:
     its truth is) is scored on its x and y, that 2-dof NEES times 3/2 (so 3 where consistent too)."""
     error = xyz - true_xyz
     distance = np.linalg.norm(error, axis=1)
-    definite = np.linalg.eigvalsh(cov)[:, 0] > 0.0 if len(cov) else np.zeros(0, dtype=bool)
-    nees = np.einsum("ni,ni->n", error[definite], np.linalg.solve(cov[definite], error[definite][:, :, None])[:, :, 0])
+    definite, nees = _nees(error, cov)
     floor = ~definite & np.all(cov[:, 2, :] == 0.0, axis=1) & (error[:, 2] == 0.0) if len(cov) else definite
     floor &= np.linalg.eigvalsh(cov[:, :2, :2])[:, 0] > 0.0 if len(cov) else floor
     if np.any(floor):
@@ -156,16 +156,10 @@ def _moved_offsets(ids, mapped, truth: _Lookup, given: _Lookup) -> np.ndarray:
     return offset
 
 
-def _moved_mask(ids, mapped, truth: _Lookup, given: _Lookup) -> np.ndarray:
-    """(K,) bool: the mapped landmarks the given map put away from the truth."""
-    return _moved_offsets(ids, mapped, truth, given) >= MOVED_FROM_M
-
-
-def _moved(ids, xyz, cov, mapped, truth: _Lookup, given: _Lookup) -> dict:
-    """Mapped landmarks the given map put away from the truth: their error after the run, and
-    ``given_rmse``, how far the given map had them."""
+def _moved(ids, xyz, cov, offset: np.ndarray, truth: _Lookup) -> dict:
+    """Mapped landmarks the given map put away from the truth (``offset``: ``_moved_offsets``):
+    their error after the run, and ``given_rmse``, how far the given map had them."""
     rows = truth.rows(ids)
-    offset = _moved_offsets(ids, mapped, truth, given)
     moved = offset >= MOVED_FROM_M
     report = _errors(xyz[moved], cov[moved], truth.xyz[rows[moved]])
     report["given_rmse"] = _number(np.sqrt(np.mean(offset[moved] ** 2))) if moved.any() else None
@@ -240,10 +234,16 @@ def _angle_errors(error: np.ndarray, cov: np.ndarray) -> dict:
     """``count``, ``rmse_deg``, ``max_deg`` of rotation errors (M, 3) (world rotation vectors), and
     ``nees``: mean ``e^T C^-1 e`` over those with a positive definite covariance (3 if consistent)."""
     angle = np.degrees(np.linalg.norm(error, axis=1))
-    definite = np.linalg.eigvalsh(cov)[:, 0] > 0.0 if len(cov) else np.zeros(0, dtype=bool)
-    nees = np.einsum("ni,ni->n", error[definite], np.linalg.solve(cov[definite], error[definite][:, :, None])[:, :, 0])
+    _, nees = _nees(error, cov)
     return {"count": int(len(angle)), "rmse_deg": _number(np.sqrt(np.mean(angle**2))) if len(angle) else None,
             "max_deg": _number(angle.max()) if len(angle) else None, "nees": _number(nees.mean()) if len(nees) else None}
+
+
+def _nees(error: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which errors (M, 3) have a positive definite covariance (M, 3, 3) (M,), and their
+    ``e^T C^-1 e``."""
+    definite = np.linalg.eigvalsh(cov)[:, 0] > 0.0 if len(cov) else np.zeros(0, dtype=bool)
+    return definite, np.einsum("ni,ni->n", error[definite], np.linalg.solve(cov[definite], error[definite][:, :, None])[:, :, 0])
 
 
 def _number(value: float) -> float | None:
