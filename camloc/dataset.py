@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from camloc import geometry
+from camloc import geometry, measurement
 
 # What each landmark of the map is (``Dataset.landmark_kind``), by the record that gave it:
 # a 3-D point (VERTEX_TRACKXYZ, seen by cameras), a point of the plane (VERTEX_XY, seen by point2
@@ -20,6 +20,13 @@ from camloc import geometry
 LANDMARK_POINT3, LANDMARK_POINT2, LANDMARK_MARKER = 0, 1, 2
 # a tag (VERTEX_TAG): a 3-D point, seen by cameras like a VERTEX_TRACKXYZ, with an orientation
 LANDMARK_TAG = 3
+# the landmark kind a planar robot's own sensor sees, by its measurement kind (a camera's: a 3-D point)
+LANDMARK_OF_PLANAR_SENSOR = {measurement.POINT2: LANDMARK_POINT2, measurement.MARKER: LANDMARK_MARKER}
+
+
+def landmark_kind_of(sensor_kind: int) -> int:
+    """The kind of landmark (``Dataset.landmark_kind``) a measurement of ``sensor_kind`` sees."""
+    return LANDMARK_OF_PLANAR_SENSOR.get(int(sensor_kind), LANDMARK_POINT3)
 
 
 def on_the_floor(kind: np.ndarray) -> np.ndarray:

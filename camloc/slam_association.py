@@ -25,8 +25,9 @@ import numpy as np
 
 from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
+from camloc.dataset import landmark_kind_of
 from camloc.planar import wrap_residuals
-from camloc.slam_landmarks import UNPAIRED, landmark_kind_of
+from camloc.slam_landmarks import UNPAIRED
 from camloc.tails import chi2_quantile
 
 

@@ -21,7 +21,7 @@ from typing import Optional
 import numpy as np
 
 from camloc import measurement, slam
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, landmark_kind_of
 from camloc.results import LandmarkMap
 from camloc.slam_tracks import DEPTH_VARIANCE_INFLATION, Tracks, triangulate
 
@@ -143,11 +143,6 @@ def places_points(kinds: np.ndarray) -> np.ndarray:
     heading); a pixel is a ray."""
     kinds = np.asarray(kinds, dtype=np.int64)
     return measurement.measures_range(kinds) | np.isin(kinds, measurement.PLANAR_KINDS)
-
-
-def landmark_kind_of(sensor_kind: int) -> int:
-    """The kind of landmark (``Dataset.landmark_kind``) a measurement of ``sensor_kind`` sees."""
-    return {measurement.POINT2: LANDMARK_POINT2, measurement.MARKER: LANDMARK_MARKER}.get(int(sensor_kind), LANDMARK_POINT3)
 
 
 def places_point(kind: int) -> bool:

@@ -56,9 +56,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from camloc import planar
-from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, on_the_floor
+from camloc.dataset import LANDMARK_MARKER, LANDMARK_OF_PLANAR_SENSOR, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, on_the_floor
 from camloc.errors import CamlocError
-from camloc.measurement import MARKER, POINT2, is_planar
+from camloc.measurement import MARKER, is_planar
+from camloc.observation_space import landmark_rows
 from camloc.results import RunResult
 from camloc.smoother import (IterationCallback, Linearization, SmootherConfig, SmoothingProblem, SmoothingResult,
                              block_coo, check_run_matches, landmark_coo, observation_factors, observation_fields, smooth,
@@ -67,8 +68,6 @@ from camloc.smoother_landmarks import LandmarkEstimate
 
 DOF = planar.STATE_SIZE
 LANDMARK_DOF = 3
-# the landmark kind each observation kind makes (an added landmark's, from its observations)
-_LANDMARK_OF = {POINT2: LANDMARK_POINT2, MARKER: LANDMARK_MARKER}
 
 
 @dataclass(frozen=True)
@@ -295,10 +294,10 @@ def _variable_kinds(dataset: Dataset, ids: np.ndarray, fields: dict) -> np.ndarr
     """(L,) the landmark variables' kinds: a mapped one's the map's, an added one's that of the
     observations of it (a floor point's, a marker's, else a camera's 3-D point)."""
     kind = np.full(ids.size, LANDMARK_POINT3, dtype=np.int64)
-    mapped = np.isin(ids, dataset.landmark_ids)
-    order = np.argsort(dataset.landmark_ids, kind="stable")
-    kind[mapped] = dataset.landmark_kind[order[np.searchsorted(dataset.landmark_ids[order], ids[mapped])]]
-    for obs_kind, landmark_kind in _LANDMARK_OF.items():
+    rows = landmark_rows(dataset.landmark_ids, ids)
+    mapped = rows >= 0
+    kind[mapped] = dataset.landmark_kind[rows[mapped]]
+    for obs_kind, landmark_kind in LANDMARK_OF_PLANAR_SENSOR.items():
         seen = np.unique(fields["obs_landmark"][fields["obs_kind"] == obs_kind])
         seen = seen[seen >= 0]
         kind[seen[~mapped[seen]]] = landmark_kind
