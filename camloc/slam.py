@@ -349,35 +349,3 @@ def initial_cov(x: SlamMean, world_cov: np.ndarray) -> np.ndarray:
 def landmark_world_cov_of(x: SlamMean, P: np.ndarray, C: np.ndarray) -> np.ndarray:
     """The world covariance (3, 3) of a point whose error is ``C`` (3, POSE_DIM) times the pose's."""
     return ekf.symmetrize(C @ P[:POSE_DIM, :POSE_DIM] @ C.T)
-
-
-def slip_coefficients(x: SlamMean, moving: np.ndarray, markers: Optional[np.ndarray] = None) -> np.ndarray:
-    """G (dim, 6) of a **slip**: the robot and the landmarks ``moving`` (m,) bool (rows of L) turned
-    by d_theta about the robot and shifted by d_t, together, against the other landmarks, which stay
-    where they are: ``xi = G (d_t, d_theta)`` to first order. The robot and a moving point:
-    ``p -> Exp(d_theta) (p - t) + t + d_t`` gives ``xi = d_t + [t]x d_theta`` (and ``xi_theta =
-    d_theta``); a point that stays: ``xi_l = [l]x d_theta`` (the error turns it with the heading's
-    ``xi_theta``: ``l = Exp(xi_theta) l^ + J xi_l``); a tag's orientation that stays:
-    ``xi_o = -d_theta``, one that moves: 0. ``markers`` (m,) bool: rows that are a planar marker,
-    whose third coordinate is its heading (moving: turned by d_theta's z; its lever arm on the
-    floor)."""
-    m = x.L.shape[0]
-    G = np.zeros((POSE_DIM + 3 * m, 6))
-    lever = geometry.hat(x.t)
-    G[0:3, 0:3], G[0:3, 3:6], G[3:6, 3:6] = np.eye(3), lever, np.eye(3)
-    orientation = x.orientation if x.orientation is not None else np.zeros(m, bool)
-    markers = markers if markers is not None else np.zeros(m, bool)
-    for i in range(m):
-        rows = slice(POSE_DIM + 3 * i, POSE_DIM + 3 * i + 3)
-        if orientation[i]:
-            G[rows, 3:6] = 0.0 if moving[i] else -np.eye(3)
-            continue
-        point = x.L[i] * (1.0, 1.0, 0.0) if markers[i] else x.L[i]
-        if moving[i]:
-            G[rows, 0:3], G[rows, 3:6] = np.eye(3), lever
-        else:
-            G[rows, 3:6] = geometry.hat(point)
-        if markers[i]:  # its heading: turned with the robot where it moves, its own where it stays
-            G[POSE_DIM + 3 * i + 2] = 0.0
-            G[POSE_DIM + 3 * i + 2, 5] = 1.0 if moving[i] else 0.0
-    return G

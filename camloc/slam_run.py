@@ -42,7 +42,6 @@ from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
 from camloc.slam_association import BEAM_RECENT, PoseAssociation
-from camloc.slam_loops import LoopClosures
 from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, floor_sure_view, sure_view
 from camloc.slam_tag_states import TagStates
 from camloc.slam_tracks import Tracks
@@ -50,7 +49,7 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions, TagStates, LoopClosures):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, TagStates):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -154,8 +153,6 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, TagStates, LoopClosur
             pairs += self._associated(obs[given < 0], added_only=self.config.map == "exact", k=k)
         else:
             pairs = self._associated(obs)
-            if self.config.map == "none":  # a loop the filter is too sure to see (``camloc.slam_loops``)
-                pairs = self._closed_loop(k, obs, pairs)
         pairs = self._with_orientations(pairs)  # a tag pair's orientation joins it
         if pairs:
             self._update(k, pairs)

@@ -480,3 +480,28 @@ def test_orientation_prior_and_world_covariance_round_trip():
     expected = np.zeros((3, x2.dim))
     expected[:, 3:6], expected[:, 6:9] = np.eye(3), np.eye(3)
     np.testing.assert_allclose(A, expected, atol=1e-6)
+
+
+def test_unambiguous_leaves_out_a_pair_another_set_explains_as_well():
+    """Two landmarks that fit one observation as well (one jointly compatible set as large each):
+    neither is taken; a lone fit is kept."""
+    from camloc.slam_association import AMBIGUITY_MARGIN, Candidate, jcbb, unambiguous
+
+    n = 12
+    P = np.eye(n) * 0.01
+    H = np.zeros((3, n))
+    H[:, 0:3] = -np.eye(3)
+    R = np.eye(3) * 0.01
+    y = np.array([0.02, 0.0, 0.0])
+    a, b = Candidate(0, 100, y, H, np.zeros((3, 3)), R, 3, 1.0), Candidate(0, 101, -y, H, np.zeros((3, 3)), R, 3, 1.2)
+    lone = Candidate(1, 102, y, H, np.zeros((3, 3)), R, 3, 1.0)
+    candidates = [[a, b], [lone]]
+    chosen = jcbb(P, candidates, 0.99)
+    assert len(chosen) == 2
+    kept = unambiguous(P, candidates, chosen, 0.99, AMBIGUITY_MARGIN)
+    assert [c.landmark for c in kept] == [102]
+    # the second landmark far costlier: the first is not ambiguous
+    b_far = Candidate(0, 101, -y, H, np.zeros((3, 3)), R, 3, 1.0 + AMBIGUITY_MARGIN + 1.0)
+    candidates = [[a, b_far], [lone]]
+    kept = unambiguous(P, candidates, jcbb(P, candidates, 0.99), 0.99, AMBIGUITY_MARGIN)
+    assert sorted(c.landmark for c in kept) == [100, 102]
