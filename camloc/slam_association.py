@@ -156,12 +156,14 @@ def unambiguous(P: np.ndarray, candidates: list[list[Candidate]], chosen: list[C
     return kept
 
 
-# A pair must be likelier than clutter (its cost below the observation's null cost) to be tried:
-# JCBB takes the largest jointly compatible set, so any pair tried that fits is taken. (Pairs up to
-# 20 costlier than clutter were tried for added landmarks; with no map such a pair, less likely
-# than clutter, moved the robot 0.7-1.1 m on two of 24 worlds measured, planar points seed 3 at
-# pose 159 and grid seed 1 at pose 106, and the map seen before no longer fitted where the robot
-# came back to it: landmarks were added twice.)
+# Without a map a pair must be likelier than clutter (its cost below the observation's null cost)
+# to be tried: JCBB takes the largest jointly compatible set, so any pair tried that fits is taken.
+# (Pairs up to _NULL_SLACK costlier than clutter were tried for added landmarks; with no map such
+# a pair, less likely than clutter, moved the robot 0.7-1.1 m on two of 24 worlds measured, planar
+# points seed 3 at pose 159 and grid seed 1 at pose 106, and the map seen before no longer fitted
+# where the robot came back to it: landmarks were added twice.) With a map, added landmarks keep
+# the slack (``PoseAssociation._slack``): the odds below e^-10 / 2.
+_NULL_SLACK = 20.0
 # Under a prior, an observation the beam left out is tried against the map's landmarks again (one
 # may have moved) where the pair is likelier than clutter, and only against a landmark the beam has
 # not paired within BEAM_RECENT poses but missed where it was surely in view: one it pairs is where
@@ -194,29 +196,42 @@ class PoseAssociation:
         if not any(candidates):
             return []
         chosen = jcbb(self.P, candidates, self.config.gate)
-        chosen = unambiguous(self.P, candidates, chosen, self.config.gate, AMBIGUITY_MARGIN)
+        if self.config.map == "none":  # without a map JCBB alone holds the robot (with one, the beam's pairs do)
+            chosen = unambiguous(self.P, candidates, chosen, self.config.gate, AMBIGUITY_MARGIN)
         for c in chosen:
             if self.table.tentative[c.landmark]:
                 self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - c.cost)
         return [(c.obs, c.landmark) for c in chosen]
 
-    def _candidates(self, obs: np.ndarray, nearby: np.ndarray, wide_view: bool = False) -> list[list[Candidate]]:
-        """Each observation's candidates among the landmarks ``nearby`` (their pairs within the
-        gate and likelier than clutter); ``wide_view``: any landmark in front of the sensor within
-        its reach (``landmark_costs``)."""
+    def _candidates(self, obs: np.ndarray, nearby: np.ndarray) -> list[list[Candidate]]:
+        """Each observation's candidates among the landmarks ``nearby``: their pairs within the
+        gate, at most ``_slack`` costlier than clutter."""
         candidates: list[list[Candidate]] = []
         for sensor_id in np.unique(self.obs_sensor[obs]).tolist():
             mine = obs[self.obs_sensor[obs] == sensor_id]
-            gated = self.landmark_costs(sensor_id, mine, nearby, wide_view=wide_view)
+            gated = self.landmark_costs(sensor_id, mine, nearby)
             if gated is None:
                 continue
             landmarks, cost, z_hat, H, extra = gated
             cost = self._orientation_costs(mine, landmarks, cost, z_hat, H, extra)  # a tag's judged with its orientation
+            slack = self._slack(landmarks)
             for i, o in enumerate(mine.tolist()):
                 candidates.append([Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
                                              self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]))
-                                   for j in np.flatnonzero(cost[i] < self.null_cost[o]).tolist()])
+                                   for j in np.flatnonzero(cost[i] < self.null_cost[o] + slack).tolist()])
         return candidates
+
+    def _slack(self, landmarks: np.ndarray) -> np.ndarray:
+        """(C,) how much costlier than clutter a pair with each of ``landmarks`` may be and still be
+        tried: nothing without a map, nor for a tentative landmark, nor for a mapped one where the
+        beam already judged the map's pairs (it left this observation out); ``_NULL_SLACK`` for
+        the other landmarks of a run with a map (there the beam's pairs hold the robot, and these
+        rules were measured without one: with the three rules a prior's run lost the robot on 2
+        of 24 worlds with half the map withheld)."""
+        if self.config.map == "none":
+            return np.zeros(landmarks.size)
+        strict = self.table.tentative[landmarks] | ((landmarks < self.table.num_mapped) & (self.given_pairs is not None))
+        return np.where(strict, 0.0, _NULL_SLACK)
 
     def _innovation(self, o: int, z_hat: np.ndarray, sensor_id: int) -> np.ndarray:
         """Observation o's innovation against the prediction z_hat (a marker's heading wrapped)."""
@@ -242,15 +257,13 @@ class PoseAssociation:
         elif self.state_landmark:
             self.table.xyz[np.array(self.state_landmark)] = self.x.L
 
-    def landmark_costs(self, sensor_id: int, obs: np.ndarray, nearby: np.ndarray, tail: Optional[float] = None,
-                       wide_view: bool = False):
+    def landmark_costs(self, sensor_id: int, obs: np.ndarray, nearby: np.ndarray, tail: Optional[float] = None):
         """(candidates (C,), costs (O, C), predictions (C, 3), Jacobians (C, 3, n), the extra
         covariance (C, 3, 3) of a landmark held outside the state) of observations ``obs`` of one
         sensor against the landmarks of ``nearby`` in its view; costs ``UNPAIRED`` outside the
         gate. None: no candidate. ``tail``: gate at this tail where it is wider than the
-        association's; ``wide_view`` (or a tail): every landmark in front of the sensor within its
-        reach is in view (whether an observation could be a landmark already known:
-        ``_unexplained``)."""
+        association's, every landmark in front of the sensor within its reach taken as in view
+        (whether an observation could be of a landmark already known: ``_unexplained``)."""
         sensor = self.sensors[sensor_id]
         if self.dataset.planar:  # a planar robot's point sensor sees the floor's points, its marker sensor markers, a camera the others
             nearby = nearby[self.table.kind[nearby] == landmark_kind_of(sensor.kind)]
@@ -261,9 +274,8 @@ class PoseAssociation:
         xyz[rows >= 0] = self.x.L[rows[rows >= 0]]  # the state's estimate where it holds one
         near, far, cos_angle, planar_far = max(self.min_depth, 1e-6), self.max_depth, np.cos(self.max_angle), self.planar_range
         gates = self._position_gates(obs)
-        if tail is not None or wide_view:  # any landmark in front of the sensor within its reach
+        if tail is not None:  # any landmark in front of the sensor within its reach, at the wider gate
             near, far, cos_angle, planar_far = 1e-6, self.reach, 0.0, self.reach
-        if tail is not None:
             gates = np.maximum(gates, _gate_at_tail(self.obs_dof[obs], tail))
         if self.compiled is not None:  # the same costs compiled (camloc.slam_compiled); this numpy one is its reference
             seen, z_hat, H, extra, cost = self.compiled.costs(

@@ -46,10 +46,11 @@ TENTATIVE_GAP = 10
 RETIRE_AFTER = 30
 MAX_STATE_LANDMARKS = 600
 
-# An observation no pair took becomes a new landmark only where no landmark it could be of fits it
-# within the chi^2 gate of this tail (wider than the association's 1%), wherever that landmark is
-# predicted in front of the sensor: a landmark added twice stays twice for the rest of the run,
-# where an observation left out is one measurement lost.
+# Without a map, an observation no pair took becomes a new landmark only where no landmark it
+# could be of fits it within the chi^2 gate of this tail (wider than the association's 1%),
+# wherever that landmark is predicted in front of the sensor: a landmark added twice stays twice
+# for the rest of the run, where an observation left out is one measurement lost. (With a map:
+# the association's gate, in view, as measured there.)
 NEW_LANDMARK_TAIL = 1e-4
 
 
@@ -310,7 +311,7 @@ class LandmarkAdditions:
         fits = np.zeros(obs_array.size, bool)
         for sensor_id in np.unique(self.obs_sensor[obs_array]).tolist():
             at = self.obs_sensor[obs_array] == sensor_id
-            gated = self.landmark_costs(sensor_id, obs_array[at], nearby, tail=NEW_LANDMARK_TAIL)
+            gated = self.landmark_costs(sensor_id, obs_array[at], nearby, tail=NEW_LANDMARK_TAIL if self.config.map == "none" else None)
             if gated is not None:  # (a tag's: with its orientation, so a tag beside another is a new one)
                 fits[at] = np.any(self._orientation_costs(obs_array[at], *gated) < UNPAIRED, axis=1)
         return obs_array[~fits].tolist()
