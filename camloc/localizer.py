@@ -148,10 +148,12 @@ def _localize_mapped(dataset: Dataset, config: LocalizerConfig, on_progress, hoo
 # learned from the run over its first REACH_POSES poses (``view_reach.camera_reach``), and the
 # candidates' depth (``ViewOptions.max_depth``) held to it, REACH_MARGIN over it. A far landmark on
 # an observation's ray gates as well as the near one it sees; the reach guessed from the map's
-# density (``observation_space.pixel_reach``) let 1-5% of pairs take such landmarks. Measured:
-# docs/performance.md, 2026-12-04, "A pixel camera's reach, learned".
+# density (``observation_space.pixel_reach``) let 1-5% of pairs take such landmarks. A margin of
+# 0.05 gave a little more precision but lost the robot on one world of 40 where 0.1 did not (a
+# landmark near the reach, estimated beyond it, left out). Measured: docs/performance.md,
+# 2026-12-04, "A pixel camera's reach, learned".
 REACH_POSES = 300
-REACH_MARGIN = 0.05
+REACH_MARGIN = 0.1
 # A run held within the learned reach that pairs less than this share of what the start's run
 # paired has lost the robot where the guess did not (a landmark near the reach, estimated beyond
 # it, left out): it runs again with the guess (measured: performance.md, as above).

@@ -44,7 +44,7 @@ def test_no_step_is_found_where_pairing_does_not_fall_with_distance():
 @pytest.mark.parametrize("max_range", [2.0, 3.0])
 def test_a_pixel_only_run_learns_its_cameras_reach(max_range):
     """The simulator's cameras see every landmark within ``max_range`` of them: the reach learned
-    from the first 300 poses is that, and the candidates are held within 1.05 x it."""
+    from the first 300 poses is that, and the candidates are held within 1.1 x it."""
     dataset = simulate(SimulationConfig(poses=REACH_POSES, measurement="pixel", cameras=2, trajectory="smooth3d",
                                         max_range=max_range, clutter_fraction=0.1), seed=2)
     result = localize(dataset, engine="compiled")
