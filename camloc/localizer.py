@@ -90,6 +90,45 @@ def localize(
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
     hooks = dict(parallel=parallel, engine=engine, on_compile=_once(on_compile), on_background_compile=_once(on_background_compile))
+    return _localize_in_reach(dataset, config, on_progress, hooks)
+
+
+def _localize_in_reach(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict) -> RunResult:
+    """``_localize_mapped`` with a pixel-only file's candidates held within the reach learned from
+    its start (``_with_learned_reach``); where that run pairs a share of its observations below
+    ``REACH_LOST_SHARE`` times the start's, run again with the reach guessed from the map and keep
+    the run that pairs more (a warning says so)."""
+    held, reach, reach_seconds, start_share = _with_learned_reach(dataset, config, hooks)
+    result = _localize_mapped(dataset, held, on_progress, hooks)
+    warnings = []
+    if reach is not None and _paired_share(result) < REACH_LOST_SHARE * start_share:
+        again = _localize_mapped(dataset, config, on_progress, hooks)
+        reach_seconds += result.summary["timing"]["filter_seconds"]
+        if _paired_share(again) > _paired_share(result):
+            warnings.append(f"the run with the pixel cameras' reach learned from the first poses ({reach:.2f} m) paired "
+                            f"{_paired_share(result):.0%} of its observations against {start_share:.0%} at the start: "
+                            f"run again with the reach guessed from the map (candidates within "
+                            f"{again.summary['candidate_range']['max_depth']:.2f} m), which paired {_paired_share(again):.0%}")
+            result, reach = again, None
+    result.summary["candidate_range"]["learned_reach"] = reach
+    result.summary["warnings"] += warnings
+    timing = result.summary["timing"]
+    timing["reach_seconds"] = reach_seconds  # the runs over the start that learned it (or not kept), counted in filter_seconds
+    timing["filter_seconds"] += reach_seconds
+    timing["poses_per_second"] = dataset.num_poses / timing["filter_seconds"] if timing["filter_seconds"] > 0 else float("inf")
+    return result
+
+
+def _paired_share(run: RunResult) -> float:
+    """The share of ``run``'s observations it paired with a landmark."""
+    counts = run.summary["counts"]
+    return counts["accepted"] / counts["observations"] if counts["observations"] else 0.0
+
+
+def _localize_mapped(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict) -> RunResult:
+    """``localize`` after its config is resolved: the map held exactly (with landmarks the map
+    lacks added where the run finds it lacking) or, under ``prior`` and ``none``, the mapping
+    localizer."""
     if config.map != "exact":  # landmarks in the state: the mapping localizer
         return _localize_mapping(dataset, config, on_progress, hooks)
     # in every mode, landmarks the map lacks are added: where the rejected observations agree on
@@ -103,6 +142,46 @@ def localize(
             f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
             f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
     return result
+
+
+# A pixel-only file's reach (how far its cameras detect landmarks; no depth in the file says) is
+# learned from the run over its first REACH_POSES poses (``view_reach.camera_reach``), and the
+# candidates' depth (``ViewOptions.max_depth``) held to it, REACH_MARGIN over it. A far landmark on
+# an observation's ray gates as well as the near one it sees; the reach guessed from the map's
+# density (``observation_space.pixel_reach``) let 1-5% of pairs take such landmarks. A margin of
+# 0.05 gave a little more precision but lost the robot on one world of 40 where 0.1 did not (a
+# landmark near the reach, estimated beyond it, left out). Measured: docs/performance.md,
+# 2026-12-04, "A pixel camera's reach, learned".
+REACH_POSES = 300
+REACH_MARGIN = 0.1
+# A run held within the learned reach that pairs less than this share of what the start's run
+# paired has lost the robot where the guess did not (a landmark near the reach, estimated beyond
+# it, left out): it runs again with the guess (measured: performance.md, as above).
+REACH_LOST_SHARE = 0.8
+
+
+def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> tuple[LocalizerConfig, Optional[float], float, float]:
+    """``config`` with its candidates' depth held to the reach learned from the start of the run
+    (``REACH_POSES``), that reach in metres, the seconds the start's run took and the share of its
+    observations it paired; ``config``, None, 0 and 0 where the file measures range or has no map,
+    the reach is given (``config.view.max_depth``), the association is the oracle (no candidates);
+    ``config`` and None where the start shows no reach (``view_reach.pairing_step``)."""
+    from camloc.view_reach import camera_reach
+
+    rays = measurement.is_ray(dataset.obs_kind)
+    if (config.view.max_depth is not None or config.association == "oracle" or dataset.landmark_ids.size == 0
+            or not rays.any() or measurement.measures_range(dataset.obs_kind).any()):
+        return config, None, 0.0, 0.0
+    view = candidate_range(dataset, config)
+    start = first_poses(dataset, REACH_POSES)
+    run = _localize_exact(start, replace(config, map="exact"), None, **hooks)
+    rows = landmark_rows(dataset.landmark_ids, _observation_landmarks(start, run))
+    reach = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view)
+    seconds, share = run.summary["timing"]["filter_seconds"], _paired_share(run)
+    if reach is None:
+        return config, None, seconds, share
+    max_depth = min(view[1], (1.0 + REACH_MARGIN) * reach)
+    return replace(config, view=replace(config.view, max_depth=max_depth)), reach, seconds, share
 
 
 # Where the map lacks landmarks, the beam decides the map's pairs again with the cost of leaving an

@@ -59,6 +59,11 @@ def render_run_summary(summary: Mapping[str, Any], written: Path | None) -> Grou
     if isinstance(mapped, Mapping):
         map_line = Text(f"map {mapped['mode']}: {mapped['mapped_observed']} of {mapped['mapped']} mapped landmarks seen, "
                         f"{mapped['added']} added (map.csv)")
+    reach = _get(summary, "candidate_range.learned_reach")
+    if reach is not None:
+        reach_line = Text(f"the pixel cameras' reach, learned from the first poses: {reach:.2f} m (candidates within "
+                          f"{_get(summary, 'candidate_range.max_depth'):.2f} m; --max-depth sets it)")
+        map_line = reach_line if map_line is None else Text.assemble(map_line, "\n", reach_line)
     footer = Text(
         f"{counts['poses']} poses in {timing['filter_seconds']:.2f} s ({timing['poses_per_second']:.0f} poses/s)"
         + (f"; run folder: {written}" if written else "")

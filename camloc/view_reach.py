@@ -1,0 +1,106 @@
+"""How far a pixel-only camera sees, learned from a run: where its detections stop.
+
+A pixel measures no depth, so nothing in a pixel-only file says how far its cameras see, and the
+candidates of an observation are every mapped landmark near its ray up to a reach guessed from the
+map's density (``observation_space.pixel_reach``). Farther landmarks on the ray are wrong pairs
+that gate as well as the right one; on simulated pixel worlds, knowing the true reach took the
+default association's precision from 0.945-0.992 to 0.975-1.0 (docs/performance.md, 2026-12-04,
+"A pixel camera's reach, learned").
+
+A run over the first poses tells the reach: among the mapped landmarks in a camera's view cone at
+each estimated pose, those near the camera are paired with an observation at a high rate and those
+beyond its reach at a low one (the run's wrong pairs). ``camera_reach`` fits that step: the
+distance that splits the landmarks into a near and a far group of constant pairing rates with the
+greatest likelihood (a change point of Bernoulli rates), kept only where the near rate is well
+above the far one.
+
+Pure: no I/O, no printing.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from camloc import geometry, measurement, models
+from camloc.dataset import Dataset
+
+# The fitted step is trusted only where the near group's pairing rate is at least this many times
+# the far group's, on at least MIN_PAIRED paired landmarks (a run that lost the robot pairs at
+# random distances: no step).
+MIN_RATE_RATIO = 4.0
+MIN_PAIRED = 30
+
+
+def pairing_step(distance: np.ndarray, paired: np.ndarray) -> Optional[tuple[float, float, float]]:
+    """The change point of the pairing rate along ``distance`` (M,): (reach, near rate, far rate),
+    the reach halfway between the last near sample and the first far one, maximizing the
+    Bernoulli log-likelihood of the two groups' constant rates; None where there are fewer than
+    ``MIN_PAIRED`` paired samples or the near rate is not ``MIN_RATE_RATIO`` times the far one."""
+    order = np.argsort(distance, kind="stable")
+    d, y = distance[order], paired[order].astype(np.float64)
+    n, total = d.size, float(y.sum())
+    if total < MIN_PAIRED:
+        return None
+    near_n = np.arange(1, n, dtype=np.float64)  # a split after each sample but the last
+    near_paired = np.cumsum(y)[:-1]
+    far_n, far_paired = n - near_n, total - near_paired
+    log_likelihood = _bernoulli_log_likelihood(near_paired, near_n) + _bernoulli_log_likelihood(far_paired, far_n)
+    # a step down only, and only between distinct distances
+    valid = (near_paired / near_n > far_paired / far_n) & (d[1:] > d[:-1])
+    if not valid.any():
+        return None
+    split = int(np.argmax(np.where(valid, log_likelihood, -np.inf)))
+    near_rate, far_rate = near_paired[split] / near_n[split], far_paired[split] / far_n[split]
+    if near_rate < MIN_RATE_RATIO * far_rate:
+        return None
+    return float(0.5 * (d[split] + d[split + 1])), float(near_rate), float(far_rate)
+
+
+def _bernoulli_log_likelihood(successes: np.ndarray, trials: np.ndarray) -> np.ndarray:
+    """The maximized log-likelihood of ``successes`` in ``trials`` at the rate successes/trials."""
+    rate = successes / trials
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hit = np.where(successes > 0, successes * np.log(rate), 0.0)
+        miss = np.where(trials > successes, (trials - successes) * np.log1p(-rate), 0.0)
+    return hit + miss
+
+
+def view_samples(dataset: Dataset, T_world_robot: np.ndarray, observation_landmark: np.ndarray,
+                 view: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """For each pose and pixel camera, each mapped landmark in the camera's candidate view
+    ``view`` = (min depth, max depth, max angle rad) at the estimated pose ``T_world_robot``
+    (N, 4, 4): its distance from the camera (M,) and whether an observation of that camera at that
+    pose was paired with it (M,). ``observation_landmark`` (K,): each observation's map row, -1
+    for none."""
+    min_depth, max_depth, max_angle = view
+    rays = measurement.is_ray(dataset.obs_kind)
+    distances, paired = [], []
+    for camera_id, camera in dataset.cameras.items():
+        mine = rays & (dataset.obs_camera == camera_id)
+        poses = np.unique(dataset.obs_pose_index[mine])
+        for k in poses:
+            _, p_camera = models.camera_points(T_world_robot[k], camera.T_robot_camera, dataset.landmark_xyz)
+            distance = np.linalg.norm(p_camera, axis=1)
+            depth = p_camera[:, 2]
+            cos_angle = depth / np.maximum(distance, 1e-12)
+            inside = (depth > min_depth) & (depth <= max_depth) & (cos_angle >= np.cos(max_angle))
+            rows = observation_landmark[mine & (dataset.obs_pose_index == k)]
+            hit = np.zeros(dataset.landmark_xyz.shape[0], bool)
+            hit[rows[rows >= 0]] = True
+            distances.append(distance[inside])
+            paired.append(hit[inside])
+    if not distances:
+        return np.zeros(0), np.zeros(0, bool)
+    return np.concatenate(distances), np.concatenate(paired)
+
+
+def camera_reach(dataset: Dataset, estimate_xyz: np.ndarray, estimate_quat_xyzw: np.ndarray,
+                 observation_landmark: np.ndarray, view: tuple[float, float, float]) -> Optional[float]:
+    """The distance up to which the run's pixel cameras detect mapped landmarks (``pairing_step``
+    over ``view_samples``), or None where the run shows no such step."""
+    T = geometry.pose_from_quat(estimate_xyz, estimate_quat_xyzw)
+    distance, paired = view_samples(dataset, T, observation_landmark, view)
+    step = pairing_step(distance, paired)
+    return None if step is None else step[0]
