@@ -498,10 +498,10 @@ def test_unambiguous_leaves_out_a_pair_another_set_explains_as_well():
     candidates = [[a, b], [lone]]
     chosen = jcbb(P, candidates, 0.99)
     assert len(chosen) == 2
-    kept = unambiguous(P, candidates, chosen, 0.99, AMBIGUITY_MARGIN)
+    kept = unambiguous(P, candidates, chosen, 0.99, AMBIGUITY_MARGIN, np.zeros(2, np.int64))
     assert [c.landmark for c in kept] == [102]
     # the second landmark far costlier: the first is not ambiguous
     b_far = Candidate(0, 101, -y, H, np.zeros((3, 3)), R, 3, 1.0 + AMBIGUITY_MARGIN + 1.0)
     candidates = [[a, b_far], [lone]]
-    kept = unambiguous(P, candidates, jcbb(P, candidates, 0.99), 0.99, AMBIGUITY_MARGIN)
+    kept = unambiguous(P, candidates, jcbb(P, candidates, 0.99), 0.99, AMBIGUITY_MARGIN, np.zeros(2, np.int64))
     assert sorted(c.landmark for c in kept) == [100, 102]
