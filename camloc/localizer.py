@@ -44,6 +44,10 @@ ENGINES = ("auto", "compiled", "numpy")
 # process to start numba and load its kernels from the cache (the real file's 101 poses: 1.3 s
 # wall with the compiled loop, 0.8 s with numpy), and the numpy beam costs 2-4 ms a pose more.
 COMPILED_MIN_POSES = 300
+# ... unless numpy would take this long over it (``warmup.numpy_seconds``): a pixel-only
+# observation's ray gates many landmarks, and the numpy beam took 17.7 s over a 200-pose file of
+# two pixel-only cameras that the compiled loop runs in under a second.
+COMPILED_MIN_NUMPY_SECONDS = 2.0
 
 
 def localize(
@@ -72,7 +76,8 @@ def localize(
     engine : "compiled" (the loop over numba kernels, ``camloc.loop``: the Euler or the SE(2) filter with beam
         or oracle association), "numpy" (``_Localizer``, every filter and method; the compiled
         loop's reference, equal to it to rounding), or "auto": compiled where it can run and the
-        dataset has at least ``COMPILED_MIN_POSES`` poses. ``summary["timing"]["engine"]`` says
+        dataset has at least ``COMPILED_MIN_POSES`` poses or numpy would take
+        ``COMPILED_MIN_NUMPY_SECONDS`` over it (pixel-only observations). ``summary["timing"]["engine"]`` says
         which ran. The mapping pass (``config.map`` prior or none, or a map lacking landmarks)
         follows it: its steps compiled (``camloc.slam_compiled``, "compiled update") or in numpy,
         their reference (``_mapping_compiled``).
@@ -290,7 +295,7 @@ def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, p
         raise ConfigError(f"the compiled loop runs the {' and '.join(COMPILED_FILTERS)} filters with {' or '.join(COMPILED_ASSOCIATIONS)} "
                           f"association, without tag orientations; filter {config.filter!r} with association {config.association!r} "
                           "runs in numpy")
-    use_compiled = engine == "compiled" or (engine == "auto" and compilable and dataset.num_poses >= COMPILED_MIN_POSES)
+    use_compiled = engine == "compiled" or (engine == "auto" and compilable and _compiled_pays(dataset))
     background = None  # the state of the background compile this run leaves the kernels to
     filter_compile = None  # the process compiling the filter's kernels while this one compiles the beam's
     warm = True
@@ -515,6 +520,15 @@ def initial_cov(config: LocalizerConfig, filter_model) -> np.ndarray:
     (x, y, yaw) block for a planar filter (3 dof)."""
     P = config.initial_cov()
     return P if filter_model.dim == 6 else planar.planar_block(P)
+
+
+def _compiled_pays(dataset: Dataset) -> bool:
+    """Whether "auto" gives ``dataset`` to the compiled loop: at least ``COMPILED_MIN_POSES``
+    poses, or a file numpy would take ``COMPILED_MIN_NUMPY_SECONDS`` over."""
+    if dataset.num_poses >= COMPILED_MIN_POSES:
+        return True
+    pixel = int(np.count_nonzero(measurement.is_ray(dataset.obs_kind)))
+    return warmup.numpy_seconds(dataset.num_observations, pixel) >= COMPILED_MIN_NUMPY_SECONDS
 
 
 def _compile_in_background(dataset: Dataset) -> Optional[str]:

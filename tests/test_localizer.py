@@ -723,3 +723,18 @@ def test_the_beam_holds_on_the_rays_of_pixel_only_cameras(kind, seed, precision,
     got_precision, got_ratio = _precision_and_ratio(dataset)
     assert got_precision >= precision and got_ratio <= ratio
 
+
+
+def test_auto_gives_a_short_pixel_only_file_to_the_compiled_loop():
+    """Under COMPILED_MIN_POSES poses "auto" runs numpy (it starts sooner), except where numpy would
+    take COMPILED_MIN_NUMPY_SECONDS over the file: a pixel-only observation's ray gates many
+    landmarks (a 200-pose file of two such cameras: 17.7 s in numpy, about 1 s compiled)."""
+    from camloc.localizer import COMPILED_MIN_NUMPY_SECONDS, COMPILED_MIN_POSES
+    from camloc.warmup import numpy_seconds
+
+    pixel = simulate(SimulationConfig(poses=150, measurement="pixel", cameras=2), seed=1)
+    depth = simulate(SimulationConfig(poses=150, cameras=2), seed=1)
+    assert pixel.num_poses < COMPILED_MIN_POSES
+    assert numpy_seconds(pixel.num_observations, pixel.num_observations) >= COMPILED_MIN_NUMPY_SECONDS
+    assert localize(pixel).summary["timing"]["engine"] == "compiled"
+    assert localize(depth).summary["timing"]["engine"] == "numpy"
