@@ -23,7 +23,7 @@ from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
-from camloc.observation_space import (candidate_range, detection_range, landmark_rows, observation_noise, planar_range,
+from camloc.observation_space import (candidate_range, detection_range, landmark_rows, observation_noise, planar_range, reach_unmeasured,
                                       with_map_uncertainty)
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
@@ -173,16 +173,16 @@ def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) 
     ``config`` and None where the start shows no reach (``view_reach.pairing_step``)."""
     from camloc.view_reach import camera_reach
 
-    rays = measurement.is_ray(dataset.obs_kind)
     if (config.view.max_depth is not None or config.association == "oracle" or dataset.landmark_ids.size == 0
-            or not rays.any() or measurement.measures_range(dataset.obs_kind).any()):
+            or not reach_unmeasured(dataset)):
         return config, None, 0.0, 0.0
+    started = time.perf_counter()
     view = candidate_range(dataset, config)
     start = first_poses(dataset, REACH_POSES)
     run = _localize_exact(start, replace(config, map="exact"), None, **hooks)
     rows = landmark_rows(dataset.landmark_ids, _observation_landmarks(start, run))
     reach = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view)
-    seconds, share = run.summary["timing"]["filter_seconds"], _paired_share(run)
+    seconds, share = time.perf_counter() - started, _paired_share(run)
     if reach is None:
         return config, None, seconds, share
     max_depth = min(view[1], (1.0 + REACH_MARGIN) * reach)

@@ -240,13 +240,21 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     max_depth = view.max_depth
     max_angle = float(np.radians(view.max_angle_deg)) if view.max_angle_deg is not None else _widest_ray(dataset)
     if max_depth is None:
-        if depth.size:
-            max_depth = 1.25 * float(depth.max()) + 0.5
-        elif np.any(measurement.is_ray(dataset.obs_kind)):  # a camera's, measuring no depth
+        if reach_unmeasured(dataset):
             max_depth = 1.25 * pixel_reach(dataset, max_angle) + 0.5
+        elif depth.size:
+            max_depth = 1.25 * float(depth.max()) + 0.5
         else:
             max_depth = 10.0
     return min_depth, max_depth, max_angle
+
+
+def reach_unmeasured(dataset: Dataset) -> bool:
+    """Whether nothing in ``dataset`` says how far its cameras see: no observation measures range
+    and some camera's is a ray (``candidate_range`` guesses the reach from the map's density,
+    ``localizer._with_learned_reach`` learns it from the run)."""
+    kinds = dataset.obs_kind
+    return bool(np.any(measurement.is_ray(kinds))) and not bool(np.any(measurement.measures_range(kinds)))
 
 
 # The k-th nearest neighbour that measures the map's local density (``pixel_reach``).

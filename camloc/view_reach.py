@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from camloc import geometry, measurement, models
-from camloc.dataset import Dataset
+from camloc.dataset import Dataset, observations_by_pose
 
 # The fitted step is trusted only where the near group's pairing rate is at least this many times
 # the far group's, on at least MIN_PAIRED paired landmarks (a run that lost the robot pairs at
@@ -74,23 +74,27 @@ def view_samples(dataset: Dataset, T_world_robot: np.ndarray, observation_landma
     (N, 4, 4): its distance from the camera (M,) and whether an observation of that camera at that
     pose was paired with it (M,). ``observation_landmark`` (K,): each observation's map row, -1
     for none."""
+    from camloc.association import PointIndex
+
     min_depth, max_depth, max_angle = view
+    index = PointIndex(dataset.landmark_xyz)
+    radius = max_depth / max(np.cos(max_angle), 1e-6)  # the view cone lies within this of the camera
+    order, bounds = observations_by_pose(dataset)
     rays = measurement.is_ray(dataset.obs_kind)
     distances, paired = [], []
-    for camera_id, camera in dataset.cameras.items():
-        mine = rays & (dataset.obs_camera == camera_id)
-        poses = np.unique(dataset.obs_pose_index[mine])
-        for k in poses:
-            _, p_camera = models.camera_points(T_world_robot[k], camera.T_robot_camera, dataset.landmark_xyz)
+    for k in range(dataset.num_poses):
+        at_pose = order[bounds[k]:bounds[k + 1]]
+        at_pose = at_pose[rays[at_pose]]
+        for camera_id in np.unique(dataset.obs_camera[at_pose]).tolist():
+            T_world_camera = T_world_robot[k] @ dataset.cameras[camera_id].T_robot_camera
+            near = index.within(T_world_camera[:3, 3], radius)
+            _, p_camera = models.camera_points(T_world_camera, np.eye(4), dataset.landmark_xyz[near])
             distance = np.linalg.norm(p_camera, axis=1)
             depth = p_camera[:, 2]
-            cos_angle = depth / np.maximum(distance, 1e-12)
-            inside = (depth > min_depth) & (depth <= max_depth) & (cos_angle >= np.cos(max_angle))
-            rows = observation_landmark[mine & (dataset.obs_pose_index == k)]
-            hit = np.zeros(dataset.landmark_xyz.shape[0], bool)
-            hit[rows[rows >= 0]] = True
+            inside = (depth > min_depth) & (depth <= max_depth) & (depth >= np.cos(max_angle) * distance)
+            rows = observation_landmark[at_pose[dataset.obs_camera[at_pose] == camera_id]]
             distances.append(distance[inside])
-            paired.append(hit[inside])
+            paired.append(np.isin(near[inside], rows[rows >= 0]))
     if not distances:
         return np.zeros(0), np.zeros(0, bool)
     return np.concatenate(distances), np.concatenate(paired)
