@@ -223,18 +223,32 @@ def _map_run(judged: Dataset, dataset: Dataset, config: LocalizerConfig, on_prog
     null cost lowered by ``LACKING_NULL_OFFSET`` where the map lacks landmarks (the start of a
     long run screened first, ``_lacking_at_start``; otherwise the run screened, and the beam's run
     again). Returns the run, the offset it used and the places the map lacks a landmark at (0
-    where it is not screened: the oracle, or a dataset the mapping localizer does not run).
+    where it is not screened: a dataset the mapping localizer does not run, or the oracle's where
+    the file's ids name no landmark the map lacks, ``_ids_lacking``). The oracle's run is screened
+    too: where the map lacks landmarks, the true association maps them (the mapping localizer
+    pairs by the file's ids), the reference the default association's mapping run is measured
+    against; left unscreened, it ignored them, a reference no run with mapping reaches.
     ``follower``: the mapping pass to run beside the run whose pairs it takes: the run where the
     start found the map lacking (no second run of the beam follows), or the beam's second run."""
     offset = _lacking_at_start(judged, dataset, config, hooks)
     follow = follower.on_replay if follower is not None else None
     run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset,
                           on_replay=follow if offset > 0.0 else None, **hooks)
-    places = _lacking_places(dataset, run, config) if _mappable(dataset) and config.association != "oracle" else 0
+    screened = _mappable(dataset) and (config.association != "oracle" or _ids_lacking(dataset))
+    places = _lacking_places(dataset, run, config) if screened else 0
     if places and offset == 0.0 and config.association == "beam":
         offset = LACKING_NULL_OFFSET
         run = _lacking_map_beam(judged, config, on_progress, hooks, run, on_replay=follow)
     return run, offset, places
+
+
+def _ids_lacking(dataset: Dataset) -> bool:
+    """Whether the file's ids name a landmark the map lacks, observed at least twice: what the
+    oracle's mapping pass adds (``slam_landmarks._oracle_new``; clutter's ids are seen once). A
+    map whose landmark moved has none: the oracle pairs its observations by their ids, and the
+    exact map's run stays the localizer's (nothing to add)."""
+    ids, seen = np.unique(dataset.obs_true_landmark, return_counts=True)
+    return bool(np.any((seen >= 2) & ~np.isin(ids, dataset.landmark_ids) & (ids >= 0)))
 
 
 def _lacking_at_start(judged: Dataset, dataset: Dataset, config: LocalizerConfig, hooks: dict) -> float:

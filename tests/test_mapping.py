@@ -513,3 +513,36 @@ def test_a_long_run_screens_its_start_and_gives_what_screening_after_gives(monke
     assert np.array_equal(first.associations.landmark >= 0, after.associations.landmark >= 0)
     assert np.allclose(first.estimate_xyz, after.estimate_xyz, atol=1e-9)
     assert (first.summary.get("map") or {}).get("added") == (after.summary.get("map") or {}).get("added")
+
+
+def test_the_oracle_maps_what_an_exact_map_lacks_and_leaves_a_complete_map_as_it_was():
+    """Half the map withheld, ``--map exact``, the true association: the oracle's run is screened
+    as the beam's is, and adds the landmarks the map lacks, each once and for one withheld id (its
+    observations all of it), none of clutter. Unscreened, it ignored them (no landmark added),
+    a reference no mapping run is measured against. A complete map's oracle run is the exact
+    map's localizer's, bit for bit (the screening finds nothing there)."""
+    from camloc.localizer import _localize_exact, resolved_config
+
+    sim = _world(seed=0, poses=300, trajectory="grid", withhold_map=0.5, clutter_fraction=0.1)
+    half = sim.dataset
+    result = localize(half, LocalizerConfig(association="oracle"))
+    landmarks, a = result.landmark_map, result.associations
+    lacking = np.unique(half.obs_true_landmark[~sim.is_clutter & ~np.isin(half.obs_true_landmark, half.landmark_ids)])
+    assert result.summary["map"]["added"] >= 0.5 * lacking.size
+    stands_for = []
+    for landmark_id in landmarks.ids[landmarks.added]:
+        true_ids = np.unique(a.true_landmark[a.landmark == landmark_id])
+        assert true_ids.size == 1  # the file's ids: one landmark each
+        stands_for.append(int(true_ids[0]))
+    assert np.all(np.isin(stands_for, lacking)) and np.unique(stands_for).size == len(stands_for)
+    assert not np.any(a.landmark[sim.is_clutter] >= 0)
+
+    full = _world(seed=0, poses=300, trajectory="grid", clutter_fraction=0.1).dataset
+    config = LocalizerConfig(association="oracle")
+    hooks = dict(parallel=None, engine="auto", on_compile=None, on_background_compile=None)
+    alone = _localize_exact(full, resolved_config(config, full), None, **hooks)
+    screened = localize(full, config)
+    assert screened.landmark_map is None
+    np.testing.assert_array_equal(screened.estimate_xyz, alone.estimate_xyz)
+    np.testing.assert_array_equal(screened.estimate_cov, alone.estimate_cov)
+    np.testing.assert_array_equal(screened.associations.landmark, alone.associations.landmark)
