@@ -15,7 +15,7 @@ association, ``--map exact``) at the same poses:
 Where the online MAP of half the map is over 1.3x, issue 38's target (the online estimate within 1.3x
 of the complete map's) is beyond any online estimator on that world with the true association.
 
-    nice python benchmarks/half_ceiling.py --trajectories grid,smooth3d,aerial --seeds 0,1,2,3 --stride 5
+    nice python benchmarks/half_ceiling.py --trajectories grid,smooth3d,aerial --seeds 0,1,2,3 --stride 2
 """
 
 from __future__ import annotations
