@@ -106,6 +106,7 @@ from camloc.cholesky import NotPositiveDefinite
 from camloc.dataset import Dataset, on_the_floor
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
+from camloc.landmark_steps import landmark_step_lengths, row_landmarks
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
 from camloc.schur import SchurSolver, factor, landmark_blocks
@@ -903,6 +904,8 @@ def _minimize(problem, T, X, config, on_iteration):
             # (positive definite where the observations determine the landmark), then damped.
             step = None
         iterations += 1
+        if step is not None and problem.num_landmarks:
+            step = _landmark_line_search(problem, lin, step, config.huber)
         if step is not None:
             candidate, candidate_X = problem.retract(T, X, step)
             candidate_lin = problem.linearize(candidate, candidate_X)
@@ -933,6 +936,20 @@ def _minimize(problem, T, X, config, on_iteration):
     counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
               "factor": factor if converged and moved < _FACTOR_REUSE else None}
     return T, X, lin, cost, initial_cost, counts
+
+
+def _landmark_line_search(problem: SmoothingProblem, lin: Linearization, step: np.ndarray, huber: float) -> np.ndarray:
+    """The step with each landmark's part shortened to the minimum of its own linearized robust
+    cost along it, the poses' part kept (``camloc.landmark_steps``): the Newton model of a
+    landmark whose observations are all beyond the Huber threshold is flat along their residuals,
+    and its full step can overshoot by metres and spoil the whole step."""
+    n = problem.num_pose_unknowns
+    pose_part, landmark_part = step.copy(), step.copy()
+    pose_part[n:], landmark_part[:n] = 0.0, 0.0
+    alpha = landmark_step_lengths(lin.residual, lin.jacobian @ pose_part, lin.jacobian @ landmark_part,
+                                  row_landmarks(lin.jacobian, n), lin.odom_dim * len(lin.odom_sq), len(lin.obs_sq),
+                                  problem.num_landmarks, huber)
+    return np.concatenate([step[:n], (step[n:].reshape(-1, LANDMARK_DOF) * alpha[:, None]).ravel()])
 
 
 def _preconditioned_step(Hs: sp.csc_matrix, d: np.ndarray, g: np.ndarray, factor, *, rtol: float = 1e-8,
