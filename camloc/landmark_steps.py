@@ -46,7 +46,9 @@ def _slopes(alpha, a_obs, b_obs, obs_landmark, a_prior, b_prior, prior_landmark,
     """(count,) each landmark's ``phi_l'(alpha_l)`` at step lengths ``alpha`` (count,)."""
     moved = a_obs + alpha[obs_landmark, None] * b_obs
     s = np.einsum("mi,mi->m", moved, moved)
-    weight = np.where(s > huber * huber, huber / np.sqrt(np.maximum(s, huber * huber)), 1.0)  # rho'(s)
+    weight = np.ones_like(s)  # rho'(s): 1 within the threshold, f / sqrt(s) beyond
+    beyond = s > huber * huber  # never with huber = inf (plain least squares)
+    weight[beyond] = huber / np.sqrt(s[beyond])
     slope = np.bincount(obs_landmark, weights=weight * np.einsum("mi,mi->m", moved, b_obs), minlength=count)
     moved_prior = a_prior + alpha[prior_landmark] * b_prior
     return slope + np.bincount(prior_landmark, weights=moved_prior * b_prior, minlength=count)
