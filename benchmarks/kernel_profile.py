@@ -17,7 +17,7 @@ the arrays the kernels allocate per pose, each a malloc, a free and reference co
 numba's runtime statistics in a child process (``NUMBA_NRT_STATS=1``, whose atomic counters would
 slow the profiled calls).
 
-    nice python benchmarks/kernel_profile.py [--quick] [--association beam|oracle] [--calls 1] [--top 25] [--json]
+    nice python benchmarks/kernel_profile.py [--quick | --world FILE.g2o] [--association beam|oracle] [--calls 1] [--top 25] [--json]
 
 Needs ``perf`` (``linux-perf``/``linux-tools``) allowed to attach to its own process
 (``/proc/sys/kernel/perf_event_paranoid`` at most 2). The world is ``scale.py``'s 20k world
@@ -69,7 +69,7 @@ def main() -> None:
     plan = QUICK if args.quick else FULL
     say = (lambda text: print(text, file=sys.stderr, flush=True))
     say(f"camloc kernel profile ({'quick' if args.quick else 'full'}); {_bench.source_note()}; {_bench.machine_load()}")
-    world_path = _bench.simulated(args.cache.expanduser(), plan.world, seed=plan.seed)
+    world_path = args.world or _bench.simulated(args.cache.expanduser(), plan.world, seed=plan.seed)
     world = camloc.load(world_path)
     config = camloc.LocalizerConfig(association=args.association)
     say(f"warm-up: one call on {world.num_poses} poses, association={args.association} ...")
@@ -235,6 +235,8 @@ def print_report(report: dict) -> None:
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="the 1,000-pose world instead of the 20k world")
+    parser.add_argument("--world", type=Path, default=None,
+                        help="a g2o file to profile instead of scale.py's world (default: none)")
     parser.add_argument("--association", choices=("beam", "oracle"), default="beam", help="default: beam")
     parser.add_argument("--calls", type=int, default=1, help="profiled calls after the warm-up (default: 1)")
     parser.add_argument("--top", type=int, default=25, help="compiled functions listed (default: 25)")

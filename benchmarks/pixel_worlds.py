@@ -3,7 +3,7 @@ on the compiled engine, position RMSE, their ratio, precision, and the kind of e
 (another map landmark: ``swap``; a clutter detection taken as a landmark: ``clutter``).
 
 Worlds (``WORLDS``) are ``camloc simulate --measurement pixel`` with the options below, made in
-memory; ``--width`` sets the beam's width.
+memory; ``--width`` and ``--delta`` set the beam's width and delta.
 
     nice python benchmarks/pixel_worlds.py s3d2c10,grid1,aerial1,dense,pix2c20,s3d1,aerial2c10,mono100 --poses 500 --seeds 1,2,3,4
 """
@@ -54,6 +54,7 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=500)
     parser.add_argument("--seeds", default="1,2,3,4")
     parser.add_argument("--width", type=int, default=None, help="the beam's width (default: the library's)")
+    parser.add_argument("--delta", type=float, default=None, help="the beam's delta (default: the library's)")
     parser.add_argument("--recheck-margin", type=float, default=None, help="the re-check's margin (default: the library's)")
     args = parser.parse_args()
     rows, recalls = [], []
@@ -61,8 +62,9 @@ def main() -> None:
         for seed in [int(s) for s in args.seeds.split(",")]:
             dataset = world(name, args.poses, seed)
             config = {}
-            if args.width is not None:
-                config["beam"] = camloc.BeamOptions(width=args.width)
+            beam_options = {key: value for key, value in (("width", args.width), ("delta", args.delta)) if value is not None}
+            if beam_options:
+                config["beam"] = camloc.BeamOptions(**beam_options)
             if args.recheck_margin is not None:
                 config["recheck"] = camloc.RecheckOptions(margin=args.recheck_margin)
             beam, scores, seconds = run(dataset, "beam", config)
