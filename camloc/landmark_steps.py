@@ -6,7 +6,7 @@ gives an observation beyond the threshold no curvature along its own residual: i
 a cone, ``2 f |r|``, whose quadratic model is flat along ``r``. A landmark whose observations are
 all beyond the threshold and that no prior holds (two observations of a point pulling it apart,
 with no map) then lies in a valley that the model sees as nearly flat: the model's minimum is
-metres away, past the cones' apexes, where the true cost is far higher (a 2,000-pose world: one
+metres away, past the cones' apexes, where the true cost is far higher (a 3,000-pose world: one
 such landmark stepped 0.97 m, its observation from 2.8 to 37 standard deviations, and the whole
 step was rejected; docs/performance.md, 2026-12-04 (late)).
 
@@ -74,22 +74,21 @@ def landmark_step_lengths(residual: np.ndarray, pose_change: np.ndarray, landmar
     obs = slice(first_obs_row, first_obs_row + OBS_DIM * num_obs)
     obs_landmark = row_landmark[obs].reshape(-1, OBS_DIM).max(axis=1)
     seen = obs_landmark >= 0
-    a_obs, b_obs = a[obs].reshape(-1, OBS_DIM)[seen], b[obs].reshape(-1, OBS_DIM)[seen]
+    a_obs, b_obs, obs_landmark = a[obs].reshape(-1, OBS_DIM)[seen], b[obs].reshape(-1, OBS_DIM)[seen], obs_landmark[seen]
     prior = np.flatnonzero(row_landmark >= 0)
     prior = prior[prior >= obs.stop]
-    args = (a_obs, b_obs, obs_landmark[seen], a[prior], b[prior], row_landmark[prior], huber, count)
-    overshoot = _slopes(np.ones(count), *args) > 0.0  # the cost rises at the full step: its minimum is short of it
+    a_prior, b_prior, prior_landmark = a[prior], b[prior], row_landmark[prior]
     alpha = np.ones(count)
+    # The cost rises at the full step: its minimum along the step is short of it.
+    overshoot = _slopes(alpha, a_obs, b_obs, obs_landmark, a_prior, b_prior, prior_landmark, huber, count) > 0.0
     if not np.any(overshoot):
         return alpha
-    # Bisect only those landmarks' rows (a few dozen of 25,000 at 20,000 poses).
-    obs_rows, prior_rows = overshoot[args[2]], overshoot[args[5]]
-    args = (a_obs[obs_rows], b_obs[obs_rows], args[2][obs_rows], args[3][prior_rows], args[4][prior_rows],
-            args[5][prior_rows], huber, count)
+    o, q = overshoot[obs_landmark], overshoot[prior_landmark]  # bisect those landmarks' rows only
+    rows = (a_obs[o], b_obs[o], obs_landmark[o], a_prior[q], b_prior[q], prior_landmark[q], huber, count)
     low, high = np.zeros(count), np.ones(count)
     for _ in range(_BISECTIONS):
         middle = 0.5 * (low + high)
-        rising = _slopes(middle, *args) > 0.0
+        rising = _slopes(middle, *rows) > 0.0
         high = np.where(rising, middle, high)
         low = np.where(rising, low, middle)
     return np.where(overshoot, low, alpha)

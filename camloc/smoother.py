@@ -64,8 +64,8 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             step is therefore cut to the minimum of its own linearized robust cost along it,
             the poses' part kept (``camloc.landmark_steps``; 20,000 planar poses with no map:
             35 iterations, most steps rejected, before; 11 now). A step that does not lower the
-            cost is retried as IRLS, then with Levenberg-Marquardt damping. The normal matrix is scaled to unit diagonal (Jacobi)
-            and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
+            cost is retried as IRLS, then with Levenberg-Marquardt damping. The normal matrix is
+            scaled to unit diagonal (Jacobi) and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
             landmark variables, each landmark's 3x3 block is eliminated first (its Schur
             complement, ``camloc.schur``) and the Cholesky factors the reduced pose system. Near
             the solution a step is solved by conjugate gradients preconditioned with the last
