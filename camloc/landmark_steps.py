@@ -26,8 +26,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-OBS_DIM = 3
-LANDMARK_DOF = 3
+from camloc.measurement import MAX_DIM as OBS_DIM  # an observation's rows (the g2o layout's three)
+from camloc.schur import LANDMARK_DOF
 # Bisection steps on alpha in [0, 1]: 2^-40 ~ 1e-12.
 _BISECTIONS = 40
 

@@ -111,16 +111,14 @@ from camloc.cholesky import NotPositiveDefinite
 from camloc.dataset import Dataset, on_the_floor
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
-from camloc.landmark_steps import landmark_step_lengths, row_landmarks
+from camloc.landmark_steps import OBS_DIM, landmark_step_lengths, row_landmarks
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
-from camloc.schur import SchurSolver, factor, landmark_blocks
+from camloc.schur import LANDMARK_DOF, SchurSolver, factor, landmark_blocks
 from camloc.smoother_landmarks import (MAP_MODES, LandmarkEstimate, LandmarkVariables, initial_positions,
                                        landmark_variables)
 
 POSE_DOF = 6
-OBS_DIM = 3
-LANDMARK_DOF = 3
 # Predicted depths below this (metres) put a landmark behind the camera: no projection exists.
 MIN_DEPTH = 1e-6
 # Largest Levenberg-Marquardt damping (on a unit-diagonal normal matrix) before giving up on
