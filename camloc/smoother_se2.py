@@ -61,13 +61,13 @@ from camloc.errors import CamlocError
 from camloc.measurement import MARKER, is_planar
 from camloc.observation_space import landmark_rows
 from camloc.results import RunResult
+from camloc.schur import LANDMARK_DOF
 from camloc.smoother import (IterationCallback, Linearization, SmootherConfig, SmoothingProblem, SmoothingResult,
                              block_coo, check_run_matches, landmark_coo, observation_factors, observation_fields, smooth,
                              whitening)
 from camloc.smoother_landmarks import LandmarkEstimate
 
 DOF = planar.STATE_SIZE
-LANDMARK_DOF = 3
 
 
 @dataclass(frozen=True)

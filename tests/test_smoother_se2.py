@@ -326,6 +326,47 @@ def test_a_marker_whose_observations_all_lie_beyond_the_huber_threshold():
     assert np.all(np.linalg.eigvalsh(cov) > 0.0) and np.allclose(cov, np.swapaxes(cov, 1, 2))
 
 
+@pytest.fixture(scope="module")
+def no_map_world():
+    """A 300-pose planar world of points, markers and a depth camera, its run with the true
+    association; smoothed with no map, some of its landmarks end with every observation beyond
+    the Huber threshold (seed 6: the solver without the landmarks' line search took 21 iterations)."""
+    dataset = simulate_planar(PlanarSimulationConfig(sensors="points,markers,cameras", poses=300), seed=6)
+    return dataset, localize(dataset, LocalizerConfig(association="oracle"))
+
+
+def _no_map_reference(dataset, run, monkeypatch):
+    """The same world smoothed by the solver without the landmarks' line search (each landmark
+    its full Newton step, as before), to a tight tolerance."""
+    with monkeypatch.context() as patch:
+        patch.setattr(smoother, "_landmark_line_search", lambda problem, lin, step, huber: step)
+        return smooth_planar_run(dataset, run, SmootherConfig(map="none", step_tolerance=1e-11, max_iterations=200))
+
+
+def test_no_map_smoothing_converges_in_few_newton_steps_to_the_same_solution(no_map_world, monkeypatch):
+    """With no map, a landmark whose observations all lie beyond the Huber threshold has a Newton
+    model flat along their residuals: its full step overshot by metres, the whole step was
+    rejected and the IRLS steps after it crept (20,000 poses: 35 iterations). Each landmark's step
+    now stops at the minimum of its own robust cost along it: every step is taken, in under half
+    the iterations, and the solution is the tightly converged one."""
+    dataset, run = no_map_world
+    steps = []
+    ours = smooth_planar_run(dataset, run, SmootherConfig(map="none"), on_iteration=steps.append)
+    reference = _no_map_reference(dataset, run, monkeypatch)
+    assert ours.converged and reference.converged
+    assert ours.iterations <= 8 < reference.iterations
+    assert all(step.accepted for step in steps)
+    assert ours.final_cost <= reference.final_cost * (1 + 1e-12)
+    x, x_ref = planar.flatten(ours.T_world_robot), planar.flatten(reference.T_world_robot)
+    assert np.abs(x[:, :2] - x_ref[:, :2]).max() < 1e-6
+    assert np.abs(planar.wrap(x[:, 2] - x_ref[:, 2])).max() < 1e-7
+    assert np.array_equal(ours.landmarks.ids, reference.landmarks.ids)
+    assert np.abs(ours.landmarks.xyz - reference.landmarks.xyz).max() < 1e-6
+    # the covariances: each from a factor made within _FACTOR_REUSE of the solution, on either path
+    scale = np.abs(reference.landmarks.cov).max(axis=(1, 2))
+    assert np.all(np.abs(ours.landmarks.cov - reference.landmarks.cov).max(axis=(1, 2)) <= 1e-3 * scale)
+
+
 def test_tags_under_a_prior_are_points_in_space(planar_tag_world):
     """Under a prior a tag's orientation is not estimated (as in 3-D) and its centre is a 3-D
     point: its height estimated with a variance, not put on the floor as a marker's is."""
