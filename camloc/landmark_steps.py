@@ -28,6 +28,7 @@ import scipy.sparse as sp
 
 from camloc.measurement import MAX_DIM as OBS_DIM  # an observation's rows (the g2o layout's three)
 from camloc.schur import LANDMARK_DOF
+
 # Bisection steps on alpha in [0, 1]: 2^-40 ~ 1e-12.
 _BISECTIONS = 40
 
