@@ -63,9 +63,15 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             has a model whose minimum can be metres past the cost's; each landmark's part of a
             step is therefore cut to the minimum of its own linearized robust cost along it,
             the poses' part kept (``camloc.landmark_steps``; 20,000 planar poses with no map:
-            35 iterations, most steps rejected, before; 11 now). A step that does not lower the
-            cost is retried as IRLS, then with Levenberg-Marquardt damping. The normal matrix is
-            scaled to unit diagonal (Jacobi) and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
+            35 iterations, most steps rejected, before; 11 now). For the same reason the Newton
+            step can carry an observation beyond the threshold past the apex of its cone, where
+            the cost rises again and the model keeps falling (``camloc.huber_apex``; no map: poses
+            and landmarks that only those observations hold); such a step is solved again with
+            those observations' IRLS rows, whose model stops at the apex (conjugate gradients on
+            the step's factor), and the cheaper of the two is taken (20,000 3-D poses with no map:
+            20 iterations, five Newton steps rejected in a row, before; 10 now). A step that does
+            not lower the cost is retried as IRLS, then with Levenberg-Marquardt damping. The
+            normal matrix is scaled to unit diagonal (Jacobi) and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
             landmark variables, each landmark's 3x3 block is eliminated first (its Schur
             complement, ``camloc.schur``) and the Cholesky factors the reduced pose system. Near
             the solution a step is solved by conjugate gradients preconditioned with the last
