@@ -131,6 +131,10 @@ MIN_DEPTH = 1e-6
 # Largest Levenberg-Marquardt damping (on a unit-diagonal normal matrix) before giving up on
 # lowering the cost: the current poses are then a minimum to working precision.
 _MAX_DAMPING = 1e8
+# The damping a step that even IRLS could not make cheaper starts from, and the one below which a
+# taken step's damping is dropped for plain Newton steps (``_damping_after_accepted``).
+_FIRST_DAMPING = 1e-4
+_MIN_DAMPING = 1e-9
 # A landmark variable whose own 3x3 information block (its observations and prior, the poses
 # held) has a larger condition number is left out: its rays meet at under about 0.006 degrees
 # (condition ~ 1 / parallax^2), so its depth is a guess, and it would spoil the whole system's.
@@ -892,7 +896,7 @@ def _minimize(problem, T, X, config, on_iteration):
     lin = problem.linearize(T, X)
     cost = initial_cost = robust_cost(lin, config.huber)
     condition = math.nan
-    damping, majorize, iterations, converged = 0.0, True, 0, problem.num_unknowns == 0
+    damping, growth, majorize, iterations, converged = 0.0, 2.0, True, 0, problem.num_unknowns == 0
     num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
     factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
     # the landmark each Jacobian row touches: its sparsity is the problem's, the same at every iteration
@@ -935,10 +939,11 @@ def _minimize(problem, T, X, config, on_iteration):
         max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
         if accepted:
             moved += max_step
+            gain = (cost - candidate_cost) / _model_decrease(H, g, step)
+            converged = _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance
             T, X, lin, cost = candidate
-            damping, majorize = (damping / 10.0 if damping > 1e-9 else 0.0), False
-            converged = max_step < config.step_tolerance
-        elif step is not None and damping == 0.0 and max_step < config.step_tolerance:
+            damping, growth, majorize = _damping_after_accepted(damping, gain), 2.0, False
+        elif step is not None and damping == 0.0 and _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance:
             # A step below the tolerance that rounding made no cheaper: the poses are at the
             # minimum to that tolerance (20,000 poses: a factorization spent on a 2e-8 step saved).
             converged = True
@@ -949,7 +954,7 @@ def _minimize(problem, T, X, config, on_iteration):
         else:
             # Even that failed (the linearization is poor, or a landmark went behind a camera):
             # damp towards gradient descent (Levenberg-Marquardt) and try again.
-            damping = max(10.0 * damping, 1e-4)
+            damping, growth = (damping * growth, 2.0 * growth) if damping > 0.0 else (_FIRST_DAMPING, 2.0)
             converged = damping > _MAX_DAMPING
         if on_iteration is not None:
             on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
@@ -957,6 +962,65 @@ def _minimize(problem, T, X, config, on_iteration):
     counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
               "factor": factor if converged and moved < _FACTOR_REUSE else None}
     return T, X, lin, cost, initial_cost, counts
+
+
+def _step_size(problem, T: np.ndarray, X: np.ndarray | None, step: np.ndarray, max_step: float,
+               tolerance: float) -> float:
+    """The step's size for the stopping rule: its largest component (``max_step``, metres or
+    radians), but a 3-D landmark's part measured in inverse-depth coordinates as seen from each
+    camera that observed it, where they are smaller than in metres: ``|dl_perp| / d`` (radians)
+    and ``|dl_par| / d^2`` (1/m) at distance d, the larger of the two and of its cameras.
+
+    Why: a landmark seen by a monocular camera from two poses whose rays barely meet has its
+    minimum far along them (300-pose aerial worlds with no map: 231 m, and 9e6 m where the rays
+    part), where the cost is flat in metres (a 0.5 m move changes it by 1e-12) and its Newton
+    steps stay metres long however close the poses are to their minimum: the rule in metres never
+    held (the iteration limit, docs/performance.md, 2026-12-05 (late)). In inverse depth its
+    steps are what its observations see. Near landmarks (d < 1 m, where the metre is the smaller)
+    keep the rule in metres."""
+    n = problem.num_pose_unknowns
+    if max_step < tolerance or not problem.num_landmarks or problem.pose_dof != POSE_DOF:
+        return max_step
+    poses = float(np.max(np.abs(step[:n]))) if n else 0.0
+    if poses >= tolerance:
+        return max_step
+    rows = np.flatnonzero(problem.obs_landmark >= 0)
+    j = problem.obs_landmark[rows]
+    T_cam = T[problem.obs_pose[rows]] @ problem.obs_T_robot_camera[rows]
+    ray = X[j] - T_cam[:, :3, 3]
+    d = np.maximum(np.linalg.norm(ray, axis=1), 1e-300)
+    dl = step[n:].reshape(-1, LANDMARK_DOF)[j]
+    along = np.einsum("mi,mi->m", dl, ray) / d
+    across = np.sqrt(np.maximum(np.einsum("mi,mi->m", dl, dl) - along**2, 0.0))
+    seen = np.zeros(problem.num_landmarks)
+    np.maximum.at(seen, j, np.maximum(across / d, np.abs(along) / d**2))
+    metric = np.max(np.abs(step[n:].reshape(-1, LANDMARK_DOF)), axis=1)
+    return max(poses, float(np.max(np.minimum(metric, seen))))
+
+
+def _model_decrease(H: sp.csc_matrix, g: np.ndarray, step: np.ndarray) -> float:
+    """How much the undamped quadratic model ``g' delta + 1/2 delta' H delta`` says the step lowers
+    the cost (the denominator of the gain ratio); NaN where it says it does not."""
+    decrease = -(float(g @ step) + 0.5 * float(step @ (H @ step)))
+    return decrease if decrease > 0.0 else math.nan
+
+
+def _damping_after_accepted(damping: float, gain: float) -> float:
+    """Nielsen's update of the damping after a step is taken ("Damping parameter in Marquardt's
+    method", IMM-REP-1999-05; Madsen, Nielsen and Tingleff, "Methods for non-linear least squares
+    problems", 2004, sec. 3.2): scaled by ``max(1/3, 1 - (2 gain - 1)^3)`` of the gain ratio
+    (actual over predicted decrease), so that it falls by 3 where the model holds and stays where
+    it barely does; below ``_MIN_DAMPING`` it is dropped (plain Newton steps again). A rejected step
+    multiplies it by a factor that doubles with every rejection in a row (``_minimize``).
+
+    The schedule it replaces fell by 10 after every step taken and rose from wherever it was to
+    1e-4 after a rejection: on monocular aerial worlds with no map a long curved valley (the
+    trajectory's tail and a landmark, moving metres for a cost change of 0.5) then cycled
+    1e-4 -> 1e-7 -> rejected -> 1e-4 to the iteration limit (docs/performance.md, 2026-12-05 (late))."""
+    if not math.isfinite(gain):
+        return damping
+    damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+    return damping if damping > _MIN_DAMPING else 0.0
 
 
 def _candidate(problem, T, X, lin, step, huber, rows):
