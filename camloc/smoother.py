@@ -70,7 +70,12 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             those observations' IRLS rows, whose model stops at the apex (conjugate gradients on
             the step's factor), and the cheaper of the two is taken (20,000 3-D poses with no map:
             20 iterations, five Newton steps rejected in a row, before; 10 now). A step that does
-            not lower the cost is retried as IRLS, then with Levenberg-Marquardt damping. The
+            not lower the cost is retried as IRLS, then with Levenberg-Marquardt damping, on
+            Nielsen's schedule (``_damping_after_accepted``: by the gain ratio after a step taken,
+            doubling factors after each rejection). A 3-D landmark farther than a metre from its
+            cameras has its step measured in inverse depth for the stopping rule (``_step_size``),
+            and one whose rays part until they no longer place it (its minimum at infinity) is
+            left out during the solve as at the start (``_receded``). The
             normal matrix is scaled to unit diagonal (Jacobi) and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
             landmark variables, each landmark's 3x3 block is eliminated first (its Schur
             complement, ``camloc.schur``) and the Cholesky factors the reduced pose system. Near
@@ -168,7 +173,8 @@ class SmootherConfig:
         wrong one, 10 or more away, loses most of its pull.
     max_iterations : linearizations at most.
     step_tolerance : converged when the largest component of a step is below it (metres or
-        radians).
+        radians; a 3-D landmark's beyond a metre from its cameras in inverse depth: radians
+        across its rays, 1/m along them).
     max_condition : largest accepted 1-norm condition estimate of the Jacobi-scaled normal
         matrix; beyond it the data do not determine every pose (machine epsilon is 2.2e-16, so
         1e14 leaves about two significant digits in the worst direction).
@@ -871,6 +877,12 @@ def smooth(
 
     X = None if problem.landmarks is None else problem.landmarks.xyz
     T, X, lin, cost, initial_cost, counts = _minimize(problem, T, X, config, on_iteration)
+    while counts.get("receded") is not None:
+        # A landmark receded until its rays no longer place it (its minimum at infinity): left out
+        # as one undetermined from the start would be (``_receded``), the rest solved on from here.
+        problem, receded = counts["receded"]
+        weak, X = np.concatenate([weak, receded]), problem.landmarks.xyz if problem.num_landmarks else None
+        T, X, lin, cost, _, counts = _minimize(problem, T, X, config, on_iteration, start=counts)
     landmarks = _landmark_estimate(problem, lin, X, config, counts["factor"]) if problem.num_landmarks else None
     return SmoothingResult(
         T_world_robot=problem.lifted(T),
@@ -889,14 +901,16 @@ def smooth(
     )
 
 
-def _minimize(problem, T, X, config, on_iteration):
+def _minimize(problem, T, X, config, on_iteration, start: dict | None = None):
     """The Gauss-Newton / Levenberg-Marquardt loop (model card, "Solver"): the poses and
     landmarks at the end, their linearization and cost, the initial cost, and the counts (with
-    ``factor``: the scaled factor and scale of the last step when it was a plain Newton step)."""
+    ``factor``: the scaled factor and scale of the last step when it was a plain Newton step;
+    ``receded``: ``_receded``'s problem and ids where a landmark stopped it). ``start``: the counts
+    of the loop this one goes on from (its iterations and condition)."""
     lin = problem.linearize(T, X)
     cost = initial_cost = robust_cost(lin, config.huber)
-    condition = math.nan
-    damping, growth, majorize, iterations, converged = 0.0, 2.0, True, 0, problem.num_unknowns == 0
+    condition, iterations = (math.nan, 0) if start is None else (start["condition"], start["iterations"])
+    damping, growth, majorize, converged, receded = 0.0, 2.0, True, problem.num_unknowns == 0, None
     num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
     factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
     # the landmark each Jacobian row touches: its sparsity is the problem's, the same at every iteration
@@ -943,6 +957,7 @@ def _minimize(problem, T, X, config, on_iteration):
             converged = _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance
             T, X, lin, cost = candidate
             damping, growth, majorize = _damping_after_accepted(damping, gain), 2.0, False
+            receded = None if converged else _receded(problem, T, X)
         elif step is not None and damping == 0.0 and _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance:
             # A step below the tolerance that rounding made no cheaper: the poses are at the
             # minimum to that tolerance (20,000 poses: a factorization spent on a 2e-8 step saved).
@@ -958,10 +973,28 @@ def _minimize(problem, T, X, config, on_iteration):
             converged = damping > _MAX_DAMPING
         if on_iteration is not None:
             on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
+        if receded is not None:
+            break
     # The covariances may use that factor where T moved too little since for its Hessian to differ.
     counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
-              "factor": factor if converged and moved < _FACTOR_REUSE else None}
+              "factor": factor if converged and moved < _FACTOR_REUSE else None, "receded": receded}
     return T, X, lin, cost, initial_cost, counts
+
+
+def _receded(problem, T: np.ndarray, X: np.ndarray | None):
+    """``_without_undetermined_landmarks`` at poses T and landmarks X: the problem without the
+    landmark variables whose observations no longer place them and their ids, or None (none).
+
+    Why: seen by a monocular camera from two or three poses, a landmark whose rays part as the
+    poses settle has its minimum at infinity: each step takes it 1.3-1.5 times farther (300-pose
+    aerial worlds with no map: to 2.6e4-2.3e9 m in 50 iterations), the poses follow by less and
+    less, and the loop never stops (docs/performance.md, 2026-12-05 (late)). Once its rays meet at
+    under ~0.006 degrees it is what the start leaves out (``_MAX_LANDMARK_CONDITION``), and is
+    left out the same way: the minimum found is that of the problem without it."""
+    if not problem.num_landmarks or problem.pose_dof != POSE_DOF:
+        return None
+    reduced, ids = _without_undetermined_landmarks(replace(problem, landmarks=problem.landmarks.with_xyz(X)), T)
+    return (reduced, ids) if ids.size else None
 
 
 def _step_size(problem, T: np.ndarray, X: np.ndarray | None, step: np.ndarray, max_step: float,

@@ -74,3 +74,18 @@ def test_a_monocular_aerial_world_with_no_map_converges():
     assert result.converged
     assert result.iterations <= 45
     assert result.final_cost < 527.7441
+
+
+def test_a_landmark_whose_rays_no_longer_place_it_is_left_out_during_the_solve(small_problem):
+    problem, T = small_problem
+    assert smoother._receded(problem, T, problem.landmarks.xyz) is None
+    # one landmark taken 1e7 m along its first ray: its rays meet at far under 0.006 degrees
+    j = int(problem.obs_landmark[0])
+    centre = (T[problem.obs_pose[0]] @ problem.obs_T_robot_camera[0])[:3, 3]
+    X = problem.landmarks.xyz.copy()
+    X[j] = centre + 1e7 * (X[j] - centre) / np.linalg.norm(X[j] - centre)
+    reduced, ids = smoother._receded(problem, T, X)
+    assert ids.tolist() == [problem.landmarks.ids[j]]
+    assert reduced.num_landmarks == problem.num_landmarks - 1
+    assert not np.any(np.isin(reduced.landmarks.ids, ids))
+    np.testing.assert_array_equal(reduced.landmarks.xyz, np.delete(X, j, axis=0))  # the others where they were
