@@ -4,14 +4,19 @@ the track becomes a landmark or is dropped (stochastic cloning: ``camloc.slam_ra
 A clone is three rows of the state's landmarks (``slam_rays.clone_points``) that are no landmark:
 in the table they are ``dead`` (never a candidate, never in the map) with id -1. One clone per
 pose, shared by every track that starts there; it leaves the state (marginalized) once no track
-starts at its pose. A track waits at most ``CLONE_WINDOW`` poses for its second view: past that it
-starts again from its latest ray, so the clones in the state stay within a window.
+starts at its pose within the last ``CLONE_WINDOW`` poses. A track waits that long for its second
+view: one extended past that starts again from its latest ray (an oracle's track, never dropped,
+that is not seen again simply loses its clone), so the clones in the state stay within the window;
+they do not count against ``slam_landmarks.MAX_STATE_LANDMARKS``.
 
 A track becomes a landmark from its first ray (the clone's) and the latest one only when the
 linearization is good: the depth's standard deviation along the latest ray at most
 ``MAX_DEPTH_SPREAD`` of the range (the role of the linearity index of inverse depth: a
 two-ray point at low parallax is far from Gaussian in depth, and its linearized covariance then
-understates it).
+understates it). 0.6 is a compromise between that and mapping at all: at 0.2 the new landmarks'
+NEES at entry was near its 3 dof on every world measured (medians 1.4-6.9), but on the
+benchmark's worlds (odometry drifting decimetres a pose) few tracks ever got there
+(docs/performance.md, 2026-12-05).
 
 Pure computation: no I/O, no printing.
 """
@@ -62,17 +67,19 @@ class RayAnchors:
         if first == k:
             self._clone_pose(k)
 
-    def _needed_clones(self) -> set:
-        """The poses a track (of rays) starts at."""
+    def _needed_clones(self, k: int) -> set:
+        """The poses within ``CLONE_WINDOW`` of pose k a track (of rays) starts at (an oracle's
+        track is never dropped: one that started before that no longer has its clone)."""
         first = [t.observations[0] for t in self.tracks.tracks]
         first += [t.observations[0] for t in self.oracle_tracks.values() if getattr(t, "origins", None)]
-        return set(self.dataset.obs_pose_index[np.array(first, np.int64)].tolist())
+        poses = self.dataset.obs_pose_index[np.array(first, np.int64)]
+        return set(poses[k - poses <= CLONE_WINDOW].tolist())
 
     def _unneeded_clones(self, k: int) -> np.ndarray:
         """The table rows of the clones no track needs any more (the caller drops them from the
         state; they leave the bookkeeping here). The others' ``last_seen`` is set to k, so that no
         retiring takes them."""
-        needed = self._needed_clones()
+        needed = self._needed_clones(k)
         for j in needed & self.clones.keys():
             self.table.last_seen[self.clones[j]] = k
         rows = [self.clones.pop(j) for j in list(self.clones) if j not in needed]

@@ -24,6 +24,7 @@ import numpy as np
 from camloc import measurement, slam
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, landmark_kind_of
 from camloc.results import LandmarkMap
+from camloc.slam_rays import CLONE_ROWS
 from camloc.slam_tracks import Tracks, triangulate
 
 # an assignment's cost outside the gate
@@ -202,8 +203,9 @@ class LandmarkAdditions:
         landmarks = np.array(self.state_landmark, np.int64)
         if self.config.map == "none":
             drop = np.zeros(landmarks.size, bool)
-            if landmarks.size > MAX_STATE_LANDMARKS:
-                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - MAX_STATE_LANDMARKS]] = True
+            limit = MAX_STATE_LANDMARKS + CLONE_ROWS * len(self.clones) + (clones.size if clones is not None else 0)  # landmarks only
+            if landmarks.size > limit:
+                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - limit]] = True
         else:
             drop = self.table.last_seen[landmarks] < k - RETIRE_AFTER
         # a tentative landmark is confirmed, or dropped with its pairs (clutter, or too rarely seen to map)
