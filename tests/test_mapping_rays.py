@@ -91,7 +91,8 @@ def test_the_compiled_run_takes_the_same_rays_into_the_state():
     run (the rays' landmarks and clones enter through the same numpy code in both)."""
     dataset = _circling(0, laps=1)
     numpy_run = localize(dataset, _CONFIG, engine="numpy")
-    compiled_run = localize(dataset, _CONFIG)
+    compiled_run = localize(dataset, _CONFIG, engine="compiled")
+    assert compiled_run.summary["timing"]["engine"] == "compiled update"
     assert np.allclose(numpy_run.estimate_xyz, compiled_run.estimate_xyz, atol=1e-8)
     assert np.allclose(numpy_run.landmark_map.xyz, compiled_run.landmark_map.xyz, atol=1e-8)
 
