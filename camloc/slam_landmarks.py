@@ -492,8 +492,10 @@ SCREEN_SIGMAS = 3.0
 def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray,
                       map_reach: float = 0.0) -> int:
     """How many places away from every mapped landmark the run's rejected observations
-    (``rejected`` (K,) bool) point at from ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
-    see, almost never agrees with itself three times). Each observation with range becomes a world
+    (``rejected`` (K,) bool) point at from ``SCREEN_POSES`` or more poses, more of them than the
+    rejected points around the place put there by chance (``_beyond_chance``): landmarks the map
+    lacks (clutter, uniform over what the cameras see, agrees with itself three times only where
+    it is dense). Each observation with range becomes a world
     point through its pose's estimate (N, 4, 4); they agree within ``SCREEN_SIGMAS`` of the spread
     of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world), and away
     from every mapped landmark by that and ``map_reach`` more (how far a mapped landmark may be from
@@ -533,37 +535,44 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
     index = PointIndex(points)
     pose = dataset.obs_pose_index[obs]
     floor = np.isin(dataset.obs_kind[obs], measurement.PLANAR_KINDS)
-    chance = FLOOR_CHANCE / max(1, int(np.count_nonzero(floor)))  # each floor point's share of the run's
+    chance = PLACE_CHANCE / obs.size  # each point's share of the run's
     places = 0
     claimed = np.zeros(obs.size, bool)
     for i in range(obs.size):
         neighbours = index.within(points[i], radius) if not claimed[i] else ()
         if claimed[i] or len(neighbours) < SCREEN_POSES:
             continue
-        if np.unique(pose[neighbours]).size >= SCREEN_POSES and (not floor[i] or _beyond_chance(index, points[i], radius, len(neighbours), chance)):
+        if (np.unique(pose[neighbours]).size >= SCREEN_POSES
+                and _beyond_chance(index, points[i], radius, len(neighbours), chance, 2 if floor[i] else 3)):
             places += 1
             claimed[neighbours] = True
     return places
 
 
-# A planar robot's rejected floor points (point2) lie in a plane, where clutter agrees with itself
-# by chance far more often than a camera's in space (complete 1,000-pose maps with 10% clutter:
-# 5-9 places of three chance clutter points each, and the run then went through the mapping pass):
-# such a place counts only where as many points within the radius are unlikely among the points
-# around it (within FLOOR_DENSITY_REACH radii, spread evenly), the chance that any of the run's
-# rejected floor points makes one below FLOOR_CHANCE (each point's share of it). Measured: no
-# place on complete 300- and 1,000-pose maps with 10% or 30% clutter (4 radii around left one of
-# five chance points near the start of a 30% world), 12-124 on 300-pose worlds with half withheld.
-FLOOR_DENSITY_REACH = 8.0
-FLOOR_CHANCE = 0.01
+# Clutter agrees with itself by chance where it is dense: a planar robot's rejected floor points
+# (point2) lie in a plane, where it does far more often than a camera's in space (complete 1,000-pose
+# maps with 10% clutter: 5-9 places of three chance clutter points each, and the run then went
+# through the mapping pass), and a camera's do too at 30-50% clutter (complete 1,000-pose maps: 6-54
+# places, 1-3 clutter landmarks added, and the beam's run again with the lowered null cost: aerial
+# 0.153 -> 0.536 m). A place counts only where as many points within the radius are unlikely among
+# the points around it (within DENSITY_REACH radii, spread evenly over the plane or the space), the
+# chance that any of the run's rejected points makes one below PLACE_CHANCE (each point's share of
+# it). Measured: on the floor, no place on complete 300- and 1,000-pose maps with 10% or 30% clutter
+# (4 radii around left one of five chance points near the start of a 30% world), 12-124 on 300-pose
+# worlds with half withheld; in space (2026-12-05, docs/performance.md), none on complete 1,000-pose
+# maps with 30-50% clutter, 24-43 on 300-pose worlds with half withheld and 26-35 on 1,000-pose
+# worlds with 10-20% withheld and 10-30% clutter, each run's result unchanged.
+DENSITY_REACH = 8.0
+PLACE_CHANCE = 0.01
 
 
-def _beyond_chance(index, point: np.ndarray, radius: float, count: int, chance: float) -> bool:
-    """Whether ``count`` rejected floor points within ``radius`` of ``point`` (itself among them)
-    are more than the points around it put there with probability ``chance``: each of the others
-    within ``FLOOR_DENSITY_REACH`` radii falls within the radius with probability
-    ``1 / FLOOR_DENSITY_REACH^2`` where they are spread evenly (``tails.binomial_tail``)."""
+def _beyond_chance(index, point: np.ndarray, radius: float, count: int, chance: float, dim: int) -> bool:
+    """Whether ``count`` rejected points within ``radius`` of ``point`` (itself among them) are
+    more than the points around it put there with probability ``chance``: each of the others
+    within ``DENSITY_REACH`` radii falls within the radius with probability ``1 / DENSITY_REACH^dim``
+    where they are spread evenly over ``dim`` dimensions (2: the floor, 3: space;
+    ``tails.binomial_tail``)."""
     from camloc.tails import binomial_tail
 
-    around = index.within(point, FLOOR_DENSITY_REACH * radius).size - 1
-    return binomial_tail(count - 2, around, 1.0 / FLOOR_DENSITY_REACH**2) < chance
+    around = index.within(point, DENSITY_REACH * radius).size - 1
+    return binomial_tail(count - 2, around, 1.0 / DENSITY_REACH**dim) < chance
