@@ -7,7 +7,8 @@ lacks are added.
   observation that no landmark in view fits within its gate is a candidate: one with range enters
   the state at once as a **tentative** landmark (the inverse observation: consistent in the
   invariant error), confirmed or dropped by its track score (below); a pixel gathers into a track
-  of rays (``camloc.slam_tracks``) until their parallax fixes a depth (delayed initialization).
+  of rays (``camloc.slam_tracks``) until their parallax fixes a depth (delayed initialization,
+  from its first ray's pose kept in the state: ``camloc.slam_anchors``).
   Under the oracle, an id the map lacks becomes a landmark at its second observation.
 
 Pure computation: no I/O, no printing.
@@ -23,7 +24,8 @@ import numpy as np
 from camloc import measurement, slam
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, landmark_kind_of
 from camloc.results import LandmarkMap
-from camloc.slam_tracks import DEPTH_VARIANCE_INFLATION, Tracks, triangulate
+from camloc.slam_rays import CLONE_ROWS
+from camloc.slam_tracks import Tracks, triangulate
 
 # an assignment's cost outside the gate
 UNPAIRED = 1e12
@@ -197,11 +199,13 @@ class LandmarkAdditions:
         """Landmarks unseen for ``RETIRE_AFTER`` poses leave the state, keeping their estimate."""
         if not self.state_landmark:
             return
+        clones = self._unneeded_clones(k) if self.clones else None  # (held ones: last_seen k, never retired)
         landmarks = np.array(self.state_landmark, np.int64)
         if self.config.map == "none":
             drop = np.zeros(landmarks.size, bool)
-            if landmarks.size > MAX_STATE_LANDMARKS:
-                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - MAX_STATE_LANDMARKS]] = True
+            limit = MAX_STATE_LANDMARKS + CLONE_ROWS * len(self.clones) + (clones.size if clones is not None else 0)  # landmarks only
+            if landmarks.size > limit:
+                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - limit]] = True
         else:
             drop = self.table.last_seen[landmarks] < k - RETIRE_AFTER
         # a tentative landmark is confirmed, or dropped with its pairs (clutter, or too rarely seen to map)
@@ -216,6 +220,8 @@ class LandmarkAdditions:
             # (a comparison with the few dropped, not np.isin: its set-up cost more than this search)
             self.chosen[since[(self.chosen[since][:, None] == landmarks[gone][None, :]).any(axis=1)]] = -1
             drop |= gone
+        if clones is not None and clones.size:
+            drop |= np.isin(landmarks, clones)
         if not np.any(drop):
             return
         if self.x.orientation is not None:  # a tag's orientation rows leave with its centre's
@@ -268,6 +274,7 @@ class LandmarkAdditions:
                 continue
             origin, direction, sigma = self._ray(o)
             track = self.tracks.add_ray(k, o, origin, direction, sigma, self._ray_fits(o))
+            self._anchored(k, track)
             if self.tracks.confirmed(track) and self._add_landmark(k, o, track):
                 self.tracks.remove(track)
 
@@ -333,6 +340,8 @@ class LandmarkAdditions:
             else:
                 origin, direction, sigma = self._ray(o)
                 ready = track.add_ray(k, o, origin, direction, sigma)
+                self._anchored(k, track)
+                ready = ready and len(track.observations) >= 2
             if ready and self._add_landmark(k, o, track.as_track()):
                 self.oracle_landmark[true_id] = len(self.table) - 1
                 del self.oracle_tracks[true_id]
@@ -355,21 +364,15 @@ class LandmarkAdditions:
 
     def _add_landmark(self, k: int, o: int, track, tentative: bool = False) -> bool:
         """A new landmark from observation o (the track's latest), in the state; False where a
-        ray's track fixes no depth in front of the camera."""
+        ray's track fixes no depth in front of the camera yet (``RayAnchors._ray_landmark``)."""
         sensor = self.sensors[int(self.obs_sensor[o])]
         z, R_z = self.dataset.obs_z[o].copy(), self.dataset.obs_cov[o].copy()
-        if not places_point(sensor.kind):
-            fix = triangulate(np.array(track.origins), np.array(track.directions), np.array(track.sigma_angle))
+        if not places_point(sensor.kind):  # from its first ray's clone and this one (``slam_anchors``)
+            fix = self._ray_landmark(k, o, track)
             if fix is None:
                 return False
-            depth_axis = self.x.R @ sensor.T_robot_camera[:3, :3][:, 2]
-            depth = float(slam.camera_points(self.x, sensor, fix[0][None, :])[0, 2])
-            if depth <= max(self.min_depth, 1e-3):
-                return False
-            z[2], R_z[2, :], R_z[:, 2] = depth, 0.0, 0.0
-            R_z[2, 2] = DEPTH_VARIANCE_INFLATION * float(depth_axis @ fix[1] @ depth_axis)
-            sensor = replace(sensor, kind=measurement.DEPTH)
-        if self.compiled is not None:
+            self.x, self.P = slam.augmented_on(self.x, self.P, *fix)
+        elif self.compiled is not None:
             xyz, self.P = self.compiled.augmented(self.x, self.P, sensor, z, R_z)
             self.x = slam.SlamMean(self.x.R, self.x.t, np.vstack([self.x.L, xyz]))
         else:
