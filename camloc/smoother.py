@@ -951,14 +951,15 @@ def _minimize(problem, T, X, config, on_iteration, start: dict | None = None):
             candidate_cost = candidate[3]
         accepted = step is not None and candidate_cost <= cost
         max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
+        small = step is not None and _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance
         if accepted:
             moved += max_step
             gain = (cost - candidate_cost) / _model_decrease(H, g, step)
-            converged = _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance
+            converged = small
             T, X, lin, cost = candidate
             damping, growth, majorize = _damping_after_accepted(damping, gain), 2.0, False
             receded = None if converged else _receded(problem, T, X)
-        elif step is not None and damping == 0.0 and _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance:
+        elif small and damping == 0.0:
             # A step below the tolerance that rounding made no cheaper: the poses are at the
             # minimum to that tolerance (20,000 poses: a factorization spent on a 2e-8 step saved).
             converged = True
