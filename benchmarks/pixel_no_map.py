@@ -6,7 +6,8 @@ real file's; pixel: 1 px at f = 525); each run as ``camloc run`` runs it (``--ma
 with each association. Prints the position RMSE of the estimate and of odometry alone, their
 ratio (above 1: the estimate is further from the truth than odometry), the mean NEES (6 dof) and
 the landmarks added; then, per association, how many worlds are worse than odometry. This is the
-measurement behind ``diagnostics.RAYS_NO_MAP`` (docs/performance.md, 2026-12-04 (evening)).
+measurement behind ``diagnostics.RAYS_NO_MAP`` (docs/performance.md, 2026-12-04 (evening), and
+2026-12-05 with the landmarks from cloned poses).
 
     nice python benchmarks/pixel_no_map.py                       # 12 worlds x beam, oracle: ~10 min
     nice python benchmarks/pixel_no_map.py --associations beam --seeds 0,1,2,3

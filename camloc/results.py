@@ -682,6 +682,7 @@ def load_run(run_dir: str | Path, *, smoothed: bool = True) -> RunResult:
                                                           "restore it or run 'camloc run' again")
     associations, row_lines = _read_associations_with_lines(run_dir / ASSOCIATIONS_CSV)
     _check_association_poses(run_dir / ASSOCIATIONS_CSV, associations, row_lines, arrays["pose_ids"])
+    _check_association_count(run_dir / ASSOCIATIONS_CSV, associations, summary)
     landmark_map = read_map(run_dir / MAP_CSV) if (run_dir / MAP_CSV).is_file() else None
     known_ids = arrays["map_landmark_ids"] if landmark_map is None else np.union1d(arrays["map_landmark_ids"], landmark_map.ids)
     _check_association_landmarks(run_dir / ASSOCIATIONS_CSV, associations, row_lines, known_ids)
@@ -896,14 +897,30 @@ def read_run_tum(path: str | Path, pose_ids: np.ndarray, *, hint: str) -> tuple[
     return xyz, quat
 
 
+# How the files that can hold pickled objects begin: a zip archive (an .npz of object arrays), a
+# numpy array, a pickle of protocol 2 or later.
+_PICKLING_MAGICS = (b"PK\x03\x04", b"\x93NUMPY", b"\x80")
+
+
+def _starts_with(path: Path, magics: tuple[bytes, ...]) -> bool:
+    with open(path, "rb") as file:
+        start = file.read(max(len(magic) for magic in magics))
+    return any(start.startswith(magic) for magic in magics)
+
+
 def _read_states(path: Path) -> dict[str, Any]:
     try:
         with np.load(path, allow_pickle=False) as npz:
             stored = {name: npz[name] for name in npz.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
-        if "pickle" in str(error):  # numpy's own message suggests loading it unsafely: camloc never writes one
+        # numpy takes any file that is neither a zip nor an .npy for a pickle, and its message
+        # suggests loading it unsafely: say what the file is instead (camloc never writes a pickle)
+        if "pickle" in str(error) and _starts_with(path, _PICKLING_MAGICS):
             raise DatasetError(path, None, "expected a numpy .npz archive of plain arrays, found pickled Python objects "
                                            "(not loaded; camloc never writes them)") from None
+        if "pickle" in str(error):
+            raise DatasetError(path, None, "expected a numpy .npz archive, found a file that is not one "
+                                           "(neither a zip archive nor a numpy array); run 'camloc run' again") from None
         raise DatasetError(path, None, f"expected a numpy .npz archive, found an unreadable file ({error})") from None
     if not isinstance(stored, dict) or "format_version" not in stored:
         raise DatasetError(path, None, "expected a camloc states archive, found no format_version")
@@ -1081,6 +1098,17 @@ def _check_association_poses(path: Path, associations: Associations, row_lines: 
             path, row_lines[row], f"inconsistent run folder: pose {associations.pose_id[row]} is not one of the "
             f"run's {len(pose_ids)} poses in {STATES_NPZ} ({pose_ids[0]}..{pose_ids[-1]})"
         )
+
+
+def _check_association_count(path: Path, associations: Associations, summary: dict) -> None:
+    """``associations.csv`` has a row per observation of the dataset: as many as ``summary.json``
+    counts, where it counts them (a file cut short scores a run on what is left of it)."""
+    counts = summary.get("counts")
+    expected = counts.get("observations") if isinstance(counts, dict) else None
+    found = len(associations.pose_id)
+    if isinstance(expected, int) and not isinstance(expected, bool) and expected != found:
+        raise DatasetError(path, None, f"inconsistent run folder: expected {expected} rows, one per observation "
+                                       f"({SUMMARY_JSON}'s counts), found {found}; run 'camloc run' again")
 
 
 def _check_association_landmarks(path: Path, associations: Associations, row_lines: list[int], map_ids: np.ndarray) -> None:

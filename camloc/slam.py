@@ -295,6 +295,21 @@ def augmented_many(x: SlamMean, P: np.ndarray, xyz: np.ndarray, B: np.ndarray, N
     return SlamMean(x.R, x.t, np.vstack([x.L, xyz]), _joined_mask(x, q, orientation)), P_new
 
 
+def augmented_on(x: SlamMean, P: np.ndarray, xyz: np.ndarray, C: np.ndarray, columns: np.ndarray,
+                 N: np.ndarray) -> tuple[SlamMean, np.ndarray]:
+    """``augmented`` of one landmark at xyz (3,) whose error is ``C xi[columns] + n`` (C (3, c) on
+    the error's components ``columns`` (c,) anywhere in the state, n ~ N(0, N)): the new rows
+    ``C P[columns]`` cost O(c n), not the O(n^2) of a B as wide as the state."""
+    n = P.shape[0]
+    CP = C @ P[columns, :]
+    P_new = np.empty((n + 3, n + 3))
+    P_new[:n, :n] = P
+    P_new[n:, :n] = CP
+    P_new[:n, n:] = CP.T
+    P_new[n:, n:] = ekf.symmetrize(CP[:, columns] @ C.T + N)
+    return SlamMean(x.R, x.t, np.vstack([x.L, xyz]), _joined_mask(x, 1, None)), P_new
+
+
 def _joined_mask(x: SlamMean, q: int, orientation: Optional[np.ndarray]) -> Optional[np.ndarray]:
     """The orientation mask of x's rows and q new ones (``orientation``, None: positions)."""
     if x.orientation is None and orientation is None:

@@ -7,7 +7,8 @@ lacks are added.
   observation that no landmark in view fits within its gate is a candidate: one with range enters
   the state at once as a **tentative** landmark (the inverse observation: consistent in the
   invariant error), confirmed or dropped by its track score (below); a pixel gathers into a track
-  of rays (``camloc.slam_tracks``) until their parallax fixes a depth (delayed initialization).
+  of rays (``camloc.slam_tracks``) until their parallax fixes a depth (delayed initialization,
+  from its first ray's pose kept in the state: ``camloc.slam_anchors``).
   Under the oracle, an id the map lacks becomes a landmark at its second observation.
 
 Pure computation: no I/O, no printing.
@@ -23,7 +24,8 @@ import numpy as np
 from camloc import measurement, slam
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, Dataset, landmark_kind_of
 from camloc.results import LandmarkMap
-from camloc.slam_tracks import DEPTH_VARIANCE_INFLATION, Tracks, triangulate
+from camloc.slam_rays import CLONE_ROWS
+from camloc.slam_tracks import Tracks, triangulate
 
 # an assignment's cost outside the gate
 UNPAIRED = 1e12
@@ -197,11 +199,13 @@ class LandmarkAdditions:
         """Landmarks unseen for ``RETIRE_AFTER`` poses leave the state, keeping their estimate."""
         if not self.state_landmark:
             return
+        clones = self._unneeded_clones(k) if self.clones else None  # (held ones: last_seen k, never retired)
         landmarks = np.array(self.state_landmark, np.int64)
         if self.config.map == "none":
             drop = np.zeros(landmarks.size, bool)
-            if landmarks.size > MAX_STATE_LANDMARKS:
-                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - MAX_STATE_LANDMARKS]] = True
+            limit = MAX_STATE_LANDMARKS + CLONE_ROWS * len(self.clones) + (clones.size if clones is not None else 0)  # landmarks only
+            if landmarks.size > limit:
+                drop[np.argsort(self.table.last_seen[landmarks], kind="stable")[:landmarks.size - limit]] = True
         else:
             drop = self.table.last_seen[landmarks] < k - RETIRE_AFTER
         # a tentative landmark is confirmed, or dropped with its pairs (clutter, or too rarely seen to map)
@@ -216,6 +220,8 @@ class LandmarkAdditions:
             # (a comparison with the few dropped, not np.isin: its set-up cost more than this search)
             self.chosen[since[(self.chosen[since][:, None] == landmarks[gone][None, :]).any(axis=1)]] = -1
             drop |= gone
+        if clones is not None and clones.size:
+            drop |= np.isin(landmarks, clones)
         if not np.any(drop):
             return
         if self.x.orientation is not None:  # a tag's orientation rows leave with its centre's
@@ -268,6 +274,7 @@ class LandmarkAdditions:
                 continue
             origin, direction, sigma = self._ray(o)
             track = self.tracks.add_ray(k, o, origin, direction, sigma, self._ray_fits(o))
+            self._anchored(k, track)
             if self.tracks.confirmed(track) and self._add_landmark(k, o, track):
                 self.tracks.remove(track)
 
@@ -333,6 +340,8 @@ class LandmarkAdditions:
             else:
                 origin, direction, sigma = self._ray(o)
                 ready = track.add_ray(k, o, origin, direction, sigma)
+                self._anchored(k, track)
+                ready = ready and len(track.observations) >= 2
             if ready and self._add_landmark(k, o, track.as_track()):
                 self.oracle_landmark[true_id] = len(self.table) - 1
                 del self.oracle_tracks[true_id]
@@ -355,21 +364,15 @@ class LandmarkAdditions:
 
     def _add_landmark(self, k: int, o: int, track, tentative: bool = False) -> bool:
         """A new landmark from observation o (the track's latest), in the state; False where a
-        ray's track fixes no depth in front of the camera."""
+        ray's track fixes no depth in front of the camera yet (``RayAnchors._ray_landmark``)."""
         sensor = self.sensors[int(self.obs_sensor[o])]
         z, R_z = self.dataset.obs_z[o].copy(), self.dataset.obs_cov[o].copy()
-        if not places_point(sensor.kind):
-            fix = triangulate(np.array(track.origins), np.array(track.directions), np.array(track.sigma_angle))
+        if not places_point(sensor.kind):  # from its first ray's clone and this one (``slam_anchors``)
+            fix = self._ray_landmark(k, o, track)
             if fix is None:
                 return False
-            depth_axis = self.x.R @ sensor.T_robot_camera[:3, :3][:, 2]
-            depth = float(slam.camera_points(self.x, sensor, fix[0][None, :])[0, 2])
-            if depth <= max(self.min_depth, 1e-3):
-                return False
-            z[2], R_z[2, :], R_z[:, 2] = depth, 0.0, 0.0
-            R_z[2, 2] = DEPTH_VARIANCE_INFLATION * float(depth_axis @ fix[1] @ depth_axis)
-            sensor = replace(sensor, kind=measurement.DEPTH)
-        if self.compiled is not None:
+            self.x, self.P = slam.augmented_on(self.x, self.P, *fix)
+        elif self.compiled is not None:
             xyz, self.P = self.compiled.augmented(self.x, self.P, sensor, z, R_z)
             self.x = slam.SlamMean(self.x.R, self.x.t, np.vstack([self.x.L, xyz]))
         else:
@@ -489,8 +492,10 @@ SCREEN_SIGMAS = 3.0
 def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.ndarray, rejected: np.ndarray,
                       map_reach: float = 0.0) -> int:
     """How many places away from every mapped landmark the run's rejected observations
-    (``rejected`` (K,) bool) point at from ``SCREEN_POSES`` or more poses: landmarks the map lacks (clutter, uniform over what the cameras
-    see, almost never agrees with itself three times). Each observation with range becomes a world
+    (``rejected`` (K,) bool) point at from ``SCREEN_POSES`` or more poses, more of them than the
+    rejected points around the place put there by chance (``_beyond_chance``): landmarks the map
+    lacks (clutter, uniform over what the cameras see, agrees with itself three times only where
+    it is dense). Each observation with range becomes a world
     point through its pose's estimate (N, 4, 4); they agree within ``SCREEN_SIGMAS`` of the spread
     of the pose's position and the measurement (``pose_cov`` (N, 6, 6) in the world), and away
     from every mapped landmark by that and ``map_reach`` more (how far a mapped landmark may be from
@@ -530,37 +535,44 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
     index = PointIndex(points)
     pose = dataset.obs_pose_index[obs]
     floor = np.isin(dataset.obs_kind[obs], measurement.PLANAR_KINDS)
-    chance = FLOOR_CHANCE / max(1, int(np.count_nonzero(floor)))  # each floor point's share of the run's
+    chance = PLACE_CHANCE / obs.size  # each point's share of the run's
     places = 0
     claimed = np.zeros(obs.size, bool)
     for i in range(obs.size):
         neighbours = index.within(points[i], radius) if not claimed[i] else ()
         if claimed[i] or len(neighbours) < SCREEN_POSES:
             continue
-        if np.unique(pose[neighbours]).size >= SCREEN_POSES and (not floor[i] or _beyond_chance(index, points[i], radius, len(neighbours), chance)):
+        if (np.unique(pose[neighbours]).size >= SCREEN_POSES
+                and _beyond_chance(index, points[i], radius, len(neighbours), chance, 2 if floor[i] else 3)):
             places += 1
             claimed[neighbours] = True
     return places
 
 
-# A planar robot's rejected floor points (point2) lie in a plane, where clutter agrees with itself
-# by chance far more often than a camera's in space (complete 1,000-pose maps with 10% clutter:
-# 5-9 places of three chance clutter points each, and the run then went through the mapping pass):
-# such a place counts only where as many points within the radius are unlikely among the points
-# around it (within FLOOR_DENSITY_REACH radii, spread evenly), the chance that any of the run's
-# rejected floor points makes one below FLOOR_CHANCE (each point's share of it). Measured: no
-# place on complete 300- and 1,000-pose maps with 10% or 30% clutter (4 radii around left one of
-# five chance points near the start of a 30% world), 12-124 on 300-pose worlds with half withheld.
-FLOOR_DENSITY_REACH = 8.0
-FLOOR_CHANCE = 0.01
+# Clutter agrees with itself by chance where it is dense: a planar robot's rejected floor points
+# (point2) lie in a plane, where it does far more often than a camera's in space (complete 1,000-pose
+# maps with 10% clutter: 5-9 places of three chance clutter points each, and the run then went
+# through the mapping pass), and a camera's do too at 30-50% clutter (complete 1,000-pose maps: 6-54
+# places, 1-3 clutter landmarks added, and the beam's run again with the lowered null cost: aerial
+# 0.153 -> 0.536 m). A place counts only where as many points within the radius are unlikely among
+# the points around it (within DENSITY_REACH radii, spread evenly over the plane or the space), the
+# chance that any of the run's rejected points makes one below PLACE_CHANCE (each point's share of
+# it). Measured: on the floor, no place on complete 300- and 1,000-pose maps with 10% or 30% clutter
+# (4 radii around left one of five chance points near the start of a 30% world), 12-124 on 300-pose
+# worlds with half withheld; in space (2026-12-05, docs/performance.md), none on complete 1,000-pose
+# maps with 30-50% clutter, 24-43 on 300-pose worlds with half withheld and 26-35 on 1,000-pose
+# worlds with 10-20% withheld and 10-30% clutter, each run's result unchanged.
+DENSITY_REACH = 8.0
+PLACE_CHANCE = 0.01
 
 
-def _beyond_chance(index, point: np.ndarray, radius: float, count: int, chance: float) -> bool:
-    """Whether ``count`` rejected floor points within ``radius`` of ``point`` (itself among them)
-    are more than the points around it put there with probability ``chance``: each of the others
-    within ``FLOOR_DENSITY_REACH`` radii falls within the radius with probability
-    ``1 / FLOOR_DENSITY_REACH^2`` where they are spread evenly (``tails.binomial_tail``)."""
+def _beyond_chance(index, point: np.ndarray, radius: float, count: int, chance: float, dim: int) -> bool:
+    """Whether ``count`` rejected points within ``radius`` of ``point`` (itself among them) are
+    more than the points around it put there with probability ``chance``: each of the others
+    within ``DENSITY_REACH`` radii falls within the radius with probability ``1 / DENSITY_REACH^dim``
+    where they are spread evenly over ``dim`` dimensions (2: the floor, 3: space;
+    ``tails.binomial_tail``)."""
     from camloc.tails import binomial_tail
 
-    around = index.within(point, FLOOR_DENSITY_REACH * radius).size - 1
-    return binomial_tail(count - 2, around, 1.0 / FLOOR_DENSITY_REACH**2) < chance
+    around = index.within(point, DENSITY_REACH * radius).size - 1
+    return binomial_tail(count - 2, around, 1.0 / DENSITY_REACH**dim) < chance

@@ -41,6 +41,7 @@ from camloc.observation_space import candidate_range, observation_noise, planar_
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
+from camloc.slam_anchors import RayAnchors
 from camloc.slam_association import BEAM_RECENT, PoseAssociation
 from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, floor_sure_view, sure_view
 from camloc.slam_tag_states import TagStates
@@ -49,7 +50,7 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions, TagStates):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -85,6 +86,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, TagStates):
         self.state_landmark: list[int] = []  # table index of each landmark in the state
         self.tracks = Tracks(chi2_quantile(3, 1.0 - config.gate), self.min_depth, self.max_depth)
         self.oracle_tracks: dict[int, object] = {}
+        self.clones: dict[int, np.ndarray] = {}  # pose -> the table rows of its clone (``RayAnchors``)
         self.oracle_landmark: dict[int, int] = {int(i): n for n, i in enumerate(ids.tolist())}
         all_ids = np.concatenate([dataset.landmark_ids, dataset.pose_ids, dataset.obs_true_landmark, [-1]])
         self.next_id = int(all_ids.max()) + 1

@@ -5,16 +5,17 @@ clutter or a landmark the map lacks; it gives a ray, not a point. It is kept in 
 rays (the camera's centre and direction): a later one joins the track when they meet (every ray
 within ``RAY_SIGMAS`` of its angular noise of the point nearest to all of them; rays from one
 centre when they are parallel within that noise). A track becomes a landmark once it holds
-``CONFIRM_OBSERVATIONS`` rays with ``MIN_PARALLAX_DEG`` of parallax; one not extended within
+``CONFIRM_OBSERVATIONS`` rays with ``MIN_PARALLAX_DEG`` of parallax and its first and latest rays
+fix the depth well enough (``camloc.slam_anchors.MAX_DEPTH_SPREAD``); one not extended within
 ``TRACK_WINDOW`` poses is dropped. (An observation with range enters the state at once as a
 tentative landmark instead: ``camloc.slam_landmarks``.)
 
-Why delayed and not inverse depth: the landmark enters the filter's state from the latest ray, its
-depth from the track's triangulation (its variance widened by ``DEPTH_VARIANCE_INFLATION`` for the
-drift between the views, which the triangulation takes as exact), so the earlier views contribute
-only the depth and the filter never counts a measurement twice. Inverse depth would enter every ray
-at once, but as a 6-parameter landmark the filter's models (and the smoother's) would carry only
-for rays; the delay costs a few poses per landmark.
+The landmark is made from the track's first ray, cast from a pose kept in the filter's state for
+it (a clone: ``camloc.slam_anchors``, ``camloc.slam_rays``), and its latest, with their joint
+Jacobians: consistent whatever the odometry's drift between the two views. (Before, the track's
+rays were triangulated as if the poses they were cast from were exact, and the landmark entered
+from the latest ray with that depth: overconfident by far with an accurate camera, see
+docs/performance.md.) The rays between the two are only what ties the track together.
 
 Pure: no I/O, no printing.
 """
@@ -30,7 +31,6 @@ CONFIRM_OBSERVATIONS = 3
 TRACK_WINDOW = 10
 RAY_SIGMAS = 3.0
 MIN_PARALLAX_DEG = 1.0
-DEPTH_VARIANCE_INFLATION = 4.0
 
 
 @dataclass

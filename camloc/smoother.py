@@ -63,9 +63,15 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             has a model whose minimum can be metres past the cost's; each landmark's part of a
             step is therefore cut to the minimum of its own linearized robust cost along it,
             the poses' part kept (``camloc.landmark_steps``; 20,000 planar poses with no map:
-            35 iterations, most steps rejected, before; 11 now). A step that does not lower the
-            cost is retried as IRLS, then with Levenberg-Marquardt damping. The normal matrix is
-            scaled to unit diagonal (Jacobi) and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
+            35 iterations, most steps rejected, before; 11 now). For the same reason the Newton
+            step can carry an observation beyond the threshold past the apex of its cone, where
+            the cost rises again and the model keeps falling (``camloc.huber_apex``; no map: poses
+            and landmarks that only those observations hold); such a step is solved again with
+            those observations' IRLS rows, whose model stops at the apex (conjugate gradients on
+            the step's factor), and the cheaper of the two is taken (20,000 3-D poses with no map:
+            20 iterations, five Newton steps rejected in a row, before; 10 now). A step that does
+            not lower the cost is retried as IRLS, then with Levenberg-Marquardt damping. The
+            normal matrix is scaled to unit diagonal (Jacobi) and factored by a sparse Cholesky (CHOLMOD's supernodal, ``camloc.cholesky``); with
             landmark variables, each landmark's 3x3 block is eliminated first (its Schur
             complement, ``camloc.schur``) and the Cholesky factors the reduced pose system. Near
             the solution a step is solved by conjugate gradients preconditioned with the last
@@ -111,6 +117,7 @@ from camloc.cholesky import NotPositiveDefinite
 from camloc.dataset import Dataset, on_the_floor
 from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
+from camloc.huber_apex import past_apex
 from camloc.landmark_steps import OBS_DIM, landmark_step_lengths, row_landmarks
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
@@ -669,22 +676,24 @@ def normal_equations(lin: Linearization, huber: float, *, newton: bool,
     return (J_w.T @ J_w).tocsc(), g
 
 
-def newton_equations(problem: SmoothingProblem, lin: Linearization, huber: float) -> tuple[sp.csc_matrix, np.ndarray]:
+def newton_equations(problem: SmoothingProblem, lin: Linearization, huber: float,
+                     majorized: np.ndarray | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
     """``normal_equations(newton=True)``, with the IRLS rows kept for the observations of every
     landmark variable whose own block of that Hessian is singular (condition beyond
     ``_MAX_LANDMARK_CONDITION``): all its observations beyond the Huber threshold with their
     residuals on one line (a marker seen twice, each pulling it half way: at such a minimum the
     two residuals are opposite), where the robust cost has no curvature along that line and the
-    Newton step would be unbounded. The others keep the Newton rows (quadratic convergence)."""
+    Newton step would be unbounded. The others keep the Newton rows (quadratic convergence), but
+    for ``majorized`` (M,) bool (``_apex_limited_step``)."""
     H, g = normal_equations(lin, huber, newton=True)
-    if not problem.num_landmarks:
+    kept = np.zeros(len(lin.obs_sq), dtype=bool) if majorized is None else majorized.copy()
+    if problem.num_landmarks:
+        eig = np.linalg.eigvalsh(landmark_blocks(H, problem.num_pose_unknowns))
+        flat = ~(eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION)
+        kept |= (problem.obs_landmark >= 0) & flat[np.maximum(problem.obs_landmark, 0)]
+    if not np.any(kept):
         return H, g
-    eig = np.linalg.eigvalsh(landmark_blocks(H, problem.num_pose_unknowns))
-    flat = ~(eig[:, 0] > eig[:, 2] / _MAX_LANDMARK_CONDITION)
-    if not np.any(flat):
-        return H, g
-    majorized = (problem.obs_landmark >= 0) & flat[np.maximum(problem.obs_landmark, 0)]
-    return normal_equations(lin, huber, newton=True, majorized=majorized)
+    return normal_equations(lin, huber, newton=True, majorized=kept)
 
 
 # --------------------------------------------------------------------------------------------
@@ -886,38 +895,47 @@ def _minimize(problem, T, X, config, on_iteration):
     damping, majorize, iterations, converged = 0.0, True, 0, problem.num_unknowns == 0
     num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
     factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
+    # the landmark each Jacobian row touches: its sparsity is the problem's, the same at every iteration
+    rows = row_landmarks(lin.jacobian, problem.num_pose_unknowns) if problem.num_landmarks else None
     while not converged and iterations < config.max_iterations:
         H, g = normal_equations(lin, config.huber, newton=False) if majorize else newton_equations(problem, lin, config.huber)
         Hs, d = _scaled(H)
         try:
-            step = None
+            step, limited, used = None, None, None
             if problem.num_landmarks and moved < _PRECONDITIONER_REUSE and damping == 0.0 and not majorize:
-                step = _preconditioned_step(Hs, d, g, factor)
+                step, used = _preconditioned_step(Hs, d, g, factor), factor
             if step is None:
                 if iterations == 0:  # the first step reuses the condition check's factor
                     condition, lu = _conditioned_factor(problem, H, config)
                 else:
                     lu = _step_factor(Hs, num_pose, damping)
-                step = d * lu.solve(-d * g)
+                step, used = d * lu.solve(-d * g), (lu, d)
                 if damping == 0.0 and not majorize:
                     factor, moved = (lu, d), 0.0
+            if damping == 0.0 and not majorize:
+                limited = _apex_limited_step(problem, lin, step, used, config.huber, num_pose)
         except _SingularStep:
             # The Newton Hessian of a landmark whose observations are all beyond the Huber
             # threshold can lose rank along their residuals: a rejected step, retried as IRLS
             # (positive definite where the observations determine the landmark), then damped.
             step = None
         iterations += 1
-        if step is not None and problem.num_landmarks:
-            step = _landmark_line_search(problem, lin, step, config.huber)
         if step is not None:
-            candidate, candidate_X = problem.retract(T, X, step)
-            candidate_lin = problem.linearize(candidate, candidate_X)
-            candidate_cost = robust_cost(candidate_lin, config.huber)
+            step, candidate = _candidate(problem, T, X, lin, step, config.huber, rows)
+            if limited is not None:
+                # The Newton step passed some observations' apexes (``camloc.huber_apex``): the
+                # cheaper of it and the step stopped at them. Mostly the latter; the former where
+                # the step passes an apex along a valley that does go on (two observations of a
+                # landmark pulling it apart), where stopping there would creep as IRLS does.
+                limited, other = _candidate(problem, T, X, lin, limited, config.huber, rows)
+                if other[3] < candidate[3]:
+                    step, candidate = limited, other
+            candidate_cost = candidate[3]
         accepted = step is not None and candidate_cost <= cost
         max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
         if accepted:
             moved += max_step
-            T, X, lin, cost = candidate, candidate_X, candidate_lin, candidate_cost
+            T, X, lin, cost = candidate
             damping, majorize = (damping / 10.0 if damping > 1e-9 else 0.0), False
             converged = max_step < config.step_tolerance
         elif step is not None and damping == 0.0 and max_step < config.step_tolerance:
@@ -941,16 +959,54 @@ def _minimize(problem, T, X, config, on_iteration):
     return T, X, lin, cost, initial_cost, counts
 
 
-def _landmark_line_search(problem: SmoothingProblem, lin: Linearization, step: np.ndarray, huber: float) -> np.ndarray:
+def _candidate(problem, T, X, lin, step, huber, rows):
+    """The step (each landmark's part cut, ``_landmark_line_search``) and where it leads: the
+    poses, landmarks, their linearization and robust cost."""
+    if problem.num_landmarks:
+        step = _landmark_line_search(problem, lin, step, huber, rows)
+    moved, moved_X = problem.retract(T, X, step)
+    after = problem.linearize(moved, moved_X)
+    return step, (moved, moved_X, after, robust_cost(after, huber))
+
+
+def _apex_limited_step(problem, lin, step, factored, huber, num_pose) -> Optional[np.ndarray]:
+    """The Newton step solved again with the IRLS rows of the observations it carries past the
+    apex of their cone (``camloc.huber_apex``), until it carries no more (the set only grows);
+    None when it carries none. Those rows change the matrix by a term of low rank, so the step
+    is solved by conjugate gradients preconditioned with the Newton step's factor (``factored``),
+    else with a factor of its own."""
+    first_obs_row = lin.odom_dim * len(lin.odom_sq)
+    kept, limited = np.zeros(len(lin.obs_sq), dtype=bool), None
+    while True:
+        past = past_apex(lin.residual, lin.jacobian, step, first_obs_row, lin.obs_sq, huber) & ~kept
+        if not np.any(past):
+            return limited
+        kept |= past
+        H, g = newton_equations(problem, lin, huber, majorized=kept)
+        Hs, d = _scaled(H)
+        step = _preconditioned_step(Hs, d, g, factored)
+        if step is None:
+            try:
+                factored = (_factorization(Hs, num_pose), d)
+            except np.linalg.LinAlgError:
+                return limited
+            step = d * factored[0].solve(-d * g)
+        limited = step
+
+
+def _landmark_line_search(problem: SmoothingProblem, lin: Linearization, step: np.ndarray, huber: float,
+                          rows: np.ndarray | None = None) -> np.ndarray:
     """The step with each landmark's part shortened to the minimum of its own linearized robust
     cost along it, the poses' part kept (``camloc.landmark_steps``): the Newton model of a
     landmark whose observations are all beyond the Huber threshold is flat along their residuals,
-    and its full step can overshoot by metres and spoil the whole step."""
+    and its full step can overshoot by metres and spoil the whole step. ``rows``: the Jacobian's
+    ``row_landmarks`` (None: read from it)."""
     n = problem.num_pose_unknowns
     pose_part, landmark_part = step.copy(), step.copy()
     pose_part[n:], landmark_part[:n] = 0.0, 0.0
+    rows = row_landmarks(lin.jacobian, n) if rows is None else rows
     alpha = landmark_step_lengths(lin.residual, lin.jacobian @ pose_part, lin.jacobian @ landmark_part,
-                                  row_landmarks(lin.jacobian, n), lin.odom_dim * len(lin.odom_sq), len(lin.obs_sq),
+                                  rows, lin.odom_dim * len(lin.odom_sq), len(lin.obs_sq),
                                   problem.num_landmarks, huber)
     return np.concatenate([step[:n], (step[n:].reshape(-1, LANDMARK_DOF) * alpha[:, None]).ravel()])
 

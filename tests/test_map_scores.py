@@ -107,7 +107,9 @@ def hand_built_run(folder, synthetic_run):
         pose_id=run.pose_ids[1:], camera=np.zeros(len(assigned), np.int64), uvd=np.tile([0.5, 0.5, 1.0], (len(assigned), 1)),
         landmark=assigned, true_landmark=true_ids, mahalanobis=np.where(accepted, 1.0, np.nan))
     added_ids = np.array(list(ADDED))
-    run = dataclasses.replace(run, associations=associations, map_landmark_ids=np.r_[GIVEN, added_ids],
+    counts = {**run.summary["counts"], "observations": len(assigned)}  # summary.json counts what associations.csv holds
+    run = dataclasses.replace(run, associations=associations, summary={**run.summary, "counts": counts},
+                              map_landmark_ids=np.r_[GIVEN, added_ids],
                               map_landmark_xyz=np.r_[_given_xyz(), _estimated_map().xyz[6:]])
     run_dir = save_run(folder / "run", run)
     write_map(run_dir, _estimated_map())

@@ -481,6 +481,22 @@ def test_the_screening_counts_a_moved_landmark_as_lacking_only_beyond_the_map_re
     assert lacking_landmarks(dataset, T, pose_cov, rejected) == 0  # where the map has it: missed, not lacking
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_screening_finds_no_place_in_the_dense_clutter_of_a_complete_map(seed):
+    """Half of a 600-pose run's observations clutter: uniform over what the camera sees, it
+    agrees with itself three times here and there (11-43 places before the chance test in space,
+    and a complete map's run went through the mapping pass), but never more than the clutter around
+    it makes likely. With a fifth of the map withheld the lacking landmarks are still found."""
+    from camloc.slam_landmarks import lacking_landmarks
+
+    for withheld in (0.0, 0.2):
+        dataset = simulate_labelled(SimulationConfig(poses=600, clutter_fraction=0.5, withhold_map=withheld), seed=seed).dataset
+        rejected = ~np.isin(dataset.obs_true_landmark, dataset.landmark_ids)  # clutter, and the withheld landmarks' observations
+        T, pose_cov = dataset.T_world_truth, np.tile(1e-3 * np.eye(6), (dataset.num_poses, 1, 1))
+        places = lacking_landmarks(dataset, T, pose_cov, rejected)
+        assert (places == 0) if withheld == 0.0 else (places >= 10)
+
+
 def test_first_poses_keeps_the_start_of_a_run_whole():
     from camloc.dataset import first_poses
 

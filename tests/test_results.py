@@ -588,3 +588,24 @@ def test_landmark_headings_are_kept_optional_and_checked(tmp_path, synthetic_run
     _rewrite_states(run_dir, map_landmark_heading=np.full(L, 7.0))
     with pytest.raises(DatasetError, match="map_landmark_heading: expected radians within"):
         load_run(run_dir)
+
+
+def test_load_run_of_a_states_file_that_is_no_archive_says_so(tmp_path, synthetic_run):
+    # numpy takes a file that is neither a zip nor an .npy for a pickle: the error must not say
+    # that the file holds pickled objects
+    run_dir = save_run(tmp_path / "run", synthetic_run())
+    (run_dir / "states.npz").write_text("not an archive\n")
+    with pytest.raises(DatasetError) as caught:
+        load_run(run_dir)
+    assert "found a file that is not one" in str(caught.value) and "pickled" not in str(caught.value)
+
+
+def test_load_run_of_an_associations_csv_cut_short(tmp_path, synthetic_run):
+    # a file cut short at a line's end reads as a well-formed shorter file: summary.json's count tells
+    run = synthetic_run()
+    run_dir = save_run(tmp_path / "run", run)
+    lines = (run_dir / "associations.csv").read_text().splitlines(keepends=True)
+    (run_dir / "associations.csv").write_text("".join(lines[:2]))
+    expected = run.summary["counts"]["observations"]
+    with pytest.raises(DatasetError, match=f"associations.csv: inconsistent run folder: expected {expected} rows, .* found 1"):
+        load_run(run_dir)

@@ -337,9 +337,11 @@ def no_map_world():
 
 def _no_map_reference(dataset, run, monkeypatch):
     """The same world smoothed by the solver without the landmarks' line search (each landmark
-    its full Newton step, as before), to a tight tolerance."""
+    its full Newton step, as before) nor the steps stopped at the observations' apexes, to a
+    tight tolerance."""
     with monkeypatch.context() as patch:
-        patch.setattr(smoother, "_landmark_line_search", lambda problem, lin, step, huber: step)
+        patch.setattr(smoother, "_landmark_line_search", lambda problem, lin, step, huber, rows=None: step)
+        patch.setattr(smoother, "_apex_limited_step", lambda *args: None)
         return smooth_planar_run(dataset, run, SmootherConfig(map="none", step_tolerance=1e-11, max_iterations=200))
 
 
