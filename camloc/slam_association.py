@@ -36,7 +36,8 @@ from camloc.tails import chi2_quantile
 class Candidate:
     """One gated pair: observation index, landmark (table index), innovation y (3,), Jacobian
     H (3, n), the extra covariance (3, 3) of a landmark outside the state (zeros: in it or exact),
-    the observation's noise R (3, 3), its degrees of freedom and its cost alone."""
+    the observation's noise R (3, 3), its degrees of freedom, its cost alone and the sensor that
+    made the observation (each sensor sees a landmark once a pose; two cameras, twice)."""
 
     obs: int
     landmark: int
@@ -46,6 +47,7 @@ class Candidate:
     R: np.ndarray
     dof: int
     cost: float
+    sensor: int = 0
 
 
 def joint_distance(P: np.ndarray, pairs: list[Candidate]) -> float:
@@ -72,7 +74,7 @@ def _gate_at_tail(dofs: np.ndarray, tail: float) -> np.ndarray:
 
 def jcbb(P: np.ndarray, candidates: list[list[Candidate]], probability: float, max_nodes: int = 2000) -> list[Candidate]:
     """The largest jointly compatible set of pairs (one candidate or none per observation, each
-    landmark once), ties by the lower sum of the pairs' own costs. Every candidate's H P H' block
+    landmark once per sensor), ties by the lower sum of the pairs' own costs. Every candidate's H P H' block
     against every other's is computed once (``H P H'`` over all of them), so that a node's joint
     test costs what its few pairs do, not the state's size."""
     with_options = [options for options in candidates if options]
@@ -122,12 +124,12 @@ def jcbb_search(P: np.ndarray, candidates: list[list[Candidate]], probability: f
                 best, best_cost = list(chosen), cost
             return
         for c in lists[depth]:
-            if c.landmark in used:
+            if (c.landmark, c.sensor) in used:
                 continue
             trial_rows, trial_dof = np.concatenate([rows, block_rows[slot[id(c)]]]), dof + c.dof
             if chosen and not compatible(trial_rows, trial_dof):
                 continue
-            search(depth + 1, chosen + [c], used | {c.landmark}, cost + c.cost, trial_rows, trial_dof)
+            search(depth + 1, chosen + [c], used | {(c.landmark, c.sensor)}, cost + c.cost, trial_rows, trial_dof)
         search(depth + 1, chosen, used, cost, rows, dof)
 
     search(0, [], set(), 0.0, np.zeros(0, np.int64), 0)
@@ -224,7 +226,7 @@ class PoseAssociation:
             slack = self._slack(landmarks, places_point(self.sensors[sensor_id].kind))
             for i, o in enumerate(mine.tolist()):
                 candidates.append([Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
-                                             self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]))
+                                             self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]), int(sensor_id))
                                    for j in np.flatnonzero(cost[i] < self.null_cost[o] + slack).tolist()])
         return candidates
 

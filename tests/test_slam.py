@@ -162,6 +162,25 @@ def test_jcbb_of_one_observation_is_the_search_s_answer():
         assert [id(c) for c in jcbb(P, candidates, 0.99)] == [id(c) for c in jcbb_search(P, candidates, 0.99)]
 
 
+def test_jcbb_pairs_a_landmark_once_per_sensor():
+    """Two cameras seeing one landmark give it two observations a pose (a stereo rig's stacked
+    update); one camera cannot see it twice. Both observations consistent with the landmark: of
+    two sensors both are taken, of one sensor only one (before, one of the rig's two was left out
+    at every pose: the still stereo robot's landmark took 42 of its 80 observations)."""
+    from camloc.slam_association import Candidate, jcbb
+
+    rng = np.random.default_rng(3)
+    n = 9
+    P = np.eye(n) * 1e-4
+    H = [np.hstack([rng.normal(size=(3, 6)), np.eye(3)]) for _ in range(2)]
+    R = np.eye(3) * 0.01
+    y = [rng.normal(size=3) * 0.01 for _ in range(2)]
+    for sensors, taken in (((0, 1), 2), ((0, 0), 1)):
+        candidates = [[Candidate(o, 5, y[o], H[o], np.zeros((3, 3)), R, 3, 1.0, sensor=sensors[o])] for o in range(2)]
+        chosen = jcbb(P, candidates, 0.99)
+        assert len(chosen) == taken and all(c.landmark == 5 for c in chosen)
+
+
 def test_column_gain_equals_the_joseph_product_form():
     """The update from H's few columns (ekf.ColumnGain: the Joseph form expanded, O(n^2 m)) gives
     the covariance of the textbook product form, exactly symmetric, the same correction, and
