@@ -173,6 +173,19 @@ def unambiguous(P: np.ndarray, candidates: list[list[Candidate]], chosen: list[C
 # where the robot came back to it: landmarks were added twice.) With a map, added landmarks keep
 # the slack (``PoseAssociation._slack``): the odds below e^-10 / 2.
 _NULL_SLACK = 20.0
+# Without a map, a landmark unseen for more than RETURN_GAP poses is paired again only where the
+# pair is RETURN_PENALTY likelier than clutter (its cost that much below the null cost). Why: a
+# return after a gap is where the wrong pairs were, most of them an observation of a landmark not
+# yet mapped paired with a neighbour (an unexplained observation is far likelier to be a new
+# landmark than rare clutter there, and the drift since the last view spreads the gate over the
+# neighbours). Pairs made by the old rules, wrong of all (300-pose grid worlds, seeds 0-3): with
+# landmarks unseen 10 poses or more and a cost within 4 of the null cost, 27 of 42; with landmarks
+# unseen under 10 poses, 61 of 1,338. Measured (docs/performance.md, 2026-12-05, "No map on sparse worlds"):
+# gaps 10, 20, 30 and penalties 2, 4 (and 2 on every pair): 20 and 4 kept; landmarks added twice
+# on 300-pose worlds fell on every kind; the 100-pose grid worlds (the real file's kind) lost 2-6%
+# of RMSE with each setting, the loop closures refused among them mostly right.
+RETURN_GAP = 20
+RETURN_PENALTY = 4.0
 # Under a prior, an observation the beam left out is tried against the map's landmarks again (one
 # may have moved) where the pair is likelier than clutter, and only against a landmark the beam has
 # not paired within BEAM_RECENT poses but missed where it was surely in view: one it pairs is where
@@ -201,7 +214,7 @@ class PoseAssociation:
             trusted[mapped] = ((self.beam_paired_at[nearby[mapped]] >= k - BEAM_RECENT)
                                | (self.beam_missed[nearby[mapped]] < BEAM_MISSES))
             nearby = nearby[~trusted]
-        candidates = self._candidates(obs, nearby)
+        candidates = self._candidates(obs, nearby, k)
         if not any(candidates):
             return []
         chosen = jcbb(self.P, candidates, self.config.gate)
@@ -212,9 +225,9 @@ class PoseAssociation:
                 self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - c.cost)
         return [(c.obs, c.landmark) for c in chosen]
 
-    def _candidates(self, obs: np.ndarray, nearby: np.ndarray) -> list[list[Candidate]]:
-        """Each observation's candidates among the landmarks ``nearby``: their pairs within the
-        gate, at most ``_slack`` costlier than clutter."""
+    def _candidates(self, obs: np.ndarray, nearby: np.ndarray, k: int = 0) -> list[list[Candidate]]:
+        """Each observation's candidates among the landmarks ``nearby`` at pose k: their pairs
+        within the gate, at most ``_slack`` costlier than clutter."""
         candidates: list[list[Candidate]] = []
         for sensor_id in np.unique(self.obs_sensor[obs]).tolist():
             mine = obs[self.obs_sensor[obs] == sensor_id]
@@ -223,14 +236,14 @@ class PoseAssociation:
                 continue
             landmarks, cost, z_hat, H, extra = gated
             cost = self._orientation_costs(mine, landmarks, cost, z_hat, H, extra)  # a tag's judged with its orientation
-            slack = self._slack(landmarks, places_point(self.sensors[sensor_id].kind))
+            slack = self._slack(landmarks, places_point(self.sensors[sensor_id].kind), k)
             for i, o in enumerate(mine.tolist()):
                 candidates.append([Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
                                              self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]), int(sensor_id))
                                    for j in np.flatnonzero(cost[i] < self.null_cost[o] + slack).tolist()])
         return candidates
 
-    def _slack(self, landmarks: np.ndarray, placed: bool) -> np.ndarray:
+    def _slack(self, landmarks: np.ndarray, placed: bool, k: int = 0) -> np.ndarray:
         """(C,) how much costlier than clutter a pair with each of ``landmarks`` may be and still be
         tried: nothing without a map for an observation that places its point (``placed``: with
         range, or a planar robot's), nor for a tentative landmark, nor for a mapped one where the
@@ -240,7 +253,7 @@ class PoseAssociation:
         of 24 worlds with half the map withheld) and for a ray (a still robot's two pixel
         cameras: the landmark's NEES over 20 seeds 4.09 with it, 4.99 without, the bound 4.16)."""
         if self.config.map == "none" and placed:
-            return np.zeros(landmarks.size)
+            return np.where(self.table.last_seen[landmarks] < k - RETURN_GAP, -RETURN_PENALTY, 0.0)
         strict = self.table.tentative[landmarks] | ((landmarks < self.table.num_mapped) & (self.given_pairs is not None))
         return np.where(strict, 0.0, _NULL_SLACK)
 

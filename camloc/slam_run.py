@@ -154,7 +154,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
             # another landmark)
             pairs += self._associated(obs[given < 0], added_only=self.config.map == "exact", k=k)
         else:
-            pairs = self._associated(obs)
+            pairs = self._associated(obs, k=k)
         pairs = self._with_orientations(pairs)  # a tag pair's orientation joins it
         if pairs:
             self._update(k, pairs)
