@@ -34,20 +34,12 @@ UNPAIRED = 1e12
 # ratio of "a landmark" over "clutter" of what was seen of it (the track score of multi-target
 # tracking: + (null cost - pair cost) / 2 for each pair, + ln(1 - DETECTION_PROBABILITY) each time
 # it was surely in view and not seen), reaches CONFIRM_SCORE (odds 1000:1); it is dropped, with
-# its pairs, below DROP_SCORE or when not seen again within TENTATIVE_GAP poses (without a map:
-# unless its score reached GAP_CONFIRM_SCORE). Clutter, uniform over what the cameras see, is not
-# seen again where it was: it is dropped.
+# its pairs, below DROP_SCORE or when not seen again within TENTATIVE_GAP poses. Clutter, uniform
+# over what the cameras see, is not seen again where it was: it is dropped.
 CONFIRM_SCORE = float(np.log(1000.0))
 DROP_SCORE = -2.0
 DETECTION_PROBABILITY = 0.9
 TENTATIVE_GAP = 10
-# Without a map, a tentative landmark unseen for TENTATIVE_GAP poses is kept (confirmed) where its
-# score reached GAP_CONFIRM_SCORE (odds 100:1), not dropped: out of view its score can no longer
-# grow, and a landmark seen from two or three poses and then left behind (the real file's: most
-# landmarks are seen a handful of times, from a pass each) scored 3-6 and was dropped with its
-# pairs, to be started again, and dropped again, at the next pass. Measured with ln 10, ln 30,
-# ln 100 and e^5.5 (docs/performance.md, 2026-12-05): ln 100 kept; no clutter became a landmark.
-GAP_CONFIRM_SCORE = float(np.log(100.0))
 
 # Poses a landmark may go unseen before it leaves the state, with a map (exact or prior: the map
 # holds the robot, so what a landmark's correlation with it carries is small); with no map,
@@ -220,12 +212,7 @@ class LandmarkAdditions:
         table = self.table
         table.tentative[landmarks[table.score[landmarks] >= CONFIRM_SCORE]] = False
         unconfirmed = table.tentative[landmarks]
-        unseen = unconfirmed & (table.last_seen[landmarks] < k - TENTATIVE_GAP)
-        if self.config.map == "none":
-            kept = unseen & (table.score[landmarks] >= GAP_CONFIRM_SCORE)
-            table.tentative[landmarks[kept]] = False
-            unseen &= ~kept
-        gone = unseen | (unconfirmed & (table.score[landmarks] < DROP_SCORE))
+        gone = unconfirmed & ((table.last_seen[landmarks] < k - TENTATIVE_GAP) | (table.score[landmarks] < DROP_SCORE))
         if np.any(gone):
             table.drop(landmarks[gone])
             # their pairs: among the observations from the first of theirs to this pose's (not the whole run's)
