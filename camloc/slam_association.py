@@ -179,8 +179,8 @@ _NULL_SLACK = 20.0
 # yet mapped paired with a neighbour (an unexplained observation is far likelier to be a new
 # landmark than rare clutter there, and the drift since the last view spreads the gate over the
 # neighbours). Pairs made by the old rules, wrong of all (300-pose grid worlds, seeds 0-3): with
-# landmarks unseen 10 poses or more and a cost within 4 of the null cost, 27 of 42; with landmarks
-# unseen under 10 poses, 61 of 1,338. Measured (docs/performance.md, 2026-12-05, "No map on sparse worlds"):
+# landmarks unseen 20 poses or more and a cost within 4 of the null cost, 17 of 27 (10-19 poses:
+# 10 of 15); with landmarks unseen under 10 poses, 61 of 1,338. Measured (docs/performance.md, 2026-12-05, "No map on sparse worlds"):
 # gaps 10, 20, 30 and penalties 2, 4 (and 2 on every pair): 20 and 4 kept; landmarks added twice
 # on 300-pose worlds fell on every kind; the 100-pose grid worlds (the real file's kind) lost 2-6%
 # of RMSE with each setting, the loop closures refused among them mostly right.
