@@ -36,7 +36,7 @@ def plot(
     true_map: Optional[Path] = typer.Option(
         None, "--true-map", metavar="DATASET", help="With a map.csv in the run folder: a g2o file whose landmarks are "
         "the true map (the <stem>.true-map.g2o of 'camloc simulate --withhold-map/--move-map/--no-map'), drawn on "
-        "fig-map (or the report's map panel, with --output) with a segment from each moved landmark's given position to its truth. Default: none.",
+        "fig-map (or the report's map panel, with --output; without a map.csv, against the map the run was given) with a segment from each moved landmark's given position to its truth. Default: none.",
         show_default=False
     ),
     show: bool = typer.Option(False, "--show", help=with_default("Also open the figures in a window (needs a "
@@ -114,16 +114,20 @@ def _check_output(output: Optional[Path], force: bool) -> None:
 
 def _map_view(run_dir: Path, result, true_map: Optional[Path]):
     """The run's map as the map figure draws it (``plotting_map.MapView``) when the run folder has a
-    map.csv, else None (and --true-map is refused)."""
+    map.csv, or with --true-map (a run without map.csv held its given map exactly: that map is
+    drawn against the truth); else None."""
+    from camloc.map_scores import held_map
     from camloc.results import MAP_CSV, read_map
 
-    if not (run_dir / MAP_CSV).is_file():
-        if true_map is not None:
-            raise ConfigError(f"--true-map is drawn on the map figure: expected a {MAP_CSV} in {run_dir}, found none")
+    if (run_dir / MAP_CSV).is_file():
+        estimated = read_map(run_dir / MAP_CSV)
+    elif true_map is not None:
+        estimated = held_map(result.map_landmark_ids, result.map_landmark_xyz, result.associations.landmark)
+    else:
         return None
     from camloc.plotting_map import MapView
 
-    return MapView(result, read_map(run_dir / MAP_CSV), *_true_landmarks(true_map))
+    return MapView(result, estimated, *_true_landmarks(true_map))
 
 
 def _map_layout(run_dir: Path, result, true_map: Optional[Path], suffix: str) -> dict:
