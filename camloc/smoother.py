@@ -77,7 +77,8 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             weakly determined direction, a landmark seen twice at low parallax), the exact Newton
             step is tried beside it (``camloc.newton_cg``: CG on Hessian-vector products differenced
             from the exact gradient, preconditioned with the step's factor) and the cheaper taken
-            (monocular worlds with no map: 32-107 iterations before, 15-40 now, the same minima).
+            (monocular aerial worlds with no map: 24-107 iterations before, 15-40 now, the same
+            minima; docs/performance.md, 2026-12-05 (night)).
             A 3-D landmark farther than a metre from its
             cameras has its step measured in inverse depth for the stopping rule (``_step_size``),
             and one whose rays part until they no longer place it (its minimum at infinity) is
@@ -166,8 +167,8 @@ _FACTOR_REUSE = 5e-3
 _PRECONDITIONER_REUSE = 1e-2
 # A step not IRLS's larger than this share of the last one taken: Gauss-Newton converging linearly
 # (quadratic convergence shrinks them faster), where the exact Newton step is tried beside it
-# (``_exact_newton_step``). Below 0.5 the 3-D depth worlds of ``benchmarks/smooth_worlds.py`` would
-# try it too (fewer iterations, more CPU); at 0.5 they take the same steps as before.
+# (``_exact_newton_step``). At 0.5 the 3-D depth worlds of ``benchmarks/smooth_worlds.py`` never try
+# it and take the same steps as before; tried at every step (0), 1-4 fewer iterations, 3-70% more CPU.
 _LINEAR_RATE = 0.5
 
 
