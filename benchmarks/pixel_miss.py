@@ -1,18 +1,19 @@
-"""The pixel beam's miss term weighted by the chance that a landmark is on the ray (issue 35): tried,
-not kept (docs/performance.md, 2026-12-05). Reproduces the variants on the numpy engine, whose beam
+"""The pixel beam's miss term weighted by the chance that a landmark is on the ray (issue 35): the
+variants that were tried (docs/performance.md, 2026-12-05); ``log`` is the library's since
+(``camloc.miss_term``), ``flat`` the one it replaced. Reproduces the variants on the numpy engine, whose beam
 gives the compiled one's pairs (tests/test_engine_parity.py; on aerial1 seed 2, s3d1 seed 2 and
 mono100 seed 2 the two engines gave the same RMSE for the default term and the linear one), by
 replacing ``PoseExpansion.expected`` and ``missed`` for the run.
 
-The library's term (``--charge flat``; ``none``: no term) charges ``MISS_COST`` for each landmark in the pool of a
-pixel observation, within the sure detection range, that an explanation leaves unclaimed. The
+The flat term (``--charge flat``, the library's until 2026-12-05; ``none``: no term) charges ``MISS_COST`` for each
+landmark in the pool of a pixel observation, within the sure detection range, that an explanation leaves unclaimed. The
 variants weigh it by p, the chance that the observation is that landmark rather than clutter:
 with the pair's cost c (d^2 + ln det S - ln det R, twice a negative log-likelihood, computed for
 every pool member, inside the gate or not) and the observation's null cost n, L = exp(-(c - n) / 2)
 and p = L / (1 + L); a landmark in several pools takes its largest p.
 
 - ``--charge linear``: MISS_COST * p.
-- ``--charge log``: -2 ln(1 - p_D p), the likelihood of not detecting a landmark that is where the
+- ``--charge log`` (the library's, ``camloc.miss_term``): -2 ln(1 - p_D p), the likelihood of not detecting a landmark that is where the
   camera would detect it with chance p, p_D = 1 - exp(-MISS_COST / 2) (a sure miss costs MISS_COST).
 - ``--state parent``: c under the hypothesis the pose's explanation grew from (its predicted
   covariance); ``--state child``: under the explanation's own state, after its pairs.

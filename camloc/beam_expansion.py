@@ -13,6 +13,7 @@ import numpy as np
 
 from camloc import ekf, measurement
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
+from camloc.miss_term import miss_charge
 from camloc.pair_options import PairGating, PairOptions, member
 
 
@@ -67,20 +68,22 @@ class PoseExpansion:
             partials = self.prune_partials(grown)
         return [self.missed(p.h, expected[p.root], parents[p.root]) for p in partials]
 
-    def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> np.ndarray:
+    def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> tuple[np.ndarray, np.ndarray]:
         """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
-        claim: those in the pool of one of its pixel observations (near the ray) whose distance
+        claim, and each one's least excess (its pair's cost under h over the observation's null
+        cost): those in the pool of one of its pixel observations (near the ray) whose distance
         from that observation's camera under h lies within ``detect_range``, where a camera
         surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
         apart by their predicted spread, which favours a far one (its prediction is tighter);
         but a near landmark on the ray would have been detected, and left unclaimed it is a
-        miss (``missed``)."""
+        miss, charged by the chance that it is on the ray (``missed``, ``camloc.miss_term``)."""
         low, high = self.ctx.detect_range
+        none = (np.zeros(0, np.int64), np.zeros(0))
         if self.settings.miss_cost <= 0.0 or high <= 0.0:
-            return np.zeros(0, np.int64)
+            return none
         ds = self.ctx.dataset
         pixel = measurement.is_ray(ds.obs_kind[obs])
-        found = []
+        found, excess = [], []
         T_world_robot = self.ctx.filter.pose(h.x)
         for i in np.flatnonzero(pixel):
             landmarks = options[i].landmarks
@@ -88,18 +91,28 @@ class PoseExpansion:
                 continue
             centre = T_world_robot[:3, :3] @ self.ctx.cameras[int(self.ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
             distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
-            found.append(landmarks[(distance >= low) & (distance <= high)])
-        return np.unique(np.concatenate(found)) if found else np.zeros(0, np.int64)
+            near = (distance >= low) & (distance <= high)
+            found.append(landmarks[near])
+            excess.append(options[i].pool_costs[near] - self.null_cost[obs[i]])
+        if not found:
+            return none
+        landmarks, which = np.unique(np.concatenate(found), return_inverse=True)
+        least = np.full(landmarks.size, np.inf)
+        np.minimum.at(least, which, np.concatenate(excess))
+        return landmarks, least
 
-    def missed(self, h: Hypothesis, expected: np.ndarray, parent: Hypothesis) -> Hypothesis:
-        """h (an explanation grown from ``parent``) charged ``miss_cost`` for each of the
-        ``expected`` landmarks it leaves unclaimed."""
-        if expected.size == 0:
+    def missed(self, h: Hypothesis, expected: tuple[np.ndarray, np.ndarray], parent: Hypothesis) -> Hypothesis:
+        """h (an explanation grown from ``parent``) charged for each of the ``expected``
+        landmarks it leaves unclaimed (``camloc.miss_term.miss_charge`` of its least excess)."""
+        landmarks, excess = expected
+        if landmarks.size == 0:
             return h
-        missed = int((~member(expected, np.array([lm for _, lm in h.pairs], dtype=np.int64))).sum())
-        if missed and h is parent:  # never the parent's own cost
+        unclaimed = ~member(landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64))
+        if not unclaimed.any():
+            return h
+        if h is parent:  # never the parent's own cost
             h = Hypothesis(h.x, h.P, h.cost, h.parent, h.pairs, h.unassigned, h.slipped)
-        h.cost += self.settings.miss_cost * missed
+        h.cost += float(miss_charge(excess[unclaimed], self.settings.miss_cost).sum())
         return h
 
     def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int) -> Partial:

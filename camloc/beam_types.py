@@ -41,9 +41,10 @@ class BeamSettings:
     state_gate : a seeded explanation whose state is further than this from its prior (its
         squared Mahalanobis distance, 6 dof) is dropped (``SeededSearch.within_prior``); inf keeps
         every one.
-    miss_cost : what an explanation pays for each landmark near a pixel observation's ray, within
+    miss_cost : what an explanation pays for a landmark surely on a pixel observation's ray, within
         the range where a camera surely detects what it sees (``observation_space.detection_range``), that it
-        leaves unclaimed (``PoseExpansion.missed``); 0: no such term.
+        leaves unclaimed; one less sure is charged by its chance of being on the ray
+        (``PoseExpansion.missed``, ``camloc.miss_term``); 0: no such term.
     null_offset : how much the run's null cost was lowered (``localizer.LACKING_NULL_OFFSET``: a
         map that lacks landmarks). Whether leaving an observation unassigned is explored (within
         ``branch_delta`` of its best option) is judged at the null cost before the lowering, so the

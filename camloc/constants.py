@@ -63,9 +63,10 @@ AGREEMENT_DEPTH_FRACTION = 0.1
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
 
-# What a pose's explanation pays for each landmark near a pixel observation's ray, surely within its
-# camera's detection range (observation_space.detection_range), that it leaves unclaimed (the beam's miss term:
-# camloc.beam_expansion, kernels/beam.py expected_landmarks and missed; docs/beam.md).
+# What a pose's explanation pays for a landmark surely on a pixel observation's ray, surely within its
+# camera's detection range (observation_space.detection_range), that it leaves unclaimed; one less sure
+# on the ray pays less (the beam's miss term: camloc.miss_term, camloc.beam_expansion, kernels/beam.py
+# expected_landmarks and missed; docs/beam.md).
 MISS_COST = 8.0
 
 # An alternative to an update this many cost units above it weighs under 2e-9 of it: what the chance

@@ -233,12 +233,12 @@ def _map_run(judged: Dataset, dataset: Dataset, config: LocalizerConfig, on_prog
     offset = _lacking_at_start(judged, dataset, config, hooks)
     follow = follower.on_replay if follower is not None else None
     run = _localize_exact(judged, replace(config, map="exact"), on_progress, null_cost_offset=offset,
-                          on_replay=follow if offset > 0.0 else None, **hooks)
+                          on_replay=follow if offset > 0.0 else None, map_uncertain=judged is not dataset, **hooks)
     screened = _mappable(dataset) and (config.association != "oracle" or _ids_lacking(dataset))
     places = _lacking_places(dataset, run, config) if screened else 0
     if places and offset == 0.0 and config.association == "beam":
         offset = LACKING_NULL_OFFSET
-        run = _lacking_map_beam(judged, config, on_progress, hooks, run, on_replay=follow)
+        run = _lacking_map_beam(judged, config, on_progress, hooks, run, on_replay=follow, map_uncertain=judged is not dataset)
     return run, offset, places
 
 
@@ -288,20 +288,22 @@ def _lacking_places(dataset: Dataset, run: RunResult, config: LocalizerConfig) -
 
 
 def _lacking_map_beam(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict, first: RunResult,
-                     on_replay=None) -> RunResult:
+                     on_replay=None, map_uncertain: bool = False) -> RunResult:
     """The exact map's run again, its beam judging with ``LACKING_NULL_OFFSET`` (the map lacks
     landmarks: ``first``, the run that found so, is replaced; its time is counted)."""
     again = _localize_exact(dataset, replace(config, map="exact"), on_progress, null_cost_offset=LACKING_NULL_OFFSET,
-                            on_replay=on_replay, **hooks)
+                            on_replay=on_replay, map_uncertain=map_uncertain, **hooks)
     again.summary["timing"]["filter_seconds"] += first.summary["timing"]["filter_seconds"]
     return again
 
 
 def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, parallel, engine, on_compile,
-                    on_background_compile, null_cost_offset: float = 0.0, on_replay=None) -> RunResult:
+                    on_background_compile, null_cost_offset: float = 0.0, on_replay=None,
+                    map_uncertain: bool = False) -> RunResult:
     """The localizer against the map held exactly (``localize``'s engines); ``null_cost_offset``
     lowers the cost of leaving an observation unexplained (``LACKING_NULL_OFFSET``); ``on_replay``:
-    ``loop.run_compiled``'s, where the compiled loop runs the beam."""
+    ``loop.run_compiled``'s, where the compiled loop runs the beam; ``map_uncertain``: the
+    dataset's noise holds a map prior's uncertainty (``with_map_uncertainty``)."""
     # a tag's orientation is the numpy engine's only (camloc.tags)
     compilable = (config.filter in COMPILED_FILTERS and config.association in COMPILED_ASSOCIATIONS
                   and not np.any(dataset.obs_kind == measurement.TAG_ROTATION))
@@ -309,7 +311,9 @@ def _localize_exact(dataset: Dataset, config: LocalizerConfig, on_progress, *, p
         raise ConfigError(f"the compiled loop runs the {' and '.join(COMPILED_FILTERS)} filters with {' or '.join(COMPILED_ASSOCIATIONS)} "
                           f"association, without tag orientations; filter {config.filter!r} with association {config.association!r} "
                           "runs in numpy")
-    use_compiled = engine == "compiled" or (engine == "auto" and compilable and _compiled_pays(dataset))
+    numpy_slower = map_uncertain or null_cost_offset > 0.0
+    use_compiled = engine == "compiled" or (engine == "auto" and compilable
+                                            and (_compiled_pays(dataset) or (numpy_slower and _kernels_ready())))
     background = None  # the state of the background compile this run leaves the kernels to
     filter_compile = None  # the process compiling the filter's kernels while this one compiles the beam's
     warm = True
@@ -407,7 +411,8 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
                     beam_run, offset, _ = _map_run(judged, dataset, config, _stage(on_progress, 0, stages), hooks, following)
                 else:
                     beam_run = _localize_exact(judged, replace(config, map="exact"), _stage(on_progress, 2 * n, stages),
-                                               null_cost_offset=offset, on_replay=following.on_replay, **hooks)
+                                               null_cost_offset=offset, on_replay=following.on_replay,
+                                               map_uncertain=config.map == "prior", **hooks)
             if beam_run is not None:
                 given = landmark_rows(dataset.landmark_ids, _observation_landmarks(dataset, beam_run))
                 seconds += beam_run.summary["timing"]["filter_seconds"]
@@ -543,6 +548,17 @@ def _compiled_pays(dataset: Dataset) -> bool:
         return True
     pixel = int(np.count_nonzero(measurement.is_ray(dataset.obs_kind)))
     return warmup.numpy_seconds(dataset.num_observations, pixel) >= COMPILED_MIN_NUMPY_SECONDS
+
+
+def _kernels_ready() -> bool:
+    """Whether the compiled loop's kernels are compiled and cached (no compile going on): a beam's
+    pass that numpy is far slower over than ``warmup.numpy_seconds`` counts (with the null cost
+    lowered where the map lacks landmarks, or judging with a map prior's uncertainty: wider gates,
+    more hypotheses; 100-250-pose worlds with a quarter of the map moved, 7-45x its estimate,
+    docs/performance.md) runs compiled on a short file too, where no compile is needed for it."""
+    from camloc.kernels import cache_is_warm
+
+    return cache_is_warm() and not warmup.compiling()
 
 
 def _compile_in_background(dataset: Dataset) -> Optional[str]:

@@ -26,6 +26,10 @@ class PairOptions:
     y: np.ndarray           # (g, 3) the innovation in the pair's coordinates (``in_best_coordinates``)
     Hc: np.ndarray          # (g, 3, 6) its Jacobian
     Rc: np.ndarray          # (g, 3, 3) the observation's covariance in them
+    # (g,) d^2 + ln det S - ln det R inside the gate or not, under the hypothesis the pose's options
+    # were first made for (``PairGating.options``; ``conditioned`` keeps them): the miss term judges
+    # every explanation of a pose by its parent's pools (``PoseExpansion.expected``, camloc.miss_term)
+    pool_costs: np.ndarray
 
 
 class PairGating:
@@ -64,12 +68,14 @@ class PairGating:
             pool = d2 <= pool_gate  # each observation's pool
             j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
             y, Hc, Rc = self.chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
+            pool_costs = costs
             costs = self.with_orientations(h, o[j], candidates[g], d2, costs, (y, Hc, Rc), np.full(d2.size, gate))
             bounds = np.searchsorted(j, np.arange(rows.size + 1))
             for k, r in enumerate(rows):
                 part = slice(bounds[k], bounds[k + 1])
                 pool = g[part]
-                out[r] = PairOptions(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part])
+                out[r] = PairOptions(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part],
+                                     pool_costs[part])
         return out
 
     def spread(
@@ -159,7 +165,7 @@ class PairGating:
         pairs, from their options before: the same pools of landmarks predicted again from h, one
         batch per camera, less the landmarks h has taken. (Moving the old predictions to first
         order is not enough: with landmarks a metre away, a pair's correction moves the
-        predictions by pixels more than the linear term says.)"""
+        predictions by pixels more than the linear term says.) Their ``pool_costs`` are kept."""
         taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
         out = list(options)
         cameras = self.ctx.obs_sensor[obs]
@@ -178,7 +184,8 @@ class PairGating:
             costs = np.where(member(landmarks, taken), np.inf, costs)
             for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
                 part = slice(start, stop)
-                out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part])
+                out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part],
+                                     options[r].pool_costs)
         return out
 
 
@@ -194,4 +201,4 @@ def empty_options(dim: int) -> PairOptions:
     """No option, for a state of ``dim`` entries (6: Euler; 3: planar): its Jacobians' columns
     match the other observations' options, which a pose's seeded search concatenates."""
     return PairOptions(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, dim)), np.zeros((0, 3)),
-                       np.zeros((0, 3, dim)), np.zeros((0, 3, 3)))
+                       np.zeros((0, 3, dim)), np.zeros((0, 3, 3)), np.zeros(0))

@@ -84,13 +84,31 @@ def _path_labels(result: RunResult) -> dict[str, str]:
     return {key: f"{path_names(result)[key]} (RMSE {_position_rmse(result, xyz):.3f} m)" for key, xyz in _paths(result).items()}
 
 
+# Characters of a title line before the next path's figure goes on a line of its own: the report
+# puts the top-down view in half the page's width, and a longer line was cut at the page's edge.
+TITLE_LINE_CHARS = 64
+
+
 def _trajectory_title(result: RunResult, view: str) -> str:
     title = f"{dataset_name(result)}: {view}"
     if result.truth_xyz is not None:
-        title += "\nposition RMSE: " + ", ".join(
-            f"{path_names(result)[key]} {_position_rmse(result, xyz):.3f} m" for key, xyz in _paths(result).items()
-        )
+        parts = [f"{path_names(result)[key]} {_position_rmse(result, xyz):.3f} m" for key, xyz in _paths(result).items()]
+        title += "\n" + _packed(["position RMSE:", *parts], TITLE_LINE_CHARS)
     return title
+
+
+def _packed(parts: list[str], width: int) -> str:
+    """``parts`` joined by ", " (the first by a space), a new line begun where the next part would
+    carry a line past ``width`` characters; a part is never broken."""
+    lines = [parts[0]]
+    for i, part in enumerate(parts[1:]):
+        joint = " " if i == 0 else ", "
+        if len(lines[-1]) + len(joint) + len(part) > width:
+            lines[-1] += joint.rstrip()
+            lines.append(part)
+        else:
+            lines[-1] += joint + part
+    return "\n".join(lines)
 
 
 def _view_box(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
@@ -793,10 +811,12 @@ def draw_sweep(fig: Figure, sweep: tuple[list, str]) -> Figure:
     return fig
 
 
-def draw_report(fig: Figure, result: RunResult) -> Figure:
+def draw_report(fig: Figure, result: RunResult, map_panel: Callable[[Axes], object] | None = None) -> Figure:
     """Every plot on one figure: paths (top-down, 3D), the filter's errors, odometry's errors,
-    NEES and NIS, associations."""
-    grid = fig.add_gridspec(5, 2, height_ratios=[2.2, 1.0, 1.0, 1.0, 1.0])
+    NEES and NIS, associations; and, given ``map_panel`` (it draws a run's map on an axes:
+    ``plotting_map.plot_map``), the map in a last row."""
+    ratios = [2.2, 1.0, 1.0, 1.0, 1.0] + ([MAP_ROW_RATIO] if map_panel is not None else [])
+    grid = fig.add_gridspec(len(ratios), 2, height_ratios=ratios)
     if metrics.is_planar_run(result):  # no z to show: the plan takes the row
         plot_topdown(fig.add_subplot(grid[0, :]), result)
     else:
@@ -808,6 +828,8 @@ def draw_report(fig: Figure, result: RunResult) -> Figure:
     plot_nees(fig.add_subplot(grid[3, 0]), result)
     plot_nis(fig.add_subplot(grid[3, 1]), result)
     plot_associations(fig.add_subplot(grid[4, :]), result)
+    if map_panel is not None:
+        map_panel(fig.add_subplot(grid[5, :]))
     fig.suptitle(f"{run_title(result)}\n{consistency_title(result)}", fontsize="x-large")
     return fig
 
@@ -835,6 +857,14 @@ FIGURES: dict[str, tuple[tuple[float, float], Callable[[Figure, RunResult], Figu
     "associations": ((14.0, 4.5), draw_associations),
 }
 REPORT_SIZE = (17.0, 23.0)
+# The map's row of the report: as tall as the paths' row and a little more, for its legend below it.
+MAP_ROW_RATIO = 2.6
+
+
+def report_size(with_map: bool) -> tuple[float, float]:
+    """Figure size (inches) of ``draw_report``, taller by the map's row when it has one."""
+    width, height = REPORT_SIZE
+    return (width, height + (8.0 if with_map else 0.0))
 
 
 def figures_of(result: RunResult) -> dict[str, tuple[tuple[float, float], Callable[[Figure, RunResult], Figure]]]:

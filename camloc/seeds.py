@@ -114,7 +114,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     x, P = h[0][0], h[1][0]
     # among the landmarks within three standard deviations of the view, not only in it
     margin, max_angle = widened_view(P, scene.view_limits[2])
-    start, landmark, cost, z_hat, H, y, Hc, in_point = kb.options_for(scene, settings, x, P, obs, margin, max_angle)
+    start, landmark, cost, z_hat, H, y, Hc, in_point, _ = kb.options_for(scene, settings, x, P, obs, margin, max_angle)
     pair_obs = np.repeat(np.arange(obs.size), np.diff(start))
     gated = np.isfinite(cost)
     if not gated.any():

@@ -149,7 +149,6 @@ def simulate_planar(config: PlanarSimulationConfig, *, seed: int) -> Dataset:
         cameras, landmark_xyz, camera_obs = _camera_part(T_true, config.cameras, rng_cam)
         maps.append((landmark_xyz, np.full(len(landmark_xyz), np.nan), LANDMARK_POINT3))
     landmark_xyz, heading, landmark_kind = _stack_maps(maps)
-    first_id = 0
     for xy_kind in (measurement.POINT2, measurement.MARKER):
         wanted = LANDMARK_MARKER if xy_kind == measurement.MARKER else LANDMARK_POINT2
         rows = np.flatnonzero(landmark_kind == wanted)

@@ -72,7 +72,14 @@ Solver      re-linearize until the largest step component is below ``step_tolera
             20 iterations, five Newton steps rejected in a row, before; 10 now). A step that does
             not lower the cost is retried as IRLS, then with Levenberg-Marquardt damping, on
             Nielsen's schedule (``_damping_after_accepted``: by the gain ratio after a step taken,
-            doubling factors after each rejection). A 3-D landmark farther than a metre from its
+            doubling factors after each rejection). Where Gauss-Newton's steps shrink only
+            linearly (one over half the last: the residuals' second derivatives matter along a
+            weakly determined direction, a landmark seen twice at low parallax), the exact Newton
+            step is tried beside it (``camloc.newton_cg``: CG on Hessian-vector products differenced
+            from the exact gradient, preconditioned with the step's factor) and the cheaper taken
+            (monocular aerial worlds with no map: 24-107 iterations before, 15-40 now, the same
+            minima; docs/performance.md, 2026-12-05 (night)).
+            A 3-D landmark farther than a metre from its
             cameras has its step measured in inverse depth for the stopping rule (``_step_size``),
             and one whose rays part until they no longer place it (its minimum at infinity) is
             left out during the solve as at the start (``_receded``). The
@@ -124,6 +131,7 @@ from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.huber_apex import past_apex
 from camloc.landmark_steps import OBS_DIM, landmark_step_lengths, row_landmarks
+from camloc.newton_cg import newton_step
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
 from camloc.schur import LANDMARK_DOF, SchurSolver, factor, landmark_blocks
@@ -157,6 +165,11 @@ _FACTOR_REUSE = 5e-3
 # that does not falls back to a new factor (20,000 poses under a prior: 4 factorizations, not 6,
 # with the convergence below).
 _PRECONDITIONER_REUSE = 1e-2
+# A step not IRLS's larger than this share of the last one taken: Gauss-Newton converging linearly
+# (quadratic convergence shrinks them faster), where the exact Newton step is tried beside it
+# (``_exact_newton_step``). At 0.5 the 3-D depth worlds of ``benchmarks/smooth_worlds.py`` never try
+# it and take the same steps as before; tried at every step (0), 1-4 fewer iterations, 3-70% more CPU.
+_LINEAR_RATE = 0.5
 
 
 @dataclass(frozen=True)
@@ -901,6 +914,32 @@ def smooth(
     )
 
 
+@dataclass
+class _Descent:
+    """Where the Gauss-Newton / Levenberg-Marquardt loop (``_minimize``) is: the poses, landmarks,
+    their linearization and cost, and how the next step is to be made."""
+
+    T: np.ndarray
+    X: np.ndarray | None
+    lin: Linearization
+    cost: float
+    iterations: int
+    condition: float
+    converged: bool
+    damping: float = 0.0  # Levenberg-Marquardt's, on the unit-diagonal matrix (0: none)
+    growth: float = 2.0  # its factor after the next rejection
+    majorize: bool = True  # the next step is IRLS's (the first is)
+    receded: Optional[tuple] = None  # ``_receded``'s problem and ids where a landmark stopped the loop
+    factor: Optional[tuple] = None  # the last undamped Newton matrix's factor and scale
+    moved: float = math.inf  # how far T moved since that factor was made
+    last_step: float = 0.0  # the largest component of the last step taken that was not IRLS's (0: none)
+
+    @property
+    def newton(self) -> bool:
+        """Whether the next step is a plain Newton step (undamped, not IRLS)."""
+        return self.damping == 0.0 and not self.majorize
+
+
 def _minimize(problem, T, X, config, on_iteration, start: dict | None = None):
     """The Gauss-Newton / Levenberg-Marquardt loop (model card, "Solver"): the poses and
     landmarks at the end, their linearization and cost, the initial cost, and the counts (with
@@ -908,78 +947,123 @@ def _minimize(problem, T, X, config, on_iteration, start: dict | None = None):
     ``receded``: ``_receded``'s problem and ids where a landmark stopped it). ``start``: the counts
     of the loop this one goes on from (its iterations and condition)."""
     lin = problem.linearize(T, X)
-    cost = initial_cost = robust_cost(lin, config.huber)
-    condition, iterations = (math.nan, 0) if start is None else (start["condition"], start["iterations"])
-    damping, growth, majorize, converged, receded = 0.0, 2.0, True, problem.num_unknowns == 0, None
-    num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
-    factor, moved = None, math.inf  # the last factor of an undamped Newton matrix; how far T moved since
+    initial_cost = robust_cost(lin, config.huber)
+    iterations, condition = (0, math.nan) if start is None else (start["iterations"], start["condition"])
+    at = _Descent(T, X, lin, initial_cost, iterations, condition, converged=problem.num_unknowns == 0)
     # the landmark each Jacobian row touches: its sparsity is the problem's, the same at every iteration
     rows = row_landmarks(lin.jacobian, problem.num_pose_unknowns) if problem.num_landmarks else None
-    while not converged and iterations < config.max_iterations:
-        H, g = normal_equations(lin, config.huber, newton=False) if majorize else newton_equations(problem, lin, config.huber)
-        Hs, d = _scaled(H)
-        try:
-            step, limited, used = None, None, None
-            if problem.num_landmarks and moved < _PRECONDITIONER_REUSE and damping == 0.0 and not majorize:
-                step, used = _preconditioned_step(Hs, d, g, factor), factor
-            if step is None:
-                if iterations == 0:  # the first step reuses the condition check's factor
-                    condition, lu = _conditioned_factor(problem, H, config)
-                else:
-                    lu = _step_factor(Hs, num_pose, damping)
-                step, used = d * lu.solve(-d * g), (lu, d)
-                if damping == 0.0 and not majorize:
-                    factor, moved = (lu, d), 0.0
-            if damping == 0.0 and not majorize:
-                limited = _apex_limited_step(problem, lin, step, used, config.huber, num_pose)
-        except _SingularStep:
-            # The Newton Hessian of a landmark whose observations are all beyond the Huber
-            # threshold can lose rank along their residuals: a rejected step, retried as IRLS
-            # (positive definite where the observations determine the landmark), then damped.
-            step = None
-        iterations += 1
-        if step is not None:
-            step, candidate = _candidate(problem, T, X, lin, step, config.huber, rows)
-            if limited is not None:
-                # The Newton step passed some observations' apexes (``camloc.huber_apex``): the
-                # cheaper of it and the step stopped at them. Mostly the latter; the former where
-                # the step passes an apex along a valley that does go on (two observations of a
-                # landmark pulling it apart), where stopping there would creep as IRLS does.
-                limited, other = _candidate(problem, T, X, lin, limited, config.huber, rows)
-                if other[3] < candidate[3]:
-                    step, candidate = limited, other
-            candidate_cost = candidate[3]
-        accepted = step is not None and candidate_cost <= cost
-        max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
-        small = step is not None and _step_size(problem, T, X, step, max_step, config.step_tolerance) < config.step_tolerance
-        if accepted:
-            moved += max_step
-            gain = (cost - candidate_cost) / _model_decrease(H, g, step)
-            converged = small
-            T, X, lin, cost = candidate
-            damping, growth, majorize = _damping_after_accepted(damping, gain), 2.0, False
-            receded = None if converged else _receded(problem, T, X)
-        elif small and damping == 0.0:
-            # A step below the tolerance that rounding made no cheaper: the poses are at the
-            # minimum to that tolerance (20,000 poses: a factorization spent on a 2e-8 step saved).
-            converged = True
-        elif not majorize:
-            # The Newton step overshot (factors crossing the Huber threshold change the model):
-            # take the IRLS step, whose model lies above the cost, from the same poses.
-            majorize = True
+    while not at.converged and at.iterations < config.max_iterations:
+        if at.majorize:
+            H, g = normal_equations(at.lin, config.huber, newton=False)
         else:
-            # Even that failed (the linearization is poor, or a landmark went behind a camera):
-            # damp towards gradient descent (Levenberg-Marquardt) and try again.
-            damping, growth = (damping * growth, 2.0 * growth) if damping > 0.0 else (_FIRST_DAMPING, 2.0)
-            converged = damping > _MAX_DAMPING
+            H, g = newton_equations(problem, at.lin, config.huber)
+        steps = _proposed_steps(problem, at, H, g, config)
+        at.iterations += 1
+        step, candidate = _cheapest(problem, at, steps, config.huber, rows)
+        accepted, max_step = _take_or_refuse(problem, at, H, g, step, candidate, config)
         if on_iteration is not None:
-            on_iteration(Iteration(iterations, cost, max_step if accepted else math.nan, damping, accepted))
-        if receded is not None:
+            on_iteration(Iteration(at.iterations, at.cost, max_step if accepted else math.nan, at.damping, accepted))
+        if at.receded is not None:
             break
     # The covariances may use that factor where T moved too little since for its Hessian to differ.
-    counts = {"iterations": iterations, "converged": bool(converged), "condition": condition,
-              "factor": factor if converged and moved < _FACTOR_REUSE else None, "receded": receded}
-    return T, X, lin, cost, initial_cost, counts
+    counts = {"iterations": at.iterations, "converged": bool(at.converged), "condition": at.condition,
+              "factor": at.factor if at.converged and at.moved < _FACTOR_REUSE else None, "receded": at.receded}
+    return at.T, at.X, at.lin, at.cost, initial_cost, counts
+
+
+def _proposed_steps(problem, at: _Descent, H: sp.csc_matrix, g: np.ndarray, config: SmootherConfig) -> list:
+    """This iteration's step from the normal equations (H, g), then the alternatives tried beside
+    it: the Newton step stopped at the apexes it passes (``_apex_limited_step``), or else, where
+    the steps shrink only linearly, the exact Newton step (``_exact_newton_step``); none where the
+    Newton system cannot be factored (``_SingularStep``: the step counts as rejected)."""
+    num_pose = problem.num_pose_unknowns if problem.num_landmarks else problem.num_unknowns
+    Hs, d = _scaled(H)
+    try:
+        step, used = None, None
+        if problem.num_landmarks and at.moved < _PRECONDITIONER_REUSE and at.newton:
+            step, used = _preconditioned_step(Hs, d, g, at.factor), at.factor
+        if step is None:
+            if at.iterations == 0:  # the first step reuses the condition check's factor
+                at.condition, lu = _conditioned_factor(problem, H, config)
+            else:
+                lu = _step_factor(Hs, num_pose, at.damping)
+            step, used = d * lu.solve(-d * g), (lu, d)
+            if at.newton:
+                at.factor, at.moved = used, 0.0
+        limited = _apex_limited_step(problem, at.lin, step, used, config.huber, num_pose) if at.newton else None
+    except _SingularStep:
+        # The Newton Hessian of a landmark whose observations are all beyond the Huber
+        # threshold can lose rank along their residuals: a rejected step, retried as IRLS
+        # (positive definite where the observations determine the landmark), then damped.
+        return []
+    if limited is not None:
+        return [step, limited]
+    if not at.majorize and at.last_step > 0.0 and float(np.max(np.abs(step))) > _LINEAR_RATE * at.last_step:
+        exact = _exact_newton_step(problem, at, g, config.huber, used)
+        return [step] if exact is None else [step, exact]
+    return [step]
+
+
+def _cheapest(problem, at: _Descent, steps: list, huber: float, rows) -> tuple:
+    """The cheapest of the proposed steps (each landmark's part cut, ``_candidate``) and where it
+    leads, the first of equals; (None, None) for none. Beside the step, the apex-limited one is
+    mostly the cheaper; the Newton step where it passes an apex along a valley that does go on (two
+    observations of a landmark pulling it apart), where stopping there would creep as IRLS does."""
+    best = (None, None)
+    for step in steps:
+        step, candidate = _candidate(problem, at.T, at.X, at.lin, step, huber, rows)
+        if best[1] is None or candidate[3] < best[1][3]:
+            best = (step, candidate)
+    return best
+
+
+def _take_or_refuse(problem, at: _Descent, H: sp.csc_matrix, g: np.ndarray, step, candidate,
+                    config: SmootherConfig) -> tuple[bool, float]:
+    """Take the step where it does not raise the cost, else choose the next one's kind (IRLS,
+    then damping); updates ``at``. Returns whether it was taken and its largest component."""
+    accepted = step is not None and candidate[3] <= at.cost
+    max_step = float(np.max(np.abs(step))) if step is not None and step.size else 0.0
+    small = step is not None and _step_size(problem, at.T, at.X, step, max_step, config.step_tolerance) < config.step_tolerance
+    at.last_step = max_step if accepted and not at.majorize else 0.0
+    if accepted:
+        at.moved += max_step
+        gain = (at.cost - candidate[3]) / _model_decrease(H, g, step)
+        at.converged = small
+        at.T, at.X, at.lin, at.cost = candidate
+        at.damping, at.growth, at.majorize = _damping_after_accepted(at.damping, gain), 2.0, False
+        at.receded = None if at.converged else _receded(problem, at.T, at.X)
+    elif small and at.damping == 0.0:
+        # A step below the tolerance that rounding made no cheaper: the poses are at the
+        # minimum to that tolerance (20,000 poses: a factorization spent on a 2e-8 step saved).
+        at.converged = True
+    elif not at.majorize:
+        # The Newton step overshot (factors crossing the Huber threshold change the model):
+        # take the IRLS step, whose model lies above the cost, from the same poses.
+        at.majorize = True
+    else:
+        # Even that failed (the linearization is poor, or a landmark went behind a camera):
+        # damp towards gradient descent (Levenberg-Marquardt) and try again.
+        at.damping, at.growth = (at.damping * at.growth, 2.0 * at.growth) if at.damping > 0.0 else (_FIRST_DAMPING, 2.0)
+        at.converged = at.damping > _MAX_DAMPING
+    return accepted, max_step
+
+
+def _exact_newton_step(problem, at: _Descent, g: np.ndarray, huber: float, factor) -> Optional[np.ndarray]:
+    """The Newton step of the robust cost with its exact Hessian (``camloc.newton_cg``: conjugate
+    gradients on Hessian-vector products differenced from the exact gradient, preconditioned with
+    this iteration's factor, ``factor``: the scaled factor and scale); None where there is none.
+
+    Tried where the steps shrink linearly (one larger than ``_LINEAR_RATE`` times the last one
+    taken): Gauss-Newton's linear convergence where the residuals' second derivatives matter, on
+    monocular worlds with no map (docs/performance.md, 2026-12-05 (night)). It is a candidate
+    beside the Gauss-Newton step (``_cheapest``), so that it never replaces a cheaper one."""
+    lu, d = factor  # its scale, which need not be this iteration's: CG runs in those unknowns
+
+    def gradient_at(delta: np.ndarray) -> np.ndarray:
+        moved, moved_X = problem.retract(at.T, at.X, delta)
+        return _gradient(problem.linearize(moved, moved_X), huber)
+
+    return newton_step(gradient_at, g, d, lu.solve)
 
 
 def _receded(problem, T: np.ndarray, X: np.ndarray | None):
@@ -1030,6 +1114,11 @@ def _step_size(problem, T: np.ndarray, X: np.ndarray | None, step: np.ndarray, m
     np.maximum.at(seen, j, np.maximum(across / d, np.abs(along) / d**2))
     metric = np.max(np.abs(step[n:].reshape(-1, LANDMARK_DOF)), axis=1)
     return max(poses, float(np.max(np.minimum(metric, seen))))
+
+
+def _gradient(lin: Linearization, huber: float) -> np.ndarray:
+    """The robust cost's exact gradient ``J^T W r`` at a linearization (``normal_equations``' g)."""
+    return lin.jacobian.T @ (_row_weights(lin, huber) * lin.residual)
 
 
 def _model_decrease(H: sp.csc_matrix, g: np.ndarray, step: np.ndarray) -> float:

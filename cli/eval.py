@@ -47,7 +47,7 @@ def evaluate_command(
     true_map: Optional[Path] = typer.Option(
         None, "--true-map", metavar="DATASET", help="A g2o file whose landmarks are the true map (for a world of "
         "'camloc simulate --withhold-map/--move-map/--no-map': the <stem>.true-map.g2o it wrote): scores the run's "
-        "map.csv: position RMSE and NEES of mapped, moved and added landmarks (an added one against the true "
+        "map.csv (without one, the map the run was given, held exactly): position RMSE and NEES of mapped, moved and added landmarks (an added one against the true "
         "landmark most of its observations are), landmarks added twice, clutter made into landmarks, landmarks "
         "never added (docs/json.md). Default: none.", show_default=False
     ),
@@ -92,18 +92,18 @@ def _map_score(run_dir: Path, result, true_map: Path) -> dict:
     through the run's associations (each observation's true id) and the map it was given."""
     import warnings
 
-    from camloc.errors import CamlocError
     from camloc.g2o import G2oWarning, read_g2o
-    from camloc.map_scores import map_score
+    from camloc.map_scores import held_map, map_score
     from camloc.results import MAP_CSV, read_map
 
-    if not (run_dir / MAP_CSV).is_file():
-        raise CamlocError(f"{run_dir}: no {MAP_CSV} to score against --true-map; smooth the run first ('camloc smooth {run_dir}')")
-    estimated = read_map(run_dir / MAP_CSV)
+    associations = result.associations
+    if (run_dir / MAP_CSV).is_file():
+        estimated = read_map(run_dir / MAP_CSV)
+    else:  # the run held its given map exactly and added nothing: that map is what is scored
+        estimated = held_map(result.map_landmark_ids, result.map_landmark_xyz, associations.landmark)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", G2oWarning)  # its trajectory and observations are not read here
         truth = read_g2o(true_map)
-    associations = result.associations
     return map_score(estimated, given_ids=result.map_landmark_ids, given_xyz=result.map_landmark_xyz,
                      true_ids=truth.landmark_ids, true_xyz=truth.landmark_xyz,
                      obs_landmark=associations.landmark, obs_true=associations.true_landmark,

@@ -36,7 +36,7 @@ def plot(
     true_map: Optional[Path] = typer.Option(
         None, "--true-map", metavar="DATASET", help="With a map.csv in the run folder: a g2o file whose landmarks are "
         "the true map (the <stem>.true-map.g2o of 'camloc simulate --withhold-map/--move-map/--no-map'), drawn on "
-        "fig-map with a segment from each moved landmark's given position to its truth. Default: none.",
+        "fig-map (or the report's map panel, with --output; without a map.csv, against the map the run was given) with a segment from each moved landmark's given position to its truth. Default: none.",
         show_default=False
     ),
     show: bool = typer.Option(False, "--show", help=with_default("Also open the figures in a window (needs a "
@@ -45,14 +45,14 @@ def plot(
 ) -> None:
     """Draw the figures of RUN_DIR: paths top-down and in 3D, position and rotation error with the filter's 3-sigma band, NEES and NIS with chi-square bounds, and associations per pose.
 
-    By default writes fig-topdown, fig-3d (not for a planar run, --filter se2: its z is 0), fig-errors, fig-consistency and fig-associations (.png) into the run folder, and fig-map when the run folder has a map.csv (the given map, the estimated one with 2-sigma ellipses, added landmarks marked), replacing the ones drawn before; with --output a single report figure holding every panel but the map. The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
+    By default writes fig-topdown, fig-3d (not for a planar run, --filter se2: its z is 0), fig-errors, fig-consistency and fig-associations (.png) into the run folder, and fig-map when the run folder has a map.csv (the given map, the estimated one with 2-sigma ellipses, added landmarks marked), replacing the ones drawn before; with --output a single report figure holding every panel (the map's too, when the run folder has a map.csv). The trajectories are read from the run folder's TUM files. The figures are written all or none, each whole.
 
     For a sweep folder (written by 'camloc sweep'), draws fig-sweep: the distribution of position RMSE per configuration (box and points, log scale, the oracle beside each method).
     """
     from camloc.atomic_files import write_files_atomic
     from camloc.results import load_run
 
-    _check_output(output, force, true_map)
+    _check_output(output, force)
     from camloc.sweep import is_sweep_folder
 
     sweep = is_sweep_folder(run_dir)
@@ -72,7 +72,7 @@ def plot(
         layouts = {output or run_dir / f"fig-sweep.{figure_format.value}": (plotting.sweep_size(result[0]),
                                                                              plotting.draw_sweep)}
     elif output is not None:
-        layouts = {output: (plotting.REPORT_SIZE, plotting.draw_report)}
+        layouts = {output: _report_layout(_map_view(run_dir, result, true_map))}
     else:
         layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.figures_of(result).items()}
         layouts.update(_map_layout(run_dir, result, true_map, figure_format.value))
@@ -98,15 +98,13 @@ def plot(
         plt.show()
 
 
-def _check_output(output: Optional[Path], force: bool, true_map: Optional[Path]) -> None:
-    """Refuse an --output that is no figure file or exists (without --force), or one with --true-map."""
+def _check_output(output: Optional[Path], force: bool) -> None:
+    """Refuse an --output that is no figure file or exists (without --force)."""
     from camloc.atomic_files import refuse_existing
     from camloc.results import FIGURE_FORMATS
 
     if output is None:
         return
-    if true_map is not None:
-        raise ConfigError("--true-map is drawn on fig-map, which the one-page --output report leaves out: expected one of them")
     if output.suffix.lower().lstrip(".") not in FIGURE_FORMATS:
         raise ConfigError(
             f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
@@ -114,18 +112,45 @@ def _check_output(output: Optional[Path], force: bool, true_map: Optional[Path])
     refuse_existing(output, force=force)
 
 
+def _map_view(run_dir: Path, result, true_map: Optional[Path]):
+    """The run's map as the map figure draws it (``plotting_map.MapView``) when the run folder has a
+    map.csv, or with --true-map (a run without map.csv held its given map exactly: that map is
+    drawn against the truth); else None."""
+    from camloc.map_scores import held_map
+    from camloc.results import MAP_CSV, read_map
+
+    if (run_dir / MAP_CSV).is_file():
+        estimated = read_map(run_dir / MAP_CSV)
+    elif true_map is not None:
+        estimated = held_map(result.map_landmark_ids, result.map_landmark_xyz, result.associations.landmark)
+    else:
+        return None
+    from camloc.plotting_map import MapView
+
+    return MapView(result, estimated, *_true_landmarks(true_map))
+
+
 def _map_layout(run_dir: Path, result, true_map: Optional[Path], suffix: str) -> dict:
-    """{fig-map path: (size, draw)} when the run folder has a map.csv, else {} (and --true-map is refused)."""
-    from camloc.results import MAP_CSV, MAP_FIGURE_NAME, read_map
+    """{fig-map path: (size, draw)} when the run folder has a map.csv, else {}."""
+    from camloc.results import MAP_FIGURE_NAME
 
-    if not (run_dir / MAP_CSV).is_file():
-        if true_map is not None:
-            raise ConfigError(f"--true-map is drawn on the map figure: expected a {MAP_CSV} in {run_dir}, found none")
+    view = _map_view(run_dir, result, true_map)
+    if view is None:
         return {}
-    from camloc.plotting_map import MAP_FIGURE_SIZE, MapView, draw_map
+    from camloc.plotting_map import MAP_FIGURE_SIZE, draw_map
 
-    view = MapView(result, read_map(run_dir / MAP_CSV), *_true_landmarks(true_map))
     return {run_dir / f"fig-{MAP_FIGURE_NAME}.{suffix}": (MAP_FIGURE_SIZE, lambda fig, _: draw_map(fig, view))}
+
+
+def _report_layout(view) -> tuple:
+    """(size, draw) of the one-page report: every panel, the map's too when ``view`` is one."""
+    from camloc import plotting
+
+    if view is None:
+        return plotting.report_size(False), plotting.draw_report
+    from camloc.plotting_map import plot_map
+
+    return plotting.report_size(True), lambda fig, result: plotting.draw_report(fig, result, lambda ax: plot_map(ax, view))
 
 
 def _true_landmarks(true_map: Optional[Path]) -> tuple:

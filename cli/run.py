@@ -93,7 +93,8 @@ _ITERATIONS = library_option(
     "localizer.iterations"
 )
 _GATE = library_option(
-    "Chi-square gate probability on each pair's innovation (3 dof).",
+    "Chi-square gate probability on each pair's innovation, with its measurement's degrees of freedom (3 for a "
+    "camera with depth or disparity, 2 for a pixel-only one or a planar point, 3 for a planar marker; a tag's orientation adds 3).",
     "localizer.gate", "--gate"
 )
 _NULL_COST = typer.Option(

@@ -262,6 +262,28 @@ def test_moved_landmarks_are_corrected_under_a_prior_with_the_default_associatio
     assert np.mean(error) < 0.12
 
 
+@pytest.mark.parametrize("ready", [True, False])
+def test_a_short_file_s_slow_beam_passes_run_compiled_where_the_kernels_are_ready(monkeypatch, ready):
+    """A file under ``COMPILED_MIN_POSES`` runs its first beam in numpy, but the passes numpy is
+    far slower over than its estimate (judging with the map prior's uncertainty; with the null cost
+    lowered where the map lacks landmarks) run compiled where the kernels are compiled (never
+    compiling for it): the same pairs and estimate as numpy's."""
+    import camloc.localizer as localizer
+
+    world = _world(seed=2, poses=60, move_map=0.25).dataset
+    config = LocalizerConfig(map="prior", map_sigma=0.1)
+    reference = localize(world, config, engine="numpy")
+    engines = []
+    compiled, numpy_run = localizer._localize_compiled, localizer._localize_numpy
+    monkeypatch.setattr(localizer, "_localize_compiled", lambda *a, **k: engines.append("compiled") or compiled(*a, **k))
+    monkeypatch.setattr(localizer, "_localize_numpy", lambda *a, **k: engines.append("numpy") or numpy_run(*a, **k))
+    monkeypatch.setattr(localizer, "_kernels_ready", lambda: ready)
+    result = localize(world, config)
+    assert engines and set(engines) == ({"compiled"} if ready else {"numpy"})
+    assert np.array_equal(result.associations.landmark, reference.associations.landmark)
+    assert np.allclose(result.estimate_xyz, reference.estimate_xyz, atol=1e-9)
+
+
 def _moved_pixel_world(seed=0, poses=150):
     """A grid world seen by two pixel-only cameras, a quarter of its map moved 0.3 m: the world as
     simulated (its true map) and as given, with the rows of the moved landmarks that are seen."""

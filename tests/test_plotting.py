@@ -546,3 +546,10 @@ def test_a_3d_run_draws_no_headings(result):
     from matplotlib.collections import LineCollection
 
     assert not [c for c in ax.collections if isinstance(c, LineCollection)]
+
+
+def test_path_titles_wrap_between_paths_not_inside_one():
+    parts = ["position RMSE:", "iterated EKF-SLAM (map exact) 0.042 m", "odometry 1.654 m", "smoothed 0.036 m"]
+    assert plotting._packed(parts, 64) == "position RMSE: iterated EKF-SLAM (map exact) 0.042 m,\nodometry 1.654 m, smoothed 0.036 m"
+    assert plotting._packed(parts[:3], 80) == "position RMSE: iterated EKF-SLAM (map exact) 0.042 m, odometry 1.654 m"
+    assert plotting._packed(["a:", "x" * 90, "b"], 10) == "a:\n" + "x" * 90 + ",\nb"  # a long part is never cut

@@ -11,7 +11,6 @@ import json
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from typer.testing import CliRunner
 
@@ -420,8 +419,10 @@ def test_cli_eval_scores_the_smoothed_map_against_a_true_map(tmp_path):
     write_g2o(truth, tmp_path / "truth.g2o")
     write_g2o(dataclasses.replace(truth, landmark_xyz=xyz), tmp_path / "moved.g2o")
     assert invoke("run", tmp_path / "moved.g2o", "-o", tmp_path / "run", "--association", "oracle", "-q").exit_code == 0
-    outcome = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o")
-    assert outcome.exit_code == 2 and "smooth the run first" in outcome.stderr
+    assert not (tmp_path / "run" / MAP_CSV).exists()  # --map exact, nothing added: the given map, held
+    outcome = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o", "--json")
+    assert outcome.exit_code == 0, outcome.output
+    held = json.loads(outcome.stdout)["map"]
     assert json.loads(invoke("eval", tmp_path / "run", "--json").stdout)["map"] is None
 
     scores = {}
@@ -434,6 +435,7 @@ def test_cli_eval_scores_the_smoothed_map_against_a_true_map(tmp_path):
     given_rmse = float(np.sqrt(np.mean(np.sum((xyz - truth.landmark_xyz) ** 2, axis=1))))
     assert exact["count"] == len(truth.landmark_ids) and exact["rmse"] == pytest.approx(given_rmse)
     assert exact["nees"] is None and exact["unknown"] == 0  # held exact: zero covariances
+    assert held["mapped"] == exact and held["moved"] == scores["exact"]["moved"] and held["moved"]["count"] == int(moved.sum())
     assert prior["rmse"] < 0.8 * exact["rmse"] and prior["nees"] is not None
     assert scores["prior"]["added"] == {"count": 0, "rmse": None, "max": None, "nees": None, "unknown": 0}
     tables = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "truth.g2o")

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from camloc import geometry, measurement, metrics, planar, tags
+from camloc import geometry, measurement, metrics, tags
 from camloc.errors import DatasetError
 from camloc.filters import EulerFilter, SE2Filter, SE3Filter
 from camloc.g2o import read_g2o, write_g2o

@@ -29,9 +29,13 @@ from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL, POINT2
+from camloc.miss_term import miss_charge
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
+
+# the miss term's charge (plain numpy, shared with the numpy beam), compiled for a scalar
+compiled_miss_charge = inlined(miss_charge)
 
 
 @entry
@@ -178,7 +182,8 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     """What each observation (obs (m,)) may be under (x, P): its pool of landmarks within
     ``pool_gate_factor`` gates, with their costs (inf outside the gate), predictions, innovations
     and Jacobians in their best coordinates. CSR over the observations: (start (m + 1,), landmark,
-    cost, z_hat (g, 3), H (g, 3, d), y (g, 3), Hc (g, 3, d), in_point). Among the landmarks in the
+    cost, z_hat (g, 3), H (g, 3, d), y (g, 3), Hc (g, 3, d), in_point, pool_cost: the cost inside
+    the gate or not, for the miss term, ``expected_landmarks``). Among the landmarks in the
     view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``)."""
     m = obs.size
     dim = x.shape[0]                            # the state's size: 6 (Euler), 3 (planar)
@@ -213,6 +218,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     cap = max(m * total, 1)
     start = np.zeros(m + 1, np.int64)
     lm, cost, in_point = np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.bool_)
+    pool_cost = np.empty(cap)
     zh, Hs, ys, Hcs = np.empty((cap, 3)), np.empty((cap, 3, dim)), np.empty((cap, 3)), np.empty((cap, 3, dim))
     n = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
     for r in range(m):
@@ -242,6 +248,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             if not d2 <= pool_gate:
                 continue
             lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= gate else np.inf, point
+            pool_cost[n] = pair_cost
             for a in range(3):
                 zh[n, a] = z_hat[q, a]
                 for b in range(6):              # unrolled, the smaller state's columns skipped (``same_state``)
@@ -249,7 +256,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
                         Hs[n, a, b] = H[q, a, b]
             n += 1
         start[r + 1] = n
-    return start, lm[:n], cost[:n], zh[:n], Hs[:n], ys[:n], Hcs[:n], in_point[:n]
+    return start, lm[:n], cost[:n], zh[:n], Hs[:n], ys[:n], Hcs[:n], in_point[:n], pool_cost[:n]
 
 
 @jit
@@ -366,7 +373,7 @@ def after_clear(scene, settings, gen, h, obs, cap):
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
     the least each can cost)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
-    start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     taken = taken_by(gen, h)                     # a seeded explanation's seed pair: its landmark is not free
     for j in range(lm.size):
         if is_taken(lm[j], taken):
@@ -419,7 +426,7 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
     """(x, P) updated with the clear pairs of observations o (their chosen options of ``opt``), in
     one stacked update; their joint cost, each pair in the coordinates its option chose, and the
     pairs themselves are added to ``child`` (a generation of one)."""
-    start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     n_taken = o.size
     no_start = np.empty(0)                       # ``updated``'s start: none
     landmarks = np.empty(n_taken, np.int64)
@@ -603,7 +610,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
             growing = growing or step < orders[r].size
         if not growing:
             for c in range(root.size):
-                gen[2][c] += MISS_COST * missed(expected[root[c]], taken_by(gen, c))
+                gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen, c))
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
@@ -641,20 +648,25 @@ def explain_all(scene, settings, parents, n_parents, obs):
 @jit
 def expected_landmarks(scene, x, obs, opt):
     """The landmarks (distinct, sorted) a pose's explanation grown from a hypothesis at x is
-    expected to claim: those in the pool (``opt``, its options) of one of its pixel observations
-    whose distance from that observation's camera lies within the scene's detection range
-    (``view_limits[3:5]``, ``observation_space.detection_range``). ``camloc.beam_expansion.PoseExpansion.expected``."""
+    expected to claim, and each one's least excess (its pair's cost over the observation's null
+    cost): those in the pool (``opt``, its options) of one of its pixel observations whose distance
+    from that observation's camera lies within the scene's detection range (``view_limits[3:5]``,
+    ``observation_space.detection_range``). The charge itself (``camloc.miss_term``) is computed by
+    ``missed``, for the landmarks an explanation leaves unclaimed only: most are claimed.
+    ``camloc.beam_expansion.PoseExpansion.expected``."""
     low, high = scene.view_limits[3], scene.view_limits[4]
-    start, lm = opt[0], opt[1]
+    start, lm, pool_cost = opt[0], opt[1], opt[8]
     found = np.empty(lm.size, np.int64)
+    excess = np.empty(lm.size)
     n = 0
     if MISS_COST <= 0.0 or high <= 0.0:
-        return found[:0]
+        return found[:0], excess[:0]
     for i in range(obs.size):
         c = scene.obs_camera[obs[i]]
         if scene.camera_K[c, 4] != PIXEL:
             continue
         centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+        null_cost = scene.null_cost[obs[i]]
         for j in range(start[i], start[i + 1]):
             d = 0.0
             for a in range(3):
@@ -662,26 +674,36 @@ def expected_landmarks(scene, x, obs, opt):
                 d += e * e
             d = math.sqrt(d)
             if low <= d <= high:
-                found[n] = lm[j]
+                found[n], excess[n] = lm[j], pool_cost[j] - null_cost
                 n += 1
-    return np.unique(found[:n])
+    # distinct landmarks, each at its least excess (its largest chance of being on a ray)
+    order = np.argsort(found[:n])
+    landmarks, least = np.empty(n, np.int64), np.empty(n)
+    u = 0
+    for k in order:
+        if u and landmarks[u - 1] == found[k]:
+            least[u - 1] = min(least[u - 1], excess[k])
+        else:
+            landmarks[u], least[u] = found[k], excess[k]
+            u += 1
+    return landmarks[:u], least[:u]
 
 
 @jit
-def missed(expected, taken):
-    """How many of the expected landmarks are not taken."""
-    n = 0
-    for landmark in expected:
-        if not is_taken(landmark, taken):
-            n += 1
-    return n
+def missed(expected, excess, taken):
+    """What leaving the expected landmarks that are not taken costs (``camloc.miss_term``)."""
+    total = 0.0
+    for k in range(expected.size):
+        if not is_taken(expected[k], taken):
+            total += compiled_miss_charge(excess[k], MISS_COST)
+    return total
 
 
 @jit
 def options_of(scene, settings, gen, p, obs, opt, i, moved):
     """The options of observation i under partial p: those of its root's base state, or made
     again under p's own where it has paired something since."""
-    start, lm, cost, zh, Hs, ys, Hcs, in_point = opt
+    start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     part = slice(start[i], start[i + 1])
     if not moved:
         return lm[part], cost[part].copy(), zh[part], Hs[part]
