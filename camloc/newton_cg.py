@@ -55,22 +55,32 @@ def newton_step(gradient_at: Callable[[np.ndarray], np.ndarray], g: np.ndarray, 
         h = H_STEP / max(float(np.max(np.abs(v))), 1e-300)
         return d * (gradient_at(h * v) - g) / h
 
-    b = -d * g
+    y = conjugate_gradients(hessian_times, -d * g, precondition, rtol=rtol, max_iterations=max_iterations)
+    return None if y is None else d * y
+
+
+def conjugate_gradients(times: Callable[[np.ndarray], np.ndarray], b: np.ndarray,
+                        precondition: Callable[[np.ndarray], np.ndarray], *, rtol: float,
+                        max_iterations: int) -> Optional[np.ndarray]:
+    """The solution x of ``A x = b`` by preconditioned conjugate gradients (Nocedal and Wright,
+    algorithm 5.3), ``times(v)`` = A v, started from ``precondition(b)``; None where a search
+    direction meets non-positive curvature (A is not positive definite there) or the residual
+    does not fall to ``rtol`` of ``|b|`` in ``max_iterations`` products."""
     target = rtol * float(np.linalg.norm(b))
     x = precondition(b)
-    r = b - hessian_times(x)
+    r = b - times(x)
     z = precondition(r)
     p, rz = z.copy(), float(r @ z)
     for _ in range(max_iterations):
         if float(np.linalg.norm(r)) <= target:
-            return d * x
-        Hp = hessian_times(p)
-        curvature = float(p @ Hp)
+            return x
+        Ap = times(p)
+        curvature = float(p @ Ap)
         if not curvature > 0.0:
             return None
         alpha = rz / curvature
         x += alpha * p
-        r -= alpha * Hp
+        r -= alpha * Ap
         z = precondition(r)
         rz, previous = float(r @ z), rz
         p = z + (rz / previous) * p

@@ -131,7 +131,7 @@ from camloc.dataset_summary import odometry_positions
 from camloc.errors import CamlocError, ConfigError
 from camloc.huber_apex import past_apex
 from camloc.landmark_steps import OBS_DIM, landmark_step_lengths, row_landmarks
-from camloc.newton_cg import newton_step
+from camloc.newton_cg import conjugate_gradients, newton_step
 from camloc.observation_space import landmark_rows
 from camloc.results import UNASSOCIATED, LandmarkMap, RunResult
 from camloc.schur import LANDMARK_DOF, SchurSolver, factor, landmark_blocks
@@ -1214,23 +1214,8 @@ def _preconditioned_step(Hs: sp.csc_matrix, d: np.ndarray, g: np.ndarray, factor
     def precondition(v: np.ndarray) -> np.ndarray:
         return ratio * lu.solve(ratio * v)
 
-    b = -d * g
-    x = precondition(b)
-    r = b - Hs @ x
-    z = precondition(r)
-    p, rz = z.copy(), float(r @ z)
-    target = rtol * float(np.linalg.norm(b))
-    for _ in range(max_iterations):
-        if float(np.linalg.norm(r)) <= target:
-            return d * x
-        Hp = Hs @ p
-        alpha = rz / float(p @ Hp)
-        x += alpha * p
-        r -= alpha * Hp
-        z = precondition(r)
-        rz, previous = float(r @ z), rz
-        p = z + (rz / previous) * p
-    return None
+    y = conjugate_gradients(lambda v: Hs @ v, -d * g, precondition, rtol=rtol, max_iterations=max_iterations)
+    return None if y is None else d * y
 
 
 class _SingularStep(CamlocError):
