@@ -225,7 +225,7 @@ class PoseAssociation:
                 self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - c.cost)
         return [(c.obs, c.landmark) for c in chosen]
 
-    def _candidates(self, obs: np.ndarray, nearby: np.ndarray, k: int = 0) -> list[list[Candidate]]:
+    def _candidates(self, obs: np.ndarray, nearby: np.ndarray, k: int) -> list[list[Candidate]]:
         """Each observation's candidates among the landmarks ``nearby`` at pose k: their pairs
         within the gate, at most ``_slack`` costlier than clutter."""
         candidates: list[list[Candidate]] = []
@@ -243,7 +243,7 @@ class PoseAssociation:
                                    for j in np.flatnonzero(cost[i] < self.null_cost[o] + slack).tolist()])
         return candidates
 
-    def _slack(self, landmarks: np.ndarray, placed: bool, k: int = 0) -> np.ndarray:
+    def _slack(self, landmarks: np.ndarray, placed: bool, k: int) -> np.ndarray:
         """(C,) how much costlier than clutter a pair with each of ``landmarks`` may be and still be
         tried: nothing without a map for an observation that places its point (``placed``: with
         range, or a planar robot's), nor for a tentative landmark, nor for a mapped one where the
