@@ -79,19 +79,6 @@ def map_score(estimated, *, given_ids: np.ndarray, given_xyz: np.ndarray, true_i
     }
 
 
-def held_map(given_ids: np.ndarray, given_xyz: np.ndarray, obs_landmark: np.ndarray):
-    """The map of a run that wrote no ``map.csv`` (``--map exact`` where no landmark was added): the
-    given map held exactly (zero covariance, every landmark ``mapped``), each landmark's
-    observations counted from the run's pairs."""
-    from camloc.results import LandmarkMap
-
-    ids = np.asarray(given_ids, dtype=np.int64)
-    paired = np.asarray(obs_landmark, dtype=np.int64)
-    observations = np.array([np.count_nonzero(paired == i) for i in ids.tolist()], dtype=np.int64) if ids.size else np.zeros(0, np.int64)
-    return LandmarkMap(ids, np.asarray(given_xyz, dtype=float).reshape(-1, 3), np.zeros((ids.size, 3, 3)),
-                       np.zeros(ids.size, dtype=bool), observations)
-
-
 class _Lookup:
     """Positions (n, 3) by id (n,)."""
 

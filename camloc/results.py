@@ -795,6 +795,20 @@ def write_map(run_dir: str | Path, landmarks: LandmarkMap) -> Path:
     return path
 
 
+def run_map(result: RunResult) -> LandmarkMap:
+    """The map a run ended with: its ``map.csv`` (``result.landmark_map``), or, for a run that wrote
+    none (``--map exact`` where no landmark was added), the map it was given, held exactly (zero
+    covariance, every landmark ``mapped``), each landmark's observations counted from its pairs."""
+    if result.landmark_map is not None:
+        return result.landmark_map
+    ids = np.asarray(result.map_landmark_ids, dtype=np.int64)
+    paired, counts = np.unique(np.asarray(result.associations.landmark, dtype=np.int64), return_counts=True)
+    at = np.clip(np.searchsorted(paired, ids), 0, max(paired.size - 1, 0))
+    observations = np.where(paired[at] == ids, counts[at], 0) if paired.size else np.zeros(ids.size, np.int64)
+    return LandmarkMap(ids, np.asarray(result.map_landmark_xyz, dtype=float).reshape(-1, 3), np.zeros((ids.size, 3, 3)),
+                       np.zeros(ids.size, dtype=bool), observations.astype(np.int64))
+
+
 def read_map(path: str | Path) -> LandmarkMap:
     """Read a ``map.csv`` written by ``map_text`` (with its tags' orientation columns, where it has them).
 

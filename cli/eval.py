@@ -93,14 +93,11 @@ def _map_score(run_dir: Path, result, true_map: Path) -> dict:
     import warnings
 
     from camloc.g2o import G2oWarning, read_g2o
-    from camloc.map_scores import held_map, map_score
-    from camloc.results import MAP_CSV, read_map
+    from camloc.map_scores import map_score
+    from camloc.results import run_map
 
     associations = result.associations
-    if (run_dir / MAP_CSV).is_file():
-        estimated = read_map(run_dir / MAP_CSV)
-    else:  # the run held its given map exactly and added nothing: that map is what is scored
-        estimated = held_map(result.map_landmark_ids, result.map_landmark_xyz, associations.landmark)
+    estimated = run_map(result)  # without a map.csv, the given map held exactly
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", G2oWarning)  # its trajectory and observations are not read here
         truth = read_g2o(true_map)

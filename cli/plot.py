@@ -34,7 +34,7 @@ def plot(
     dpi: int = typer.Option(150, min=50, max=1200, help=with_default("Resolution of raster (.png) figures, dots "
                                                                      "per inch."), show_default=False),
     true_map: Optional[Path] = typer.Option(
-        None, "--true-map", metavar="DATASET", help="With a map.csv in the run folder: a g2o file whose landmarks are "
+        None, "--true-map", metavar="DATASET", help="A g2o file whose landmarks are "
         "the true map (the <stem>.true-map.g2o of 'camloc simulate --withhold-map/--move-map/--no-map'), drawn on "
         "fig-map (or the report's map panel, with --output; without a map.csv, against the map the run was given) with a segment from each moved landmark's given position to its truth. Default: none.",
         show_default=False
@@ -72,7 +72,7 @@ def plot(
         layouts = {output or run_dir / f"fig-sweep.{figure_format.value}": (plotting.sweep_size(result[0]),
                                                                              plotting.draw_sweep)}
     elif output is not None:
-        layouts = {output: _report_layout(_map_view(run_dir, result, true_map))}
+        layouts = {output: _report_layout(_map_view(result, true_map))}
     else:
         layouts = {run_dir / f"fig-{name}.{figure_format.value}": layout for name, layout in plotting.figures_of(result).items()}
         layouts.update(_map_layout(run_dir, result, true_map, figure_format.value))
@@ -112,29 +112,24 @@ def _check_output(output: Optional[Path], force: bool) -> None:
     refuse_existing(output, force=force)
 
 
-def _map_view(run_dir: Path, result, true_map: Optional[Path]):
+def _map_view(result, true_map: Optional[Path]):
     """The run's map as the map figure draws it (``plotting_map.MapView``) when the run folder has a
     map.csv, or with --true-map (a run without map.csv held its given map exactly: that map is
     drawn against the truth); else None."""
-    from camloc.map_scores import held_map
-    from camloc.results import MAP_CSV, read_map
+    from camloc.results import run_map
 
-    if (run_dir / MAP_CSV).is_file():
-        estimated = read_map(run_dir / MAP_CSV)
-    elif true_map is not None:
-        estimated = held_map(result.map_landmark_ids, result.map_landmark_xyz, result.associations.landmark)
-    else:
+    if result.landmark_map is None and true_map is None:
         return None
     from camloc.plotting_map import MapView
 
-    return MapView(result, estimated, *_true_landmarks(true_map))
+    return MapView(result, run_map(result), *_true_landmarks(true_map))
 
 
 def _map_layout(run_dir: Path, result, true_map: Optional[Path], suffix: str) -> dict:
     """{fig-map path: (size, draw)} when the run folder has a map.csv, else {}."""
     from camloc.results import MAP_FIGURE_NAME
 
-    view = _map_view(run_dir, result, true_map)
+    view = _map_view(result, true_map)
     if view is None:
         return {}
     from camloc.plotting_map import MAP_FIGURE_SIZE, draw_map

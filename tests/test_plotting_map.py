@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from camloc.cli.app import app
 from camloc.g2o import write_g2o
 from camloc.plotting_map import MapView, ellipse_axes, plot_map
-from camloc.results import LandmarkMap, save_run, write_map
+from camloc.results import LandmarkMap, load_run, save_run, write_map
 from camloc.simulate import SimulationConfig, simulate
 
 
@@ -85,7 +85,10 @@ def test_cli_plot_writes_fig_map_with_a_map_csv_only(tmp_path, synthetic_run, mo
     from camloc.cli.plot import _map_layout, _map_view
 
     assert _map_layout(run_dir, view.result, None, "png") == {}  # no map.csv, no fig-map
-    held = _map_view(run_dir, view.result, tmp_path / "truth.g2o").estimated  # but with the truth: the given map, held
+    run = load_run(run_dir)
+    held = _map_view(run, tmp_path / "truth.g2o").estimated  # but with the truth: the given map, held
+    paired = run.associations.landmark
+    assert held.observations.tolist() == [int(np.count_nonzero(paired == i)) for i in held.ids.tolist()]
     assert np.array_equal(held.ids, view.result.map_landmark_ids) and not held.added.any() and not held.cov.any()
     write_map(run_dir, view.estimated)
     outcome = invoke(app, ["plot", str(run_dir), "--true-map", str(tmp_path / "truth.g2o"), "--dpi", "50"])
@@ -99,11 +102,13 @@ def test_cli_report_holds_the_map_panel_with_a_map_csv(tmp_path, synthetic_run):
 
     view = _view(synthetic_run, with_truth=True)
     run_dir = save_run(tmp_path / "run", view.result)
-    assert _report_layout(_map_view(run_dir, view.result, None))[0] == plotting.REPORT_SIZE  # no map.csv: no map row
+    assert _report_layout(_map_view(load_run(run_dir), None))[0] == plotting.REPORT_SIZE  # no map.csv: no map row
     write_map(run_dir, view.estimated)
     world = simulate(SimulationConfig(poses=5, landmarks=30), seed=0)
     write_g2o(dataclasses.replace(world, landmark_ids=view.true_ids, landmark_xyz=view.true_xyz), tmp_path / "truth.g2o")
-    size, draw = _report_layout(_map_view(run_dir, view.result, tmp_path / "truth.g2o"))
+    run = load_run(run_dir)  # as the command reads it: its map.csv as its map
+    assert np.array_equal(run.landmark_map.ids, view.estimated.ids)
+    size, draw = _report_layout(_map_view(run, tmp_path / "truth.g2o"))
     fig = draw(Figure(figsize=size), view.result)
     assert size[1] > plotting.REPORT_SIZE[1] and len(fig.axes) == 10  # the nine panels and the map below them
     assert fig.axes[-1].get_title().endswith("(2-sigma ellipses)") and "true map" in fig.axes[-1].get_legend_handles_labels()[1][2]
