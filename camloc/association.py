@@ -56,6 +56,7 @@ def candidate_indices(
     max_depth: float,
     max_angle_rad: float,
     margin: float = 0.0,
+    max_distance: float = np.inf,
 ) -> np.ndarray:
     """Indices (m,) of landmarks that may be visible from a camera.
 
@@ -68,6 +69,7 @@ def candidate_indices(
     margin : metres the camera's position may be off: landmarks this close to the view (the depth
         range widened by it, the cone's apex moved back along the axis by ``margin / sin`` of its
         half-angle, which holds every point within ``margin`` of the cone) count too.
+    max_distance : only landmarks within this distance of the camera's centre (+ ``margin``).
     """
     centre, axis = T_world_camera[:3, 3], T_world_camera[:3, 2]
     back = margin / np.sin(max_angle_rad) if margin > 0.0 else 0.0
@@ -79,6 +81,8 @@ def candidate_indices(
     depth = p_camera[:, 2]
     off_axis = np.hypot(p_camera[:, 0], p_camera[:, 1])
     visible = (depth > min_depth - margin) & (depth < max_depth + margin) & (off_axis <= (depth + back) * np.tan(max_angle_rad))
+    if np.isfinite(max_distance):
+        visible &= np.einsum("ij,ij->i", p_camera, p_camera) <= (max_distance + margin) ** 2
     return near[visible]
 
 

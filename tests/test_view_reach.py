@@ -52,6 +52,8 @@ def test_a_pixel_only_run_learns_its_cameras_reach(max_range):
     assert reach == pytest.approx(max_range, rel=0.04)
     assert result.summary["candidate_range"]["max_depth"] == pytest.approx((1.0 + REACH_MARGIN) * reach)
     assert result.summary["config"]["view"]["max_depth"] == pytest.approx((1.0 + REACH_MARGIN) * reach)
+    # the reach is a distance: the candidates are held within it as one, not only as a depth
+    assert result.summary["config"]["view"]["max_distance"] == pytest.approx((1.0 + REACH_MARGIN) * reach)
     assert result.summary["timing"]["reach_seconds"] > 0.0
 
 
