@@ -17,7 +17,7 @@ camera) of the run:
   true pose alone gives, all at once; ``scipy.optimize.linear_sum_assignment``), among the
   candidates of the window the run held before 2026-12-05: in front of the camera, depth up to
   1.1 times the simulator's range (the reach the run learns: 2.00-2.10 m where the cameras see
-  2 m) or the guess where that is nearer, the widest ray + 10 deg;
+  2 m) or the guess, whichever is nearer, the widest ray + 10 deg;
 - ``ball``: the same with the candidates' distance from the camera held to 1.1 times the range
   too, as the run holds them now (``ViewOptions.max_distance``);
 - ``view``: the same among only the landmarks the camera really sees (the simulator's range and
@@ -59,14 +59,12 @@ LEARNED_REACH_FACTOR = 1.1  # the run holds its candidates within 1.1 times the 
 
 def window_of(name: str, dataset, ball: bool = False) -> tuple[float, float, float, float]:
     """The run's candidate window (min depth, max depth, max angle, max distance): depth up to the
-    simulator's range (what the run learns, a distance) times 1.1 where that is nearer than the
-    guess (``localizer._with_learned_reach``), else the guess; with ``ball`` the distance from the
-    camera held to the same where the reach is (else unbounded), as the run holds it now."""
+    simulator's range (what the run learns, a distance) times 1.1 or the guess, whichever is
+    nearer (``localizer._with_learned_reach``); with ``ball`` the distance from the camera held to
+    1.1 times the range too, as the run holds it now (else unbounded)."""
     _, guess, angle = candidate_range(dataset, camloc.LocalizerConfig())
     reach = LEARNED_REACH_FACTOR * simulation_config({**WORLDS[name], "poses": 2}).max_range
-    if reach >= guess:
-        return 0.0, guess, angle, np.inf
-    return 0.0, reach, angle, reach if ball else np.inf
+    return 0.0, min(guess, reach), angle, reach if ball else np.inf
 
 
 def pixel_costs(dataset, noise, k: int, camera_id: int, obs: np.ndarray, rows: np.ndarray, window=None):

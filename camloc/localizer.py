@@ -186,11 +186,9 @@ def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) 
     if reach is None:
         return config, None, seconds, share
     held = (1.0 + REACH_MARGIN) * reach
-    if held >= view[1]:  # the guess is nearer: it stays
-        return replace(config, view=replace(config.view, max_depth=view[1])), reach, seconds, share
-    # the reach is a distance from the camera: held as one, not only as a depth, which let
-    # candidates at the cone's edge lie 1.2-1.7 times as far
-    return replace(config, view=replace(config.view, max_depth=held, max_distance=held)), reach, seconds, share
+    # the reach is a distance from the camera: held as one, not only as a depth (which let
+    # candidates at the cone's edge lie up to 1.7 times as far), also where the guess is the nearer depth
+    return replace(config, view=replace(config.view, max_depth=min(view[1], held), max_distance=held)), reach, seconds, share
 
 
 # Where the map lacks landmarks, the beam decides the map's pairs again with the cost of leaving an
