@@ -151,7 +151,9 @@ def _localize_mapped(dataset: Dataset, config: LocalizerConfig, on_progress, hoo
 
 # A pixel-only file's reach (how far its cameras detect landmarks; no depth in the file says) is
 # learned from the run over its first REACH_POSES poses (``view_reach.camera_reach``), and the
-# candidates' depth (``ViewOptions.max_depth``) held to it, REACH_MARGIN over it. A far landmark on
+# candidates' depth and distance (``ViewOptions.max_depth``, ``max_distance``) held to it, REACH_MARGIN
+# over it (the distance since 2026-12-05: docs/performance.md, "The precision possible on pixel-only
+# worlds"). A far landmark on
 # an observation's ray gates as well as the near one it sees; the reach guessed from the map's
 # density (``observation_space.pixel_reach``) let 1-5% of pairs take such landmarks. A margin of
 # 0.05 gave a little more precision but lost the robot on one world of 40 where 0.1 did not (a
