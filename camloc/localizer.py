@@ -727,9 +727,8 @@ class _Localizer:
         self.scene = AssociationScene(  # what the per-pose association methods read
             dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle=self.max_angle, obs_gate=self.obs_gate,
-            association_cov=self.association_cov, tag_orientations=self.tag_orientations,
+            max_distance=candidate_distance(config), association_cov=self.association_cov, tag_orientations=self.tag_orientations,
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned, planar_range=planar_range(dataset),
-            max_distance=candidate_distance(config),
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)
 
