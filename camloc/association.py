@@ -1,7 +1,7 @@
 """Data association between a pose's observations and the map's landmarks: pure functions of arrays.
 
 Pipeline for one camera at one pose:
-1. ``candidate_indices``: map landmarks in front of the camera within the depth range, found through
+1. ``candidate_indices``: map landmarks in front of the camera within the depth range (and distance), found through
    a ``PointIndex`` of the map (a k-d tree: cost independent of the map's size beyond the local
    density; a scan of a small map);
 2. ``pair_statistics``: for every (observation, candidate) pair, the squared Mahalanobis distance of
