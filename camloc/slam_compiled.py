@@ -257,7 +257,7 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     delta = U @ w
     R_i, t_i, L_i = retract(R, t, L, delta, small)
     last = y_prior
-    # the iterate taken and its gain, and its MAP cost once known (``monotone``)
+    # the cheapest iterate yet, its gain and its MAP cost once known (``monotone``)
     kept_R, kept_t, kept_L, kept_U, kept_S, kept_w, kept_cost = R_i, t_i, L_i, U, S, w, np.inf
     for _ in range(iterations - 1):
         z_hat_i, H_i = observe_columns(R_i, t_i, L_i, xyz, rows, block, sensor, cam_R, cam_t, cam_K, cam_third, width)
