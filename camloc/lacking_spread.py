@@ -18,13 +18,14 @@ the map lacks landmarks (``LACKING_NULL_OFFSET`` below the clutter's). Here the 
 stays in the filter's own covariance (not only the pose's reported one): a wrong pair's shift stays
 in the estimate for the poses after it, and so must its doubt.
 
-Pure computation on arrays.
+Pure computation on arrays (``GivenPairsDoubt``: on the mapping localizer's).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from camloc import measurement, slam
 from camloc.constants import NEGLIGIBLE_MARGIN
 from camloc.ekf import symmetrize
 
@@ -84,3 +85,33 @@ def fixed_landmark_spread(P: np.ndarray, residuals: np.ndarray, H: np.ndarray, R
     M = np.einsum("p,pai,pab,pbj->ij", w, H, inner, H)
     P_cols = P[:, :POSE_COLUMNS]
     return symmetrize(P_cols @ M @ P_cols.T)
+
+
+class GivenPairsDoubt:
+    """The doubt in the beam's pairs, a mix-in of ``slam_run.MappingLocalizer`` (whose state it
+    reads and whose P it widens: ``x``, ``P``, ``table``, ``sensors``, ``compiled``, the noise)."""
+
+    def _doubt_given(self, obs: np.ndarray, landmarks: np.ndarray) -> None:
+        """P widened by the chance that each of the beam's pairs (with the exact map's landmarks,
+        held fixed) is of a landmark the map lacks: ``lacking_spread.fixed_landmark_spread`` at
+        the update's posterior, the alternative priced at the lacking map's null cost."""
+        ds = self.dataset
+        given = (landmarks < self.table.num_mapped) & (ds.obs_kind[obs] != measurement.TAG_ROTATION)
+        obs, xyz = obs[given], self.table.xyz[landmarks[given]]
+        if obs.size == 0:
+            return
+        null_cost = self.null_cost[obs] - LACKING_NULL_OFFSET
+        if self.compiled is not None:
+            from camloc.lacking_spread_compiled import compiled_fixed_spread  # numba: loaded where the steps are compiled
+
+            self.P = self.P + compiled_fixed_spread(self.compiled, self.x, self.P, ds.obs_z[obs], ds.obs_cov[obs],
+                                                    self.association_cov[obs], self.log_det_R[obs], null_cost, xyz,
+                                                    self.obs_sensor[obs], NEGLIGIBLE_MARGIN)
+            return
+        for sensor_id in np.unique(self.obs_sensor[obs]).tolist():
+            mine = self.obs_sensor[obs] == sensor_id
+            o = obs[mine]
+            z_hat, H = slam.observe_columns(self.x, self.sensors[sensor_id], xyz[mine], np.full(o.size, -1), POSE_COLUMNS)
+            residuals = ds.obs_z[o] - slam.wrapped_predictions(z_hat, ds.obs_z[o], ds.obs_kind[o])
+            self.P = self.P + fixed_landmark_spread(self.P, residuals, H, ds.obs_cov[o], self.association_cov[o],
+                                                    self.log_det_R[o], null_cost[mine])

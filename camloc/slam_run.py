@@ -35,9 +35,8 @@ import numpy as np
 from camloc import ekf, geometry, measurement, planar, slam, slam_tags
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
-from camloc.constants import NEGLIGIBLE_MARGIN
 from camloc.filters import make_filter
-from camloc.lacking_spread import LACKING_NULL_OFFSET, POSE_COLUMNS, fixed_landmark_spread
+from camloc.lacking_spread import GivenPairsDoubt
 from camloc.localizer_config import LocalizerConfig
 from camloc.observation_space import candidate_range, observation_noise, planar_range
 from camloc.results import UNASSOCIATED, RunResult
@@ -52,7 +51,7 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -215,31 +214,6 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         self.nis.append(recorded_nis(nis, map_cost, self.config.iterations))
         self.map_costs.append(map_cost)
         self.nis_dof.append(int(self.obs_dof[obs].sum()))
-
-    def _doubt_given(self, obs: np.ndarray, landmarks: np.ndarray) -> None:
-        """P widened by the chance that each of the beam's pairs (with the exact map's landmarks,
-        held fixed) is of a landmark the map lacks: ``lacking_spread.fixed_landmark_spread`` at
-        the update's posterior, the alternative priced at the lacking map's null cost."""
-        ds = self.dataset
-        given = (landmarks < self.table.num_mapped) & (ds.obs_kind[obs] != measurement.TAG_ROTATION)
-        obs, xyz = obs[given], self.table.xyz[landmarks[given]]
-        if obs.size == 0:
-            return
-        null_cost = self.null_cost[obs] - LACKING_NULL_OFFSET
-        if self.compiled is not None:
-            from camloc.lacking_spread_compiled import compiled_fixed_spread  # numba: loaded where the steps are compiled
-
-            self.P = self.P + compiled_fixed_spread(self.compiled, self.x, self.P, ds.obs_z[obs], ds.obs_cov[obs],
-                                                    self.association_cov[obs], self.log_det_R[obs], null_cost, xyz,
-                                                    self.obs_sensor[obs], NEGLIGIBLE_MARGIN)
-            return
-        for sensor_id in np.unique(self.obs_sensor[obs]).tolist():
-            mine = self.obs_sensor[obs] == sensor_id
-            o = obs[mine]
-            z_hat, H = slam.observe_columns(self.x, self.sensors[sensor_id], xyz[mine], np.full(o.size, -1), POSE_COLUMNS)
-            residuals = ds.obs_z[o] - slam.wrapped_predictions(z_hat, ds.obs_z[o], ds.obs_kind[o])
-            self.P = self.P + fixed_landmark_spread(self.P, residuals, H, ds.obs_cov[o], self.association_cov[o],
-                                                    self.log_det_R[o], null_cost[mine])
 
     def _numpy_update(self, obs: np.ndarray, landmarks: np.ndarray, rows: np.ndarray):
         """The pose's iterated update in numpy (the compiled one's reference, ``camloc.slam_compiled``):
