@@ -118,3 +118,21 @@ def test_the_compiled_spread_is_the_numpy_one_at_a_posterior():
                                 np.zeros(p, np.int64), NEGLIGIBLE_MARGIN)
     assert np.abs(expected).max() > 1e-3 * np.abs(P).max()  # the alternatives weigh
     np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-14)
+
+
+@pytest.mark.parametrize("mode, slack", [("exact", 0.0), ("prior", None)])
+def test_an_added_landmark_is_tried_only_where_likelier_than_clutter_under_an_exact_map_that_lacks(mode, slack):
+    """Under the exact map whose pairs the beam gave (the map lacks landmarks), an added landmark's
+    pair must cost less than clutter (no slack): with the slack, the pose widened by the doubt let
+    an observation of a landmark not yet added be paired with an added one 1.4 m away. Under a prior
+    the slack stays (``slam_association._NULL_SLACK``), as do the mapped landmarks' zero."""
+    from camloc.slam_association import _NULL_SLACK
+
+    world = simulate_labelled(SimulationConfig(poses=30, withhold_map=0.5), seed=0).dataset
+    given = np.full(world.num_observations, -1, np.int64)
+    localizer = slam_run.MappingLocalizer(world, LocalizerConfig(map=mode), given, compiled=False)
+    added = localizer.table.append(10 ** 6)
+    landmarks = np.array([0, added])
+    got = localizer._slack(landmarks, True, 5)
+    assert got[0] == 0.0
+    assert got[1] == (_NULL_SLACK if slack is None else slack)
