@@ -100,14 +100,15 @@ class GivenPairsDoubt:
         obs, xyz = obs[given], self.table.xyz[landmarks[given]]
         if obs.size == 0:
             return
-        null_cost = self.null_cost[obs] - LACKING_NULL_OFFSET
-        if self.compiled is not None:
-            from camloc.lacking_spread_compiled import compiled_fixed_spread  # numba: loaded where the steps are compiled
+        if self.compiled is not None:  # numba: loaded where the steps are compiled (no tag there)
+            from camloc.lacking_spread_compiled import compiled_fixed_spread_into
 
-            self.P = self.P + compiled_fixed_spread(self.compiled, self.x, self.P, ds.obs_z[obs], ds.obs_cov[obs],
-                                                    self.association_cov[obs], self.log_det_R[obs], null_cost, xyz,
-                                                    self.obs_sensor[obs], NEGLIGIBLE_MARGIN)
+            self.P = np.ascontiguousarray(self.P, float)
+            compiled_fixed_spread_into(self.compiled, self.x, self.P, obs, xyz, self.obs_sensor, ds.obs_z, ds.obs_cov,
+                                       self.association_cov, self.log_det_R, self.null_cost, LACKING_NULL_OFFSET,
+                                       NEGLIGIBLE_MARGIN)
             return
+        null_cost = self.null_cost[obs] - LACKING_NULL_OFFSET
         for sensor_id in np.unique(self.obs_sensor[obs]).tolist():
             mine = self.obs_sensor[obs] == sensor_id
             o = obs[mine]

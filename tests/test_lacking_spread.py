@@ -84,11 +84,11 @@ def test_half_a_map_withheld_the_default_association_s_nees_is_inside_its_bound(
 
 
 def test_the_compiled_spread_is_the_numpy_one_at_a_posterior():
-    """``lacking_spread_compiled.fixed_spread`` (predictions, Jacobians and spread in one call)
-    against ``slam.observe_columns`` and ``fixed_landmark_spread``, a depth camera's pairs with
+    """``lacking_spread_compiled.fixed_spread_into`` (predictions, Jacobians and spread added into
+    P in one call) against ``slam.observe_columns`` and ``fixed_landmark_spread``, a depth camera's pairs with
     fixed points at a pose that is not the identity, some pairs near their alternative."""
     from camloc import geometry, slam
-    from camloc.lacking_spread_compiled import compiled_fixed_spread
+    from camloc.lacking_spread_compiled import compiled_fixed_spread_into
     from camloc.slam_run import _compiled_update
     from camloc.constants import NEGLIGIBLE_MARGIN
 
@@ -114,10 +114,11 @@ def test_the_compiled_spread_is_the_numpy_one_at_a_posterior():
     S = localizer.association_cov[obs] + H @ P[:6, :6] @ np.swapaxes(H, 1, 2)
     null = 3.0 + np.linalg.slogdet(S)[1] - localizer.log_det_R[obs] + np.array([-3.0, 1.0, 4.0, 50.0])
     expected = fixed_landmark_spread(P, z - z_hat, H, R_z, localizer.association_cov[obs], localizer.log_det_R[obs], null)
-    got = compiled_fixed_spread(update, x, P, z, R_z, localizer.association_cov[obs], localizer.log_det_R[obs], null, xyz,
-                                np.zeros(p, np.int64), NEGLIGIBLE_MARGIN)
-    assert np.abs(expected).max() > 1e-3 * np.abs(P).max()  # the alternatives weigh
-    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-14)
+    widened = P.copy()
+    compiled_fixed_spread_into(update, x, widened, obs, xyz, np.zeros(p, np.int64), z, R_z, localizer.association_cov,
+                               localizer.log_det_R, null + 4.0, 4.0, NEGLIGIBLE_MARGIN)
+    got = widened - P
+    np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-9 * np.abs(expected).max())
 
 
 @pytest.mark.parametrize("mode, slack", [("exact", 0.0), ("prior", None)])
