@@ -211,6 +211,7 @@ def update(
     start: np.ndarray | None = None,
     R_inverse: np.ndarray | None = None,
     columns: np.ndarray | None = None,
+    monotone: bool = False,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -239,6 +240,9 @@ def update(
         update (``ColumnGain``) costs O(n k m) and its covariance O(n^2 m), never O(n^3); the
         same posterior to rounding.
 
+    monotone : the iterate of least MAP cost (with its gain), not the last: Gauss-Newton can
+        overshoot where the prior is wide and the measurement bends (no map: ``slam_run``).
+
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
     """
@@ -259,8 +263,31 @@ def update(
     last = y_prior  # the innovation whose correction x_i is
     if start is not None and iterations >= 2:
         x_i, delta, last = start, difference(start, x), None
+    cost_of = (lambda x_k, r, g, y: _cost_at(x_k, x, P, r, R, R_inverse, difference, g, y, columns)) if monotone else None
+    x_i, gain, last, kept = _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations, cost_of)
+    cost = float("nan")
+    if map_cost or monotone:
+        # P^-1 of the correction without P^-1 where the gain knows it (ColumnGain: n^3 saved)
+        prior_term = gain.correction_quadratic(last) if columns is not None and last is not None else None
+        cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse, prior_term=prior_term)
+        if monotone and cost > kept[3]:  # Gauss-Newton overshot: the cheapest iterate, with its gain
+            x_i, gain, last, cost = kept
+        cost = cost if map_cost else float("nan")
+    return UpdateResult(state=x_i, cov=gain.posterior_cov(), innovation=y_prior, S=S, nis=nis, map_cost=cost)
+
+
+def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations, cost_of):
+    """``update``'s Gauss-Newton iterations after its first step (from x_i, the correction delta
+    of innovation ``last`` by ``gain``): the last iterate, its gain and innovation, and the
+    cheapest iterate before it as (iterate, gain, innovation, MAP cost) where ``cost_of`` (x_k,
+    its residual, its gain and innovation -> its MAP cost: ``monotone``) is given."""
+    kept = (x_i, gain, last, np.inf)
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
+        if cost_of is not None:
+            cost_i = cost_of(x_i, z - z_hat_i, gain, last)
+            if cost_i < kept[3]:
+                kept = (x_i, gain, last, cost_i)
         gain = gain_at(H_i)
         last = z - z_hat_i + H_i @ restrict(difference(x_i, x))
         step = gain.correction(last)
@@ -268,12 +295,23 @@ def update(
         if np.max(np.abs(step - delta)) < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
-    cost = float("nan")
-    if map_cost:
-        # P^-1 of the correction without P^-1 where the gain knows it (ColumnGain: n^3 saved)
-        prior_term = gain.correction_quadratic(last) if columns is not None and last is not None else None
-        cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse, prior_term=prior_term)
-    return UpdateResult(state=x_i, cov=gain.posterior_cov(), innovation=y_prior, S=S, nis=nis, map_cost=cost)
+    return x_i, gain, last, kept
+
+
+def _cost_at(x_i, x, P, residual, R, R_inverse, difference, gain, last, columns) -> float:
+    """``posterior_cost`` of an iterate x_i whose residual ``z - h(x_i)`` is known (``update``'s
+    ``monotone``), its prior term from the gain that made it where the gain knows it."""
+    if columns is not None and last is not None:
+        prior_term = gain.correction_quadratic(last)
+    else:
+        moved = difference(x_i, x)
+        prior_term = moved @ np.linalg.solve(P, moved)
+    if R.ndim == 3 and R_inverse is not None:
+        return float(prior_term + _block_quadratic(residual, R_inverse))
+    if R.ndim == 3:
+        p, b, _ = R.shape
+        return float(prior_term + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))
+    return float(prior_term + residual @ np.linalg.solve(R, residual))
 
 
 class CovarianceGain:

@@ -231,13 +231,15 @@ def column_gain(P_columns, columns, H, R_full):
 
 @_jit
 def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam_t, cam_K, cam_third,
-                    iterations, converged, small):
+                    iterations, converged, small, monotone):
     """``ekf.update(..., map_cost=True, columns=...)`` of p pairs (z (p, 3), their noise R_z and
     its inverse (p, 3, 3), the fixed points xyz (p, 3) or state rows ``rows`` (p,), each pair's
     sensor) on the estimate (R, t, L) with covariance P: (ok, R, t, L, P, the innovation at the
     prior (3 p,), S's diagonal blocks (p, 3, 3), NIS, MAP cost, each pair's squared Mahalanobis
     distance (p,) in its block). ok False: a step near a half
-    turn, which the numpy update takes instead (its logarithm switches formula there)."""
+    turn, which the numpy update takes instead (its logarithm switches formula there).
+    ``monotone``: the update is the iterate of least MAP cost, not the last one (``ekf.update``'s
+    ``monotone``)."""
     p = z.shape[0]
     in_state, columns, block = state_columns(rows)
     width = columns.size
@@ -255,8 +257,14 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     delta = U @ w
     R_i, t_i, L_i = retract(R, t, L, delta, small)
     last = y_prior
+    # the cheapest iterate yet, its gain and its MAP cost once known (``monotone``)
+    kept_R, kept_t, kept_L, kept_U, kept_S, kept_w, kept_cost = R_i, t_i, L_i, U, S, w, np.inf
     for _ in range(iterations - 1):
         z_hat_i, H_i = observe_columns(R_i, t_i, L_i, xyz, rows, block, sensor, cam_R, cam_t, cam_K, cam_third, width)
+        if monotone:
+            cost_i = w @ ((S - R_full) @ w) + _residual_cost(z, z_hat_i, R_inverse)
+            if cost_i < kept_cost:
+                kept_R, kept_t, kept_L, kept_U, kept_S, kept_w, kept_cost = R_i, t_i, L_i, U, S, w, cost_i
         U, S = column_gain(P_columns, columns, H_i, R_full)
         moved, ok = difference_columns(R_i, t_i, L_i, R, t, L, in_state, small)
         if not ok:
@@ -274,6 +282,8 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
     residual = z - z_post
     for o in range(p):
         cost += residual[o] @ (R_inverse[o] @ residual[o])
+    if monotone and cost > kept_cost:  # Gauss-Newton overshot: the cheapest iterate, with its gain
+        R_i, t_i, L_i, U, S, w, cost = kept_R, kept_t, kept_L, kept_U, kept_S, kept_w, kept_cost
     K = np.linalg.solve(S, U.T).T
     KM = K @ (0.5 * (K @ S) - U).T
     S_blocks = np.empty((p, 3, 3))
@@ -282,6 +292,16 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
         S_blocks[o] = S_prior[3 * o:3 * o + 3, 3 * o:3 * o + 3]
         d2[o] = block_distance(S_blocks[o], y_prior[3 * o:3 * o + 3])
     return True, R_i, t_i, L_i, P + (KM + KM.T), y_prior, S_blocks, nis, cost, d2
+
+
+@_jit
+def _residual_cost(z, z_hat, R_inverse):
+    """``r' R^-1 r`` of the residuals r = z - z_hat (p, 3) of p pairs, each with its own block."""
+    cost = 0.0
+    for o in range(z.shape[0]):
+        r = z[o] - z_hat[o]
+        cost += r @ (R_inverse[o] @ r)
+    return cost
 
 
 @_jit
@@ -546,12 +566,12 @@ class CompiledUpdate:
             self.cam_K[s], self.cam_third[s] = np.asarray(sensor.intrinsics, float), thirds.get(sensor.kind, THIRD_NONE)
         self.small_angle, self.converged = small_angle, converged
 
-    def __call__(self, R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, iterations: int):
+    def __call__(self, R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, iterations: int, monotone: bool = False):
         c = np.ascontiguousarray
         return iterated_update(c(R, float), c(t, float), c(L, float), c(P, float), c(z, float), c(R_z, float),
                                c(R_inverse, float), c(xyz, float), c(rows, np.int64), c(sensor, np.int64),
                                self.cam_R, self.cam_t, self.cam_K, self.cam_third, int(iterations),
-                               float(self.converged), float(self.small_angle))
+                               float(self.converged), float(self.small_angle), bool(monotone))
 
     def costs(self, x, P, xyz, rows, cov, sensor: int, near: float, far: float, cos_angle: float, z, R_z, log_det_R, gate,
               unpaired: float):

@@ -114,6 +114,9 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         self.nis: list[float] = []
         self.map_costs: list[float] = []
         self.nis_dof: list[int] = []
+        # without a map a return to a landmark seen long ago is a wide prior and a bent measurement,
+        # where Gauss-Newton's iterates can overshoot: the update is the cheapest iterate (``ekf.update``)
+        self._monotone = config.map == "none"
 
     def _planar_landmarks(self, dataset: Dataset) -> None:
         """A planar map's kinds in the table: a point of the floor pinned at z = 0 (``slam``'s model
@@ -196,7 +199,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         if self.compiled is not None:
             try:
                 done = self.compiled(self.x.R, self.x.t, self.x.L, self.P, ds.obs_z[obs], ds.obs_cov[obs], ds.obs_info[obs],
-                                     self.table.xyz[landmarks], rows, self.obs_sensor[obs], self.config.iterations)
+                                     self.table.xyz[landmarks], rows, self.obs_sensor[obs], self.config.iterations,
+                                     self._monotone)
             except np.linalg.LinAlgError:  # S not positive definite: the numpy update raises the run's error
                 done = None
         if done is not None and done[0]:
@@ -247,7 +251,7 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
 
         result = ekf.update(self.x, self.P, ds.obs_z[obs].ravel(), ds.obs_cov[obs], measure, retract=slam.retract,
                             difference=slam.difference, iterations=self.config.iterations, map_cost=True,
-                            R_inverse=ds.obs_info[obs], columns=columns)
+                            R_inverse=ds.obs_info[obs], columns=columns, monotone=self._monotone)
         self.x, self.P = result.state, result.cov
         p = obs.size
         S = result.S if result.S.ndim == 3 else result.S.reshape(p, 3, p, 3)[np.arange(p), :, np.arange(p), :]

@@ -244,3 +244,33 @@ def test_a_right_pair_far_cheaper_than_clutter_adds_next_to_nothing(rng):
     spread = ekf.leave_one_out_spread(P, z - H @ x, H, R, R, np.linalg.slogdet(R)[1], np.full(3, 60.0))
     assert np.abs(spread).max() < 1e-9 * np.abs(P).max()
     assert not ekf.leave_one_out_spread(P, np.zeros((0, 3)), H[:0], R[:0], R[:0], np.zeros(0), np.zeros(0)).any()
+
+
+def test_monotone_iterations_take_the_cheapest_iterate():
+    """Gauss-Newton without a line search overshoots where the prior is wide and the measurement
+    bends: here its third iterate costs 40 times the plain EKF step's MAP cost. With ``monotone``
+    the update is the cheapest iterate it reached (the first), with that one's gain."""
+    measure = lambda s: (range_bearing(s), range_bearing_jacobian(s))  # noqa: E731
+    x, P, R = np.array([2.608, 1.894]), np.diag([2.946, 4.708]), np.diag([0.01, 0.001])
+    z = np.array([1.2493, 3.0754])
+    plain = ekf.update(x, P, z, R, measure, difference=plain_difference, map_cost=True)
+    iterated = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=3, map_cost=True)
+    guarded = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=3, map_cost=True, monotone=True)
+    assert iterated.map_cost > 10 * plain.map_cost  # the overshoot this guards against
+    assert guarded.map_cost == pytest.approx(plain.map_cost)
+    np.testing.assert_array_equal(guarded.state, plain.state)
+    np.testing.assert_array_equal(guarded.cov, plain.cov)
+    assert guarded.map_cost == pytest.approx(ekf.posterior_cost(guarded.state, x, P, z, R, measure, plain_difference))
+
+
+def test_monotone_iterations_change_nothing_where_the_last_iterate_is_the_cheapest(rng):
+    """Where Gauss-Newton converges (each iterate lowers the cost), ``monotone`` gives the same
+    update bit for bit."""
+    measure = lambda s: (range_bearing(s), range_bearing_jacobian(s))  # noqa: E731
+    x, P, R = np.array([2.0, 0.5]), np.diag([1.0, 1.0]), np.diag([0.01, 0.001])
+    z = range_bearing(np.array([1.5, 1.5]))
+    free = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=20, map_cost=True)
+    guarded = ekf.update(x, P, z, R, measure, difference=plain_difference, iterations=20, map_cost=True, monotone=True)
+    np.testing.assert_array_equal(guarded.state, free.state)
+    np.testing.assert_array_equal(guarded.cov, free.cov)
+    assert guarded.map_cost == free.map_cost

@@ -40,12 +40,13 @@ def _noise(kind, rng, p):
     return R_z
 
 
-def _problem(kinds, seed):
-    """A state of 6 landmarks with a prior spread, and pairs (of each sensor in ``kinds``) with
-    landmarks of the state (one seen twice) and points held fixed, measured with noise."""
+def _problem(kinds, seed, spread=1.0):
+    """A state of 6 landmarks with a prior spread (``spread`` times the usual), and pairs (of
+    each sensor in ``kinds``) with landmarks of the state (one seen twice) and points held fixed,
+    measured with noise."""
     rng = np.random.default_rng(seed)
     x = _state(rng, 6)
-    A = rng.normal(size=(x.dim, x.dim)) * 0.05
+    A = rng.normal(size=(x.dim, x.dim)) * 0.05 * spread
     P = A @ A.T + 1e-3 * np.eye(x.dim)
     sensors = {s: _camera(kind, s) for s, kind in enumerate(kinds)}
     rows = np.array([4, -1, 1, 4, -1, 0, 2])
@@ -63,7 +64,7 @@ def _problem(kinds, seed):
     return x, P, sensors, sensor, rows, xyz, z, R_z
 
 
-def _numpy_update(x, P, sensors, sensor, rows, xyz, z, R_z, iterations):
+def _numpy_update(x, P, sensors, sensor, rows, xyz, z, R_z, iterations, monotone=False):
     """``slam_run``'s numpy update (``MappingLocalizer._numpy_update``), on plain arrays."""
     columns, block = slam.state_columns(rows)
     in_state = rows >= 0
@@ -78,7 +79,8 @@ def _numpy_update(x, P, sensors, sensor, rows, xyz, z, R_z, iterations):
         return z_hat.ravel(), H.reshape(-1, columns.size)
 
     return ekf.update(x, P, z.ravel(), R_z, measure, retract=slam.retract, difference=slam.difference,
-                      iterations=iterations, map_cost=True, R_inverse=np.linalg.inv(R_z), columns=columns)
+                      iterations=iterations, map_cost=True, R_inverse=np.linalg.inv(R_z), columns=columns,
+                      monotone=monotone)
 
 
 @pytest.mark.parametrize("kinds", [[k] for k in KINDS] + [KINDS])
@@ -103,6 +105,28 @@ def test_compiled_update_equals_the_numpy_update(kinds, iterations):
         assert nis == pytest.approx(reference.nis, rel=1e-10)
         assert cost == pytest.approx(reference.map_cost, rel=1e-10)
         np.testing.assert_allclose(d2, mahalanobis_3x3(S, innovation.reshape(p, 3))[0], rtol=1e-12)
+
+
+def test_compiled_monotone_update_equals_the_numpy_one_where_it_stops_early():
+    """``monotone`` (the update of a run without a map): on wide priors, where Gauss-Newton's
+    later iterates cost more than earlier ones, the compiled update keeps the iterate the numpy one keeps."""
+    stopped = 0
+    for seed in range(12):
+        x, P, sensors, sensor, rows, xyz, z, R_z = _problem(KINDS, seed, spread=8.0)
+        update = CompiledUpdate(sensors, geometry._SMALL_ANGLE, CONVERGED)
+        free = update(x.R, x.t, x.L, P, z, R_z, np.linalg.inv(R_z), xyz, rows, sensor, 5)
+        ok, R, t, L, P_new, innovation, S, nis, cost, d2 = update(x.R, x.t, x.L, P, z, R_z, np.linalg.inv(R_z), xyz, rows,
+                                                              sensor, 5, True)
+        if not (ok and free[0]):
+            continue  # a step near a half turn: the numpy update's case
+        reference = _numpy_update(x, P, sensors, sensor, rows, xyz, z, R_z, 5, monotone=True)
+        np.testing.assert_allclose(t, reference.state.t, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(L, reference.state.L, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(P_new, reference.cov, rtol=1e-6, atol=1e-9)
+        assert cost == pytest.approx(reference.map_cost, rel=1e-6)
+        assert cost <= free[8] * (1 + 1e-12)  # never costlier than letting every iterate through
+        stopped += cost < free[8] * (1 - 1e-9)
+    assert stopped >= 1  # the wide priors do make Gauss-Newton overshoot
 
 
 @pytest.mark.parametrize("kind", KINDS)
