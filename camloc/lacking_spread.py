@@ -100,13 +100,10 @@ class GivenPairsDoubt:
         obs, xyz = obs[given], self.table.xyz[landmarks[given]]
         if obs.size == 0:
             return
-        if self.compiled is not None:  # numba: loaded where the steps are compiled (no tag there)
-            from camloc.lacking_spread_compiled import compiled_fixed_spread_into
-
+        if self.compiled is not None:  # the compiled steps' twin (``slam_compiled.fixed_spread_into``; no tag there)
             self.P = np.ascontiguousarray(self.P, float)
-            compiled_fixed_spread_into(self.compiled, self.x, self.P, obs, xyz, self.obs_sensor, ds.obs_z, ds.obs_cov,
-                                       self.association_cov, self.log_det_R, self.null_cost, LACKING_NULL_OFFSET,
-                                       NEGLIGIBLE_MARGIN)
+            self.compiled.spread_into(self.x, self.P, obs, xyz, self.obs_sensor, ds.obs_z, ds.obs_cov, self.association_cov,
+                                      self.log_det_R, self.null_cost, LACKING_NULL_OFFSET, NEGLIGIBLE_MARGIN)
             return
         null_cost = self.null_cost[obs] - LACKING_NULL_OFFSET
         for sensor_id in np.unique(self.obs_sensor[obs]).tolist():

@@ -447,10 +447,9 @@ def _mapping_compiled(dataset: Dataset, hooks: dict) -> bool:
         return False
     if engine == "compiled" or hooks["on_background_compile"] is None:
         return True
-    from camloc import lacking_spread_compiled
     from camloc.slam_compiled import cache_folder, cache_is_warm
 
-    if cache_is_warm() and lacking_spread_compiled.cache_is_warm():
+    if cache_is_warm():
         return True
     state = warmup.start_background_compile(cache_folder(), mapping=True)
     if state is None:  # it cannot run in the background: in the foreground

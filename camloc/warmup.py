@@ -238,7 +238,7 @@ def compile_mapping_kernels() -> None:
     """Compile, and so cache, the mapping pass's kernels (``camloc.slam_compiled``): a small world
     with half its map withheld, mapped under a prior (every step runs: landmarks enter, are added
     and retire), then under the exact map with its pairs given, as the beam gives them
-    (``camloc.lacking_spread_compiled``)."""
+    (``slam_compiled.fixed_spread_into``)."""
     from camloc.localizer_config import LocalizerConfig
     from camloc.observation_space import landmark_rows
     from camloc.simulate import SimulationConfig, simulate

@@ -84,11 +84,10 @@ def test_half_a_map_withheld_the_default_association_s_nees_is_inside_its_bound(
 
 
 def test_the_compiled_spread_is_the_numpy_one_at_a_posterior():
-    """``lacking_spread_compiled.fixed_spread_into`` (predictions, Jacobians and spread added into
+    """``slam_compiled.fixed_spread_into`` (predictions, Jacobians and spread added into
     P in one call) against ``slam.observe_columns`` and ``fixed_landmark_spread``, a depth camera's pairs with
     fixed points at a pose that is not the identity, some pairs near their alternative."""
     from camloc import geometry, slam
-    from camloc.lacking_spread_compiled import compiled_fixed_spread_into
     from camloc.slam_run import _compiled_update
     from camloc.constants import NEGLIGIBLE_MARGIN
 
@@ -115,8 +114,8 @@ def test_the_compiled_spread_is_the_numpy_one_at_a_posterior():
     null = 3.0 + np.linalg.slogdet(S)[1] - localizer.log_det_R[obs] + np.array([-3.0, 1.0, 4.0, 50.0])
     expected = fixed_landmark_spread(P, z - z_hat, H, R_z, localizer.association_cov[obs], localizer.log_det_R[obs], null)
     widened = P.copy()
-    compiled_fixed_spread_into(update, x, widened, obs, xyz, np.zeros(p, np.int64), z, R_z, localizer.association_cov,
-                               localizer.log_det_R, null + 4.0, 4.0, NEGLIGIBLE_MARGIN)
+    update.spread_into(x, widened, obs, xyz, np.zeros(p, np.int64), z, R_z, localizer.association_cov, localizer.log_det_R,
+                       null + 4.0, 4.0, NEGLIGIBLE_MARGIN)
     got = widened - P
     np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-9 * np.abs(expected).max())
 
