@@ -1,7 +1,7 @@
 """Data association between a pose's observations and the map's landmarks: pure functions of arrays.
 
 Pipeline for one camera at one pose:
-1. ``candidate_indices``: map landmarks in front of the camera within the depth range, found through
+1. ``candidate_indices``: map landmarks in front of the camera within the depth range (and distance), found through
    a ``PointIndex`` of the map (a k-d tree: cost independent of the map's size beyond the local
    density; a scan of a small map);
 2. ``pair_statistics``: for every (observation, candidate) pair, the squared Mahalanobis distance of
@@ -56,6 +56,7 @@ def candidate_indices(
     max_depth: float,
     max_angle_rad: float,
     margin: float = 0.0,
+    max_distance: float = np.inf,
 ) -> np.ndarray:
     """Indices (m,) of landmarks that may be visible from a camera.
 
@@ -68,6 +69,7 @@ def candidate_indices(
     margin : metres the camera's position may be off: landmarks this close to the view (the depth
         range widened by it, the cone's apex moved back along the axis by ``margin / sin`` of its
         half-angle, which holds every point within ``margin`` of the cone) count too.
+    max_distance : only landmarks within this distance of the camera's centre (+ ``margin``).
     """
     centre, axis = T_world_camera[:3, 3], T_world_camera[:3, 2]
     back = margin / np.sin(max_angle_rad) if margin > 0.0 else 0.0
@@ -79,6 +81,8 @@ def candidate_indices(
     depth = p_camera[:, 2]
     off_axis = np.hypot(p_camera[:, 0], p_camera[:, 1])
     visible = (depth > min_depth - margin) & (depth < max_depth + margin) & (off_axis <= (depth + back) * np.tan(max_angle_rad))
+    if np.isfinite(max_distance):
+        visible &= np.einsum("ij,ij->i", p_camera, p_camera) <= (max_distance + margin) ** 2
     return near[visible]
 
 

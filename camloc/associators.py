@@ -54,6 +54,7 @@ class AssociationScene:
     obs_sensor : (K,) each observation's sensor.
     map_index : ``association.PointIndex`` over ``dataset.landmark_xyz``; None for an empty map.
     min_depth, max_depth : candidate landmarks' depth range, metres.
+    max_distance : candidates within this distance of the camera, metres (inf: no bound).
     max_angle : candidates within this angle of the optical axis, radians.
     obs_gate : (K,) the chi^2 quantile a pair's d^2 must not exceed, at each observation's dof.
     association_cov : (K, 3, 3) each observation's covariance as association judges it
@@ -82,6 +83,7 @@ class AssociationScene:
     true_landmark_row: np.ndarray
     conditioned: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
     planar_range: float = 0.0
+    max_distance: float = np.inf
     tag_orientations: Optional[tag_orientations.TagOrientations] = None
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
@@ -100,6 +102,7 @@ class AssociationScene:
         return association.candidate_indices(
             self.map_index, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
+            max_distance=self.max_distance,
         )
 
     def _visible_planar(self, x: np.ndarray, camera: CameraModel, P: Optional[np.ndarray]) -> np.ndarray:
@@ -120,6 +123,7 @@ class AssociationScene:
         near = association.candidate_indices(
             self.map_index, self.dataset.landmark_xyz, self.filter.pose(x) @ camera.T_robot_camera,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle_rad=max_angle, margin=margin,
+            max_distance=self.max_distance,
         )
         return near[np.isin(kinds[near], (LANDMARK_POINT3, LANDMARK_TAG))]  # a camera sees points and tags
 

@@ -23,7 +23,7 @@ from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
 from camloc.stacked_update import StackedUpdate
 from camloc.measurement import observation_gates
-from camloc.observation_space import (candidate_range, detection_range, landmark_rows, observation_noise, planar_range, reach_unmeasured,
+from camloc.observation_space import (candidate_distance, candidate_range, detection_range, landmark_rows, observation_noise, planar_range, reach_unmeasured,
                                       with_map_uncertainty)
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
@@ -151,7 +151,9 @@ def _localize_mapped(dataset: Dataset, config: LocalizerConfig, on_progress, hoo
 
 # A pixel-only file's reach (how far its cameras detect landmarks; no depth in the file says) is
 # learned from the run over its first REACH_POSES poses (``view_reach.camera_reach``), and the
-# candidates' depth (``ViewOptions.max_depth``) held to it, REACH_MARGIN over it. A far landmark on
+# candidates' depth and distance (``ViewOptions.max_depth``, ``max_distance``) held to it, REACH_MARGIN
+# over it (the distance since 2026-12-05: docs/performance.md, "The precision possible on pixel-only
+# worlds"). A far landmark on
 # an observation's ray gates as well as the near one it sees; the reach guessed from the map's
 # density (``observation_space.pixel_reach``) let 1-5% of pairs take such landmarks. A margin of
 # 0.05 gave a little more precision but lost the robot on one world of 40 where 0.1 did not (a
@@ -166,15 +168,15 @@ REACH_LOST_SHARE = 0.8
 
 
 def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> tuple[LocalizerConfig, Optional[float], float, float]:
-    """``config`` with its candidates' depth held to the reach learned from the start of the run
+    """``config`` with its candidates' depth and distance held to the reach learned from the start of the run
     (``REACH_POSES``), that reach in metres, the seconds the start's run took and the share of its
     observations it paired; ``config``, None, 0 and 0 where the file measures range or has no map,
-    the reach is given (``config.view.max_depth``), the association is the oracle (no candidates);
+    the reach is given (``config.view.max_depth`` or ``max_distance``), the association is the oracle (no candidates);
     ``config`` and None where the start shows no reach (``view_reach.pairing_step``)."""
     from camloc.view_reach import camera_reach
 
-    if (config.view.max_depth is not None or config.association == "oracle" or dataset.landmark_ids.size == 0
-            or not reach_unmeasured(dataset)):
+    if (config.view.max_depth is not None or config.view.max_distance is not None or config.association == "oracle"
+            or dataset.landmark_ids.size == 0 or not reach_unmeasured(dataset)):
         return config, None, 0.0, 0.0
     started = time.perf_counter()
     view = candidate_range(dataset, config)
@@ -185,8 +187,10 @@ def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) 
     seconds, share = time.perf_counter() - started, _paired_share(run)
     if reach is None:
         return config, None, seconds, share
-    max_depth = min(view[1], (1.0 + REACH_MARGIN) * reach)
-    return replace(config, view=replace(config.view, max_depth=max_depth)), reach, seconds, share
+    held = (1.0 + REACH_MARGIN) * reach
+    # the reach is a distance from the camera: held as one, not only as a depth (which let
+    # candidates at the cone's edge lie up to 1.7 times as far), also where the guess is the nearer depth
+    return replace(config, view=replace(config.view, max_depth=min(view[1], held), max_distance=held)), reach, seconds, share
 
 
 # Where the map lacks landmarks, the beam decides the map's pairs again with the null cost lowered
@@ -718,7 +722,7 @@ class _Localizer:
         self.scene = AssociationScene(  # what the per-pose association methods read
             dataset=dataset, filter=self.filter, cameras=self.cameras, obs_sensor=self.obs_sensor, map_index=self.map_index,
             min_depth=self.min_depth, max_depth=self.max_depth, max_angle=self.max_angle, obs_gate=self.obs_gate,
-            association_cov=self.association_cov, tag_orientations=self.tag_orientations,
+            max_distance=candidate_distance(config), association_cov=self.association_cov, tag_orientations=self.tag_orientations,
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned, planar_range=planar_range(dataset),
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)

@@ -137,11 +137,15 @@ class ViewOptions:
         1.25 x the largest measured depth + 0.5 m).
     max_angle_deg : candidates within this angle of the optical axis; None = from the data (the
         widest observed ray + 10 deg, at most 89 deg).
+    max_distance : candidates within this distance of the camera's centre, metres; None = no such
+        bound (a pixel-only file's run sets it to the reach it learns, a distance, with
+        ``max_depth``: ``localizer._with_learned_reach``).
     """
 
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
     max_angle_deg: Optional[float] = None
+    max_distance: Optional[float] = None
 
 
 @dataclass(frozen=True)
@@ -260,6 +264,8 @@ class LocalizerConfig:
              f"must be above the minimum depth ({view.min_depth or 0.0:g} m) and at most {MAX_COORDINATE:.0e} m, got {view.max_depth}"),
             ("view.max_angle_deg", view.max_angle_deg is None or 0.0 < view.max_angle_deg < 90.0,
              f"must be in (0, 90) deg, got {view.max_angle_deg}"),
+            ("view.max_distance", view.max_distance is None or (view.min_depth or 0.0) < view.max_distance <= MAX_COORDINATE,
+             f"must be above the minimum depth ({view.min_depth or 0.0:g} m) and at most {MAX_COORDINATE:.0e} m, got {view.max_distance}"),
         ]
 
 

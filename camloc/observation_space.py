@@ -249,6 +249,12 @@ def candidate_range(dataset: Dataset, config) -> tuple[float, float, float]:
     return min_depth, max_depth, max_angle
 
 
+def candidate_distance(config) -> float:
+    """How far from a camera's centre its candidates may lie (``ViewOptions.max_distance``),
+    metres; inf where unset."""
+    return float(config.view.max_distance) if config.view.max_distance is not None else float("inf")
+
+
 def reach_unmeasured(dataset: Dataset) -> bool:
     """Whether nothing in ``dataset`` says how far its cameras see: no observation measures range
     and some camera's is a ray (``candidate_range`` guesses the reach from the map's density,

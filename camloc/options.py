@@ -41,6 +41,7 @@ RUN_OPTIONS: dict[str, str] = {
     "min-depth": "view.min_depth",
     "max-depth": "view.max_depth",
     "max-angle": "view.max_angle_deg",
+    "max-distance": "view.max_distance",
 }
 
 FLAG_OF_PATH = {path: flag for flag, path in RUN_OPTIONS.items()}

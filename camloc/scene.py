@@ -12,7 +12,7 @@ import threading
 import numpy as np
 
 from camloc import measurement, sym3
-from camloc.observation_space import ObservationNoise, candidate_range, detection_range, landmark_rows, observation_noise, planar_range
+from camloc.observation_space import ObservationNoise, candidate_distance, candidate_range, detection_range, landmark_rows, observation_noise, planar_range
 from camloc.sensors import sensors_of
 from camloc.measurement import observation_gates
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
@@ -42,7 +42,8 @@ def build_scene(dataset: Dataset, config, view_range: tuple[float, float, float]
     true_index = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
     pose_obs, pose_obs_start = observations_by_pose(dataset)
     view = np.array(candidate_range(dataset, config) if view_range is None else view_range)
-    view = np.concatenate([view, detection_range(dataset, float(view[2])), [planar_range(dataset)]])  # the beam's miss term, the planar range
+    # the beam's miss term, the planar range, the candidates' distance
+    view = np.concatenate([view, detection_range(dataset, float(view[2])), [planar_range(dataset), candidate_distance(config)]])
     most_pairs = int(np.diff(pose_obs_start).max(initial=0))
     if numba_start is not None:
         numba_start.join()

@@ -196,6 +196,11 @@ _MAX_ANGLE = typer.Option(
     None, help="Candidates within this angle of the optical axis, degrees. Default: from the data "
     "(widest observed ray + 10).", show_default=False, rich_help_panel=VIEW
 )
+_MAX_DISTANCE = typer.Option(
+    None, help="Farthest candidate landmark from the camera's centre, metres. Default: no bound (a pixel-only "
+    "file: 1.1 x the cameras' reach learned from the run over its first 300 poses, a distance).", show_default=False,
+    rich_help_panel=VIEW
+)
 _JSON_OUTPUT = json_option("the run summary (what summary.json holds)")
 _QUIET = quiet_option()
 
@@ -229,6 +234,7 @@ def run(
     min_depth: Optional[float] = _MIN_DEPTH,
     max_depth: Optional[float] = _MAX_DEPTH,
     max_angle: Optional[float] = _MAX_ANGLE,
+    max_distance: Optional[float] = _MAX_DISTANCE,
     json_output: bool = _JSON_OUTPUT,
     quiet: bool = _QUIET,
 ) -> None:

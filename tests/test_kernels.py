@@ -232,22 +232,43 @@ def test_shift_agreement_matches_numpy(rng, size):
     assert got.max() >= size // 20 and got.min() >= 1
 
 
+@pytest.mark.parametrize("max_distance", [np.inf, 4.2], ids=["depth", "distance"])
 @pytest.mark.parametrize("margin", [0.0, 0.7])
 @pytest.mark.parametrize("dense", [True, False], ids=["table-by-key", "binary-search"])
-def test_view_query_matches_the_kd_tree(rng, margin, dense):
+def test_view_query_matches_the_kd_tree(rng, margin, dense, max_distance):
     landmarks = rng.uniform(-10, 10, (3000, 3))
-    scene = _scene_with_map(landmarks, max_depth=4.0, max_angle=np.radians(40.0))
+    scene = _scene_with_map(landmarks, max_depth=4.0, max_angle=np.radians(55.0), max_distance=max_distance)
     if not dense:
         scene = scene._replace(grid_dense_start=np.zeros(0, np.int64))
     index = association.PointIndex(landmarks)
     for _ in range(20):
         T_wc = geometry.pose_from_euler(_random_state(rng))
-        got = view.visible(scene, T_wc[:3, :3].copy(), T_wc[:3, 3].copy(), np.radians(40.0), margin)
-        ref = association.candidate_indices(index, landmarks, T_wc, min_depth=0.0, max_depth=4.0, max_angle_rad=np.radians(40.0), margin=margin)
+        got = view.visible(scene, T_wc[:3, :3].copy(), T_wc[:3, 3].copy(), np.radians(55.0), margin)
+        ref = association.candidate_indices(index, landmarks, T_wc, min_depth=0.0, max_depth=4.0, max_angle_rad=np.radians(55.0),
+                                            margin=margin, max_distance=max_distance)
         np.testing.assert_array_equal(got, ref)
+        distance = np.linalg.norm(landmarks[got] - T_wc[:3, 3], axis=1)
+        assert np.all(distance <= max_distance + margin)
+        if np.isinf(max_distance):  # at the cone's edge a depth of 4 m lies up to 4 / cos(55 deg) = 7 m away
+            assert distance.max(initial=0.0) > 4.2 + margin or got.size < 5
 
 
-def _scene_with_map(landmarks, *, max_depth, max_angle):
+def test_candidates_within_a_distance_leave_out_what_only_the_depth_held():
+    """A landmark at depth 1.9 m, 50 deg off the axis (2.96 m away), is a candidate within a depth
+    of 2.2 m, not within a distance of 2.2 m; one on the axis at 2.1 m is both."""
+    angle = np.radians(50.0)
+    landmarks = np.array([[1.9 * np.tan(angle), 0.0, 1.9], [0.0, 0.0, 2.1]])
+    index, T = association.PointIndex(landmarks), np.eye(4)
+    depth = association.candidate_indices(index, landmarks, T, min_depth=0.0, max_depth=2.2, max_angle_rad=np.radians(55.0))
+    ball = association.candidate_indices(index, landmarks, T, min_depth=0.0, max_depth=2.2, max_angle_rad=np.radians(55.0),
+                                         max_distance=2.2)
+    np.testing.assert_array_equal(depth, [0, 1])
+    np.testing.assert_array_equal(ball, [1])
+    scene = _scene_with_map(landmarks, max_depth=2.2, max_angle=np.radians(55.0), max_distance=2.2)
+    np.testing.assert_array_equal(view.visible(scene, np.eye(3), np.zeros(3), np.radians(55.0), 0.0), [1])
+
+
+def _scene_with_map(landmarks, *, max_depth, max_angle, max_distance=np.inf):
     from camloc.kernels.types import SceneArrays
 
     grid = view.build_grid(landmarks, 1.5)
@@ -256,7 +277,7 @@ def _scene_with_map(landmarks, *, max_depth, max_angle):
     fields.update(zip(("grid_origin", "grid_cell", "grid_dims", "grid_keys", "grid_start", "grid_items", "grid_xyz",
                        "grid_dense_start"), grid))
     fields["landmark_xyz"] = landmarks
-    fields["view_limits"] = np.array([0.0, max_depth, max_angle])
+    fields["view_limits"] = np.array([0.0, max_depth, max_angle, 0.0, 0.0, 0.0, max_distance])
     return SceneArrays(**fields)
 
 

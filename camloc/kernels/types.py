@@ -40,9 +40,10 @@ SceneArrays = namedtuple("SceneArrays", [
     "T_increment",         # (N - 1, 4, 4)
     "odom_cov",            # (N - 1, 6, 6)
     # view limits and consistency bounds
-    "view_limits",         # (6,) min_depth, max_depth, max_angle (rad), the detection range (low, high:
-                           # ``observation_space.detection_range``; 0, 0 without pixel observations), and the
-                           # planar sensors' range (``observation_space.planar_range``; 0 without them)
+    "view_limits",         # (7,) min_depth, max_depth, max_angle (rad), the detection range (low, high:
+                           # ``observation_space.detection_range``; 0, 0 without pixel observations), the
+                           # planar sensors' range (``observation_space.planar_range``; 0 without them), and
+                           # the candidates' distance from the camera (``candidate_distance``; inf: no bound)
     "nis_bound",           # (3 P + 4,) the 99.9% chi^2 quantile of d degrees of freedom, by d
     "obs_gate",            # (K,) the chi^2 gate of each observation's pairs, at its dof
     "obs_dof",             # (K,) int64 each observation's degrees of freedom

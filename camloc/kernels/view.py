@@ -65,9 +65,11 @@ def view_cone_ball(apex, axis, depth, half_angle):
 @jit
 def visible(scene, R_wc, centre, max_angle, margin):
     """Sorted indices of the landmarks in the view of a camera at (R_wc, centre): depth within
-    (min_depth, max_depth) and within ``max_angle`` of the optical axis; with ``margin`` metres
-    the camera's position may be off, every landmark that close to the view too."""
+    (min_depth, max_depth) and within ``max_angle`` of the optical axis, within the candidates'
+    distance of the camera (``view_limits[6]``, where given); with ``margin`` metres the camera's
+    position may be off, every landmark that close to the view too."""
     min_depth, max_depth = scene.view_limits[0], scene.view_limits[1]
+    max_distance = scene.view_limits[6] + margin if scene.view_limits.shape[0] > 6 else np.inf
     axis = R_wc[:, 2].copy()
     back = margin / math.sin(max_angle) if margin > 0.0 else 0.0
     apex = centre - back * axis
@@ -116,16 +118,17 @@ def visible(scene, R_wc, centre, max_angle, margin):
                 grown[i] = found[i]
             found = grown
         count = cone_members(scene.grid_xyz, scene.grid_items, first, stop, R_wc, centre, ball, radius, min_depth - margin,
-                             max_depth + margin, back, cone[0], found, count)
+                             max_depth + margin, back, cone[0], max_distance * max_distance, found, count)
     return np.sort(found[:count])
 
 
 @jit
-def cone_members(grid_xyz, grid_items, first, stop, R_wc, centre, ball, radius, min_depth, max_depth, back, tan, found, count):
+def cone_members(grid_xyz, grid_items, first, stop, R_wc, centre, ball, radius, min_depth, max_depth, back, tan, distance2,
+                 found, count):
     """Append the landmarks first..stop-1 of the grid's order (``scene.grid_xyz``, ``grid_items``)
     that lie in the ball and the view
     (depth within (min_depth, max_depth), within the cone widened ``back`` metres behind the
-    camera) to found (room for all of them) from ``count``; returns the new count. Without
+    camera, their squared distance from it at most ``distance2``) to found (room for all of them) from ``count``; returns the new count. Without
     branches: which side of each test a landmark falls on is a coin toss the CPU would guess
     wrong half the time."""
     b0, b1, b2, c0, c1, c2 = ball[0], ball[1], ball[2], centre[0], centre[1], centre[2]
@@ -139,7 +142,7 @@ def cone_members(grid_xyz, grid_items, first, stop, R_wc, centre, ball, radius, 
         depth = R_wc[0, 2] * v0 + R_wc[1, 2] * v1 + R_wc[2, 2] * v2
         cone_radius = (depth + back) * tan
         inside = ((d0 * d0 + d1 * d1 + d2 * d2 <= r2) & (depth > min_depth) & (depth < max_depth) & (cone_radius >= 0.0)
-                  & (px * px + py * py <= cone_radius * cone_radius))
+                  & (px * px + py * py <= cone_radius * cone_radius) & (v0 * v0 + v1 * v1 + v2 * v2 <= distance2))
         found[count] = grid_items[s]
         count += inside
     return count
