@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, measurement, planar, tags, warmup
+from camloc import association, associators, ekf, geometry, lacking_spread, measurement, planar, tags, warmup
 from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
@@ -193,15 +193,10 @@ def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) 
     return replace(config, view=replace(config.view, max_depth=min(view[1], held), max_distance=held)), reach, seconds, share
 
 
-# Where the map lacks landmarks, the beam decides the map's pairs again with the cost of leaving an
-# observation unexplained lowered by this much. The default null cost prices an unexplained
-# observation as rare clutter spread over all the camera measures; a map that lacks landmarks
-# makes them common and near the mapped ones (the same places hold landmarks), and the beam, to
-# explain them, pairs them with mapped neighbours and loses the robot where it sees few landmarks.
-# Measured (docs/performance.md, "A map that lacks landmarks: the beam decides its pairs again"):
-# 300-pose depth worlds, grid/smooth3d/aerial x seeds 0-3, half withheld: runs over 3x the complete
-# map's 5 of 12 -> 1 under exact; an offset of 2 lost another (aerial 2: 12 m), 6 cost the grid ones (grid 1: 0.34 m).
-LACKING_NULL_OFFSET = 4.0
+# Where the map lacks landmarks, the beam decides the map's pairs again with the null cost lowered
+# by this much (the reasons and measures: ``camloc.lacking_spread``, where the mapping pass prices the
+# same alternative).
+LACKING_NULL_OFFSET = lacking_spread.LACKING_NULL_OFFSET  # defined beside the mapping pass's use of it
 
 
 # Under a prior, a rejected observation within this many map sigmas of a mapped landmark (more than

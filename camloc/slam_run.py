@@ -36,6 +36,7 @@ from camloc import ekf, geometry, measurement, planar, slam, slam_tags
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
 from camloc.filters import make_filter
+from camloc.lacking_spread import GivenPairsDoubt
 from camloc.localizer_config import LocalizerConfig
 from camloc.observation_space import candidate_range, observation_noise, planar_range
 from camloc.results import UNASSOCIATED, RunResult
@@ -50,7 +51,7 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -62,6 +63,9 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         self.beam_paired_at = np.full(dataset.landmark_ids.size, -BEAM_RECENT - 1, np.int64)  # the last pose it did so, per landmark
         self.beam_missed = np.zeros(dataset.landmark_ids.size, np.int64)  # poses it was surely in view and not paired
         self.sensors, self.obs_sensor = sensors_of(dataset)
+        # the beam's pairs with an exact map that lacks landmarks: each may be of a landmark the
+        # map lacks, and the covariance holds that chance (``camloc.lacking_spread``)
+        self.doubt_given = given_pairs is not None and config.map == "exact"
         # None: the numpy update (a tag's orientation is the numpy update's only, as in the localizer)
         self.compiled = _compiled_update(self.sensors) if compiled and not np.any(dataset.obs_kind == measurement.TAG_ROTATION) else None
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
@@ -205,6 +209,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         else:
             innovation, S, nis, map_cost = self._numpy_update(obs, landmarks, rows)
             d2, _ = mahalanobis_3x3(S, innovation.reshape(obs.size, 3))
+        if self.doubt_given:
+            self._doubt_given(obs, landmarks)
         self.chosen[obs], self.mahalanobis[obs] = landmarks, np.sqrt(d2)
         self.table.last_seen[landmarks] = k
         np.add.at(self.table.observations, positions, 1)

@@ -237,13 +237,17 @@ def compile_kernels() -> list[int]:
 def compile_mapping_kernels() -> None:
     """Compile, and so cache, the mapping pass's kernels (``camloc.slam_compiled``): a small world
     with half its map withheld, mapped under a prior (every step runs: landmarks enter, are added
-    and retire)."""
+    and retire), then under the exact map with its pairs given, as the beam gives them
+    (``slam_compiled.fixed_spread_into``)."""
     from camloc.localizer_config import LocalizerConfig
+    from camloc.observation_space import landmark_rows
     from camloc.simulate import SimulationConfig, simulate
     from camloc.slam_run import localize_mapping
 
     dataset = simulate(SimulationConfig(poses=80, withhold_map=0.5), seed=0)
     localize_mapping(dataset, LocalizerConfig(map="prior", filter="euler"), compiled=True)
+    given = landmark_rows(dataset.landmark_ids, dataset.obs_true_landmark)
+    localize_mapping(dataset, LocalizerConfig(map="exact", filter="euler"), given_pairs=given, compiled=True)
 
 
 def compile_filter_kernels() -> None:
