@@ -1,0 +1,106 @@
+"""Where the kernels' first compile goes, by kernel: numba's compile events over the steps of a
+first compile (``camloc.warmup``'s: the beam over the bundled clutter world with a slip, the
+oracle, the beam's late kernels), in one process, with an empty cache.
+
+Each kernel's own time (its compile minus the kernels compiled inside it) and its whole time: an
+inlined step (``@inlined``) is compiled again inside each caller and counts as the caller's own
+time, so a kernel whose own time grows has had more inlined into it. The sum of own times is wall
+time of compilation (type inference, lowering, LLVM), about the process's CPU time.
+
+    NUMBA_CACHE_DIR=$(mktemp -d) CAMLOC_BACKGROUND_COMPILE=0 nice python benchmarks/compile_profile.py [--top 40]
+
+``NUMBA_CACHE_DIR`` must name an empty folder: a kernel loaded from the cache is not compiled and
+does not show. Without it, the script refuses to run where the cache is warm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import os
+import sys
+import time
+
+from numba.core import event
+
+
+class _Recorder(event.Listener):
+    """Start and end times of every compile event, in order, with its dispatcher."""
+
+    def __init__(self) -> None:
+        self.records: list[tuple[str, float, object]] = []
+
+    def on_start(self, ev) -> None:
+        self.records.append(("start", time.perf_counter(), ev.data.get("dispatcher")))
+
+    def on_end(self, ev) -> None:
+        self.records.append(("end", time.perf_counter(), ev.data.get("dispatcher")))
+
+
+def _name(dispatcher) -> str:
+    function = getattr(dispatcher, "py_func", None)
+    return f"{function.__module__}.{function.__qualname__}" if function is not None else str(dispatcher)
+
+
+def own_times(records) -> tuple[collections.Counter, collections.Counter, collections.Counter]:
+    """Each kernel's own compile seconds, whole seconds and number of compiles, from nested events."""
+    stack: list[list] = []
+    own, whole, count = collections.Counter(), collections.Counter(), collections.Counter()
+    for kind, at, dispatcher in records:
+        if kind == "start":
+            stack.append([_name(dispatcher), at, 0.0])
+            continue
+        name, started, inner = stack.pop()
+        seconds = at - started
+        own[name] += seconds - inner
+        whole[name] += seconds
+        count[name] += 1
+        if stack:
+            stack[-1][2] += seconds
+    return own, whole, count
+
+
+def first_compile() -> None:
+    """The steps of ``camloc.warmup.compile_kernels`` and ``compile_filter_kernels``, in one process."""
+    import numpy as np
+
+    from camloc import warmup
+    from camloc.bundled import bundled_dataset
+    from camloc.g2o import read_g2o
+    from camloc.localizer_config import LocalizerConfig
+
+    dataset = read_g2o(bundled_dataset("smooth3d-clutter"))
+    slipped = dataset.odom_translation.copy()
+    slipped[60] += np.array([0.6, -0.5, 0.0])
+    dataset = dataclasses.replace(dataset, odom_translation=slipped)
+    warmup._run_compiled(dataset, LocalizerConfig(association="beam"))
+    warmup._run_compiled(dataset, LocalizerConfig(association="oracle"))
+    warmup.late_beam_kernels(dataset, LocalizerConfig())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--top", type=int, default=40, help="kernels listed (default 40)")
+    args = parser.parse_args()
+    from camloc.kernels import cache_is_warm
+
+    if cache_is_warm():
+        print("the kernels' cache is warm: set NUMBA_CACHE_DIR to an empty folder", file=sys.stderr)
+        return 2
+    recorder = _Recorder()
+    event.register("numba:compile", recorder)
+    cpu = time.process_time()
+    first_compile()
+    cpu = time.process_time() - cpu
+    own, whole, count = own_times(recorder.records)
+    print(f"first compile, one process: {cpu:.1f} s CPU; {sum(own.values()):.1f} s compiling "
+          f"{len(own)} functions (load {os.getloadavg()[0]:.2f})")
+    print(f"{'own s':>7} {'whole s':>8} {'times':>5}  kernel")
+    for name, seconds in own.most_common(args.top):
+        print(f"{seconds:7.2f} {whole[name]:8.2f} {count[name]:5d}  {name}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
