@@ -145,20 +145,30 @@ def leave_one_out_spread(
     usable = np.linalg.eigvalsh(B)[:, 0] > 0.0
     if not usable.any():
         return spread
-    PHt, A, B, r = PHt[usable], A[usable], B[usable], residuals[usable]
-    B_inverse_r = np.linalg.solve(B, r[..., None])                   # (p, 3, 1)
-    e = (R_update[usable] @ B_inverse_r)[..., 0]                      # the residual at the others' posterior
-    S = A + A @ np.linalg.solve(B, A) + R_judged[usable]             # H P_i H' + R_judged
+    PHt, A, B = PHt[usable], A[usable], B[usable]
+    w, B_inverse_r = left_out_weights(A, B, residuals[usable], R_update[usable], R_judged[usable], log_det_R_judged[usable],
+                                      null_cost[usable])
+    d = -(PHt @ B_inverse_r[..., None])[..., 0]                       # x_i - x
+    widening = PHt @ np.linalg.solve(B, np.swapaxes(PHt, 1, 2))      # P H' B^-1 H P
+    return symmetrize(np.einsum("p,pij->ij", w, widening + d[:, :, None] * d[:, None, :]))
+
+
+def left_out_weights(A: np.ndarray, B: np.ndarray, residuals: np.ndarray, R_update: np.ndarray, R_judged: np.ndarray,
+                     log_det_R_judged: np.ndarray, null_cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weights (p,) of ``leave_one_out_spread``'s alternatives beside the update's (each pair
+    judged under the posterior of the others against ``null_cost``) and ``B_i^-1 r_i`` (p, 3),
+    from ``A_i = H_i P H_i'`` and ``B_i = R_i - A_i`` (p, 3, 3, B positive definite) of pairs with
+    residuals r (p, 3)."""
+    B_inverse_r = np.linalg.solve(B, residuals[..., None])[..., 0]   # (p, 3)
+    e = (R_update @ B_inverse_r[..., None])[..., 0]                   # the residual at the others' posterior
+    S = A + A @ np.linalg.solve(B, A) + R_judged                     # H P_i H' + R_judged
     d2 = np.einsum("pi,pi->p", e, np.linalg.solve(S, e[..., None])[..., 0])
-    cost = d2 + np.linalg.slogdet(S)[1] - log_det_R_judged[usable]
-    margin = null_cost[usable] - cost                                 # the alternative's cost over the update's
+    cost = d2 + np.linalg.slogdet(S)[1] - log_det_R_judged
+    margin = null_cost - cost                                         # the alternative's cost over the update's
     shifted = np.concatenate([[0.0], margin])
     shifted = shifted - shifted.min()
     w = np.where(shifted <= NEGLIGIBLE_MARGIN, np.exp(-shifted / 2.0), 0.0)
-    w = (w / w.sum())[1:]
-    d = -(PHt @ B_inverse_r)[..., 0]                                  # x_i - x
-    widening = PHt @ np.linalg.solve(B, np.swapaxes(PHt, 1, 2))      # P H' B^-1 H P
-    return symmetrize(np.einsum("p,pij->ij", w, widening + d[:, :, None] * d[:, None, :]))
+    return (w / w.sum())[1:], B_inverse_r
 
 
 def predict(P: np.ndarray, F: np.ndarray, G: np.ndarray, Q: np.ndarray) -> np.ndarray:

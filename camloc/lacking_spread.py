@@ -27,7 +27,7 @@ import numpy as np
 
 from camloc import measurement, slam
 from camloc.constants import NEGLIGIBLE_MARGIN
-from camloc.ekf import symmetrize
+from camloc.ekf import left_out_weights, symmetrize
 
 # Where the map lacks landmarks, the beam decides the map's pairs again with the cost of leaving an
 # observation unexplained lowered by this much. The default null cost prices an unexplained
@@ -68,20 +68,11 @@ def fixed_landmark_spread(P: np.ndarray, residuals: np.ndarray, H: np.ndarray, R
     usable = np.linalg.eigvalsh(B)[:, 0] > 0.0  # B not positive definite by rounding: the pair adds nothing
     if not usable.any():
         return np.zeros((n, n))
-    H, A, B, r = H[usable], A[usable], B[usable], residuals[usable]
-    B_inverse = np.linalg.inv(B)
-    B_inverse_r = (B_inverse @ r[..., None])[..., 0]                  # (p, 3)
-    e = (R_update[usable] @ B_inverse_r[..., None])[..., 0]           # the residual at the others' posterior
-    S = A + A @ B_inverse @ A + R_judged[usable]                      # H P_i H' + R_judged
-    d2 = np.einsum("pi,pi->p", e, np.linalg.solve(S, e[..., None])[..., 0])
-    cost = d2 + np.linalg.slogdet(S)[1] - log_det_R_judged[usable]
-    margin = null_cost[usable] - cost                                 # the alternative's cost over the update's
-    shifted = np.concatenate([[0.0], margin])
-    shifted = shifted - shifted.min()
-    w = np.where(shifted <= NEGLIGIBLE_MARGIN, np.exp(-shifted / 2.0), 0.0)
-    w = (w / w.sum())[1:]
+    H, A, B = H[usable], A[usable], B[usable]
+    w, B_inverse_r = left_out_weights(A, B, residuals[usable], R_update[usable], R_judged[usable], log_det_R_judged[usable],
+                                      null_cost[usable])
     # B^-1 (widening) + B^-1 r r' B^-1 (the shift's outer product), each taken to the pose's columns
-    inner = B_inverse + B_inverse_r[:, :, None] * B_inverse_r[:, None, :]
+    inner = np.linalg.solve(B, np.broadcast_to(np.eye(3), B.shape)) + B_inverse_r[:, :, None] * B_inverse_r[:, None, :]
     M = np.einsum("p,pai,pab,pbj->ij", w, H, inner, H)
     P_cols = P[:, :POSE_COLUMNS]
     return symmetrize(P_cols @ M @ P_cols.T)
