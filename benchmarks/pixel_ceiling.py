@@ -42,7 +42,8 @@ RECALLS = (0.80, 0.90, 0.95)
 
 def pixel_costs(dataset, noise, k: int, camera_id: int, obs: np.ndarray, rows: np.ndarray, window=None):
     """(observations, candidates) squared Mahalanobis distances of the pixels at the true pose k,
-    and the candidates kept (in front of the camera, within ``window`` = (min, max depth, max angle))."""
+    and the candidates kept (in front of the camera, within ``window`` = (min, max depth, max angle[, max
+    distance from the camera]))."""
     camera = dataset.cameras[camera_id]
     _, p_camera = models.camera_points(dataset.T_world_truth[k], camera.T_robot_camera, dataset.landmark_xyz[rows])
     keep = p_camera[:, 2] > measurement.MIN_POINT_DEPTH
@@ -50,6 +51,8 @@ def pixel_costs(dataset, noise, k: int, camera_id: int, obs: np.ndarray, rows: n
         distance = np.linalg.norm(p_camera, axis=1)
         angle = np.arccos(np.clip(p_camera[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
         keep &= (p_camera[:, 2] >= window[0]) & (p_camera[:, 2] <= window[1]) & (angle <= window[2])
+        if len(window) > 3:
+            keep &= distance <= window[3]
     rows, p_camera = rows[keep], p_camera[keep]
     uv = measurement.project(p_camera, (camera.fx, camera.fy, camera.cx, camera.cy), measurement.PIXEL)[:, :2]
     costs = np.empty((obs.size, rows.size))

@@ -49,8 +49,7 @@ import camloc  # noqa: E402
 from camloc.metrics import evaluate  # noqa: E402
 from camloc.observation_space import candidate_range, observation_noise  # noqa: E402
 from camloc.simulate import simulation_config  # noqa: E402
-from camloc import measurement, models  # noqa: E402
-from pixel_ceiling import poses_and_cameras, seen_rows  # noqa: E402
+from pixel_ceiling import pixel_costs, poses_and_cameras, seen_rows  # noqa: E402
 from pixel_worlds import WORLDS, world  # noqa: E402
 
 RECALLS = (0.75, 0.80, 0.90, 0.95)
@@ -65,23 +64,6 @@ def window_of(name: str, dataset, ball: bool = False) -> tuple[float, float, flo
     _, guess, angle = candidate_range(dataset, camloc.LocalizerConfig())
     reach = LEARNED_REACH_FACTOR * simulation_config({**WORLDS[name], "poses": 2}).max_range
     return 0.0, min(guess, reach), angle, reach if ball else np.inf
-
-
-def pixel_costs(dataset, noise, k: int, camera_id: int, obs: np.ndarray, rows: np.ndarray, window=None):
-    """(observations, candidates) squared Mahalanobis distances of the pixels at the true pose k,
-    and the candidates kept: in front of the camera, within ``window`` (``window_of``) if given."""
-    camera = dataset.cameras[camera_id]
-    _, p_camera = models.camera_points(dataset.T_world_truth[k], camera.T_robot_camera, dataset.landmark_xyz[rows])
-    keep = p_camera[:, 2] > measurement.MIN_POINT_DEPTH
-    if window is not None:
-        distance = np.linalg.norm(p_camera, axis=1)
-        angle = np.arccos(np.clip(p_camera[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
-        keep &= (p_camera[:, 2] >= window[0]) & (p_camera[:, 2] <= window[1]) & (angle <= window[2]) & (distance <= window[3])
-    rows, p_camera = rows[keep], p_camera[keep]
-    uv = measurement.project(p_camera, (camera.fx, camera.fy, camera.cx, camera.cy), measurement.PIXEL)[:, :2]
-    d = uv[None, :, :] - dataset.obs_z[obs, None, :2]
-    info = np.linalg.inv(noise.cov[obs][:, :2, :2])
-    return np.einsum("omi,oij,omj->om", d, info, d), rows
 
 
 def hungarian(costs: np.ndarray, null: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
