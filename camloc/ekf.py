@@ -273,13 +273,12 @@ def update(
     last = y_prior  # the innovation whose correction x_i is
     if start is not None and iterations >= 2:
         x_i, delta, last = start, difference(start, x), None
-    cost_of = (lambda x_k, r, g, y: _cost_at(x_k, x, P, r, R, R_inverse, difference, g, y, columns)) if monotone else None
-    x_i, gain, last, kept = _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations, cost_of)
+    cost_of = lambda x_k, r, g, y: _iterate_cost(x_k, r, g, y, x, P, z, R, measure, difference, R_inverse, columns)  # noqa: E731
+    x_i, gain, last, kept = _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations,
+                                     cost_of if monotone else None)
     cost = float("nan")
     if map_cost or monotone:
-        # P^-1 of the correction without P^-1 where the gain knows it (ColumnGain: n^3 saved)
-        prior_term = gain.correction_quadratic(last) if columns is not None and last is not None else None
-        cost = posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse, prior_term=prior_term)
+        cost = cost_of(x_i, None, gain, last)
         if monotone and cost > kept[3]:  # Gauss-Newton overshot: the cheapest iterate, with its gain
             x_i, gain, last, cost = kept
         cost = cost if map_cost else float("nan")
@@ -308,20 +307,12 @@ def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at
     return x_i, gain, last, kept
 
 
-def _cost_at(x_i, x, P, residual, R, R_inverse, difference, gain, last, columns) -> float:
-    """``posterior_cost`` of an iterate x_i whose residual ``z - h(x_i)`` is known (``update``'s
-    ``monotone``), its prior term from the gain that made it where the gain knows it."""
-    if columns is not None and last is not None:
-        prior_term = gain.correction_quadratic(last)
-    else:
-        moved = difference(x_i, x)
-        prior_term = moved @ np.linalg.solve(P, moved)
-    if R.ndim == 3 and R_inverse is not None:
-        return float(prior_term + _block_quadratic(residual, R_inverse))
-    if R.ndim == 3:
-        p, b, _ = R.shape
-        return float(prior_term + residual @ np.linalg.solve(R, residual.reshape(p, b, 1)).reshape(-1))
-    return float(prior_term + residual @ np.linalg.solve(R, residual))
+def _iterate_cost(x_i, residual, gain, last, x, P, z, R, measure, difference, R_inverse, columns) -> float:
+    """``posterior_cost`` of an iterate x_i of ``update`` (its residual ``z - h(x_i)`` where known,
+    else None), its prior term from the gain that made it where the gain knows it (``ColumnGain``:
+    P^-1 of the correction without P^-1, n^3 saved)."""
+    prior_term = gain.correction_quadratic(last) if columns is not None and last is not None else None
+    return posterior_cost(x_i, x, P, z, R, measure, difference, R_inverse, prior_term=prior_term, residual=residual)
 
 
 class CovarianceGain:
@@ -510,12 +501,14 @@ def innovation_cost(P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray) 
 def posterior_cost(
     x_post: np.ndarray, x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
     measure: MeasurementFunction, difference: StateDifference = _subtract, R_inverse: np.ndarray | None = None,
-    prior_term: float | None = None,
+    prior_term: float | None = None, residual: np.ndarray | None = None,
 ) -> float:
     """The MAP cost ``d' P^-1 d + r' R^-1 r`` of a posterior x_post: d its correction from the
     prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``); R_inverse: the
-    inverses of R's blocks, when known; prior_term: ``d' P^-1 d`` when the caller has it."""
-    residual = z - measure(x_post)[0]
+    inverses of R's blocks, when known; prior_term: ``d' P^-1 d`` and residual: r, when the caller
+    has them."""
+    if residual is None:
+        residual = z - measure(x_post)[0]
     if prior_term is None:
         moved = difference(x_post, x)
         prior_term = moved @ np.linalg.solve(P, moved)

@@ -260,9 +260,9 @@ class PoseAssociation:
         if self.config.map == "none" and placed:
             return np.where(self.table.last_seen[landmarks] < k - RETURN_GAP, -RETURN_PENALTY, 0.0)
         given = self.given_pairs is not None
-        strict = self.table.tentative[landmarks] | ((landmarks < self.table.num_mapped) & given)
         if given and placed and self.config.map == "exact":
-            strict = np.ones(landmarks.size, bool)
+            return np.zeros(landmarks.size)
+        strict = self.table.tentative[landmarks] | ((landmarks < self.table.num_mapped) & given)
         return np.where(strict, 0.0, _NULL_SLACK)
 
     def _innovation(self, o: int, z_hat: np.ndarray, sensor_id: int) -> np.ndarray:
