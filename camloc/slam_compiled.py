@@ -281,11 +281,8 @@ def iterated_update(R, t, L, P, z, R_z, R_inverse, xyz, rows, sensor, cam_R, cam
             break  # the linearization no longer moves (``ekf.update``)
         delta = step
     # the MAP cost: d' P^-1 d = w' (S - R) w of the last gain, and the posterior's residual
-    cost = w @ ((S - R_full) @ w)
     z_post, _ = observe_columns(R_i, t_i, L_i, xyz, rows, block, sensor, cam_R, cam_t, cam_K, cam_third, width)
-    residual = z - z_post
-    for o in range(p):
-        cost += residual[o] @ (R_inverse[o] @ residual[o])
+    cost = w @ ((S - R_full) @ w) + _residual_cost(z, z_post, R_inverse)
     if monotone and cost > kept_cost:  # Gauss-Newton overshot: the cheapest iterate, with its gain
         R_i, t_i, L_i, U, S, w, cost = kept_R, kept_t, kept_L, kept_U, kept_S, kept_w, kept_cost
     K = np.linalg.solve(S, U.T).T
