@@ -502,10 +502,18 @@ def settle(scene, settings, gen, c, parents, pending):
 
 
 @inlined
-def prune_indices(scene, settings, gen, candidates, parents, pending):
+def nothing_pending(scene, settings, gen, c, parents, pending):
+    """``settle`` where every state is settled (``prune``'s generation): its pruning compiled
+    without the update that settling calls."""
+    return
+
+
+@inlined
+def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one):
     """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
     beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
-    are settled as a comparison first needs them)."""
+    are settled by ``settle_one`` (``settle``, or ``nothing_pending``) as a comparison first
+    needs them)."""
     order = candidates[np.argsort(gen[2][candidates], kind="mergesort")]
     kept = np.empty(min(order.size, settings.beam_width), np.int64)
     n = 0
@@ -517,12 +525,10 @@ def prune_indices(scene, settings, gen, candidates, parents, pending):
             break
         merged = False
         for q in range(n):
-            # (settle's call passes the scene's arrays, each counted on entry and return: made only
-            # where a state is still pending)
-            if pending[5][c]:
-                settle(scene, settings, gen, c, parents, pending)
-            if pending[5][kept[q]]:
-                settle(scene, settings, gen, kept[q], parents, pending)
+            # the two compared, c first; settle inlined at one site (each site is compiled again)
+            for h in (c, kept[q]):
+                if pending[5][h]:
+                    settle_one(scene, settings, gen, h, parents, pending)
             if same_state(gen, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
@@ -542,7 +548,7 @@ def settled(n, dim):
 @entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]))
+    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending)
 
 
 @inlined
@@ -559,7 +565,8 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending):
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending)))
+        kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending,
+                                                     settle)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -677,7 +684,7 @@ def expected_landmarks(scene, x, obs, opt):
                 found[n], excess[n] = lm[j], pool_cost[j] - null_cost
                 n += 1
     # distinct landmarks, each at its least excess (its largest chance of being on a ray)
-    order = np.argsort(found[:n])
+    order = np.argsort(found[:n].astype(np.float64), kind="mergesort")   # the merge sort the other kernels compile
     landmarks, least = np.empty(n, np.int64), np.empty(n)
     u = 0
     for k in order:

@@ -9,10 +9,10 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import entry, inlined, jit
-from camloc.kernels.camera import cameras_of, observe, observe_pairs
+from camloc.kernels.camera import cameras_of, observe
 from camloc.kernels.motion import predict
-from camloc.kernels.planar import SE2_DIM, onto_measured_branch
-from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs
+from camloc.kernels.planar import SE2_DIM
+from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs, predict_pairs
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
 from camloc.kernels.update import updated
@@ -27,9 +27,7 @@ def oracle_pairs(scene, settings, x, P, obs):
     passes the gate at (x, P): a gross outlier keeps its true id but is no evidence to take."""
     mapped = obs[scene.true_index[obs] >= 0]
     landmarks = scene.true_index[mapped]
-    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[mapped], scene.camera_R, scene.camera_t,
-                             scene.camera_K)
-    onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, mapped, z_hat)
+    z_hat, H = predict_pairs(scene, x, mapped, landmarks)
     keep = np.zeros(mapped.size, np.bool_)
     for r in range(mapped.size):
         keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
@@ -140,15 +138,13 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 # the beam explained the pose from its seed pair, listed first: one right pair pins
                 # the pose where Gauss-Newton from the slip's wide prior can settle metres away
                 seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
-                z_hat, H = observe_pairs(x, scene.landmark_xyz[seed_landmark], scene.obs_camera[seed_obs], scene.camera_R, scene.camera_t, scene.camera_K)
-                onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, seed_obs, z_hat)
+                z_hat, H = predict_pairs(scene, x, seed_obs, seed_landmark)
                 start = updated(scene, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
                                 no_start)[0]
         if obs.size == 0:
             record_state(states, covs, k, x, P)
             continue
-        z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-        onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, obs, z_hat)
+        z_hat, H = predict_pairs(scene, x, obs, landmarks)
         result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
@@ -157,8 +153,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             if not keep.all():
                 obs, landmarks = obs[keep], landmarks[keep]
                 if obs.size:
-                    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-                    onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, obs, z_hat)
+                    z_hat, H = predict_pairs(scene, x, obs, landmarks)
                     result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
                                      no_start)
         if obs.size:

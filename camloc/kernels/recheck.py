@@ -72,7 +72,7 @@ def leave_one_out_costs(z, R, R_inverse, log_det_R, z_hat, H, chosen, informatio
             Hc = H[chosen[i]]
             e = z[i] - z_hat[chosen[i]]
             e[2] = wrapped_residual(kind, 2, e[2])
-            delta = -mv(P_i, mv(Hc.T, mv(R_inverse[i], e)))
+            delta = -mv(P_i, mv(Hc.T.copy(), mv(R_inverse[i], e)))   # copied: mv is compiled for C arrays only
         for j in range(m):
             r0 = z[i, 0] - z_hat[j, 0]
             r1 = z[i, 1] - z_hat[j, 1]
@@ -128,6 +128,16 @@ def assignment_margins(cost, null_cost, chosen):
 
 
 @jit
+def predict_pairs(scene, x, obs, landmarks):
+    """(z_hat (p, 3), H (p, 3, n)) of the pairs (obs (p,), landmarks (p,)) at x, each angle
+    prediction on its observation's branch (``planar.onto_measured_branch``). One compiled step
+    for the filter's five sites: each site's fancy indexing and calls were compiled again inline."""
+    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
+    onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, obs, z_hat)
+    return z_hat, H
+
+
+@jit
 def positive_definite_3x3(B):
     """Whether the symmetric B (3, 3) is positive definite (its leading minors, Sylvester)."""
     minor2 = B[0, 0] * B[1, 1] - B[0, 1] * B[0, 1]
@@ -142,8 +152,7 @@ def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
     the pose into its posterior (x, P): what the chance that one of them is clutter adds to the
     estimate's covariance (each pair's alternative, the posterior of the others, weighed by its
     cost over leaving the observation unassigned)."""
-    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-    onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, obs, z_hat)
+    z_hat, H = predict_pairs(scene, x, obs, landmarks)
     p = obs.size
     n = x.shape[0]                                 # the state's size: 6 (Euler), 3 (planar)
     margin = np.full(p, np.inf)
@@ -162,8 +171,14 @@ def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
         B = scene.R_file[o] - A
         if not positive_definite_3x3(B):
             continue                               # rounding: the pair adds nothing
-        B_inverse[i] = solve(B, np.eye(3))
-        B_inverse_r[i] = mv(B_inverse[i], scene.z[o] - z_hat[i])
+        # entry by entry, not ``B_inverse[i] = ...``: an array assigned to a row links numba's
+        # shape-mismatch formatter into the kernel and every caller (``_jit``: ~4 s of a first compile)
+        B_inverse_i = solve(B, np.eye(3))
+        B_inverse_r_i = mv(B_inverse_i, scene.z[o] - z_hat[i])
+        for a in range(3):
+            B_inverse_r[i, a] = B_inverse_r_i[a]
+            for b in range(3):
+                B_inverse[i, a, b] = B_inverse_i[a, b]
         e = mv(scene.R_file[o], B_inverse_r[i])    # the residual at the others' posterior
         S = A + mm(A, mm(B_inverse[i], A)) + scene.R_assoc[o]
         d2, log_det_S = mahalanobis(S, e)
@@ -180,7 +195,7 @@ def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
             continue
         w = math.exp(-(margin[i] - lowest) / 2.0) / total
         g = mv(PHt[i], B_inverse_r[i])             # x - x_i
-        widen = mm(PHt[i], mm(B_inverse[i], PHt[i].T))
+        widen = mm(PHt[i], mm(B_inverse[i], PHt[i].T.copy()))   # copied: mm is compiled for C arrays only
         for a in range(n):
             for b in range(n):
                 spread[k, a, b] += w * (widen[a, b] + g[a] * g[b])

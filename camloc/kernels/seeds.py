@@ -176,7 +176,7 @@ def shift_agreement(shifts, radius):
     numpy twin's ``camloc.association.shift_agreement``, by a sweep along x (a pair further apart
     in x than the radius is further apart in space), without scipy's k-d tree."""
     n = shifts.shape[0]
-    order = np.argsort(shifts[:, 0])
+    order = np.argsort(shifts[:, 0].copy(), kind="mergesort")   # the merge sort the other kernels compile (contiguous)
     counts = np.ones(n, np.int64)
     limit = radius * radius
     for a in range(n):

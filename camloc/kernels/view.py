@@ -15,6 +15,7 @@ from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.kernels._jit import FIRST, entry, inlined, jit
 from camloc.kernels.camera import camera_pose
 from camloc.kernels.planar import SE2_DIM
+from camloc.kernels.small import sorted_ints
 from camloc.measurement import MARKER, POINT2
 
 # Cells per axis at most, so that a cell's key (ix + nx (iy + ny iz)) fits in 63 bits.
@@ -119,7 +120,7 @@ def visible(scene, R_wc, centre, max_angle, margin):
             found = grown
         count = cone_members(scene.grid_xyz, scene.grid_items, first, stop, R_wc, centre, ball, radius, min_depth - margin,
                              max_depth + margin, back, cone[0], max_distance * max_distance, found, count)
-    return np.sort(found[:count])
+    return sorted_ints(found[:count])
 
 
 @jit
@@ -234,4 +235,4 @@ def landmarks_near(scene, x0, x1, radius, kind):
                             found = grown
                         found[count] = landmark
                         count += 1
-    return np.sort(found[:count])
+    return sorted_ints(found[:count])
