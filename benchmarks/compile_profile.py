@@ -4,8 +4,10 @@ oracle, the beam's late kernels), in one process, with an empty cache.
 
 Each kernel's own time (its compile minus the kernels compiled inside it) and its whole time: an
 inlined step (``@inlined``) is compiled again inside each caller and counts as the caller's own
-time, so a kernel whose own time grows has had more inlined into it. The sum of own times is wall
-time of compilation (type inference, lowering, LLVM), about the process's CPU time.
+time, so a kernel whose own time grows has had more inlined into it. Times are the process's CPU
+seconds (numba compiles in the calling thread), so that other processes' load does not inflate
+them as it did wall time (an own-time sum of 174 s against 115 s of CPU at load 3.5); their sum is
+the CPU time of compilation (type inference, lowering, LLVM).
 
     NUMBA_CACHE_DIR=$(mktemp -d) CAMLOC_BACKGROUND_COMPILE=0 nice python benchmarks/compile_profile.py [--top 40]
 
@@ -26,16 +28,17 @@ from numba.core import event
 
 
 class _Recorder(event.Listener):
-    """Start and end times of every compile event, in order, with its dispatcher."""
+    """Start and end times of every compile event (``kind`` "") or hold of numba's LLVM lock
+    (``kind`` "llvm "), in order, with its dispatcher."""
 
-    def __init__(self) -> None:
-        self.records: list[tuple[str, float, object]] = []
+    def __init__(self, records: list, kind: str = "") -> None:
+        self.records, self.kind = records, kind
 
     def on_start(self, ev) -> None:
-        self.records.append(("start", time.perf_counter(), ev.data.get("dispatcher")))
+        self.records.append((self.kind + "start", time.process_time(), ev.data.get("dispatcher")))
 
     def on_end(self, ev) -> None:
-        self.records.append(("end", time.perf_counter(), ev.data.get("dispatcher")))
+        self.records.append((self.kind + "end", time.process_time(), ev.data.get("dispatcher")))
 
 
 def _name(dispatcher) -> str:
@@ -43,11 +46,22 @@ def _name(dispatcher) -> str:
     return f"{function.__module__}.{function.__qualname__}" if function is not None else str(dispatcher)
 
 
-def own_times(records) -> tuple[collections.Counter, collections.Counter, collections.Counter]:
-    """Each kernel's own compile seconds, whole seconds and number of compiles, from nested events."""
+def own_times(records) -> tuple[collections.Counter, collections.Counter, collections.Counter, collections.Counter]:
+    """Each kernel's own compile seconds, whole seconds, number of compiles and own seconds in LLVM
+    (numba's LLVM lock held, outermost: optimizing and generating the kernel's module, which holds
+    a copy of every compiled function it calls), from nested events."""
     stack: list[list] = []
-    own, whole, count = collections.Counter(), collections.Counter(), collections.Counter()
+    own, whole, count, llvm = collections.Counter(), collections.Counter(), collections.Counter(), collections.Counter()
+    held: list[float] = []
     for kind, at, dispatcher in records:
+        if kind == "llvm start":
+            held.append(at)
+            continue
+        if kind == "llvm end":
+            started = held.pop()
+            if not held and stack:
+                llvm[stack[-1][0]] += at - started
+            continue
         if kind == "start":
             stack.append([_name(dispatcher), at, 0.0])
             continue
@@ -58,7 +72,7 @@ def own_times(records) -> tuple[collections.Counter, collections.Counter, collec
         count[name] += 1
         if stack:
             stack[-1][2] += seconds
-    return own, whole, count
+    return own, whole, count, llvm
 
 
 def first_compile() -> None:
@@ -88,17 +102,18 @@ def main() -> int:
     if cache_is_warm():
         print("the kernels' cache is warm: set NUMBA_CACHE_DIR to an empty folder", file=sys.stderr)
         return 2
-    recorder = _Recorder()
-    event.register("numba:compile", recorder)
+    records: list = []
+    event.register("numba:compile", _Recorder(records))
+    event.register("numba:llvm_lock", _Recorder(records, "llvm "))
     cpu = time.process_time()
     first_compile()
     cpu = time.process_time() - cpu
-    own, whole, count = own_times(recorder.records)
+    own, whole, count, llvm = own_times(records)
     print(f"first compile, one process: {cpu:.1f} s CPU; {sum(own.values()):.1f} s compiling "
-          f"{len(own)} functions (load {os.getloadavg()[0]:.2f})")
-    print(f"{'own s':>7} {'whole s':>8} {'times':>5}  kernel")
+          f"{len(own)} functions, {sum(llvm.values()):.1f} s of it in LLVM (load {os.getloadavg()[0]:.2f})")
+    print(f"{'own s':>7} {'LLVM s':>7} {'whole s':>8} {'times':>5}  kernel")
     for name, seconds in own.most_common(args.top):
-        print(f"{seconds:7.2f} {whole[name]:8.2f} {count[name]:5d}  {name}")
+        print(f"{seconds:7.2f} {llvm[name]:7.2f} {whole[name]:8.2f} {count[name]:5d}  {name}")
     return 0
 
 
