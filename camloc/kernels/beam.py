@@ -272,13 +272,17 @@ def is_taken(landmark, taken):
     return False
 
 
-@inlined
+@jit
 def predict_candidates(R, E, t, R_rc, t_rc, K, landmarks, pool, z_hat, H, at, d_position):
     """Predictions z_hat and Jacobians H (rows at..) of landmarks pool (g,) by one sensor (mount
     R_rc, t_rc, intrinsics K) from the robot at (R, E, t) (``camera.robot_frame``). The sensor's
     kind and the state's size pick the loop, not each step of one loop: a branch inside the loop
     left the arrays each step is passed counted once more per candidate (numba's reference-count
-    pruning gives up on it): 3.3 times ``condition_into``'s reference counts of before the planar kernels."""
+    pruning gives up on it): 3.3 times ``condition_into``'s reference counts of before the planar kernels.
+    Compiled once for its two callers (``options_for``, ``condition_into``), not inlined into each:
+    its three loops of the inlined ``observe_into`` were compiled twice (a first compile about 4 s
+    of CPU shorter; the call counts its arrays once a pool, not a candidate: the warm 20k worlds
+    no slower, ``docs/performance.md``)."""
     if K[4] == POINT2 or K[4] == MARKER:         # a planar robot's own sensor (``camera.observe_into``)
         for q in range(pool.size):
             planar_observe_into(R, t, landmarks, pool[q], K[4], z_hat, H, at + q)
