@@ -62,7 +62,7 @@ jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTI
 # releases into one of either). With the planar state's size read from the arrays, both stood inside
 # the candidates' loops and the 20k depth world's beam ran a fifth slower, its reference counts
 # 3.3 times as many in ``condition_into``. Hence: the sensor's kind and the state's size pick the
-# loop, not each step of one loop (``beam.predict_candidates``), and a size-long loop takes the
+# loop, not each step of one loop (``camera.predict_candidates``), and a size-long loop takes the
 # size as a constant (``sym3.spread``) or counts to 6 skipping the smaller state's entries.
 inlined = partial(numba.njit, inline="always", **OPTIONS)
 

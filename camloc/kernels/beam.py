@@ -20,15 +20,15 @@ from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
-from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, observe_into, robot_frame
-from camloc.kernels.planar import SE2_DIM, planar_observe_into
+from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, predict_candidates, robot_frame
+from camloc.kernels.planar import SE2_DIM
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import wrap_angle
 from camloc.kernels.state import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
 from camloc.kernels.update import innovation_cost, updated
 from camloc.kernels.view import sensor_candidates
-from camloc.measurement import DEPTH, MARKER, PIXEL, POINT2
+from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
 
 AMBIGUOUS, UNASSIGNED = -2, -1
@@ -270,28 +270,6 @@ def is_taken(landmark, taken):
         if t == landmark:
             return True
     return False
-
-
-@jit
-def predict_candidates(R, E, t, R_rc, t_rc, K, landmarks, pool, z_hat, H, at, d_position):
-    """Predictions z_hat and Jacobians H (rows at..) of landmarks pool (g,) by one sensor (mount
-    R_rc, t_rc, intrinsics K) from the robot at (R, E, t) (``camera.robot_frame``). The sensor's
-    kind and the state's size pick the loop, not each step of one loop: a branch inside the loop
-    left the arrays each step is passed counted once more per candidate (numba's reference-count
-    pruning gives up on it): 3.3 times ``condition_into``'s reference counts of before the planar kernels.
-    Compiled once for its two callers (``options_for``, ``condition_into``), not inlined into each:
-    its three loops of the inlined ``observe_into`` were compiled twice (a first compile about 4 s
-    of CPU shorter; the call counts its arrays once a pool, not a candidate: the warm 20k worlds
-    no slower, ``docs/performance.md``)."""
-    if K[4] == POINT2 or K[4] == MARKER:         # a planar robot's own sensor (``camera.observe_into``)
-        for q in range(pool.size):
-            planar_observe_into(R, t, landmarks, pool[q], K[4], z_hat, H, at + q)
-    elif H.shape[2] == SE2_DIM:
-        for q in range(pool.size):
-            observe_into(R, E, t, R_rc, t_rc, K, landmarks, pool[q], z_hat, H, at + q, d_position, SE2_DIM)
-    else:
-        for q in range(pool.size):
-            observe_into(R, E, t, R_rc, t_rc, K, landmarks, pool[q], z_hat, H, at + q, d_position, 6)
 
 
 @jit

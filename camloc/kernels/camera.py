@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc.kernels._jit import inlined, jit
+from camloc.kernels._jit import FIRST, inlined, jit
 from camloc.kernels.planar import SE2_DIM, planar_frame_into, planar_observe_into
 from camloc.measurement import DEPTH, DISPARITY, MARKER, POINT2
 from camloc.kernels.rotation import euler_rate_into, euler_to_matrix, euler_to_matrix_into
@@ -127,25 +127,39 @@ def planar_camera_jacobian(R, R_rc, r0, r1, u_x, u_z, v_y, v_z, third, H, i, d_p
 
 
 @jit
+def predict_candidates(R, E, t, R_rc, t_rc, K, landmarks, pool, z_hat, H, at, d_position):
+    """Predictions z_hat and Jacobians H (rows at..) of landmarks pool (g,) by one sensor (mount
+    R_rc, t_rc, intrinsics K) from the robot at (R, E, t) (``camera.robot_frame``). The sensor's
+    kind and the state's size pick the loop, not each step of one loop: a branch inside the loop
+    left the arrays each step is passed counted once more per candidate (numba's reference-count
+    pruning gives up on it): 3.3 times ``condition_into``'s reference counts of before the planar kernels.
+    Compiled once for its callers (``beam.options_for``, ``beam.condition_into``, ``observe``), not
+    inlined into each: its three loops of the inlined ``observe_into`` were compiled at each (a
+    first compile about 4 s of CPU shorter; the call counts its arrays once a pool, not once a
+    candidate: the warm 20k worlds no slower, ``docs/performance.md``)."""
+    if K[4] == POINT2 or K[4] == MARKER:         # a planar robot's own sensor (``observe_into``)
+        for q in range(pool.size):
+            planar_observe_into(R, t, landmarks, pool[q], K[4], z_hat, H, at + q)
+    elif H.shape[2] == SE2_DIM:
+        for q in range(pool.size):
+            observe_into(R, E, t, R_rc, t_rc, K, landmarks, pool[q], z_hat, H, at + q, d_position, SE2_DIM)
+    else:
+        for q in range(pool.size):
+            observe_into(R, E, t, R_rc, t_rc, K, landmarks, pool[q], z_hat, H, at + q, d_position, 6)
+
+
+@jit
 def observe(x, R_rc, t_rc, intrinsics, landmark_xyz):
     """Predicted measurements z_hat (m, 3) of landmarks (m, 3 or 4: ``observe_into``) from the
     state x (n,) through the sensor mounted at (R_rc, t_rc) with intrinsics (fx, fy, cx, cy,
-    kind), and H (m, 3, n)."""
+    kind), and H (m, 3, n): ``predict_candidates`` of them all."""
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
     m = landmark_xyz.shape[0]
     z_hat = np.empty((m, 3))
     H = np.empty((m, 3, x.shape[0]))
-    if intrinsics[4] == POINT2 or intrinsics[4] == MARKER:   # one loop per kind and size: ``beam.predict_candidates``
-        for j in range(m):
-            planar_observe_into(R, t, landmark_xyz, j, intrinsics[4], z_hat, H, j)
-    elif x.shape[0] == SE2_DIM:
-        for j in range(m):
-            observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position, SE2_DIM)
-    else:
-        for j in range(m):
-            observe_into(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, j, z_hat, H, j, d_position, 6)
+    predict_candidates(R, E, t, R_rc, t_rc, intrinsics, landmark_xyz, np.arange(m), z_hat, H, FIRST, d_position)
     return z_hat, H
 
 
