@@ -35,10 +35,11 @@ class _Recorder(event.Listener):
         self.records, self.kind = records, kind
 
     def on_start(self, ev) -> None:
-        self.records.append((self.kind + "start", time.process_time(), ev.data.get("dispatcher")))
+        self.records.append((self.kind + "start", time.process_time(), (ev.data or {}).get("dispatcher")))
 
     def on_end(self, ev) -> None:
-        self.records.append((self.kind + "end", time.process_time(), ev.data.get("dispatcher")))
+        # (the LLVM lock's events carry no data; an exception here leaves numba's lock held)
+        self.records.append((self.kind + "end", time.process_time(), (ev.data or {}).get("dispatcher")))
 
 
 def _name(dispatcher) -> str:
