@@ -28,7 +28,7 @@ from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import landmark_kind_of
 from camloc.planar import wrap_residuals
-from camloc.slam_landmarks import TENTATIVE_GAP, UNPAIRED, places_point
+from camloc.slam_landmarks import UNPAIRED, places_point
 from camloc.tails import chi2_quantile
 
 
@@ -257,9 +257,8 @@ class PoseAssociation:
         in the beam's pairs had widened the pose (``lacking_spread``), an observation of a landmark
         not yet added was paired with an added one 1.4 m away (a 300-pose smooth3d world: mean NEES
         8.5 -> 17.3; docs/performance.md, 2026-12-05)."""
-        if self.config.map == "none" and placed:  # (a tentative landmark returns after TENTATIVE_GAP: ``slam_landmarks._lost``)
-            gap = np.where(self.table.tentative[landmarks], TENTATIVE_GAP, RETURN_GAP)
-            return np.where(self.table.last_seen[landmarks] < k - gap, -RETURN_PENALTY, 0.0)
+        if self.config.map == "none" and placed:
+            return np.where(self.table.last_seen[landmarks] < k - RETURN_GAP, -RETURN_PENALTY, 0.0)
         given = self.given_pairs is not None
         if given and placed and self.config.map == "exact":
             return np.zeros(landmarks.size)

@@ -35,12 +35,7 @@ UNPAIRED = 1e12
 # tracking: + (null cost - pair cost) / 2 for each pair, + ln(1 - DETECTION_PROBABILITY) each time
 # it was surely in view and not seen), reaches CONFIRM_SCORE (odds 1000:1); it is dropped, with
 # its pairs, below DROP_SCORE or when not seen again within TENTATIVE_GAP poses. Clutter, uniform
-# over what the cameras see, is not seen again where it was: it is dropped. Without a map, one
-# unseen for longer is kept while it can still be found (``_lost``): its pairs then carry the
-# return penalty (``slam_association._slack``), and it is dropped once a typical sighting of it
-# would no longer pass that (sparse worlds, whose landmarks come back after 11-20 poses as often
-# as after 4-10: performance.md, 2026-12-05, "No map: tentative landmarks kept while they can be
-# found").
+# over what the cameras see, is not seen again where it was: it is dropped.
 CONFIRM_SCORE = float(np.log(1000.0))
 DROP_SCORE = -2.0
 DETECTION_PROBABILITY = 0.9
@@ -79,7 +74,6 @@ class LandmarkTable:
                 ("tentative", bool, (), False),  # added from one observation, not yet confirmed by its score
                 ("score", float, (), 0.0),       # a tentative landmark's log-likelihood ratio over clutter
                 ("dead", bool, (), False),       # a tentative landmark dropped (clutter): out of the map
-                ("origin", np.int64, (), -1),    # the observation a tentative landmark was entered from
                 ("kind", np.int64, (), LANDMARK_POINT3),  # a camera's point, a floor point (point2) or a marker (``Dataset.landmark_kind``)
                 # a tag's orientation (``camloc.slam_tags``): its rotation vector (world; NaN: not a
                 # tag), world covariance while outside the state, and its row in the state (-1: outside)
@@ -96,7 +90,6 @@ class LandmarkTable:
     tentative: np.ndarray
     score: np.ndarray
     dead: np.ndarray
-    origin: np.ndarray
     kind: np.ndarray
     rotvec: np.ndarray
     rot_cov: np.ndarray
@@ -219,7 +212,7 @@ class LandmarkAdditions:
         table = self.table
         table.tentative[landmarks[table.score[landmarks] >= CONFIRM_SCORE]] = False
         unconfirmed = table.tentative[landmarks]
-        gone = unconfirmed & (self._lost(k, landmarks, unconfirmed) | (table.score[landmarks] < DROP_SCORE))
+        gone = unconfirmed & ((table.last_seen[landmarks] < k - TENTATIVE_GAP) | (table.score[landmarks] < DROP_SCORE))
         if np.any(gone):
             table.drop(landmarks[gone])
             # their pairs: among the observations from the first of theirs to this pose's (not the whole run's)
@@ -245,37 +238,6 @@ class LandmarkAdditions:
         self.table.state_row[landmarks[drop]] = -1
         self.state_landmark = landmarks[~drop].tolist()
         self.table.state_row[landmarks[~drop]] = np.arange(int(np.count_nonzero(~drop)))
-
-    def _lost(self, k: int, landmarks: np.ndarray, unconfirmed: np.ndarray) -> np.ndarray:
-        """(m,) bool: which of the state's ``landmarks`` (m,), tentative where ``unconfirmed``, are
-        no longer looked for: unseen for more than TENTATIVE_GAP poses and, without a map, where a
-        typical sighting of it (d^2 at its dof) would cost more than clutter less RETURN_PENALTY,
-        the price its pair must pay then: ``dof + ln det(C + R) - ln det R`` with C the covariance
-        of its position relative to the robot (``xi_l - xi_t``: what a measurement sees of it) and
-        R the noise of the observation it was entered from, as a point (a depth camera's, in the
-        camera's frame, or a planar robot's floor point); other kinds by the gap alone."""
-        from camloc.slam_association import RETURN_PENALTY  # (slam_association imports this module)
-
-        table = self.table
-        late = unconfirmed & (table.last_seen[landmarks] < k - TENTATIVE_GAP)
-        if self.config.map != "none" or not late.any():
-            return late
-        P = self.P
-        for row in np.flatnonzero(late).tolist():
-            o = int(table.origin[landmarks[row]])
-            sensor = self.sensors[int(self.obs_sensor[o])]
-            if sensor.kind == measurement.DEPTH:
-                R, frame = self.point_cov[o], self.x.R @ sensor.T_robot_camera[:3, :3]
-            elif sensor.kind == measurement.POINT2:
-                R, frame = self.association_cov[o][:2, :2], self.x.R[:, :2]
-            else:
-                continue
-            c = slam.POSE_DIM + 3 * row
-            C = P[c:c + 3, c:c + 3] + P[:3, :3] - P[c:c + 3, :3] - P[:3, c:c + 3]
-            dof = R.shape[0]
-            cost = dof + np.linalg.slogdet(frame.T @ C @ frame + R)[1] - np.linalg.slogdet(R)[1]
-            late[row] = cost > self.null_cost[o] - RETURN_PENALTY
-        return late
 
     def _retire_tags(self, landmarks: np.ndarray, drop: np.ndarray) -> None:
         """``_retire``'s leaving of the rows ``drop`` (m,) of a state that holds tags' orientations
@@ -424,7 +386,6 @@ class LandmarkAdditions:
         self.table.observations[landmark] = len(track.observations)
         self.table.born[landmark] = int(self.dataset.obs_pose_index[np.array(track.observations, np.int64)].min())
         self.table.tentative[landmark] = tentative
-        self.table.origin[landmark] = o
         self.table.kind[landmark] = landmark_kind_of(sensor.kind)
         self.table.has_markers |= sensor.kind == measurement.MARKER
         self.chosen[np.array(track.observations, np.int64)] = landmark

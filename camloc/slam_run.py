@@ -71,7 +71,6 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         self.obs_dof = measurement.dof_of(dataset.obs_kind)
         noise = observation_noise(dataset, config)
         self.association_cov, self.log_det_R, self.null_cost = noise.cov, noise.log_det, noise.null_cost
-        self.point_cov = noise.point_cov  # a depth observation's noise as a camera-frame point (``_lost``)
         self.min_depth, self.max_depth, self.max_angle = candidate_range(dataset, config)
         self.planar_range = planar_range(dataset)  # how far a planar robot's point sensor sees (0: none)
         self.reach = max(self.max_depth, self.planar_range) + 1.0  # the landmarks searched around the robot

@@ -1,7 +1,6 @@
 """No map, a landmark lost for a loop (issue 38, the sparse worlds): seen again, it is the same
 landmark; a close neighbour seen where it was is not it (camloc.slam_association's return
-penalty; docs/performance.md, 2026-12-05, "No map: returns after a gap"). The worlds: a 4 m square driven loop after loop (``loop_world``);
-below, a tentative landmark lost for longer than ``TENTATIVE_GAP``, on two lanes driven back and forth."""
+penalty; docs/performance.md, 2026-12-05, "No map: returns after a gap"). The worlds: a 4 m square driven loop after loop (``loop_world``)."""
 
 from __future__ import annotations
 
@@ -31,16 +30,16 @@ def loop_truth(poses: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def loop_world(seed: int, sightings: dict[int, tuple[np.ndarray, list[int]]], poses: int = 96,
-               sigma_xy: float = 0.03, sigma_yaw: float = 0.01, fillers: bool = True, truth=loop_truth) -> Dataset:
+               sigma_xy: float = 0.03, sigma_yaw: float = 0.01, fillers: bool = True) -> Dataset:
     """The loop world of ``poses`` poses: odometry with noise ``sigma_xy`` metres per axis and
     ``sigma_yaw`` radians (each axis; the file claims the same), one forward camera with depth
     (normalized intrinsics, the real file's noise), and ``sightings``: landmark id -> (its world
     position, the poses that detect it; each must see it within 2.5 m and 45 degrees). With
     ``fillers``: other landmarks, each seen from 2-3 consecutive poses and never again (ids from
     100), more than 1 m from the caller's, so that the run learns the camera's view and clutter's
-    cost from observations as a real run does. ``truth``: the path (``loop_truth``'s signature)."""
+    cost from observations as a real run does."""
     rng = np.random.default_rng(seed)
-    xyz, yaw = truth(poses)
+    xyz, yaw = loop_truth(poses)
     quat = np.array([geometry.euler_to_quat(np.array([0.0, 0.0, a])) for a in yaw])
     R = geometry.quat_to_matrix(quat)
     sigma = np.array([sigma_xy] * 3 + [sigma_yaw] * 3)
@@ -140,64 +139,3 @@ def test_a_close_neighbour_seen_a_loop_later_is_not_taken_for_the_landmark():
                           engine="numpy")
         taken += bool(_landmarks_of(result, 7) & _landmarks_of(result, 8))
     assert taken <= 4, taken
-
-
-# -- a tentative landmark lost for longer than TENTATIVE_GAP -------------------------------------
-# No map, a landmark seen twice and lost for longer than ``TENTATIVE_GAP`` (the sparse worlds, where
-# landmarks come back after 11-20 poses as often as after 4-10): still tentative, it is kept while
-# it can be found again (``slam_landmarks._lost``), and its return is paired with it; a neighbour
-# seen there is taken for it less often than for a confirmed landmark; with poor odometry it is
-# dropped (docs/performance.md, 2026-12-05, "No map: tentative landmarks kept while they can be
-# found"). The worlds: two lanes driven back and forth (``lanes_truth``).
-
-LANE = 12  # steps of 0.5 m a lane; two steps (1 m) between the lanes
-L = np.array([2.25, 0.5, 0.2])  # between the lanes: seen from poses 1-2 going out, 17-18 coming back
-
-
-def lanes_truth(poses: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) positions and (N,) headings: LANE steps along x, two across, LANE back, two across, ...,
-    each pose facing the way it next moves."""
-    steps = ([(1, 0)] * LANE + [(0, 1)] * 2 + [(-1, 0)] * LANE + [(0, 1)] * 2) * (poses // (2 * LANE + 4) + 1)
-    xyz, yaw = np.zeros((poses, 3)), np.zeros(poses)
-    for k in range(poses):
-        yaw[k] = np.arctan2(steps[k][1], steps[k][0])
-        if k + 1 < poses:
-            xyz[k + 1] = xyz[k] + 0.5 * np.array([steps[k][0], steps[k][1], 0.0])
-    return xyz, yaw
-
-
-def _run(seed: int, sightings: dict, sigma_xy: float = 0.03):
-    return localize(loop_world(seed, sightings, poses=30, sigma_xy=sigma_xy, truth=lanes_truth), LocalizerConfig(map="none"),
-                    engine="numpy")
-
-
-def test_a_landmark_seen_twice_and_lost_for_fifteen_poses_is_one_landmark():
-    """Seen from poses 1-2 and 17-18 (30 seeds): its four observations are one landmark's in at
-    least 24 worlds (now 27; before, dropped after 10 poses unseen: 0, none of them paired, since
-    two sightings do not confirm a landmark either time)."""
-    whole = 0
-    for seed in SEEDS:
-        result = _run(seed, {7: (L, [1, 2, 17, 18])})
-        a = result.associations
-        whole += len(_landmarks_of(result, 7)) == 1 and np.count_nonzero((a.true_landmark == 7) & (a.landmark >= 0)) == 4
-    assert whole >= 24, whole
-
-
-def test_a_neighbour_seen_where_a_lost_tentative_landmark_was_is_rarely_taken_for_it():
-    """L seen from poses 1-2 only; B, 0.5 m from it, from 17-18: a landmark takes both in at most 9
-    worlds of 30 (now 6; a confirmed landmark seen from poses 0-3 is taken for such a B in 24, since
-    a return within RETURN_GAP pays no penalty)."""
-    taken = sum(bool(_landmarks_of(r, 7) & _landmarks_of(r, 8))
-                for r in (_run(seed, {7: (L, [1, 2]), 8: (L + [0.0, 0.5, 0.0], [17, 18])}) for seed in SEEDS))
-    assert taken <= 9, taken
-
-
-def test_with_poor_odometry_a_lost_tentative_landmark_is_dropped():
-    """With 0.15 m of odometry noise a step, L's position after 15 poses unseen no longer tells it
-    from clutter under the return penalty: it is dropped, and the return starts another landmark,
-    itself seen twice and not confirmed: none of L's observations is paired in 30 worlds."""
-    paired = 0
-    for seed in SEEDS:
-        a = _run(seed, {7: (L, [1, 2, 17, 18])}, sigma_xy=0.15).associations
-        paired += int(np.count_nonzero((a.true_landmark == 7) & (a.landmark >= 0)))
-    assert paired == 0, paired
