@@ -565,11 +565,29 @@ def moved_in_place_of_added(map_xyz: np.ndarray, estimated: LandmarkMap, rows: n
     (never, mostly: a landmark in view is seen, so one at its map position would have been paired
     there) stands in for it, moved. Each added landmark stands for at most one mapped landmark,
     the best-fitting; an added landmark seen once is not enough to say so."""
+    from scipy.spatial import cKDTree
+
     taken = np.full(map_xyz.shape[0], -1, np.int64)
     mapped = np.flatnonzero(rows >= 0)
     added = np.flatnonzero(estimated.added & (estimated.observations >= 2))
     if mapped.size == 0 or added.size == 0:
         return taken
+    S = sigma**2 * np.eye(3) + estimated.cov[added]  # (A, 3, 3)
+    # d' S^-1 d <= gate only within |d| <= sqrt(gate * largest eigenvalue of S): a ball query, not
+    # every (added, mapped) pair (20,000-landmark maps)
+    reach = np.sqrt(gate * np.linalg.eigvalsh(S)[:, -1])
+    tree = cKDTree(map_xyz[mapped])
+    seen = estimated.observations[rows[mapped]]
+    for a in np.argsort(-estimated.observations[added], kind="stable").tolist():  # the best-seen added landmark first
+        near = np.sort(np.asarray(tree.query_ball_point(estimated.xyz[added[a]], reach[a]), dtype=np.int64))
+        near = near[(taken[mapped[near]] < 0) & (seen[near] < estimated.observations[added[a]])]
+        if near.size == 0:
+            continue
+        d = map_xyz[mapped[near]] - estimated.xyz[added[a]]  # (K, 3)
+        d2 = np.einsum("ki,ki->k", d, np.linalg.solve(S[a], d.T).T)
+        if d2.min() <= gate:
+            taken[mapped[near[int(np.argmin(d2))]]] = added[a]
+    return taken
     d = estimated.xyz[added][:, None, :] - map_xyz[mapped][None, :, :]  # (A, M, 3)
     S = sigma**2 * np.eye(3) + estimated.cov[added]  # (A, 3, 3)
     d2 = np.einsum("ami,aij,amj->am", d, np.linalg.inv(S), d)

@@ -63,3 +63,38 @@ def test_a_moved_landmark_whose_map_position_is_out_of_view_is_not_added_twice()
     assert np.count_nonzero(a.landmark[a.true_landmark == 31] == 31) >= 4
     row = int(np.flatnonzero(m.ids == 31)[0])
     assert np.linalg.norm(m.xyz[row] - full.landmark_xyz[full.landmark_ids == 31][0]) < 0.15
+
+
+def _every_pair_statement(map_xyz, estimated, rows, sigma, gate):
+    """The rule as its docstring states it, over every (added, mapped) pair: the k-d tree's
+    ball query must find the same."""
+    taken = np.full(len(map_xyz), -1)
+    added = np.flatnonzero(estimated.added & (estimated.observations >= 2))
+    for a in sorted(added.tolist(), key=lambda a: -estimated.observations[a]):
+        best, best_d2 = -1, gate
+        for m in np.flatnonzero(rows >= 0).tolist():
+            if taken[m] >= 0 or estimated.observations[rows[m]] >= estimated.observations[a]:
+                continue
+            d = estimated.xyz[a] - map_xyz[m]
+            d2 = d @ np.linalg.solve(sigma**2 * np.eye(3) + estimated.cov[a], d)
+            if d2 <= best_d2 and (best < 0 or d2 < best_d2):
+                best, best_d2 = m, d2
+        if best >= 0:
+            taken[best] = a
+    return taken
+
+
+def test_the_ball_query_finds_what_every_pair_would():
+    """A crowded random map (200 mapped landmarks in a 3 m cube, 60 added ones near them with
+    covariances of different sizes and shapes): the same stand-ins as the statement over every pair."""
+    rng = np.random.default_rng(5)
+    map_xyz = rng.uniform(0, 3, (200, 3))
+    near = map_xyz[rng.choice(200, 60, replace=False)] + rng.normal(0, 0.25, (60, 3))
+    A = rng.normal(0, 0.1, (60, 3, 3))
+    cov = np.concatenate([np.tile(1e-4 * np.eye(3), (200, 1, 1)), A @ A.transpose(0, 2, 1) + 1e-4 * np.eye(3)])
+    estimated = LandmarkMap(ids=np.arange(260), xyz=np.concatenate([map_xyz, near]), cov=cov,
+                            added=np.arange(260) >= 200, observations=rng.integers(0, 6, 260))
+    rows = np.where(rng.random(200) < 0.9, np.arange(200), -1)
+    taken = moved_in_place_of_added(map_xyz, estimated, rows, SIGMA, GATE)
+    assert (taken >= 0).sum() >= 10
+    assert taken.tolist() == _every_pair_statement(map_xyz, estimated, rows, SIGMA, GATE).tolist()
