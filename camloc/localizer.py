@@ -34,6 +34,7 @@ from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
 from camloc.mapping_follower import MappingFollower
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
+from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -427,9 +428,9 @@ def _localize_mapping(dataset, config, on_progress, hooks: dict, given_run: Opti
             kept = result, warnings
         estimated = result.landmark_map
         rows = landmark_rows(estimated.ids, dataset.landmark_ids)
-        if not _map_moved(dataset, estimated, rows, config.map_sigma):
-            break  # the next pass would judge against the map as given: the same pairs, twice the time
-        judged_map = replace(dataset, landmark_xyz=np.where((rows >= 0)[:, None], estimated.xyz[rows], dataset.landmark_xyz))
+        if n + 1 == passes or not _map_moved(dataset, estimated, rows, config.map_sigma):
+            break  # the last pass; or the next would judge against the map as given: the same pairs, twice the time
+        judged_map = replace(dataset, landmark_xyz=_judged_positions(dataset, estimated, rows, config))
     result, warnings = kept
     timing = result.summary["timing"]
     timing["background_compile"] = False
@@ -471,6 +472,21 @@ def _map_moved(dataset: Dataset, estimated, rows: np.ndarray, sigma: float) -> b
     shift = np.linalg.norm(estimated.xyz[rows[observed]] - dataset.landmark_xyz[observed], axis=1)
     moved = int(np.count_nonzero(shift > MOVED_SIGMAS * sigma))
     return moved > max(MOVED_LEAST, MOVED_SHARE * int(np.count_nonzero(observed)))
+
+
+def _judged_positions(dataset: Dataset, estimated, rows: np.ndarray, config: LocalizerConfig) -> np.ndarray:
+    """(L, 3) where the next pass's beam judges the map's landmarks: each at the estimate the pass
+    made of it (its map position where the pass did not keep it), and a mapped landmark at the
+    landmark the pass added in its place (``slam_landmarks.moved_in_place_of_added``:
+    a moved landmark added twice), so that the next pass pairs those observations with it."""
+    from camloc.slam_landmarks import NEW_LANDMARK_TAIL, moved_in_place_of_added
+
+    xyz = np.where((rows >= 0)[:, None], estimated.xyz[rows], dataset.landmark_xyz)
+    # the gate by which an observation is a landmark already known rather than a new one (wider
+    # than the association's: a landmark added twice stays twice)
+    added = moved_in_place_of_added(dataset.landmark_xyz, estimated, rows, config.map_sigma, chi2_quantile(3, NEW_LANDMARK_TAIL))
+    xyz[added >= 0] = estimated.xyz[added[added >= 0]]
+    return xyz
 
 
 def _nis_per_dof(result: RunResult) -> float:

@@ -549,6 +549,56 @@ def lacking_landmarks(dataset: Dataset, T_world_robot: np.ndarray, pose_cov: np.
     return places
 
 
+def moved_in_place_of_added(map_xyz: np.ndarray, estimated: LandmarkMap, rows: np.ndarray, sigma: float,
+                            gate: float) -> np.ndarray:
+    """(L,) for each mapped landmark (at ``map_xyz`` (L, 3) in the map as given), the row in
+    ``estimated`` (a mapping pass's map under a prior) of the landmark the pass added in its
+    place, -1 for none. ``rows`` (L,): each mapped landmark's row in ``estimated``; ``sigma``: the
+    map's, metres; ``gate``: the chi^2 value (3 dof) within which an added landmark's estimate
+    fits a mapped landmark's prior (``sigma^2 I`` about its map position, with the added
+    landmark's own covariance).
+
+    Why: a landmark moved by a few sigma whose observations failed its gate (or whose map position
+    lay outside the cameras' candidate view while it was in view) is added as a new landmark beside
+    its own map entry: the same landmark twice, the mapped one left where it is not. An added
+    landmark that fits a mapped landmark's prior and was seen more often than that landmark
+    (never, mostly: a landmark in view is seen, so one at its map position would have been paired
+    there) stands in for it, moved. Each added landmark stands for at most one mapped landmark,
+    the best-fitting; an added landmark seen once is not enough to say so."""
+    from scipy.spatial import cKDTree
+
+    taken = np.full(map_xyz.shape[0], -1, np.int64)
+    mapped = np.flatnonzero(rows >= 0)
+    added = np.flatnonzero(estimated.added & (estimated.observations >= 2))
+    if mapped.size == 0 or added.size == 0:
+        return taken
+    S = sigma**2 * np.eye(3) + estimated.cov[added]  # (A, 3, 3)
+    # d' S^-1 d <= gate only within |d| <= sqrt(gate * largest eigenvalue of S): a ball query, not
+    # every (added, mapped) pair (20,000-landmark maps)
+    reach = np.sqrt(gate * np.linalg.eigvalsh(S)[:, -1])
+    tree = cKDTree(map_xyz[mapped])
+    seen = estimated.observations[rows[mapped]]
+    for a in np.argsort(-estimated.observations[added], kind="stable").tolist():  # the best-seen added landmark first
+        near = np.sort(np.asarray(tree.query_ball_point(estimated.xyz[added[a]], reach[a]), dtype=np.int64))
+        near = near[(taken[mapped[near]] < 0) & (seen[near] < estimated.observations[added[a]])]
+        if near.size == 0:
+            continue
+        d = map_xyz[mapped[near]] - estimated.xyz[added[a]]  # (K, 3)
+        d2 = np.einsum("ki,ki->k", d, np.linalg.solve(S[a], d.T).T)
+        if d2.min() <= gate:
+            taken[mapped[near[int(np.argmin(d2))]]] = added[a]
+    return taken
+    d = estimated.xyz[added][:, None, :] - map_xyz[mapped][None, :, :]  # (A, M, 3)
+    S = sigma**2 * np.eye(3) + estimated.cov[added]  # (A, 3, 3)
+    d2 = np.einsum("ami,aij,amj->am", d, np.linalg.inv(S), d)
+    seen = estimated.observations[rows[mapped]]
+    for a in np.argsort(-estimated.observations[added], kind="stable").tolist():  # the best-seen added landmark first
+        fits = np.where((d2[a] <= gate) & (taken[mapped] < 0) & (seen < estimated.observations[added[a]]), d2[a], np.inf)
+        if np.isfinite(fits.min()):
+            taken[mapped[int(np.argmin(fits))]] = added[a]
+    return taken
+
+
 # Clutter agrees with itself by chance where it is dense: a planar robot's rejected floor points
 # (point2) lie in a plane, where it does far more often than a camera's in space (complete 1,000-pose
 # maps with 10% clutter: 5-9 places of three chance clutter points each, and the run then went
