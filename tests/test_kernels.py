@@ -81,6 +81,27 @@ def test_what_python_calls_is_an_entry_point():
         assert not kernels[name].targetoptions.get("no_cpython_wrapper", False), f"{name} is called from Python"
 
 
+def test_every_compiled_sort_is_the_merge_sort():
+    # numba compiles its quicksort apart for each kind it sorts (argsort of int64 and of float, sort
+    # of int64 took ~4 s of a first compile, docs/performance.md 2026-12-05): compiled code sorts
+    # with np.argsort(..., kind="mergesort") only (of floats, the kind the kernels compile)
+    import ast
+
+    compiled = {"jit", "entry", "inlined"}
+    checked = 0
+    for path in sorted(Path(camloc.kernels.__file__).parent.glob("*.py")):
+        for function in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(function, ast.FunctionDef)
+                    and any(isinstance(d, ast.Name) and d.id in compiled for d in function.decorator_list)):
+                continue
+            for node in ast.walk(function):
+                if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in ("sort", "argsort"):
+                    kinds = [k.value.value for k in node.keywords if k.arg == "kind" and isinstance(k.value, ast.Constant)]
+                    assert node.func.attr == "argsort" and kinds == ["mergesort"], f"{path.name}:{node.lineno}"
+                    checked += 1
+    assert checked >= 5
+
+
 def test_a_step_without_the_python_wrapper_is_callable_through_from_python(rng):
     from camloc.kernels import sym3 as compiled_only
 
