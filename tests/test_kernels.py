@@ -102,6 +102,24 @@ def test_every_compiled_sort_is_the_merge_sort():
     assert checked >= 5
 
 
+@pytest.mark.parametrize("user_level", [None, "3"])
+def test_kernels_compile_at_llvm_level_1_unless_the_user_sets_numba_opt(tmp_path, user_level):
+    """The kernels' modules are optimized at ``_jit.KERNEL_OPT_LEVEL`` (numba reads its
+    environment again before a compile, after ``_jit`` set it), and a ``NUMBA_OPT`` the user set
+    wins. In a fresh process: numba's level is read after a compile."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_OPT"}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path)
+    if user_level is not None:
+        env["NUMBA_OPT"] = user_level
+    code = ("import numba\nfrom numba.core import config\nimport camloc.kernels._jit\n"
+            "numba.njit(lambda x: x + 1)(1)\nprint(int(config.OPT))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == (user_level or _jit.KERNEL_OPT_LEVEL)
+
+
 def test_a_step_without_the_python_wrapper_is_callable_through_from_python(rng):
     from camloc.kernels import sym3 as compiled_only
 

@@ -9,6 +9,7 @@ function of this package carries them).
 
 from __future__ import annotations
 
+import os
 import types
 from functools import partial
 
@@ -21,6 +22,16 @@ from camloc.kernels.stale_cache import check_cache
 CACHE_FOLDER = check_cache()
 
 OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
+
+# LLVM's optimization level for the modules numba compiles (``NUMBA_OPT``; numba's default 3),
+# unless the user set it. About half of a first compile is LLVM optimizing and generating each
+# module again (below); at level 1 the first compile took 73.5 s of CPU against 93.0 at 3, with
+# warm runs no slower (the 20k pixel and depth worlds) and every result bit for bit the same
+# (docs/performance.md, 2026-12-05, "The kernels at LLVM's level 1"). numba reads its environment
+# again before each compile, so this holds for the kernels compiled after it (and, being the
+# process's environment, for a background compile it starts and the user's own numba code).
+KERNEL_OPT_LEVEL = "1"
+os.environ.setdefault("NUMBA_OPT", KERNEL_OPT_LEVEL)
 
 # A first index, a counter's start, or a capacity of one, as a kernel's argument: numba types a
 # literal 0 or 1 as a value of its own and compiles the callee (with all it calls) once more for it;
