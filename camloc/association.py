@@ -234,6 +234,34 @@ def assignment_margins(cost: np.ndarray, null_cost: np.ndarray, chosen: np.ndarr
     return row, steal
 
 
+def rival_margins(cost: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """How much costlier each chosen pair's nearest rival landmark is: the cheapest other
+    candidate of its observation (not the null option) minus the pair's cost.
+
+    ``assignment_margins``' row margin takes the cheaper of that rival and leaving the observation
+    unassigned; this one looks at landmarks alone, for a ray (a pixel observation) that passes
+    near several of them: a small margin says which of them it is is not known, whatever leaving
+    it unassigned would cost.
+
+    Parameters
+    ----------
+    cost : (n, m) pair costs (inf where a pair fails the gate).
+    chosen : (n,) chosen candidate column of each observation, -1 when unassigned.
+
+    Returns
+    -------
+    (n,) margins; inf for unassigned observations and where no other landmark gates.
+    """
+    margin = np.full(cost.shape[0], np.inf)
+    rows = np.flatnonzero(chosen >= 0)
+    if rows.size == 0 or cost.shape[1] < 2:
+        return margin
+    others = cost[rows].copy()
+    others[np.arange(rows.size), chosen[rows]] = np.inf
+    margin[rows] = others.min(axis=1) - cost[rows, chosen[rows]]
+    return margin
+
+
 def leave_one_out_costs(
     z: np.ndarray, R_obs: np.ndarray, z_hat: np.ndarray, H: np.ndarray, chosen: np.ndarray,
     *, information: np.ndarray, gate: float, kinds: np.ndarray | None = None,

@@ -868,7 +868,9 @@ class _Localizer:
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
         """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative
         (``association.assignment_margins``) when each observation is judged by the posterior of
-        the other pairs (``association.leave_one_out_costs``): (p,) bool."""
+        the other pairs (``association.leave_one_out_costs``), a pixel observation's more than
+        ``recheck.ray_margin`` over its nearest rival landmark (``association.rival_margins``), and
+        whose landmark lies within the candidates' distance of the camera at x_post: (p,) bool."""
         ds = self.dataset
         keep = np.ones(pair_obs.size, dtype=bool)
         position = {int(o): n for n, o in enumerate(pair_obs.tolist())}
@@ -895,10 +897,28 @@ class _Localizer:
                                                    gate=float(self.obs_gate[mine[0]]), kinds=ds.obs_kind[mine])
             cost = cost + orientation_terms(self.scene, x_post, P_prior, mine, candidates, z_hat, H)[1]  # a tag's orientation
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
-            for o, r, st in zip(mine.tolist(), row.tolist(), steal.tolist()):
-                if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin):
+            # a ray passes near several landmarks: which of them it is must be clear too
+            rival = np.where(measurement.is_ray(ds.obs_kind[mine]), association.rival_margins(cost, chosen), np.inf)
+            for o, r, st, rv in zip(mine.tolist(), row.tolist(), steal.tolist(), rival.tolist()):
+                if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin
+                                          and not rv <= self.config.recheck.ray_margin):
                     keep[position[o]] = False
-        return keep
+        return keep & self._within_reach(x_post, pair_obs, pair_landmarks)
+
+    def _within_reach(self, x: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray) -> np.ndarray:
+        """Which pairs' landmarks lie within the candidates' distance (``ViewOptions.max_distance``,
+        a pixel-only file's learned reach) of their camera at x: (p,) bool. The beam takes its
+        candidates from anywhere the prior may put the camera; from the posterior, a landmark
+        beyond the camera's reach is one it cannot have seen (on pixel-only worlds nearly every such
+        pair is wrong: docs/performance.md, 2026-12-05)."""
+        if not np.isfinite(self.scene.max_distance):
+            return np.ones(pair_obs.size, dtype=bool)
+        within = np.ones(pair_obs.size, dtype=bool)
+        cameras = ~measurement.is_planar(self.dataset.obs_kind[pair_obs])     # a planar sensor's reach is its own
+        for n in np.flatnonzero(cameras):
+            centre = (self.filter.pose(x) @ self.scene.cameras[int(self.obs_sensor[pair_obs[n]])].T_robot_camera)[:3, 3]
+            within[n] = np.linalg.norm(self.dataset.landmark_xyz[pair_landmarks[n]] - centre) <= self.scene.max_distance
+        return within
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """``AssociationScene.visible``: the landmarks camera ``camera_id`` may see from x (with P,

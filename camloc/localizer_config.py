@@ -41,6 +41,10 @@ COSTS = ("nll", "mahalanobis", "euclidean")
 
 # Bound on the initial rotation sigma: far beyond any meaningful angle, far from overflow.
 MAX_SIGMA_DEG = 1e6
+# The re-check's margin for a pixel observation over its nearest rival landmark (a ray passes near
+# several): pairs closer than this are left out. Measured on the 72 pixel-only worlds of
+# benchmarks/pixel_worlds.py (docs/performance.md, 2026-12-05, "A ray's rival landmarks").
+RAY_MARGIN = 3.0
 
 
 @dataclass(frozen=True)
@@ -113,17 +117,22 @@ class RecheckOptions:
     not hold. A pair holds when leaving its observation unassigned or pairing it with another
     landmark costs more than ``margin``, and handing its landmark to another of the pose's
     observations costs more than ``steal_margin`` (two detections that fit one landmark about
-    equally well: one of them is clutter, and which is not known).
+    equally well: one of them is clutter, and which is not known). A pixel observation's pair
+    holds only when every other landmark near its ray costs more than ``ray_margin`` (a ray passes
+    near several landmarks; ``association.rival_margins``). And a pair holds only when its landmark
+    lies within the candidates' distance (``ViewOptions.max_distance``, where bounded) of the
+    camera at the updated pose.
 
     Attributes
     ----------
     enabled : run the re-check.
-    margin, steal_margin : as above, in cost units (>= 0).
+    margin, steal_margin, ray_margin : as above, in cost units (>= 0).
     """
 
     enabled: bool = True
     margin: float = 0.0
     steal_margin: float = 6.0
+    ray_margin: float = RAY_MARGIN
 
 
 @dataclass(frozen=True)
@@ -258,6 +267,8 @@ class LocalizerConfig:
             ("recheck.margin", _finite(recheck.margin) and recheck.margin >= 0.0, f"must be a finite number >= 0, got {recheck.margin}"),
             ("recheck.steal_margin", _finite(recheck.steal_margin) and recheck.steal_margin >= 0.0,
              f"must be a finite number >= 0, got {recheck.steal_margin}"),
+            ("recheck.ray_margin", _finite(recheck.ray_margin) and recheck.ray_margin >= 0.0,
+             f"must be a finite number >= 0, got {recheck.ray_margin}"),
             ("view.min_depth", view.min_depth is None or 0.0 <= view.min_depth <= MAX_COORDINATE,
              f"must be in [0, {MAX_COORDINATE:.0e}] m, got {view.min_depth}"),
             ("view.max_depth", view.max_depth is None or (view.min_depth or 0.0) < view.max_depth <= MAX_COORDINATE,

@@ -38,6 +38,7 @@ RUN_OPTIONS: dict[str, str] = {
     "recheck": "recheck.enabled",
     "recheck-margin": "recheck.margin",
     "recheck-steal-margin": "recheck.steal_margin",
+    "recheck-ray-margin": "recheck.ray_margin",
     "min-depth": "view.min_depth",
     "max-depth": "view.max_depth",
     "max-angle": "view.max_angle_deg",

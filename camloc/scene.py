@@ -115,7 +115,7 @@ def build_settings(config, null_cost_offset: float = 0.0) -> Settings:
 
     return Settings(
         int(config.iterations), bool(config.recheck.enabled), float(config.recheck.margin),
-        float(config.recheck.steal_margin), float(config.beam.slip_inflation), int(config.beam.width),
+        float(config.recheck.steal_margin), float(config.recheck.ray_margin), float(config.beam.slip_inflation), int(config.beam.width),
         float(config.beam.delta), float(config.beam.branch_delta), MERGE_SIGMA, float(config.beam.slip_cost),
         PARTIAL_BUDGET, POOL_GATE_FACTOR, float(null_cost_offset),
     )

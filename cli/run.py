@@ -183,6 +183,11 @@ _RECHECK_STEAL_MARGIN = library_option(
     "many extra cost units (2 x log-likelihood ratio: 6 = 20 times; docs/association.md).",
     "localizer.recheck.steal_margin", rich_help_panel=RECHECK
 )
+_RECHECK_RAY_MARGIN = library_option(
+    "Drop a pixel observation's pair when another landmark near its ray costs no more than this many "
+    "extra cost units (2 x log-likelihood ratio; docs/association.md).",
+    "localizer.recheck.ray_margin", rich_help_panel=RECHECK
+)
 _MIN_DEPTH = typer.Option(
     None, help="Nearest candidate landmark depth, metres. Default: 0 (no lower bound).", show_default=False,
     rich_help_panel=VIEW
@@ -231,6 +236,7 @@ def run(
     recheck: Optional[bool] = _RECHECK,
     recheck_margin: Optional[float] = _RECHECK_MARGIN,
     recheck_steal_margin: Optional[float] = _RECHECK_STEAL_MARGIN,
+    recheck_ray_margin: Optional[float] = _RECHECK_RAY_MARGIN,
     min_depth: Optional[float] = _MIN_DEPTH,
     max_depth: Optional[float] = _MAX_DEPTH,
     max_angle: Optional[float] = _MAX_ANGLE,

@@ -132,6 +132,19 @@ def test_assignment_margins_drop_a_pair_that_fails_its_gate():
     assert row[0] == -np.inf
 
 
+def test_rival_margins_look_at_the_other_landmarks_alone():
+    inf = np.inf
+    # observation 0 chose column 0 (cost 1): column 2 costs 2.5, 1.5 more (leaving it unassigned,
+    # cheaper still, is not a rival landmark); observation 1's only gated landmark is its own;
+    # observation 2 is unassigned.
+    cost = np.array([[1.0, inf, 2.5], [inf, 3.0, inf], [0.5, 0.7, inf]])
+    margin = association.rival_margins(cost, np.array([0, 1, -1]))
+    assert margin[0] == pytest.approx(1.5)
+    assert margin[1] == inf and margin[2] == inf
+    row, _ = association.assignment_margins(cost, np.array([1.2, 9.0, 9.0]), np.array([0, 1, -1]))
+    assert row[0] == pytest.approx(0.2)             # the null option, which the rival margin leaves out
+
+
 def test_leave_one_out_costs_match_an_update_without_the_pair(rng):
     """For a linear measurement model the formula is exact: compare with the posterior of the
     other pairs computed from scratch, for every observation and candidate."""

@@ -246,6 +246,9 @@ def test_leave_one_out_costs_and_margins_match_numpy(rng):
     null = rng.uniform(5, 15, n)
     for a, b in zip(recheck.assignment_margins(got, null, chosen), association.assignment_margins(ref, null, chosen)):
         np.testing.assert_allclose(a, b, rtol=1e-9)
+    rival = recheck.rival_margins(got, chosen)
+    np.testing.assert_allclose(rival, association.rival_margins(ref, chosen), rtol=1e-9)
+    assert np.isfinite(rival).any() and rival[2] == np.inf     # a finite rival is compared; unassigned: inf
 
 
 def test_seed_ranking_matches_numpy(rng):

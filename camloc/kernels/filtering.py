@@ -9,14 +9,15 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import entry, inlined, jit
-from camloc.kernels.camera import cameras_of, observe
+from camloc.kernels.camera import camera_pose, cameras_of, observe
 from camloc.kernels.motion import predict
 from camloc.kernels.planar import SE2_DIM
-from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs, predict_pairs
+from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs, predict_pairs, rival_margins
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
 from camloc.kernels.update import updated
 from camloc.kernels.view import sensor_candidates
+from camloc.measurement import MARKER, PIXEL, POINT2
 
 GIVEN, ORACLE = 0, 1
 
@@ -43,9 +44,11 @@ def pair_distance(R, o, z, z_hat, H, i, P):
 @inlined
 def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     """Which of a pose's pairs (p,) keep more than ``recheck_margin`` over their nearest
-    alternative and more than ``recheck_steal_margin`` over a rival taking their landmark, each
-    observation of the pose (obs (m,)) judged by the posterior of the other pairs."""
-    keep = np.ones(pair_obs.size, np.bool_)
+    alternative, more than ``recheck_steal_margin`` over a rival taking their landmark and, a pixel
+    observation's, more than ``recheck_ray_margin`` over its nearest rival landmark, each
+    observation of the pose (obs (m,)) judged by the posterior of the other pairs; and whose
+    landmark lies within the candidates' distance of its camera at x_post (``within_reach``)."""
+    keep = within_reach(scene, x_post, pair_obs, pair_landmarks)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     n = x_post.shape[0]                          # the state's size: 6 (Euler), 3 (planar)
     information = np.zeros((cameras.size, n, n))
@@ -81,11 +84,37 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
         cost = leave_one_out_costs(scene.z[mine], scene.R_assoc[mine], scene.R_assoc_inverse[mine], scene.log_det_R[mine],
                                    z_hat, H, chosen, others, scene.obs_gate[mine[0]], scene.camera_K[cameras[g], 4])  # a sensor's observations share their dof and kind
         row, steal = assignment_margins(cost, scene.null_cost[mine], chosen)
+        ray = scene.camera_K[cameras[g], 4] == PIXEL       # a ray passes near several landmarks
+        rival = rival_margins(cost, chosen)
         for r in range(mine.size):
             for q in range(pair_obs.size):
-                if pair_obs[q] == mine[r] and not (row[r] > settings.recheck_margin and steal[r] > settings.recheck_steal_margin):
+                if pair_obs[q] == mine[r] and not (row[r] > settings.recheck_margin and steal[r] > settings.recheck_steal_margin
+                                                   and not (ray and rival[r] <= settings.recheck_ray_margin)):
                     keep[q] = False
     return keep
+
+
+@inlined
+def within_reach(scene, x, pair_obs, pair_landmarks):
+    """Which pairs' landmarks lie within the candidates' distance (``view_limits[6]``, a pixel-only
+    file's learned reach; inf: every one) of their camera at x (a planar sensor's: every one). The
+    numpy twin is ``_Localizer._within_reach``."""
+    within = np.ones(pair_obs.size, np.bool_)
+    reach = scene.view_limits[6] if scene.view_limits.shape[0] > 6 else np.inf
+    if not reach < np.inf:
+        return within
+    for q in range(pair_obs.size):
+        c = scene.obs_camera[pair_obs[q]]
+        kind = scene.camera_K[c, 4]
+        if kind == POINT2 or kind == MARKER:
+            continue
+        _, centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])
+        distance2 = 0.0
+        for a in range(3):
+            d = scene.landmark_xyz[pair_landmarks[q], a] - centre[a]
+            distance2 += d * d
+        within[q] = distance2 <= reach * reach
+    return within
 
 
 @jit

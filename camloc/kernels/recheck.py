@@ -1,7 +1,7 @@
 """The re-check of a pose's accepted pairs: each observation judged by the posterior of the pose's
 other pairs (its own left out), and a pair kept only when no single change of the assignment comes
 close; and what the chance that a kept pair is clutter adds to the estimate's covariance. The numpy
-twins are ``camloc.association.leave_one_out_costs`` and ``assignment_margins``, and
+twins are ``camloc.association.leave_one_out_costs``, ``assignment_margins`` and ``rival_margins``, and
 ``camloc.ekf.leave_one_out_spread``.
 
 Leaving pair i out of an update linearized at the posterior (the MAP, where the gradient vanishes):
@@ -125,6 +125,25 @@ def assignment_margins(cost, null_cost, chosen):
         if np.isfinite(rival):
             steal[i] = row[i] + rival
     return row, steal
+
+
+@inlined
+def rival_margins(cost, chosen):
+    """(n,): how much costlier each chosen pair's nearest rival landmark is (another candidate of
+    its observation, not the null option); inf for unassigned observations and where no other
+    landmark gates. The numpy twin is ``camloc.association.rival_margins``."""
+    n, m = cost.shape
+    margin = np.full(n, np.inf)
+    for i in range(n):
+        c = chosen[i]
+        if c < 0:
+            continue
+        rival = np.inf
+        for j in range(m):
+            if j != c and cost[i, j] < rival:
+                rival = cost[i, j]
+        margin[i] = rival - cost[i, c]
+    return margin
 
 
 @jit

@@ -52,7 +52,7 @@ SceneArrays = namedtuple("SceneArrays", [
 Settings = namedtuple("Settings", [
     "iterations",           # int: linearizations per update
     "recheck",              # bool
-    "recheck_margin", "recheck_steal_margin",
+    "recheck_margin", "recheck_steal_margin", "recheck_ray_margin",
     "slip_inflation",
     # the beam
     "beam_width", "beam_delta", "branch_delta", "merge_sigma", "slip_cost", "partial_budget",
