@@ -317,7 +317,7 @@ def test_help_defaults_are_the_codes_defaults():
 
 # Options a user cannot act on without knowing what a cost unit or a slip is (issue 36).
 COST_OPTIONS = ("--null-cost", "--beam-delta", "--branch-delta", "--slip-inflation", "--slip-cost", "--margin",
-                "--recheck-margin", "--recheck-steal-margin")
+                "--recheck-margin", "--recheck-steal-margin", "--recheck-ray-margin")
 
 
 def test_every_cost_option_gives_its_unit_and_the_design_doc():

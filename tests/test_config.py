@@ -18,7 +18,8 @@ CHANGED = {
     "filter": "se3", "association": "jcbb", "iterations": 2, "gate": 0.95, "null-cost": 12.0,
     "initial-sigma-xyz": 0.02, "initial-sigma-deg": 1.0, "beam-width": 8, "beam-delta": 10.0, "branch-delta": 6.0,
     "slip-inflation": 9.0, "slip-cost": 5.0, "cost": "mahalanobis", "margin": 2.0, "sequential": False,
-    "jcbb-max-nodes": 100, "recheck": False, "recheck-margin": 1.0, "recheck-steal-margin": 4.0, "min-depth": 0.1,
+    "jcbb-max-nodes": 100, "recheck": False, "recheck-margin": 1.0, "recheck-steal-margin": 4.0, "recheck-ray-margin": 5.0,
+    "min-depth": 0.1,
     "max-depth": 5.0, "max-angle": 40.0, "max-distance": 6.0, "map": "prior", "map-sigma": 0.2,
 }
 
