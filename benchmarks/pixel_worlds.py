@@ -56,6 +56,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=None, help="the beam's width (default: the library's)")
     parser.add_argument("--delta", type=float, default=None, help="the beam's delta (default: the library's)")
     parser.add_argument("--recheck-margin", type=float, default=None, help="the re-check's margin (default: the library's)")
+    parser.add_argument("--ray-margin", type=float, default=None, help="the re-check's ray margin (default: the library's)")
     args = parser.parse_args()
     rows, recalls = [], []
     for name in args.worlds.split(","):
@@ -65,8 +66,10 @@ def main() -> None:
             beam_options = {key: value for key, value in (("width", args.width), ("delta", args.delta)) if value is not None}
             if beam_options:
                 config["beam"] = camloc.BeamOptions(**beam_options)
-            if args.recheck_margin is not None:
-                config["recheck"] = camloc.RecheckOptions(margin=args.recheck_margin)
+            recheck_options = {key: value for key, value in (("margin", args.recheck_margin), ("ray_margin", args.ray_margin))
+                               if value is not None}
+            if recheck_options:
+                config["recheck"] = camloc.RecheckOptions(**recheck_options)
             beam, scores, seconds = run(dataset, "beam", config)
             oracle_rmse = run(dataset, "oracle")[1]["estimate"]["ate"]["rmse"]
             rmse, precision = scores["estimate"]["ate"]["rmse"], scores["association"]["precision"]
