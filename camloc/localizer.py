@@ -869,7 +869,8 @@ class _Localizer:
         """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative
         (``association.assignment_margins``) when each observation is judged by the posterior of
         the other pairs (``association.leave_one_out_costs``), a pixel observation's more than
-        ``recheck.ray_margin`` over its nearest rival landmark (``association.rival_margins``), and
+        ``recheck.ray_margin`` over its nearest rival landmark (``association.rival_margins``; where
+        the candidates' distance is bounded, ``ViewOptions.max_distance``), and
         whose landmark lies within the candidates' distance of the camera at x_post: (p,) bool."""
         ds = self.dataset
         keep = np.ones(pair_obs.size, dtype=bool)
@@ -897,8 +898,10 @@ class _Localizer:
                                                    gate=float(self.obs_gate[mine[0]]), kinds=ds.obs_kind[mine])
             cost = cost + orientation_terms(self.scene, x_post, P_prior, mine, candidates, z_hat, H)[1]  # a tag's orientation
             row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
-            # a ray passes near several landmarks: which of them it is must be clear too
-            rival = np.where(measurement.is_ray(ds.obs_kind[mine]), association.rival_margins(cost, chosen), np.inf)
+            # a ray passes near several landmarks: which of them it is must be clear too, judged
+            # within the camera's reach (beyond it, landmarks the camera cannot see crowd every ray)
+            rays = measurement.is_ray(ds.obs_kind[mine]) & np.isfinite(self.scene.max_distance)
+            rival = np.where(rays, association.rival_margins(cost, chosen), np.inf)
             for o, r, st, rv in zip(mine.tolist(), row.tolist(), steal.tolist(), rival.tolist()):
                 if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin
                                           and not rv <= self.config.recheck.ray_margin):

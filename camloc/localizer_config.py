@@ -117,11 +117,13 @@ class RecheckOptions:
     not hold. A pair holds when leaving its observation unassigned or pairing it with another
     landmark costs more than ``margin``, and handing its landmark to another of the pose's
     observations costs more than ``steal_margin`` (two detections that fit one landmark about
-    equally well: one of them is clutter, and which is not known). A pixel observation's pair
-    holds only when every other landmark near its ray costs more than ``ray_margin`` (a ray passes
-    near several landmarks; ``association.rival_margins``). And a pair holds only when its landmark
-    lies within the candidates' distance (``ViewOptions.max_distance``, where bounded) of the
-    camera at the updated pose.
+    equally well: one of them is clutter, and which is not known). Where the candidates' distance
+    is bounded (``ViewOptions.max_distance``: a pixel-only file's learned reach), a pixel
+    observation's pair holds only when every other landmark near its ray costs more than
+    ``ray_margin`` (a ray passes near several landmarks; ``association.rival_margins``), and a
+    pair holds only when its landmark lies within that distance of the camera at the updated pose.
+    Unbounded (a file that measures range, the mapping localizer, the run that learns the reach),
+    neither: beyond the camera's reach, landmarks it cannot see crowd every ray.
 
     Attributes
     ----------

@@ -84,7 +84,9 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
         cost = leave_one_out_costs(scene.z[mine], scene.R_assoc[mine], scene.R_assoc_inverse[mine], scene.log_det_R[mine],
                                    z_hat, H, chosen, others, scene.obs_gate[mine[0]], scene.camera_K[cameras[g], 4])  # a sensor's observations share their dof and kind
         row, steal = assignment_margins(cost, scene.null_cost[mine], chosen)
-        ray = scene.camera_K[cameras[g], 4] == PIXEL       # a ray passes near several landmarks
+        # a ray passes near several landmarks; judged by its rivals only within the camera's reach
+        # (``view_limits[6]``): beyond it, landmarks the camera cannot see crowd every ray
+        ray = scene.camera_K[cameras[g], 4] == PIXEL and scene.view_limits.shape[0] > 6 and scene.view_limits[6] < np.inf
         rival = rival_margins(cost, chosen)
         for r in range(mine.size):
             for q in range(pair_obs.size):
