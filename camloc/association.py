@@ -258,7 +258,8 @@ def rival_margins(cost: np.ndarray, chosen: np.ndarray) -> np.ndarray:
         return margin
     others = cost[rows].copy()
     others[np.arange(rows.size), chosen[rows]] = np.inf
-    margin[rows] = others.min(axis=1) - cost[rows, chosen[rows]]
+    with np.errstate(invalid="ignore"):    # a chosen pair beyond its gate: inf - inf (its row margin drops it)
+        margin[rows] = others.min(axis=1) - cost[rows, chosen[rows]]
     return margin
 
 

@@ -86,6 +86,30 @@ class AssociationScene:
     max_distance: float = np.inf
     tag_orientations: Optional[tag_orientations.TagOrientations] = None
 
+    def within_reach(self, x: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray) -> np.ndarray:
+        """Which pairs' landmarks lie within ``max_distance`` (a pixel-only file's learned reach) of
+        their camera at x (a planar sensor's: every one): (p,) bool. The beam takes candidates from
+        anywhere the prior may put the camera; from the posterior, a landmark beyond the camera's
+        reach is one it cannot have seen (on pixel-only worlds nearly every such pair is wrong:
+        docs/performance.md, 2026-12-05). The kernels' twin is ``kernels.filtering.within_reach``."""
+        within = np.ones(pair_obs.size, dtype=bool)
+        if not np.isfinite(self.max_distance):
+            return within
+        for n in np.flatnonzero(~measurement.is_planar(self.dataset.obs_kind[pair_obs])):
+            centre = (self.filter.pose(x) @ self.cameras[int(self.obs_sensor[pair_obs[n]])].T_robot_camera)[:3, 3]
+            within[n] = np.linalg.norm(self.dataset.landmark_xyz[pair_landmarks[n]] - centre) <= self.max_distance
+        return within
+
+    def ray_rival_margins(self, obs: np.ndarray, cost: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+        """``association.rival_margins`` of observations ``obs`` (cost (n, m), chosen (n,)) where they
+        are rays (pixels) and ``max_distance`` is bounded, inf elsewhere: a ray passes near several
+        landmarks, and which of them it is must be clear too; beyond the camera's reach, landmarks
+        it cannot see would crowd every ray (in the run that learns the reach)."""
+        rays = measurement.is_ray(self.dataset.obs_kind[obs]) & np.isfinite(self.max_distance)
+        if not rays.any():
+            return np.full(obs.size, np.inf)
+        return np.where(rays, association.rival_margins(cost, chosen), np.inf)
+
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """Indices of the landmarks in camera ``camera_id``'s depth range and field of view from
         state x, found through the map's index. With P, the view is widened by three

@@ -703,6 +703,15 @@ def per_pose_associator(config: LocalizerConfig) -> Optional[associators.Associa
     return PER_POSE_ASSOCIATORS[config.association](config)
 
 
+def _holds(recheck, row: float, steal: float, rival: float) -> bool:
+    """Whether a re-checked pair holds (``RecheckOptions``): more than ``margin`` over its nearest
+    alternative (another landmark or none; ``association.assignment_margins``' row), more than
+    ``steal_margin`` over another observation taking its landmark, and, a ray's, more than
+    ``ray_margin`` over its nearest rival landmark (``AssociationScene.ray_rival_margins``; inf
+    where not judged so)."""
+    return row > recheck.margin and steal > recheck.steal_margin and not rival <= recheck.ray_margin
+
+
 class _Localizer:
     """The filter's state over one run; ``step(k)`` processes pose k."""
 
@@ -866,12 +875,9 @@ class _Localizer:
         return self.associate(self.scene, self.x, self.P, obs)
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
-        """Which of a pose's pairs keep at least ``recheck.margin`` over their nearest alternative
-        (``association.assignment_margins``) when each observation is judged by the posterior of
-        the other pairs (``association.leave_one_out_costs``), a pixel observation's more than
-        ``recheck.ray_margin`` over its nearest rival landmark (``association.rival_margins``; where
-        the candidates' distance is bounded, ``ViewOptions.max_distance``), and
-        whose landmark lies within the candidates' distance of the camera at x_post: (p,) bool."""
+        """Which of a pose's pairs hold (``_holds``), each observation judged by the posterior of the
+        other pairs (``association.leave_one_out_costs``), and lie within the camera's reach at
+        x_post (``AssociationScene.within_reach``): (p,) bool."""
         ds = self.dataset
         keep = np.ones(pair_obs.size, dtype=bool)
         position = {int(o): n for n, o in enumerate(pair_obs.tolist())}
@@ -897,31 +903,11 @@ class _Localizer:
             cost = association.leave_one_out_costs(ds.obs_z[mine], self.association_cov[mine], z_hat, H, chosen, information=information,
                                                    gate=float(self.obs_gate[mine[0]]), kinds=ds.obs_kind[mine])
             cost = cost + orientation_terms(self.scene, x_post, P_prior, mine, candidates, z_hat, H)[1]  # a tag's orientation
-            row, steal = association.assignment_margins(cost, self.null_cost[mine], chosen)
-            # a ray passes near several landmarks: which of them it is must be clear too, judged
-            # within the camera's reach (beyond it, landmarks the camera cannot see crowd every ray)
-            rays = measurement.is_ray(ds.obs_kind[mine]) & np.isfinite(self.scene.max_distance)
-            rival = np.where(rays, association.rival_margins(cost, chosen), np.inf)
+            row, steal, rival = *association.assignment_margins(cost, self.null_cost[mine], chosen), self.scene.ray_rival_margins(mine, cost, chosen)
             for o, r, st, rv in zip(mine.tolist(), row.tolist(), steal.tolist(), rival.tolist()):
-                if o in position and not (r > self.config.recheck.margin and st > self.config.recheck.steal_margin
-                                          and not rv <= self.config.recheck.ray_margin):
+                if o in position and not _holds(self.config.recheck, r, st, rv):
                     keep[position[o]] = False
-        return keep & self._within_reach(x_post, pair_obs, pair_landmarks)
-
-    def _within_reach(self, x: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray) -> np.ndarray:
-        """Which pairs' landmarks lie within the candidates' distance (``ViewOptions.max_distance``,
-        a pixel-only file's learned reach) of their camera at x: (p,) bool. The beam takes its
-        candidates from anywhere the prior may put the camera; from the posterior, a landmark
-        beyond the camera's reach is one it cannot have seen (on pixel-only worlds nearly every such
-        pair is wrong: docs/performance.md, 2026-12-05)."""
-        if not np.isfinite(self.scene.max_distance):
-            return np.ones(pair_obs.size, dtype=bool)
-        within = np.ones(pair_obs.size, dtype=bool)
-        cameras = ~measurement.is_planar(self.dataset.obs_kind[pair_obs])     # a planar sensor's reach is its own
-        for n in np.flatnonzero(cameras):
-            centre = (self.filter.pose(x) @ self.scene.cameras[int(self.obs_sensor[pair_obs[n]])].T_robot_camera)[:3, 3]
-            within[n] = np.linalg.norm(self.dataset.landmark_xyz[pair_landmarks[n]] - centre) <= self.scene.max_distance
-        return within
+        return keep & self.scene.within_reach(x_post, pair_obs, pair_landmarks)
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """``AssociationScene.visible``: the landmarks camera ``camera_id`` may see from x (with P,
