@@ -100,7 +100,7 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
 def within_reach(scene, x, pair_obs, pair_landmarks):
     """Which pairs' landmarks lie within the candidates' distance (``view_limits[6]``, a pixel-only
     file's learned reach; inf: every one) of their camera at x (a planar sensor's: every one). The
-    numpy twin is ``_Localizer._within_reach``."""
+    numpy twin is ``AssociationScene.within_reach``."""
     within = np.ones(pair_obs.size, np.bool_)
     reach = scene.view_limits[6] if scene.view_limits.shape[0] > 6 else np.inf
     if not reach < np.inf:
