@@ -35,6 +35,7 @@ from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
+from camloc.kernels.types import UpdateWork
 
 
 # ---------------------------------------------------------------------------------------------
@@ -377,28 +378,53 @@ def prior_quadratic(P, d, M, pivots, b):
     return total
 
 
+@entry
+def update_work(n, p, n_cameras, landmark_columns):
+    """The scratch of iterated updates of up to p pairs on a state of n entries, with n_cameras
+    sensors and landmarks of landmark_columns coordinates (``types.UpdateWork``): allocated once
+    by a caller that updates many times, where an update allocating its own spent more time on
+    that than on its arithmetic."""
+    p = max(p, 1)
+    return UpdateWork(np.empty((p, 3)), np.empty((p, 3, 3)), np.empty((p, 3, 3)), np.empty((p, landmark_columns)),
+                      np.empty(p, np.int64),
+                      np.empty((p, 3, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n),
+                      np.empty(n * n), np.empty(n * n), np.empty(n * n), np.empty(n * n), np.empty(n),
+                      np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3)),
+                      np.empty((n_cameras, 3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
+                      np.empty(n), np.empty(n), np.empty(n),
+                      np.empty((n, n)), np.empty((n, n)), np.empty((n, 1)),
+                      np.empty(0))
+
+
+@inlined
+def shaped(flat, rows, columns):
+    """The first rows x columns entries of a flat buffer as a (rows, columns) array (a view)."""
+    return flat[:rows * columns].reshape((rows, columns))
+
+
 @jit
 def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                    iterations, z_hat, H, start):
+                    iterations, z_hat, H, start, work):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
     predictions at x. With a ``start`` (n,) (none: size 0) the iterations after the first
     linearize first at start (a state near the MAP estimate, where the prior is too far for
-    Gauss-Newton).
+    Gauss-Newton). ``work``: scratch for p pairs or more (``update_work``), none of it read.
 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
-    prior)."""
+    prior), new arrays."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = z.shape[0]
     m = 3 * p
     few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
-    # every linearization's scratch, allocated once
-    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
-    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
-    PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
-    z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
-    d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
-    delta, step, moved, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    # every linearization's scratch, the caller's: views of the rows of p pairs; the textbook
+    # gain's (3p <= n) of its flat buffers
+    R_inverse_H, information, M, pivots, AP, g = work.R_inverse_H[:p], work.information, work.M, work.pivots, work.AP, work.g
+    w = m if few else 0                                              # the gain's columns (none: the information form)
+    PHt, S, L, K = shaped(work.PHt, n, w), shaped(work.S, w, w), shaped(work.L, w, w), shaped(work.K, n, w)
+    z_hat_i, H_i, r = work.z_hat[:p], work.H[:p], work.r[:p]
+    d_position, frame = work.d_position, (work.frame_R, work.frame_E, work.frame_t)
+    delta, step, moved, x_i = work.delta, work.step, work.moved, np.empty(n)
 
     y_prior = np.empty((p, 3))
     for i in range(p):                                               # a marker's psi wrapped (``wrapped_residual``)
@@ -407,7 +433,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             y_prior[i, a] = wrapped_residual(kind, a, z[i, a] - z_hat[i, a])
     if few:
         gain_into(P, H, R, PHt, S, L, K)
-        nis = stacked_quadratic(L, y_prior, np.empty(m))             # NIS = y' S^-1 y
+        nis = stacked_quadratic(L, y_prior, work.stacked[:m])        # NIS = y' S^-1 y
         gain_step_into(K, y_prior, delta)
     else:
         information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
@@ -446,16 +472,16 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
     if few:
-        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((n, n)), np.empty((n, n)))
+        covariance_posterior_into(P, K, H_last, R, P_post, work.square, work.square2)
     else:
-        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((n, n)))
+        posterior_covariance_into(P, information, M, pivots, P_post, work.square)
     # the MAP cost at x+, predicted into the iterations' buffers (H_last is read above)
     observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
     for i in range(p):
         for a in range(3):
             r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
     difference_into(x_i, x, moved)
-    cost = prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
+    cost = prior_quadratic(P, moved, M, pivots, work.column) + block_quadratic(r, R_inverse)
     return x_i, P_post, nis, cost, y_prior
 
 
@@ -493,7 +519,7 @@ def point_step(scene, x, P, obs, z_hat, H):
 
 
 @entry
-def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start):
+def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, work):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
     predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)
     and ``noise_inverse``: the file's (``scene.R_file``) for the estimate, the floored noise
@@ -501,13 +527,13 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
-    posterior with the lower MAP cost is kept. Returns as ``iterated_update``."""
+    posterior with the lower MAP cost is kept. ``work``: the updates' scratch (``update_work``; one
+    of fewer than p pairs is replaced by a new one). Returns as ``iterated_update``."""
     p = obs.size
-    z = np.empty((p, 3))
-    R = np.empty((p, 3, 3))
-    R_inverse = np.empty((p, 3, 3))
-    landmark_xyz = np.empty((p, scene.landmark_xyz.shape[1]))   # with a marker's heading (``SceneArrays``)
-    pair_camera = np.empty(p, np.int64)
+    if p > work.z.shape[0]:
+        work = update_work(x.shape[0], p, scene.camera_R.shape[0], scene.landmark_xyz.shape[1])
+    z, R, R_inverse = work.z[:p], work.R[:p], work.R_inverse[:p]
+    landmark_xyz, pair_camera = work.landmark_xyz[:p], work.pair_camera[:p]   # with a marker's heading (``SceneArrays``)
     for i in range(p):
         o = obs[i]
         for a in range(3):
@@ -518,17 +544,16 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
         for a in range(landmark_xyz.shape[1]):
             landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    none = np.empty(0)
-    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)
+    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, work.none, work)
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
     if iterations < 2 or not (start.size or best[2] > scene.nis_bound[dof]):
         return best
-    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, none)
+    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, work.none)
     for s in starts:
         if s.size:
-            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s)
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, work)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     return best
