@@ -21,7 +21,7 @@ from camloc.constants import (
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
 from camloc.kernels.state import difference
-from camloc.kernels.update import update_work, updated
+from camloc.kernels.update import pair_model, updated
 from camloc.kernels.view import widened_view
 from camloc.measurement import DEPTH
 from camloc.tails import binomial_tail
@@ -140,12 +140,11 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
                                               scene.null_cost[obs], candidates.astype(np.int64), scene.obs_gate[o])
     explained = []
-    work = update_work(x.shape[0], 1, scene.camera_R.shape[0], scene.landmark_xyz.shape[1])   # each seed's update's scratch
     for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
         i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
         seeded = kb.gather(h, np.array([0]), 1 + obs.size)
-        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
-                                             pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, work.none, work)[:2]
+        seeded[0][0], seeded[1][0] = updated(pair_model(scene), settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
+                                             pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1

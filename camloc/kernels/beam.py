@@ -20,15 +20,13 @@ from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
-from camloc.kernels.camera import (
-    camera_pose, camera_position_jacobian, cameras_of, predict_candidates, robot_frame, robot_frame_into,
-)
+from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, predict_candidates, robot_frame
 from camloc.kernels.planar import SE2_DIM
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import wrap_angle
 from camloc.kernels.state import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
-from camloc.kernels.update import innovation_cost, update_work, updated
+from camloc.kernels.update import innovation_cost, pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
@@ -275,17 +273,16 @@ def is_taken(landmark, taken):
 
 
 @jit
-def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, at, frame):
+def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, at):
     """The options of observation o over its pool (g,) under a hypothesis (x, P) conditioned on
     some of the pose's pairs, less the landmarks it has taken, written into rows at..at + g - 1 of
     cost, z_hat, H, ys, Hcs and in_point. The pool is kept; its predictions are made again (moving
     the old ones to first order is not enough: a pair's correction moves a landmark a metre away
-    by pixels more than that). ``frame``: scratch (R, E, t, d_position) of the robot's frame
-    (``camera.robot_frame``) and the camera's position Jacobian."""
+    by pixels more than that). ``scene``: what the pairs' costs read of it (``update.pair_model``)."""
     c = scene.obs_camera[o]
     R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
-    R, E, t, d_position = frame
-    robot_frame_into(x, (R, E, t))
+    R, E, t = robot_frame(x)
+    d_position = np.empty((3, 3))
     camera_position_jacobian(R, R_rc, d_position)
     predict_candidates(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, pool, z_hat, H, at, d_position)
     for q in range(pool.size):
@@ -296,22 +293,13 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
 
 
 @jit
-def pool_scratch(largest, dim, frame):
-    """Scratch for the options of a pool of up to ``largest`` landmarks under a partial
-    explanation (``options_of``, ``viable``): cost, z_hat, H, y, Hc, in_point and the viable ones,
-    and ``frame`` (``condition_into``'s). A branch writes them and reads them before the next:
-    allocated once a pose, where each partial's options allocated their own."""
-    return (np.empty(largest), np.empty((largest, 3)), np.empty((largest, 3, dim)), np.empty((largest, 3)),
-            np.empty((largest, 3, dim)), np.empty(largest, np.bool_), np.empty(largest, np.bool_), frame)
-
-
-@jit
-def condition(scene, settings, x, P, o, pool, taken, scratch):
-    """``condition_into`` into ``scratch`` (``pool_scratch``): (cost, z_hat, H, y, Hc, in_point)
-    of the pool's g landmarks, views of its first g rows."""
+def condition(scene, settings, x, P, o, pool, taken):
+    """``condition_into`` with fresh arrays: (cost, z_hat, H, y, Hc, in_point) of the pool's g landmarks."""
     g = pool.size
-    cost, z_hat, H, ys, Hcs, in_point = scratch[0][:g], scratch[1][:g], scratch[2][:g], scratch[3][:g], scratch[4][:g], scratch[5][:g]
-    condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, FIRST, scratch[7])
+    cost, in_point = np.empty(g), np.empty(g, np.bool_)
+    dim = x.shape[0]
+    z_hat, H, ys, Hcs = np.empty((g, 3)), np.empty((g, 3, dim)), np.empty((g, 3)), np.empty((g, 3, dim))
+    condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hcs, in_point, FIRST)
     return cost, z_hat, H, ys, Hcs, in_point
 
 
@@ -359,13 +347,13 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
 
 
 @inlined
-def after_clear(scene, settings, gen, h, obs, cap, work, frame):
+def after_clear(scene, settings, gen, h, obs, cap, model):
     """Hypothesis h of gen after its stacked updates with the pose's clear observations: the clear
     ones are taken in one stacked update; conditioned on them the others are gated again, and those
     that became clear are taken in the next, until none does (an observation is often ambiguous
     only until a neighbour's pair pins the pose). Returns (the child as a generation of one, its
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
-    the least each can cost). ``work``, ``frame``: the update's and the conditioning's scratch."""
+    the least each can cost)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     taken = taken_by(gen, h)                     # a seeded explanation's seed pair: its landmark is not free
@@ -404,24 +392,25 @@ def after_clear(scene, settings, gen, h, obs, cap, work, frame):
                 rest += 1
         n_pending = rest
         if n_taken:
-            x, P = take_clear_pairs(scene, settings, child, x, P, o, options, opt, work)
+            x, P = take_clear_pairs(scene, settings, child, x, P, o, options, opt, model)
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
-                condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
-                               in_point, start[i], frame)
+                condition_into(model, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
+                               in_point, start[i])
     put_state(child, FIRST, x, P)
     order, least = branch_order(scene, obs, pending[:n_pending], start, cost)
     return child, opt, order, least
 
 
 @inlined
-def take_clear_pairs(scene, settings, child, x, P, o, options, opt, work):
+def take_clear_pairs(scene, settings, child, x, P, o, options, opt, model):
     """(x, P) updated with the clear pairs of observations o (their chosen options of ``opt``), in
     one stacked update; their joint cost, each pair in the coordinates its option chose, and the
-    pairs themselves are added to ``child`` (a generation of one). ``work``: the update's scratch."""
+    pairs themselves are added to ``child`` (a generation of one). ``model``: ``update.pair_model``."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     n_taken = o.size
+    no_start = np.empty(0)                       # ``updated``'s start: none
     landmarks = np.empty(n_taken, np.int64)
     dim = x.shape[0]
     z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, dim)), np.empty((n_taken, 3)), np.empty((n_taken, 3, dim))
@@ -438,8 +427,8 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt, work):
             for b in range(3):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
-    x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
-                           work.none, work)[:2]
+    x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
+                           no_start)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
     child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
     for t in range(n_taken):
@@ -480,34 +469,34 @@ def same_state(gen, a, b, merge_sigma):
 
 
 @inlined
-def settle(scene, settings, gen, c, parents, pending, work):
+def settle(scene, settings, gen, c, parents, pending, model):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
     ambiguous pose many children are pruned on their cost alone and never need their update.
-    ``work``: the update's scratch (``update.update_work``)."""
+    ``model``: what the update reads of the scene (``update.pair_model``)."""
     source, obs, landmark, z_hat, H, waiting = pending
     if not waiting[c]:
         return
     p = source[c]
-    x, P = updated(scene, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
-                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, work.none, work)[:2]
+    x, P = updated(model, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
+                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
     put_state(gen, c, x, P)
     waiting[c] = False
 
 
 @inlined
-def nothing_pending(scene, settings, gen, c, parents, pending, work):
+def nothing_pending(scene, settings, gen, c, parents, pending, model):
     """``settle`` where every state is settled (``prune``'s generation): its pruning compiled
-    without the update that settling calls (its ``work``: None)."""
+    without the update that settling calls (its ``model``: None)."""
     return
 
 
 @inlined
-def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one, work):
+def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
     beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
     are settled by ``settle_one`` (``settle``, or ``nothing_pending``) as a comparison first
-    needs them, with the update's scratch ``work``)."""
+    needs them, passed ``model``)."""
     order = candidates[np.argsort(gen[2][candidates], kind="mergesort")]
     kept = np.empty(min(order.size, settings.beam_width), np.int64)
     n = 0
@@ -522,7 +511,7 @@ def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
-                    settle_one(scene, settings, gen, h, parents, pending, work)
+                    settle_one(scene, settings, gen, h, parents, pending, model)
             if same_state(gen, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
@@ -546,7 +535,7 @@ def prune(scene, settings, gen, n):
 
 
 @inlined
-def prune_partials(scene, settings, gen, root, rest, parents, pending, work):
+def prune_partials(scene, settings, gen, root, rest, parents, pending, model):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
@@ -560,7 +549,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending, work):
             continue
         seen[r] = True
         kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending,
-                                                     settle, work)))
+                                                     settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -573,7 +562,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending, work):
         kept = np.concatenate((ranked[first], others))
     for c in kept:
         if pending[5][c]:
-            settle(scene, settings, gen, c, parents, pending, work)
+            settle(scene, settings, gen, c, parents, pending, model)
     return kept
 
 
@@ -591,26 +580,20 @@ def explain_all(scene, settings, parents, n_parents, obs):
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
     gen = new_generation(n_parents, cap, dim)
-    # every update's scratch (the clear pairs', each settled child's), for as many pairs as the pose
-    # has observations, and the conditioning's (no update runs while a pool is conditioned)
-    work = update_work(dim, m, scene.camera_R.shape[0], scene.landmark_xyz.shape[1])
-    frame = (work.frame_R, work.frame_E, work.frame_t, work.d_position[0])
+    model = pair_model(scene)                   # what the updates read of the scene
     options, orders, leasts = [], [], []
-    largest = 0                                 # the most options a parent has: no pool is larger
     root = np.arange(n_parents)
     rest = np.zeros(n_parents)
     moved = np.zeros(n_parents, np.bool_)
     expected = []
     for h in range(n_parents):
-        child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap, work, frame)
+        child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap, model)
         copy_hypothesis(child, FIRST, gen, h)
         options.append(opt)
-        largest = max(largest, opt[1].size)
         expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
-    scratch = pool_scratch(largest, dim, frame)
     step = 0
     while True:
         growing = False
@@ -645,9 +628,9 @@ def explain_all(scene, settings, parents, n_parents, obs):
                 continue
             i = orders[r][step]
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
-                        children, at, c_root, c_rest, c_moved, pending, scratch)
+                        children, at, c_root, c_rest, c_moved, pending, model)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, work)
+        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model)
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
         step += 1
@@ -708,33 +691,27 @@ def missed(expected, excess, taken):
 
 
 @jit
-def options_of(scene, settings, gen, p, obs, opt, i, moved, scratch):
+def options_of(model, settings, gen, p, obs, opt, i, moved):
     """The options of observation i under partial p: those of its root's base state, or made
-    again under p's own where it has paired something since; their costs (and those made again)
-    written into ``scratch`` (``pool_scratch``)."""
+    again under p's own where it has paired something since (``model``: ``update.pair_model``)."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     part = slice(start[i], start[i + 1])
     if not moved:
-        own = scratch[0][:start[i + 1] - start[i]]
-        for j in range(own.size):
-            own[j] = cost[start[i] + j]
-        return lm[part], own, zh[part], Hs[part]
-    cost, z_hat, H, _, _, _ = condition(scene, settings, gen[0][p], gen[1][p], obs[i], lm[part], taken_by(gen, p), scratch)
+        return lm[part], cost[part].copy(), zh[part], Hs[part]
+    cost, z_hat, H, _, _, _ = condition(model, settings, gen[0][p], gen[1][p], obs[i], lm[part], taken_by(gen, p))
     return lm[part], cost, z_hat, H
 
 
 @jit
-def viable(gen, p, landmarks, cost, null_cost, branch_delta, pairs):
-    """Which options (those of landmarks p has not taken: written into pairs) and whether the null
-    option (returned) lie within branch_delta of the best."""
+def viable(gen, p, landmarks, cost, null_cost, branch_delta):
+    """Which options (those of landmarks p has not taken) and whether the null option lie within
+    branch_delta of the best."""
     taken = taken_by(gen, p)
     for j in range(cost.size):
         if is_taken(landmarks[j], taken):
             cost[j] = np.inf
     limit = least_cost(cost, null_cost) + branch_delta
-    for j in range(cost.size):
-        pairs[j] = cost[j] <= limit
-    return null_cost <= limit
+    return cost <= limit, null_cost <= limit
 
 
 @jit
@@ -759,14 +736,12 @@ def contested(opt, later, landmarks, pairs):
 
 
 @inlined
-def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children, at, c_root, c_rest, c_moved, pending, scratch):
+def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children, at, c_root, c_rest, c_moved, pending, model):
     """Write the children of partial p for observation i from index ``at``: unassigned, or paired
-    with a viable landmark (its state pending); returns the next free index. ``scratch``: its
-    options' (``pool_scratch``)."""
-    landmarks, cost, z_hat, H = options_of(scene, settings, gen, p, obs, opt, i, moved, scratch)
+    with a viable landmark (its state pending); returns the next free index."""
+    landmarks, cost, z_hat, H = options_of(model, settings, gen, p, obs, opt, i, moved)
     o = obs[i]
-    pairs = scratch[6][:landmarks.size]
-    null = viable(gen, p, landmarks, cost, scene.null_cost[o] + settings.null_offset, settings.branch_delta, pairs)
+    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o] + settings.null_offset, settings.branch_delta)
     null = null or contested(opt, later, landmarks, pairs)
     if null:
         copy_hypothesis(gen, p, children, at)
@@ -774,9 +749,7 @@ def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children
         children[4][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, moved
         at += 1
-    for j in range(landmarks.size):
-        if not pairs[j]:
-            continue
+    for j in np.flatnonzero(pairs):
         copy_hypothesis(gen, p, children, at)
         children[2][at] += cost[j]
         children[7][at, children[6][at], 0], children[7][at, children[6][at], 1] = o, landmarks[j]

@@ -49,6 +49,18 @@ SceneArrays = namedtuple("SceneArrays", [
     "obs_dof",             # (K,) int64 each observation's degrees of freedom
 ])
 
+# What an update and a pair's cost read of the scene (``update.updated``, ``update.point_step``,
+# ``beam.condition_into``; built by ``update.pair_model``): a kernel that is not inlined counts a
+# reference to every array it is passed, on entry and on return, and the beam's updates and
+# conditioned options (about a hundred of each a pose on a pixel-only world) were passed the
+# scene's 31 where they read these 16.
+PairModel = namedtuple("PairModel", [
+    "z", "obs_camera", "obs_dof", "nis_bound", "obs_gate",    # the observations, their dof, chi^2 bounds and gates
+    "landmark_xyz", "camera_R", "camera_t", "camera_K",       # the map and the sensors
+    "R_assoc", "R_assoc_inverse", "log_det_R",                # the pairs' noise as association judges them
+    "point", "point_cov", "point_cov_inverse", "log_det_point_cov",   # each observation as a camera-frame point
+])
+
 Settings = namedtuple("Settings", [
     "iterations",           # int: linearizations per update
     "recheck",              # bool
@@ -59,20 +71,4 @@ Settings = namedtuple("Settings", [
     "pool_gate_factor",
     "null_offset",          # how much the scene's null cost was lowered: the null option's viability is
                             # judged before it (``beam_types.BeamSettings.null_offset``)
-])
-
-# The scratch of iterated updates of up to p pairs (``update.update_work``): a caller that updates
-# many times (the beam's pose, the filter's run) allocates it once and passes it down, where each
-# update allocated its own 27 small arrays, more time than its 6 x 6 arithmetic. Arrays whose
-# first axis is the pairs' are used as views of their first p rows; those of 3p x 3p or n x 3p
-# (the few pairs' textbook gain, 3p <= n) are flat, reshaped per call.
-UpdateWork = namedtuple("UpdateWork", [
-    "z", "R", "R_inverse", "landmark_xyz", "pair_camera",   # the pairs' measurements, noise, landmarks, cameras (``updated``)
-    "R_inverse_H", "information", "M", "pivots", "AP", "g",  # the information form (``information_into``)
-    "PHt", "S", "L", "K", "stacked",                         # the textbook gain (``gain_into``), flat
-    "z_hat", "H", "r",                                       # each linearization's predictions and residual
-    "d_position", "frame_R", "frame_E", "frame_t",           # ``observe_pairs_into``'s scratch
-    "delta", "step", "moved",                                # the iterations' steps (n,)
-    "square", "square2", "column",                           # (n, n), (n, n), (n, 1) scratch of the posterior and MAP cost
-    "none",                                                  # an empty start (``updated``'s ``start``: none)
 ])

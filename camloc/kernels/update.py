@@ -35,7 +35,7 @@ from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
-from camloc.kernels.types import UpdateWork
+from camloc.kernels.types import PairModel
 
 
 # ---------------------------------------------------------------------------------------------
@@ -76,6 +76,25 @@ def cho_solve_into(L, b):
         for j in range(i + 1, m):
             s -= L[j, i] * b[j]
         b[i] = s / L[i, i]
+
+
+@jit
+def cho_solve_rows_into(L, B):
+    """Each row b of B (r, m) <- S^-1 b in place (``cho_solve_into``'s arithmetic), L the lower
+    Cholesky factor of S: one call for the gain's rows, where a call and a row's view each (both
+    counting references) cost more than the solve."""
+    m = B.shape[1]
+    for c in range(B.shape[0]):
+        for i in range(m):
+            s = B[c, i]
+            for j in range(i):
+                s -= L[i, j] * B[c, j]
+            B[c, i] = s / L[i, i]
+        for i in range(m - 1, -1, -1):
+            s = B[c, i]
+            for j in range(i + 1, m):
+                s -= L[j, i] * B[c, j]
+            B[c, i] = s / L[i, i]
 
 
 @jit
@@ -137,7 +156,7 @@ def gain_into(P, H, R, PHt, S, L, K):
     for c in range(n):
         for r in range(PHt.shape[1]):
             K[c, r] = PHt[c, r]
-        cho_solve_into(L, K[c])                                     # S symmetric: row c of P H' S^-1
+    cho_solve_rows_into(L, K)                                       # S symmetric: row c of P H' S^-1
 
 
 @jit
@@ -378,53 +397,28 @@ def prior_quadratic(P, d, M, pivots, b):
     return total
 
 
-@entry
-def update_work(n, p, n_cameras, landmark_columns):
-    """The scratch of iterated updates of up to p pairs on a state of n entries, with n_cameras
-    sensors and landmarks of landmark_columns coordinates (``types.UpdateWork``): allocated once
-    by a caller that updates many times, where an update allocating its own spent more time on
-    that than on its arithmetic."""
-    p = max(p, 1)
-    return UpdateWork(np.empty((p, 3)), np.empty((p, 3, 3)), np.empty((p, 3, 3)), np.empty((p, landmark_columns)),
-                      np.empty(p, np.int64),
-                      np.empty((p, 3, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n),
-                      np.empty(n * n), np.empty(n * n), np.empty(n * n), np.empty(n * n), np.empty(n),
-                      np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3)),
-                      np.empty((n_cameras, 3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(3),
-                      np.empty(n), np.empty(n), np.empty(n),
-                      np.empty((n, n)), np.empty((n, n)), np.empty((n, 1)),
-                      np.empty(0))
-
-
-@inlined
-def shaped(flat, rows, columns):
-    """The first rows x columns entries of a flat buffer as a (rows, columns) array (a view)."""
-    return flat[:rows * columns].reshape((rows, columns))
-
-
 @jit
 def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                    iterations, z_hat, H, start, work):
+                    iterations, z_hat, H, start):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
     predictions at x. With a ``start`` (n,) (none: size 0) the iterations after the first
     linearize first at start (a state near the MAP estimate, where the prior is too far for
-    Gauss-Newton). ``work``: scratch for p pairs or more (``update_work``), none of it read.
+    Gauss-Newton).
 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
-    prior), new arrays."""
+    prior)."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = z.shape[0]
     m = 3 * p
     few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
-    # every linearization's scratch, the caller's: views of the rows of p pairs; the textbook
-    # gain's (3p <= n) of its flat buffers
-    R_inverse_H, information, M, pivots, AP, g = work.R_inverse_H[:p], work.information, work.M, work.pivots, work.AP, work.g
-    w = m if few else 0                                              # the gain's columns (none: the information form)
-    PHt, S, L, K = shaped(work.PHt, n, w), shaped(work.S, w, w), shaped(work.L, w, w), shaped(work.K, n, w)
-    z_hat_i, H_i, r = work.z_hat[:p], work.H[:p], work.r[:p]
-    d_position, frame = work.d_position, (work.frame_R, work.frame_E, work.frame_t)
-    delta, step, moved, x_i = work.delta, work.step, work.moved, np.empty(n)
+    # every linearization's scratch, allocated once
+    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
+    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
+    PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
+    z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
+    d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    delta, step, moved, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
 
     y_prior = np.empty((p, 3))
     for i in range(p):                                               # a marker's psi wrapped (``wrapped_residual``)
@@ -433,7 +427,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             y_prior[i, a] = wrapped_residual(kind, a, z[i, a] - z_hat[i, a])
     if few:
         gain_into(P, H, R, PHt, S, L, K)
-        nis = stacked_quadratic(L, y_prior, work.stacked[:m])        # NIS = y' S^-1 y
+        nis = stacked_quadratic(L, y_prior, np.empty(m))             # NIS = y' S^-1 y
         gain_step_into(K, y_prior, delta)
     else:
         information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
@@ -472,24 +466,34 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
     if few:
-        covariance_posterior_into(P, K, H_last, R, P_post, work.square, work.square2)
+        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((n, n)), np.empty((n, n)))
     else:
-        posterior_covariance_into(P, information, M, pivots, P_post, work.square)
+        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((n, n)))
     # the MAP cost at x+, predicted into the iterations' buffers (H_last is read above)
     observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
     for i in range(p):
         for a in range(3):
             r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
     difference_into(x_i, x, moved)
-    cost = prior_quadratic(P, moved, M, pivots, work.column) + block_quadratic(r, R_inverse)
+    cost = prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
     return x_i, P_post, nis, cost, y_prior
+
+
+@inlined
+def pair_model(scene):
+    """What an update and a pair's cost read of the scene (``types.PairModel``), to pass
+    ``updated`` (and the beam's ``condition``) instead of the scene: a caller that updates often
+    builds it once."""
+    return PairModel(scene.z, scene.obs_camera, scene.obs_dof, scene.nis_bound, scene.obs_gate, scene.landmark_xyz,
+                     scene.camera_R, scene.camera_t, scene.camera_K, scene.R_assoc, scene.R_assoc_inverse, scene.log_det_R,
+                     scene.point, scene.point_cov, scene.point_cov_inverse, scene.log_det_point_cov)
 
 
 @jit
 def point_step(scene, x, P, obs, z_hat, H):
     """x after one EKF update with the pairs' measurements as camera-frame points, where the model
     is nearly linear in the position: where Gauss-Newton in (u, v, depth) from a wide prior
-    stalls, the iterations restart from here."""
+    stalls, the iterations restart from here. ``scene``: a ``types.PairModel``."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = obs.size
     Hp = np.empty((p, 3, n))
@@ -519,21 +523,22 @@ def point_step(scene, x, P, obs, z_hat, H):
 
 
 @entry
-def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, work):
+def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
     predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)
     and ``noise_inverse``: the file's (``scene.R_file``) for the estimate, the floored noise
     association judges pairs by (``scene.R_assoc``) for the scratch filters that decide it.
+    ``scene``: what the update reads of the scene (``pair_model``: a ``types.PairModel``).
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
-    posterior with the lower MAP cost is kept. ``work``: the updates' scratch (``update_work``; one
-    of fewer than p pairs is replaced by a new one). Returns as ``iterated_update``."""
+    posterior with the lower MAP cost is kept. Returns as ``iterated_update``."""
     p = obs.size
-    if p > work.z.shape[0]:
-        work = update_work(x.shape[0], p, scene.camera_R.shape[0], scene.landmark_xyz.shape[1])
-    z, R, R_inverse = work.z[:p], work.R[:p], work.R_inverse[:p]
-    landmark_xyz, pair_camera = work.landmark_xyz[:p], work.pair_camera[:p]   # with a marker's heading (``SceneArrays``)
+    z = np.empty((p, 3))
+    R = np.empty((p, 3, 3))
+    R_inverse = np.empty((p, 3, 3))
+    landmark_xyz = np.empty((p, scene.landmark_xyz.shape[1]))   # with a marker's heading (``SceneArrays``)
+    pair_camera = np.empty(p, np.int64)
     for i in range(p):
         o = obs[i]
         for a in range(3):
@@ -544,16 +549,17 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
         for a in range(landmark_xyz.shape[1]):
             landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, work.none, work)
+    none = np.empty(0)
+    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
     if iterations < 2 or not (start.size or best[2] > scene.nis_bound[dof]):
         return best
-    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, work.none)
+    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, none)
     for s in starts:
         if s.size:
-            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, work)
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     return best
