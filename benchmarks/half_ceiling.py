@@ -16,21 +16,34 @@ Where the online MAP of half the map is over 1.3x, issue 38's target (the online
 of the complete map's) is beyond any online estimator on that world with the true association.
 
     nice python benchmarks/half_ceiling.py --trajectories grid,smooth3d,aerial --seeds 0,1,2,3 --stride 2
+    nice python benchmarks/half_ceiling.py --real --seeds 0,1,2 --stride 1
+
+``--real``: the real file's half variants instead (``real_variants.py``'s, the same seeds draw the
+same removals), when ``../shared/datasets`` is present; measured, never tuned on.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+import tempfile
+import warnings
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
 from camloc.dataset import first_poses
+from camloc.g2o import read_g2o
 from camloc.localizer import localize
 from camloc.localizer_config import LocalizerConfig
 from camloc.results import UNASSOCIATED
 from camloc.simulate import SimulationConfig, simulate_labelled
 from camloc.smoother import SmootherConfig, smooth_run
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _bench import real_dataset  # noqa: E402
+from real_variants import without_half  # noqa: E402
 
 
 def true_association(dataset, run, landmark_ids):
@@ -70,6 +83,31 @@ def world_row(full, half, stride: int) -> dict:
             "half batch of default": ratio(batch_default[at])}
 
 
+def simulated_worlds(args):
+    """(name, full, half) of each trajectory and seed."""
+    for trajectory in args.trajectories.split(","):
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter)
+            full = simulate_labelled(SimulationConfig(**base), seed=seed).dataset
+            half = simulate_labelled(SimulationConfig(**base, withhold_map=0.5), seed=seed).dataset
+            yield f"{trajectory}/{seed}", full, half
+
+
+def real_worlds(args, folder: Path):
+    """(name, full, half) of the real file and each seed's removal of half its map."""
+    source = real_dataset()
+    if source is None:
+        print("the real dataset ../shared/datasets is not present: nothing to measure")
+        return
+    lines = source.read_text().splitlines()
+    for seed in [int(s) for s in args.seeds.split(",")]:
+        path = folder / f"half{seed}.g2o"
+        path.write_text("\n".join(without_half(lines, seed)) + "\n")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield f"real half{seed}", read_g2o(source), read_g2o(path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trajectories", default="grid,smooth3d,aerial")
@@ -77,18 +115,17 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=300)
     parser.add_argument("--clutter", type=float, default=0.0)
     parser.add_argument("--stride", type=int, default=5, help="poses between those scored (each costs a batch solve)")
+    parser.add_argument("--real", action="store_true", help="the real file's half variants (seeds as real_variants.py)")
     args = parser.parse_args()
     header = None
-    for trajectory in args.trajectories.split(","):
-        for seed in [int(s) for s in args.seeds.split(",")]:
-            base = dict(trajectory=trajectory, poses=args.poses, clutter_fraction=args.clutter)
-            full = simulate_labelled(SimulationConfig(**base), seed=seed).dataset
-            half = simulate_labelled(SimulationConfig(**base, withhold_map=0.5), seed=seed).dataset
+    with tempfile.TemporaryDirectory(prefix="camloc-half-") as tmp:
+        worlds = real_worlds(args, Path(tmp)) if args.real else simulated_worlds(args)
+        for name, full, half in worlds:
             row = world_row(full, half, args.stride)
             if header is None:
                 header = list(row)
                 print("world | " + " | ".join(header))
-            print(f"{trajectory}/{seed} | {row['full filter m']:.3f} | " + " | ".join(f"{row[k]:.2f}" for k in header[1:]), flush=True)
+            print(f"{name} | {row['full filter m']:.3f} | " + " | ".join(f"{row[k]:.2f}" for k in header[1:]), flush=True)
 
 
 if __name__ == "__main__":
