@@ -21,6 +21,7 @@ from camloc.constants import (
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
 from camloc.kernels.state import difference
+from camloc.kernels.types import PairModel
 from camloc.kernels.update import updated
 from camloc.kernels.view import widened_view
 from camloc.measurement import DEPTH
@@ -140,10 +141,13 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
                                               scene.null_cost[obs], candidates.astype(np.int64), scene.obs_gate[o])
     explained = []
+    # what the update reads of the scene (``update.pair_model``), built here: that kernel called
+    # from Python would be compiled once more, with a wrapper boxing its result
+    model = PairModel(*(getattr(scene, name) for name in PairModel._fields))
     for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
         i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
         seeded = kb.gather(h, np.array([0]), 1 + obs.size)
-        seeded[0][0], seeded[1][0] = updated(scene, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
+        seeded[0][0], seeded[1][0] = updated(model, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
                                              pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)

@@ -444,6 +444,22 @@ def test_cholesky_solve_is_s_inverse_b(rng):
     np.testing.assert_allclose(got, np.linalg.solve(S, b), rtol=RTOL, atol=1e-14)
 
 
+@pytest.mark.parametrize("m", [3, 6])
+def test_cholesky_solve_of_rows_is_each_row_solved_alone(rng, m):
+    # the gain's rows solved in one call (``cho_solve_rows_into``): bit for bit ``cho_solve_into``
+    # on each row (the beam's results do not move), and S^-1 b
+    S, B = _random_spd(rng, m), rng.normal(size=(6, m))
+    L = np.empty((m, m))
+    update.cholesky_into(S, L)
+    got = B.copy()
+    update.cho_solve_rows_into(L, got)
+    for c in range(6):
+        row = B[c].copy()
+        update.cho_solve_into(L, row)
+        assert np.array_equal(got[c], row)
+    np.testing.assert_allclose(got, np.linalg.solve(S, B.T).T, rtol=RTOL, atol=1e-14)
+
+
 def test_joseph_posterior_is_its_formula_for_any_gain_and_p_minus_k_s_k_transpose_for_the_optimal_one(rng):
     H, R, _, _ = _pairs(rng, 2)
     P = _random_spd(rng, 6, 0.2)

@@ -655,3 +655,33 @@ def test_a_clutter_detection_beside_a_landmark_s_own_does_not_take_it_first():
     explained = search.expansion.explain(Hypothesis(x, P, 0.0, 0), np.array([clutter, own]))
     best = min(explained, key=lambda h: h.cost)
     assert best.pairs == ((own, lm),) and best.unassigned == 1
+
+
+def test_the_update_reads_the_scene_through_its_pair_model():
+    """``updated`` is passed what it reads of the scene (``update.pair_model``: 16 of its 31
+    arrays, the same arrays, not copies) and gives what it gives with the whole scene, bit for bit,
+    with and without the restart from the pairs' points."""
+    from camloc.kernels import update
+    from camloc.kernels.recheck import predict_pairs
+    from camloc.localizer import LocalizerConfig
+    from camloc.scene import build_scene, build_settings
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=20, cameras=2, intrinsics="pixel"), seed=2)
+    config = LocalizerConfig()
+    scene, settings = build_scene(dataset, config), build_settings(config)
+    model = update.pair_model(scene)
+    assert all(getattr(model, name) is getattr(scene, name) for name in model._fields)
+    k = 10
+    obs = np.flatnonzero((dataset.obs_pose_index == k) & (dataset.obs_true_landmark >= 0))[:3].astype(np.int64)
+    landmarks = scene.true_index[obs]
+    x = np.r_[dataset.truth_xyz[k], geometry.matrix_to_euler(geometry.quat_to_matrix(dataset.truth_quat_xyzw[k]))]
+    for offset, spread in ((0.01, 0.02), (0.5, 1.0)):   # a prior near the truth, and one far enough to restart
+        prior, P = x + offset, np.eye(6) * spread**2
+        z_hat, H = _jit.from_python(predict_pairs)(scene, prior, obs, landmarks)
+        args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, np.empty(0))
+        whole, through = update.updated(scene, *args), update.updated(model, *args)
+        restarted = whole[2] > scene.nis_bound[scene.obs_dof[obs].sum()]
+        assert restarted == (offset > 0.1)
+        for a, b in zip(whole, through):
+            assert np.array_equal(a, b)

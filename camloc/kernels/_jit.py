@@ -75,6 +75,12 @@ jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTI
 # 3.3 times as many in ``condition_into``. Hence: the sensor's kind and the state's size pick the
 # loop, not each step of one loop (``camera.predict_candidates``), and a size-long loop takes the
 # size as a constant (``sym3.spread``) or counts to 6 skipping the smaller state's entries.
+# Measured on the beam (docs/performance.md, 2026-12-05, "The beam's allocations and reference
+# counts"): a small ``jit`` leaf is inlined by LLVM within its caller's module already, with no
+# count; ``inlined`` tiny per-candidate leaves (``as_point``, ``is_taken``) made the beam 4% slower.
+# A scratch array passed down, or a view of one, is counted as an allocated one costs (17 against
+# 14 ns): a work handed through the update's calls cut the allocations a pose 3,350 -> 1,494 and ran
+# 3-6% slower. What pays is fewer arrays passed to a non-inlined call (``types.PairModel``).
 inlined = partial(numba.njit, inline="always", **OPTIONS)
 
 _FROM_PYTHON: dict = {}

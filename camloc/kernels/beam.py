@@ -26,7 +26,7 @@ from camloc.kernels.motion import predict
 from camloc.kernels.rotation import wrap_angle
 from camloc.kernels.state import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
-from camloc.kernels.update import innovation_cost, updated
+from camloc.kernels.update import innovation_cost, pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
@@ -278,7 +278,7 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     some of the pose's pairs, less the landmarks it has taken, written into rows at..at + g - 1 of
     cost, z_hat, H, ys, Hcs and in_point. The pool is kept; its predictions are made again (moving
     the old ones to first order is not enough: a pair's correction moves a landmark a metre away
-    by pixels more than that)."""
+    by pixels more than that). ``scene``: what the pairs' costs read of it (``update.pair_model``)."""
     c = scene.obs_camera[o]
     R_rc, t_rc, K = scene.camera_R[c], scene.camera_t[c], scene.camera_K[c]
     R, E, t = robot_frame(x)
@@ -347,7 +347,7 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
 
 
 @inlined
-def after_clear(scene, settings, gen, h, obs, cap):
+def after_clear(scene, settings, gen, h, obs, cap, model):
     """Hypothesis h of gen after its stacked updates with the pose's clear observations: the clear
     ones are taken in one stacked update; conditioned on them the others are gated again, and those
     that became clear are taken in the next, until none does (an observation is often ambiguous
@@ -392,11 +392,11 @@ def after_clear(scene, settings, gen, h, obs, cap):
                 rest += 1
         n_pending = rest
         if n_taken:
-            x, P = take_clear_pairs(scene, settings, child, x, P, o, options, opt)
+            x, P = take_clear_pairs(scene, settings, child, x, P, o, options, opt, model)
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
-                condition_into(scene, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
+                condition_into(model, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
                                in_point, start[i])
     put_state(child, FIRST, x, P)
     order, least = branch_order(scene, obs, pending[:n_pending], start, cost)
@@ -404,10 +404,10 @@ def after_clear(scene, settings, gen, h, obs, cap):
 
 
 @inlined
-def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
+def take_clear_pairs(scene, settings, child, x, P, o, options, opt, model):
     """(x, P) updated with the clear pairs of observations o (their chosen options of ``opt``), in
     one stacked update; their joint cost, each pair in the coordinates its option chose, and the
-    pairs themselves are added to ``child`` (a generation of one)."""
+    pairs themselves are added to ``child`` (a generation of one). ``model``: ``update.pair_model``."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     n_taken = o.size
     no_start = np.empty(0)                       # ``updated``'s start: none
@@ -427,7 +427,7 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt):
             for b in range(3):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
-    x_new, P_new = updated(scene, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
+    x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
                            no_start)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
     child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
@@ -469,33 +469,34 @@ def same_state(gen, a, b, merge_sigma):
 
 
 @inlined
-def settle(scene, settings, gen, c, parents, pending):
+def settle(scene, settings, gen, c, parents, pending, model):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
-    ambiguous pose many children are pruned on their cost alone and never need their update."""
+    ambiguous pose many children are pruned on their cost alone and never need their update.
+    ``model``: what the update reads of the scene (``update.pair_model``)."""
     source, obs, landmark, z_hat, H, waiting = pending
     if not waiting[c]:
         return
     p = source[c]
-    x, P = updated(scene, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
+    x, P = updated(model, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
                    z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
     put_state(gen, c, x, P)
     waiting[c] = False
 
 
 @inlined
-def nothing_pending(scene, settings, gen, c, parents, pending):
+def nothing_pending(scene, settings, gen, c, parents, pending, model):
     """``settle`` where every state is settled (``prune``'s generation): its pruning compiled
-    without the update that settling calls."""
+    without the update that settling calls (its ``model``: None)."""
     return
 
 
 @inlined
-def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one):
+def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
     beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
     are settled by ``settle_one`` (``settle``, or ``nothing_pending``) as a comparison first
-    needs them)."""
+    needs them, passed ``model``)."""
     order = candidates[np.argsort(gen[2][candidates], kind="mergesort")]
     kept = np.empty(min(order.size, settings.beam_width), np.int64)
     n = 0
@@ -510,7 +511,7 @@ def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
-                    settle_one(scene, settings, gen, h, parents, pending)
+                    settle_one(scene, settings, gen, h, parents, pending, model)
             if same_state(gen, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
@@ -530,11 +531,11 @@ def settled(n, dim):
 @entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending)
+    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending, None)
 
 
 @inlined
-def prune_partials(scene, settings, gen, root, rest, parents, pending):
+def prune_partials(scene, settings, gen, root, rest, parents, pending, model):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
@@ -548,7 +549,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending):
             continue
         seen[r] = True
         kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending,
-                                                     settle)))
+                                                     settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -561,7 +562,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending):
         kept = np.concatenate((ranked[first], others))
     for c in kept:
         if pending[5][c]:
-            settle(scene, settings, gen, c, parents, pending)
+            settle(scene, settings, gen, c, parents, pending, model)
     return kept
 
 
@@ -579,13 +580,14 @@ def explain_all(scene, settings, parents, n_parents, obs):
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
     gen = new_generation(n_parents, cap, dim)
+    model = pair_model(scene)                   # what the updates read of the scene
     options, orders, leasts = [], [], []
     root = np.arange(n_parents)
     rest = np.zeros(n_parents)
     moved = np.zeros(n_parents, np.bool_)
     expected = []
     for h in range(n_parents):
-        child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap)
+        child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap, model)
         copy_hypothesis(child, FIRST, gen, h)
         options.append(opt)
         expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
@@ -626,9 +628,9 @@ def explain_all(scene, settings, parents, n_parents, obs):
                 continue
             i = orders[r][step]
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
-                        children, at, c_root, c_rest, c_moved, pending)
+                        children, at, c_root, c_rest, c_moved, pending, model)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending)
+        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model)
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
         step += 1
@@ -689,14 +691,14 @@ def missed(expected, excess, taken):
 
 
 @jit
-def options_of(scene, settings, gen, p, obs, opt, i, moved):
+def options_of(model, settings, gen, p, obs, opt, i, moved):
     """The options of observation i under partial p: those of its root's base state, or made
-    again under p's own where it has paired something since."""
+    again under p's own where it has paired something since (``model``: ``update.pair_model``)."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     part = slice(start[i], start[i + 1])
     if not moved:
         return lm[part], cost[part].copy(), zh[part], Hs[part]
-    cost, z_hat, H, _, _, _ = condition(scene, settings, gen[0][p], gen[1][p], obs[i], lm[part], taken_by(gen, p))
+    cost, z_hat, H, _, _, _ = condition(model, settings, gen[0][p], gen[1][p], obs[i], lm[part], taken_by(gen, p))
     return lm[part], cost, z_hat, H
 
 
@@ -734,10 +736,10 @@ def contested(opt, later, landmarks, pairs):
 
 
 @inlined
-def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children, at, c_root, c_rest, c_moved, pending):
+def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children, at, c_root, c_rest, c_moved, pending, model):
     """Write the children of partial p for observation i from index ``at``: unassigned, or paired
     with a viable landmark (its state pending); returns the next free index."""
-    landmarks, cost, z_hat, H = options_of(scene, settings, gen, p, obs, opt, i, moved)
+    landmarks, cost, z_hat, H = options_of(model, settings, gen, p, obs, opt, i, moved)
     o = obs[i]
     pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o] + settings.null_offset, settings.branch_delta)
     null = null or contested(opt, later, landmarks, pairs)

@@ -15,7 +15,7 @@ from camloc.kernels.planar import SE2_DIM
 from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs, predict_pairs, rival_margins
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
-from camloc.kernels.update import updated
+from camloc.kernels.update import pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import MARKER, PIXEL, POINT2
 
@@ -151,6 +151,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
     counters[0] counts updates, counters[1] is the pose being filtered (where an error stopped
     it). Returns (x, P) after pose last - 1."""
     no_start = np.empty(0)                       # ``updated``'s start: none
+    model = pair_model(scene)                    # what ``updated`` reads of the scene
     for k in range(first, last):
         counters[1] = k
         if k > 0:
@@ -170,13 +171,13 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 # the pose where Gauss-Newton from the slip's wide prior can settle metres away
                 seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
                 z_hat, H = predict_pairs(scene, x, seed_obs, seed_landmark)
-                start = updated(scene, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
+                start = updated(model, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
                                 no_start)[0]
         if obs.size == 0:
             record_state(states, covs, k, x, P)
             continue
         z_hat, H = predict_pairs(scene, x, obs, landmarks)
-        result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start)
+        result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
         if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:
@@ -185,7 +186,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 obs, landmarks = obs[keep], landmarks[keep]
                 if obs.size:
                     z_hat, H = predict_pairs(scene, x, obs, landmarks)
-                    result = updated(scene, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
+                    result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
                                      no_start)
         if obs.size:
             x_post, P_post, nis_k, cost_k, y = result

@@ -49,6 +49,18 @@ SceneArrays = namedtuple("SceneArrays", [
     "obs_dof",             # (K,) int64 each observation's degrees of freedom
 ])
 
+# What an update and a pair's cost read of the scene (``update.updated``, ``update.point_step``,
+# ``beam.condition_into``; built by ``update.pair_model``): a kernel that is not inlined counts a
+# reference to every array it is passed, on entry and on return, and the beam's updates and
+# conditioned options (about a hundred of each a pose on a pixel-only world) were passed the
+# scene's 31 where they read these 16.
+PairModel = namedtuple("PairModel", [
+    "z", "obs_camera", "obs_dof", "nis_bound", "obs_gate",    # the observations, their dof, chi^2 bounds and gates
+    "landmark_xyz", "camera_R", "camera_t", "camera_K",       # the map and the sensors
+    "R_assoc", "R_assoc_inverse", "log_det_R",                # the pairs' noise as association judges them
+    "point", "point_cov", "point_cov_inverse", "log_det_point_cov",   # each observation as a camera-frame point
+])
+
 Settings = namedtuple("Settings", [
     "iterations",           # int: linearizations per update
     "recheck",              # bool

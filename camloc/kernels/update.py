@@ -35,6 +35,7 @@ from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
+from camloc.kernels.types import PairModel
 
 
 # ---------------------------------------------------------------------------------------------
@@ -75,6 +76,25 @@ def cho_solve_into(L, b):
         for j in range(i + 1, m):
             s -= L[j, i] * b[j]
         b[i] = s / L[i, i]
+
+
+@jit
+def cho_solve_rows_into(L, B):
+    """Each row b of B (r, m) <- S^-1 b in place (``cho_solve_into``'s arithmetic), L the lower
+    Cholesky factor of S: one call for the gain's rows, where a call and a row's view each (both
+    counting references) cost more than the solve."""
+    m = B.shape[1]
+    for c in range(B.shape[0]):
+        for i in range(m):
+            s = B[c, i]
+            for j in range(i):
+                s -= L[i, j] * B[c, j]
+            B[c, i] = s / L[i, i]
+        for i in range(m - 1, -1, -1):
+            s = B[c, i]
+            for j in range(i + 1, m):
+                s -= L[j, i] * B[c, j]
+            B[c, i] = s / L[i, i]
 
 
 @jit
@@ -136,7 +156,7 @@ def gain_into(P, H, R, PHt, S, L, K):
     for c in range(n):
         for r in range(PHt.shape[1]):
             K[c, r] = PHt[c, r]
-        cho_solve_into(L, K[c])                                     # S symmetric: row c of P H' S^-1
+    cho_solve_rows_into(L, K)                                       # S symmetric: row c of P H' S^-1
 
 
 @jit
@@ -459,11 +479,21 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     return x_i, P_post, nis, cost, y_prior
 
 
+@inlined
+def pair_model(scene):
+    """What an update and a pair's cost read of the scene (``types.PairModel``), to pass
+    ``updated`` (and the beam's ``condition``) instead of the scene: a caller that updates often
+    builds it once."""
+    return PairModel(scene.z, scene.obs_camera, scene.obs_dof, scene.nis_bound, scene.obs_gate, scene.landmark_xyz,
+                     scene.camera_R, scene.camera_t, scene.camera_K, scene.R_assoc, scene.R_assoc_inverse, scene.log_det_R,
+                     scene.point, scene.point_cov, scene.point_cov_inverse, scene.log_det_point_cov)
+
+
 @jit
 def point_step(scene, x, P, obs, z_hat, H):
     """x after one EKF update with the pairs' measurements as camera-frame points, where the model
     is nearly linear in the position: where Gauss-Newton in (u, v, depth) from a wide prior
-    stalls, the iterations restart from here."""
+    stalls, the iterations restart from here. ``scene``: a ``types.PairModel``."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = obs.size
     Hp = np.empty((p, 3, n))
@@ -498,6 +528,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)
     and ``noise_inverse``: the file's (``scene.R_file``) for the estimate, the floored noise
     association judges pairs by (``scene.R_assoc``) for the scratch filters that decide it.
+    ``scene``: what the update reads of the scene (``pair_model``: a ``types.PairModel``).
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
