@@ -202,6 +202,22 @@ def test_run_map_prior_writes_the_map_and_eval_scores_it(tmp_path):
     assert report["added_twice"]["landmarks"] == 0 and report["clutter"]["landmarks"] == 0
 
 
+def test_a_mapping_run_names_the_smooth_command_that_estimates_its_map_again(tmp_path):
+    """The run's table says how to smooth it with the run's own --map and sigma; that command
+    runs on the folder and writes the smoothed path and map."""
+    world = tmp_path / "w.g2o"
+    assert _cli("simulate", "-o", world, "--poses", "60", "--seed", "2", "--withhold-map", "0.2", "-q").exit_code == 0
+    run = _cli("run", world, "--map", "prior", "--map-sigma", "0.05", "-o", tmp_path / "r")
+    assert run.exit_code == 0, run.output
+    said = " ".join(run.output.split())
+    assert "'camloc smooth" in said and "--map prior --map-sigma 0.05' estimates poses and map again" in said
+    plain = _cli("run", world, "-o", tmp_path / "e")
+    assert plain.exit_code == 0 and "--map exact'" in " ".join(plain.output.split())
+    smoothed = _cli("smooth", tmp_path / "r", "--map", "prior", "--map-sigma", "0.05", "-q")
+    assert smoothed.exit_code == 0, smoothed.output
+    assert (tmp_path / "r" / "smoothed.tum").is_file() and (tmp_path / "r" / "map.csv").is_file()
+
+
 def test_a_file_without_a_map_is_mapped_from_scratch(tmp_path):
     """No landmark vertex: --map auto runs as none and adds landmarks (with the true association it
     beats odometry: test_no_map_maps_everything_from_the_start)."""
