@@ -48,7 +48,9 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     observation's, more than ``recheck_ray_margin`` over its nearest rival landmark, each
     observation of the pose (obs (m,)) judged by the posterior of the other pairs; and whose
     landmark lies within the candidates' distance of its camera at x_post (``within_reach``)."""
-    keep = within_reach(scene, x_post, pair_obs, pair_landmarks)
+    # the candidates' distance (``view_limits[6]``, a pixel-only file's learned reach; inf: none)
+    reach = scene.view_limits[6] if scene.view_limits.shape[0] > 6 else np.inf
+    keep = within_reach(scene, x_post, pair_obs, pair_landmarks, reach)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     n = x_post.shape[0]                          # the state's size: 6 (Euler), 3 (planar)
     information = np.zeros((cameras.size, n, n))
@@ -84,9 +86,9 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
         cost = leave_one_out_costs(scene.z[mine], scene.R_assoc[mine], scene.R_assoc_inverse[mine], scene.log_det_R[mine],
                                    z_hat, H, chosen, others, scene.obs_gate[mine[0]], scene.camera_K[cameras[g], 4])  # a sensor's observations share their dof and kind
         row, steal = assignment_margins(cost, scene.null_cost[mine], chosen)
-        # a ray passes near several landmarks; judged by its rivals only within the camera's reach
-        # (``view_limits[6]``): beyond it, landmarks the camera cannot see crowd every ray
-        ray = scene.camera_K[cameras[g], 4] == PIXEL and scene.view_limits.shape[0] > 6 and scene.view_limits[6] < np.inf
+        # a ray passes near several landmarks; judged by its rivals only within the camera's reach:
+        # beyond it, landmarks the camera cannot see crowd every ray
+        ray = scene.camera_K[cameras[g], 4] == PIXEL and reach < np.inf
         rival = rival_margins(cost, chosen)
         for r in range(mine.size):
             for q in range(pair_obs.size):
@@ -97,12 +99,11 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
 
 
 @inlined
-def within_reach(scene, x, pair_obs, pair_landmarks):
-    """Which pairs' landmarks lie within the candidates' distance (``view_limits[6]``, a pixel-only
-    file's learned reach; inf: every one) of their camera at x (a planar sensor's: every one). The
-    numpy twin is ``AssociationScene.within_reach``."""
+def within_reach(scene, x, pair_obs, pair_landmarks, reach):
+    """Which pairs' landmarks lie within ``reach`` (``recheck``'s candidates' distance; inf: every
+    one) of their camera at x (a planar sensor's: every one). The numpy twin is
+    ``AssociationScene.within_reach``."""
     within = np.ones(pair_obs.size, np.bool_)
-    reach = scene.view_limits[6] if scene.view_limits.shape[0] > 6 else np.inf
     if not reach < np.inf:
         return within
     for q in range(pair_obs.size):
