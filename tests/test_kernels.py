@@ -679,9 +679,41 @@ def test_the_update_reads_the_scene_through_its_pair_model():
     for offset, spread in ((0.01, 0.02), (0.5, 1.0)):   # a prior near the truth, and one far enough to restart
         prior, P = x + offset, np.eye(6) * spread**2
         z_hat, H = _jit.from_python(predict_pairs)(scene, prior, obs, landmarks)
-        args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, np.empty(0))
+        args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, np.empty(0), True)
         whole, through = update.updated(scene, *args), update.updated(model, *args)
         restarted = whole[2] > scene.nis_bound[scene.obs_dof[obs].sum()]
         assert restarted == (offset > 0.1)
         for a, b in zip(whole, through):
             assert np.array_equal(a, b)
+
+
+def test_an_update_without_its_map_cost_keeps_the_same_posterior():
+    """The beam's scratch updates read only the state, so ``updated`` leaves their MAP cost out
+    (NaN): the posterior, NIS and innovation are bit for bit those of an update that computes it,
+    and where the update restarts (an innovation beyond its bound, or a start given) the cost it
+    compares is still computed, so the same posterior is kept, with its cost."""
+    from camloc.kernels.recheck import predict_pairs
+    from camloc.localizer import LocalizerConfig
+    from camloc.scene import build_scene, build_settings
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=20, cameras=2, intrinsics="pixel"), seed=2)
+    config = LocalizerConfig()
+    scene, settings = build_scene(dataset, config), build_settings(config)
+    model = update.pair_model(scene)
+    k = 10
+    obs = np.flatnonzero((dataset.obs_pose_index == k) & (dataset.obs_true_landmark >= 0))[:3].astype(np.int64)
+    landmarks = scene.true_index[obs]
+    x = np.r_[dataset.truth_xyz[k], geometry.matrix_to_euler(geometry.quat_to_matrix(dataset.truth_quat_xyzw[k]))]
+    for offset, spread, start in ((0.01, 0.02, False), (0.5, 1.0, False), (0.01, 0.02, True)):
+        prior, P = x + offset, np.eye(6) * spread**2
+        z_hat, H = _jit.from_python(predict_pairs)(scene, prior, obs, landmarks)
+        given = x + 0.005 if start else np.empty(0)
+        args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, given)
+        costed, costless = update.updated(model, *args, True), update.updated(model, *args, False)
+        for a, b in zip(costed[:3] + costed[4:], costless[:3] + costless[4:]):
+            assert np.array_equal(a, b)
+        restarted = start or costed[2] > scene.nis_bound[scene.obs_dof[obs].sum()]
+        assert restarted == (offset > 0.1 or start)
+        assert np.isfinite(costed[3])
+        assert costless[3] == costed[3] if restarted else np.isnan(costless[3])

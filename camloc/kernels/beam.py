@@ -428,7 +428,7 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt, model):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
     x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
-                           no_start)[:2]
+                           no_start, False)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
     child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
     for t in range(n_taken):
@@ -479,7 +479,7 @@ def settle(scene, settings, gen, c, parents, pending, model):
         return
     p = source[c]
     x, P = updated(model, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
-                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0))[:2]
+                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), False)[:2]
     put_state(gen, c, x, P)
     waiting[c] = False
 
@@ -594,14 +594,14 @@ def explain_all(scene, settings, parents, n_parents, obs):
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
+        # the misses already sure: in no pool of an observation still to explain, and not taken
+        gen[2][h] += missed(expected[h][0], expected[h][1], taken_by(gen, h), opt, order, -1)
     step = 0
     while True:
         growing = False
         for r in root:
             growing = growing or step < orders[r].size
-        if not growing:
-            for c in range(root.size):
-                gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen, c))
+        if not growing:                          # every miss charged as it became sure
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
@@ -627,8 +627,11 @@ def explain_all(scene, settings, parents, n_parents, obs):
                 at += 1
                 continue
             i = orders[r][step]
+            first = at
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
                         children, at, c_root, c_rest, c_moved, pending, model)
+            for c in range(first, at):              # the misses that became sure with observation i
+                children[2][c] += missed(expected[r][0], expected[r][1], taken_by(children, c), options[r], orders[r][step + 1:], i)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
         kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model)
         gen = gather(children, kept, cap)
@@ -643,7 +646,7 @@ def expected_landmarks(scene, x, obs, opt):
     cost): those in the pool (``opt``, its options) of one of its pixel observations whose distance
     from that observation's camera lies within the scene's detection range (``view_limits[3:5]``,
     ``observation_space.detection_range``). The charge itself (``camloc.miss_term``) is computed by
-    ``missed``, for the landmarks an explanation leaves unclaimed only: most are claimed.
+    ``missed``, for the landmarks an explanation surely leaves unclaimed only: most are claimed.
     ``camloc.beam_expansion.PoseExpansion.expected``."""
     low, high = scene.view_limits[3], scene.view_limits[4]
     start, lm, pool_cost = opt[0], opt[1], opt[8]
@@ -681,11 +684,23 @@ def expected_landmarks(scene, x, obs, opt):
 
 
 @jit
-def missed(expected, excess, taken):
-    """What leaving the expected landmarks that are not taken costs (``camloc.miss_term``)."""
+def missed(expected, excess, taken, opt, later, leaving):
+    """What the expected landmarks an explanation surely leaves unclaimed cost (``camloc.miss_term``):
+    those it has not taken that are in no pool (``opt``, the options of the pose's observations)
+    of an observation still to explain (positions ``later``), and, where ``leaving`` >= 0, are in
+    the pool of observation ``leaving``, the one just explained (so that each is charged once, as
+    it leaves the last pool it is in). Charged as soon as it is sure, the miss weighs in the
+    pruning of partial explanations; an explanation of every observation pays the same in all."""
+    start, lm = opt[0], opt[1]
     total = 0.0
     for k in range(expected.size):
-        if not is_taken(expected[k], taken):
+        landmark = expected[k]
+        if is_taken(landmark, taken) or (leaving >= 0 and not is_taken(landmark, lm[start[leaving]:start[leaving + 1]])):
+            continue
+        claimable = False
+        for i in later:
+            claimable = claimable or is_taken(landmark, lm[start[i]:start[i + 1]])
+        if not claimable:
             total += compiled_miss_charge(excess[k], MISS_COST)
     return total
 
