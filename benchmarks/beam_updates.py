@@ -1,14 +1,17 @@
 """What a pose costs the beam, counted: per pose, the iterated updates the beam runs (stacked ones
 of a hypothesis' clear pairs, one-pair ones settling a branched child's state), their
 linearizations, the hypotheses, the clear pairs every hypothesis takes alike, the children settled
-and then pruned, the pools predicted again (docs/performance.md, 2026-12-05, "Fewer updates a
-pose").
+and then pruned, the branchings by their options, the pools predicted again, how far each
+linearization moved the state (docs/performance.md, 2026-12-05, "Fewer updates a pose").
 
 The numpy engine's beam (``camloc.beam``, which the compiled one equals pair for pair,
 ``tests/test_engine_parity.py``) run with counters wrapped around its steps (nothing of the
-product changes): the compiled beam runs the same updates, so the counts are its too.
+product changes): the compiled beam runs the same updates, so the counts are its too (where it
+settles a child the numpy beam leaves lazy, it says so: "doomed"). Figures per pose over the run's
+last pass from pose ``--skip`` (a pixel-only run's first 300 poses are a pass of their own, which
+learns the reach). Numpy is slow on pixels: 1,000 poses take a few minutes.
 
-    nice python benchmarks/beam_updates.py WORLD.g2o [--poses 400] [--first 0]
+    nice python benchmarks/beam_updates.py WORLD.g2o [--poses 400] [--skip 300]
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ import numpy as np
 import camloc
 import camloc.beam_types
 from camloc import beam_expansion, ekf, stacked_update
-from camloc.dataset import first_poses
 from camloc.beam_expansion import PoseExpansion
+from camloc.dataset import first_poses
+
 
 class PoseCounter(collections.Counter):
     """Counts, also kept per pose of the last pass (``where``: [pass, pose] of the beam's latest
@@ -43,39 +47,37 @@ counts = PoseCounter()
 phase = ["filter"]            # who is updating: "stacked", "settle", or the filter's replay
 pose_pairs: dict = {}         # per (pose, root): the clear pairs of its stacked updates
 settled_ids: set = set()      # ids of children whose state was computed
-kept_ids: set = set()         # ids of partials kept by some pruning after being settled
+fresh_ids: set = set()        # ids of the children paired at the step being pruned
+root_options: set = set()     # ids of the options after_clear left (a partial that has paired nothing since branches on them)
+
+
+def bucket(moved: float) -> str:
+    return "<1e-4" if moved < 1e-4 else "<1e-3" if moved < 1e-3 else "<1e-2" if moved < 1e-2 else ">=1e-2"
 
 
 def counted_update(original):
+    """``ekf.update`` counted: its linearizations (the first at the prior's given prediction, one
+    more per call of ``measure``, less the MAP cost's), and what the later ones moved the state,
+    in standard deviations (an angle's difference wrapped)."""
     def update(x, P, z, R, measure, **options):
-        calls = [0]
-
-        def counting(state):
-            calls[0] += 1
-            return measure(state)
-
         seen = []
 
         def counting(state):
-            calls[0] += 1
             seen.append(state)
             return measure(state)
 
         result = original(x, P, z, R, counting, **options)
         who = phase[0]
-        if len(seen) >= 2 and options.get("start") is None:   # what the last linearization moved, in posterior sigmas
-            d = np.abs(np.angle(np.exp(1j * (result.state - seen[1])))) / np.sqrt(np.diagonal(result.cov))
-            moved = float(d.max())
-            bucket = "<1e-4" if moved < 1e-4 else "<1e-3" if moved < 1e-3 else "<1e-2" if moved < 1e-2 else ">=1e-2"
-            counts[f"{who} last linearization moved {bucket} sigma"] += 1
-            d = np.abs(np.angle(np.exp(1j * (seen[1] - seen[0])))) / np.sqrt(np.diagonal(P))
-            moved = float(d.max())
-            bucket = "<1e-4" if moved < 1e-4 else "<1e-3" if moved < 1e-3 else "<1e-2" if moved < 1e-2 else ">=1e-2"
-            counts[f"{who} second linearization moved {bucket} prior sigma"] += 1
+        if len(seen) >= 2 and options.get("start") is None:
+            last = np.abs(np.angle(np.exp(1j * (result.state - seen[1])))) / np.sqrt(np.diagonal(result.cov))
+            counts[f"{who} last linearization moved {bucket(float(last.max()))} sigma"] += 1
+            second = np.abs(np.angle(np.exp(1j * (seen[1] - seen[0])))) / np.sqrt(np.diagonal(P))
+            counts[f"{who} second linearization moved {bucket(float(second.max()))} prior sigma"] += 1
+        linearizations = 1 + len(seen) - (1 if options.get("map_cost") else 0)
         counts[f"{who} updates"] += 1
-        counts[f"{who} linearizations"] += 1 + calls[0] - (1 if options.get("map_cost") else 0)
+        counts[f"{who} linearizations"] += linearizations
         counts[f"{who} pairs"] += z.size // 3
-        counts[f"{who} updates of {1 + calls[0] - (1 if options.get('map_cost') else 0)} linearizations"] += 1
+        counts[f"{who} updates of {linearizations} linearizations"] += 1
         return result
     return update
 
@@ -126,6 +128,12 @@ def on_prune_partials(self, kept, partials):
     counts["partials kept"] += len(kept)
     kept_now = {id(p.h) for p in kept}
     counts["children settled, then pruned"] += sum(1 for p in partials if id(p.h) in settled_ids and id(p.h) not in kept_now)
+    if partials and not any(p.order for p in partials):     # the pose's last step: beam_delta above the cheapest is doomed
+        limit = min(p.h.cost for p in partials) + self.settings.beam_delta
+        doomed = [p for p in partials if p.h.cost > limit and id(p.h) in fresh_ids]
+        counts["last step's paired children doomed"] += len(doomed)
+        counts["  of them settled by the partials' pruning"] += sum(1 for p in doomed if id(p.h) in settled_ids)
+    fresh_ids.clear()
 
 
 def on_prune(self, kept, children, *rest):
@@ -137,7 +145,6 @@ def on_prune(self, kept, children, *rest):
         looked = within if len(kept) < self.settings.beam_width else 1 + max(i for i, c in enumerate(ordered) if c in kept)
         counts["explanations a pose's pruning never looks at"] += len(children) - looked
         counts["explanations never settled"] += sum(1 for c in children if c._pending is not None)
-        kept_now = {id(c) for c in kept}
         counts["explanations of a pose"] += len(children)
         counts["explanations pruned at the pose's end"] += len(children) - len(kept)
         counts["kept hypotheses"] += len(kept)
@@ -154,10 +161,8 @@ def on_paired_state(self, result, x, P, o, options, j):
     counts["children settled"] += 1
 
 
-root_options: set = set()    # ids of the options after_clear left (a partial that has paired nothing since branches on them)
-
-
 def on_branches(self, result, h, o, options, contested=()):
+    fresh_ids.update(id(c) for c in result if c._pending is not None)
     paired = sum(1 for c in result if c._pending is not None)
     null = len(result) - paired
     counts[f"branchings into {'null + ' if null else ''}{paired} pair(s)"] += 1
