@@ -48,6 +48,7 @@ phase = ["filter"]            # who is updating: "stacked", "settle", or the fil
 pose_pairs: dict = {}         # per (pose, root): the clear pairs of its stacked updates
 settled_ids: set = set()      # ids of children whose state was computed
 fresh_ids: set = set()        # ids of the children paired at the step being pruned
+last_step: list = []          # (cost before the misses, settled) of the children paired at a pose's last step
 root_options: set = set()     # ids of the options after_clear left (a partial that has paired nothing since branches on them)
 
 
@@ -114,6 +115,15 @@ def on_explain_all(self, parents, obs):
 
 def after_explain_all(self, result, parents, obs):
     counts["explanations left unsettled by explain_all"] += sum(1 for h in result if h._pending is not None)
+    if result and last_step:
+        # the pose's pruning drops what lies beam_delta above its best: the kernels' doomed_above
+        # leaves such children of the last step unsettled where its bound (each root's cheapest
+        # with its misses) finds them, at most these
+        limit = min(h.cost for h in result) + self.settings.beam_delta
+        doomed = [settled for cost, settled in last_step if cost > limit]
+        counts["last step's paired children doomed (at most)"] += len(doomed)
+        counts["  of them settled by the partials' pruning"] += sum(doomed)
+    last_step.clear()
 
 
 def on_after_clear(self, result, h, obs, root):
@@ -128,11 +138,8 @@ def on_prune_partials(self, kept, partials):
     counts["partials kept"] += len(kept)
     kept_now = {id(p.h) for p in kept}
     counts["children settled, then pruned"] += sum(1 for p in partials if id(p.h) in settled_ids and id(p.h) not in kept_now)
-    if partials and not any(p.order for p in partials):     # the pose's last step: beam_delta above the cheapest is doomed
-        limit = min(p.h.cost for p in partials) + self.settings.beam_delta
-        doomed = [p for p in partials if p.h.cost > limit and id(p.h) in fresh_ids]
-        counts["last step's paired children doomed"] += len(doomed)
-        counts["  of them settled by the partials' pruning"] += sum(1 for p in doomed if id(p.h) in settled_ids)
+    if partials and not any(p.order for p in partials):     # the pose's last step: its children, before their misses
+        last_step[:] = [(p.h.cost, id(p.h) in settled_ids) for p in partials if id(p.h) in fresh_ids]
     fresh_ids.clear()
 
 

@@ -51,8 +51,6 @@ class PoseExpansion:
         """
         partials = [self.after_clear(h, obs, root) for root, h in enumerate(parents)]
         expected = [self.expected(h, obs, p.options) for h, p in zip(parents, partials)]
-        # the misses already sure: in no pool of an observation still to explain, and not taken
-        partials = [self.missed(p, expected[p.root], parents[p.root], p.order) for p in partials]
         while any(p.order for p in partials):
             grown: list[Partial] = []
             for p in partials:
@@ -65,11 +63,10 @@ class PoseExpansion:
                 # the landmark of each observation still to explain that gates only one
                 contested = [gated for gated in (p.options[later].landmarks[np.isfinite(p.options[later].costs)] for later in order)
                              if gated.size == 1]
-                # each child charged the misses that became sure with observation i
-                grown += [self.missed(Partial(child, order, p.options, p.base_x, p.least, rest, p.root), expected[p.root], parents[p.root],
-                                      order, i) for child in self.branches(p.h, int(obs[i]), options, contested)]
+                grown += [Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
+                          for child in self.branches(p.h, int(obs[i]), options, contested)]
             partials = self.prune_partials(grown)
-        return [p.h for p in partials]  # every miss charged as it became sure
+        return [self.missed(p.h, expected[p.root], parents[p.root]) for p in partials]
 
     def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> tuple[np.ndarray, np.ndarray]:
         """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
@@ -104,33 +101,19 @@ class PoseExpansion:
         np.minimum.at(least, which, np.concatenate(excess))
         return landmarks, least
 
-    def missed(self, p: Partial, expected: tuple[np.ndarray, np.ndarray], parent: Hypothesis, later: Sequence[int] = (),
-               leaving: Optional[int] = None) -> Partial:
-        """p (a partial explanation grown from ``parent``) charged for each of the ``expected``
-        landmarks it surely leaves unclaimed (``camloc.miss_term.miss_charge`` of its least
-        excess): not taken, in no pool (``p.options``) of an observation still to explain
-        (positions ``later``) and, where ``leaving`` is given, in the pool of that observation,
-        the one just explained (so that each is charged once, as it leaves the last pool it is
-        in). Charged as soon as it is sure, a miss weighs in the pruning of partial explanations;
-        an explanation of every observation pays the same in all. The kernels' ``missed``."""
+    def missed(self, h: Hypothesis, expected: tuple[np.ndarray, np.ndarray], parent: Hypothesis) -> Hypothesis:
+        """h (an explanation grown from ``parent``) charged for each of the ``expected``
+        landmarks it leaves unclaimed (``camloc.miss_term.miss_charge`` of its least excess)."""
         landmarks, excess = expected
         if landmarks.size == 0:
-            return p
-        sure = ~member(landmarks, np.array([lm for _, lm in p.h.pairs], dtype=np.int64))
-        if leaving is not None:
-            sure &= member(landmarks, p.options[leaving].landmarks)
-        for i in later:
-            sure &= ~member(landmarks, p.options[i].landmarks)
-        if not sure.any():
-            return p
-        h = p.h
+            return h
+        unclaimed = ~member(landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64))
+        if not unclaimed.any():
+            return h
         if h is parent:  # never the parent's own cost
             h = Hypothesis(h.x, h.P, h.cost, h.parent, h.pairs, h.unassigned, h.slipped)
-        total = 0.0
-        for charge in miss_charge(excess[sure], self.settings.miss_cost):  # summed in order, as the kernels do
-            total += float(charge)
-        h.cost += total
-        return Partial(h, p.order, p.options, p.base_x, p.least, p.rest, p.root)
+        h.cost += float(miss_charge(excess[unclaimed], self.settings.miss_cost).sum())
+        return h
 
     def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int) -> Partial:
         """h after its stacked updates with the clear observations (see ``explain_all``), with

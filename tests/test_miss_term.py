@@ -61,7 +61,7 @@ def _unsure_pixel_pose():
 
 def test_both_engines_give_a_pose_the_same_pools_beyond_the_gate_the_same_expected_landmarks_and_charges():
     from camloc.beam import BeamSearch
-    from camloc.beam_types import Hypothesis, Partial
+    from camloc.beam_types import Hypothesis
     from camloc.kernels import beam as kb
     from camloc.kernels._jit import from_python
     from camloc.localizer import LocalizerConfig, _Localizer, resolved_config
@@ -99,61 +99,12 @@ def test_both_engines_give_a_pose_the_same_pools_beyond_the_gate_the_same_expect
         in_pools = [o.pool_costs[o.landmarks == lm] - localizer.null_cost[obs[i]] for i, o in enumerate(options)]
         assert least == pytest.approx(np.concatenate(in_pools).min(), rel=1e-12)
 
-    # what an explanation of every observation that claims none of them is charged, in both engines
-    charged = search.expansion.missed(Partial(Hypothesis(x, P, 0.0, 0), (), options, x, {}, 0.0, 0), (landmarks, excess), h).h.cost
-    none = np.zeros(0, np.int64)
-    compiled = from_python(kb.missed)(compiled_landmarks, compiled_excess, none, opt, none, -1)
+    # what an explanation that claims none of them is charged, in both engines
+    charged = search.expansion.missed(Hypothesis(x, P, 0.0, 0), (landmarks, excess), h).cost
+    compiled = from_python(kb.missed)(compiled_landmarks, compiled_excess, np.zeros(0, np.int64))
     assert charged == pytest.approx(sum(_by_formula(e, MISS_COST) for e in excess), rel=1e-9)
     assert compiled == pytest.approx(charged, rel=1e-12)
     assert 0.0 < charged < MISS_COST * landmarks.size   # the flat charge's: every one a sure miss
-
-
-def test_a_partial_explanation_pays_each_miss_once_as_soon_as_it_is_sure_in_both_engines():
-    """A landmark expected on a ray is charged when no observation left to explain has it in its
-    pool (nothing can claim it any more), once: charged at the start for the observations not
-    branched on, then as each observation is explained, the charges sum to what an explanation of
-    every observation pays at the end; one taken is never charged, one still in a later pool not
-    yet. Both engines alike."""
-    from camloc.beam import BeamSearch
-    from camloc.beam_types import Hypothesis, Partial
-    from camloc.kernels import beam as kb
-    from camloc.kernels._jit import from_python
-    from camloc.localizer import LocalizerConfig, _Localizer, resolved_config
-    from camloc.scene import build_scene, build_settings
-
-    dataset, obs, x, P = _unsure_pixel_pose()
-    config = resolved_config(LocalizerConfig(), dataset)
-    localizer = _Localizer(dataset, config)
-    search = BeamSearch(localizer, localizer.beam_settings())
-    h = Hypothesis(x, P, 0.0, 0)
-    options = search.gating.options(h, obs)
-    landmarks, excess = expected = search.expansion.expected(h, obs, options)
-    scene = build_scene(dataset, config, (localizer.min_depth, localizer.max_depth, localizer.max_angle))
-    opt = kb.options_for(scene, build_settings(config), x, P, obs, 0.0, scene.view_limits[2])
-    compiled_missed = from_python(kb.missed)
-    pending = tuple(range(2, obs.size))                               # branched on in this order; the first two clear
-    first = pending[0]
-    taken_pair = (int(obs[first]), next(int(lm) for lm in options[first].landmarks if lm in landmarks))   # never charged
-    taken = np.array([taken_pair[1]], np.int64)
-
-    def numpy_charge(later, leaving=None):
-        partial = Partial(Hypothesis(x, P, 0.0, 0, (taken_pair,)), later, options, x, {}, 0.0, 0)
-        return search.expansion.missed(partial, expected, h, later, leaving).h.cost
-
-    def compiled_charge(later, leaving=-1):
-        return compiled_missed(landmarks, excess, taken, opt, np.array(later, np.int64), leaving)
-
-    whole_numpy, whole_compiled = numpy_charge(()), compiled_charge(())
-    unclaimed = ~np.isin(landmarks, taken)
-    assert whole_numpy == pytest.approx(float(miss_charge(excess[unclaimed], MISS_COST).sum()), rel=1e-12)
-    steps_numpy = [numpy_charge(pending)] + [numpy_charge(pending[k + 1:], pending[k]) for k in range(len(pending))]
-    steps_compiled = [compiled_charge(pending)] + [compiled_charge(pending[k + 1:], pending[k]) for k in range(len(pending))]
-    np.testing.assert_allclose(steps_compiled, steps_numpy, rtol=1e-12, atol=1e-300)
-    assert sum(steps_numpy) == pytest.approx(whole_numpy, rel=1e-12)
-    assert sum(v > 0.0 for v in steps_numpy) >= 2 and max(steps_numpy) < whole_numpy   # spread over the steps
-    # where every observation is still to explain, nothing in their pools is sure yet
-    in_pools = np.isin(landmarks, np.concatenate([o.landmarks for o in options]))
-    assert in_pools.all() and numpy_charge(tuple(range(obs.size))) == 0.0 == compiled_charge(tuple(range(obs.size)))
 
 
 def test_the_beam_keeps_a_pixel_only_robot_through_a_gap_where_the_flat_miss_charge_lost_it():

@@ -600,14 +600,14 @@ def explain_all(scene, settings, parents, n_parents, obs, doom):
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
-        # the misses already sure: in no pool of an observation still to explain, and not taken
-        gen[2][h] += missed(expected[h][0], expected[h][1], taken_by(gen, h), opt, order, -1)
     step = 0
     while True:
         growing = False
         for r in root:
             growing = growing or step < orders[r].size
-        if not growing:                          # every miss charged as it became sure
+        if not growing:
+            for c in range(root.size):
+                gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen, c))
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
@@ -633,13 +633,10 @@ def explain_all(scene, settings, parents, n_parents, obs, doom):
                 at += 1
                 continue
             i = orders[r][step]
-            first = at
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
                         children, at, c_root, c_rest, c_moved, pending, model)
-            for c in range(first, at):              # the misses that became sure with observation i
-                children[2][c] += missed(expected[r][0], expected[r][1], taken_by(children, c), options[r], orders[r][step + 1:], i)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        doomed = doomed_above(settings, children[2][:at], c_root, orders, step) if doom else np.inf
+        doomed = doomed_above(settings, children, at, c_root, orders, step, expected) if doom else np.inf
         kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model, doomed)
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
@@ -647,18 +644,29 @@ def explain_all(scene, settings, parents, n_parents, obs, doom):
 
 
 @jit
-def doomed_above(settings, cost, root, orders, step):
-    """The cost above which an explanation of the pose is surely dropped by the pose's pruning
-    (``prune``: beam_delta above the cheapest), where these partial explanations (``cost``, of
-    roots ``root``) are its last step's, every observation explained and every miss charged;
-    inf before that step. The cheapest is its root's cheapest, which the partials' pruning always
-    keeps, so the pose's pruning measures from it; and within a root the doomed are the
-    costliest, so that leaving them unsettled and uncompared keeps every other decision: they
-    are never read again (``prune_partials``; the 20k pixel world: 3.5 explanations a pose)."""
-    for r in root:
+def doomed_above(settings, children, n, root, orders, step, expected):
+    """The cost above which a partial explanation of the pose (the first n of ``children``, of
+    roots ``root``) is surely dropped by the pose's pruning (``prune``: beam_delta above the
+    cheapest once the misses are charged, ``missed``), where these are its last step's, every
+    observation explained; inf before that step. A root's cheapest is always kept by the
+    partials' pruning, so the cheapest of those, with its misses, bounds the pose's best; a miss
+    only adds, so an explanation whose cost before its misses passes that bound by beam_delta is
+    dropped. Within a root those are the costliest, so that leaving them unsettled and
+    uncompared keeps every other decision: they are never read again (``prune_partials``)."""
+    for r in root[:n]:
         if step + 1 < orders[r].size:
             return np.inf
-    return cost.min() + settings.beam_delta if cost.size else np.inf
+    bound = np.inf
+    for c in range(n):
+        cheapest = True                          # the cheapest of its root (the first of equal costs)
+        for d in range(n):
+            if root[d] == root[c] and (children[2][d] < children[2][c] or (children[2][d] == children[2][c] and d < c)):
+                cheapest = False
+                break
+        if cheapest:
+            final = children[2][c] + missed(expected[root[c]][0], expected[root[c]][1], taken_by(children, c))
+            bound = min(bound, final)
+    return bound + settings.beam_delta
 
 
 @jit
@@ -668,7 +676,7 @@ def expected_landmarks(scene, x, obs, opt):
     cost): those in the pool (``opt``, its options) of one of its pixel observations whose distance
     from that observation's camera lies within the scene's detection range (``view_limits[3:5]``,
     ``observation_space.detection_range``). The charge itself (``camloc.miss_term``) is computed by
-    ``missed``, for the landmarks an explanation surely leaves unclaimed only: most are claimed.
+    ``missed``, for the landmarks an explanation leaves unclaimed only: most are claimed.
     ``camloc.beam_expansion.PoseExpansion.expected``."""
     low, high = scene.view_limits[3], scene.view_limits[4]
     start, lm, pool_cost = opt[0], opt[1], opt[8]
@@ -706,23 +714,11 @@ def expected_landmarks(scene, x, obs, opt):
 
 
 @jit
-def missed(expected, excess, taken, opt, later, leaving):
-    """What the expected landmarks an explanation surely leaves unclaimed cost (``camloc.miss_term``):
-    those it has not taken that are in no pool (``opt``, the options of the pose's observations)
-    of an observation still to explain (positions ``later``), and, where ``leaving`` >= 0, are in
-    the pool of observation ``leaving``, the one just explained (so that each is charged once, as
-    it leaves the last pool it is in). Charged as soon as it is sure, the miss weighs in the
-    pruning of partial explanations; an explanation of every observation pays the same in all."""
-    start, lm = opt[0], opt[1]
+def missed(expected, excess, taken):
+    """What leaving the expected landmarks that are not taken costs (``camloc.miss_term``)."""
     total = 0.0
     for k in range(expected.size):
-        landmark = expected[k]
-        if is_taken(landmark, taken) or (leaving >= 0 and not is_taken(landmark, lm[start[leaving]:start[leaving + 1]])):
-            continue
-        claimable = False
-        for i in later:
-            claimable = claimable or is_taken(landmark, lm[start[i]:start[i + 1]])
-        if not claimable:
+        if not is_taken(expected[k], taken):
             total += compiled_miss_charge(excess[k], MISS_COST)
     return total
 
