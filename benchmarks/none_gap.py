@@ -19,7 +19,7 @@ For the missed returns whose landmark was alive, why: its pair's cost against th
 null cost at the time (outside the gate, above the null cost, refused by the return penalty, or
 within: left out by JCBB or ``unambiguous``).
 
-    nice python benchmarks/none_gap.py --kinds grid,smooth3d,aerial --seeds 0-7 --detection 1.0 [--clutter 0.1]
+    nice python benchmarks/none_gap.py --kinds grid,smooth3d,aerial --seeds 0-7 --detection 1.0 [--clutter 0.1] [--joint-slack 0]
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import metrics
-from camloc import slam_run
+from camloc import slam_association, slam_run
 from camloc.localizer import localize
 from camloc.localizer_config import LocalizerConfig
 from camloc.slam_association import RETURN_GAP, RETURN_PENALTY
@@ -155,7 +155,7 @@ def precision_recall(ds, result, truth_ids: set) -> tuple[float, float, int, int
             seen.add(t)
     # recall: pairs right beyond each landmark's first observation, of the returns
     firsts = len({t for lm, t in zip(a.landmark[paired].tolist(), a.true_landmark[paired].tolist()) if stands.get(lm) == t})
-    return right / max(int(paired.sum()), 1), (right - firsts) / max(returns, 1), int(paired.sum()), returns
+    return (right / int(paired.sum()) if paired.any() else np.nan), (right - firsts) / max(returns, 1), int(paired.sum()), returns
 
 
 def seeds_of(text: str) -> list[int]:
@@ -172,7 +172,11 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=100)
     parser.add_argument("--detection", type=float, default=1.0)
     parser.add_argument("--clutter", type=float, default=0.0)
+    parser.add_argument("--joint-slack", type=float, default=None,
+                        help="slam_association.JOINT_SLACK for this run (0: pairs judged alone, as before 2026-12-05's joint rule)")
     args = parser.parse_args()
+    if args.joint_slack is not None:
+        slam_association.JOINT_SLACK = args.joint_slack
     print("world | default RMSE / SE3 / NEES | true RMSE / SE3 / NEES | precision | recall | pairs | returns | " + " | ".join(FATES) + " | why (alive): " + ", ".join(WHY))
     totals: dict = {}
     for kind in args.kinds.split(","):
@@ -187,8 +191,11 @@ def main() -> None:
                    "precision": p, "recall": r, "pairs": pairs, "returns": returns,
                    **{f: tracer.fates[f] for f in FATES}, **{w: tracer.why[w] for w in WHY}}
             total = totals.setdefault(kind, Counter())
-            total.update(row)
+            total.update({key: value for key, value in row.items() if key != "precision"})
             total["n"] += 1
+            if np.isfinite(p):  # (a run that paired nothing has no precision)
+                total["precision"] += p
+                total["with_pairs"] += 1
             print(f"{kind}/{seed} | {d[0]:.3f} / {d[1]:.3f} / {d[2]:.1f} | {t[0]:.3f} / {t[1]:.3f} / {t[2]:.1f} | {p:.3f} | {r:.3f} | "
                   f"{pairs} | {returns} | " + " | ".join(str(tracer.fates[f]) for f in FATES) + " | "
                   + ", ".join(str(tracer.why[w]) for w in WHY), flush=True)
@@ -196,7 +203,7 @@ def main() -> None:
     for kind, t in totals.items():
         n = t["n"]
         print(f"{kind} | {t['d_rmse'] / n:.3f} / {t['d_se3'] / n:.3f} / {t['d_nees'] / n:.1f} | {t['t_rmse'] / n:.3f} / "
-              f"{t['t_se3'] / n:.3f} / {t['t_nees'] / n:.1f} | {t['precision'] / n:.3f} | {t['recall'] / n:.3f} | "
+              f"{t['t_se3'] / n:.3f} / {t['t_nees'] / n:.1f} | {t['precision'] / max(t['with_pairs'], 1):.3f} | {t['recall'] / n:.3f} | "
               + " | ".join(str(t[f]) for f in FATES) + " | " + ", ".join(str(t[w]) for w in WHY))
 
 
