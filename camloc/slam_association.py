@@ -48,7 +48,8 @@ class Candidate:
     dof: int
     cost: float
     sensor: int = 0
-    # the cost the pair may have given the other pairs of its set (``joint_pairs``; inf: none)
+    # the cost the pair must stay within, alone or given the other pairs of its set (``joint_pairs``;
+    # inf: no such test, the pair taken as ``jcbb`` takes it)
     limit: float = float("inf")
 
 
@@ -170,20 +171,26 @@ def conditional_costs(P: np.ndarray, pairs: list[Candidate]) -> np.ndarray:
 
 
 def joint_pairs(P: np.ndarray, candidates: list[list[Candidate]], probability: float,
-                max_nodes: int = 2000) -> tuple[list[Candidate], np.ndarray]:
-    """``jcbb``'s set with every pair's cost given the others within its ``limit``: while one is
-    over, the pair most over it stops being a candidate and the search runs again. (Pairs with
-    no limit are taken as ``jcbb`` takes them.) Returns the set and each pair's conditional cost."""
+                max_nodes: int = 2000) -> list[Candidate]:
+    """``jcbb``'s set with every pair within its ``limit``, alone (its own cost) or, in a set of
+    ``JOINT_MIN`` pairs or more, given the others (``conditional_costs``): while one is over
+    both, the pair most over stops being a candidate and the search runs again. Pairs with no
+    limit are taken as ``jcbb`` takes them. (Two pairs can agree by chance: among landmarks a
+    few tenths of a metre apart, seen from a pose unsure by as much, wrong pairs that vouched for
+    each other were 6 of the 18 taken so in sets of two, 4 of 33 in sets of three or more, on 16
+    100-pose grid worlds.)"""
     candidates = [list(options) for options in candidates]
     while True:
         chosen = jcbb(P, candidates, probability, max_nodes)
-        if not chosen:
-            return chosen, np.zeros(0)
-        costs = conditional_costs(P, chosen) if any(np.isfinite(c.limit) for c in chosen) else np.array([c.cost for c in chosen])
-        excess = costs - np.array([c.limit for c in chosen])
+        limits = np.array([c.limit for c in chosen])
+        if not np.any(np.isfinite(limits)):
+            return chosen
+        excess = np.array([c.cost for c in chosen]) - limits
+        if len(chosen) >= JOINT_MIN:  # each within its limit alone or given the others
+            excess = np.minimum(excess, conditional_costs(P, chosen) - limits)
         worst = int(np.argmax(excess))
         if excess[worst] < 0.0:
-            return chosen, costs
+            return chosen
         candidates = [[c for c in options if c is not chosen[worst]] for options in candidates]
 
 
@@ -238,12 +245,19 @@ _NULL_SLACK = 20.0
 # of RMSE with each setting, the loop closures refused among them mostly right.
 RETURN_GAP = 20
 RETURN_PENALTY = 4.0
-# Without a map, a point's pair up to JOINT_SLACK costlier than those limits alone is tried, and
-# kept where its cost given the pose's other pairs is within them (``joint_pairs``): where the
-# robot comes back to a place seen long ago, its pose is unsure by more than the landmarks are
-# apart, each pair alone pays that spread, and every return was refused together (a 100-pose grid
-# world: 5-8 returns a pose at 0.5-2 above their limit, the loop closure lost).
+# Without a map, a point's pair up to JOINT_SLACK costlier than that limit alone (its cost below
+# the null cost, RETURN_PENALTY below it after RETURN_GAP) is tried too, and kept where, in a set
+# of JOINT_MIN pairs or more, its cost given the pose's other pairs is within the limit
+# (``joint_pairs``). Why: where the robot comes back to a place seen long ago its pose is unsure by
+# as much as the landmarks are apart, each return alone pays that spread in its ln det S, and every
+# return of the loop closure was refused together (a 100-pose grid world: 5-8 returns a pose, each
+# 0.5-3.5 over its limit alone, 10-14 under it given the others; 0.79 m after an SE(3) alignment
+# against the true association's 0.21). Measured on 72 100-pose worlds (docs/performance.md,
+# 2026-12-05, "No map: a loop closure's returns judged together"): slack 4 and sets of 3 kept;
+# judging every pair by its conditional cost alone, or sets of 2, took wrong pairs that vouched
+# for each other.
 JOINT_SLACK = 4.0
+JOINT_MIN = 3
 # Under a prior, an observation the beam left out is tried against the map's landmarks again (one
 # may have moved) where the pair is likelier than clutter, and only against a landmark the beam has
 # not paired within BEAM_RECENT poses but missed where it was surely in view: one it pairs is where
@@ -275,15 +289,13 @@ class PoseAssociation:
         candidates = self._candidates(obs, nearby, k)
         if not any(candidates):
             return []
-        chosen, costs = joint_pairs(self.P, candidates, self.config.gate)
+        chosen = joint_pairs(self.P, candidates, self.config.gate)
         if self.config.map == "none":  # without a map JCBB alone holds the robot (with one, the beam's pairs do)
-            kept = unambiguous(self.P, candidates, chosen, self.config.gate, AMBIGUITY_MARGIN, self.obs_sensor,
-                               search=lambda *args: joint_pairs(*args)[0])
-            costs = costs[[i for i, c in enumerate(chosen) if any(c is k for k in kept)]]
-            chosen = kept
-        for c, cost in zip(chosen, costs.tolist()):
-            if self.table.tentative[c.landmark]:  # (its cost given the pose's other pairs)
-                self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - cost)
+            chosen = unambiguous(self.P, candidates, chosen, self.config.gate, AMBIGUITY_MARGIN, self.obs_sensor,
+                                 search=joint_pairs)
+        for c in chosen:
+            if self.table.tentative[c.landmark]:
+                self.table.score[c.landmark] += 0.5 * (self.null_cost[c.obs] - c.cost)
         return [(c.obs, c.landmark) for c in chosen]
 
     def _candidates(self, obs: np.ndarray, nearby: np.ndarray, k: int) -> list[list[Candidate]]:
@@ -299,8 +311,8 @@ class PoseAssociation:
             cost = self._orientation_costs(mine, landmarks, cost, z_hat, H, extra)  # a tag's judged with its orientation
             placed = places_point(self.sensors[sensor_id].kind)
             slack = self._slack(landmarks, placed, k)
-            # without a map a point's pair is judged by its cost given the pose's other pairs
-            # (``joint_pairs``): tried up to JOINT_SLACK costlier alone, kept within null + slack given the rest
+            # without a map a point's pair may also be judged given the pose's other pairs
+            # (``joint_pairs``): tried up to JOINT_SLACK over its limit alone
             joint = self.config.map == "none" and placed and JOINT_SLACK > 0.0
             tried = slack + JOINT_SLACK if joint else slack
             for i, o in enumerate(mine.tolist()):

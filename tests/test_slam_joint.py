@@ -67,25 +67,30 @@ def test_returns_each_over_its_limit_alone_are_taken_together_where_the_pose_is_
     alone = [options[0].cost for options in _pairs(unsure, ys, R, np.inf)]
     limit = min(alone) - 1.0  # every pair over its limit alone
     candidates = _pairs(unsure, ys, R, limit)
-    chosen, costs = joint_pairs(unsure, candidates, GATE)
+    chosen = joint_pairs(unsure, candidates, GATE)
     assert len(chosen) == 3
-    assert np.all(costs < limit)
-    assert np.all(costs < np.array(alone) - 10.0)
-    # the same limit with one observation alone: refused
-    chosen, _ = joint_pairs(unsure, candidates[:1], GATE)
-    assert chosen == []
+    given = conditional_costs(unsure, chosen)
+    assert np.all(given < limit)
+    assert np.all(given < np.array(alone) - 10.0)
+    # the same limit with one observation, or two (too few to vouch for each other): refused
+    assert joint_pairs(unsure, candidates[:1], GATE) == []
+    assert joint_pairs(unsure, candidates[:2], GATE) == []
+    # a pair within its limit alone is taken whatever the others (as before)
+    candidates = _pairs(unsure, ys, R, max(alone) + 1.0)
+    assert len(joint_pairs(unsure, candidates[:1], GATE)) == 1
 
 
 def test_a_pair_whose_cost_given_the_others_is_over_its_limit_is_left_out():
-    """Two returns that agree and one that pulls the other way: the two are taken, the third not
-    (its cost given the two is over its limit, though jointly compatible within the gate)."""
+    """Three returns that agree and one that pulls the other way: the three are taken, the fourth
+    not (its cost given the three is over its limit, though jointly compatible within the gate)."""
     R = np.diag([1e-3, 1e-3, 1e-3])
     P = np.diag([0.36] * 3 + [0.01] * 3)
-    ys = [[0.4, -0.3, 0.2], [0.41, -0.31, 0.2], [0.4, -0.3, 0.3]]
-    candidates = _pairs(P, ys, R, np.inf)
-    every = [c[0] for c in candidates]
-    given = conditional_costs(P, every)
-    limit = float(np.sort(given)[1] + 0.5 * (np.sort(given)[2] - np.sort(given)[1]))
-    chosen, costs = joint_pairs(P, _pairs(P, ys, R, limit), GATE)
-    assert sorted(c.obs for c in chosen) == [0, 1]
-    assert np.all(costs < limit)
+    ys = [[0.4, -0.3, 0.2], [0.41, -0.31, 0.2], [0.4, -0.29, 0.21], [0.4, -0.3, 0.3]]
+    every = [c[0] for c in _pairs(P, ys, R, np.inf)]
+    assert len(joint_pairs(P, [[c] for c in every], GATE)) == 4  # jointly compatible
+    given = np.sort(conditional_costs(P, every))
+    limit = float(given[2] + 0.5 * (given[3] - given[2]))
+    assert limit < min(c.cost for c in every)  # each over it alone
+    chosen = joint_pairs(P, _pairs(P, ys, R, limit), GATE)
+    assert sorted(c.obs for c in chosen) == [0, 1, 2]
+    assert np.all(conditional_costs(P, chosen) < limit)
