@@ -173,8 +173,9 @@ def conditional_costs(P: np.ndarray, pairs: list[Candidate]) -> np.ndarray:
 def joint_pairs(P: np.ndarray, candidates: list[list[Candidate]], probability: float,
                 max_nodes: int = 2000) -> list[Candidate]:
     """``jcbb``'s set with every pair within its ``limit``, alone (its own cost) or, in a set of
-    ``JOINT_MIN`` pairs or more, given the others (``conditional_costs``): while one is over
-    both, the pair most over stops being a candidate and the search runs again. Pairs with no
+    ``JOINT_MIN`` pairs or more, ``JOINT_MARGIN`` within it given the others
+    (``conditional_costs``): while one is over both, the pair most over stops being a candidate
+    and the search runs again. Pairs with no
     limit are taken as ``jcbb`` takes them. (Two pairs can agree by chance: among landmarks a
     few tenths of a metre apart, seen from a pose unsure by as much, wrong pairs that vouched for
     each other were 6 of the 18 taken so in sets of two, 4 of 33 in sets of three or more, on 16
@@ -187,7 +188,7 @@ def joint_pairs(P: np.ndarray, candidates: list[list[Candidate]], probability: f
             return chosen
         excess = np.array([c.cost for c in chosen]) - limits
         if len(chosen) >= JOINT_MIN:  # each within its limit alone or given the others
-            excess = np.minimum(excess, conditional_costs(P, chosen) - limits)
+            excess = np.minimum(excess, conditional_costs(P, chosen) + JOINT_MARGIN - limits)
         worst = int(np.argmax(excess))
         if excess[worst] < 0.0:
             return chosen
@@ -245,19 +246,21 @@ _NULL_SLACK = 20.0
 # of RMSE with each setting, the loop closures refused among them mostly right.
 RETURN_GAP = 20
 RETURN_PENALTY = 4.0
-# Without a map, a point's pair up to JOINT_SLACK costlier than that limit alone (its cost below
-# the null cost, RETURN_PENALTY below it after RETURN_GAP) is tried too, and kept where, in a set
-# of JOINT_MIN pairs or more, its cost given the pose's other pairs is within the limit
+# Without a map, a point's pair up to JOINT_SLACK costlier than its limit alone (the null cost,
+# RETURN_PENALTY below it after RETURN_GAP) is tried too, and kept where, in a set of JOINT_MIN
+# pairs or more, its cost given the pose's other pairs is JOINT_MARGIN within the limit
 # (``joint_pairs``). Why: where the robot comes back to a place seen long ago its pose is unsure by
 # as much as the landmarks are apart, each return alone pays that spread in its ln det S, and every
 # return of the loop closure was refused together (a 100-pose grid world: 5-8 returns a pose, each
 # 0.5-3.5 over its limit alone, 10-14 under it given the others; 0.79 m after an SE(3) alignment
-# against the true association's 0.21). Measured on 72 100-pose worlds (docs/performance.md,
-# 2026-12-05, "No map: a loop closure's returns judged together"): slack 4 and sets of 3 kept;
-# judging every pair by its conditional cost alone, or sets of 2, took wrong pairs that vouched
-# for each other.
+# against the true association's 0.21). Two pairs can agree by chance, and the set the search
+# found is the best of many: wrong pairs taken so were 6 of 18 in sets of two, and within 3 of
+# their limits given the others on the whole (right ones mostly 5-14 within). Measured on 72
+# 100-pose worlds and 300-pose ones (docs/performance.md, 2026-12-05, "No map: a loop closure's
+# returns judged together").
 JOINT_SLACK = 4.0
 JOINT_MIN = 3
+JOINT_MARGIN = 3.0
 # Under a prior, an observation the beam left out is tried against the map's landmarks again (one
 # may have moved) where the pair is likelier than clutter, and only against a landmark the beam has
 # not paired within BEAM_RECENT poses but missed where it was surely in view: one it pairs is where

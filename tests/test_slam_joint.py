@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from camloc.slam_association import Candidate, conditional_costs, joint_pairs
+from camloc.slam_association import JOINT_MARGIN, Candidate, conditional_costs, joint_pairs
 
 GATE = 0.99  # the association's gate (LocalizerConfig.gate)
 
@@ -70,7 +70,7 @@ def test_returns_each_over_its_limit_alone_are_taken_together_where_the_pose_is_
     chosen = joint_pairs(unsure, candidates, GATE)
     assert len(chosen) == 3
     given = conditional_costs(unsure, chosen)
-    assert np.all(given < limit)
+    assert np.all(given + JOINT_MARGIN < limit)
     assert np.all(given < np.array(alone) - 10.0)
     # the same limit with one observation, or two (too few to vouch for each other): refused
     assert joint_pairs(unsure, candidates[:1], GATE) == []
@@ -89,8 +89,19 @@ def test_a_pair_whose_cost_given_the_others_is_over_its_limit_is_left_out():
     every = [c[0] for c in _pairs(P, ys, R, np.inf)]
     assert len(joint_pairs(P, [[c] for c in every], GATE)) == 4  # jointly compatible
     given = np.sort(conditional_costs(P, every))
-    limit = float(given[2] + 0.5 * (given[3] - given[2]))
+    limit = float(given[2] + 0.5 * (given[3] - given[2])) + JOINT_MARGIN
     assert limit < min(c.cost for c in every)  # each over it alone
     chosen = joint_pairs(P, _pairs(P, ys, R, limit), GATE)
     assert sorted(c.obs for c in chosen) == [0, 1, 2]
-    assert np.all(conditional_costs(P, chosen) < limit)
+    assert np.all(conditional_costs(P, chosen) + JOINT_MARGIN < limit)
+
+
+def test_a_pair_given_the_others_within_its_limit_but_not_by_the_margin_is_left_out():
+    """The best of the sets the search tried is the likeliest by chance too: a pair kept only
+    given the others must be JOINT_MARGIN within its limit."""
+    R = np.diag([1e-3, 1e-3, 1e-3])
+    P = np.diag([0.36] * 3 + [0.01] * 3)
+    ys = [[0.4, -0.3, 0.2], [0.41, -0.31, 0.2], [0.4, -0.29, 0.21]]
+    given = conditional_costs(P, [c[0] for c in _pairs(P, ys, R, np.inf)])
+    assert len(joint_pairs(P, _pairs(P, ys, R, float(given.max()) + JOINT_MARGIN + 0.1), GATE)) == 3
+    assert joint_pairs(P, _pairs(P, ys, R, float(given.min()) + JOINT_MARGIN - 0.1), GATE) == []
