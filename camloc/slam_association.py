@@ -7,7 +7,9 @@ state) are searched depth first for the largest set of pairs that is **jointly**
 its dimension), ties broken by the lower joint cost. Jointly means through the shared pose error:
 two pairs that each fit alone but pull the pose two ways do not fit together, which is what keeps
 a wrong pair of a poorly predicted pose out (the per-pose least-cost assignment took such pairs).
-The search stops after ``max_nodes`` nodes and keeps the best set found.
+The search stops after ``max_nodes`` nodes and keeps the best set found. Without a map a pair
+over its cost limit alone may be kept in a set of three or more where its cost given the others
+is within it (``joint_pairs``): a loop closure's returns, each alone paying the pose's spread.
 
 ``PoseAssociation`` (a mix-in of the mapping localizer) gathers each observation's candidates
 among the landmarks in view and runs that search. Every ``H P H'`` here is taken from the columns
@@ -175,8 +177,7 @@ def joint_pairs(P: np.ndarray, candidates: list[list[Candidate]], probability: f
     """``jcbb``'s set with every pair within its ``limit``, alone (its own cost) or, in a set of
     ``JOINT_MIN`` pairs or more, ``JOINT_MARGIN`` within it given the others
     (``conditional_costs``): while one is over both, the pair most over stops being a candidate
-    and the search runs again. Pairs with no
-    limit are taken as ``jcbb`` takes them. (Two pairs can agree by chance: among landmarks a
+    and the search runs again. Pairs with no limit are taken as ``jcbb`` takes them. (Two pairs can agree by chance: among landmarks a
     few tenths of a metre apart, seen from a pose unsure by as much, wrong pairs that vouched for
     each other were 6 of the 18 taken so in sets of two, 4 of 33 in sets of three or more, on 16
     100-pose grid worlds.)"""
