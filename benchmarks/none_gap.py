@@ -19,7 +19,7 @@ For the missed returns whose landmark was alive, why: its pair's cost against th
 null cost at the time (outside the gate, above the null cost, refused by the return penalty, or
 within: left out by JCBB or ``unambiguous``).
 
-    nice python benchmarks/none_gap.py --kinds grid,smooth3d,aerial --seeds 0-7 --detection 1.0 [--clutter 0.1] [--joint-slack 0]
+    nice python benchmarks/none_gap.py --kinds grid,smooth3d,aerial --seeds 0-7 --detection 1.0 [--clutter 0.1] [--main-rules]
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import metrics
-from camloc import slam_association, slam_run
+from camloc import slam_association, slam_landmarks, slam_run
 from camloc.localizer import localize
 from camloc.localizer_config import LocalizerConfig
 from camloc.slam_association import RETURN_GAP, RETURN_PENALTY
@@ -172,11 +172,12 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=100)
     parser.add_argument("--detection", type=float, default=1.0)
     parser.add_argument("--clutter", type=float, default=0.0)
-    parser.add_argument("--joint-slack", type=float, default=None,
-                        help="slam_association.JOINT_SLACK for this run (0: pairs judged alone, as before 2026-12-05's joint rule)")
+    parser.add_argument("--main-rules", action="store_true",
+                        help="main's rules before 2026-12-05's joint rule: pairs judged alone, tentative landmarks dropped after TENTATIVE_GAP")
     args = parser.parse_args()
-    if args.joint_slack is not None:
-        slam_association.JOINT_SLACK = args.joint_slack
+    if args.main_rules:
+        slam_association.JOINT_SLACK = 0.0
+        slam_landmarks.TENTATIVE_KEEP = slam_landmarks.TENTATIVE_GAP
     print("world | default RMSE / SE3 / NEES | true RMSE / SE3 / NEES | precision | recall | pairs | returns | " + " | ".join(FATES) + " | why (alive): " + ", ".join(WHY))
     totals: dict = {}
     for kind in args.kinds.split(","):

@@ -30,7 +30,7 @@ from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import landmark_kind_of
 from camloc.planar import wrap_residuals
-from camloc.slam_landmarks import UNPAIRED, places_point
+from camloc.slam_landmarks import TENTATIVE_GAP, UNPAIRED, places_point
 from camloc.tails import chi2_quantile
 
 
@@ -53,6 +53,7 @@ class Candidate:
     # the cost the pair must stay within, alone or given the other pairs of its set (``joint_pairs``;
     # inf: no such test, the pair taken as ``jcbb`` takes it)
     limit: float = float("inf")
+    alone: bool = True  # may be taken on its own cost (False: only given the others)
 
 
 def joint_distance(P: np.ndarray, pairs: list[Candidate]) -> float:
@@ -187,7 +188,7 @@ def joint_pairs(P: np.ndarray, candidates: list[list[Candidate]], probability: f
         limits = np.array([c.limit for c in chosen])
         if not np.any(np.isfinite(limits)):
             return chosen
-        excess = np.array([c.cost for c in chosen]) - limits
+        excess = np.array([c.cost - c.limit if c.alone else np.inf for c in chosen])
         if len(chosen) >= JOINT_MIN:  # each within its limit alone or given the others
             excess = np.minimum(excess, conditional_costs(P, chosen) + JOINT_MARGIN - limits)
         worst = int(np.argmax(excess))
@@ -319,11 +320,15 @@ class PoseAssociation:
             # (``joint_pairs``): tried up to JOINT_SLACK over its limit alone
             joint = self.config.map == "none" and placed and JOINT_SLACK > 0.0
             tried = slack + JOINT_SLACK if joint else slack
+            # a tentative landmark unseen for TENTATIVE_GAP poses: only given the others, past the
+            # return penalty (``slam_landmarks.TENTATIVE_KEEP``)
+            stale = (self.table.tentative[landmarks] & (self.table.last_seen[landmarks] < k - TENTATIVE_GAP)) if joint \
+                else np.zeros(landmarks.size, bool)
             for i, o in enumerate(mine.tolist()):
-                limits = self.null_cost[o] + slack if joint else np.full(slack.shape, np.inf)
+                limits = self.null_cost[o] + np.where(stale, -RETURN_PENALTY, slack) if joint else np.full(slack.shape, np.inf)
                 candidates.append([Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
                                              self.association_cov[o], int(self.obs_dof[o]), float(cost[i, j]), int(sensor_id),
-                                             float(limits[j]))
+                                             float(limits[j]), not bool(stale[j]))
                                    for j in np.flatnonzero(cost[i] < self.null_cost[o] + tried).tolist()])
         return candidates
 
