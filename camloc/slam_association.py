@@ -30,7 +30,7 @@ from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import landmark_kind_of
 from camloc.planar import wrap_residuals
-from camloc.slam_landmarks import TENTATIVE_GAP, UNPAIRED, places_point
+from camloc.slam_landmarks import TENTATIVE_GAP, UNPAIRED, kept_longer, places_point
 from camloc.tails import chi2_quantile
 
 
@@ -322,8 +322,8 @@ class PoseAssociation:
             tried = slack + JOINT_SLACK if joint else slack
             # a tentative landmark unseen for TENTATIVE_GAP poses: only given the others, past the
             # return penalty (``slam_landmarks.TENTATIVE_KEEP``)
-            stale = (self.table.tentative[landmarks] & (self.table.last_seen[landmarks] < k - TENTATIVE_GAP)) if joint \
-                else np.zeros(landmarks.size, bool)
+            stale = (self.table.tentative[landmarks] & (self.table.last_seen[landmarks] < k - TENTATIVE_GAP)
+                     & kept_longer(self.config.map, self.table.kind[landmarks])) if joint else np.zeros(landmarks.size, bool)
             for i, o in enumerate(mine.tolist()):
                 limits = self.null_cost[o] + np.where(stale, -RETURN_PENALTY, slack) if joint else np.full(slack.shape, np.inf)
                 candidates.append([Candidate(o, int(landmarks[j]), self._innovation(o, z_hat[j], sensor_id), H[j], extra[j],
