@@ -178,10 +178,11 @@ def joint_pairs(P: np.ndarray, candidates: list[list[Candidate]], probability: f
     """``jcbb``'s set with every pair within its ``limit``, alone (its own cost) or, in a set of
     ``JOINT_MIN`` pairs or more, ``JOINT_MARGIN`` within it given the others
     (``conditional_costs``): while one is over both, the pair most over stops being a candidate
-    and the search runs again. Pairs with no limit are taken as ``jcbb`` takes them. (Two pairs can agree by chance: among landmarks a
-    few tenths of a metre apart, seen from a pose unsure by as much, wrong pairs that vouched for
-    each other were 6 of the 18 taken so in sets of two, 4 of 33 in sets of three or more, on 16
-    100-pose grid worlds.)"""
+    and the search runs again. Pairs with no limit are taken as ``jcbb`` takes them; a pair not
+    ``alone`` only given the others. (Two pairs can agree by chance: among landmarks a few tenths
+    of a metre apart, seen from a pose unsure by as much, wrong pairs that vouched for each other
+    were 6 of the 18 taken so in sets of two, 4 of 33 in sets of three or more, on 16 100-pose grid
+    worlds.)"""
     candidates = [list(options) for options in candidates]
     while True:
         chosen = jcbb(P, candidates, probability, max_nodes)
@@ -257,7 +258,7 @@ RETURN_PENALTY = 4.0
 # 0.5-3.5 over its limit alone, 10-14 under it given the others; 0.79 m after an SE(3) alignment
 # against the true association's 0.21). Two pairs can agree by chance, and the set the search
 # found is the best of many: wrong pairs taken so were 6 of 18 in sets of two, and within 3 of
-# their limits given the others on the whole (right ones mostly 5-14 within). Measured on 72
+# their limits given the others on the whole (right ones mostly 4-14 within). Measured on 72
 # 100-pose worlds and 300-pose ones (docs/performance.md, 2026-12-05, "No map: a loop closure's
 # returns judged together").
 JOINT_SLACK = 4.0
