@@ -606,7 +606,7 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
     ref = ekf.update(x, P, z.reshape(-1), R, measure, retract=euler.retract, difference=euler.difference, iterations=4,
                      map_cost=True, R_inverse=_inverse(R))
     x_post, P_post, nis, cost, y = update.iterated_update(x, P, z, R, _inverse(R), landmarks, pair_camera, camera_R, camera_t,
-                                                          camera_K, 4, z_hat, H, np.empty(0))
+                                                          camera_K, 4, z_hat, H, np.empty(0), True)
     np.testing.assert_allclose(y.reshape(-1), ref.innovation, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(x_post, ref.state, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(P_post, ref.cov, rtol=RTOL, atol=1e-16)

@@ -399,15 +399,16 @@ def prior_quadratic(P, d, M, pivots, b):
 
 @jit
 def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                    iterations, z_hat, H, start):
+                    iterations, z_hat, H, start, map_cost):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
     predictions at x. With a ``start`` (n,) (none: size 0) the iterations after the first
     linearize first at start (a state near the MAP estimate, where the prior is too far for
-    Gauss-Newton).
+    Gauss-Newton). ``map_cost``: compute the MAP cost at x+ (one more prediction and a
+    factorization of P); without it, NaN (the beam's scratch updates never read it).
 
-    Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+, y (p, 3) the innovation at the
-    prior)."""
+    Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+ (or NaN), y (p, 3) the innovation
+    at the prior)."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = z.shape[0]
     m = 3 * p
@@ -469,14 +470,39 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         covariance_posterior_into(P, K, H_last, R, P_post, np.empty((n, n)), np.empty((n, n)))
     else:
         posterior_covariance_into(P, information, M, pivots, P_post, np.empty((n, n)))
-    # the MAP cost at x+, predicted into the iterations' buffers (H_last is read above)
-    observe_pairs_into(x_i, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
-    for i in range(p):
-        for a in range(3):
-            r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat_i[i, a])
-    difference_into(x_i, x, moved)
-    cost = prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
+    cost = np.nan
+    if map_cost:                                                     # into the iterations' buffers (H_last is read above)
+        cost = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+                             z_hat_i, H_i, r, d_position, frame, moved, M, pivots)
     return x_i, P_post, nis, cost, y_prior
+
+
+@jit
+def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+                  z_hat, H, r, d_position, frame, moved, M, pivots):
+    """The MAP cost at x_post of the update of prior (x, P) with the pairs of ``iterated_update``
+    (its arguments of the same names): the prior's quadratic of x_post [-] x plus each pair's
+    y' R^-1 y at x_post. The rest is scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position,
+    frame (``observe_pairs_into``'s), moved (n,), M (n, n), pivots (n,)."""
+    n = x.shape[0]
+    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
+    for i in range(z.shape[0]):
+        for a in range(3):
+            r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
+    difference_into(x_post, x, moved)
+    return prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
+
+
+@jit
+def restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, x_post):
+    """``map_cost_into`` with scratch of its own: the cost of an update ``updated`` compares with
+    a restart's, where the update was run without it (rare: an innovation beyond its bound)."""
+    n, p = x.shape[0], z.shape[0]
+    z_hat, H, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
+    d_position, frame = np.empty((scene.camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    moved, M, pivots = np.empty(n), np.empty((n, n)), np.empty(n, np.int64)
+    return map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, scene.camera_R, scene.camera_t, scene.camera_K,
+                         z_hat, H, r, d_position, frame, moved, M, pivots)
 
 
 @inlined
@@ -523,7 +549,7 @@ def point_step(scene, x, P, obs, z_hat, H):
 
 
 @entry
-def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start):
+def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, map_cost):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
     predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)
     and ``noise_inverse``: the file's (``scene.R_file``) for the estimate, the floored noise
@@ -532,7 +558,10 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
-    posterior with the lower MAP cost is kept. Returns as ``iterated_update``."""
+    posterior with the lower MAP cost is kept. ``map_cost``: return the kept posterior's MAP cost
+    (the filter's statistic); without it that is NaN where no restart ran (the beam's scratch
+    updates, which read only the state: a prediction and a factorization saved each).
+    Returns as ``iterated_update``."""
     p = obs.size
     z = np.empty((p, 3))
     R = np.empty((p, 3, 3))
@@ -550,16 +579,19 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
             landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = np.empty(0)
-    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none)
+    costed = map_cost or (start.size > 0 and iterations >= 2)         # a start restarts: compared below
+    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed)
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
     if iterations < 2 or not (start.size or best[2] > scene.nis_bound[dof]):
         return best
+    if not costed:                                                   # compared below: the cost iterated_update left out
+        best = (best[0], best[1], best[2], restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, best[0]), best[4])
     starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, none)
     for s in starts:
         if s.size:
-            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s)
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, True)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     return best
