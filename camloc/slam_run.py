@@ -44,6 +44,7 @@ from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
 from camloc.slam_anchors import RayAnchors
 from camloc.slam_association import BEAM_RECENT, PoseAssociation
+from camloc.slam_fusion import LandmarkFusion
 from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, floor_sure_view, sure_view
 from camloc.slam_tag_states import TagStates
 from camloc.slam_tracks import Tracks
@@ -51,7 +52,7 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt, LandmarkFusion):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -117,6 +118,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         # without a map a return to a landmark seen long ago is a wide prior and a bent measurement,
         # where Gauss-Newton's iterates can overshoot: the update is the cheapest iterate (``ekf.update``)
         self._monotone = config.map == "none"
+        # landmarks added twice fused (``camloc.slam_fusion``); not under the oracle, whose ids are one landmark each
+        self._init_fusion(config.association != "oracle")
 
     def _planar_landmarks(self, dataset: Dataset) -> None:
         """A planar map's kinds in the table: a point of the floor pinned at z = 0 (``slam``'s model
@@ -165,6 +168,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         pairs = self._with_orientations(pairs)  # a tag pair's orientation joins it
         if pairs:
             self._update(k, pairs)
+            if self.fusing:
+                self._fuse_seen(k, {lm for _, lm in pairs})
         paired = {o for o, _ in pairs}
         self._count_misses({lm for _, lm in pairs})
         unassigned = [int(o) for o in obs.tolist() if int(o) not in paired]
