@@ -120,6 +120,7 @@ class LandmarkFusion:
         self.fusing = on
         self.fusions: list[tuple[int, int, int]] = []  # (pose, survivor, fused away), table indices
         self._distinct: set = set()  # table index pairs a pose saw together: never fused
+        self._apart: dict = {}  # table index pair -> both last sightings when found never seen together
         self._young: dict[int, int] = {}  # added landmark -> the last pose it was seen, while young
 
     def _fuse_seen(self, k: int, landmarks) -> None:
@@ -149,13 +150,30 @@ class LandmarkFusion:
         near = np.einsum("ymi,ymi->ym", offsets, offsets) < FUSION_REACH**2
         near &= original[None, :] & (table.kind[state][None, :] == table.kind[young][:, None])
         near &= table.born[state][None, :] < (table.born[young] - RETURN_GAP)[:, None]
-        near &= table.last_seen[state][None, :] < table.born[young][:, None]
         y, r = np.nonzero(near)
         pairs = np.stack([young[y], state[r]], axis=1)
-        if self._distinct:
-            fresh = np.array([(min(u, v), max(u, v)) not in self._distinct for u, v in pairs.tolist()], bool)
+        # an original seen since the young one was born may have been seen with it: asked once a pair
+        overlap = table.last_seen[pairs[:, 1]] >= table.born[pairs[:, 0]]
+        if overlap.any():
+            fresh = np.array([not (o and self._seen_together(u, v)) for (u, v), o in zip(pairs.tolist(), overlap.tolist())], bool)
             return pairs[fresh], offsets[y[fresh], r[fresh]]
         return pairs, offsets[y, r]
+
+    def _seen_together(self, a: int, b: int) -> bool:
+        """Whether a pose paired an observation with a and another with b. The answer is kept: yes
+        for good, no while neither is seen again."""
+        key = (min(a, b), max(a, b))
+        if key in self._distinct:
+            return True
+        seen = (int(self.table.last_seen[key[0]]), int(self.table.last_seen[key[1]]))
+        if self._apart.get(key) == seen:
+            return False
+        pose = self.dataset.obs_pose_index
+        if np.intersect1d(pose[self.chosen == a], pose[self.chosen == b]).size:
+            self._distinct.add(key)
+            return True
+        self._apart[key] = seen
+        return False
 
     def _fuse_pair(self, k: int, p: int, q: int) -> None:
         """Fuse table landmarks p and q, unless one left the state or a pose saw them together."""
@@ -163,9 +181,7 @@ class LandmarkFusion:
         if table.dead[p] or table.dead[q] or table.state_row[p] < 0 or table.state_row[q] < 0:
             return
         a, b = (q, p) if table.added[p] and (not table.added[q] or q < p) else (p, q)  # mapped, else older, survives
-        pose = self.dataset.obs_pose_index
-        if np.intersect1d(pose[self.chosen == a], pose[self.chosen == b]).size:
-            self._distinct.add((min(a, b), max(a, b)))
+        if self._seen_together(a, b):
             return
         self._fuse(k, a, b)
 
@@ -181,7 +197,8 @@ class LandmarkFusion:
         table.state_row[landmarks[keep]] = np.arange(landmarks.size - 1)
         self.chosen[self.chosen == b] = a
         table.observations[a] += table.observations[b]
-        table.born[a] = min(int(table.born[a]), int(table.born[b])) if table.born[a] >= 0 else table.born[b]
+        if table.added[a]:  # (a mapped landmark keeps no birth)
+            table.born[a] = min(int(table.born[a]), int(table.born[b]))
         table.last_seen[a] = max(int(table.last_seen[a]), int(table.last_seen[b]))
         table.drop(np.array([b]))  # out of the map and of every search
         self._young.pop(b, None)
