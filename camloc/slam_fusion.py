@@ -120,7 +120,6 @@ class LandmarkFusion:
         self.fusing = on
         self.fusions: list[tuple[int, int, int]] = []  # (pose, survivor, fused away), table indices
         self._distinct: set = set()  # table index pairs a pose saw together: never fused
-        self._apart: dict = {}  # table index pair -> both last sightings when found never seen together
         self._young: dict[int, int] = {}  # added landmark -> the last pose it was seen, while young
 
     def _fuse_seen(self, k: int, landmarks) -> None:
@@ -137,12 +136,13 @@ class LandmarkFusion:
         young = np.array([u for u in self._young if not table.tentative[u]], np.int64)
         if young.size < FUSION_MIN_PAIRS:
             return
-        pairs, offsets = self._candidate_pairs(young)
+        pairs, offsets = self._candidate_pairs(young, k)
         for j in displaced_group(pairs, offsets, 2 if self.dataset.planar else 3).tolist():
             self._fuse_pair(k, int(pairs[j, 0]), int(pairs[j, 1]))
 
-    def _candidate_pairs(self, young: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``)."""
+    def _candidate_pairs(self, young: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``)
+        at pose k, none that a pose saw together."""
         table = self.table
         state = np.array(self.state_landmark, np.int64)
         original = ~table.dead[state] & ~table.tentative[state] & (table.kind[state] != LANDMARK_MARKER)
@@ -152,27 +152,25 @@ class LandmarkFusion:
         near &= table.born[state][None, :] < (table.born[young] - RETURN_GAP)[:, None]
         y, r = np.nonzero(near)
         pairs = np.stack([young[y], state[r]], axis=1)
-        # an original seen since the young one was born may have been seen with it: asked once a pair
+        # only an original seen since the young one was born may have been seen with it
         overlap = table.last_seen[pairs[:, 1]] >= table.born[pairs[:, 0]]
         if overlap.any():
-            fresh = np.array([not (o and self._seen_together(u, v)) for (u, v), o in zip(pairs.tolist(), overlap.tolist())], bool)
+            fresh = np.array([not (o and self._seen_together(u, v, k)) for (u, v), o in zip(pairs.tolist(), overlap.tolist())], bool)
             return pairs[fresh], offsets[y[fresh], r[fresh]]
         return pairs, offsets[y, r]
 
-    def _seen_together(self, a: int, b: int) -> bool:
-        """Whether a pose paired an observation with a and another with b. The answer is kept: yes
-        for good, no while neither is seen again."""
+    def _seen_together(self, a: int, b: int, k: int) -> bool:
+        """Whether a pose up to k paired an observation with a and another with b: read from the
+        pairs since the later of their births (a young landmark's: a window, not the run)."""
         key = (min(a, b), max(a, b))
         if key in self._distinct:
             return True
-        seen = (int(self.table.last_seen[key[0]]), int(self.table.last_seen[key[1]]))
-        if self._apart.get(key) == seen:
-            return False
-        pose = self.dataset.obs_pose_index
-        if np.intersect1d(pose[self.chosen == a], pose[self.chosen == b]).size:
+        start = max(int(self.table.born[a]), int(self.table.born[b]), 0)
+        since = self.obs_order[self.obs_bounds[start]:self.obs_bounds[k + 1]]
+        chosen, pose = self.chosen[since], self.dataset.obs_pose_index[since]
+        if np.intersect1d(pose[chosen == a], pose[chosen == b]).size:
             self._distinct.add(key)
             return True
-        self._apart[key] = seen
         return False
 
     def _fuse_pair(self, k: int, p: int, q: int) -> None:
@@ -181,7 +179,7 @@ class LandmarkFusion:
         if table.dead[p] or table.dead[q] or table.state_row[p] < 0 or table.state_row[q] < 0:
             return
         a, b = (q, p) if table.added[p] and (not table.added[q] or q < p) else (p, q)  # mapped, else older, survives
-        if self._seen_together(a, b):
+        if self._seen_together(a, b, k):
             return
         self._fuse(k, a, b)
 

@@ -134,9 +134,9 @@ def test_landmarks_seen_at_one_pose_are_never_fused():
     a, b = seen[:2]
     rows = loc.x.L.shape[0]
     loc.x.L[loc.table.state_row[b]] = loc.x.L[loc.table.state_row[a]] + 0.01  # as close as can be
-    loc._fuse_pair(40, a, b)
+    loc._fuse_pair(dataset.num_poses - 1, a, b)
     assert loc.x.L.shape[0] == rows and not loc.fusions
     assert (min(a, b), max(a, b)) in loc._distinct
     young = np.array([a, b], np.int64)
-    pairs, _ = loc._candidate_pairs(young)
+    pairs, _ = loc._candidate_pairs(young, dataset.num_poses - 1)
     assert not any({int(u), int(v)} == {a, b} for u, v in pairs)
