@@ -119,8 +119,8 @@ class LandmarkFusion:
     def _init_fusion(self, on: bool) -> None:
         self.fusing = on
         self.fusions: list[tuple[int, int, int]] = []  # (pose, survivor, fused away), table indices
-        self._distinct: set = set()  # table index pairs a pose saw together: never fused
         self._young: dict[int, int] = {}  # added landmark -> the last pose it was seen, while young
+        self._met: dict[int, set] = {}  # young landmark -> the landmarks paired at a pose with it
 
     def _fuse_seen(self, k: int, landmarks) -> None:
         """After pose k's update of ``landmarks`` (table indices): the young landmarks displaced by
@@ -128,21 +128,35 @@ class LandmarkFusion:
         if self.x.orientation is not None or len(self.state_landmark) < 2:
             return  # (tags: not fused)
         table = self.table
-        for u in landmarks:
+        seen = {int(u) for u in landmarks}
+        for u in seen:
             if table.added[u] and table.born[u] >= k - FUSION_WINDOW:
-                self._young[int(u)] = k
+                self._young[u] = k
+                if u in self._met:
+                    self._met[u] |= seen
+                else:
+                    self._met[u] = self._met_since_birth(u, k)
         self._young = {u: s for u, s in self._young.items()
                        if s >= k - FUSION_WINDOW and not table.dead[u] and table.state_row[u] >= 0}
+        self._met = {u: met for u, met in self._met.items() if u in self._young}
         young = np.array([u for u in self._young if not table.tentative[u]], np.int64)
-        if young.size < FUSION_MIN_PAIRS:
-            return
-        pairs, offsets = self._candidate_pairs(young, k)
+        if young.size < FUSION_MIN_PAIRS or not seen.intersection(young.tolist()):
+            return  # (the offsets move most where a young landmark is seen: searched then)
+        pairs, offsets = self._candidate_pairs(young)
         for j in displaced_group(pairs, offsets, 2 if self.dataset.planar else 3).tolist():
             self._fuse_pair(k, int(pairs[j, 0]), int(pairs[j, 1]))
 
-    def _candidate_pairs(self, young: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``)
-        at pose k, none that a pose saw together."""
+    def _met_since_birth(self, u: int, k: int) -> set:
+        """The landmarks paired at a pose with u, up to pose k: read from the pairs since its birth
+        (a young landmark's: a window, not the run), once; then kept up pose by pose."""
+        since = self.obs_order[self.obs_bounds[max(int(self.table.born[u]), 0)]:self.obs_bounds[k + 1]]
+        chosen, pose = self.chosen[since], self.dataset.obs_pose_index[since]
+        together = chosen[np.isin(pose, pose[chosen == u])]
+        return set(together[together >= 0].tolist())
+
+    def _candidate_pairs(self, young: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``),
+        none that a pose saw together."""
         table = self.table
         state = np.array(self.state_landmark, np.int64)
         original = ~table.dead[state] & ~table.tentative[state] & (table.kind[state] != LANDMARK_MARKER)
@@ -152,35 +166,16 @@ class LandmarkFusion:
         near &= table.born[state][None, :] < (table.born[young] - RETURN_GAP)[:, None]
         y, r = np.nonzero(near)
         pairs = np.stack([young[y], state[r]], axis=1)
-        # only an original seen since the young one was born may have been seen with it
-        overlap = table.last_seen[pairs[:, 1]] >= table.born[pairs[:, 0]]
-        if overlap.any():
-            fresh = np.array([not (o and self._seen_together(u, v, k)) for (u, v), o in zip(pairs.tolist(), overlap.tolist())], bool)
-            return pairs[fresh], offsets[y[fresh], r[fresh]]
-        return pairs, offsets[y, r]
+        apart = np.array([v not in self._met[u] for u, v in pairs.tolist()], bool)
+        return pairs[apart], offsets[y[apart], r[apart]]
 
-    def _seen_together(self, a: int, b: int, k: int) -> bool:
-        """Whether a pose up to k paired an observation with a and another with b: read from the
-        pairs since the later of their births (a young landmark's: a window, not the run)."""
-        key = (min(a, b), max(a, b))
-        if key in self._distinct:
-            return True
-        start = max(int(self.table.born[a]), int(self.table.born[b]), 0)
-        since = self.obs_order[self.obs_bounds[start]:self.obs_bounds[k + 1]]
-        chosen, pose = self.chosen[since], self.dataset.obs_pose_index[since]
-        if np.intersect1d(pose[chosen == a], pose[chosen == b]).size:
-            self._distinct.add(key)
-            return True
-        return False
-
-    def _fuse_pair(self, k: int, p: int, q: int) -> None:
-        """Fuse table landmarks p and q, unless one left the state or a pose saw them together."""
+    def _fuse_pair(self, k: int, u: int, v: int) -> None:
+        """Fuse young landmark u and original v (``_candidate_pairs``: never seen together), unless
+        an earlier fusion of the group took one of them."""
         table = self.table
-        if table.dead[p] or table.dead[q] or table.state_row[p] < 0 or table.state_row[q] < 0:
+        if table.dead[u] or table.dead[v] or table.state_row[u] < 0 or table.state_row[v] < 0:
             return
-        a, b = (q, p) if table.added[p] and (not table.added[q] or q < p) else (p, q)  # mapped, else older, survives
-        if self._seen_together(a, b, k):
-            return
+        a, b = (v, u) if not table.added[v] or v < u else (u, v)  # the mapped one, else the older, survives
         self._fuse(k, a, b)
 
     def _fuse(self, k: int, a: int, b: int) -> None:
@@ -200,4 +195,8 @@ class LandmarkFusion:
         table.last_seen[a] = max(int(table.last_seen[a]), int(table.last_seen[b]))
         table.drop(np.array([b]))  # out of the map and of every search
         self._young.pop(b, None)
+        self._met.pop(b, None)
+        for u, met in self._met.items():  # b's pairs are a's now: read again where they met either
+            if u == a or a in met or b in met:
+                self._met[u] = self._met_since_birth(u, k)
         self.fusions.append((k, a, b))

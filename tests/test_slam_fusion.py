@@ -14,6 +14,7 @@ from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3
 from camloc.localizer import resolved_config
 from camloc.localizer_config import LocalizerConfig
 from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
+from camloc.slam_association import RETURN_GAP
 from camloc.slam_run import MappingLocalizer
 
 
@@ -122,21 +123,25 @@ def test_landmarks_added_twice_after_a_drift_are_fused_with_their_originals():
 
 
 def test_landmarks_seen_at_one_pose_are_never_fused():
-    """Two landmarks an observation each paired at one pose are distinct, however close: the fusion
-    refuses them and never tries them again."""
-    dataset = simulate_planar(PlanarSimulationConfig(sensors="points", poses=40, no_map=True), seed=0)
+    """Two landmarks an observation each paired at one pose are distinct, however close: they are
+    never a candidate pair (the record of who was seen with whom), and are one without it."""
+    dataset = simulate_planar(PlanarSimulationConfig(sensors="points", poses=120, no_map=True), seed=0)
     loc = _run(dataset, True)
-    def seen_at(k):
-        return [int(n) for n in np.unique(loc.chosen[loc.obs_of_pose[k]]) if n >= 0 and loc.table.state_row[n] >= 0]
-
-    seen = max((seen_at(k) for k in range(dataset.num_poses)), key=len)
-    assert len(seen) >= 2
-    a, b = seen[:2]
-    rows = loc.x.L.shape[0]
-    loc.x.L[loc.table.state_row[b]] = loc.x.L[loc.table.state_row[a]] + 0.01  # as close as can be
-    loc._fuse_pair(dataset.num_poses - 1, a, b)
-    assert loc.x.L.shape[0] == rows and not loc.fusions
-    assert (min(a, b), max(a, b)) in loc._distinct
-    young = np.array([a, b], np.int64)
-    pairs, _ = loc._candidate_pairs(young, dataset.num_poses - 1)
-    assert not any({int(u), int(v)} == {a, b} for u, v in pairs)
+    table, k = loc.table, dataset.num_poses - 1
+    live = [int(n) for n in loc.state_landmark if table.added[n] and not table.dead[n] and not table.tentative[n]]
+    found = None
+    for b in sorted(live, key=lambda n: -table.born[n]):  # a young landmark, then an older one seen with it
+        met = loc._met_since_birth(b, k)
+        older = [a for a in live if a in met and table.born[a] < table.born[b] - RETURN_GAP]
+        if older:
+            found = older[0], b, met
+            break
+    assert found is not None
+    a, b, met = found
+    loc.x.L[table.state_row[b]] = loc.x.L[table.state_row[a]] + 0.01  # as close as can be
+    loc._met[b] = met
+    pairs, _ = loc._candidate_pairs(np.array([b]))
+    assert not any(int(v) == a for _, v in pairs)
+    loc._met[b] = set()  # without the record they would be a pair
+    pairs, _ = loc._candidate_pairs(np.array([b]))
+    assert any(int(v) == a for _, v in pairs)
