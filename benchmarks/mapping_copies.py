@@ -15,6 +15,12 @@ were paired with a landmark, and the wrong pairs.
     nice python benchmarks/mapping_copies.py --trajectories grid --clutter 0.1 --seeds 0,1,2,3
     nice python benchmarks/mapping_copies.py --robot planar --sensors points --seeds 2
     nice python benchmarks/mapping_copies.py --robot planar --sensors points,markers,cameras --seeds 2
+    nice python benchmarks/mapping_copies.py --robot planar --sensors points --seeds 0,1,2,3,4,5,6,7 --no-fusion
+
+Each world's line also gives its position RMSE, mean NEES, the landmark fusions
+(``camloc.slam_fusion``) and the wrong ones (two landmarks whose observations were mostly of
+different true landmarks), and the clutter made into landmarks; ``--no-fusion`` runs without the
+fusion (the run before it), ``--tags DEG`` tag worlds.
 
 A copy whose original is far off while the robot is not is a map bent earlier (landmarks mapped
 while the robot was lost, not carried back by the loop closure); one that follows a wrong return
