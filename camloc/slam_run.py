@@ -13,6 +13,8 @@ One pose at a time (``MappingLocalizer.step``):
    distance + ln det S - ln det R) within the chi^2 gate, solved exactly per camera;
 3. a landmark paired for the first time, or again after it left the state, enters the state
    with its prior (the map's sigma, or the estimate it left with); one stacked iterated update;
+   then landmarks added twice, displaced together from their originals, are fused with them
+   (``camloc.slam_fusion``);
 4. unassigned observations gather into tracks (``camloc.slam_tracks``): a confirmed track becomes
    an **added** landmark, from its latest observation (the inverse observation);
 5. landmarks unseen for ``RETIRE_AFTER`` poses leave the state (marginalized) and wait in the
