@@ -132,23 +132,24 @@ class LandmarkFusion:
         for u in seen:
             if table.added[u] and table.born[u] >= k - FUSION_WINDOW:
                 self._young[u] = k
-                if u in self._met:
+                if u in self._met:  # (read from the pairs when first asked: ``_candidate_pairs``)
                     self._met[u] |= seen
-                else:
-                    self._met[u] = self._met_since_birth(u, k)
-        self._young = {u: s for u, s in self._young.items()
-                       if s >= k - FUSION_WINDOW and not table.dead[u] and table.state_row[u] >= 0}
-        self._met = {u: met for u, met in self._met.items() if u in self._young}
+        for u in [u for u, s in self._young.items() if s < k - FUSION_WINDOW or table.dead[u] or table.state_row[u] < 0]:
+            del self._young[u]
+            self._met.pop(u, None)
         young = np.array([u for u in self._young if not table.tentative[u]], np.int64)
         if young.size < FUSION_MIN_PAIRS or not seen.intersection(young.tolist()):
             return  # (the offsets move most where a young landmark is seen: searched then)
+        for u in young.tolist():
+            if u not in self._met:
+                self._met[u] = self._met_since_birth(u, k)
         pairs, offsets = self._candidate_pairs(young)
         for j in displaced_group(pairs, offsets, 2 if self.dataset.planar else 3).tolist():
             self._fuse_pair(k, int(pairs[j, 0]), int(pairs[j, 1]))
 
     def _met_since_birth(self, u: int, k: int) -> set:
         """The landmarks paired at a pose with u, up to pose k: read from the pairs since its birth
-        (a young landmark's: a window, not the run), once; then kept up pose by pose."""
+        (a young landmark's: a window, not the run) when first needed; then kept up pose by pose."""
         since = self.obs_order[self.obs_bounds[max(int(self.table.born[u]), 0)]:self.obs_bounds[k + 1]]
         chosen, pose = self.chosen[since], self.dataset.obs_pose_index[since]
         together = chosen[np.isin(pose, pose[chosen == u])]
