@@ -15,6 +15,12 @@ were paired with a landmark, and the wrong pairs.
     nice python benchmarks/mapping_copies.py --trajectories grid --clutter 0.1 --seeds 0,1,2,3
     nice python benchmarks/mapping_copies.py --robot planar --sensors points --seeds 2
     nice python benchmarks/mapping_copies.py --robot planar --sensors points,markers,cameras --seeds 2
+    nice python benchmarks/mapping_copies.py --robot planar --sensors points --seeds 0,1,2,3,4,5,6,7 --no-fusion
+
+Each world's line also gives its position RMSE, mean NEES, the landmark fusions
+(``camloc.slam_fusion``) and the wrong ones (two landmarks whose observations were mostly of
+different true landmarks), and the clutter made into landmarks; ``--no-fusion`` runs without the
+fusion (the run before it), ``--tags DEG`` tag worlds.
 
 A copy whose original is far off while the robot is not is a map bent earlier (landmarks mapped
 while the robot was lost, not carried back by the loop closure); one that follows a wrong return
@@ -28,7 +34,7 @@ from collections import Counter
 
 import numpy as np
 
-from camloc import slam
+from camloc import metrics, slam
 from camloc.localizer import resolved_config
 from camloc.localizer_config import LocalizerConfig
 from camloc.simulate import SimulationConfig, simulate_labelled
@@ -43,7 +49,13 @@ def worlds(args):
     """(name, seed, no-map dataset, true map id -> position) of each world asked for."""
     for kind in ([args.sensors] if args.robot == "planar" else args.trajectories.split(",")):
         for seed in [int(s) for s in args.seeds.split(",")]:
-            if args.robot == "planar":
+            if args.tags:
+                from camloc.simulate_tags import simulate_tags
+
+                base = dict(trajectory=kind, poses=args.poses, clutter_fraction=args.clutter)
+                full = simulate_tags(SimulationConfig(**base), seed=seed, sigma_rad=np.radians(args.tags))
+                ds = simulate_tags(SimulationConfig(**base, no_map=True), seed=seed, sigma_rad=np.radians(args.tags))
+            elif args.robot == "planar":
                 base = dict(sensors=kind, poses=args.poses, clutter_fraction=args.clutter, cameras=SimulationConfig(measurement="depth"))
                 full = simulate_planar(PlanarSimulationConfig(**base), seed=seed)
                 ds = simulate_planar(PlanarSimulationConfig(**base, no_map=True), seed=seed)
@@ -71,10 +83,25 @@ def against(loc: MappingLocalizer, o: int, landmark: int) -> tuple[float, int, f
     return float(y @ np.linalg.solve(S, y)), dof, float(np.linalg.norm(y)), float(np.sqrt(np.trace(S)))
 
 
-def trace_world(ds) -> tuple[dict, dict, MappingLocalizer]:
+def majority(ds, chosen: np.ndarray, landmark: int):
+    """The true id most of the observations paired with ``landmark`` are of (None: none)."""
+    counts = Counter(ds.obs_true_landmark[chosen == landmark].tolist())
+    return counts.most_common(1)[0][0] if counts else None
+
+
+def trace_world(ds, fusion: bool = True) -> tuple[dict, dict, MappingLocalizer]:
     """Run the world; each birth's diagnosis against every earlier live landmark of its true id,
-    and each return's (pose, observation, landmark)."""
+    each return's (pose, observation, landmark) and each fusion's (pose, the two true ids)."""
     loc = MappingLocalizer(ds, resolved_config(LocalizerConfig(map="none"), ds))
+    loc.fusing = fusion
+    fused_ids = []
+    fuse = loc._fuse
+
+    def traced_fuse(k, a, b):  # the true ids each stood for, before their records join
+        fused_ids.append((k, majority(ds, loc.chosen, a), majority(ds, loc.chosen, b)))
+        fuse(k, a, b)
+
+    loc._fuse = traced_fuse
     births, returns = {}, []
     for k in range(ds.num_poses):
         size, last_seen = len(loc.table), loc.table.last_seen.copy()
@@ -93,11 +120,11 @@ def trace_world(ds) -> tuple[dict, dict, MappingLocalizer]:
             held = set(loc.chosen[(ds.obs_true_landmark == true_id) & (loc.chosen >= 0)].tolist()) - {new}
             olds = [(a, k - int(loc.table.last_seen[a]), *against(loc, o, a)) for a in sorted(held) if not loc.table.dead[a]]
             births[new] = (k, o, float(np.linalg.norm(loc.x.t - ds.truth_xyz[k])), olds, loc.x.L.copy(), loc.table.state_row.copy())
-    return births, {"returns": returns}, loc
+    return births, {"returns": returns, "fusions": fused_ids}, loc
 
 
-def report(kind, seed, ds, truth: dict) -> tuple[int, int, int]:
-    births, extra, loc = trace_world(ds)
+def report(kind, seed, ds, truth: dict, fusion: bool = True) -> tuple:
+    births, extra, loc = trace_world(ds, fusion)
     chosen = loc.chosen
     stands = {n: Counter(ds.obs_true_landmark[chosen == n].tolist()).most_common(1)[0][0] for n in set(chosen[chosen >= 0].tolist())}
     live = [n for n in stands if loc.table.added[n] and not loc.table.dead[n] and not loc.table.tentative[n]]
@@ -109,6 +136,13 @@ def report(kind, seed, ds, truth: dict) -> tuple[int, int, int]:
     clutter = ~np.isin(ds.obs_true_landmark, list(truth))
     wrong = np.array([o for o in np.flatnonzero(chosen >= 0) if ds.obs_true_landmark[o] != stands[int(chosen[o])]], np.int64)
     wrong_returns = [(k, o) for k, o, lm in extra["returns"] if ds.obs_true_landmark[o] != stands.get(lm)]
+    clutter_made = sum(1 for n in live if stands[n] not in truth)
+    fusions = extra["fusions"]
+    wrong_fusions = sum(1 for _, a, b in fusions if a != b)
+    rmse = float(np.sqrt(np.mean(np.sum((loc.poses[:, :3, 3] - ds.truth_xyz) ** 2, axis=1))))
+    nees = float(np.nanmean(metrics.run_nees(loc.result(0.0))))
+    print(f"{kind}/{seed}: RMSE {rmse:.3f} m, NEES {nees:.1f}; fusions {len(fusions)}, wrong {wrong_fusions}"
+          f"{[(k, a, b) for k, a, b in fusions if a != b]}; clutter made {clutter_made}")
     print(f"{kind}/{seed}: added {len(live)}, twice {len(copies)}; clutter observations {int(clutter.sum())}, paired "
           f"{int(np.count_nonzero(clutter & (chosen >= 0)))}; wrong pairs {wrong.size} (of clutter {int(clutter[wrong].sum())}); "
           f"wrong returns at poses {[k for k, _ in wrong_returns]}")
@@ -125,7 +159,7 @@ def report(kind, seed, ds, truth: dict) -> tuple[int, int, int]:
         before = [kk for kk, _ in wrong_returns if k - WRONG_RETURN_WINDOW <= kk <= k]
         after_wrong += bool(before)
         print(line + (f" | after a wrong return at pose {before[-1]}" if before else " | no wrong return before it"))
-    return len(live), len(copies), after_wrong
+    return len(live), len(copies), after_wrong, rmse, nees, len(fusions), wrong_fusions, clutter_made, int(clutter.sum())
 
 
 def main() -> None:
@@ -136,13 +170,15 @@ def main() -> None:
     parser.add_argument("--clutter", type=float, default=0.0)
     parser.add_argument("--robot", default="3d", choices=("3d", "planar"))
     parser.add_argument("--sensors", default="points", help="with --robot planar: the planar simulator's sensors")
+    parser.add_argument("--tags", type=float, default=0.0, help="3-D worlds of tags, their orientation noise in degrees (0: points)")
+    parser.add_argument("--no-fusion", action="store_true", help="without landmark fusion (camloc.slam_fusion): the run before it")
     args = parser.parse_args()
-    added = twice = after_wrong = 0
-    for kind, seed, ds, truth in worlds(args):
-        a, t, w = report(kind, seed, ds, truth)
-        added, twice, after_wrong = added + a, twice + t, after_wrong + w
-    print(f"all: added {added}, twice {twice} ({100.0 * twice / max(added, 1):.1f}%), {after_wrong} of them within "
-          f"{WRONG_RETURN_WINDOW} poses after a wrong return")
+    rows = [report(kind, seed, ds, truth, not args.no_fusion) for kind, seed, ds, truth in worlds(args)]
+    added, twice, after_wrong, rmse, nees, fusions, wrong, clutter_made, clutter = (np.array(c) for c in zip(*rows))
+    print(f"all: added {added.sum()}, twice {twice.sum()} ({100.0 * twice.sum() / max(added.sum(), 1):.1f}%), {after_wrong.sum()} of them within "
+          f"{WRONG_RETURN_WINDOW} poses after a wrong return; RMSE mean {rmse.mean():.3f} m ({rmse.min():.2f}-{rmse.max():.2f}), "
+          f"NEES mean {nees.mean():.1f} ({nees.min():.1f}-{nees.max():.1f}); fusions {fusions.sum()}, wrong {wrong.sum()}; "
+          f"clutter made {clutter_made.sum()} of {clutter.sum()} clutter observations")
 
 
 if __name__ == "__main__":

@@ -13,6 +13,8 @@ One pose at a time (``MappingLocalizer.step``):
    distance + ln det S - ln det R) within the chi^2 gate, solved exactly per camera;
 3. a landmark paired for the first time, or again after it left the state, enters the state
    with its prior (the map's sigma, or the estimate it left with); one stacked iterated update;
+   then landmarks added twice, displaced together from their originals, are fused with them
+   (``camloc.slam_fusion``);
 4. unassigned observations gather into tracks (``camloc.slam_tracks``): a confirmed track becomes
    an **added** landmark, from its latest observation (the inverse observation);
 5. landmarks unseen for ``RETIRE_AFTER`` poses leave the state (marginalized) and wait in the
@@ -44,6 +46,7 @@ from camloc.run_records import build_result, recorded_nis
 from camloc.sensors import sensors_of
 from camloc.slam_anchors import RayAnchors
 from camloc.slam_association import BEAM_RECENT, PoseAssociation
+from camloc.slam_fusion import LandmarkFusion
 from camloc.slam_landmarks import LandmarkAdditions, LandmarkTable, floor_sure_view, sure_view
 from camloc.slam_tag_states import TagStates
 from camloc.slam_tracks import Tracks
@@ -51,7 +54,7 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
-class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt):
+class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt, LandmarkFusion):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
     def __init__(self, dataset: Dataset, config: LocalizerConfig, given_pairs: Optional[np.ndarray] = None,
@@ -117,6 +120,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         # without a map a return to a landmark seen long ago is a wide prior and a bent measurement,
         # where Gauss-Newton's iterates can overshoot: the update is the cheapest iterate (``ekf.update``)
         self._monotone = config.map == "none"
+        # landmarks added twice fused (``camloc.slam_fusion``); not under the oracle, whose ids are one landmark each
+        self._init_fusion(config.association != "oracle")
 
     def _planar_landmarks(self, dataset: Dataset) -> None:
         """A planar map's kinds in the table: a point of the floor pinned at z = 0 (``slam``'s model
@@ -165,6 +170,8 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         pairs = self._with_orientations(pairs)  # a tag pair's orientation joins it
         if pairs:
             self._update(k, pairs)
+            if self.fusing:
+                self._fuse_seen(k, {lm for _, lm in pairs})
         paired = {o for o, _ in pairs}
         self._count_misses({lm for _, lm in pairs})
         unassigned = [int(o) for o in obs.tolist() if int(o) not in paired]
