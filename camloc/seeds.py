@@ -119,7 +119,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     pair_obs = np.repeat(np.arange(obs.size), np.diff(start))
     gated = np.isfinite(cost)
     if not gated.any():
-        out = kb.explain_all(scene, settings, h, 1, obs, False)
+        out = kb.explain_all(scene, settings, h, 1, obs)
         return _flagged(out, slipped)
     pair_obs, pair_landmark, pair_cost = pair_obs[gated], landmark[gated], cost[gated]
     candidates = np.argsort(pair_cost, kind="stable")[:SLIP_CANDIDATES]
@@ -152,12 +152,12 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1
-        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i), False)
+        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i))
         for c in range(min(count, SEED_EXPLANATIONS)):
             if within_prior(children[0][c], x, P):
                 explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))
     if not explained:
-        return _flagged(kb.explain_all(scene, settings, h, 1, obs, False), slipped)
+        return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
     gen, sizes = concatenated(explained)
     kept = kb.prune(scene, settings, gen, int(sizes.sum()))
     return _flagged((kb.gather(gen, kept, gen[7].shape[1]), kept.size), slipped)

@@ -430,7 +430,7 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     seeded[0][0], seeded[1][0], seeded[2][0] = x, P, 0.0
     seeded[7][0, 0] = (first, lm)
     seeded[6][0] = 1
-    children, count = kb.explain_all(scene, settings, seeded, 1, np.array([second]), False)
+    children, count = kb.explain_all(scene, settings, seeded, 1, np.array([second]))
     taken = [tuple(children[7][c, q]) for c in range(count) for q in range(children[6][c])]
     assert count >= 1 and (second, lm) not in taken and children[4][np.argmin(children[2][:count])] == 1
 
@@ -648,50 +648,13 @@ def test_a_clutter_detection_beside_a_landmark_s_own_does_not_take_it_first():
     scene, settings = build_scene(dataset, config), build_settings(config)
     start = kb.new_generation(1, 2)
     start[0][0], start[1][0], start[2][0] = x, P, 0.0
-    children, count = kb.explain_all(scene, settings, start, 1, np.array([clutter, own]), False)
+    children, count = kb.explain_all(scene, settings, start, 1, np.array([clutter, own]))
     best = int(np.argmin(children[2][:count]))
     assert [tuple(pair) for pair in children[7][best, :children[6][best]]] == [(own, lm)] and children[4][best] == 1
 
     explained = search.expansion.explain(Hypothesis(x, P, 0.0, 0), np.array([clutter, own]))
     best = min(explained, key=lambda h: h.cost)
     assert best.pairs == ((own, lm),) and best.unassigned == 1
-
-
-def test_explanations_surely_pruned_at_the_pose_s_end_are_never_settled_and_change_nothing():
-    """``explain_all(..., doom=True)`` (``run_poses``') leaves its last step's explanations that
-    lie beam_delta above the cheapest unsettled and uncompared: the pose's pruning drops them
-    anyway. The hypotheses it keeps are bit for bit those of the search that settles them, on
-    unsure poses of a pixel world (wide pools: many explanations) from hypotheses of several
-    costs, and some were doomed."""
-    from camloc.kernels import beam as kb
-    from camloc.localizer import LocalizerConfig, resolved_config
-    from camloc.scene import build_scene, build_settings
-    from camloc.simulate import SimulationConfig, simulate
-
-    dataset = simulate(SimulationConfig(poses=40, cameras=2, measurement="pixel", clutter_fraction=0.1), seed=4)
-    config = resolved_config(LocalizerConfig(), dataset)
-    scene, settings = build_scene(dataset, config), build_settings(config)
-    doomed_seen = 0
-    for k in (10, 20, 30):
-        obs = np.flatnonzero(dataset.obs_pose_index == k).astype(np.int64)
-        x = np.r_[dataset.truth_xyz[k], geometry.matrix_to_euler(geometry.quat_to_matrix(dataset.truth_quat_xyzw[k]))]
-        # three hypotheses of the pose: each root's best is grown to the end, however costly
-        start = kb.new_generation(3, 1)
-        for h, (shift, cost) in enumerate(((0.0, 0.0), (0.05, 9.0), (-0.1, 25.0))):
-            start[0][h], start[2][h] = x + shift, cost
-            start[1][h] = np.diag(np.r_[np.full(3, 0.2**2), np.full(3, np.radians(2.0) ** 2)])
-        settled, n_settled = kb.explain_all(scene, settings, start, 3, obs, False)
-        doomed, n_doomed = kb.explain_all(scene, settings, start, 3, obs, True)
-        assert n_doomed >= n_settled and n_settled > 1
-        limit = settled[2][:n_settled].min() + settings.beam_delta
-        doomed_seen += int(np.sum(doomed[2][:n_doomed] > limit))
-        a, b = kb.prune(scene, settings, settled, n_settled), kb.prune(scene, settings, doomed, n_doomed)
-        assert a.size == b.size
-        for i, j in zip(a, b):
-            for field in range(7):
-                assert np.array_equal(settled[field][i], doomed[field][j])
-            assert np.array_equal(settled[7][i, :settled[6][i]], doomed[7][j, :doomed[6][j]])
-    assert doomed_seen > 0
 
 
 def test_the_update_reads_the_scene_through_its_pair_model():

@@ -492,13 +492,11 @@ def nothing_pending(scene, settings, gen, c, parents, pending, model):
 
 
 @inlined
-def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one, model, doomed):
+def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
     beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
     are settled by ``settle_one`` (``settle``, or ``nothing_pending``) as a comparison first
-    needs them, passed ``model``). A candidate costlier than ``doomed`` (inf: none) is kept
-    without a comparison (its state never settled): it is known to be dropped later, and, the
-    costliest, it could only have merged others costlier still (``explain_all``)."""
+    needs them, passed ``model``)."""
     order = candidates[np.argsort(gen[2][candidates], kind="mergesort")]
     kept = np.empty(min(order.size, settings.beam_width), np.int64)
     n = 0
@@ -509,7 +507,7 @@ def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one
         if gen[2][c] > limit or n >= settings.beam_width:
             break
         merged = False
-        for q in range(n if gen[2][c] <= doomed else 0):
+        for q in range(n):
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
@@ -533,16 +531,15 @@ def settled(n, dim):
 @entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending, None, np.inf)
+    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending, None)
 
 
 @inlined
-def prune_partials(scene, settings, gen, root, rest, parents, pending, model, doomed):
+def prune_partials(scene, settings, gen, root, rest, parents, pending, model):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
-    can cost. Roots are taken in the order they first appear. Those costlier than ``doomed``
-    are kept unsettled and uncompared (``prune_indices``)."""
+    can cost. Roots are taken in the order they first appear."""
     n = root.size
     kept = np.empty(0, np.int64)
     seen = np.zeros(root.max() + 1 if n else 1, np.bool_)
@@ -552,7 +549,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending, model, do
             continue
         seen[r] = True
         kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending,
-                                                     settle, model, doomed)))
+                                                     settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -564,13 +561,13 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending, model, do
         others = ranked[~first][:max(0, settings.partial_budget - first.sum())]
         kept = np.concatenate((ranked[first], others))
     for c in kept:
-        if pending[5][c] and gen[2][c] <= doomed:
+        if pending[5][c]:
             settle(scene, settings, gen, c, parents, pending, model)
     return kept
 
 
 @entry
-def explain_all(scene, settings, parents, n_parents, obs, doom):
+def explain_all(scene, settings, parents, n_parents, obs):
     """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,).
 
     Under each parent the clear observations are taken first (``after_clear``). Then the
@@ -578,10 +575,7 @@ def explain_all(scene, settings, parents, n_parents, obs, doom):
     paired with each landmark within ``branch_delta`` of its best option; each parent's partial
     explanations are pruned to a beam of their own, so that a costlier parent's best explanation
     is grown to the end (where observations are few it is often the right one), and past
-    ``partial_budget`` they share one budget (``prune_partials``). With ``doom``, the last step's
-    explanations beam_delta above the cheapest are left unsettled (``doomed_above``): for a caller
-    that prunes the result as ``prune`` does before it reads a state (``run_poses``), not for the
-    seeds' search, which reads its explanations' states first (``seeds.within_prior``)."""
+    ``partial_budget`` they share one budget (``prune_partials``)."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
@@ -636,37 +630,10 @@ def explain_all(scene, settings, parents, n_parents, obs, doom):
             at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
                         children, at, c_root, c_rest, c_moved, pending, model)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        doomed = doomed_above(settings, children, at, c_root, orders, step, expected) if doom else np.inf
-        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model, doomed)
+        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model)
         gen = gather(children, kept, cap)
         root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
         step += 1
-
-
-@jit
-def doomed_above(settings, children, n, root, orders, step, expected):
-    """The cost above which a partial explanation of the pose (the first n of ``children``, of
-    roots ``root``) is surely dropped by the pose's pruning (``prune``: beam_delta above the
-    cheapest once the misses are charged, ``missed``), where these are its last step's, every
-    observation explained; inf before that step. A root's cheapest is always kept by the
-    partials' pruning, so the cheapest of those, with its misses, bounds the pose's best; a miss
-    only adds, so an explanation whose cost before its misses passes that bound by beam_delta is
-    dropped. Within a root those are the costliest, so that leaving them unsettled and
-    uncompared keeps every other decision: they are never read again (``prune_partials``)."""
-    for r in root[:n]:
-        if step + 1 < orders[r].size:
-            return np.inf
-    bound = np.inf
-    for c in range(n):
-        cheapest = True                          # the cheapest of its root (the first of equal costs)
-        for d in range(n):
-            if root[d] == root[c] and (children[2][d] < children[2][c] or (children[2][d] == children[2][c] and d < c)):
-                cheapest = False
-                break
-        if cheapest:
-            final = children[2][c] + missed(expected[root[c]][0], expected[root[c]][1], taken_by(children, c))
-            bound = min(bound, final)
-    return bound + settings.beam_delta
 
 
 @jit
@@ -888,7 +855,7 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
         if obs.size == 0 or scene.grid_keys.size == 0:
             children, count, kept = parents, n, np.arange(n)
         else:
-            children, count = explain_all(scene, settings, parents, n, obs, True)
+            children, count = explain_all(scene, settings, parents, n, obs)
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
