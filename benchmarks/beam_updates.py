@@ -7,7 +7,8 @@ linearization moved the state (docs/performance.md, 2026-12-05, "Fewer updates a
 The numpy engine's beam (``camloc.beam``, which the compiled one equals pair for pair,
 ``tests/test_engine_parity.py``) run with counters wrapped around its steps (nothing of the
 product changes): the compiled beam runs the same updates, so the counts are its too (where it
-settles a child the numpy beam leaves lazy, it says so: "doomed"). Figures per pose over the run's
+settles a child the numpy beam leaves lazy, it says so: "doomed", what a cut of those would save;
+such a cut, ``doomed_above``, was tried and taken out: performance.md). Figures per pose over the run's
 last pass from pose ``--skip`` (a pixel-only run's first 300 poses are a pass of their own, which
 learns the reach). Numpy is slow on pixels: 1,000 poses take a few minutes.
 
@@ -116,9 +117,9 @@ def on_explain_all(self, parents, obs):
 def after_explain_all(self, result, parents, obs):
     counts["explanations left unsettled by explain_all"] += sum(1 for h in result if h._pending is not None)
     if result and last_step:
-        # the pose's pruning drops what lies beam_delta above its best: the kernels' doomed_above
-        # leaves such children of the last step unsettled where its bound (each root's cheapest
-        # with its misses) finds them, at most these
+        # the pose's pruning drops what lies beam_delta above its best: a cut that left such
+        # children of the last step unsettled (``doomed_above``, tried and taken out) would save
+        # at most these
         limit = min(h.cost for h in result) + self.settings.beam_delta
         doomed = [settled for cost, settled in last_step if cost > limit]
         counts["last step's paired children doomed (at most)"] += len(doomed)
