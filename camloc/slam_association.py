@@ -60,12 +60,19 @@ def joint_distance(P: np.ndarray, pairs: list[Candidate]) -> float:
     """The stacked innovation's squared Mahalanobis distance ``y' S^-1 y`` with
     ``S = H P H' + blockdiag(R_i + extra_i)`` (the plain statement of what ``jcbb`` computes from
     its precomputed blocks)."""
+    S, y = stacked_innovation(P, pairs)
+    return float(y @ np.linalg.solve(S, y))
+
+
+def stacked_innovation(P: np.ndarray, pairs: list[Candidate]) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs' stacked innovation covariance ``S = H P H' + blockdiag(R_i + extra_i)`` (3p, 3p)
+    and innovation y (3p,); ``H P H'`` over the state's columns some pair's H reads."""
     H = np.vstack([c.H for c in pairs])
-    y = np.concatenate([c.y for c in pairs])
-    S = H @ P @ H.T
+    cols = np.flatnonzero(np.any(H != 0.0, axis=0))
+    S = H[:, cols] @ P[np.ix_(cols, cols)] @ H[:, cols].T
     for i, c in enumerate(pairs):
         S[3 * i:3 * i + 3, 3 * i:3 * i + 3] += c.R + c.extra
-    return float(y @ np.linalg.solve(S, y))
+    return S, np.concatenate([c.y for c in pairs])
 
 
 @lru_cache(maxsize=256)
@@ -144,7 +151,7 @@ def jcbb_search(P: np.ndarray, candidates: list[list[Candidate]], probability: f
 
 def conditional_costs(P: np.ndarray, pairs: list[Candidate]) -> np.ndarray:
     """(p,) each pair's cost given the other pairs of the set: ``J(set) - J(set without it)`` with
-    ``J = y' S^-1 y + ln det S - sum ln det R`` over the stacked pairs (``joint_distance``'s S), in
+    ``J = y' S^-1 y + ln det S - sum ln det R`` over the stacked pairs (``stacked_innovation``), in
     the units of a pair's own cost (for a set of one, its own cost). Against the observation's
     null cost it is the likelihood ratio of "this pair" over "clutter or a new landmark" given the
     rest of the set: where the pairs share an uncertain pose, each one alone pays that pose's
@@ -152,12 +159,7 @@ def conditional_costs(P: np.ndarray, pairs: list[Candidate]) -> np.ndarray:
     p = len(pairs)
     if p == 1:
         return np.array([pairs[0].cost])
-    H = np.vstack([c.H for c in pairs])
-    cols = np.flatnonzero(np.any(H != 0.0, axis=0))
-    S = H[:, cols] @ P[np.ix_(cols, cols)] @ H[:, cols].T
-    for i, c in enumerate(pairs):
-        S[3 * i:3 * i + 3, 3 * i:3 * i + 3] += c.R + c.extra
-    y = np.concatenate([c.y for c in pairs])
+    S, y = stacked_innovation(P, pairs)
 
     def j(rows: np.ndarray) -> float:
         block = S[np.ix_(rows, rows)]

@@ -114,7 +114,8 @@ def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndar
 
 class LandmarkFusion:
     """A mix-in of ``slam_run.MappingLocalizer`` (its ``x``, ``P``, ``table``, ``state_landmark``,
-    ``chosen``, ``dataset``): landmarks added twice fused after a pose's update."""
+    ``chosen``, ``dataset``, and ``LandmarkAdditions._rows_left``): landmarks added twice fused after
+    a pose's update."""
 
     def _init_fusion(self, on: bool) -> None:
         self.fusing = on
@@ -185,10 +186,7 @@ class LandmarkFusion:
         row_b = int(table.state_row[b])
         self.x, self.P = fused(self.x, self.P, int(table.state_row[a]), row_b, int(table.kind[a]))
         landmarks = np.array(self.state_landmark, np.int64)
-        keep = np.arange(landmarks.size) != row_b
-        self.state_landmark = landmarks[keep].tolist()
-        table.state_row[b] = -1
-        table.state_row[landmarks[keep]] = np.arange(landmarks.size - 1)
+        self._rows_left(landmarks, np.arange(landmarks.size) == row_b)  # (``LandmarkAdditions``')
         self.chosen[self.chosen == b] = a
         table.observations[a] += table.observations[b]
         if table.added[a]:  # (a mapped landmark keeps no birth)

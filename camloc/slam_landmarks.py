@@ -257,6 +257,11 @@ class LandmarkAdditions:
             for row in rows.tolist():
                 self.table.cov[int(landmarks[row])] = slam.landmark_world_cov(self.x, self.P, row)
         self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
+        self._rows_left(landmarks, drop)
+
+    def _rows_left(self, landmarks: np.ndarray, drop: np.ndarray) -> None:
+        """The table's state rows after the state's rows ``drop`` (m,) of ``landmarks`` (m,, the
+        state's, in row order) left it (``slam.without_landmarks``): theirs -1, the rest renumbered."""
         self.table.state_row[landmarks[drop]] = -1
         self.state_landmark = landmarks[~drop].tolist()
         self.table.state_row[landmarks[~drop]] = np.arange(int(np.count_nonzero(~drop)))
