@@ -16,24 +16,39 @@ The rule, after a pose's update (``LandmarkFusion._fuse_seen``):
 - **young** landmarks: added ones, confirmed, born and seen within ``FUSION_WINDOW`` poses;
 - each young landmark u's candidate **originals**: confirmed landmarks of its kind (not markers:
   their third coordinate is a heading) within ``FUSION_REACH`` metres, born more than
-  ``slam_association.RETURN_GAP`` poses before u and unseen since before u was born;
+  ``slam_association.RETURN_GAP`` poses before u and never paired at one pose with it (a camera
+  that saw both at once proved them distinct; read from the run's pairs, ``chosen``);
 - the largest one-to-one set of candidate pairs whose offsets ``l_v - l_u`` lie within
-  ``FUSION_TOLERANCE`` of one of them (``displaced_group``), kept only where that many is beyond
-  chance: originals spread evenly within the reach put an offset within the tolerance of a given
-  one with probability ``(tolerance / reach)^dim`` (dim 2 for a planar robot, 3 otherwise), and
-  the binomial tail of the group's size over the pairs, times the pairs tried, must be below
+  ``FUSION_TOLERANCE`` of one of them (``displaced_group``), kept only where it has at least
+  ``FUSION_MIN_PAIRS`` pairs on the floor (``FUSION_MIN_SPACE_PAIRS`` in space) and that many is
+  beyond chance: originals spread evenly within the reach put an offset within the tolerance of a
+  given one with probability ``(tolerance / reach)^dim`` (dim 2 for a planar robot, 3 otherwise),
+  and the binomial tail of the group's size over the pairs, times the pairs tried, must be below
   ``FUSION_CHANCE``;
-- each pair of the group that no pose saw together (a camera that saw both at once proved them
-  distinct; read from the run's pairs, ``chosen``) is fused.
+- each pair of the group is fused.
+
+**Tags** (a tag's orientation in the state, ``camloc.slam_tags``): a copy's whole pose is its
+original's, and the part of the map made during a drift is off by one **rigid** transform, not a
+shift: the heading errors that make tag copies are 15-45 degrees, so the offsets of one group
+differ by the turn's lever (a metre over a few metres). A tag pair (young u, original v) gives the
+whole transform, its turn ``R_v R_u'`` and its offset; pairs agree where the turns are within
+``FUSION_TURN_TOLERANCE`` and the offset pair i's transform predicts at j, ``d_i + (R_i - I)
+(l_uj - l_ui)``, is within ``FUSION_TOLERANCE`` of j's (``agreement``). So the group's chance is
+far smaller, and two pairs make one (``FUSION_MIN_TAG_PAIRS``), within ``FUSION_TAG_REACH`` (such
+copies lay 1-6 m from their originals); a tag world's state holds a few hundred tags, and most
+copies are made after their original left it, so tags' originals are sought in the whole table
+and enter the state to be fused (``slam_run.MappingLocalizer._enter``).
 
 **The fusion** is the pseudo-measurement ``l_a - l_b = 0`` with a noise of ``FUSION_SIGMA`` (a
 near-exact constraint, Joseph form: ``ekf.ColumnGain``), then landmark b leaves the state
 (marginalized) and its observations point at a: the mapped one where one is, else the older. In
 the invariant error (``camloc.slam``'s model card, ``l_i = Exp(xi_theta) l^_i + J xi_li``) the
 residual is ``r = Exp(xi_theta) d + J (xi_la - xi_lb)``, ``d = l^_a - l^_b``, so ``d r / d xi =
-(0 on xi_t, -[d]x on xi_theta, I on xi_la, -I on xi_lb)`` (checked against finite differences of
-``slam.retract`` in tests/test_slam_fusion.py). A floor point's z is pinned (no variance; the
-constraint takes x and y). Tags are not fused.
+(0 on xi_t, -[d]x on xi_theta, I on xi_la, -I on xi_lb)``. A floor point's z is pinned (no
+variance; the constraint takes x and y). Two tags' orientations join it in the same update,
+``Log(R_a R_b') = 0`` (``turn_constraint``: ``-[phi]x`` on xi_theta, ``J_l(phi)^-1`` and
+``-J_l(phi)^-1 D`` on theirs), and b's orientation row leaves with its centre. Every Jacobian is
+checked against finite differences of ``slam.retract`` in tests/test_slam_fusion.py.
 
 Pure computation: no I/O, no printing.
 """
@@ -49,10 +64,14 @@ from camloc.tails import binomial_tail
 
 FUSION_WINDOW = 60       # poses: an added landmark born and seen within them is young
 FUSION_REACH = 1.2       # metres: a young landmark's candidate originals lie within it
+FUSION_TAG_REACH = 6.0   # ... a young tag's (copies made with the robot 4-5 m and 20-40 degrees off lay 1-6 m from their originals)
 FUSION_TOLERANCE = 0.15  # metres: the offsets of one displacement agree within it
+FUSION_TURN_TOLERANCE = 0.1  # radians: a tag pair's turns (``R_original R_young'``) of one displacement agree within it
 FUSION_MIN_PAIRS = 4     # a displacement is a group of at least this many pairs
+FUSION_MIN_SPACE_PAIRS = 3  # ... of points in space (a chance pair there is 8 times as rare as on the floor)
+FUSION_MIN_TAG_PAIRS = 2  # ... of tags (each pair gives the whole rigid transform, turn and shift)
 FUSION_CHANCE = 0.01     # the chance, at most, that originals spread evenly make such a group
-FUSION_SIGMA = 1e-4      # metres: the constraint's noise (near-exact; zero leaves S as singular as P)
+FUSION_SIGMA = 1e-4      # metres (radians for a tag's turn): the constraint's noise (near-exact; zero leaves S as singular as P)
 
 
 def constraint(x: slam.SlamMean, a: int, b: int, kind: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -64,35 +83,84 @@ def constraint(x: slam.SlamMean, a: int, b: int, kind: int) -> tuple[np.ndarray,
     H[:, 3:6] = -geometry.hat(d)
     H[:, 6:9] = np.eye(3)
     H[:, 9:12] = -np.eye(3)
-    columns = np.concatenate([np.arange(slam.POSE_DIM), slam.POSE_DIM + 3 * a + np.arange(3),
-                              slam.POSE_DIM + 3 * b + np.arange(3)])
     rows = slice(0, 2) if kind == LANDMARK_POINT2 else slice(0, 3)
-    return d[rows], H[rows], columns
+    return d[rows], H[rows], _columns(a, b)
 
 
-def fused(x: slam.SlamMean, P: np.ndarray, a: int, b: int, kind: int) -> tuple[slam.SlamMean, np.ndarray]:
+def turn_constraint(x: slam.SlamMean, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The residual r = Log(R_a R_b') (3,) of the tag orientations in the state's rows a and b (the
+    world turn between them, zero where they are one), its Jacobian H (3, 12) and its columns (12,):
+    the pose's six, a's three, b's three. In the tags' error (``slam_tags``: ``R_i = Exp(xi_theta)
+    Exp(xi_oi) R^_i``), with ``D = R^_a R^_b'`` and ``phi = Log(D)``: ``R_a R_b' = E Exp(xi_oa) D
+    Exp(-xi_ob) E' ~ E Exp(xi_oa - D xi_ob) D E'``, so to first order ``r = phi - [phi]x xi_theta
+    + J_l(phi)^-1 (xi_oa - D xi_ob)``: the position constraint's form with phi for d."""
+    D = geometry.so3_exp(x.L[a]) @ geometry.so3_exp(x.L[b]).T
+    phi = geometry.so3_log_one(D)
+    J_inverse = geometry.so3_left_jacobian_inverse_one(phi)
+    H = np.zeros((3, 12))
+    H[:, 3:6] = -geometry.hat(phi)
+    H[:, 6:9] = J_inverse
+    H[:, 9:12] = -J_inverse @ D
+    return phi, H, _columns(a, b)
+
+
+def _columns(a: int, b: int) -> np.ndarray:
+    """The error's columns (12,) of a constraint between the state's rows a and b: the pose's, a's, b's."""
+    return np.concatenate([np.arange(slam.POSE_DIM), slam.POSE_DIM + 3 * a + np.arange(3), slam.POSE_DIM + 3 * b + np.arange(3)])
+
+
+def fused(x: slam.SlamMean, P: np.ndarray, a: int, b: int, kind: int,
+          turns: tuple[int, int] | None = None) -> tuple[slam.SlamMean, np.ndarray]:
     """The state after ``l_a - l_b = 0`` (noise ``FUSION_SIGMA``) with landmark b marginalized out:
-    its row gone, the rows after it one up."""
+    its row gone, the rows after it one up. ``turns``: two tags' orientation rows (a's, b's), whose
+    ``Log(R_a R_b') = 0`` is stacked with it (one update: the copy's whole pose is the original's)
+    and b's of which leaves too."""
     r, H, columns = constraint(x, a, b, kind)
-    gain = ekf.ColumnGain(P, H, FUSION_SIGMA**2 * np.eye(r.size), columns=columns)
     drop = np.zeros(x.L.shape[0], bool)
     drop[b] = True
+    if turns is not None:
+        r_turn, H_turn, columns_turn = turn_constraint(x, *turns)
+        columns = np.concatenate([columns, columns_turn[slam.POSE_DIM:]])
+        H = np.vstack([np.hstack([H, np.zeros((r.size, 6))]),
+                       np.hstack([H_turn[:, :slam.POSE_DIM], np.zeros((3, 6)), H_turn[:, slam.POSE_DIM:]])])
+        r = np.concatenate([r, r_turn])
+        drop[turns[1]] = True
+    gain = ekf.ColumnGain(P, H, FUSION_SIGMA**2 * np.eye(r.size), columns=columns)
     return slam.without_landmarks(slam.retract(x, -gain.correction(r)), gain.posterior_cov(), drop)
 
 
-def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndarray:
+def agreement(offsets: np.ndarray, turns: np.ndarray | None = None, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(spread (P, P), within (P, P) bool) of candidate pairs' offsets (P, 3) ``l_original -
+    l_young``: ``spread[i, j]`` how far pair j's offset is from pair i's displacement's, ``within``
+    where that is below ``FUSION_TOLERANCE``. Tags' pairs (``turns`` (P, 3): ``Log(R_original
+    R_young')``, ``at`` (P, 3): the young tags' positions) are a rigid displacement each: pair i's
+    turn R_i moves the offset it predicts at j by ``(R_i - I) (at_j - at_i)``, and j's turn must be
+    within ``FUSION_TURN_TOLERANCE`` of i's too."""
+    if turns is None:
+        spread = np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2)
+        return spread, spread < FUSION_TOLERANCE
+    R = geometry.so3_exp(turns)  # (P, 3, 3)
+    lever = np.einsum("iab,ijb->ija", R - np.eye(3), at[None, :, :] - at[:, None, :])
+    spread = np.linalg.norm(offsets[None, :, :] - offsets[:, None, :] - lever, axis=2)
+    turn = np.linalg.norm(geometry.so3_log(np.swapaxes(R, 1, 2)[:, None] @ R[None, :]), axis=2)
+    return spread, (spread < FUSION_TOLERANCE) & (turn < FUSION_TURN_TOLERANCE)
+
+
+def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int, turns: np.ndarray | None = None,
+                    at: np.ndarray | None = None) -> np.ndarray:
     """The indices into ``pairs`` (P, 2) (young, original) of the largest one-to-one set whose
-    ``offsets`` (P, 3) lie within ``FUSION_TOLERANCE`` of one of theirs, where it is at least
-    ``FUSION_MIN_PAIRS`` and beyond chance (the module's docstring); empty otherwise."""
+    ``offsets`` (P, 3) (and, of tags, ``turns``: ``agreement``) lie within the tolerance of one of
+    theirs, where it is at least ``FUSION_MIN_PAIRS`` (of tags ``FUSION_MIN_TAG_PAIRS``) and beyond
+    chance (the module's docstring); empty otherwise."""
     n = pairs.shape[0]
-    if n < FUSION_MIN_PAIRS:
+    least = FUSION_MIN_TAG_PAIRS if turns is not None else FUSION_MIN_SPACE_PAIRS if dim == 3 else FUSION_MIN_PAIRS
+    if n < least:
         return np.zeros(0, np.int64)
-    spread = np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2)  # (P, P)
-    within = spread < FUSION_TOLERANCE
+    spread, within = agreement(offsets, turns, at)
     counts = within.sum(axis=1)
     best = np.zeros(0, np.int64)
     for i in np.argsort(-counts, kind="stable").tolist():  # the most crowded offsets first
-        if counts[i] <= max(best.size, FUSION_MIN_PAIRS - 1):
+        if counts[i] <= max(best.size, least - 1):
             break  # (a group about offset i has at most counts[i] pairs)
         close = np.flatnonzero(within[i])
         group, young, old = [], set(), set()
@@ -104,18 +172,26 @@ def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndar
                 old.add(v)
         if len(group) > best.size:
             best = np.array(group, np.int64)
-    if best.size < FUSION_MIN_PAIRS:
-        return np.zeros(0, np.int64)
-    p = (FUSION_TOLERANCE / FUSION_REACH) ** dim
-    if binomial_tail(best.size - 1, n, p) * n > FUSION_CHANCE:
+    if best.size < least or binomial_tail(best.size - 1, n, _chance(dim, turns is not None)) * n > FUSION_CHANCE:
         return np.zeros(0, np.int64)
     return best
 
 
+def _chance(dim: int, tags: bool) -> float:
+    """The probability that a chance original's offset lies within the tolerance of a given one:
+    spread evenly within the reach, ``(tolerance / reach)^dim``; a tag's turn too, its orientation
+    taken as spread evenly over one axis only (tags on walls share their other two: a turn within
+    ``FUSION_TURN_TOLERANCE`` of a given one has ``tolerance / pi`` of them, where orientations
+    spread over SO(3) would give ``(a - sin a) / pi``, 3e-4 as much)."""
+    if not tags:
+        return (FUSION_TOLERANCE / FUSION_REACH) ** dim
+    return (FUSION_TOLERANCE / FUSION_TAG_REACH) ** dim * FUSION_TURN_TOLERANCE / np.pi
+
+
 class LandmarkFusion:
     """A mix-in of ``slam_run.MappingLocalizer`` (its ``x``, ``P``, ``table``, ``state_landmark``,
-    ``chosen``, ``dataset``, and ``LandmarkAdditions._rows_left``): landmarks added twice fused after
-    a pose's update."""
+    ``chosen``, ``dataset``, ``_enter``, ``LandmarkAdditions._rows_left`` and ``TagStates``'
+    ``has_tags``, ``_is_tag``, ``_position_rows``): landmarks added twice fused after a pose's update."""
 
     def _init_fusion(self, on: bool) -> None:
         self.fusing = on
@@ -126,8 +202,8 @@ class LandmarkFusion:
     def _fuse_seen(self, k: int, landmarks) -> None:
         """After pose k's update of ``landmarks`` (table indices): the young landmarks displaced by
         one offset from originals (``displaced_group``) fused with them."""
-        if self.x.orientation is not None or len(self.state_landmark) < 2:
-            return  # (tags: not fused)
+        if len(self.state_landmark) < 2:
+            return
         table = self.table
         seen = {int(u) for u in landmarks}
         for u in seen:
@@ -145,7 +221,12 @@ class LandmarkFusion:
             if u not in self._met:
                 self._met[u] = self._met_since_birth(u, k)
         pairs, offsets = self._candidate_pairs(young)
-        for j in displaced_group(pairs, offsets, 2 if self.dataset.planar else 3).tolist():
+        dim = 2 if self.dataset.planar else 3
+        if self.has_tags:
+            group = displaced_group(pairs, offsets, dim, self._turns(pairs), self._positions(pairs[:, 0]))
+        else:
+            group = displaced_group(pairs, offsets, dim)
+        for j in group.tolist():
             self._fuse_pair(k, int(pairs[j, 0]), int(pairs[j, 1]))
 
     def _met_since_birth(self, u: int, k: int) -> set:
@@ -158,25 +239,50 @@ class LandmarkFusion:
 
     def _candidate_pairs(self, young: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``),
-        none that a pose saw together."""
+        none that a pose saw together. Tags' originals outside the state too: a state of tags holds
+        some 300 (two rows each), and most of their copies are made after the original left it."""
         table = self.table
-        state = np.array(self.state_landmark, np.int64)
-        original = ~table.dead[state] & ~table.tentative[state] & (table.kind[state] != LANDMARK_MARKER)
-        offsets = self.x.L[None, :, :] - self.x.L[table.state_row[young]][:, None, :]  # (Y, m, 3)
-        near = np.einsum("ymi,ymi->ym", offsets, offsets) < FUSION_REACH**2
-        near &= original[None, :] & (table.kind[state][None, :] == table.kind[young][:, None])
-        near &= table.born[state][None, :] < (table.born[young] - RETURN_GAP)[:, None]
+        if self.has_tags:  # tags with tags only (a tag observation without its orientation makes a point)
+            candidates = np.flatnonzero(~table.dead & ~table.tentative & self._is_tag(np.arange(len(table))))
+            young = young[self._is_tag(young)]
+        else:
+            state = np.array(self.state_landmark, np.int64)
+            candidates = state[~table.dead[state] & ~table.tentative[state] & (table.kind[state] != LANDMARK_MARKER)]
+        offsets = self._positions(candidates)[None, :, :] - self._positions(young)[:, None, :]  # (Y, C, 3)
+        near = np.einsum("ymi,ymi->ym", offsets, offsets) < (FUSION_TAG_REACH if self.has_tags else FUSION_REACH)**2
+        near &= table.kind[candidates][None, :] == table.kind[young][:, None]
+        near &= table.born[candidates][None, :] < (table.born[young] - RETURN_GAP)[:, None]
         y, r = np.nonzero(near)
-        pairs = np.stack([young[y], state[r]], axis=1)
+        pairs = np.stack([young[y], candidates[r]], axis=1)
         apart = np.array([v not in self._met[u] for u, v in pairs.tolist()], bool)
         return pairs[apart], offsets[y[apart], r[apart]]
 
+    def _positions(self, landmarks: np.ndarray) -> np.ndarray:
+        """The estimated positions (L, 3) of table ``landmarks`` (L,): the state's where it holds them."""
+        xyz = self.table.xyz[landmarks]
+        rows = self.table.state_row[landmarks]
+        xyz[rows >= 0] = self.x.L[rows[rows >= 0]]
+        return xyz
+
+    def _turns(self, pairs: np.ndarray) -> np.ndarray:
+        """Each tag pair's (young, original) turn ``Log(R_original R_young')`` (P, 3), world."""
+        rotvec = self.table.rotvec[pairs]  # (P, 2, 3)
+        rows = self.table.rot_row[pairs]
+        rotvec[rows >= 0] = self.x.L[rows[rows >= 0]]
+        R = geometry.so3_exp(rotvec)
+        return geometry.so3_log(R[:, 1] @ np.swapaxes(R[:, 0], 1, 2))
+
     def _fuse_pair(self, k: int, u: int, v: int) -> None:
         """Fuse young landmark u and original v (``_candidate_pairs``: never seen together), unless
-        an earlier fusion of the group took one of them."""
+        an earlier fusion of the group took one of them. A tag original outside the state enters it
+        first (as a sighting would bring it)."""
         table = self.table
-        if table.dead[u] or table.dead[v] or table.state_row[u] < 0 or table.state_row[v] < 0:
+        if table.dead[u] or table.dead[v] or table.state_row[u] < 0:
             return
+        if table.state_row[v] < 0:
+            if not self.has_tags or not np.any(table.cov[v] != 0.0):
+                return
+            self._enter([v])
         a, b = (v, u) if not table.added[v] or v < u else (u, v)  # the mapped one, else the older, survives
         self._fuse(k, a, b)
 
@@ -184,9 +290,18 @@ class LandmarkFusion:
         """``fused`` on the state, and b's records moved to a (its observations, its sightings)."""
         table = self.table
         row_b = int(table.state_row[b])
-        self.x, self.P = fused(self.x, self.P, int(table.state_row[a]), row_b, int(table.kind[a]))
+        turns = None
+        if self.has_tags and self._is_tag(a) and self._is_tag(b):  # the copy's orientation is the original's too
+            turns = (int(table.rot_row[a]), int(table.rot_row[b]))
+            if min(turns) < 0:
+                return
+        position = self._position_rows()  # (before the state loses b's rows)
+        self.x, self.P = fused(self.x, self.P, int(table.state_row[a]), row_b, int(table.kind[a]), turns)
         landmarks = np.array(self.state_landmark, np.int64)
-        self._rows_left(landmarks, np.arange(landmarks.size) == row_b)  # (``LandmarkAdditions``')
+        drop = np.arange(landmarks.size) == row_b
+        if turns is not None:
+            drop[turns[1]] = True
+        self._rows_left(landmarks, drop, position)  # (``LandmarkAdditions``')
         self.chosen[self.chosen == b] = a
         table.observations[a] += table.observations[b]
         if table.added[a]:  # (a mapped landmark keeps no birth)

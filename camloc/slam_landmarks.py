@@ -259,12 +259,18 @@ class LandmarkAdditions:
         self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
         self._rows_left(landmarks, drop)
 
-    def _rows_left(self, landmarks: np.ndarray, drop: np.ndarray) -> None:
+    def _rows_left(self, landmarks: np.ndarray, drop: np.ndarray, position: np.ndarray | None = None) -> None:
         """The table's state rows after the state's rows ``drop`` (m,) of ``landmarks`` (m,, the
-        state's, in row order) left it (``slam.without_landmarks``): theirs -1, the rest renumbered."""
-        self.table.state_row[landmarks[drop]] = -1
+        state's, in row order) left it (``slam.without_landmarks``): theirs -1, the rest renumbered.
+        ``position`` (m,) bool: which rows were positions, the others tags' orientations (None: all)."""
+        if position is None:
+            position = np.ones(landmarks.size, bool)
+        self.table.state_row[landmarks[drop & position]] = -1
+        self.table.rot_row[landmarks[drop & ~position]] = -1
         self.state_landmark = landmarks[~drop].tolist()
-        self.table.state_row[landmarks[~drop]] = np.arange(int(np.count_nonzero(~drop)))
+        kept_position = position[~drop]
+        self.table.state_row[landmarks[~drop][kept_position]] = np.flatnonzero(kept_position)
+        self.table.rot_row[landmarks[~drop][~kept_position]] = np.flatnonzero(~kept_position)
 
     def _retire_tags(self, landmarks: np.ndarray, drop: np.ndarray) -> None:
         """``_retire``'s leaving of the rows ``drop`` (m,) of a state that holds tags' orientations
@@ -276,12 +282,7 @@ class LandmarkAdditions:
         turned = np.flatnonzero(drop & ~position)
         self._leave_orientations(landmarks[turned], turned)
         self.x, self.P = slam.without_landmarks(self.x, self.P, drop)
-        self.table.state_row[landmarks[drop & position]] = -1
-        self.table.rot_row[landmarks[drop & ~position]] = -1
-        self.state_landmark = landmarks[~drop].tolist()
-        kept_position = position[~drop]
-        self.table.state_row[landmarks[~drop][kept_position]] = np.flatnonzero(kept_position)
-        self.table.rot_row[landmarks[~drop][~kept_position]] = np.flatnonzero(~kept_position)
+        self._rows_left(landmarks, drop, position)
 
     # -- the run's records ------------------------------------------------------------------------
 

@@ -1,9 +1,11 @@
 """Landmark fusion (camloc.slam_fusion): the constraint's Jacobian, the fused estimate, the
 displacement test, a world whose run adds landmarks twice and fuses them, and landmarks seen
-together never fused."""
+together never fused; of tags, the turn's constraint and rigid displacement, and a world of tags
+that slips."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 
 import numpy as np
@@ -13,7 +15,9 @@ from camloc import geometry, slam, slam_fusion
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3
 from camloc.localizer import resolved_config
 from camloc.localizer_config import LocalizerConfig
+from camloc.simulate import SimulationConfig
 from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
+from camloc.simulate_tags import simulate_tags
 from camloc.slam_association import RETURN_GAP
 from camloc.slam_run import MappingLocalizer
 
@@ -145,3 +149,108 @@ def test_landmarks_seen_at_one_pose_are_never_fused():
     loc._met[b] = set()  # without the record they would be a pair
     pairs, _ = loc._candidate_pairs(np.array([b]))
     assert any(int(v) == a for _, v in pairs)
+
+
+# -- tags: the copy's whole pose is the original's ----------------------------------------------
+
+
+def _tag_state(rng) -> slam.SlamMean:
+    """A state of two tags (rows 0-1 and 2-3: centre, orientation) and a point (row 4): tag 2's
+    orientation 10 degrees off tag 1's."""
+    L = rng.normal(size=(5, 3))
+    L[3] = geometry.so3_log(geometry.so3_exp(np.radians(10.0) * np.array([0.6, 0.0, 0.8])) @ geometry.so3_exp(L[1]))
+    return slam.SlamMean(geometry.so3_exp(0.5 * rng.normal(size=3)), rng.normal(size=3), L,
+                         np.array([False, True, False, True, False]))
+
+
+def test_the_turn_constraint_jacobian_matches_finite_differences_of_the_retraction():
+    for seed in range(3):
+        x = _tag_state(np.random.default_rng(seed))
+        r0, H, columns = slam_fusion.turn_constraint(x, 1, 3)
+        np.testing.assert_allclose(np.linalg.norm(r0), np.radians(10.0), atol=1e-12)
+        numeric = np.zeros((3, x.dim))
+        for i in range(x.dim):
+            step = np.zeros(x.dim)
+            step[i] = 1e-6
+            plus = slam_fusion.turn_constraint(slam.retract(x, step), 1, 3)[0]
+            minus = slam_fusion.turn_constraint(slam.retract(x, -step), 1, 3)[0]
+            numeric[:, i] = (plus - minus) / 2e-6
+        analytic = np.zeros_like(numeric)
+        analytic[:, columns] = H
+        np.testing.assert_allclose(analytic, numeric, atol=1e-7)  # (the rotations' rounding over a step of 1e-6)
+
+
+def test_two_tags_fuse_to_one_pose():
+    """Two tags independent of each other and of a pose whose heading is exact, each with the same
+    covariance: the fused one sits at their mean, turned half way (to first order), and the state
+    loses the second's two rows."""
+    rng = np.random.default_rng(5)
+    x = _tag_state(rng)
+    P = np.zeros((21, 21))
+    P[0:3, 0:3] = 0.01 * np.eye(3)
+    for block in range(5):
+        P[6 + 3 * block:9 + 3 * block, 6 + 3 * block:9 + 3 * block] = (0.04 if block % 2 == 0 else 0.01) * np.eye(3)
+    x_new, P_new = slam_fusion.fused(x, P, 0, 2, LANDMARK_POINT3, turns=(1, 3))
+    assert x_new.L.shape == (3, 3) and x_new.orientation.tolist() == [False, True, False]
+    np.testing.assert_allclose(x_new.L[0], (x.L[0] + x.L[2]) / 2, atol=1e-6)
+    half = geometry.so3_exp(0.5 * geometry.so3_log(geometry.so3_exp(x.L[3]) @ geometry.so3_exp(x.L[1]).T))
+    turn_left = geometry.so3_log(geometry.so3_exp(x_new.L[1]) @ (half @ geometry.so3_exp(x.L[1])).T)
+    assert np.linalg.norm(turn_left) < np.radians(0.1), np.degrees(turn_left)
+    np.testing.assert_allclose(x_new.L[2], x.L[4], atol=1e-12)  # the point untouched
+    np.testing.assert_allclose(P_new[6:9, 6:9], 0.02 * np.eye(3), atol=1e-7)
+    assert np.array_equal(P_new, P_new.T) and np.linalg.eigvalsh(P_new).min() > -1e-12
+
+
+def _rigid_pairs(rng, turn_deg: float, count: int):
+    """``count`` young tags at random places within 2 m and their originals, the whole set moved
+    by one rigid transform (a turn of ``turn_deg`` about z and a shift): (pairs, offsets, turns, at)."""
+    at = rng.uniform(-2.0, 2.0, size=(count, 3))
+    R = geometry.so3_exp(np.radians(turn_deg) * np.array([0.0, 0.0, 1.0]))
+    originals = at @ R.T + np.array([0.5, -0.3, 0.1])
+    turns = np.tile(geometry.so3_log(R), (count, 1)) + np.radians(0.5) * rng.normal(size=(count, 3))
+    pairs = np.stack([100 + np.arange(count), np.arange(count)], axis=1)
+    return pairs, originals - at + 0.02 * rng.normal(size=(count, 3)), turns, at
+
+
+def test_tags_moved_by_one_rigid_transform_are_a_group():
+    """Three tag copies turned 30 degrees and shifted with their part of the map: their offsets
+    differ by the turn's lever (a metre), so no shift alone groups them, but one rigid transform
+    does."""
+    pairs, offsets, turns, at = _rigid_pairs(np.random.default_rng(1), 30.0, 3)
+    assert np.ptp(offsets, axis=0).max() > 0.5
+    assert slam_fusion.displaced_group(pairs, offsets, 3).size == 0
+    assert sorted(slam_fusion.displaced_group(pairs, offsets, 3, turns, at).tolist()) == [0, 1, 2]
+
+
+def test_nearby_tags_with_other_orientations_are_not_a_group():
+    """Distinct tags whose offsets agree (a shifted row of tags, within the tolerance) but whose
+    orientations differ: no group, however many; with the same orientations as their originals
+    (the turn a pure shift has) they would be one."""
+    rng = np.random.default_rng(2)
+    pairs, offsets, _, at = _rigid_pairs(rng, 0.0, 6)
+    turns = geometry.so3_log(geometry.so3_exp(rng.uniform(-np.pi, np.pi, size=(6, 3)) / np.sqrt(3)))
+    assert slam_fusion.displaced_group(pairs, offsets, 3, turns, at).size == 0
+    alike = np.radians(0.5) * rng.normal(size=(6, 3))
+    assert slam_fusion.displaced_group(pairs, offsets, 3, alike, at).size == 6
+
+
+def test_tags_added_twice_after_a_slip_are_fused_with_their_originals():
+    """A tag world (grid, seed 1) whose odometry slips 15 degrees about z at pose 130, which the
+    filter cannot know: the tags mapped after it are turned and shifted from those before by one
+    rigid transform, and the robot's return to the first ones (from pose 150) copies them. Fused
+    (the turn in the constraint), most copies are gone and each fusion joins one true tag's
+    observations."""
+    dataset = simulate_tags(SimulationConfig(trajectory="grid", poses=200, no_map=True), seed=1, sigma_rad=np.radians(1.0))
+    quat = dataset.odom_quat_xyzw.copy()
+    quat[130] = geometry.matrix_to_quat(geometry.quat_to_matrix(quat[130]) @ geometry.so3_exp(np.radians([0.0, 0.0, 15.0])))
+    dataset = dataclasses.replace(dataset, odom_quat_xyzw=quat)
+    before = _copies(_run(dataset, False), dataset)
+    loc = _run(dataset, True)
+    after = _copies(loc, dataset)
+    assert before[1] >= 20, before
+    assert after[1] <= before[1] // 4, (before, after)
+    assert len(loc.fusions) >= 5
+    true_of = dataset.obs_true_landmark
+    for _, survivor, _ in loc.fusions:
+        counts = Counter(true_of[loc.chosen == survivor].tolist())
+        assert counts.most_common(1)[0][1] >= 0.8 * sum(counts.values()), counts
