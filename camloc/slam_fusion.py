@@ -56,6 +56,7 @@ Pure computation: no I/O, no printing.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from camloc import ekf, geometry, slam
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2
@@ -129,42 +130,52 @@ def fused(x: slam.SlamMean, P: np.ndarray, a: int, b: int, kind: int,
     return slam.without_landmarks(slam.retract(x, -gain.correction(r)), gain.posterior_cov(), drop)
 
 
-def agreement(offsets: np.ndarray, turns: np.ndarray | None = None, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(spread (P, P), within (P, P) bool) of candidate pairs' offsets (P, 3) ``l_original -
-    l_young``: ``spread[i, j]`` how far pair j's offset is from pair i's displacement's, ``within``
-    where that is below ``FUSION_TOLERANCE``. Tags' pairs (``turns`` (P, 3): ``Log(R_original
-    R_young')``, ``at`` (P, 3): the young tags' positions) are a rigid displacement each: pair i's
-    turn R_i moves the offset it predicts at j by ``(R_i - I) (at_j - at_i)``, and j's turn must be
-    within ``FUSION_TURN_TOLERANCE`` of i's too."""
+def agreement(offsets: np.ndarray, turns: np.ndarray | None = None, at: np.ndarray | None = None) -> list[np.ndarray]:
+    """For each of P candidate pairs (offsets (P, 3) ``l_original - l_young``), the pairs (its own
+    included) whose offsets lie within ``FUSION_TOLERANCE`` of its displacement's, nearest first.
+    Tags' pairs (``turns`` (P, 3): ``Log(R_original R_young')``, ``at`` (P, 3): the young tags'
+    positions) are a rigid displacement each: pair i's turn R_i moves the offset it predicts at j by
+    ``(R_i - I) (at_j - at_i)``, and j's turn must be within ``FUSION_TURN_TOLERANCE`` of i's too.
+    A tag world tries thousands of pairs a pose: only those whose rotation vectors lie within twice
+    the tolerance (a k-d tree's pairs; below a radian the angle between two turns is within 1.1
+    times that distance) are compared."""
+    n = offsets.shape[0]
     if turns is None:
         spread = np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2)
-        return spread, spread < FUSION_TOLERANCE
-    R = geometry.so3_exp(turns)  # (P, 3, 3)
-    lever = np.einsum("iab,ijb->ija", R - np.eye(3), at[None, :, :] - at[:, None, :])
-    spread = np.linalg.norm(offsets[None, :, :] - offsets[:, None, :] - lever, axis=2)
-    turn = np.linalg.norm(geometry.so3_log(np.swapaxes(R, 1, 2)[:, None] @ R[None, :]), axis=2)
-    return spread, (spread < FUSION_TOLERANCE) & (turn < FUSION_TURN_TOLERANCE)
+        i, j = np.nonzero(spread < FUSION_TOLERANCE)
+        spread = spread[i, j]
+    else:
+        near = cKDTree(turns).query_pairs(2.0 * FUSION_TURN_TOLERANCE, output_type="ndarray")
+        i = np.concatenate([near[:, 0], near[:, 1], np.arange(n)])
+        j = np.concatenate([near[:, 1], near[:, 0], np.arange(n)])
+        R = geometry.so3_exp(turns)  # (P, 3, 3)
+        lever = np.einsum("kab,kb->ka", R[i] - np.eye(3), at[j] - at[i])
+        turn = np.linalg.norm(geometry.so3_log(np.swapaxes(R[i], 1, 2) @ R[j]), axis=1)
+        spread = np.linalg.norm(offsets[j] - offsets[i] - lever, axis=1)
+        keep = (turn < FUSION_TURN_TOLERANCE) & (spread < FUSION_TOLERANCE)
+        i, j, spread = i[keep], j[keep], spread[keep]
+    order = np.lexsort((j, spread, i))  # by pair, then nearest first, then in pair order
+    return np.split(j[order], np.searchsorted(i[order], np.arange(1, n)))
 
 
 def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int, turns: np.ndarray | None = None,
                     at: np.ndarray | None = None) -> np.ndarray:
     """The indices into ``pairs`` (P, 2) (young, original) of the largest one-to-one set whose
     ``offsets`` (P, 3) (and, of tags, ``turns``: ``agreement``) lie within the tolerance of one of
-    theirs, where it is at least ``FUSION_MIN_PAIRS`` (of tags ``FUSION_MIN_TAG_PAIRS``) and beyond
-    chance (the module's docstring); empty otherwise."""
+    theirs, where it is at least ``FUSION_MIN_PAIRS`` (in space ``FUSION_MIN_SPACE_PAIRS``, of tags
+    ``FUSION_MIN_TAG_PAIRS``) and beyond chance (the module's docstring); empty otherwise."""
     n = pairs.shape[0]
     least = FUSION_MIN_TAG_PAIRS if turns is not None else FUSION_MIN_SPACE_PAIRS if dim == 3 else FUSION_MIN_PAIRS
     if n < least:
         return np.zeros(0, np.int64)
-    spread, within = agreement(offsets, turns, at)
-    counts = within.sum(axis=1)
+    close = agreement(offsets, turns, at)
+    counts = np.array([c.size for c in close])
     best = np.zeros(0, np.int64)
     for i in np.argsort(-counts, kind="stable").tolist():  # the most crowded offsets first
         if counts[i] <= max(best.size, least - 1):
             break  # (a group about offset i has at most counts[i] pairs)
-        close = np.flatnonzero(within[i])
         group, young, old = [], set(), set()
-        for j in close[np.argsort(spread[i, close], kind="stable")].tolist():  # the nearest offset first
+        for j in close[i].tolist():  # the nearest offset first
             u, v = int(pairs[j, 0]), int(pairs[j, 1])
             if u not in young and v not in old:
                 group.append(j)
