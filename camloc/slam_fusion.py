@@ -20,10 +20,9 @@ The rule, after a pose's update (``LandmarkFusion._fuse_seen``):
   that saw both at once proved them distinct; read from the run's pairs, ``chosen``);
 - the largest one-to-one set of candidate pairs whose offsets ``l_v - l_u`` lie within
   ``FUSION_TOLERANCE`` of one of them (``displaced_group``), kept only where it has at least
-  ``FUSION_MIN_PAIRS`` pairs on the floor (``FUSION_MIN_SPACE_PAIRS`` in space) and that many is
-  beyond chance: originals spread evenly within the reach put an offset within the tolerance of a
-  given one with probability ``(tolerance / reach)^dim`` (dim 2 for a planar robot, 3 otherwise),
-  and the binomial tail of the group's size over the pairs, times the pairs tried, must be below
+  ``FUSION_MIN_PAIRS`` pairs and that many is beyond chance: originals spread evenly within the
+  reach put an offset within the tolerance of a given one with probability ``(tolerance /
+  reach)^dim`` (dim 2 for a planar robot, 3 otherwise), and the binomial tail of the group's size over the pairs, times the pairs tried, must be below
   ``FUSION_CHANCE``;
 - each pair of the group is fused.
 
@@ -69,7 +68,6 @@ FUSION_TAG_REACH = 6.0   # ... a young tag's (copies made with the robot 4-5 m a
 FUSION_TOLERANCE = 0.15  # metres: the offsets of one displacement agree within it
 FUSION_TURN_TOLERANCE = 0.1  # radians: a tag pair's turns (``R_original R_young'``) of one displacement agree within it
 FUSION_MIN_PAIRS = 4     # a displacement is a group of at least this many pairs
-FUSION_MIN_SPACE_PAIRS = 3  # ... of points in space (a chance pair there is 8 times as rare as on the floor)
 FUSION_MIN_TAG_PAIRS = 2  # ... of tags (each pair gives the whole rigid transform, turn and shift)
 FUSION_CHANCE = 0.01     # the chance, at most, that originals spread evenly make such a group
 FUSION_SIGMA = 1e-4      # metres (radians for a tag's turn): the constraint's noise (near-exact; zero leaves S as singular as P)
@@ -162,10 +160,10 @@ def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int, turns: np.
                     at: np.ndarray | None = None) -> np.ndarray:
     """The indices into ``pairs`` (P, 2) (young, original) of the largest one-to-one set whose
     ``offsets`` (P, 3) (and, of tags, ``turns``: ``agreement``) lie within the tolerance of one of
-    theirs, where it is at least ``FUSION_MIN_PAIRS`` (in space ``FUSION_MIN_SPACE_PAIRS``, of tags
-    ``FUSION_MIN_TAG_PAIRS``) and beyond chance (the module's docstring); empty otherwise."""
+    theirs, where it is at least ``FUSION_MIN_PAIRS`` (of tags ``FUSION_MIN_TAG_PAIRS``) and beyond
+    chance (the module's docstring); empty otherwise."""
     n = pairs.shape[0]
-    least = FUSION_MIN_TAG_PAIRS if turns is not None else FUSION_MIN_SPACE_PAIRS if dim == 3 else FUSION_MIN_PAIRS
+    least = FUSION_MIN_PAIRS if turns is None else FUSION_MIN_TAG_PAIRS
     if n < least:
         return np.zeros(0, np.int64)
     close = agreement(offsets, turns, at)
