@@ -40,8 +40,8 @@ FIRST = np.int64(0)
 ONE = np.int64(1)
 # Likewise a flag: a literal True or False is a type of its own (``Literal[bool]``), so a callee
 # passed both and a flag computed at run time compiled three times, each with all it calls (the
-# update's ``map_cost``: ``updated`` twice and ``iterated_update`` four times in one run); a numpy
-# bool is the one type every call site passes.
+# update's ``map_cost``: ``updated`` three times in a first run, about 5% of it); a numpy bool is
+# the one type every call site passes.
 TRUE = np.bool_(True)
 FALSE = np.bool_(False)
 
