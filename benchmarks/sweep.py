@@ -75,7 +75,7 @@ def main() -> None:
     if args.json:
         print(json.dumps({"cells": len(cells), "poses": args.poses, "identical_rows": identical, "ways": report}, indent=2))
         return
-    print(f"| way | wall [s] | runs/min | cell in its worker [s] | overhead per cell [s] |")
+    print("| way | wall [s] | runs/min | cell in its worker [s] | overhead per cell [s] |")
     print("|---|---|---|---|---|")
     for entry in report:
         print(f"| {entry['way']} | {entry['wall_s']:.1f} | {entry['runs_per_minute']:.0f} | {entry['cell_mean_s']:.3f} "

@@ -7,7 +7,6 @@ was written for. Plain Python: numba is imported only to ask where its cache is.
 """
 
 import hashlib
-import os
 from pathlib import Path
 
 from camloc.errors import caused_by_interrupt
