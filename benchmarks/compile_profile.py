@@ -7,7 +7,8 @@ inlined step (``@inlined``) is compiled again inside each caller and counts as t
 time, so a kernel whose own time grows has had more inlined into it. Times are the process's CPU
 seconds (numba compiles in the calling thread), so that other processes' load does not inflate
 them as it did wall time (an own-time sum of 174 s against 115 s of CPU at load 3.5); their sum is
-the CPU time of compilation (type inference, lowering, LLVM).
+the CPU time of compilation (type inference, lowering, LLVM). Then every kernel compiled for more
+than one signature (each specialization compiles the kernel and all it calls again).
 
     NUMBA_CACHE_DIR=$(mktemp -d) CAMLOC_BACKGROUND_COMPILE=0 nice python benchmarks/compile_profile.py [--top 40]
 
@@ -115,7 +116,31 @@ def main() -> int:
     print(f"{'own s':>7} {'LLVM s':>7} {'whole s':>8} {'times':>5}  kernel")
     for name, seconds in own.most_common(args.top):
         print(f"{seconds:7.2f} {llvm[name]:7.2f} {whole[name]:8.2f} {count[name]:5d}  {name}")
+    for name, signatures in specialized_twice().items():
+        print(f"compiled for {len(signatures)} signatures (each with all it calls): {name}")
+        for signature in signatures:
+            print(f"    {str(signature)[:300]}")
     return 0
+
+
+def specialized_twice() -> dict:
+    """camloc's kernels compiled for more than one signature in this process, by name: a literal
+    flag or count passed at one site (numba types ``True`` or ``0`` as a type of its own), or an
+    array of another layout, compiles the kernel and all it calls once more."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    import camloc.kernels
+
+    found = {}
+    for info in pkgutil.iter_modules(camloc.kernels.__path__):
+        module = importlib.import_module(f"camloc.kernels.{info.name}")
+        for name, value in vars(module).items():
+            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__ and len(value.signatures) > 1:
+                found[f"{module.__name__}.{name}"] = value.signatures
+    return found
 
 
 if __name__ == "__main__":

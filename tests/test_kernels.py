@@ -102,6 +102,35 @@ def test_every_compiled_sort_is_the_merge_sort():
     assert checked >= 5
 
 
+def test_no_kernel_passes_a_literal_flag_to_another():
+    # numba types a literal True or False as a type of its own: a kernel passed both and a flag
+    # computed at run time compiled three times, each with all it calls (``updated``'s map_cost,
+    # docs/performance.md 2026-12-05): compiled code passes ``_jit.TRUE`` / ``_jit.FALSE``
+    import ast
+
+    from numba.core.registry import CPUDispatcher
+
+    kernels, sources = set(), []
+    for info in pkgutil.iter_modules(camloc.kernels.__path__):
+        module = importlib.import_module(f"camloc.kernels.{info.name}")
+        kernels |= {name for name, value in vars(module).items() if isinstance(value, CPUDispatcher)}
+        sources.append((info.name, Path(module.__file__).read_text()))
+    compiled = {"jit", "entry", "inlined"}
+    calls = 0
+    for name, source in sources:
+        for function in ast.walk(ast.parse(source)):
+            if not (isinstance(function, ast.FunctionDef)
+                    and any(isinstance(d, ast.Name) and d.id in compiled for d in function.decorator_list)):
+                continue
+            for node in ast.walk(function):
+                if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in kernels:
+                    calls += 1
+                    for argument in node.args + [k.value for k in node.keywords]:
+                        assert not (isinstance(argument, ast.Constant) and isinstance(argument.value, bool)), \
+                            f"{name}.py:{node.lineno}: {node.func.id} passed a literal {argument.value}"
+    assert calls >= 100
+
+
 @pytest.mark.parametrize("user_level", [None, "3"])
 def test_kernels_compile_at_llvm_level_1_unless_the_user_sets_numba_opt(tmp_path, user_level):
     """The kernels' modules are optimized at ``_jit.KERNEL_OPT_LEVEL`` (numba reads its

@@ -38,6 +38,12 @@ os.environ.setdefault("NUMBA_OPT", KERNEL_OPT_LEVEL)
 # an int64 is the type the other call sites pass.
 FIRST = np.int64(0)
 ONE = np.int64(1)
+# Likewise a flag: a literal True or False is a type of its own (``Literal[bool]``), so a callee
+# passed both and a flag computed at run time compiled three times, each with all it calls (the
+# update's ``map_cost``: ``updated`` three times in a first run, about 5% of it); a numpy bool is
+# the one type every call site passes.
+TRUE = np.bool_(True)
+FALSE = np.bool_(False)
 
 # Kernels copy an array into a slice or row entry by entry (``put_state``), never ``a[i] = b`` with
 # an array b: numba compiles that assignment with a formatter of its shape-mismatch message (string

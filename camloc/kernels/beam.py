@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FIRST, ONE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
@@ -428,7 +428,7 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt, model):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
     x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
-                           no_start, False)[:2]
+                           no_start, FALSE)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
     child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
     for t in range(n_taken):
@@ -479,7 +479,7 @@ def settle(scene, settings, gen, c, parents, pending, model):
         return
     p = source[c]
     x, P = updated(model, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
-                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), False)[:2]
+                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), FALSE)[:2]
     put_state(gen, c, x, P)
     waiting[c] = False
 

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import entry, inlined, jit
+from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
 from camloc.kernels.camera import camera_pose, cameras_of, observe
 from camloc.kernels.motion import predict
 from camloc.kernels.planar import SE2_DIM
@@ -173,12 +173,12 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
                 z_hat, H = predict_pairs(scene, x, seed_obs, seed_landmark)
                 start = updated(model, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
-                                no_start, False)[0]
+                                no_start, FALSE)[0]
         if obs.size == 0:
             record_state(states, covs, k, x, P)
             continue
         z_hat, H = predict_pairs(scene, x, obs, landmarks)
-        result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start, True)
+        result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start, TRUE)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
         if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:
@@ -188,7 +188,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 if obs.size:
                     z_hat, H = predict_pairs(scene, x, obs, landmarks)
                     result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
-                                     no_start, True)
+                                     no_start, TRUE)
         if obs.size:
             x_post, P_post, nis_k, cost_k, y = result
             check_covariance(P_post)

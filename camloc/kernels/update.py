@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from camloc.constants import CONVERGED
-from camloc.kernels._jit import entry, inlined, jit
+from camloc.kernels._jit import TRUE, entry, inlined, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
@@ -591,7 +591,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, none)
     for s in starts:
         if s.size:
-            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, True)
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     return best
