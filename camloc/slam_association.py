@@ -30,7 +30,7 @@ from camloc import measurement, slam
 from camloc.association import mahalanobis_3x3
 from camloc.dataset import landmark_kind_of
 from camloc.planar import wrap_residuals
-from camloc.slam_landmarks import TENTATIVE_GAP, UNPAIRED, kept_longer, places_point
+from camloc.slam_landmarks import TENTATIVE_GAP, UNPAIRED, kept_longer, places_point, with_state_estimates
 from camloc.tails import chi2_quantile
 
 
@@ -393,9 +393,8 @@ class PoseAssociation:
             nearby = nearby[self.table.kind[nearby] == landmark_kind_of(sensor.kind)]
         if nearby.size == 0:
             return None
-        xyz = self.table.xyz[nearby]
         rows = self.table.state_row[nearby]
-        xyz[rows >= 0] = self.x.L[rows[rows >= 0]]  # the state's estimate where it holds one
+        xyz = with_state_estimates(self.table.xyz, self.table.state_row, nearby, self.x.L)
         near, far, cos_angle, planar_far = max(self.min_depth, 1e-6), self.max_depth, np.cos(self.max_angle), self.planar_range
         gates = self._position_gates(obs)
         if tail is not None:  # any landmark in front of the sensor within its reach, at the wider gate

@@ -60,6 +60,7 @@ from scipy.spatial import cKDTree
 from camloc import ekf, geometry, slam
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2
 from camloc.slam_association import RETURN_GAP
+from camloc.slam_landmarks import with_state_estimates
 from camloc.tails import binomial_tail
 
 FUSION_WINDOW = 60       # poses: an added landmark born and seen within them is young
@@ -268,17 +269,11 @@ class LandmarkFusion:
 
     def _positions(self, landmarks: np.ndarray) -> np.ndarray:
         """The estimated positions (L, 3) of table ``landmarks`` (L,): the state's where it holds them."""
-        xyz = self.table.xyz[landmarks]
-        rows = self.table.state_row[landmarks]
-        xyz[rows >= 0] = self.x.L[rows[rows >= 0]]
-        return xyz
+        return with_state_estimates(self.table.xyz, self.table.state_row, landmarks, self.x.L)
 
     def _turns(self, pairs: np.ndarray) -> np.ndarray:
         """Each tag pair's (young, original) turn ``Log(R_original R_young')`` (P, 3), world."""
-        rotvec = self.table.rotvec[pairs]  # (P, 2, 3)
-        rows = self.table.rot_row[pairs]
-        rotvec[rows >= 0] = self.x.L[rows[rows >= 0]]
-        R = geometry.so3_exp(rotvec)
+        R = geometry.so3_exp(with_state_estimates(self.table.rotvec, self.table.rot_row, pairs, self.x.L))  # (P, 2, 3, 3)
         return geometry.so3_log(R[:, 1] @ np.swapaxes(R[:, 0], 1, 2))
 
     def _fuse_pair(self, k: int, u: int, v: int) -> None:

@@ -62,6 +62,17 @@ def kept_longer(map_mode: str, kinds: np.ndarray) -> np.ndarray:
     its noise 7 -> 31 landmarks added twice of about 250 (docs/performance.md, 2026-12-05)."""
     return (kinds == LANDMARK_POINT3) & (map_mode == "none")
 
+
+def with_state_estimates(values: np.ndarray, rows: np.ndarray, landmarks: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """The table's ``values`` (positions or tags' rotation vectors, (N, 3)) of ``landmarks`` (any
+    shape of table indices), with the state's estimate ``L[rows]`` wherever the state holds one
+    (the table's ``rows`` (N,) >= 0): an array of landmarks' shape + (3,)."""
+    out, at = values[landmarks], rows[landmarks]
+    held = at >= 0
+    out[held] = L[at[held]]
+    return out
+
+
 # Poses a landmark may go unseen before it leaves the state, with a map (exact or prior: the map
 # holds the robot, so what a landmark's correlation with it carries is small); with no map,
 # landmarks stay in the state (their correlations are the whole estimate) up to MAX_STATE_LANDMARKS,
