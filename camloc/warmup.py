@@ -295,7 +295,7 @@ def late_beam_kernels(dataset, config) -> list:
 
     scene = build_scene(dataset, config)
     settings = build_settings(config)
-    one = kb.new_generation(1, 1)
+    one = kb.new_generation(1, 1, 6)
     one[1][0] = np.eye(6)
     P = one[1][0]
     kb.prune(scene, settings, one, 1)

@@ -32,6 +32,14 @@ OPTIONS = dict(cache=True, nogil=True, error_model="numpy")
 # process's environment, for a background compile it starts and the user's own numba code).
 KERNEL_OPT_LEVEL = "1"
 os.environ.setdefault("NUMBA_OPT", KERNEL_OPT_LEVEL)
+# LLVM's loop vectorizer, which numba runs at every level (``NUMBA_LOOP_VECTORIZE``, default on),
+# off unless the user set it: the kernels' loops run over 3 or 6 entries or a pose's few candidates,
+# where a vectorized body, its runtime checks and its remainder loop are code to optimize and
+# generate in every module that copies the loop, not speed. Without fast-math it vectorizes no
+# floating-point sum, so every result is bit for bit the same (docs/performance.md, 2026-12-05
+# (eighth session), "The loop vectorizer off").
+KERNEL_LOOP_VECTORIZE = "0"
+os.environ.setdefault("NUMBA_LOOP_VECTORIZE", KERNEL_LOOP_VECTORIZE)
 
 # A first index, a counter's start, or a capacity of one, as a kernel's argument: numba types a
 # literal 0 or 1 as a value of its own and compiles the callee (with all it calls) once more for it;
@@ -68,7 +76,12 @@ jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTI
 # inlined, its body was copied into every site (``explain_all`` 12-13 -> 8 s of its own to compile).
 # The filter's re-check and oracle pairing, each called from one place, are inlined as well: the
 # first compile 102 -> 90.5 s. The update's steps (point_step, correction, innovation_cost) saved 3 s
-# more inlined but ran the beam about 2% slower, at the edge of this machine's noise: not kept.
+# more inlined but ran the beam about 2% slower, at the edge of this machine's noise: not kept; the
+# steps of a restart only (point_step, restart_cost), which most updates never reach, are inlined.
+# Small steps of one caller are inlined too (``condition``, ``settled``, ``seeds_worth_trying``), but
+# not into ``explain_all``: a kernel's LLVM time grows faster than its size, and ``explain_all``
+# inlined into ``run_poses`` (to compile it once, not also as an entry) took 142 s of CPU to
+# compile where the two had taken 45 (docs/performance.md, 2026-12-05 (eighth session)).
 # The leaves run once per candidate landmark (camera.observe_into, sym3.spread,
 # beam.pair_in_best_coordinates) are inlined: a call that is not increfs every array it is passed
 # on entry and decrefs it on return, which cost them more than their arithmetic (the warm 20k

@@ -39,9 +39,9 @@ compiled_miss_charge = inlined(miss_charge)
 
 
 @entry
-def new_generation(n, cap, dim=6):
-    """n hypotheses of states of size dim (6: Euler, 3: planar; every kernel passes its state's,
-    the default is for callers outside them), room for cap pairs each."""
+def new_generation(n, cap, dim):
+    """n hypotheses of states of size dim (6: Euler, 3: planar), room for cap pairs each. (No
+    default size: a call without one compiled a second signature, ``omitted(default=6)``.)"""
     return (np.empty((n, dim)), np.empty((n, dim, dim)), np.empty(n), np.full(n, -1, np.int64), np.zeros(n, np.int64),
             np.zeros(n, np.bool_), np.zeros(n, np.int64), np.empty((n, max(cap, 1), 2), np.int64))
 
@@ -292,7 +292,7 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
         in_point[r] = point
 
 
-@jit
+@inlined
 def condition(scene, settings, x, P, o, pool, taken):
     """``condition_into`` with fresh arrays: (cost, z_hat, H, y, Hc, in_point) of the pool's g landmarks."""
     g = pool.size
@@ -521,7 +521,7 @@ def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one
     return kept[:n]
 
 
-@jit
+@inlined
 def settled(n, dim):
     """The pending-state record of n settled hypotheses (of states of size dim)."""
     return (np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3, dim)),
@@ -805,7 +805,7 @@ def commit(history, k, gen, kept):
     return True
 
 
-@jit
+@inlined
 def binomial_upper_tail(u, n, p):
     """P(X >= u) for X ~ Binomial(n, p), summed term by term (n is a pose's observations)."""
     if u <= 0:
@@ -821,7 +821,7 @@ def binomial_upper_tail(u, n, p):
     return min(total, 1.0)
 
 
-@jit
+@inlined
 def seeds_worth_trying(unassigned, observed, unexplained, count):
     """``camloc.beam_seeded.seeds_worth_trying`` over the first ``count`` rows of ``unexplained`` (the
     poses' (unassigned, observed) so far)."""

@@ -156,7 +156,7 @@ def predict_pairs(scene, x, obs, landmarks):
     return z_hat, H
 
 
-@jit
+@inlined
 def positive_definite_3x3(B):
     """Whether the symmetric B (3, 3) is positive definite (its leading minors, Sylvester)."""
     minor2 = B[0, 0] * B[1, 1] - B[0, 1] * B[0, 1]

@@ -493,7 +493,7 @@ def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_
     return prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
 
 
-@jit
+@inlined
 def restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, x_post):
     """``map_cost_into`` with scratch of its own: the cost of an update ``updated`` compares with
     a restart's, where the update was run without it (rare: an innovation beyond its bound)."""
@@ -515,7 +515,7 @@ def pair_model(scene):
                      scene.point, scene.point_cov, scene.point_cov_inverse, scene.log_det_point_cov)
 
 
-@jit
+@inlined
 def point_step(scene, x, P, obs, z_hat, H):
     """x after one EKF update with the pairs' measurements as camera-frame points, where the model
     is nearly linear in the position: where Gauss-Newton in (u, v, depth) from a wide prior
