@@ -6,6 +6,7 @@ the camera-frame point they back-project to), computed in one batch per camera (
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 
@@ -191,7 +192,8 @@ class PairGating:
             y, Hc, Rc = self.chosen(in_point, owner, z_hat, H, p_hat, Hp)
             costs = self.with_orientations(h, owner, landmarks, d2, costs, (y, Hc, Rc), self.ctx.obs_gate[owner])
             costs = np.where(member(landmarks, taken), np.inf, costs)
-            for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
+            # the parts' bounds as Python ints (np.cumsum of a short list costs more)
+            for r, start, stop in zip(rows, accumulate([0] + sizes[:-1]), accumulate(sizes)):
                 part = slice(start, stop)
                 out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part],
                                      options[r].pool_costs)
