@@ -143,6 +143,8 @@ def report(kind, seed, ds, truth: dict, fusion: bool = True) -> tuple:
     nees = float(np.nanmean(metrics.run_nees(loc.result(0.0))))
     print(f"{kind}/{seed}: RMSE {rmse:.3f} m, NEES {nees:.1f}; fusions {len(fusions)}, wrong {wrong_fusions}"
           f"{[(k, a, b) for k, a, b in fusions if a != b]}; clutter made {clutter_made}")
+    right = int(np.count_nonzero(chosen >= 0)) - wrong.size
+    print(f"{kind}/{seed}: paired {int(np.count_nonzero(chosen >= 0))} of {chosen.size} observations, right {right} (by the true ids)")
     print(f"{kind}/{seed}: added {len(live)}, twice {len(copies)}; clutter observations {int(clutter.sum())}, paired "
           f"{int(np.count_nonzero(clutter & (chosen >= 0)))}; wrong pairs {wrong.size} (of clutter {int(clutter[wrong].sum())}); "
           f"wrong returns at poses {[k for k, _ in wrong_returns]}")
@@ -159,7 +161,7 @@ def report(kind, seed, ds, truth: dict, fusion: bool = True) -> tuple:
         before = [kk for kk, _ in wrong_returns if k - WRONG_RETURN_WINDOW <= kk <= k]
         after_wrong += bool(before)
         print(line + (f" | after a wrong return at pose {before[-1]}" if before else " | no wrong return before it"))
-    return len(live), len(copies), after_wrong, rmse, nees, len(fusions), wrong_fusions, clutter_made, int(clutter.sum())
+    return len(live), len(copies), after_wrong, rmse, nees, len(fusions), wrong_fusions, clutter_made, int(clutter.sum()), right, wrong.size
 
 
 def main() -> None:
@@ -174,11 +176,11 @@ def main() -> None:
     parser.add_argument("--no-fusion", action="store_true", help="without landmark fusion (camloc.slam_fusion): the run before it")
     args = parser.parse_args()
     rows = [report(kind, seed, ds, truth, not args.no_fusion) for kind, seed, ds, truth in worlds(args)]
-    added, twice, after_wrong, rmse, nees, fusions, wrong, clutter_made, clutter = (np.array(c) for c in zip(*rows))
+    added, twice, after_wrong, rmse, nees, fusions, wrong, clutter_made, clutter, right, wrong_pairs = (np.array(c) for c in zip(*rows))
     print(f"all: added {added.sum()}, twice {twice.sum()} ({100.0 * twice.sum() / max(added.sum(), 1):.1f}%), {after_wrong.sum()} of them within "
           f"{WRONG_RETURN_WINDOW} poses after a wrong return; RMSE mean {rmse.mean():.3f} m ({rmse.min():.2f}-{rmse.max():.2f}), "
           f"NEES mean {nees.mean():.1f} ({nees.min():.1f}-{nees.max():.1f}); fusions {fusions.sum()}, wrong {wrong.sum()}; "
-          f"clutter made {clutter_made.sum()} of {clutter.sum()} clutter observations")
+          f"clutter made {clutter_made.sum()} of {clutter.sum()} clutter observations; pairs right {right.sum()}, wrong {wrong_pairs.sum()} (by the true ids)")
 
 
 if __name__ == "__main__":

@@ -449,6 +449,6 @@ def _mahalanobis_sym3(a, b, c, d, e, f, y1, y2, y3):
     # an S that rounding left without a positive determinant (information matrices many orders of
     # magnitude apart) is no spread at all: its pair fits nothing, rather than a NaN or negative d^2 passing a gate
     broken = ~(det > 0.0)
-    if np.any(broken):
+    if broken.any():
         d2, log_det = np.where(broken, np.inf, d2), np.where(broken, np.inf, log_det)
     return d2, log_det

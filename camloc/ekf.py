@@ -19,6 +19,11 @@ import numpy as np
 from camloc.constants import CONVERGED, NEGLIGIBLE_MARGIN
 from camloc.errors import CamlocError
 
+try:  # the gufuncs np.linalg wraps, called directly where their input is known good (``cho_solve``)
+    from numpy.linalg import _umath_linalg
+except ImportError:  # pragma: no cover - a numpy that moved them: its public functions, slower on small matrices
+    _umath_linalg = None
+
 MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 StateDifference = Callable[[np.ndarray, np.ndarray], np.ndarray]
 Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -185,24 +190,43 @@ def joseph_update(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) ->
 
 def cholesky(S: np.ndarray) -> np.ndarray:
     """Lower Cholesky factor of a symmetric positive definite matrix (numpy's, not scipy's:
-    importing scipy.linalg costs ``camloc run`` 0.15 s, a sixth of its time on a small file)."""
-    try:
-        return np.linalg.cholesky(S)
-    except np.linalg.LinAlgError:
-        raise FilterDivergedError("innovation covariance is not positive definite") from None
+    importing scipy.linalg costs ``camloc run`` 0.15 s, a sixth of its time on a small file).
+    LAPACK's gufunc called directly (``_lower_factor``, a third of ``np.linalg.cholesky``'s
+    time on a 3x3 or 6x6 matrix); it fills a factor that fails with NaN."""
+    if _umath_linalg is None or S.ndim != 2:  # pragma: no cover - stacks go through numpy's checks
+        try:
+            return np.linalg.cholesky(S)
+        except np.linalg.LinAlgError:
+            raise FilterDivergedError("innovation covariance is not positive definite") from None
+    L = _lower_factor(S)
+    if np.isnan(L[-1, -1]):
+        raise FilterDivergedError("innovation covariance is not positive definite")
+    return L
+
+
+@np.errstate(invalid="ignore")  # a matrix that is not positive definite: a NaN factor, which the caller checks
+def _lower_factor(S: np.ndarray) -> np.ndarray:
+    return _umath_linalg.cholesky_lo(S, signature="d->d")
 
 
 def cho_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``S^-1 B`` from the lower Cholesky factor L of S: ``L' \\ (L \\ B)``."""
-    return np.linalg.solve(L.T, np.linalg.solve(L, B))
+    """``S^-1 B`` from the lower Cholesky factor L of S: ``L' \\ (L \\ B)``. L is a factor
+    ``cholesky`` returned (its diagonal positive: never singular), so the solves call LAPACK's
+    gufunc directly, the same arithmetic as ``np.linalg.solve`` without its checks (on 3x3 and
+    6x6 matrices a fifth of the time; the numpy beam solves some 90,000 a 3,000-pose run)."""
+    if _umath_linalg is None:  # pragma: no cover
+        return np.linalg.solve(L.T, np.linalg.solve(L, B))
+    solve = _umath_linalg.solve1 if B.ndim == 1 else _umath_linalg.solve
+    return solve(L.T, solve(L, B, signature="dd->d"), signature="dd->d")
 
 
 def kalman_gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``S = H P H' + R`` and ``K = P H' S^-1`` through a Cholesky solve; returns (K, S, L) with
     ``L L' = S``."""
-    S = symmetrize(H @ P @ H.T + R)
+    HP = H @ P
+    S = symmetrize(HP @ H.T + R)
     L = cholesky(S)
-    K = cho_solve(L, H @ P).T  # K = P H' S^-1, S and P symmetric
+    K = cho_solve(L, HP).T  # K = P H' S^-1, S and P symmetric
     return K, S, L
 
 
@@ -301,7 +325,7 @@ def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at
         last = z - z_hat_i + H_i @ restrict(difference(x_i, x))
         step = gain.correction(last)
         x_i = retract(x, step)
-        if np.max(np.abs(step - delta)) < CONVERGED:
+        if np.abs(step - delta).max() < CONVERGED:
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
     return x_i, gain, last, kept
@@ -414,7 +438,7 @@ class InformationGain:
         self.R_inverse_H = (R_inverse @ H.reshape(p, b, -1)).reshape(p * b, -1)
         self.information = symmetrize(H.T @ self.R_inverse_H)              # Lambda (n, n)
         self.I_P_information = np.eye(P.shape[0]) + P @ self.information
-        if not np.all(np.isfinite(self.I_P_information)):
+        if not np.isfinite(self.I_P_information).all():
             raise FilterDivergedError("innovation covariance is not positive definite")
         self.posterior_plain = symmetrize(np.linalg.solve(self.I_P_information, P))  # A P = (P^-1 + Lambda)^-1
 

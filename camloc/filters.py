@@ -47,8 +47,7 @@ class EulerFilter:
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """``x + delta`` with roll and yaw wrapped into [-pi, pi)."""
         out = x + delta
-        out[3] = geometry.wrap_angle(out[3])
-        out[5] = geometry.wrap_angle(out[5])
+        out[3:6:2] = geometry.wrap_angle(out[3:6:2])  # roll and yaw in one call
         return out
 
     def difference(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -138,7 +138,7 @@ def observe(
     R = geometry.euler_to_matrix(state[3:6])
     p_robot = (landmark_xyz - state[0:3]) @ R               # rows of R^T (l - t)
     p_camera = (p_robot - T_robot_camera[:3, 3]) @ T_robot_camera[:3, :3]
-    z_hat = project_points(p_camera, intrinsics, kind)
+    z_hat = measurement.project(p_camera, intrinsics, kind)
 
     R_c_T = T_robot_camera[:3, :3].T
     E = geometry.euler_rate_matrix(state[3:6])
@@ -147,7 +147,7 @@ def observe(
     dprobot_dstate[:, :, 0:3] = -R.T
     dprobot_dstate[:, :, 3:6] = geometry.hat(p_robot) @ E
     dpcam_dstate = R_c_T @ dprobot_dstate
-    H = projection_jacobian(p_camera, intrinsics, kind) @ dpcam_dstate
+    H = measurement.projection_jacobian(p_camera, intrinsics, kind) @ dpcam_dstate
     return z_hat, H
 
 

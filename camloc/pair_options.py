@@ -6,6 +6,7 @@ the camera-frame point they back-project to), computed in one batch per camera (
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 
@@ -44,14 +45,20 @@ class PairGating:
         self.log_det_point_cov = context.log_det_point_cov
         # which observations have a point (``measurement.judged_as_point``; a pixel is a ray)
         self.ranged = measurement.judged_as_point(context.dataset.obs_kind)
+        # whether any measurement has an angle to wrap (``planar.wrap_residuals``; a camera's has none)
+        self.angled = bool(np.any(measurement.ANGLE_ROW[context.dataset.obs_kind] >= 0))
+        # the sensors in ascending order, as ``np.unique`` of a pose's would give those it has (cheaper for a few)
+        self.sensor_ids = sorted(int(c) for c in np.unique(context.obs_sensor))
 
     def options(self, h: Hypothesis, obs: np.ndarray, *, widened_view: bool = False) -> list[PairOptions]:
         """Gated landmarks of every observation under h, computed in one batch per camera; with
         ``widened_view``, among the landmarks within three standard deviations of h's view."""
         out: list[PairOptions] = [None] * obs.size  # type: ignore[list-item]
         cameras = self.ctx.obs_sensor[obs]
-        for camera_id in np.unique(cameras):
+        for camera_id in self.sensor_ids:
             rows = np.flatnonzero(cameras == camera_id)
+            if rows.size == 0:
+                continue
             gate = float(self.ctx.obs_gate[obs[rows[0]]])  # a sensor's observations share their dof
             pool_gate = POOL_GATE_FACTOR * gate
             candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
@@ -100,11 +107,10 @@ class PairGating:
         is a sum of traces: a bound for every pair from a few numbers per observation and per
         prediction, where d^2 itself needs a 3x3 system per pair (most of a dense view's pairs
         are far out of every gate)."""
-        ds = self.ctx.dataset
         p_hat, _, HPH, JHPHJ = spread
         spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(self.R[o], axis1=1, axis2=2)[:, None]
         spread_point = np.trace(JHPHJ, axis1=1, axis2=2)[None, :] + np.trace(self.point_cov[o], axis1=1, axis2=2)[:, None]
-        y_pixels = planar.wrap_residuals(ds.obs_z[o][:, None, :] - z_hat[None, :, :], ds.obs_kind[o][:, None])
+        y_pixels = self.residuals(o[:, None], z_hat[None, :, :])
         y_point = self.point[o][:, None, :] - p_hat[None, :, :]
         near = ((np.einsum("ijk,ijk->ij", y_pixels, y_pixels) <= limit * spread_pixels)
                 | ((np.einsum("ijk,ijk->ij", y_point, y_point) <= limit * spread_point) & self.ranged[o][:, None]))
@@ -127,8 +133,7 @@ class PairGating:
 
         Returns d^2 and the cost of each pair, and whether it is judged as a point.
         """
-        ds = self.ctx.dataset
-        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], planar.wrap_residuals(ds.obs_z[o] - z_hat, ds.obs_kind[o]))
+        d2_pixels, log_det_pixels = association.mahalanobis_3x3(HPH + self.R[o], self.residuals(o, z_hat))
         d2_point, log_det_point = association.mahalanobis_3x3(JHPHJ + self.point_cov[o], self.point[o] - p_hat)
         cost_pixels = d2_pixels + log_det_pixels - self.log_det_R[o]
         cost_point = d2_point + log_det_point - self.log_det_point_cov[o]
@@ -141,12 +146,17 @@ class PairGating:
         """The innovation (g, 3), its Jacobian (g, 3, n) and the observation's covariance (g, 3, 3)
         of g pairs (observations o, predictions z_hat, H and as points p_hat, Hp), each in the
         coordinates ``in_best_coordinates`` chose for it."""
-        ds = self.ctx.dataset
         point = in_point[:, None]
-        y = np.where(point, self.point[o] - p_hat, planar.wrap_residuals(ds.obs_z[o] - z_hat, ds.obs_kind[o]))
+        y = np.where(point, self.point[o] - p_hat, self.residuals(o, z_hat))
         Hc = np.where(point[:, :, None], Hp, H)
         Rc = np.where(point[:, :, None], self.point_cov[o], self.R[o])
         return y, Hc, Rc
+
+    def residuals(self, o: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """``z - z_hat`` of observations o against predictions z_hat (broadcast), angles wrapped."""
+        ds = self.ctx.dataset
+        y = ds.obs_z[o] - z_hat
+        return planar.wrap_residuals(y, ds.obs_kind[o]) if self.angled else y
 
     def with_orientations(
         self, h: Hypothesis, o: np.ndarray, landmarks: np.ndarray, d2: np.ndarray, costs: np.ndarray, judged: tuple, gate: np.ndarray,
@@ -169,7 +179,7 @@ class PairGating:
         taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
         out = list(options)
         cameras = self.ctx.obs_sensor[obs]
-        for camera_id in np.unique(cameras):
+        for camera_id in self.sensor_ids:
             rows = [r for r in np.flatnonzero(cameras == camera_id) if options[r].landmarks.size]
             if not rows:
                 continue
@@ -182,7 +192,8 @@ class PairGating:
             y, Hc, Rc = self.chosen(in_point, owner, z_hat, H, p_hat, Hp)
             costs = self.with_orientations(h, owner, landmarks, d2, costs, (y, Hc, Rc), self.ctx.obs_gate[owner])
             costs = np.where(member(landmarks, taken), np.inf, costs)
-            for r, start, stop in zip(rows, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
+            # the parts' bounds as Python ints (np.cumsum of a short list costs more)
+            for r, start, stop in zip(rows, accumulate([0] + sizes[:-1]), accumulate(sizes)):
                 part = slice(start, stop)
                 out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part],
                                      options[r].pool_costs)

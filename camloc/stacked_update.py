@@ -30,6 +30,10 @@ class StackedUpdate:
         self.iterations = iterations
         self.cameras, self.obs_sensor = cameras, obs_sensor
         self.single_camera = 0 if len(cameras) == 1 else None
+        self.sensor_ids = sorted(int(c) for c in np.unique(obs_sensor))  # as np.unique of a pose's sensors orders them
+        # whether any measurement has an angle to wrap, or is a tag's orientation (a camera's is neither)
+        self.angled = bool(np.any(measurement.ANGLE_ROW[dataset.obs_kind] >= 0))
+        self.tagged = bool(np.any(dataset.obs_kind == measurement.TAG_ROTATION))
         self.association_cov, self.association_info = noise.cov, noise.info
         self.association_log_det, self.null_cost = noise.log_det, noise.null_cost
         self.point, self.point_cov = noise.point, noise.point_cov
@@ -87,13 +91,13 @@ class StackedUpdate:
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
             groups = [(self.cameras[self.single_camera], slice(None))]
         else:
-            groups = [(self.cameras[int(c)], cameras == c) for c in np.unique(cameras)]
+            groups = [(self.cameras[c], mask) for c in self.sensor_ids for mask in [cameras == c] if mask.any()]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]
         heading = self.dataset.landmark_heading[landmarks]
         tag_quat = self.dataset.landmark_quat_xyzw[landmarks]
         kinds = self.dataset.obs_kind[obs]
-        angles = bool(np.any(measurement.ANGLE_ROW[kinds] >= 0))
-        tag_rows = np.flatnonzero(kinds == measurement.TAG_ROTATION)
+        angles = self.angled and bool(np.any(measurement.ANGLE_ROW[kinds] >= 0))
+        tag_rows = np.flatnonzero(kinds == measurement.TAG_ROTATION) if self.tagged else ()
         z_measured = z.reshape(obs.size, 3)
 
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,7 +113,7 @@ class StackedUpdate:
                                                                camera.kind, heading=heading[mask], tag_quat=tag_quat[mask])
             if angles:  # an angle predicted on the measurement's branch, so that z - z_hat is the wrapped residual
                 z_hat = z_measured - planar.wrap_residuals(z_measured - z_hat, kinds)
-            if tag_rows.size:  # a tag's orientation: the innovation is Log(R_pred^-1 R_meas) (camloc.tags)
+            if len(tag_rows):  # a tag's orientation: the innovation is Log(R_pred^-1 R_meas) (camloc.tags)
                 z_hat, H = z_hat.copy(), H.copy()
                 z_hat[tag_rows], H[tag_rows] = tags.aligned(z_measured[tag_rows], geometry.so3_exp(z_hat[tag_rows]), H[tag_rows])
             return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])

@@ -39,12 +39,15 @@ from typing import Optional
 # this long (``numpy_seconds``); longer, it compiles first. The compile takes 35-90 s on this
 # project's 2-core machine, so a first run stays under half a minute either way where it can.
 NUMPY_FIRST_RUN_SECONDS = 20.0
-# What the numpy beam and filter take per observation, measured on 3,000-pose worlds of two
-# cameras and 10% clutter (8 observations a pose, 2026-12-03, idle 2-core machine): 13.2 s for
-# 24,081 observations with depth; 267 s for 24,131 pixel-only ones, whose rays each gate many
-# landmarks. A world of frequent slip searches takes up to 10x as long.
-NUMPY_SECONDS_PER_OBSERVATION = 0.55e-3
-NUMPY_SECONDS_PER_PIXEL_OBSERVATION = 11e-3
+# What the numpy beam and filter take per observation, in seconds of this project's usual 2-core
+# machine (on one three times slower a core, three times as long; so is the compile this is weighed
+# against), measured on 3,000-pose worlds of two cameras and 10% clutter (8 observations a pose,
+# 2026-12-03, idle): 13.2 s for 24,081 observations with depth; 267 s for 24,131 pixel-only ones,
+# whose rays each gate many landmarks. A world of frequent slip searches takes up to 10x as long.
+# Then scaled by the CPU the numpy engine's 2026-12-05 speedups saved on such worlds (on the slower
+# machine, docs/performance.md): x 0.94 with depth (alternated runs), x 0.88 pixel-only (one run each).
+NUMPY_SECONDS_PER_OBSERVATION = 0.52e-3
+NUMPY_SECONDS_PER_PIXEL_OBSERVATION = 9.7e-3
 
 # Set to 0 to compile in the foreground, as a run did before (the tests do; so may a container's build).
 ENVIRONMENT_SWITCH = "CAMLOC_BACKGROUND_COMPILE"

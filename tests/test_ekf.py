@@ -108,6 +108,21 @@ def test_non_positive_definite_innovation_is_reported():
         ekf.kalman_gain(np.eye(2), np.eye(2), -2.0 * np.eye(2))
 
 
+def test_cholesky_and_cho_solve_are_numpys_to_the_bit():
+    # they call the LAPACK gufuncs np.linalg wraps, without its checks: the same arithmetic
+    rng = np.random.default_rng(3)
+    for n in (2, 3, 6):
+        A = rng.normal(size=(n, n))
+        S = A @ A.T + n * np.eye(n)
+        L = ekf.cholesky(S)
+        assert np.array_equal(L, np.linalg.cholesky(S))
+        for B in (rng.normal(size=n), rng.normal(size=(n, 4))):
+            assert np.array_equal(ekf.cho_solve(L, B), np.linalg.solve(L.T, np.linalg.solve(L, B)))
+    for broken in (np.diag([1.0, -1.0, 1.0]), np.array([[1.0, 2.0], [2.0, 1.0]]), np.full((3, 3), np.nan)):
+        with pytest.raises(ekf.FilterDivergedError, match="not positive definite"):
+            ekf.cholesky(broken)
+
+
 def _block_system(rng, p=6, b=3, n=6):
     blocks = np.array([random_spd(rng, b, 0.05) for _ in range(p)])
     return rng.normal(size=n), random_spd(rng, n), blocks, rng.normal(size=(p * b, n)), rng.normal(size=p * b)

@@ -254,3 +254,80 @@ def test_tags_added_twice_after_a_slip_are_fused_with_their_originals():
     for _, survivor, _ in loc.fusions:
         counts = Counter(true_of[loc.chosen == survivor].tolist())
         assert counts.most_common(1)[0][1] >= 0.8 * sum(counts.values()), counts
+
+
+# -- covariance matching: the disagreement a fusion absorbs, first added as the recent part's displacement --
+
+
+def _displaced(x: slam.SlamMean, recent: np.ndarray, shift: np.ndarray, omega: np.ndarray) -> slam.SlamMean:
+    """x with its pose and ``recent`` rows moved rigidly (turn omega, then shift), the rest kept."""
+    E = geometry.so3_exp(omega)
+    L = x.L.copy()
+    rows = x.orientation_rows() if x.orientation is not None else np.zeros(0, np.int64)
+    for i in np.flatnonzero(recent):
+        L[i] = geometry.so3_log(E @ geometry.so3_exp(x.L[i])) if i in rows else E @ x.L[i] + shift
+    return slam.SlamMean(E @ x.R, E @ x.t + shift, L, x.orientation)
+
+
+@pytest.mark.parametrize("turn", [False, True])
+def test_the_displacement_basis_matches_finite_differences_of_a_rigid_move(turn):
+    recent = np.array([False, False, True, True, False])  # the second tag (rows 2-3) moves with the pose
+    for seed in range(3):
+        x = _tag_state(np.random.default_rng(seed))
+        G = slam_fusion.displacement_basis(x, recent, turn)
+        numeric = np.zeros_like(G)
+        for i in range(G.shape[1]):
+            step = np.zeros(6)
+            step[i] = 1e-6
+            plus = slam.difference(_displaced(x, recent, step[:3], step[3:]), x)
+            minus = slam.difference(_displaced(x, recent, -step[:3], -step[3:]), x)
+            numeric[:, i] = (plus - minus) / 2e-6
+        np.testing.assert_allclose(G, numeric[:, :G.shape[1]], atol=1e-7)
+
+
+def _random_cov(rng, n: int, scale: float) -> np.ndarray:
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T / n + 0.1 * np.eye(n))
+
+
+def test_matching_makes_the_disagreement_as_likely_as_its_dof_and_keeps_a_plausible_one():
+    """Two tags 10 degrees and ~1 m apart under a covariance of centimetres (d2 in the thousands):
+    after ``matched`` the stacked constraint's r' S^-1 r is its dof, 6, and only the pose's, the
+    recent rows' and the older rows' turn columns moved. Under a covariance that allows the
+    disagreement, P is returned as it is."""
+    rng = np.random.default_rng(7)
+    x = _tag_state(rng)
+    recent = np.array([False, False, True, True, False])
+    r, H, columns = slam_fusion.constraint(x, 0, 2, LANDMARK_POINT3)
+    r_turn, H_turn, columns_turn = slam_fusion.turn_constraint(x, 1, 3)
+    H = np.vstack([np.hstack([H, np.zeros((3, 6))]), np.hstack([H_turn[:, :6], np.zeros((3, 6)), H_turn[:, 6:]])])
+    columns, r = np.concatenate([columns, columns_turn[6:]]), np.concatenate([r, r_turn])
+    R = 1e-8 * np.eye(6)
+    G = slam_fusion.displacement_basis(x, recent, True)
+    P = _random_cov(rng, x.dim, 1e-4)
+    P_new = slam_fusion.matched(P, r, H, columns, R, G)
+    S = H @ P_new[np.ix_(columns, columns)] @ H.T + R
+    assert r @ np.linalg.solve(H @ P[np.ix_(columns, columns)] @ H.T + R, r) > 1000.0
+    np.testing.assert_allclose(r @ np.linalg.solve(S, r), 6.0, rtol=1e-6)
+    assert np.array_equal(P_new, P_new.T) and np.all(np.linalg.eigvalsh(P_new) > 0.0)
+    wide = _random_cov(rng, x.dim, 10.0)
+    assert slam_fusion.matched(wide, r, H, columns, R, G) is wide
+
+
+def test_a_floor_points_disagreement_is_matched_in_the_plane():
+    """Two floor points 0.67 m apart, each and the robot known to a centimetre, uncorrelated: the
+    copy and the robot are the recent part, displaced together."""
+    x = slam.SlamMean(np.eye(3), np.zeros(3), np.array([[1.0, 2.0, 0.0], [1.6, 2.3, 0.0]]))
+    P = np.zeros((12, 12))
+    P[0:2, 0:2] = P[6:8, 6:8] = P[9:11, 9:11] = 1e-4 * np.eye(2)
+    x_new, P_new = slam_fusion.fused(x, P, 0, 1, LANDMARK_POINT2, recent=np.array([False, True]), planar=True)
+    assert P_new[2, 2] == 0.0 and P_new[8, 8] == 0.0  # z stays pinned
+    # the robot, displaced with the copy, moves with it to the original (which held b's disagreement
+    # as a displacement: moved little) and is as uncertain along it as the original, the copy and itself
+    r = np.array([-0.6, -0.3])
+    assert np.linalg.norm(x_new.L[0, :2] - x.L[0, :2]) < 0.01 * np.linalg.norm(r)
+    np.testing.assert_allclose(x_new.t[:2], r, atol=0.01 * np.linalg.norm(r))
+    u = r / np.linalg.norm(r)
+    np.testing.assert_allclose(u @ P_new[0:2, 0:2] @ u, 3e-4, rtol=0.05)
+    unmatched = slam_fusion.fused(x, P, 0, 1, LANDMARK_POINT2)  # the robot, uncorrelated with the copy, stays
+    assert np.allclose(unmatched[0].t, 0.0) and np.isclose(unmatched[1][0, 0], 1e-4)
