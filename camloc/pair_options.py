@@ -46,9 +46,9 @@ class PairGating:
         # which observations have a point (``measurement.judged_as_point``; a pixel is a ray)
         self.ranged = measurement.judged_as_point(context.dataset.obs_kind)
         # whether any measurement has an angle to wrap (``planar.wrap_residuals``; a camera's has none)
-        self.angled = bool(np.any(measurement.ANGLE_ROW[context.dataset.obs_kind] >= 0))
+        self.angled = planar.has_angles(context.dataset.obs_kind)
         # the sensors in ascending order, as ``np.unique`` of a pose's would give those it has (cheaper for a few)
-        self.sensor_ids = sorted(int(c) for c in np.unique(context.obs_sensor))
+        self.sensor_ids = np.unique(context.obs_sensor).tolist()
 
     def options(self, h: Hypothesis, obs: np.ndarray, *, widened_view: bool = False) -> list[PairOptions]:
         """Gated landmarks of every observation under h, computed in one batch per camera; with

@@ -160,6 +160,12 @@ def planar_block(cov: np.ndarray) -> np.ndarray:
     return cov[..., axes[:, None], axes[None, :]]
 
 
+def has_angles(kinds) -> bool:
+    """Whether any measurement of ``kinds`` has an angle row (``measurement.ANGLE_ROW``: a marker's
+    psi) for ``wrap_residuals`` to wrap; a camera's has none, and its callers skip the wrapping."""
+    return bool(np.any(ANGLE_ROW[np.asarray(kinds, dtype=np.int64)] >= 0))
+
+
 def wrap_residuals(y: np.ndarray, kinds) -> np.ndarray:
     """Residuals ``z - z_hat`` (..., MAX_DIM) of measurements of ``kinds`` (a code, or codes that
     broadcast against y's leading axes) with their angle rows (``measurement.ANGLE_ROW``: a

@@ -30,9 +30,9 @@ class StackedUpdate:
         self.iterations = iterations
         self.cameras, self.obs_sensor = cameras, obs_sensor
         self.single_camera = 0 if len(cameras) == 1 else None
-        self.sensor_ids = sorted(int(c) for c in np.unique(obs_sensor))  # as np.unique of a pose's sensors orders them
+        self.sensor_ids = np.unique(obs_sensor).tolist()  # ascending, as np.unique of a pose's sensors orders them
         # whether any measurement has an angle to wrap, or is a tag's orientation (a camera's is neither)
-        self.angled = bool(np.any(measurement.ANGLE_ROW[dataset.obs_kind] >= 0))
+        self.angled = planar.has_angles(dataset.obs_kind)
         self.tagged = bool(np.any(dataset.obs_kind == measurement.TAG_ROTATION))
         self.association_cov, self.association_info = noise.cov, noise.info
         self.association_log_det, self.null_cost = noise.log_det, noise.null_cost
@@ -96,7 +96,7 @@ class StackedUpdate:
         heading = self.dataset.landmark_heading[landmarks]
         tag_quat = self.dataset.landmark_quat_xyzw[landmarks]
         kinds = self.dataset.obs_kind[obs]
-        angles = self.angled and bool(np.any(measurement.ANGLE_ROW[kinds] >= 0))
+        angles = self.angled and planar.has_angles(kinds)
         tag_rows = np.flatnonzero(kinds == measurement.TAG_ROTATION) if self.tagged else ()
         z_measured = z.reshape(obs.size, 3)
 
