@@ -44,6 +44,11 @@ class EulerFilter:
                                  geometry.euler_rate_matrix(x[3:6]), translation_columns=3)
         return models.observe(x, T_robot_camera, intrinsics, landmark_xyz, kind)
 
+    def observe_rig(self, x, mounts, intrinsics, landmark_xyz, sizes, kind):
+        """``observe`` of several cameras of one kind (not a tag's orientation) in one batch
+        (``models.observe_rig``)."""
+        return models.observe_rig(x, mounts, intrinsics, landmark_xyz, sizes, kind)
+
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """``x + delta`` with roll and yaw wrapped into [-pi, pi)."""
         out = x + delta
@@ -97,6 +102,11 @@ class SE3Filter:
         if kind == TAG_ROTATION:
             return _tag_rotation(x[:3, :3], T_robot_camera, tag_quat, np.eye(3), translation_columns=3)
         return models.observe_se3(x, T_robot_camera, intrinsics, landmark_xyz, kind)
+
+    def observe_rig(self, x, mounts, intrinsics, landmark_xyz, sizes, kind):
+        """``observe`` of several cameras of one kind (not a tag's orientation) in one batch
+        (``models.observe_rig_se3``)."""
+        return models.observe_rig_se3(x, mounts, intrinsics, landmark_xyz, sizes, kind)
 
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return geometry.retract_right(x, delta)

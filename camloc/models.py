@@ -135,19 +135,56 @@ def observe(
     z_hat : (M, 3) predicted measurements, in ``camloc.measurement``'s padded layout.
     H : (M, 3, 6) d z_hat / d state.
     """
-    R = geometry.euler_to_matrix(state[3:6])
-    p_robot = (landmark_xyz - state[0:3]) @ R               # rows of R^T (l - t)
-    p_camera = (p_robot - T_robot_camera[:3, 3]) @ T_robot_camera[:3, :3]
-    z_hat = measurement.project(p_camera, intrinsics, kind)
+    return observe_rig(state, (T_robot_camera,), intrinsics, landmark_xyz, (landmark_xyz.shape[0],), kind)
 
-    R_c_T = T_robot_camera[:3, :3].T
+
+def observe_rig(
+    state: np.ndarray, mounts, intrinsics, landmark_xyz: np.ndarray, sizes, kind: int = DEPTH,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``observe`` of landmarks seen by several cameras of one kind on the robot, in one batch:
+    the first ``sizes[0]`` rows of landmark_xyz by camera ``mounts[0]``, the next ``sizes[1]``
+    by ``mounts[1]``, ...; ``intrinsics`` fx, fy, cx, cy are (M,) arrays, a camera per row (or
+    scalars: one camera). Each row's arithmetic is the one ``observe`` of its camera alone does."""
+    R = geometry.euler_to_matrix(state[3:6])
+    p_robot, p_camera = points_by_camera(R, state[0:3], mounts, landmark_xyz, sizes)
     E = geometry.euler_rate_matrix(state[3:6])
     # p_robot = R^T (l - t): d/dt = -R^T; a body rotation E d moves it by [p_robot]x E d.
     dprobot_dstate = np.empty((landmark_xyz.shape[0], 3, 6))
     dprobot_dstate[:, :, 0:3] = -R.T
     dprobot_dstate[:, :, 3:6] = geometry.hat(p_robot) @ E
-    dpcam_dstate = R_c_T @ dprobot_dstate
-    H = measurement.projection_jacobian(p_camera, intrinsics, kind) @ dpcam_dstate
+    return projected(p_camera, dprobot_dstate, mounts, intrinsics, sizes, kind)
+
+
+def points_by_camera(R: np.ndarray, t: np.ndarray, mounts, landmark_xyz: np.ndarray, sizes) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks (M, 3) in the frame of the robot at (R, t), and each in the frame of its camera
+    (``sizes`` consecutive rows per camera of ``mounts``). Camera by camera: a product of one
+    row takes another path in BLAS than the same row among several (its last bits differ)."""
+    if len(mounts) == 1:
+        p_robot = (landmark_xyz - t) @ R          # rows of R^T (l - t)
+        return p_robot, (p_robot - mounts[0][:3, 3]) @ mounts[0][:3, :3]
+    p_robot, p_camera = np.empty_like(landmark_xyz), np.empty_like(landmark_xyz)
+    start = 0
+    for mount, size in zip(mounts, sizes):
+        part = slice(start, start + size)
+        p_robot[part] = (landmark_xyz[part] - t) @ R
+        p_camera[part] = (p_robot[part] - mount[:3, 3]) @ mount[:3, :3]
+        start += size
+    return p_robot, p_camera
+
+
+def projected(p_camera: np.ndarray, dprobot: np.ndarray, mounts, intrinsics, sizes, kind: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (M, 3) of cameras ``mounts`` (``sizes`` consecutive rows each), with
+    the Jacobians (M, 3, n) of their robot-frame points -> measurements (M, 3) and Jacobians
+    (M, 3, n)."""
+    if len(mounts) == 1:
+        dpcam = mounts[0][:3, :3].T @ dprobot
+    else:
+        dpcam, start = np.empty_like(dprobot), 0
+        for mount, size in zip(mounts, sizes):
+            dpcam[start : start + size] = mount[:3, :3].T @ dprobot[start : start + size]
+            start += size
+    z_hat = measurement.project(p_camera, intrinsics, kind)
+    H = measurement.projection_jacobian(p_camera, intrinsics, kind) @ dpcam
     return z_hat, H
 
 
@@ -188,10 +225,16 @@ def observe_se3(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Predicted measurements (M, 3) of ``kind`` and their Jacobians (M, 3, 6) with respect to
     the right perturbation (dt, dtheta) of T_world_robot."""
-    p_robot, p_camera = camera_points(T_world_robot, T_robot_camera, landmark_xyz)
-    z_hat = project_points(p_camera, intrinsics, kind)
+    return observe_rig_se3(T_world_robot, (T_robot_camera,), intrinsics, landmark_xyz, (landmark_xyz.shape[0],), kind)
+
+
+def observe_rig_se3(
+    T_world_robot: np.ndarray, mounts, intrinsics, landmark_xyz: np.ndarray, sizes, kind: int = DEPTH,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``observe_se3`` of several cameras of one kind in one batch, rows laid out as in
+    ``observe_rig``."""
+    p_robot, p_camera = points_by_camera(T_world_robot[:3, :3], T_world_robot[:3, 3], mounts, landmark_xyz, sizes)
     dprobot = np.empty((landmark_xyz.shape[0], 3, 6))
     dprobot[:, :, 0:3] = -np.eye(3)
     dprobot[:, :, 3:6] = geometry.hat(p_robot)
-    H = projection_jacobian(p_camera, intrinsics, kind) @ (T_robot_camera[:3, :3].T @ dprobot)
-    return z_hat, H
+    return projected(p_camera, dprobot, mounts, intrinsics, sizes, kind)

@@ -1,7 +1,7 @@
 """What each observation of a pose may be under one of the numpy beam's hypotheses
 (``camloc.beam``): its pool of nearby landmarks, each pair's cost and its innovation in the
 coordinates where the hypothesis' linearization explains it best (the measured (u, v, depth) or
-the camera-frame point they back-project to), computed in one batch per camera (``PairGating``)."""
+the camera-frame point they back-project to), computed in one batch per kind of sensor (``PairGating``)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import numpy as np
 from camloc import association, measurement, models, planar
 from camloc.beam_types import BeamContext, Hypothesis
 from camloc.constants import POOL_GATE_FACTOR
+from camloc.sensors import intrinsics_by_row
 
 
 @dataclass
@@ -47,62 +48,83 @@ class PairGating:
         self.ranged = measurement.judged_as_point(context.dataset.obs_kind)
         # whether any measurement has an angle to wrap (``planar.wrap_residuals``; a camera's has none)
         self.angled = planar.has_angles(context.dataset.obs_kind)
-        # the sensors in ascending order, as ``np.unique`` of a pose's would give those it has (cheaper for a few)
-        self.sensor_ids = np.unique(context.obs_sensor).tolist()
+        # the sensors in ascending order, grouped by kind: a group's observations are gated in one
+        # batch (a pose's calls are most of the numpy engine's time, not their sizes)
+        kinds: dict[int, list[int]] = {}
+        for camera_id in np.unique(context.obs_sensor).tolist():
+            kinds.setdefault(int(context.cameras[camera_id].kind), []).append(camera_id)
+        self.sensor_groups = list(kinds.values())
 
     def options(self, h: Hypothesis, obs: np.ndarray, *, widened_view: bool = False) -> list[PairOptions]:
-        """Gated landmarks of every observation under h, computed in one batch per camera; with
-        ``widened_view``, among the landmarks within three standard deviations of h's view."""
+        """Gated landmarks of every observation under h, computed in one batch per kind of
+        sensor; with ``widened_view``, among the landmarks within three standard deviations of
+        h's view."""
         out: list[PairOptions] = [None] * obs.size  # type: ignore[list-item]
         cameras = self.ctx.obs_sensor[obs]
-        for camera_id in self.sensor_ids:
-            rows = np.flatnonzero(cameras == camera_id)
-            if rows.size == 0:
-                continue
-            gate = float(self.ctx.obs_gate[obs[rows[0]]])  # a sensor's observations share their dof
-            pool_gate = POOL_GATE_FACTOR * gate
-            candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
-            if candidates.size == 0:
-                for r in rows:
-                    out[r] = empty_options(h.x.size)
-                continue
-            z_hat, H = self.ctx.observe(h.x, camera_id, candidates)
-            o = obs[rows]
-            spread = self.spread(h.P, camera_id, z_hat, H)
-            j, g = self.plausible_pairs(o, z_hat, spread, pool_gate)  # row by row
-            p_hat, Hp, HPH, JHPHJ = (part[g] for part in spread)
-            d2, costs, in_point = self.in_best_coordinates(o[j], z_hat[g], p_hat, HPH, JHPHJ)
-            pool = d2 <= pool_gate  # each observation's pool
-            j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
-            y, Hc, Rc = self.chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
-            pool_costs = costs
-            costs = self.with_orientations(h, o[j], candidates[g], d2, costs, (y, Hc, Rc), np.full(d2.size, gate))
-            bounds = np.searchsorted(j, np.arange(rows.size + 1))
-            for k, r in enumerate(rows):
-                part = slice(bounds[k], bounds[k + 1])
-                pool = g[part]
-                out[r] = PairOptions(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part],
-                                     pool_costs[part])
+        for group in self.sensor_groups:
+            seen = []  # (camera, its rows of obs, the landmarks it may see) of the group's cameras
+            for camera_id in group:
+                rows = np.flatnonzero(cameras == camera_id)
+                if rows.size == 0:
+                    continue
+                candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
+                if candidates.size == 0:
+                    for r in rows:
+                        out[r] = empty_options(h.x.size)
+                    continue
+                seen.append((camera_id, rows, candidates))
+            if seen:
+                self.gate(h, obs, seen, out)
         return out
 
+    def gate(self, h: Hypothesis, obs: np.ndarray, seen: list, out: list) -> None:
+        """``options`` of one kind of sensor's observations, written into ``out``: ``seen``
+        (camera, rows of obs, candidates) of each of its cameras, one batch for all of them (each
+        observation paired only with its own camera's candidates)."""
+        ids, sizes = [c for c, _, _ in seen], [c.size for _, _, c in seen]
+        rows = seen[0][1] if len(seen) == 1 else np.concatenate([r for _, r, _ in seen])
+        candidates = seen[0][2] if len(seen) == 1 else np.concatenate([c for _, _, c in seen])
+        z_hat, H = self.ctx.observe_cameras(h.x, ids, candidates, sizes)
+        o = obs[rows]
+        gate = self.ctx.obs_gate[o]  # a sensor's observations share their dof
+        pool_gate = POOL_GATE_FACTOR * gate
+        spread = self.spread(h.P, ids, sizes, z_hat, H)
+        own = None if len(seen) == 1 else self.ctx.obs_sensor[o][:, None] == np.repeat(ids, sizes)[None, :]
+        j, g = self.plausible_pairs(o, z_hat, spread, pool_gate[:, None], own)  # row by row
+        p_hat, Hp, HPH, JHPHJ = (part[g] for part in spread)
+        d2, costs, in_point = self.in_best_coordinates(o[j], z_hat[g], p_hat, HPH, JHPHJ)
+        pool = d2 <= pool_gate[j]  # each observation's pool
+        j, g, d2, costs, in_point, p_hat, Hp = (part[pool] for part in (j, g, d2, costs, in_point, p_hat, Hp))
+        y, Hc, Rc = self.chosen(in_point, o[j], z_hat[g], H[g], p_hat, Hp)
+        pool_costs = costs
+        costs = self.with_orientations(h, o[j], candidates[g], d2, costs, (y, Hc, Rc), gate[j])
+        bounds = np.searchsorted(j, np.arange(rows.size + 1))
+        for k, r in enumerate(rows):
+            part = slice(bounds[k], bounds[k + 1])
+            pool = g[part]
+            out[r] = PairOptions(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part],
+                                 pool_costs[part])
+
     def spread(
-        self, P: np.ndarray, camera_id: int, z_hat: np.ndarray, H: np.ndarray,
+        self, P: np.ndarray, camera_ids: list[int], sizes: list[int], z_hat: np.ndarray, H: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Predictions (z_hat (m, 3), H (m, 3, n)) of camera camera_id under covariance P, also
-        as camera-frame points: (p_hat (m, 3), their Jacobian Hp (m, 3, n), the spread of the
-        predictions H P H' (m, 3, 3) and of the points Hp P Hp' (m, 3, 3)). A sensor that does not
-        measure range has no point: zeros, a singular spread, which fits nothing
-        (``in_best_coordinates`` keeps its pixels)."""
-        camera = self.ctx.cameras[int(camera_id)]
+        """Predictions (z_hat (m, 3), H (m, 3, n)) of cameras camera_ids of one kind (``sizes``:
+        how many consecutive rows each) under covariance P, also as camera-frame points: (p_hat
+        (m, 3), their Jacobian Hp (m, 3, n), the spread of the predictions H P H' (m, 3, 3) and of
+        the points Hp P Hp' (m, 3, 3)). A sensor that does not measure range has no point: zeros,
+        a singular spread, which fits nothing (``in_best_coordinates`` keeps its pixels)."""
+        cameras = [self.ctx.cameras[int(c)] for c in camera_ids]
         HPH = H @ P @ np.swapaxes(H, -1, -2)
-        if not measurement.judged_as_point(camera.kind):
+        if not measurement.judged_as_point(cameras[0].kind):
             return np.zeros_like(z_hat), np.zeros_like(H), HPH, np.zeros_like(HPH)
-        p_hat, J = models.back_project(z_hat, camera.intrinsics, camera.kind)
+        intrinsics = cameras[0].intrinsics if len(cameras) == 1 else intrinsics_by_row(cameras, sizes)
+        p_hat, J = models.back_project(z_hat, intrinsics, cameras[0].kind)
         return p_hat, J @ H, HPH, J @ HPH @ np.swapaxes(J, -1, -2)
 
-    def plausible_pairs(self, o: np.ndarray, z_hat: np.ndarray, spread: tuple, limit: float) -> tuple[np.ndarray, np.ndarray]:
-        """(rows into o, rows into z_hat) of the pairs whose d^2 may be within ``limit`` in either
-        coordinates of ``in_best_coordinates``, row-major; the others are surely beyond it. For
+    def plausible_pairs(self, o: np.ndarray, z_hat: np.ndarray, spread: tuple, limit, own=None) -> tuple[np.ndarray, np.ndarray]:
+        """(rows into o, rows into z_hat) of the pairs whose d^2 may be within ``limit`` (each
+        row's) in either coordinates of ``in_best_coordinates``, row-major, among those ``own``
+        allows (None: all); the others are surely beyond it. For
         S positive definite, ``y' S^-1 y >= |y|^2 / trace(S)``, and the trace of S = H P H' + R
         is a sum of traces: a bound for every pair from a few numbers per observation and per
         prediction, where d^2 itself needs a 3x3 system per pair (most of a dense view's pairs
@@ -114,7 +136,7 @@ class PairGating:
         y_point = self.point[o][:, None, :] - p_hat[None, :, :]
         near = ((np.einsum("ijk,ijk->ij", y_pixels, y_pixels) <= limit * spread_pixels)
                 | ((np.einsum("ijk,ijk->ij", y_point, y_point) <= limit * spread_point) & self.ranged[o][:, None]))
-        return np.nonzero(near)
+        return np.nonzero(near if own is None else near & own)
 
     def in_best_coordinates(
         self, o: np.ndarray, z_hat: np.ndarray, p_hat: np.ndarray, HPH: np.ndarray, JHPHJ: np.ndarray,
@@ -173,31 +195,44 @@ class PairGating:
     def conditioned(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> list[PairOptions]:
         """Options of observations obs under h, a hypothesis conditioned on some of the pose's
         pairs, from their options before: the same pools of landmarks predicted again from h, one
-        batch per camera, less the landmarks h has taken. (Moving the old predictions to first
+        batch per kind of sensor, less the landmarks h has taken. (Moving the old predictions to first
         order is not enough: with landmarks a metre away, a pair's correction moves the
         predictions by pixels more than the linear term says.) Their ``pool_costs`` are kept."""
         taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
         out = list(options)
         cameras = self.ctx.obs_sensor[obs]
-        for camera_id in self.sensor_ids:
-            rows = [r for r in np.flatnonzero(cameras == camera_id) if options[r].landmarks.size]
-            if not rows:
+        for group in self.sensor_groups:
+            ids, rows = [], []
+            for camera_id in group:
+                mine = [r for r in np.flatnonzero(cameras == camera_id) if options[r].landmarks.size]
+                if mine:
+                    ids.append(camera_id)
+                    rows.append(mine)
+            if not ids:
                 continue
-            sizes = [options[r].landmarks.size for r in rows]
-            landmarks = np.concatenate([options[r].landmarks for r in rows])
-            z_hat, H = self.ctx.observe(h.x, int(camera_id), landmarks)
-            owner = np.repeat(obs[rows], sizes)
-            p_hat, Hp, HPH, JHPHJ = self.spread(h.P, camera_id, z_hat, H)
-            d2, costs, in_point = self.in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)
-            y, Hc, Rc = self.chosen(in_point, owner, z_hat, H, p_hat, Hp)
-            costs = self.with_orientations(h, owner, landmarks, d2, costs, (y, Hc, Rc), self.ctx.obs_gate[owner])
-            costs = np.where(member(landmarks, taken), np.inf, costs)
-            # the parts' bounds as Python ints (np.cumsum of a short list costs more)
-            for r, start, stop in zip(rows, accumulate([0] + sizes[:-1]), accumulate(sizes)):
-                part = slice(start, stop)
-                out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part],
-                                     options[r].pool_costs)
+            sizes = [sum(options[r].landmarks.size for r in mine) for mine in rows]
+            rows = [r for mine in rows for r in mine]
+            self.conditioned_group(h, obs, options, ids, rows, sizes, taken, out)
         return out
+
+    def conditioned_group(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions], ids: list[int], rows: list[int],
+                          sizes: list[int], taken: np.ndarray, out: list) -> None:
+        """``conditioned`` of one kind of sensor's observations (``rows`` of obs, camera by camera
+        of ``ids``, ``sizes`` landmarks each camera), one batch for all, written into ``out``."""
+        counts = [options[r].landmarks.size for r in rows]
+        landmarks = np.concatenate([options[r].landmarks for r in rows])
+        z_hat, H = self.ctx.observe_cameras(h.x, ids, landmarks, sizes)
+        owner = np.repeat(obs[rows], counts)
+        p_hat, Hp, HPH, JHPHJ = self.spread(h.P, ids, sizes, z_hat, H)
+        d2, costs, in_point = self.in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)
+        y, Hc, Rc = self.chosen(in_point, owner, z_hat, H, p_hat, Hp)
+        costs = self.with_orientations(h, owner, landmarks, d2, costs, (y, Hc, Rc), self.ctx.obs_gate[owner])
+        costs = np.where(member(landmarks, taken), np.inf, costs)
+        # the parts' bounds as Python ints (np.cumsum of a short list costs more)
+        for r, start, stop in zip(rows, accumulate([0] + counts[:-1]), accumulate(counts)):
+            part = slice(start, stop)
+            out[r] = PairOptions(landmarks[part], costs[part], z_hat[part], H[part], y[part], Hc[part], Rc[part],
+                                 options[r].pool_costs)
 
 
 def member(values: np.ndarray, few: np.ndarray) -> np.ndarray:

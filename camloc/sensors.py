@@ -53,3 +53,10 @@ def sensors_of(dataset: "Dataset") -> tuple[dict[int, CameraModel], np.ndarray]:
     row_of = np.array([ordered.index(key) for key in keys], dtype=np.int64)
     obs_sensor = row_of[obs_sensor].astype(np.int64) if code.size else np.zeros(0, np.int64)
     return sensors, obs_sensor
+
+
+def intrinsics_by_row(cameras: list[CameraModel], sizes: list[int]) -> tuple[np.ndarray, ...]:
+    """fx, fy, cx, cy as (M,) arrays, a camera per row: the first ``sizes[0]`` rows
+    ``cameras[0]``'s, the next ``sizes[1]`` the second's, ... (the rows of a batch of several
+    cameras, ``models.observe_rig``)."""
+    return tuple(np.repeat(np.array([c.intrinsics for c in cameras], dtype=float), sizes, axis=0).T)

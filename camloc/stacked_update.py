@@ -14,6 +14,7 @@ import numpy as np
 from camloc import ekf, geometry, measurement, models, planar, tags
 from camloc.dataset import Dataset
 from camloc.observation_space import ObservationNoise
+from camloc.sensors import intrinsics_by_row
 from camloc.tails import chi2_quantile
 
 
@@ -100,11 +101,17 @@ class StackedUpdate:
         tag_rows = np.flatnonzero(kinds == measurement.TAG_ROTATION) if self.tagged else ()
         z_measured = z.reshape(obs.size, 3)
 
+        rig = self.rig(cameras, groups, landmark_xyz)
+
         def measure(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if len(groups) == 1:
                 camera = groups[0][0]
                 z_hat, H = self.filter.observe(state, camera.T_robot_camera, camera.intrinsics, landmark_xyz, camera.kind, heading=heading,
                                                tag_quat=tag_quat)
+            elif rig is not None:  # the cameras in one batch, the rows in their order
+                order, *arguments = rig
+                z_hat, H = np.empty((obs.size, 3)), np.empty((obs.size, 3, self.filter.dim))
+                z_hat[order], H[order] = self.filter.observe_rig(state, *arguments)
             else:
                 z_hat = np.empty((obs.size, 3))
                 H = np.empty((obs.size, 3, self.filter.dim))
@@ -119,6 +126,22 @@ class StackedUpdate:
             return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
 
         return groups, measure
+
+    def rig(self, cameras: np.ndarray, groups: list, landmark_xyz: np.ndarray) -> Optional[tuple]:
+        """(order, mounts, intrinsics, landmarks, sizes, kind): the pairs of several cameras of
+        one kind in camera order, for the filter's ``observe_rig`` (the robot's part of the
+        model computed once for all); None where they are of several kinds, or the filter has
+        no such batch."""
+        kinds = {camera.kind for camera, _ in groups}
+        if len(groups) < 2 or len(kinds) > 1 or not hasattr(self.filter, "observe_rig"):
+            return None
+        kind = kinds.pop()
+        if kind not in measurement.CAMERA_KINDS or kind == measurement.TAG_ROTATION:
+            return None
+        order = np.argsort(cameras, kind="stable")  # by sensor id, as groups are
+        sizes = [int(mask.sum()) for _, mask in groups]
+        mounts = [camera.T_robot_camera for camera, _ in groups]
+        return order, mounts, intrinsics_by_row([camera for camera, _ in groups], sizes), landmark_xyz[order], sizes, kind
 
     def pair_spread(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
         """What the chance that one of the pairs that updated (x, P) into this posterior is clutter
