@@ -33,7 +33,7 @@ from camloc import association, measurement, planar, tag_orientations
 from camloc.constants import MAX_HALF_ANGLE_DEG, WIDENED_VIEW_SIGMAS
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG
 from camloc.jcbb import jcbb
-from camloc.sensors import CameraModel, intrinsics_by_row
+from camloc.sensors import CameraModel
 
 if TYPE_CHECKING:
     from camloc.dataset import Dataset
@@ -157,20 +157,6 @@ class AssociationScene:
         camera = self.cameras[int(camera_id)]
         return self.filter.observe(x, camera.T_robot_camera, camera.intrinsics, self.dataset.landmark_xyz[landmarks], camera.kind,
                                    heading=self.dataset.landmark_heading[landmarks], tag_quat=self.dataset.landmark_quat_xyzw[landmarks])
-
-    def observe_cameras(self, x: np.ndarray, camera_ids: list[int], landmarks: np.ndarray, sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """``observe`` of landmarks seen by several sensors of one kind, in one batch where the
-        filter has one (``observe_rig``: the robot's part of the model once for all): the first
-        ``sizes[0]`` landmarks by camera ``camera_ids[0]``, the next ``sizes[1]`` by the second, ..."""
-        if len(camera_ids) == 1:
-            return self.observe(x, camera_ids[0], landmarks)
-        cameras = [self.cameras[int(c)] for c in camera_ids]
-        kind = cameras[0].kind
-        rig = getattr(self.filter, "observe_rig", None)
-        if rig is None or kind not in measurement.CAMERA_KINDS or kind == measurement.TAG_ROTATION:
-            parts = [self.observe(x, c, part) for c, part in zip(camera_ids, np.split(landmarks, np.cumsum(sizes)[:-1]))]
-            return np.concatenate([z for z, _ in parts]), np.concatenate([H for _, H in parts])
-        return rig(x, [c.T_robot_camera for c in cameras], intrinsics_by_row(cameras, sizes), self.dataset.landmark_xyz[landmarks], sizes, kind)
 
     def predictions(self, x: np.ndarray, P: np.ndarray, camera_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The landmarks camera ``camera_id`` may see from state x (``visible``): (candidates (m,),

@@ -183,10 +183,6 @@ class BeamContext(Protocol):
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictions (m, 3) of the landmarks by camera ``camera_id`` from x, and their Jacobians."""
 
-    def observe_cameras(self, x: np.ndarray, camera_ids: list[int], landmarks: np.ndarray, sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """``observe`` of landmarks seen by several sensors of one kind, in one batch: the first
-        ``sizes[0]`` by camera ``camera_ids[0]``, the next ``sizes[1]`` by the second, ..."""
-
     def updated(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *,
         at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,

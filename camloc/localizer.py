@@ -919,10 +919,6 @@ class _Localizer:
         from x, and their Jacobians (m, 3, n)."""
         return self.scene.observe(x, camera_id, landmarks)
 
-    def observe_cameras(self, x: np.ndarray, camera_ids: list[int], landmarks: np.ndarray, sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """``AssociationScene.observe_cameras``: ``observe`` of several sensors of one kind in one batch."""
-        return self.scene.observe_cameras(x, camera_ids, landmarks, sizes)
-
     def conditioned(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(x, P) after the update with the given pairs, weighed as association judges them: the
         scratch filter of a method that conditions on some pairs before judging the rest."""

@@ -13,7 +13,7 @@ import numpy as np
 from camloc import association, measurement, models, planar
 from camloc.beam_types import BeamContext, Hypothesis
 from camloc.constants import POOL_GATE_FACTOR
-from camloc.sensors import intrinsics_by_row
+from camloc.sensors import intrinsics_by_row, observed_as_rig
 
 
 @dataclass
@@ -84,7 +84,7 @@ class PairGating:
         ids, sizes = [c for c, _, _ in seen], [c.size for _, _, c in seen]
         rows = seen[0][1] if len(seen) == 1 else np.concatenate([r for _, r, _ in seen])
         candidates = seen[0][2] if len(seen) == 1 else np.concatenate([c for _, _, c in seen])
-        z_hat, H = self.ctx.observe_cameras(h.x, ids, candidates, sizes)
+        z_hat, H = self.observe(h.x, ids, candidates, sizes)
         o = obs[rows]
         gate = self.ctx.obs_gate[o]  # a sensor's observations share their dof
         pool_gate = POOL_GATE_FACTOR * gate
@@ -104,6 +104,20 @@ class PairGating:
             pool = g[part]
             out[r] = PairOptions(candidates[pool], costs[part], z_hat[pool], H[pool], y[part], Hc[part], Rc[part],
                                  pool_costs[part])
+
+    def observe(self, x: np.ndarray, camera_ids: list[int], landmarks: np.ndarray, sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (m, 3) and Jacobians (m, 3, n) from x of landmarks seen by sensors of one
+        kind, the first ``sizes[0]`` by camera ``camera_ids[0]``, the next ``sizes[1]`` by the
+        second, ...: in one batch where the filter has one (``models.observe_rig``, the robot's
+        part of the model once for all)."""
+        if len(camera_ids) == 1:
+            return self.ctx.observe(x, camera_ids[0], landmarks)
+        cameras = [self.ctx.cameras[int(c)] for c in camera_ids]
+        if not observed_as_rig(self.ctx.filter, cameras[0].kind):
+            parts = [self.ctx.observe(x, c, part) for c, part in zip(camera_ids, np.split(landmarks, np.cumsum(sizes)[:-1]))]
+            return np.concatenate([z for z, _ in parts]), np.concatenate([H for _, H in parts])
+        return self.ctx.filter.observe_rig(x, [c.T_robot_camera for c in cameras], intrinsics_by_row(cameras, sizes),
+                                           self.ctx.dataset.landmark_xyz[landmarks], sizes, cameras[0].kind)
 
     def spread(
         self, P: np.ndarray, camera_ids: list[int], sizes: list[int], z_hat: np.ndarray, H: np.ndarray,
@@ -221,7 +235,7 @@ class PairGating:
         of ``ids``, ``sizes`` landmarks each camera), one batch for all, written into ``out``."""
         counts = [options[r].landmarks.size for r in rows]
         landmarks = np.concatenate([options[r].landmarks for r in rows])
-        z_hat, H = self.ctx.observe_cameras(h.x, ids, landmarks, sizes)
+        z_hat, H = self.observe(h.x, ids, landmarks, sizes)
         owner = np.repeat(obs[rows], counts)
         p_hat, Hp, HPH, JHPHJ = self.spread(h.P, ids, sizes, z_hat, H)
         d2, costs, in_point = self.in_best_coordinates(owner, z_hat, p_hat, HPH, JHPHJ)

@@ -60,3 +60,9 @@ def intrinsics_by_row(cameras: list[CameraModel], sizes: list[int]) -> tuple[np.
     ``cameras[0]``'s, the next ``sizes[1]`` the second's, ... (the rows of a batch of several
     cameras, ``models.observe_rig``)."""
     return tuple(np.repeat(np.array([c.intrinsics for c in cameras], dtype=float), sizes, axis=0).T)
+
+
+def observed_as_rig(filter, kind: int) -> bool:
+    """Whether ``filter`` observes several cameras of measurement ``kind`` in one batch
+    (``observe_rig``; a planar filter does not): a camera's kind, not a tag's orientation."""
+    return hasattr(filter, "observe_rig") and kind in measurement.CAMERA_KINDS and kind != measurement.TAG_ROTATION

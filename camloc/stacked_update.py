@@ -14,7 +14,7 @@ import numpy as np
 from camloc import ekf, geometry, measurement, models, planar, tags
 from camloc.dataset import Dataset
 from camloc.observation_space import ObservationNoise
-from camloc.sensors import intrinsics_by_row
+from camloc.sensors import intrinsics_by_row, observed_as_rig
 from camloc.tails import chi2_quantile
 
 
@@ -132,11 +132,11 @@ class StackedUpdate:
         one kind in camera order, for the filter's ``observe_rig`` (the robot's part of the
         model computed once for all); None where they are of several kinds, or the filter has
         no such batch."""
-        kinds = {camera.kind for camera, _ in groups}
-        if len(groups) < 2 or len(kinds) > 1 or not hasattr(self.filter, "observe_rig"):
+        if len(groups) < 2:
             return None
+        kinds = {camera.kind for camera, _ in groups}
         kind = kinds.pop()
-        if kind not in measurement.CAMERA_KINDS or kind == measurement.TAG_ROTATION:
+        if kinds or not observed_as_rig(self.filter, kind):
             return None
         order = np.argsort(cameras, kind="stable")  # by sensor id, as groups are
         sizes = [int(mask.sum()) for _, mask in groups]

@@ -45,9 +45,11 @@ NUMPY_FIRST_RUN_SECONDS = 20.0
 # 2026-12-03, idle): 13.2 s for 24,081 observations with depth; 267 s for 24,131 pixel-only ones,
 # whose rays each gate many landmarks. A world of frequent slip searches takes up to 10x as long.
 # Then scaled by the CPU the numpy engine's 2026-12-05 speedups saved on such worlds (on the slower
-# machine, docs/performance.md): x 0.94 with depth (alternated runs), x 0.88 pixel-only (one run each).
-NUMPY_SECONDS_PER_OBSERVATION = 0.52e-3
-NUMPY_SECONDS_PER_PIXEL_OBSERVATION = 9.7e-3
+# machine, docs/performance.md): x 0.94 with depth (alternated runs), x 0.88 pixel-only (one run each);
+# then by what batching a pose's cameras saved (2026-12-05, ninth session; alternated, two runs each):
+# x 0.91 with depth (the 3,000-pose world), x 0.96 pixel-only (a 1,000-pose one).
+NUMPY_SECONDS_PER_OBSERVATION = 0.47e-3
+NUMPY_SECONDS_PER_PIXEL_OBSERVATION = 9.3e-3
 
 # Set to 0 to compile in the foreground, as a run did before (the tests do; so may a container's build).
 ENVIRONMENT_SWITCH = "CAMLOC_BACKGROUND_COMPILE"

@@ -248,7 +248,7 @@ def run(
 
     The run folder gets estimate.tum, odometry.tum, groundtruth.tum (with ground truth), associations.csv, states.npz and summary.json (and map.csv where landmarks were mapped), written all at once or not at all. Prints the trajectory error of the filter (named by what ran: iterated EKF (euler) by default; odometry alone when no observation could be used) and of odometry alone, the associations and the speed.
 
-    The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset numpy takes under about 20 s over (some 4,800 poses of 8 observations with depth) it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
+    The first run after an install compiles camloc's kernels (a minute or two, once). On a dataset numpy takes under about 20 s over (some 5,300 poses of 8 observations with depth) it does not wait: it runs in numpy, which gives the same result, while the kernels compile in the background for the runs after it (CAMLOC_BACKGROUND_COMPILE=0 compiles first).
     """
     from camloc.bundled import resolve_dataset
     from camloc.config import read_config_file, run_config

@@ -4,7 +4,8 @@ states including large roll and pitch."""
 import numpy as np
 import pytest
 
-from camloc import geometry, models
+from camloc import geometry, measurement, models
+from camloc.sensors import CameraModel, intrinsics_by_row
 
 STEP = 1e-6
 
@@ -160,3 +161,25 @@ def test_retract_and_difference_are_inverse(rng):
     T = geometry.pose_from_euler(random_state(rng))
     delta = rng.normal(scale=0.3, size=6)
     np.testing.assert_allclose(geometry.difference_right(geometry.retract_right(T, delta), T), delta, atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", [measurement.DEPTH, measurement.PIXEL, measurement.DISPARITY])
+@pytest.mark.parametrize("trial", range(6))
+def test_a_rig_of_cameras_observes_as_each_camera_alone(rng, kind, trial):
+    """``observe_rig`` (and its SE(3) twin) of several cameras in one batch: each row bit for bit
+    what ``observe`` of its camera alone gives (the numpy beam's pairs must not change with the
+    batching), with camera groups of one row among them (BLAS takes another path for one row)."""
+    mounts = [random_increment(rng) for _ in range(3)]
+    cameras = [CameraModel(T, tuple(rng.uniform([300, 300, 200, 150], [600, 600, 400, 300])), kind) for T in mounts]
+    sizes = [1, int(rng.integers(2, 9)), int(rng.integers(1, 4))]
+    state = random_state(rng)
+    T = geometry.pose_from_euler(state)
+    landmarks = np.concatenate([
+        geometry.transform_points(T @ c.T_robot_camera, np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(0.5, 6.0, n)]))
+        for c, n in zip(cameras, sizes)])
+    bounds = np.cumsum([0] + sizes)
+    for rig, alone, x in ((models.observe_rig, models.observe, state), (models.observe_rig_se3, models.observe_se3, T)):
+        z_hat, H = rig(x, mounts, intrinsics_by_row(cameras, sizes), landmarks, sizes, kind)
+        each = [alone(x, c.T_robot_camera, c.intrinsics, landmarks[a:b], kind) for c, a, b in zip(cameras, bounds[:-1], bounds[1:])]
+        assert np.array_equal(z_hat, np.concatenate([z for z, _ in each]))
+        assert np.array_equal(H, np.concatenate([J for _, J in each]))
