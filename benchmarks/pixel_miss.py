@@ -63,7 +63,7 @@ def pair_costs(expansion: PoseExpansion, h: Hypothesis, o: np.ndarray, landmarks
     for k in range(o.size):
         camera = int(expansion.ctx.obs_sensor[o[k]])
         z_hat, H = expansion.ctx.observe(h.x, camera, landmarks[k : k + 1])
-        p_hat, _, HPH, JHPHJ = gating.spread(h.P, camera, z_hat, H)
+        p_hat, _, HPH, JHPHJ = gating.spread(h.P, [camera], [1], z_hat, H)
         out[k] = gating.in_best_coordinates(o[k : k + 1], z_hat, p_hat, HPH, JHPHJ)[1][0]
     return out
 

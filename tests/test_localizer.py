@@ -674,7 +674,7 @@ def test_the_pair_bound_never_drops_a_pair_within_the_pool_gate(inflation):
         if o.size == 0 or candidates.size == 0:
             continue
         z_hat, H = localizer.observe(x, 0, candidates)
-        spread = search.gating.spread(P, 0, z_hat, H)
+        spread = search.gating.spread(P, [0], [candidates.size], z_hat, H)
         rows, columns = search.gating.plausible_pairs(o, z_hat, spread, limit)
         j, g = (a.ravel() for a in np.meshgrid(np.arange(o.size), np.arange(candidates.size), indexing="ij"))
         d2, _, _ = search.gating.in_best_coordinates(o[j], z_hat[g], spread[0][g], spread[2][g], spread[3][g])
