@@ -15,28 +15,16 @@ The rule, after a pose's update (``LandmarkFusion._fuse_seen``):
 
 - **young** landmarks: added ones, confirmed, born and seen within ``FUSION_WINDOW`` poses;
 - each young landmark u's candidate **originals**: confirmed landmarks of its kind (not markers:
-  their third coordinate is a heading) within ``FUSION_REACH`` metres, or within
-  ``FUSION_REACH_SIGMAS`` times the spread of their offset (``sqrt(trace(H P H'))`` of the
-  constraint below, the gauge they share cancelled) where that is wider, born more than
+  their third coordinate is a heading) within ``FUSION_REACH`` metres, born more than
   ``slam_association.RETURN_GAP`` poses before u and never paired at one pose with it (a camera
   that saw both at once proved them distinct; read from the run's pairs, ``chosen``);
 - the largest one-to-one set of candidate pairs whose offsets ``l_v - l_u`` lie within
   ``FUSION_TOLERANCE`` of one of them (``displaced_group``), kept only where it has at least
   ``FUSION_MIN_PAIRS`` pairs and that many is beyond chance: originals spread evenly within the
   reach put an offset within the tolerance of a given one with probability ``(tolerance /
-  reach)^2`` (spread over surfaces, the floor or walls, in space too; the reach no wider than the
-  disc of the young landmark's candidates' own mean squared distance), and the binomial tail of
-  the group's size over the pairs (of their mean chance), times the pairs tried, must be below
+  reach)^dim`` (dim 2 for a planar robot, 3 otherwise), and the binomial tail of the group's size over the pairs, times the pairs tried, must be below
   ``FUSION_CHANCE``;
 - each pair of the group is fused.
-
-**Why the reach grows** (docs/performance.md, 2026-12-05 (ninth session), "Copies as far off
-as the robot drifted"): on the depth grid seed 10 the robot came back to a part of the map made
-88-104 poses before, 2.1-2.4 m off, and ten copies lay 1.1-1.8 m from their originals, beyond
-1.2 m, while the filter held that offset's spread at about a metre: grown to three times it, six
-of them are one group. A ball's chance ``(tolerance / reach)^3`` at such reaches took four wrong
-pairs 12 m off as a group on aerial seed 8 (1e-6 in a ball, 0.4 on a plane): points' originals
-are taken as spread over a surface.
 
 **Tags** (a tag's orientation in the state, ``camloc.slam_tags``): a copy's whole pose is its
 original's, and the part of the map made during a drift is off by one **rigid** transform, not a
@@ -91,8 +79,7 @@ from camloc.slam_landmarks import with_state_estimates
 from camloc.tails import binomial_tail
 
 FUSION_WINDOW = 60       # poses: an added landmark born and seen within them is young
-FUSION_REACH = 1.2       # metres: a young landmark's candidate originals lie within it, at least
-FUSION_REACH_SIGMAS = 3.0  # ... or within this many of its own position's standard deviations (the robot's spread when it was made)
+FUSION_REACH = 1.2       # metres: a young landmark's candidate originals lie within it
 FUSION_TAG_REACH = 6.0   # ... a young tag's (copies made with the robot 4-5 m and 20-40 degrees off lay 1-6 m from their originals)
 FUSION_TOLERANCE = 0.15  # metres: the offsets of one displacement agree within it
 FUSION_TURN_TOLERANCE = 0.1  # radians: a tag pair's turns (``R_original R_young'``) of one displacement agree within it
@@ -225,13 +212,10 @@ def agreement(offsets: np.ndarray, turns: np.ndarray | None = None, at: np.ndarr
     the tolerance (a k-d tree's pairs; below a radian the angle between two turns is within 1.1
     times that distance) are compared."""
     n = offsets.shape[0]
-    if turns is None:  # (a k-d tree's pairs: the dense comparison grows as the square of the pairs tried)
-        near = cKDTree(offsets).query_pairs(FUSION_TOLERANCE, output_type="ndarray")
-        i = np.concatenate([near[:, 0], near[:, 1], np.arange(n)])
-        j = np.concatenate([near[:, 1], near[:, 0], np.arange(n)])
-        spread = np.linalg.norm(offsets[j] - offsets[i], axis=1)
-        keep = spread < FUSION_TOLERANCE
-        i, j, spread = i[keep], j[keep], spread[keep]
+    if turns is None:
+        spread = np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2)
+        i, j = np.nonzero(spread < FUSION_TOLERANCE)
+        spread = spread[i, j]
     else:
         near = cKDTree(turns).query_pairs(2.0 * FUSION_TURN_TOLERANCE, output_type="ndarray")
         i = np.concatenate([near[:, 0], near[:, 1], np.arange(n)])
@@ -247,13 +231,11 @@ def agreement(offsets: np.ndarray, turns: np.ndarray | None = None, at: np.ndarr
 
 
 def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int, turns: np.ndarray | None = None,
-                    at: np.ndarray | None = None, reach: np.ndarray | None = None) -> np.ndarray:
+                    at: np.ndarray | None = None) -> np.ndarray:
     """The indices into ``pairs`` (P, 2) (young, original) of the largest one-to-one set whose
     ``offsets`` (P, 3) (and, of tags, ``turns``: ``agreement``) lie within the tolerance of one of
     theirs, where it is at least ``FUSION_MIN_PAIRS`` (of tags ``FUSION_MIN_TAG_PAIRS``) and beyond
-    chance (the module's docstring); empty otherwise. ``reach`` (P,): the radius over which each
-    pair's original is taken as spread by chance (``FUSION_REACH``, or ``FUSION_TAG_REACH`` of
-    tags, where None)."""
+    chance (the module's docstring); empty otherwise."""
     n = pairs.shape[0]
     least = FUSION_MIN_PAIRS if turns is None else FUSION_MIN_TAG_PAIRS
     if n < least:
@@ -273,33 +255,19 @@ def displaced_group(pairs: np.ndarray, offsets: np.ndarray, dim: int, turns: np.
                 old.add(v)
         if len(group) > best.size:
             best = np.array(group, np.int64)
-    if best.size < least or binomial_tail(best.size - 1, n, _chance(dim, turns is not None, reach)) * n > FUSION_CHANCE:
+    if best.size < least or binomial_tail(best.size - 1, n, _chance(dim, turns is not None)) * n > FUSION_CHANCE:
         return np.zeros(0, np.int64)
     return best
 
 
-def _spread_radius(young: np.ndarray, offsets: np.ndarray, count: int) -> np.ndarray:
-    """(P,) for each pair (``young`` (P,): its young landmark's index among ``count``; ``offsets``
-    (P, 3)), the radius of the disc over which its young landmark's candidate originals are spread
-    evenly with their mean squared distance (a disc of radius a has ``a^2 / 2``): where the map
-    is smaller than a wide reach, its originals crowd nearer than the reach says, and chance
-    offsets agree more often (a floor 0.3 m apart under a 5 m reach)."""
-    squared = np.bincount(young, np.einsum("pi,pi->p", offsets, offsets), minlength=count)
-    mean = squared / np.maximum(np.bincount(young, minlength=count), 1)
-    return np.sqrt(2.0 * mean[young])
-
-
-def _chance(dim: int, tags: bool, reach: np.ndarray | None = None) -> float:
+def _chance(dim: int, tags: bool) -> float:
     """The probability that a chance original's offset lies within the tolerance of a given one:
     spread evenly within the reach, ``(tolerance / reach)^dim``; a tag's turn too, its orientation
     taken as spread evenly over one axis only (tags on walls share their other two: a turn within
     ``FUSION_TURN_TOLERANCE`` of a given one has ``tolerance / pi`` of them, where orientations
-    spread over SO(3) would give ``(a - sin a) / pi``, 3e-4 as much). Pairs sought within
-    different reaches (``reach`` (P,)): their mean chance, whose binomial tail bounds that of
-    the pairs' own chances (Hoeffding 1956: the sum of unequal Bernoulli trials is less spread
-    than a binomial of their mean)."""
+    spread over SO(3) would give ``(a - sin a) / pi``, 3e-4 as much)."""
     if not tags:
-        return float(np.mean((FUSION_TOLERANCE / (FUSION_REACH if reach is None else reach)) ** dim))
+        return (FUSION_TOLERANCE / FUSION_REACH) ** dim
     return (FUSION_TOLERANCE / FUSION_TAG_REACH) ** dim * FUSION_TURN_TOLERANCE / np.pi
 
 
@@ -335,15 +303,12 @@ class LandmarkFusion:
         for u in young.tolist():
             if u not in self._met:
                 self._met[u] = self._met_since_birth(u, k)
-        pairs, offsets, reach = self._candidate_pairs(young)
+        pairs, offsets = self._candidate_pairs(young)
+        dim = 2 if self.dataset.planar else 3
         if self.has_tags:
-            dim = 2 if self.dataset.planar else 3
             group = displaced_group(pairs, offsets, dim, self._turns(pairs), self._positions(pairs[:, 0]))
         else:
-            # points' originals taken as spread over surfaces (the ground, walls), in space too: at a
-            # reach of metres the chance of a ball is too small (aerial seed 8, 12 m from the robot's
-            # drift: four wrong pairs at one offset, 1e-6 in a ball, 0.4 on a plane)
-            group = displaced_group(pairs, offsets, 2, reach=reach)
+            group = displaced_group(pairs, offsets, dim)
         for j in group.tolist():
             self._fuse_pair(k, int(pairs[j, 0]), int(pairs[j, 1]))
 
@@ -355,14 +320,10 @@ class LandmarkFusion:
         together = chosen[np.isin(pose, pose[chosen == u])]
         return set(together[together >= 0].tolist())
 
-    def _candidate_pairs(self, young: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``,
-        the radius (P,) over which each pair's original may be taken as spread by chance: the reach
-        it was sought within, or less where the young landmark's candidates lie closer
-        (``_spread_radius``)), none that a pose saw together. Tags'
-        originals outside the state too: a state of tags holds some 300 (two rows each), and most
-        of their copies are made after the original left it. A point's reach grows with the
-        spread of its offset from the original (``_reaches``)."""
+    def _candidate_pairs(self, young: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(pairs (P, 2) of table indices (young, original), offsets (P, 3) ``l_original - l_young``),
+        none that a pose saw together. Tags' originals outside the state too: a state of tags holds
+        some 300 (two rows each), and most of their copies are made after the original left it."""
         table = self.table
         if self.has_tags:  # tags with tags only (a tag observation without its orientation makes a point)
             candidates = np.flatnonzero(~table.dead & ~table.tentative & self._is_tag(np.arange(len(table))))
@@ -371,35 +332,13 @@ class LandmarkFusion:
             state = np.array(self.state_landmark, np.int64)
             candidates = state[~table.dead[state] & ~table.tentative[state] & (table.kind[state] != LANDMARK_MARKER)]
         offsets = self._positions(candidates)[None, :, :] - self._positions(young)[:, None, :]  # (Y, C, 3)
-        reach = np.full(offsets.shape[:2], FUSION_TAG_REACH) if self.has_tags else self._reaches(young, candidates, offsets)
-        near = np.einsum("ymi,ymi->ym", offsets, offsets) < reach**2
+        near = np.einsum("ymi,ymi->ym", offsets, offsets) < (FUSION_TAG_REACH if self.has_tags else FUSION_REACH)**2
         near &= table.kind[candidates][None, :] == table.kind[young][:, None]
         near &= table.born[candidates][None, :] < (table.born[young] - RETURN_GAP)[:, None]
         y, r = np.nonzero(near)
         pairs = np.stack([young[y], candidates[r]], axis=1)
         apart = np.array([v not in self._met[u] for u, v in pairs.tolist()], bool)
-        y, r = y[apart], r[apart]
-        return pairs[apart], offsets[y, r], np.minimum(reach[y, r], _spread_radius(y, offsets[y, r], young.size))
-
-    def _reaches(self, young: np.ndarray, candidates: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-        """(Y, C) the radius within which each young point's candidate originals (all in the state)
-        are sought: ``FUSION_REACH``, or ``FUSION_REACH_SIGMAS`` times the spread of their offset
-        d = l_v - l_u, ``sqrt(trace S)`` with S = H P H' of the constraint (``constraint``: ``-[d]x``
-        on xi_theta, I on v, -I on u; their covariances and cross-covariance, so that what the two
-        share, the map's gauge, cancels), where that is wider: a copy follows the robot as far off
-        as it drifted from the original since (depth grid seed 10: ten copies 1.1-1.8 m off)."""
-        iu = slam.POSE_DIM + 3 * self.table.state_row[young][:, None] + np.arange(3)  # (Y, 3)
-        iv = slam.POSE_DIM + 3 * self.table.state_row[candidates][:, None] + np.arange(3)  # (C, 3)
-        P = self.P
-        Puu = np.einsum("yii->y", P[iu[:, :, None], iu[:, None, :]])
-        Pvv = np.einsum("cii->c", P[iv[:, :, None], iv[:, None, :]])
-        Puv = np.einsum("ycii->yc", P[iu[:, None, :, None], iv[None, :, None, :]])
-        D = geometry.hat(offsets.reshape(-1, 3)).reshape(*offsets.shape, 3)  # (Y, C, 3, 3)
-        theta = P[3:6, 3:6]
-        cross = P[3:6][:, iv].transpose(1, 0, 2)[None] - P[3:6][:, iu].transpose(1, 0, 2)[:, None]  # (Y, C, 3, 3): P_theta,v - P_theta,u
-        trace = (Puu[:, None] + Pvv[None, :] - 2.0 * Puv + np.einsum("ycab,bd,ycad->yc", D, theta, D)
-                 - 2.0 * np.einsum("ycab,ycba->yc", D, cross))
-        return np.maximum(FUSION_REACH, FUSION_REACH_SIGMAS * np.sqrt(np.maximum(trace, 0.0)))
+        return pairs[apart], offsets[y[apart], r[apart]]
 
     def _positions(self, landmarks: np.ndarray) -> np.ndarray:
         """The estimated positions (L, 3) of table ``landmarks`` (L,): the state's where it holds them."""

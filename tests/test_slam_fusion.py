@@ -144,99 +144,12 @@ def test_landmarks_seen_at_one_pose_are_never_fused():
     a, b, met = found
     loc.x.L[table.state_row[b]] = loc.x.L[table.state_row[a]] + 0.01  # as close as can be
     loc._met[b] = met
-    pairs = loc._candidate_pairs(np.array([b]))[0]
+    pairs, _ = loc._candidate_pairs(np.array([b]))
     assert not any(int(v) == a for _, v in pairs)
     loc._met[b] = set()  # without the record they would be a pair
-    pairs = loc._candidate_pairs(np.array([b]))[0]
+    pairs, _ = loc._candidate_pairs(np.array([b]))
     assert any(int(v) == a for _, v in pairs)
 
-
-
-def test_a_pairs_reach_is_its_offsets_spread_under_the_constraint():
-    """``_reaches`` is ``FUSION_REACH_SIGMAS`` times ``sqrt(trace(H P H'))`` of the constraint
-    between the two (``constraint``: the pose's turn, both landmarks, their cross-covariance), or
-    ``FUSION_REACH`` where that is wider."""
-    rng = np.random.default_rng(1)
-    x = slam.SlamMean(geometry.so3_exp(rng.normal(size=3)), rng.normal(size=3), 3.0 * rng.normal(size=(6, 3)))
-    A = 0.05 * rng.normal(size=(x.dim, x.dim))
-    P = A @ A.T
-    fusion = _fusion_over(x, P, born=np.zeros(6, np.int64))
-    young, candidates = np.array([4, 5]), np.arange(4)
-    reach = fusion._reaches(young, candidates, x.L[candidates][None] - x.L[young][:, None])
-    for i, u in enumerate(young.tolist()):
-        for j, v in enumerate(candidates.tolist()):
-            _, H, columns = slam_fusion.constraint(x, v, u, LANDMARK_POINT3)
-            spread = np.sqrt(np.trace(H @ P[np.ix_(columns, columns)] @ H.T))
-            assert reach[i, j] == pytest.approx(max(slam_fusion.FUSION_REACH, slam_fusion.FUSION_REACH_SIGMAS * spread))
-
-
-def _fusion_over(x: slam.SlamMean, P: np.ndarray, born: np.ndarray):
-    """A ``LandmarkFusion`` over a state of points alone (every landmark in it, in row order; none
-    seen with another): what ``_candidate_pairs`` reads of a run."""
-    from types import SimpleNamespace
-
-    from camloc.slam_landmarks import LandmarkTable
-
-    m = x.L.shape[0]
-    table = LandmarkTable(np.arange(m), x.L.copy(), np.zeros((m, 3, 3)))
-    table.state_row[:] = np.arange(m)
-    table.born[:] = born
-    fusion = SimpleNamespace(table=table, x=x, P=P, state_landmark=list(range(m)), has_tags=False, _met={i: set() for i in range(m)})
-    for name in ("_candidate_pairs", "_reaches", "_positions"):
-        setattr(fusion, name, getattr(slam_fusion.LandmarkFusion, name).__get__(fusion))
-    return fusion
-
-
-def _drifted_map(rng, originals: np.ndarray, shift: np.ndarray, drift: float, young: np.ndarray):
-    """A state of ``originals`` (n, 3) known to 2 cm, then the ``young`` (m, 3) landmarks made
-    after the robot drifted by ``shift`` unknown to the filter, each off by it, whose error shares
-    the pose's drift of ``drift`` metres a coordinate (the robot's spread where it made them):
-    ``(x, P, born)``."""
-    n, m = originals.shape[0], young.shape[0]
-    L = np.vstack([originals, young + shift + 0.02 * rng.normal(size=young.shape)])
-    x = slam.SlamMean(np.eye(3), L[-1] + np.array([0.0, 0.0, 1.5]), L)
-    B = np.zeros((x.dim, 3))  # the drift: the pose's translation and every young landmark's
-    B[0:3] = np.eye(3)
-    for i in range(n, n + m):
-        B[slam.POSE_DIM + 3 * i:slam.POSE_DIM + 3 * i + 3] = np.eye(3)
-    P = drift**2 * B @ B.T + 0.02**2 * np.eye(x.dim)
-    return x, P, np.concatenate([np.zeros(n, np.int64), np.full(m, 100, np.int64)])
-
-
-def test_copies_as_far_off_as_the_robot_drifted_are_a_group():
-    """A robot pushed off by 1.8 m that its filter holds possible (a spread of 0.8 m a coordinate
-    between it and the older map): the six landmarks it maps again lie 1.8 m from their originals,
-    beyond ``FUSION_REACH``, among 60 others on a floor. With the reach grown to the offset's
-    spread, the six are one group, each with its own original; held to ``FUSION_REACH``, none of
-    the originals is a candidate and no group is made."""
-    rng = np.random.default_rng(4)
-    originals = np.column_stack([rng.uniform(0.0, 8.0, size=(60, 2)), np.zeros(60)])
-    shift = np.array([1.2, -1.3, 0.3])
-    x, P, born = _drifted_map(rng, originals, shift, 0.8, originals[:6])
-    fusion = _fusion_over(x, P, born)
-    young = np.arange(60, 66)
-    pairs, offsets, reach = fusion._candidate_pairs(young)
-    group = slam_fusion.displaced_group(pairs, offsets, 2, reach=reach)
-    assert sorted(map(tuple, pairs[group].tolist())) == [(60 + i, i) for i in range(6)]
-    held = _fusion_over(x, 0.0 * P, born)  # (no spread: the reach is FUSION_REACH)
-    pairs, offsets, reach = held._candidate_pairs(young)
-    assert not any(u == v + 60 for u, v in pairs.tolist())  # no copy's original within it
-    assert slam_fusion.displaced_group(pairs, offsets, 2, reach=reach).size == 0
-
-
-@pytest.mark.parametrize("seed", range(5))
-def test_distinct_landmarks_close_together_are_no_group_however_wide_the_reach(seed):
-    """A floor of 200 landmarks, 0.3 m apart on average, and 12 young ones among them that are
-    other landmarks (no copies), made where the robot's spread was a metre (their reach some 5 m,
-    beyond the floor's 4 m): almost any offset has a chance original near most young ones, and
-    no group is made of them."""
-    rng = np.random.default_rng(seed)
-    floor = np.column_stack([rng.uniform(0.0, 4.0, size=(212, 2)), 0.05 * rng.normal(size=212)])
-    x, P, born = _drifted_map(rng, floor[:200], np.zeros(3), 1.0, floor[200:])
-    fusion = _fusion_over(x, P, born)
-    pairs, offsets, reach = fusion._candidate_pairs(np.arange(200, 212))
-    assert pairs.shape[0] > 1000
-    assert slam_fusion.displaced_group(pairs, offsets, 2, reach=reach).size == 0
 
 # -- tags: the copy's whole pose is the original's ----------------------------------------------
 
