@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, lacking_spread, measurement, planar, tags, warmup
+from camloc import association, associators, ekf, geometry, lacking_spread, measurement, planar, recentre, tags, warmup
 from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
@@ -96,7 +96,12 @@ def localize(
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
     hooks = dict(parallel=parallel, engine=engine, on_compile=_once(on_compile), on_background_compile=_once(on_background_compile))
-    return _localize_in_reach(dataset, config, on_progress, hooks)
+    offset = recentre.far_origin_offset(dataset)
+    if offset is None:
+        return _localize_in_reach(dataset, config, on_progress, hooks)
+    # far from the origin, in a frame at the start: the mapping pass's Jacobians carry world positions
+    result = _localize_in_reach(recentre.translated(dataset, offset), config, on_progress, hooks)
+    return recentre.moved_back(result, dataset, offset)
 
 
 def _localize_in_reach(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict) -> RunResult:
