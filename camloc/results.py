@@ -54,7 +54,7 @@ from typing import Any, Callable
 import numpy as np
 
 from camloc import geometry
-from camloc.atomic_files import make_folder, refuse_existing, write_text_atomic
+from camloc.atomic_files import make_folder, naming_the_output, refuse_existing, write_text_atomic
 from camloc.errors import CamlocError, DatasetError
 from camloc.g2o import INT64_RANGE, INTEGER, MAX_COORDINATE, parse_number
 
@@ -577,7 +577,8 @@ def save_run(run_dir: str | Path, result: RunResult, *, force: bool = False) -> 
     kept: list[str] = []
     try:
         os.chmod(tmp, 0o755)
-        _write_run_files(tmp, result)
+        with naming_the_output(run_dir):
+            _write_run_files(tmp, result)
         if run_dir.is_dir():
             for entry in sorted(run_dir.iterdir()):
                 if entry.name not in CAMLOC_FILES:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 from pathlib import Path
 
@@ -110,6 +111,23 @@ def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
     assert _leftovers(tmp_path) == []
 
 
+def test_a_full_disk_names_the_output_and_leaves_nothing(tmp_path):
+    """A full disk's OSError names no file ("No space left on device" from write or close): the
+    error says which output could not be written, and no temporary is left."""
+    path = tmp_path / "out.g2o"
+    with pytest.raises(CamlocError, match=f"^cannot write {path}: No space left on device$"):
+        with atomic_files.atomic_write(path) as handle:
+            handle.write("half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_disk(path, handle):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(CamlocError, match=f"^cannot write {tmp_path / 'b.png'}: No space left on device$"):
+        atomic_files.write_files_atomic([tmp_path / "b.png"], full_disk)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_write_json_is_strict_and_converts_numpy(tmp_path):
     path = tmp_path / "x.json"
     results.write_json_atomic(path, {"a": np.float32(1.5), "b": np.arange(3), "c": float("nan"), "d": (np.int64(2),)})
@@ -196,7 +214,8 @@ def test_a_failing_save_leaves_no_folder(tmp_path, synthetic_run, monkeypatch):
         raise OSError("no space left on device")
 
     monkeypatch.setattr(results.np, "savez_compressed", broken_savez)
-    with pytest.raises(OSError, match="no space"):
+    # a write's OSError names no file: the error names the run folder asked for
+    with pytest.raises(CamlocError, match=f"cannot write {tmp_path / 'run'}: no space left on device"):
         save_run(tmp_path / "run", synthetic_run())
     assert list(tmp_path.iterdir()) == []
 
