@@ -149,9 +149,13 @@ def _localize_mapped(dataset: Dataset, config: LocalizerConfig, on_progress, hoo
         if places:
             result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result, follower=follower)
     if places:
+        added = result.summary["map"]["added"]
+        # where the mapping pass placed none (a jump in the odometry, rays it cannot place), "0
+        # landmark(s) added" read as a contradiction of the first half
+        outcome = f"{added} landmark(s) added" if added else "the mapping pass added none of them"
         result.summary["warnings"].append(
             f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
-            f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
+            f"{outcome} (map.csv of the run folder; docs/mapping.md)")
     return result
 
 
