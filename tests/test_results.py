@@ -57,10 +57,10 @@ def test_read_tum_skips_comments_and_blank_lines_and_normalizes_quaternions(tmp_
         ("# header\n1 0 0 x 0 0 0 1\n", 2, "expected a number for z, found 'x'"),
         ("1 0 0 0 0 0 0 nan\n", 1, "expected a finite number for qw"),
         ("1 0 0 0 0 0 0 0\n", 1, "found all zeros"),
-        # beyond the g2o reader's bound: squared in the metrics, 1e200 overflows (numpy warnings,
-        # a singular matrix in the plots)
-        ("1 0 0 0 0 0 0 1\n2 1e200 0 0 0 0 0 1\n", 2, "expected metres within +-1e+09 for x, found 1e200"),
-        ("1 0 0 -2e9 0 0 0 1\n", 1, "expected metres within +-1e+09 for z"),
+        # beyond a run's bound (results.MAX_RUN_COORDINATE): squared in the metrics, 1e200
+        # overflows (numpy warnings, a singular matrix in the plots)
+        ("1 0 0 0 0 0 0 1\n2 1e200 0 0 0 0 0 1\n", 2, "expected metres within +-1e+15 for x, found 1e200"),
+        ("1 0 0 -2e15 0 0 0 1\n", 1, "expected metres within +-1e+15 for z"),
         ("1 1_0 0 0 0 0 0 1\n", 1, "expected a number for x, found '1_0'"),
         ("1 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n", 2, "first on line 1"),
         ("# only a comment\n", None, "found none"),
@@ -200,6 +200,17 @@ def test_run_folder_files(tmp_path, synthetic_run):
     np.testing.assert_array_equal(xyz, result.truth_xyz)
     assert json.loads((run_dir / "summary.json").read_text())["dataset"] == result.summary["dataset"]
     assert _leftovers(tmp_path) == []
+
+
+def test_a_run_beyond_the_datasets_bound_reads_back(tmp_path, synthetic_run):
+    """A start at the g2o reader's bound (1e9 m) and a path from it: the run's positions pass
+    1e9, and the folder camloc wrote must load (eval and smooth refused it before)."""
+    result = synthetic_run()
+    far = dataclasses.replace(result, estimate_xyz=result.estimate_xyz + 1.5e9, odometry_xyz=result.odometry_xyz + 1.5e9,
+                              truth_xyz=result.truth_xyz + 1.5e9, map_landmark_xyz=result.map_landmark_xyz + 1.5e9)
+    loaded = load_run(save_run(tmp_path / "run", far))
+    np.testing.assert_array_equal(loaded.estimate_xyz, far.estimate_xyz)
+    np.testing.assert_array_equal(loaded.map_landmark_xyz, far.map_landmark_xyz)
 
 
 def test_run_without_truth_has_no_groundtruth_file(tmp_path, synthetic_run):
@@ -460,9 +471,9 @@ STATES_CORRUPTIONS = {
                   "map_landmark_xyz: expected shape (N, 3), found (30, 2)"),
     "cov-shape": (lambda run: dict(filter_cov=run.filter_cov[:, :, :5]), "filter_cov: expected shape (N, D, D), found (40, 6, 5)"),
     "nan-map": (lambda run: dict(map_landmark_xyz=np.full((30, 3), np.nan)),
-                "map_landmark_xyz: expected finite metres within +-1e+09, found nan at row 0"),
+                "map_landmark_xyz: expected finite metres within +-1e+15, found nan at row 0"),
     "huge-map": (lambda run: dict(map_landmark_xyz=run.map_landmark_xyz * 1e300),
-                 "map_landmark_xyz: expected finite metres within +-1e+09"),
+                 "map_landmark_xyz: expected finite metres within +-1e+15"),
     "inf-state": (lambda run: dict(filter_state=np.where(np.arange(6) == 2, np.inf, run.filter_state)),
                   "filter_state: expected finite numbers, found inf at pose 1000"),
     "nan-cov": (lambda run: dict(estimate_cov=np.full((40, 6, 6), np.nan)),
