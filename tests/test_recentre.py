@@ -7,9 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from camloc.ekf import FilterDivergedError
 from camloc.localizer import localize
 from camloc.localizer_config import LocalizerConfig
-from camloc.simulate import SimulationConfig, simulate_labelled
+from camloc.simulate import SimulationConfig, simulate, simulate_labelled
 from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
 
 FAR = np.array([1.0e6, 2.0e6, 0.0])
@@ -41,3 +42,15 @@ def test_a_planar_world_far_from_the_origin_keeps_its_floor():
     near, far = localize(dataset, LocalizerConfig(map="none")), localize(_moved(dataset, FAR), LocalizerConfig(map="none"))
     np.testing.assert_allclose(far.filter_state - np.r_[FAR[:2], 0.0], near.filter_state, atol=1e-6)
     np.testing.assert_allclose(far.estimate_xyz - FAR, near.estimate_xyz, atol=1e-6)
+
+
+def test_a_path_that_jumps_far_from_its_start_says_so_when_the_mapping_pass_fails():
+    """One odometry step of 10^8 m (a world of 20 poses, seed 3): the recentring at the start does
+    not help a path that goes that far; the mapping pass fails as before, and the error names the
+    distance rather than information matrices many orders of magnitude apart."""
+    dataset = simulate(SimulationConfig(poses=20), seed=3)
+    translation = dataset.odom_translation.copy()
+    translation[2, 0] = 1e8
+    with pytest.raises(FilterDivergedError, match=r"is 1e\+08 m from where the run's frame starts") as caught:
+        localize(replace(dataset, odom_translation=translation), LocalizerConfig(), engine="numpy")
+    assert "orders of magnitude" not in str(caught.value)
