@@ -124,7 +124,7 @@ def _columns(a: int, b: int) -> np.ndarray:
     return np.concatenate([np.arange(slam.POSE_DIM), slam.POSE_DIM + 3 * a + np.arange(3), slam.POSE_DIM + 3 * b + np.arange(3)])
 
 
-def displacement_basis(x: slam.SlamMean, recent: np.ndarray, turn: bool, planar: bool = False) -> np.ndarray:
+def displacement_basis(x: slam.SlamMean, recent: np.ndarray, turn: bool) -> np.ndarray:
     """G (dim, 3), or (dim, 6) where ``turn``: the error xi = G delta that moves the **recent** part
     of the state (the robot pose and the rows of L marked in ``recent`` (m,) bool) rigidly by
     delta = (s, omega), world shift and turn, relative to the rest (the older map), to first order:
@@ -132,9 +132,8 @@ def displacement_basis(x: slam.SlamMean, recent: np.ndarray, turn: bool, planar:
     recent tag ``R_tag -> Exp(omega) R_tag``, the rest unmoved. In the error (``slam``'s model card)
     a turn of the pose is xi_theta, which turns every row: so xi_theta = omega, xi_t = s, a recent
     position's xi_l = s (its orientation's xi_o = 0), and an older row is turned back, its position
-    by ``xi_l = -omega x l^ = [l^]x omega``, its orientation by ``xi_o = -omega``. ``planar``: the
-    shift in x and y only (a planar state has no variance in z; a marker's third coordinate is its
-    heading, which no shift moves)."""
+    by ``xi_l = -omega x l^ = [l^]x omega``, its orientation by ``xi_o = -omega``. (3-D tags only:
+    points, planar ones included, are not matched; ``_fuse``.)"""
     G = np.zeros((x.dim, 6 if turn else 3))
     G[0:3, 0:3] = np.eye(3)
     rows = x.orientation_rows() if x.orientation is not None else np.zeros(0, np.int64)
@@ -148,8 +147,6 @@ def displacement_basis(x: slam.SlamMean, recent: np.ndarray, turn: bool, planar:
             G[block, 3:6] = -np.eye(3) if is_orientation[i] else geometry.hat(x.L[i])
     if turn:
         G[3:6, 3:6] = np.eye(3)
-    if planar:
-        G[:, 2] = 0.0
     return G
 
 
@@ -177,8 +174,7 @@ def matched(P: np.ndarray, r: np.ndarray, H: np.ndarray, columns: np.ndarray, R:
 
 
 def fused(x: slam.SlamMean, P: np.ndarray, a: int, b: int, kind: int,
-          turns: tuple[int, int] | None = None, recent: np.ndarray | None = None,
-          planar: bool = False) -> tuple[slam.SlamMean, np.ndarray]:
+          turns: tuple[int, int] | None = None, recent: np.ndarray | None = None) -> tuple[slam.SlamMean, np.ndarray]:
     """The state after ``l_a - l_b = 0`` (noise ``FUSION_SIGMA``) with landmark b marginalized out:
     its row gone, the rows after it one up. ``turns``: two tags' orientation rows (a's, b's), whose
     ``Log(R_a R_b') = 0`` is stacked with it (one update: the copy's whole pose is the original's)
@@ -197,7 +193,7 @@ def fused(x: slam.SlamMean, P: np.ndarray, a: int, b: int, kind: int,
         drop[turns[1]] = True
     noise = FUSION_SIGMA**2 * np.eye(r.size)
     if recent is not None:
-        P = matched(P, r, H, columns, noise, displacement_basis(x, recent, turns is not None, planar))
+        P = matched(P, r, H, columns, noise, displacement_basis(x, recent, turns is not None))
     gain = ekf.ColumnGain(P, H, noise, columns=columns)
     return slam.without_landmarks(slam.retract(x, -gain.correction(r)), gain.posterior_cov(), drop)
 

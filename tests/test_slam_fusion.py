@@ -313,21 +313,3 @@ def test_matching_makes_the_disagreement_as_likely_as_its_dof_and_keeps_a_plausi
     wide = _random_cov(rng, x.dim, 10.0)
     assert slam_fusion.matched(wide, r, H, columns, R, G) is wide
 
-
-def test_a_floor_points_disagreement_is_matched_in_the_plane():
-    """Two floor points 0.67 m apart, each and the robot known to a centimetre, uncorrelated: the
-    copy and the robot are the recent part, displaced together."""
-    x = slam.SlamMean(np.eye(3), np.zeros(3), np.array([[1.0, 2.0, 0.0], [1.6, 2.3, 0.0]]))
-    P = np.zeros((12, 12))
-    P[0:2, 0:2] = P[6:8, 6:8] = P[9:11, 9:11] = 1e-4 * np.eye(2)
-    x_new, P_new = slam_fusion.fused(x, P, 0, 1, LANDMARK_POINT2, recent=np.array([False, True]), planar=True)
-    assert P_new[2, 2] == 0.0 and P_new[8, 8] == 0.0  # z stays pinned
-    # the robot, displaced with the copy, moves with it to the original (which held b's disagreement
-    # as a displacement: moved little) and is as uncertain along it as the original, the copy and itself
-    r = np.array([-0.6, -0.3])
-    assert np.linalg.norm(x_new.L[0, :2] - x.L[0, :2]) < 0.01 * np.linalg.norm(r)
-    np.testing.assert_allclose(x_new.t[:2], r, atol=0.01 * np.linalg.norm(r))
-    u = r / np.linalg.norm(r)
-    np.testing.assert_allclose(u @ P_new[0:2, 0:2] @ u, 3e-4, rtol=0.05)
-    unmatched = slam_fusion.fused(x, P, 0, 1, LANDMARK_POINT2)  # the robot, uncorrelated with the copy, stays
-    assert np.allclose(unmatched[0].t, 0.0) and np.isclose(unmatched[1][0, 0], 1e-4)
