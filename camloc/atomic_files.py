@@ -33,13 +33,30 @@ def atomic_write(path: str | Path, *, binary: bool = False) -> Iterator[IO]:
     path = Path(path)
     tmp = _temporary_sibling(path)
     try:
-        with _open_for_writing(tmp, binary) as handle:
+        with naming_the_output(path), _open_for_writing(tmp, binary) as handle:
             yield handle
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+@contextlib.contextmanager
+def naming_the_output(path: str | Path) -> Iterator[None]:
+    """Turn an OSError that names no file (a full disk: ``write`` and ``close`` say only "No space
+    left on device") into ``cannot write <path>: <reason>``, the output the user asked for.
+
+    Raises
+    ------
+    CamlocError : ``cannot write <path>: <reason>``.
+    """
+    try:
+        yield
+    except OSError as error:
+        if error.filename is not None:
+            raise  # it names its file already (cli.common.describe_os_error says which)
+        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
 
 
 def make_folder(folder: str | Path) -> None:
@@ -109,7 +126,7 @@ def write_files_atomic(paths: Sequence[str | Path], write: Callable[[Path, IO[by
     try:
         for path in map(Path, paths):
             staged.append((_temporary_sibling(path), path))
-            with _open_for_writing(staged[-1][0], binary=True) as handle:
+            with naming_the_output(path), _open_for_writing(staged[-1][0], binary=True) as handle:
                 write(path, handle)
         for tmp, path in staged:
             os.replace(tmp, path)

@@ -46,10 +46,10 @@ def _subtract(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class FilterDivergedError(CamlocError):
     """The innovation covariance is not positive definite: the filter's covariance broke down."""
 
-    def at_pose(self, pose_id: int) -> "FilterDivergedError":
-        """The same error, saying where, and what in a file usually causes it."""
-        return FilterDivergedError(f"pose {pose_id}: {self} (the filter's covariance broke down; information "
-                                   "matrices in the file many orders of magnitude apart usually cause this)")
+    def at_pose(self, pose_id: int, cause: str = "information matrices in the file many orders of magnitude apart "
+                                                  "usually cause this") -> "FilterDivergedError":
+        """The same error, saying where, and what in a file usually causes it (or ``cause``)."""
+        return FilterDivergedError(f"pose {pose_id}: {self} (the filter's covariance broke down; {cause})")
 
 
 # What a filter step may raise when its covariances break down: numpy's own error where a

@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import association, associators, ekf, geometry, lacking_spread, measurement, planar, tags, warmup
+from camloc import association, associators, ekf, geometry, lacking_spread, measurement, planar, recentre, tags, warmup
 from camloc.tag_orientations import TagOrientations
 from camloc.associators import AssociationScene, orientation_terms
 from camloc.sensors import sensors_of
@@ -96,7 +96,12 @@ def localize(
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
     hooks = dict(parallel=parallel, engine=engine, on_compile=_once(on_compile), on_background_compile=_once(on_background_compile))
-    return _localize_in_reach(dataset, config, on_progress, hooks)
+    offset = recentre.far_origin_offset(dataset)
+    if offset is None:
+        return _localize_in_reach(dataset, config, on_progress, hooks)
+    # far from the origin, in a frame at the start: the mapping pass's Jacobians carry world positions
+    result = _localize_in_reach(recentre.translated(dataset, offset), config, on_progress, hooks)
+    return recentre.moved_back(result, dataset, offset)
 
 
 def _localize_in_reach(dataset: Dataset, config: LocalizerConfig, on_progress, hooks: dict) -> RunResult:
@@ -144,9 +149,13 @@ def _localize_mapped(dataset: Dataset, config: LocalizerConfig, on_progress, hoo
         if places:
             result = _localize_mapping(dataset, config, on_progress, hooks, given_run=result, follower=follower)
     if places:
+        added = result.summary["map"]["added"]
+        # where the mapping pass placed none (a jump in the odometry, rays it cannot place), "0
+        # landmark(s) added" read as a contradiction of the first half
+        outcome = f"{added} landmark(s) added" if added else "the mapping pass added none of them"
         result.summary["warnings"].append(
             f"the map lacks landmarks: the rejected observations agreed on {places} place(s) it has none at; "
-            f"{result.summary['map']['added']} landmark(s) added (map.csv of the run folder; docs/mapping.md)")
+            f"{outcome} (map.csv of the run folder; docs/mapping.md)")
     return result
 
 

@@ -70,7 +70,7 @@ class PairGating:
                 candidates = self.ctx.visible(h.x, camera_id, h.P if widened_view else None)
                 if candidates.size == 0:
                     for r in rows:
-                        out[r] = empty_options(h.x.size)
+                        out[r] = empty_options(h.P.shape[0])  # the error's dimension: the SE(3) state is a 4x4 matrix
                     continue
                 seen.append((camera_id, rows, candidates))
             if seen:
@@ -258,7 +258,7 @@ def member(values: np.ndarray, few: np.ndarray) -> np.ndarray:
 
 
 def empty_options(dim: int) -> PairOptions:
-    """No option, for a state of ``dim`` entries (6: Euler; 3: planar): its Jacobians' columns
+    """No option, for an error state of ``dim`` entries (6: Euler and SE(3); 3: planar): its Jacobians' columns
     match the other observations' options, which a pose's seeded search concatenates."""
     return PairOptions(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, dim)), np.zeros((0, 3)),
                        np.zeros((0, 3, dim)), np.zeros((0, 3, 3)), np.zeros(0))

@@ -54,9 +54,9 @@ from typing import Any, Callable
 import numpy as np
 
 from camloc import geometry
-from camloc.atomic_files import make_folder, refuse_existing, write_text_atomic
+from camloc.atomic_files import make_folder, naming_the_output, refuse_existing, write_text_atomic
 from camloc.errors import CamlocError, DatasetError
-from camloc.g2o import INT64_RANGE, INTEGER, MAX_COORDINATE, parse_number
+from camloc.g2o import INT64_RANGE, INTEGER, MAX_COORDINATE as MAX_INPUT_COORDINATE, parse_number
 
 UNASSOCIATED = -1
 
@@ -75,6 +75,10 @@ MAP_ORIENTATION_HEADER = ("qx", "qy", "qz", "qw", "crxx", "crxy", "crxz", "cryy"
 ASSOCIATIONS_HEADER = ("pose", "camera", "u", "v", "depth", "landmark", "true_landmark", "mahalanobis")
 TUM_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
 RUN_FORMAT_VERSION = 2
+# A run's positions may leave its dataset's +-MAX_INPUT_COORDINATE (a start at 1e9 m plus the path
+# from it, odometry steps of up to 1e9 m each), and a run folder camloc wrote must read back: its
+# bound only keeps their squares, in the errors, far from overflowing.
+MAX_RUN_COORDINATE = 1e6 * MAX_INPUT_COORDINATE
 # Version 1 also stored the poses in states.npz; its folders load the same, those copies unread.
 _READABLE_FORMAT_VERSIONS = (1, 2)
 # What makes a folder a run folder: enough to load it back.
@@ -266,7 +270,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Raises
     ------
     DatasetError : ``path:line`` of the first bad line (wrong field count, a field that is not a
-        finite number, a coordinate beyond ``MAX_COORDINATE`` metres, a zero quaternion, a
+        finite number, a coordinate beyond ``MAX_RUN_COORDINATE`` metres, a zero quaternion, a
         repeated timestamp), or when there is no pose.
     """
     path = Path(path)
@@ -301,10 +305,10 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _tum_value(path: Path, line: int, name: str, text: str) -> float:
-    """One field of a TUM line: a finite number, and for x, y, z within ``MAX_COORDINATE`` metres."""
+    """One field of a TUM line: a finite number, and for x, y, z within ``MAX_RUN_COORDINATE`` metres."""
     value = _finite_number(path, line, name, text)
-    if name in ("x", "y", "z") and abs(value) > MAX_COORDINATE:
-        raise DatasetError(path, line, f"expected metres within +-{MAX_COORDINATE:.0e} for {name}, found {text}")
+    if name in ("x", "y", "z") and abs(value) > MAX_RUN_COORDINATE:
+        raise DatasetError(path, line, f"expected metres within +-{MAX_RUN_COORDINATE:.0e} for {name}, found {text}")
     return value
 
 
@@ -577,7 +581,8 @@ def save_run(run_dir: str | Path, result: RunResult, *, force: bool = False) -> 
     kept: list[str] = []
     try:
         os.chmod(tmp, 0o755)
-        _write_run_files(tmp, result)
+        with naming_the_output(run_dir):
+            _write_run_files(tmp, result)
         if run_dir.is_dir():
             for entry in sorted(run_dir.iterdir()):
                 if entry.name not in CAMLOC_FILES:
@@ -966,7 +971,7 @@ def _describe(array: np.ndarray) -> str:
 # What each array of states.npz holds, and its shape after the first axis (None: any size of at
 # least 1, the same on both axes of a covariance):
 #   ids: integers; counts: integers >= 1; numbers: finite; non-negative: finite >= 0;
-#   positions: finite metres within MAX_COORDINATE; headings: radians in [-2 pi, 2 pi], or NaN (none);
+#   positions: finite metres within MAX_RUN_COORDINATE; headings: radians in [-2 pi, 2 pi], or NaN (none);
 #   covariances: symmetric positive semi-definite, not zero at every pose.
 _STATE_ARRAYS: dict[str, tuple[str, tuple]] = {
     "pose_ids": ("ids", ()),
@@ -1054,8 +1059,8 @@ def _state_value_problem(value: np.ndarray, kind: str, where: Callable[[int], st
     if kind == "non-negative":
         return _first_bad(value, ~(value >= 0.0), "expected finite numbers >= 0", where)
     if kind == "positions":
-        expected = f"expected finite metres within +-{MAX_COORDINATE:.0e}"
-        return _first_bad(value, ~(np.abs(value) <= MAX_COORDINATE), expected, where)
+        expected = f"expected finite metres within +-{MAX_RUN_COORDINATE:.0e}"
+        return _first_bad(value, ~(np.abs(value) <= MAX_RUN_COORDINATE), expected, where)
     if kind == "headings":
         return _first_bad(value, ~(np.isnan(value) | (np.abs(value) <= 2.0 * np.pi)), "expected radians within +-2 pi, or NaN", where)
     problem = _first_bad(value, ~np.isfinite(value), "expected finite numbers", where)

@@ -369,7 +369,7 @@ def world_config(options: dict) -> sim3.SimulationConfig | PlanarSimulationConfi
         raise sim3.SimulationOptionError("tag-sigma-deg", "applies only to robot = 3d")
     cameras = sim3.simulation_config({name: value for name, value in options.items() if name in CAMERA_OPTIONS})
     planar_options = {name: value for name, value in options.items() if name not in CAMERA_OPTIONS}
-    return planar_simulation_config({**planar_options, **({"sensors": sensors} if sensors else {})}, cameras)
+    return planar_simulation_config({**planar_options, **({"sensors": sensors} if sensors is not None else {})}, cameras)
 
 
 def simulate_world(config: sim3.SimulationConfig | PlanarSimulationConfig | TagWorldConfig, *, seed: int) -> Dataset:

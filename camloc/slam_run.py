@@ -54,6 +54,11 @@ from camloc.tails import chi2_quantile
 
 ProgressCallback = Callable[[int, int], None]
 
+# Beyond this distance from the run's origin the mapping pass lost precision (measured: docs/performance.md,
+# "A world far from the origin": its error changed in the fifth digit at 10^4 m, it failed from 10^5 m).
+FAR_MAPPING_M = 1e4
+
+
 class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates, GivenPairsDoubt, LandmarkFusion):
     """The mapping localizer's state over one run; ``step(k)`` processes pose k."""
 
@@ -140,7 +145,18 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         try:
             self._step(k)
         except ekf.NUMERICAL_FAILURES as error:
-            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k])) from None
+            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k]), *self._far_cause()) from None
+
+    def _far_cause(self) -> tuple[str, ...]:
+        """Where the robot or a landmark has gone far from the run's origin (the start, or the world's
+        origin within ``recentre.FAR_FROM_ORIGIN_M`` of it), that as the failure's likely cause: the
+        invariant error's Jacobians carry world positions, and a path of 10^8 m in one odometry step
+        broke the innovation covariance as a start at 10^5 m did before the recentring."""
+        far = float(np.max(np.abs(np.vstack([self.x.t.reshape(1, 3), self.x.L.reshape(-1, 3)]))))
+        if far <= FAR_MAPPING_M:
+            return ()
+        return (f"the robot or a landmark is {far:.3g} m from where the run's frame starts, where the mapping pass "
+                "loses its precision: odometry that jumps that far usually causes this",)
 
     def _step(self, k: int) -> None:
         ds = self.dataset

@@ -169,6 +169,7 @@ def plain_usage_message(message: str) -> str:
 _DEFAULT_SOURCES = {
     "localizer": ("camloc.localizer", "LocalizerConfig"),
     "simulation": ("camloc.simulate", "SimulationConfig"),
+    "planar_simulation": ("camloc.simulate_planar", "PlanarSimulationConfig"),
     "smoother": ("camloc.smoother", "SmootherConfig"),
 }
 _PLACEHOLDER = re.compile(r"\{(?:default|(\w+)\.([\w.]+))\}")

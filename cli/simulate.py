@@ -58,11 +58,12 @@ _ROBOT = typer.Option(RobotChoice.three_d, help=with_default(
     "--clutter-fraction apply to the planar sensors, --cameras, --intrinsics, --measurement and the "
     "observation sigmas to the 3-D cameras, --withhold-map, --move-map, --move-distance and --no-map to the whole map "
     "(planar landmarks move in the floor's plane); the other options are refused."), show_default=False)
-_SENSORS = typer.Option("points", help=with_default(
-    "With --robot planar: what the robot observes, comma-separated: points (EDGE_SE2_XY: (x, y) of VERTEX_XY "
-    "landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the planar pose (x, y, "
-    "psi) of VERTEX_MARKER_SE2 markers in the robot frame, each seen only from in front of its face), cameras "
-    "(3-D cameras on the robot, EDGE_PROJECT_* of VERTEX_TRACKXYZ landmarks)."), show_default=False)
+_SENSORS = typer.Option(None, help=with_default(
+    "With --robot planar (refused without it): what the robot observes, comma-separated: points (EDGE_SE2_XY: "
+    "(x, y) of VERTEX_XY landmarks in the robot frame, like a laser's detections), markers (EDGE_SE2_MARKER: the "
+    "planar pose (x, y, psi) of VERTEX_MARKER_SE2 markers in the robot frame, each seen only from in front of its "
+    "face), cameras (3-D cameras on the robot, EDGE_PROJECT_* of VERTEX_TRACKXYZ landmarks).",
+    "planar_simulation.sensors"), show_default=False)
 _TAG_SIGMA_DEG = typer.Option(None, min=0.0, help=with_default(
     "With --robot 3d: every landmark a tag (VERTEX_TAG, a random orientation) and every depth or pixel detection "
     "of one also measuring its orientation in the camera, with this standard deviation per axis, degrees "
@@ -207,7 +208,7 @@ def simulate(
     output: Path = _OUTPUT,
     force: bool = _FORCE,
     robot: RobotChoice = _ROBOT,
-    sensors: str = _SENSORS,
+    sensors: Optional[str] = _SENSORS,
     tag_sigma_deg: Optional[float] = _TAG_SIGMA_DEG,
     trajectory: Optional[TrajectoryChoice] = _TRAJECTORY,
     poses: Optional[int] = _POSES,
@@ -277,10 +278,13 @@ def simulate(
         console.print(_map_line(summary["map"], true_map), highlight=False, soft_wrap=True)
 
 
-def _config(options: dict, robot: RobotChoice, sensors: str, tag_sigma_deg: Optional[float]):
+def _config(options: dict, robot: RobotChoice, sensors: Optional[str], tag_sigma_deg: Optional[float]):
     """The simulation's config of the options given, a bad one refused as a bad parameter."""
     from camloc.simulate import SimulationOptionError, simulation_config
 
+    if sensors is not None and robot != RobotChoice.planar:  # a 3-D robot's file would silently lack them
+        raise typer.BadParameter("applies only to --robot planar (a 3-D robot's sensors are its --cameras)",
+                                 param_hint="--sensors")
     try:
         if robot == RobotChoice.planar:
             from camloc.simulate_planar import world_config

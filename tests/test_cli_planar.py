@@ -65,6 +65,12 @@ def test_planar_options_that_do_not_apply_are_refused(tmp_path):
     assert "does not apply to --robot planar" in result.output
     result = invoke("simulate", "--robot", "planar", "--sensors", "lidar", "-o", tmp_path / "x.g2o")
     assert result.exit_code == 2 and "points, markers, cameras" in result.output
+    # an empty list was read as the default (points), and a 3-D robot ignored --sensors silently
+    result = invoke("simulate", "--robot", "planar", "--sensors", "", "-o", tmp_path / "x.g2o")
+    assert result.exit_code == 2 and "points, markers, cameras, found ''" in result.output
+    result = invoke("simulate", "--sensors", "markers", "-o", tmp_path / "x.g2o")
+    assert result.exit_code == 2 and "--sensors: applies only to --robot planar" in result.output
+    assert not (tmp_path / "x.g2o").exists()
 
 
 def test_bad_planar_file_is_one_line(tmp_path):

@@ -4,6 +4,7 @@ odometry alone, and that a map looks incomplete (``camloc.diagnostics``), in the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -21,6 +22,7 @@ from camloc.diagnostics import (
     run_warnings,
 )
 from camloc.g2o import write_g2o
+from camloc.localizer import localize
 from camloc.simulate import SimulationConfig, simulate
 
 
@@ -130,6 +132,19 @@ def test_a_map_missing_half_its_landmarks_is_reported_by_the_run(tmp_path, world
 
     whole = invoke("run", world, "-o", tmp_path / "whole", "--quiet")
     assert whole.exit_code == 0 and whole.output == ""  # a complete map: nothing to say
+
+
+def test_places_the_mapping_pass_adds_none_of_are_not_said_added():
+    """Odometry that jumps 1 km at pose 10 (a world of 20 poses, seed 3): the rejected
+    observations after it agree on a place, but the mapping pass places no landmark there; the
+    warning says so rather than "0 landmark(s) added"."""
+    dataset = simulate(SimulationConfig(poses=20), seed=3)
+    translation = dataset.odom_translation.copy()
+    translation[9, 0] = 1e3
+    result = localize(dataclasses.replace(dataset, odom_translation=translation))
+    said = [warning for warning in result.summary["warnings"] if warning.startswith("the map lacks landmarks")]
+    assert result.summary["map"]["added"] == 0 and len(said) == 1
+    assert "the mapping pass added none of them" in said[0] and "0 landmark(s)" not in said[0]
 
 
 def test_the_real_file_with_half_its_map_is_reported(tmp_path, real_dataset_path):

@@ -259,6 +259,17 @@ def test_se3_filter_matches_euler_on_flat_ground(seed):
     assert se3.filter_state.shape == (120, 7) and se3.filter_cov.shape == (120, 6, 6)
 
 
+def test_se3_filter_with_a_camera_that_sees_nothing_in_a_seeded_search():
+    """Two cameras, a third of the detections clutter (seed 5, 40 poses): the beam's seeded search
+    (``beam_seeded``) meets a pose where one camera has no candidate; its empty options had
+    Jacobians as wide as the SE(3) state's 4x4 matrix (16 columns), not its error (6), and
+    concatenating them with the other camera's stopped the run with a ValueError."""
+    dataset = simulate(SimulationConfig(poses=40, cameras=2, clutter_fraction=0.3), seed=5)
+    se3 = localize(dataset, LocalizerConfig(filter="se3"), engine="numpy")
+    euler = localize(dataset, LocalizerConfig(filter="euler"), engine="numpy")
+    assert position_rmse(se3, dataset) <= 1.1 * position_rmse(euler, dataset)
+
+
 def test_se3_filter_stays_consistent_through_pitch_90_where_euler_does_not():
     dataset = simulate(SimulationConfig(trajectory="aerial", poses=200, max_tilt_deg=90), seed=4)
     nees = {}

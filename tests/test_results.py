@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 from pathlib import Path
 
@@ -56,10 +57,10 @@ def test_read_tum_skips_comments_and_blank_lines_and_normalizes_quaternions(tmp_
         ("# header\n1 0 0 x 0 0 0 1\n", 2, "expected a number for z, found 'x'"),
         ("1 0 0 0 0 0 0 nan\n", 1, "expected a finite number for qw"),
         ("1 0 0 0 0 0 0 0\n", 1, "found all zeros"),
-        # beyond the g2o reader's bound: squared in the metrics, 1e200 overflows (numpy warnings,
-        # a singular matrix in the plots)
-        ("1 0 0 0 0 0 0 1\n2 1e200 0 0 0 0 0 1\n", 2, "expected metres within +-1e+09 for x, found 1e200"),
-        ("1 0 0 -2e9 0 0 0 1\n", 1, "expected metres within +-1e+09 for z"),
+        # beyond a run's bound (results.MAX_RUN_COORDINATE): squared in the metrics, 1e200
+        # overflows (numpy warnings, a singular matrix in the plots)
+        ("1 0 0 0 0 0 0 1\n2 1e200 0 0 0 0 0 1\n", 2, "expected metres within +-1e+15 for x, found 1e200"),
+        ("1 0 0 -2e15 0 0 0 1\n", 1, "expected metres within +-1e+15 for z"),
         ("1 1_0 0 0 0 0 0 1\n", 1, "expected a number for x, found '1_0'"),
         ("1 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n", 2, "first on line 1"),
         ("# only a comment\n", None, "found none"),
@@ -108,6 +109,23 @@ def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
             raise RuntimeError("disk full")
     assert path.read_text() == "old\n"
     assert _leftovers(tmp_path) == []
+
+
+def test_a_full_disk_names_the_output_and_leaves_nothing(tmp_path):
+    """A full disk's OSError names no file ("No space left on device" from write or close): the
+    error says which output could not be written, and no temporary is left."""
+    path = tmp_path / "out.g2o"
+    with pytest.raises(CamlocError, match=f"^cannot write {path}: No space left on device$"):
+        with atomic_files.atomic_write(path) as handle:
+            handle.write("half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_disk(path, handle):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(CamlocError, match=f"^cannot write {tmp_path / 'b.png'}: No space left on device$"):
+        atomic_files.write_files_atomic([tmp_path / "b.png"], full_disk)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_write_json_is_strict_and_converts_numpy(tmp_path):
@@ -184,6 +202,17 @@ def test_run_folder_files(tmp_path, synthetic_run):
     assert _leftovers(tmp_path) == []
 
 
+def test_a_run_beyond_the_datasets_bound_reads_back(tmp_path, synthetic_run):
+    """A start at the g2o reader's bound (1e9 m) and a path from it: the run's positions pass
+    1e9, and the folder camloc wrote must load (eval and smooth refused it before)."""
+    result = synthetic_run()
+    far = dataclasses.replace(result, estimate_xyz=result.estimate_xyz + 1.5e9, odometry_xyz=result.odometry_xyz + 1.5e9,
+                              truth_xyz=result.truth_xyz + 1.5e9, map_landmark_xyz=result.map_landmark_xyz + 1.5e9)
+    loaded = load_run(save_run(tmp_path / "run", far))
+    np.testing.assert_array_equal(loaded.estimate_xyz, far.estimate_xyz)
+    np.testing.assert_array_equal(loaded.map_landmark_xyz, far.map_landmark_xyz)
+
+
 def test_run_without_truth_has_no_groundtruth_file(tmp_path, synthetic_run):
     run_dir = save_run(tmp_path / "run", synthetic_run(with_truth=False))
     assert not (run_dir / "groundtruth.tum").exists()
@@ -196,7 +225,8 @@ def test_a_failing_save_leaves_no_folder(tmp_path, synthetic_run, monkeypatch):
         raise OSError("no space left on device")
 
     monkeypatch.setattr(results.np, "savez_compressed", broken_savez)
-    with pytest.raises(OSError, match="no space"):
+    # a write's OSError names no file: the error names the run folder asked for
+    with pytest.raises(CamlocError, match=f"cannot write {tmp_path / 'run'}: no space left on device"):
         save_run(tmp_path / "run", synthetic_run())
     assert list(tmp_path.iterdir()) == []
 
@@ -441,9 +471,9 @@ STATES_CORRUPTIONS = {
                   "map_landmark_xyz: expected shape (N, 3), found (30, 2)"),
     "cov-shape": (lambda run: dict(filter_cov=run.filter_cov[:, :, :5]), "filter_cov: expected shape (N, D, D), found (40, 6, 5)"),
     "nan-map": (lambda run: dict(map_landmark_xyz=np.full((30, 3), np.nan)),
-                "map_landmark_xyz: expected finite metres within +-1e+09, found nan at row 0"),
+                "map_landmark_xyz: expected finite metres within +-1e+15, found nan at row 0"),
     "huge-map": (lambda run: dict(map_landmark_xyz=run.map_landmark_xyz * 1e300),
-                 "map_landmark_xyz: expected finite metres within +-1e+09"),
+                 "map_landmark_xyz: expected finite metres within +-1e+15"),
     "inf-state": (lambda run: dict(filter_state=np.where(np.arange(6) == 2, np.inf, run.filter_state)),
                   "filter_state: expected finite numbers, found inf at pose 1000"),
     "nan-cov": (lambda run: dict(estimate_cov=np.full((40, 6, 6), np.nan)),
