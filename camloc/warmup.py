@@ -317,11 +317,15 @@ def lowest_priority() -> None:
     of each session: this process has a session of its own (``_spawn``), so its nice 19 alone left
     it an equal share of the CPUs with the run's group (on 2 cores the first run of the issue's
     3,000-pose world took 56 s beside it against 32-35 s alone). So the group's nice is set too
-    (``/proc/self/autogroup``), where the system has one; elsewhere the nice value is all there is."""
+    (``/proc/self/autogroup``), where the system has one; elsewhere the nice value is all there is.
+    Only as its session's leader: the group is the whole session's, a terminal's where ``main`` is
+    called in another process (a test's)."""
     try:
         os.nice(19)
     except (AttributeError, OSError):  # not on this system: the compile still runs
         pass
+    if not hasattr(os, "getsid") or os.getsid(0) != os.getpid():
+        return
     try:
         with open("/proc/self/autogroup", "w") as group:
             group.write("19")

@@ -351,3 +351,22 @@ def test_the_mapping_background_process_compiles_the_mapping_kernels(tmp_path, m
     monkeypatch.setattr(warmup, "compile_kernels", lambda: called.append("localizer"))
     assert warmup.main(["camloc.warmup", warmup.MAPPING_ONLY, str(lock)]) == 0
     assert called == ["mapping"] and not lock.exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists() or not hasattr(os, "setsid"),
+                    reason="no Linux autogroups here: the nice value is all there is")
+def test_the_background_compile_yields_to_the_run_across_sessions():
+    """The background compile runs in a session of its own, and Linux weighs a nice value only
+    within a session's autogroup: its group must be lowered too, or it takes half of a 2-core
+    machine from the run that started it (a process of its own, so this test's stays as it is)."""
+    import subprocess
+
+    code = ("import os; os.setsid(); from camloc.warmup import lowest_priority; lowest_priority(); "
+            "print(os.nice(0), open('/proc/self/autogroup').read().split()[-1])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["19", "19"]
+    # called in a process of somebody else's session (a test's, a notebook's): their group is left alone
+    code = code.replace("os.setsid(); ", "")
+    before = open("/proc/self/autogroup").read().split()[-1]
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["19", before]
