@@ -77,11 +77,8 @@ def camera_points(
     T_world_robot: np.ndarray, T_robot_camera: np.ndarray, landmark_xyz: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Landmarks (M, 3) in the robot frame and in the camera frame, both (M, 3)."""
-    R, t = T_world_robot[:3, :3], T_world_robot[:3, 3]
-    R_c, t_c = T_robot_camera[:3, :3], T_robot_camera[:3, 3]
-    p_robot = (landmark_xyz - t) @ R          # rows of R^T (l - t)
-    p_camera = (p_robot - t_c) @ R_c
-    return p_robot, p_camera
+    return points_by_camera(T_world_robot[:3, :3], T_world_robot[:3, 3], (T_robot_camera,), landmark_xyz,
+                            (landmark_xyz.shape[0],))
 
 
 def project_points(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH) -> np.ndarray:
