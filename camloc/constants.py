@@ -73,3 +73,8 @@ MISS_COST = 8.0
 # that a pair is clutter adds to the estimate's covariance leaves it out (ekf.leave_one_out_spread,
 # kernels/recheck.py add_leave_one_out_spread), as it does a right pair's, most of a run's.
 NEGLIGIBLE_MARGIN = 40.0
+
+# The re-check's drops of rays against leaving them unassigned are weighed together, every subset of
+# them restored or not (association.restored_pairs, kernels/recheck.py restored_pairs), up to this many
+# a pose (2^4 joint costs); beyond it they stay dropped.
+RESTORE_LIMIT = 4

@@ -29,6 +29,7 @@ from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
 from camloc.dataset import Dataset, first_poses
+from camloc.constants import RESTORE_LIMIT
 from camloc.errors import ConfigError
 from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
 from camloc.mapping_follower import MappingFollower
@@ -721,6 +722,40 @@ def _holds(recheck, row: float, steal: float, rival: float) -> bool:
     return row > recheck.margin and steal > recheck.steal_margin and not rival <= recheck.ray_margin
 
 
+def _against_null(recheck, row: float, steal: float, rival: float) -> bool:
+    """Whether a pair that does not hold (``_holds``) failed only against leaving its observation
+    unassigned: its own cost beyond the gate (row -inf: no other test means anything), or row
+    within ``margin`` while the other tests pass."""
+    return not row > recheck.margin and (not np.isfinite(row) or (steal > recheck.steal_margin and not rival <= recheck.ray_margin))
+
+
+def _rechecked(localizer: "_Localizer", k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult):
+    """Pose k's pairs (obs, landmarks) after the re-check and their update (result: the update
+    with all of them): ``_Localizer._recheck``'s drops, then the rays it dropped against leaving
+    them unassigned alone restored where their joint cost under the kept pairs' posterior says so
+    (``association.restored_pairs``). The compiled twin is ``kernels.filtering.rechecked``."""
+    x, P = localizer.x, localizer.P
+    keep, doubtful = localizer._recheck(localizer.obs_of_pose[k], obs, landmarks, P, result.state)
+    if keep.all():
+        return obs, landmarks, result
+    x_kept, P_kept = x, P
+    if keep.any():
+        result = localizer.updated(x, P, obs[keep], landmarks[keep], map_cost=True)
+        x_kept, P_kept = result.state, result.cov
+    weighed = np.flatnonzero(doubtful)
+    if weighed.size == 0 or weighed.size > RESTORE_LIMIT:
+        return obs[keep], landmarks[keep], result
+    stacked = localizer.stacked
+    z_hat, H = stacked.measurement_function(obs[weighed], landmarks[weighed])[1](x_kept)
+    o = obs[weighed]
+    restore = association.restored_pairs(localizer.dataset.obs_z[o] - z_hat.reshape(-1, 3), H.reshape(o.size, 3, -1), P_kept,
+                                         stacked.association_cov[o], stacked.association_log_det[o], stacked.null_cost[o])
+    if not restore.any():
+        return obs[keep], landmarks[keep], result
+    keep[weighed[restore]] = True
+    return obs[keep], landmarks[keep], localizer.updated(x, P, obs[keep], landmarks[keep], map_cost=True)
+
+
 class _Localizer:
     """The filter's state over one run; ``step(k)`` processes pose k."""
 
@@ -839,11 +874,7 @@ class _Localizer:
             # few pairs pin the pose only together), and dropping them would leave the filter
             # metres wide where the beam's hypothesis went on from the slip's explanation.
             if self.config.recheck.enabled and self.config.association != "oracle" and obs.size >= 2 and not slipped:
-                keep = self._recheck(self.obs_of_pose[k], obs, landmarks, self.P, result.state)
-                if not keep.all():
-                    obs, landmarks = obs[keep], landmarks[keep]
-                    if obs.size:
-                        result = self.updated(self.x, self.P, obs, landmarks, map_cost=True)
+                obs, landmarks, result = _rechecked(self, k, obs, landmarks, result)
             if self.tag_orientations and obs.size:
                 # the pairs final, the orientations of their tags join them (camloc.tags): after
                 # the re-check, which judges the pairs association chose, by their positions
@@ -884,11 +915,11 @@ class _Localizer:
         return self.associate(self.scene, self.x, self.P, obs)
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
-        """Which of a pose's pairs hold (``_holds``), each observation judged by the posterior of the
-        other pairs (``association.leave_one_out_costs``), and lie within the camera's reach at
-        x_post (``AssociationScene.within_reach``): (p,) bool."""
+        """Which of a pose's pairs hold (``_holds``), each judged by the posterior of the others
+        (``association.leave_one_out_costs``), and lie within the camera's reach at x_post: (p,)
+        bool; and which dropped rays (reach bounded) failed only ``_against_null`` (for ``_rechecked``)."""
         ds = self.dataset
-        keep = np.ones(pair_obs.size, dtype=bool)
+        keep, doubtful = np.ones(pair_obs.size, dtype=bool), np.zeros(pair_obs.size, dtype=bool)
         position = {int(o): n for n, o in enumerate(pair_obs.tolist())}
         chosen_landmark = dict(zip(pair_obs.tolist(), pair_landmarks.tolist()))
         groups = []
@@ -913,10 +944,13 @@ class _Localizer:
                                                    gate=float(self.obs_gate[mine[0]]), kinds=ds.obs_kind[mine])
             cost = cost + orientation_terms(self.scene, x_post, P_prior, mine, candidates, z_hat, H)[1]  # a tag's orientation
             row, steal, rival = *association.assignment_margins(cost, self.null_cost[mine], chosen), self.scene.ray_rival_margins(mine, cost, chosen)
-            for o, r, st, rv in zip(mine.tolist(), row.tolist(), steal.tolist(), rival.tolist()):
+            rays = measurement.is_ray(ds.obs_kind[mine]) & np.isfinite(self.scene.max_distance)
+            for o, r, st, rv, ray in zip(mine.tolist(), row.tolist(), steal.tolist(), rival.tolist(), rays.tolist()):
                 if o in position and not _holds(self.config.recheck, r, st, rv):
                     keep[position[o]] = False
-        return keep & self.scene.within_reach(x_post, pair_obs, pair_landmarks)
+                    doubtful[position[o]] = ray and _against_null(self.config.recheck, r, st, rv)
+        within = self.scene.within_reach(x_post, pair_obs, pair_landmarks)
+        return keep & within, doubtful & within
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
         """``AssociationScene.visible``: the landmarks camera ``camera_id`` may see from x (with P,

@@ -282,6 +282,20 @@ def test_leave_one_out_costs_and_margins_match_numpy(rng):
     assert np.isfinite(rival).any() and rival[2] == np.inf     # a finite rival is compared; unassigned: inf
 
 
+def test_restored_pairs_matches_numpy(rng):
+    for d in (1, 2, 3, 4, 5):
+        H, R, _, y = _pairs(rng, d)
+        y *= rng.uniform(0.2, 3.0, (d, 1))
+        P = _random_spd(rng, 6, 0.05)
+        log_det = np.linalg.slogdet(R)[1]
+        null = rng.uniform(6, 14, d)
+        for mask in range(1, 1 << d):
+            chosen = np.array([(mask >> i) & 1 == 1 for i in range(d)])
+            assert recheck.joint_cost(y, H, P, R, log_det, chosen) == pytest.approx(
+                association.joint_cost(y[chosen], H[chosen], P, R[chosen], log_det[chosen]), rel=1e-9)
+        np.testing.assert_array_equal(recheck.restored_pairs(y, H, P, R, log_det, null), association.restored_pairs(y, H, P, R, log_det, null))
+
+
 def test_seed_ranking_matches_numpy(rng):
     N, m = 40, 6
     H, R, _, y = _pairs(rng, N)

@@ -92,3 +92,30 @@ def test_the_ray_margin_waits_for_the_learned_reach():
     rmse = float(np.sqrt(np.mean(np.sum((result.estimate_xyz - dataset.truth_xyz) ** 2, axis=1))))
     assert rmse < 0.25
     assert result.summary["config"]["view"]["max_distance"] == pytest.approx(2.2 * 1.1, rel=0.1)
+
+
+def test_rays_dropped_against_the_null_option_are_weighed_together(monkeypatch):
+    """``benchmarks/pixel_worlds.py``'s pix2c20 kind (two pixel cameras, a fifth of the detections
+    clutter), seed 7, 150 poses: the re-check drops right rays whose cost under its linearized
+    leave-one-out posterior passes the gate (or, of two rays a pose, each under the other's);
+    weighed together under the kept pairs' posterior (``association.restored_pairs``) most come
+    back. Both engines take back the same ones (the same pairs, the same estimates)."""
+    from camloc import association
+
+    dataset = simulate(SimulationConfig(poses=150, trajectory="smooth3d", cameras=2, measurement="pixel", intrinsics="pixel",
+                                        clutter_fraction=0.2), seed=7)
+    weighed, restored = [], []
+    original = association.restored_pairs
+
+    def counted(*arguments):
+        restore = original(*arguments)
+        weighed.append(restore.size)
+        restored.append(int(restore.sum()))
+        return restore
+
+    monkeypatch.setattr(association, "restored_pairs", counted)
+    compiled = localize(dataset, engine="compiled", parallel=False)
+    reference = localize(dataset, engine="numpy", parallel=False)
+    assert sum(restored) >= 3 and sum(restored) > sum(weighed) / 2
+    np.testing.assert_array_equal(compiled.associations.landmark, reference.associations.landmark)
+    np.testing.assert_allclose(compiled.estimate_xyz, reference.estimate_xyz, atol=1e-9)

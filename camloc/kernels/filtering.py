@@ -12,7 +12,9 @@ from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
 from camloc.kernels.camera import camera_pose, cameras_of, observe
 from camloc.kernels.motion import predict
 from camloc.kernels.planar import SE2_DIM
-from camloc.kernels.recheck import add_leave_one_out_spread, assignment_margins, leave_one_out_costs, predict_pairs, rival_margins
+from camloc.constants import RESTORE_LIMIT
+from camloc.kernels.recheck import (add_leave_one_out_spread, assignment_margins, leave_one_out_costs, predict_pairs, restored_pairs,
+                                     rival_margins)
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
 from camloc.kernels.update import pair_model, updated
@@ -47,10 +49,13 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     alternative, more than ``recheck_steal_margin`` over a rival taking their landmark and, a pixel
     observation's, more than ``recheck_ray_margin`` over its nearest rival landmark, each
     observation of the pose (obs (m,)) judged by the posterior of the other pairs; and whose
-    landmark lies within the candidates' distance of its camera at x_post (``within_reach``)."""
+    landmark lies within the candidates' distance of its camera at x_post (``within_reach``); and
+    which of those dropped are rays that failed only against leaving them unassigned (``rechecked``
+    weighs them again). The numpy twin is ``camloc.localizer._Localizer._recheck``."""
     # the candidates' distance (``view_limits[6]``, a pixel-only file's learned reach; inf: none)
     reach = scene.view_limits[6] if scene.view_limits.shape[0] > 6 else np.inf
     keep = within_reach(scene, x_post, pair_obs, pair_landmarks, reach)
+    doubtful = np.zeros(pair_obs.size, np.bool_)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     n = x_post.shape[0]                          # the state's size: 6 (Euler), 3 (planar)
     information = np.zeros((cameras.size, n, n))
@@ -91,11 +96,49 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
         ray = scene.camera_K[cameras[g], 4] == PIXEL and reach < np.inf
         rival = rival_margins(cost, chosen)
         for r in range(mine.size):
+            others_hold = steal[r] > settings.recheck_steal_margin and not (ray and rival[r] <= settings.recheck_ray_margin)
             for q in range(pair_obs.size):
-                if pair_obs[q] == mine[r] and not (row[r] > settings.recheck_margin and steal[r] > settings.recheck_steal_margin
-                                                   and not (ray and rival[r] <= settings.recheck_ray_margin)):
+                if pair_obs[q] == mine[r] and not (row[r] > settings.recheck_margin and others_hold):
+                    # a ray dropped against the null option alone (or its own cost beyond the
+                    # gate, where no other test means anything) is weighed again (``rechecked``)
+                    doubtful[q] = keep[q] and ray and not row[r] > settings.recheck_margin and (not np.isfinite(row[r]) or others_hold)
                     keep[q] = False
-    return keep
+    return keep, doubtful
+
+
+@jit
+def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
+    """A pose's pairs (obs, landmarks) after the re-check and their update from (x, P) (result:
+    the update with all of them): ``recheck``'s drops, then the rays it dropped against leaving
+    them unassigned alone restored where their joint cost under the kept pairs' posterior says so
+    (``restored_pairs``). The numpy twin is ``camloc.localizer._rechecked``."""
+    keep, doubtful = recheck(scene, settings, obs_k, obs, landmarks, P, result[0])
+    if keep.all():
+        return obs, landmarks, result
+    no_start = np.empty(0)
+    kept_obs, kept_landmarks = obs[keep], landmarks[keep]
+    x_kept, P_kept = x, P
+    if kept_obs.size:
+        z_hat, H = predict_pairs(scene, x, kept_obs, kept_landmarks)
+        result = updated(model, settings.iterations, x, P, kept_obs, kept_landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
+                         no_start, TRUE)
+        x_kept, P_kept = result[0], result[1]
+    weighed = np.flatnonzero(doubtful)
+    if weighed.size == 0 or weighed.size > RESTORE_LIMIT:
+        return kept_obs, kept_landmarks, result
+    weighed_obs = obs[weighed]
+    z_hat, H = predict_pairs(scene, x_kept, weighed_obs, landmarks[weighed])
+    restore = restored_pairs(scene.z[weighed_obs] - z_hat, H, P_kept, scene.R_assoc[weighed_obs], scene.log_det_R[weighed_obs],
+                             scene.null_cost[weighed_obs])
+    if not restore.any():
+        return kept_obs, kept_landmarks, result
+    for i in range(weighed.size):
+        if restore[i]:
+            keep[weighed[i]] = True
+    obs, landmarks = obs[keep], landmarks[keep]
+    z_hat, H = predict_pairs(scene, x, obs, landmarks)
+    result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, no_start, TRUE)
+    return obs, landmarks, result
 
 
 @inlined
@@ -182,13 +225,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
         if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:
-            keep = recheck(scene, settings, obs_k, obs, landmarks, P, result[0])
-            if not keep.all():
-                obs, landmarks = obs[keep], landmarks[keep]
-                if obs.size:
-                    z_hat, H = predict_pairs(scene, x, obs, landmarks)
-                    result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
-                                     no_start, TRUE)
+            obs, landmarks, result = rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result)
         if obs.size:
             x_post, P_post, nis_k, cost_k, y = result
             check_covariance(P_post)
