@@ -121,9 +121,11 @@ class RecheckOptions:
     is bounded (``ViewOptions.max_distance``: a pixel-only file's learned reach), a pixel
     observation's pair holds only when every other landmark near its ray costs more than
     ``ray_margin`` (a ray passes near several landmarks; ``association.rival_margins``), and a
-    pair holds only when its landmark lies within that distance of the camera at the updated pose.
+    pair holds only when its landmark lies within that distance of the camera at the updated pose;
+    there, the rays that failed only against leaving them unassigned are weighed together under the
+    kept pairs' posterior and the cheapest subset taken back (``association.restored_pairs``).
     Unbounded (a file that measures range, the mapping localizer, the run that learns the reach),
-    neither: beyond the camera's reach, landmarks it cannot see crowd every ray.
+    none of these: beyond the camera's reach, landmarks it cannot see crowd every ray.
 
     Attributes
     ----------
