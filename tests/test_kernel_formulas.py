@@ -7,7 +7,7 @@ other (small, sym3, rotation, camera, motion, update, recheck, view, filtering, 
 camloc.geometry, motion and observe with their Jacobians, sym3.mahalanobis, the update steps
 against camloc.ekf, leave-one-out costs, seed ranking, the view query) and the whole-run parity
 tests (compiled localizer == numpy localizer). Not tested here, left to those parity tests: the
-loops (beam.run_poses, beam.explain_all, filtering.filter_poses, filtering.recheck,
+loops (beam.run_poses, beam.explain_all, filtering.filter_poses, filtering.recheck, filtering.rechecked,
 filtering.oracle_pairs, update.updated; update.iterated_update is tested here, against
 camloc.ekf.update) and the beam's bookkeeping and decisions (new_generation, copy_hypothesis,
 carry, gather, commit, settled, prune, prune_indices, prune_partials, options_for, condition,
