@@ -21,7 +21,8 @@ from camloc.errors import CamlocError
 
 try:  # the gufuncs np.linalg wraps, called directly where their input is known good (``cho_solve``)
     from numpy.linalg import _umath_linalg
-except ImportError:  # pragma: no cover - a numpy that moved them: its public functions, slower on small matrices
+    _umath_linalg.solve, _umath_linalg.solve1, _umath_linalg.cholesky_lo  # all three, or none of them
+except (ImportError, AttributeError):  # pragma: no cover - a numpy that moved them: its public functions, slower on small matrices
     _umath_linalg = None
 
 MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
