@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from camloc import planar, sym3
+from camloc import ekf, planar, sym3
 from camloc.constants import RESTORE_LIMIT
 
 # Up to this many points a scan finds those within a ball as quickly as a k-d tree does, and
@@ -336,7 +336,7 @@ def leave_one_out_costs(
     kinds = np.zeros(n, np.int64) if kinds is None else np.asarray(kinds)
     paired = np.flatnonzero(chosen >= 0)
     Hc = H[chosen[paired]]                                            # (p, 3, n_x)
-    HtRinv = np.swapaxes(np.linalg.solve(R_obs[paired], Hc), 1, 2)   # (p, n_x, 3) H' R^-1
+    HtRinv = ekf.solve(R_obs[paired], Hc).swapaxes(1, 2)             # (p, n_x, 3) H' R^-1
     J = HtRinv @ Hc                                                   # (p, n_x, n_x) each pair's information
     L_rows = np.broadcast_to(information + J.sum(axis=0), (n, dim, dim)).copy()
     rhs = np.zeros((n, dim))
@@ -344,8 +344,8 @@ def leave_one_out_costs(
         L_rows[paired] = information[None] + (J.sum(axis=0)[None] - J)   # the other pairs' information
         y_paired = planar.wrap_residuals(z[paired] - z_hat[chosen[paired]], kinds[paired])
         rhs[paired] = -(HtRinv @ y_paired[..., None])[..., 0]
-    P_rows = np.linalg.solve(L_rows, np.broadcast_to(np.eye(dim), (n, dim, dim)))
-    P_rows = 0.5 * (P_rows + np.swapaxes(P_rows, 1, 2))
+    P_rows = ekf.solve(L_rows, np.broadcast_to(ekf.identity(dim), (n, dim, dim)))
+    P_rows = 0.5 * (P_rows + P_rows.swapaxes(1, 2))
     delta = np.einsum("nij,nj->ni", P_rows, rhs)
     y = planar.wrap_residuals(z[:, None, :] - z_hat[None, :, :], kinds[:, None])
     residual = y - np.einsum("mij,nj->nmi", H, delta)  # (n, m, 3)
@@ -354,9 +354,9 @@ def leave_one_out_costs(
     # S_bound_j = H_j information^-1 H_j' + r_max I (r_max: the largest eigenvalue of any R_i),
     # and d^2 under S_bound is a lower bound on the true d^2. Pairs whose bound fails the gate
     # fail it for certain; only the few others are factored.
-    P_bound = np.linalg.solve(information, np.eye(dim))
+    P_bound = ekf.solve(information, ekf.identity(dim))
     r_max = float(np.linalg.eigvalsh(R_obs).max())
-    S_bound = H @ P_bound @ np.swapaxes(H, 1, 2) + r_max * np.eye(3)
+    S_bound = H @ P_bound @ H.swapaxes(1, 2) + r_max * np.eye(3)
     try:
         inverse_factor = np.linalg.solve(np.linalg.cholesky(S_bound), np.broadcast_to(np.eye(3), S_bound.shape))
     except np.linalg.LinAlgError:  # information too far beyond the prior's for rounding: no screen, judge every pair
@@ -369,7 +369,7 @@ def leave_one_out_costs(
     if rows.size == 0:
         return cost
     Hq = H[columns]
-    S = Hq @ P_rows[rows] @ np.swapaxes(Hq, 1, 2) + R_obs[rows]
+    S = Hq @ P_rows[rows] @ Hq.swapaxes(1, 2) + R_obs[rows]
     d2, log_det = mahalanobis_3x3(S, residual[rows, columns])
     cost[rows, columns] = np.where(d2 <= gate, d2 + log_det - np.linalg.slogdet(R_obs[rows])[1], np.inf)
     return cost
@@ -420,7 +420,7 @@ def seeded_explanation_costs(
     # thousand pairs would otherwise hold in memory all at once
     chunks = [seeds[i : i + SEED_CHUNK] for i in range(0, seeds.size, SEED_CHUNK)] or [seeds]
     HP = H @ P                                                    # (N, 3, n)
-    S = HP @ np.swapaxes(H, 1, 2) + R                             # (N, 3, 3) each pair's own S
+    S = HP @ H.swapaxes(1, 2) + R                                 # (N, 3, 3) each pair's own S
     log_det_R = np.linalg.slogdet(R)[1]                           # (N,)
     return np.concatenate([
         _seeded_explanation_costs(y, H, HP, S, pair_obs, pair_landmark, null_cost, log_det_R, chunk, gate=gate)

@@ -163,7 +163,7 @@ class AssociationScene:
         z_hat (m, 3), H (m, 3, n), HPH (m, 3, 3))."""
         candidates = self.visible(x, camera_id)
         z_hat, H = self.observe(x, camera_id, candidates)
-        HPH = H @ P @ np.swapaxes(H, 1, 2)
+        HPH = H @ P @ H.swapaxes(1, 2)
         return candidates, z_hat, H, HPH
 
 
@@ -179,7 +179,7 @@ def oracle(scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarra
     for camera_id in np.unique(scene.obs_sensor[obs]):
         mine = scene.obs_sensor[obs] == camera_id
         z_hat, H = scene.observe(x, camera_id, index[mine])
-        S = H @ P @ np.swapaxes(H, 1, 2) + scene.association_cov[obs[mine]]
+        S = H @ P @ H.swapaxes(1, 2) + scene.association_cov[obs[mine]]
         y = planar.wrap_residuals(scene.dataset.obs_z[obs[mine]] - z_hat, scene.dataset.obs_kind[obs[mine]])
         d2, _ = association.mahalanobis_3x3(S, y)
         keep[mine] = d2 <= scene.obs_gate[obs[mine]]
@@ -311,7 +311,7 @@ class Jcbb:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         z_hat, H = np.concatenate(z_hats), np.concatenate(Hs)
         y_all = planar.wrap_residuals(ds.obs_z[obs][:, None, :] - z_hat[None, :, :], ds.obs_kind[obs][:, None])
-        HPH = H @ P @ np.swapaxes(H, 1, 2)
+        HPH = H @ P @ H.swapaxes(1, 2)
         d2, _ = association.pair_statistics(ds.obs_z[obs], scene.association_cov[obs], z_hat, HPH, ds.obs_kind[obs])
         same_camera = np.zeros(d2.shape, dtype=bool)
         start = 0

@@ -250,4 +250,4 @@ class PoseExpansion:
 
     def same_state(self, a: Hypothesis, b: Hypothesis) -> bool:
         d = self.ctx.filter.difference(a.x, b.x)
-        return bool(np.all(d * d <= self.settings.merge_sigma**2 * np.diagonal(b.P)))
+        return bool(np.all(d * d <= self.settings.merge_sigma**2 * b.P.diagonal()))

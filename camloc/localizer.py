@@ -933,9 +933,9 @@ class _Localizer:
             Hc = H[chosen[chosen >= 0]]
             R_paired = self.association_cov[mine[chosen >= 0]]
             dim = self.filter.dim
-            pair_information[int(camera_id)] = (np.swapaxes(Hc, 1, 2) @ np.linalg.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((dim, dim))
+            pair_information[int(camera_id)] = (Hc.swapaxes(1, 2) @ ekf.solve(R_paired, Hc)).sum(axis=0) if Hc.size else np.zeros((dim, dim))
             groups.append((int(camera_id), mine, candidates, z_hat, H, chosen))
-        prior_information = np.linalg.solve(P_prior, np.eye(self.filter.dim))
+        prior_information = ekf.solve(P_prior, ekf.identity(self.filter.dim))
         for camera_id, mine, candidates, z_hat, H, chosen in groups:
             if z_hat.shape[0] == 0:
                 continue

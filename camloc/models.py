@@ -107,7 +107,7 @@ def measured_points(
     ``measurement.judged_as_point``.)"""
     uvd = np.column_stack([uvd[:, :2], np.maximum(uvd[:, 2], MIN_POINT_DEPTH)])
     points, J = back_project(uvd, intrinsics)
-    return points, J @ cov @ np.swapaxes(J, 1, 2)
+    return points, J @ cov @ J.swapaxes(1, 2)
 
 
 def observe(

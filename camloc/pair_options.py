@@ -128,12 +128,12 @@ class PairGating:
         the points Hp P Hp' (m, 3, 3)). A sensor that does not measure range has no point: zeros,
         a singular spread, which fits nothing (``in_best_coordinates`` keeps its pixels)."""
         cameras = [self.ctx.cameras[int(c)] for c in camera_ids]
-        HPH = H @ P @ np.swapaxes(H, -1, -2)
+        HPH = H @ P @ H.swapaxes(-1, -2)
         if not measurement.judged_as_point(cameras[0].kind):
             return np.zeros_like(z_hat), np.zeros_like(H), HPH, np.zeros_like(HPH)
         intrinsics = cameras[0].intrinsics if len(cameras) == 1 else intrinsics_by_row(cameras, sizes)
         p_hat, J = models.back_project(z_hat, intrinsics, cameras[0].kind)
-        return p_hat, J @ H, HPH, J @ HPH @ np.swapaxes(J, -1, -2)
+        return p_hat, J @ H, HPH, J @ HPH @ J.swapaxes(-1, -2)
 
     def plausible_pairs(self, o: np.ndarray, z_hat: np.ndarray, spread: tuple, limit, own=None) -> tuple[np.ndarray, np.ndarray]:
         """(rows into o, rows into z_hat) of the pairs whose d^2 may be within ``limit`` (each
@@ -144,8 +144,8 @@ class PairGating:
         prediction, where d^2 itself needs a 3x3 system per pair (most of a dense view's pairs
         are far out of every gate)."""
         p_hat, _, HPH, JHPHJ = spread
-        spread_pixels = np.trace(HPH, axis1=1, axis2=2)[None, :] + np.trace(self.R[o], axis1=1, axis2=2)[:, None]
-        spread_point = np.trace(JHPHJ, axis1=1, axis2=2)[None, :] + np.trace(self.point_cov[o], axis1=1, axis2=2)[:, None]
+        spread_pixels = HPH.trace(axis1=1, axis2=2)[None, :] + self.R[o].trace(axis1=1, axis2=2)[:, None]
+        spread_point = JHPHJ.trace(axis1=1, axis2=2)[None, :] + self.point_cov[o].trace(axis1=1, axis2=2)[:, None]
         y_pixels = self.residuals(o[:, None], z_hat[None, :, :])
         y_point = self.point[o][:, None, :] - p_hat[None, :, :]
         near = ((np.einsum("ijk,ijk->ij", y_pixels, y_pixels) <= limit * spread_pixels)
