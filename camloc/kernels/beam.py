@@ -260,8 +260,11 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
 
 
 @jit
-def taken_by(gen, h):
-    return gen[7][h, :gen[6][h], 1]
+def taken_by(pairs, count, h):
+    """The landmarks hypothesis h of a generation has taken: pass its pairs and their count
+    (``gen[7]``, ``gen[6]``), not the generation: a call counts a reference to every array it is
+    passed, and this runs for every partial explanation branched."""
+    return pairs[h, :count[h], 1]
 
 
 @jit
@@ -347,21 +350,20 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
 
 
 @inlined
-def after_clear(scene, settings, gen, h, obs, cap, model):
-    """Hypothesis h of gen after its stacked updates with the pose's clear observations: the clear
-    ones are taken in one stacked update; conditioned on them the others are gated again, and those
-    that became clear are taken in the next, until none does (an observation is often ambiguous
-    only until a neighbour's pair pins the pose). Returns (the child as a generation of one, its
+def after_clear(scene, settings, gen, h, obs, child, model):
+    """Hypothesis h of gen after its stacked updates with the pose's clear observations, written
+    into row h of ``child``: the clear ones are taken in one stacked update; conditioned on them
+    the others are gated again, and those that became clear are taken in the next, until none does
+    (an observation is often ambiguous only until a neighbour's pair pins the pose). Returns (its
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
     the least each can cost)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
-    taken = taken_by(gen, h)                     # a seeded explanation's seed pair: its landmark is not free
+    taken = taken_by(gen[7], gen[6], h)          # a seeded explanation's seed pair: its landmark is not free
     for j in range(lm.size):
         if is_taken(lm[j], taken):
             cost[j] = np.inf
-    child = new_generation(ONE, cap, gen[0].shape[1])
-    copy_hypothesis(gen, h, child, FIRST)
+    copy_hypothesis(gen, h, child, h)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
     n_pending = obs.size
@@ -382,8 +384,8 @@ def after_clear(scene, settings, gen, h, obs, cap, model):
         t = rest = 0
         for k in range(n_pending):
             if choice[k] == UNASSIGNED:
-                child[2][0] += null_cost[k]
-                child[4][0] += 1
+                child[2][h] += null_cost[k]
+                child[4][h] += 1
             elif choice[k] >= 0:
                 options[t], o[t] = choice[k], obs[positions[k]]
                 t += 1
@@ -392,22 +394,23 @@ def after_clear(scene, settings, gen, h, obs, cap, model):
                 rest += 1
         n_pending = rest
         if n_taken:
-            x, P = take_clear_pairs(scene, settings, child, x, P, o, options, opt, model)
+            x, P = take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model)
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
-                condition_into(model, settings, x, P, obs[i], lm[start[i]:start[i + 1]], taken_by(child, FIRST), cost, zh, Hs, ys, Hcs,
-                               in_point, start[i])
-    put_state(child, FIRST, x, P)
+                claimed = taken_by(child[7], child[6], h)
+                condition_into(model, settings, x, P, obs[i], lm[start[i]:start[i + 1]], claimed, cost, zh, Hs, ys, Hcs, in_point,
+                               start[i])
+    put_state(child, h, x, P)
     order, least = branch_order(scene, obs, pending[:n_pending], start, cost)
-    return child, opt, order, least
+    return opt, order, least
 
 
 @inlined
-def take_clear_pairs(scene, settings, child, x, P, o, options, opt, model):
+def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
     """(x, P) updated with the clear pairs of observations o (their chosen options of ``opt``), in
     one stacked update; their joint cost, each pair in the coordinates its option chose, and the
-    pairs themselves are added to ``child`` (a generation of one). ``model``: ``update.pair_model``."""
+    pairs themselves are added to hypothesis h of ``child``. ``model``: ``update.pair_model``."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     n_taken = o.size
     no_start = np.empty(0)                       # ``updated``'s start: none
@@ -430,10 +433,10 @@ def take_clear_pairs(scene, settings, child, x, P, o, options, opt, model):
     x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
                            no_start, FALSE)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
-    child[2][0] += innovation_cost(P, Hc, R, R_inverse, y)
+    child[2][h] += innovation_cost(P, Hc, R, R_inverse, y)
     for t in range(n_taken):
-        child[7][0, child[6][0], 0], child[7][0, child[6][0], 1] = o[t], landmarks[t]
-        child[6][0] += 1
+        child[7][h, child[6][h], 0], child[7][h, child[6][h], 1] = o[t], landmarks[t]
+        child[6][h] += 1
     return x_new, P_new
 
 
@@ -469,30 +472,32 @@ def same_state(gen, a, b, merge_sigma):
 
 
 @inlined
-def settle(scene, settings, gen, c, parents, pending, model):
+def settle(settings, gen, c, parents, pending, model):
     """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
     its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
     ambiguous pose many children are pruned on their cost alone and never need their update.
-    ``model``: what the update reads of the scene (``update.pair_model``)."""
+    ``model``: what the update reads of the scene (``update.pair_model``), its noise too: an inlined
+    step counts a reference to each array of every tuple it is passed where it binds it (the
+    scene's 31), and the beam settles about 35 children a pose."""
     source, obs, landmark, z_hat, H, waiting = pending
     if not waiting[c]:
         return
     p = source[c]
     x, P = updated(model, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
-                   z_hat[c:c + 1], H[c:c + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), FALSE)[:2]
+                   z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE)[:2]
     put_state(gen, c, x, P)
     waiting[c] = False
 
 
 @inlined
-def nothing_pending(scene, settings, gen, c, parents, pending, model):
+def nothing_pending(settings, gen, c, parents, pending, model):
     """``settle`` where every state is settled (``prune``'s generation): its pruning compiled
     without the update that settling calls (its ``model``: None)."""
     return
 
 
 @inlined
-def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one, model):
+def prune_indices(settings, gen, candidates, parents, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
     beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
     are settled by ``settle_one`` (``settle``, or ``nothing_pending``) as a comparison first
@@ -511,7 +516,7 @@ def prune_indices(scene, settings, gen, candidates, parents, pending, settle_one
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
-                    settle_one(scene, settings, gen, h, parents, pending, model)
+                    settle_one(settings, gen, h, parents, pending, model)
             if same_state(gen, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
@@ -531,11 +536,11 @@ def settled(n, dim):
 @entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(scene, settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending, None)
+    return prune_indices(settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending, None)
 
 
 @inlined
-def prune_partials(scene, settings, gen, root, rest, parents, pending, model):
+def prune_partials(settings, gen, root, rest, parents, pending, model):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
@@ -548,7 +553,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending, model):
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(scene, settings, gen, np.flatnonzero(root == r), parents, pending,
+        kept = np.concatenate((kept, prune_indices(settings, gen, np.flatnonzero(root == r), parents, pending,
                                                      settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
@@ -562,7 +567,7 @@ def prune_partials(scene, settings, gen, root, rest, parents, pending, model):
         kept = np.concatenate((ranked[first], others))
     for c in kept:
         if pending[5][c]:
-            settle(scene, settings, gen, c, parents, pending, model)
+            settle(settings, gen, c, parents, pending, model)
     return kept
 
 
@@ -583,12 +588,14 @@ def explain_all(scene, settings, parents, n_parents, obs):
     model = pair_model(scene)                   # what the updates read of the scene
     options, orders, leasts = [], [], []
     root = np.arange(n_parents)
+    # each partial explanation's row of gen: a step's kept children stay where they were branched,
+    # not gathered into a generation of their own (a copy of every field of each, every step)
+    live = np.arange(n_parents)
     rest = np.zeros(n_parents)
     moved = np.zeros(n_parents, np.bool_)
     expected = []
     for h in range(n_parents):
-        child, opt, order, least = after_clear(scene, settings, parents, h, obs, cap, model)
-        copy_hypothesis(child, FIRST, gen, h)
+        opt, order, least = after_clear(scene, settings, parents, h, obs, gen, model)
         options.append(opt)
         expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
@@ -600,8 +607,10 @@ def explain_all(scene, settings, parents, n_parents, obs):
         for r in root:
             growing = growing or step < orders[r].size
         if not growing:
+            if step:
+                gen = gather(gen, live, cap)
             for c in range(root.size):
-                gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen, c))
+                gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen[7], gen[6], c))
             return gen, root.size
         # the children of every partial explanation for its next observation
         n = root.size
@@ -622,17 +631,18 @@ def explain_all(scene, settings, parents, n_parents, obs):
         for p in range(n):
             r = root[p]
             if step >= orders[r].size:
-                copy_hypothesis(gen, p, children, at)
+                copy_hypothesis(gen, live[p], children, at)
                 c_root[at], c_rest[at], c_moved[at] = r, rest[p], moved[p]
                 at += 1
                 continue
             i = orders[r][step]
-            at = branch(scene, settings, gen, p, r, obs, options[r], i, moved[p], orders[r][step + 1:], rest[p] - leasts[r][i],
-                        children, at, c_root, c_rest, c_moved, pending, model)
+            start, lm, cost, zh, Hs = options[r][:5]
+            at = branch(scene.null_cost, settings, gen, live[p], r, obs, start, lm, cost, zh, Hs, i, moved[p],
+                        orders[r][step + 1:], rest[p] - leasts[r][i], children, at, c_root, c_rest, c_moved, pending, model)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        kept = prune_partials(scene, settings, children, c_root, c_rest, gen, pending, model)
-        gen = gather(children, kept, cap)
-        root, rest, moved = c_root[kept], c_rest[kept], c_moved[kept]
+        live = prune_partials(settings, children, c_root, c_rest, gen, pending, model)
+        gen = children
+        root, rest, moved = c_root[live], c_rest[live], c_moved[live]
         step += 1
 
 
@@ -691,22 +701,22 @@ def missed(expected, excess, taken):
 
 
 @jit
-def options_of(model, settings, gen, p, obs, opt, i, moved):
-    """The options of observation i under partial p: those of its root's base state, or made
-    again under p's own where it has paired something since (``model``: ``update.pair_model``)."""
-    start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
-    part = slice(start[i], start[i + 1])
+def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
+    """The options of observation o, its pool ``lm`` and their costs, predictions and Jacobians
+    at its root's base state (``zh``, ``Hs``), under a partial at (x, P) that has taken ``taken``:
+    those of the base state, or made again under the partial's own where it has paired something
+    since (``model``: ``update.pair_model``). Passed the arrays it reads, not the generation and
+    the options: every array a call is passed is counted on entry and on return."""
     if not moved:
-        return lm[part], cost[part].copy(), zh[part], Hs[part]
-    cost, z_hat, H, _, _, _ = condition(model, settings, gen[0][p], gen[1][p], obs[i], lm[part], taken_by(gen, p))
-    return lm[part], cost, z_hat, H
+        return lm, cost.copy(), zh, Hs
+    cost, z_hat, H, _, _, _ = condition(model, settings, x, P, o, lm, taken)
+    return lm, cost, z_hat, H
 
 
 @jit
-def viable(gen, p, landmarks, cost, null_cost, branch_delta):
-    """Which options (those of landmarks p has not taken) and whether the null option lie within
+def viable(taken, landmarks, cost, null_cost, branch_delta):
+    """Which options (those of landmarks not taken) and whether the null option lie within
     branch_delta of the best."""
-    taken = taken_by(gen, p)
     for j in range(cost.size):
         if is_taken(landmarks[j], taken):
             cost[j] = np.inf
@@ -715,12 +725,11 @@ def viable(gen, p, landmarks, cost, null_cost, branch_delta):
 
 
 @jit
-def contested(opt, later, landmarks, pairs):
+def contested(start, lm, cost, later, landmarks, pairs):
     """Whether a viable landmark of an observation is the only landmark in the gate of one still
     to explain after it (``later``): then that observation may stay unassigned whatever its null
     cost, since the explanation that leaves it gives the landmark to the other
-    (``PoseExpansion.branches``)."""
-    start, lm, cost = opt[0], opt[1], opt[2]
+    (``PoseExpansion.branches``). Passed the options' arrays it reads (``options_of``)."""
     for i in later:
         gated, only = 0, -1
         for g in range(start[i], start[i + 1]):
@@ -736,16 +745,23 @@ def contested(opt, later, landmarks, pairs):
 
 
 @inlined
-def branch(scene, settings, gen, p, r, obs, opt, i, moved, later, rest, children, at, c_root, c_rest, c_moved, pending, model):
+def branch(null_cost, settings, gen, p, r, obs, start, lm, all_cost, zh, Hs, i, moved, later, rest, children, at, c_root, c_rest,
+           c_moved, pending, model):
     """Write the children of partial p for observation i from index ``at``: unassigned, or paired
-    with a viable landmark (its state pending); returns the next free index."""
-    landmarks, cost, z_hat, H = options_of(model, settings, gen, p, obs, opt, i, moved)
+    with a viable landmark (its state pending); returns the next free index. Passed the arrays it
+    reads of the scene (``null_cost``) and of its root's options (``options_for``'s first five),
+    not the tuples: an inlined step counts a reference to every array of the tuples it binds, per
+    partial explanation branched."""
     o = obs[i]
-    pairs, null = viable(gen, p, landmarks, cost, scene.null_cost[o] + settings.null_offset, settings.branch_delta)
-    null = null or contested(opt, later, landmarks, pairs)
+    part = slice(start[i], start[i + 1])
+    taken = taken_by(gen[7], gen[6], p)
+    landmarks, cost, z_hat, H = options_of(model, settings, gen[0][p], gen[1][p], taken, o, lm[part], all_cost[part], zh[part],
+                                           Hs[part], moved)
+    pairs, null = viable(taken, landmarks, cost, null_cost[o] + settings.null_offset, settings.branch_delta)
+    null = null or contested(start, lm, all_cost, later, landmarks, pairs)
     if null:
         copy_hypothesis(gen, p, children, at)
-        children[2][at] += scene.null_cost[o]
+        children[2][at] += null_cost[o]
         children[4][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, moved
         at += 1
