@@ -90,7 +90,8 @@ def with_a_seeded_one(scene, settings, gen, kept, seeded):
     if len(kept) < settings.beam_width or not seeded or any(c in kept for c in seeded):
         return kept
     candidate = min(seeded, key=lambda c: gen[2][c])
-    if gen[2][candidate] > gen[2][kept[0]] + settings.beam_delta or any(kb.same_state(gen, candidate, k, settings.merge_sigma) for k in kept):
+    if gen[2][candidate] > gen[2][kept[0]] + settings.beam_delta or any(kb.same_state(gen[0], gen[1], candidate, k, settings.merge_sigma)
+                                                                        for k in kept):
         return kept
     return sorted(kept[:-1] + [candidate], key=lambda c: gen[2][c])
 

@@ -457,67 +457,69 @@ def branch_order(scene, obs, pending, start, cost):
 
 
 @inlined
-def same_state(gen, a, b, merge_sigma):
+def same_state(X, P, a, b, merge_sigma):
     """Whether hypotheses a and b differ by less than merge_sigma standard deviations of b on
     every axis (the cheaper is kept). Its loop counts to the larger state's size, the smaller's
     entries skipped: a loop to a size read when it runs is a cycle, across which numba does not
     prune the references counted to the arrays an inlined step is passed (``sym3.spread``), and
-    this runs for every pair of partial explanations compared."""
-    d = difference(gen[0][a], gen[0][b])
+    this runs for every pair of partial explanations compared. (X, P: a generation's states and
+    covariances.)"""
+    d = difference(X[a], X[b])
     n = d.size
     for i in range(6):
-        if i < n and d[i] * d[i] > merge_sigma * merge_sigma * gen[1][b][i, i]:
+        if i < n and d[i] * d[i] > merge_sigma * merge_sigma * P[b][i, i]:
             return False
     return True
 
 
 @inlined
-def settle(settings, gen, c, parents, pending, model):
-    """Compute the state of child c, whose pair (observation, landmark, prediction z_hat and H at
-    its parent) was added to parent ``pending[0][c]`` of ``parents`` when it was branched: at an
-    ambiguous pose many children are pruned on their cost alone and never need their update.
-    ``model``: what the update reads of the scene (``update.pair_model``), its noise too: an inlined
-    step counts a reference to each array of every tuple it is passed where it binds it (the
-    scene's 31), and the beam settles about 35 children a pose."""
+def settle(settings, X, P, c, parent_X, parent_P, pending, model):
+    """Compute the state of child c (X[c], P[c]), whose pair (observation, landmark, prediction
+    z_hat and H at its parent) was added to parent ``pending[0][c]`` (of states ``parent_X``,
+    ``parent_P``) when it was branched: at an ambiguous pose many children are pruned on their cost
+    alone and never need their update. ``model``: what the update reads of the scene
+    (``update.pair_model``), its noise too. Passed the arrays it reads, not the generations nor the
+    scene: an inlined step counts a reference to each array of every tuple it binds, and the beam
+    settles about 35 children a pose."""
     source, obs, landmark, z_hat, H, waiting = pending
     if not waiting[c]:
         return
     p = source[c]
-    x, P = updated(model, settings.iterations, parents[0][p], parents[1][p], obs[c:c + 1], landmark[c:c + 1],
-                   z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE)[:2]
-    put_state(gen, c, x, P)
+    x, P_new = updated(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
+                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE)[:2]
+    put_state((X, P), c, x, P_new)
     waiting[c] = False
 
 
 @inlined
-def nothing_pending(settings, gen, c, parents, pending, model):
+def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model):
     """``settle`` where every state is settled (``prune``'s generation): its pruning compiled
     without the update that settling calls (its ``model``: None)."""
     return
 
 
 @inlined
-def prune_indices(settings, gen, candidates, parents, pending, settle_one, model):
-    """Indices of the cheapest of ``candidates`` within beam_delta of the best, at most
-    beam_width, none within merge_sigma standard deviations of a cheaper one kept (whose states
-    are settled by ``settle_one`` (``settle``, or ``nothing_pending``) as a comparison first
-    needs them, passed ``model``)."""
-    order = candidates[np.argsort(gen[2][candidates], kind="mergesort")]
+def prune_indices(settings, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
+    """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
+    costs) within beam_delta of the best, at most beam_width, none within merge_sigma standard
+    deviations of a cheaper one kept (whose states are settled by ``settle_one`` (``settle``, or
+    ``nothing_pending``) as a comparison first needs them, passed ``model``)."""
+    order = candidates[np.argsort(costs[candidates], kind="mergesort")]
     kept = np.empty(min(order.size, settings.beam_width), np.int64)
     n = 0
     if order.size == 0:
         return kept
-    limit = gen[2][order[0]] + settings.beam_delta
+    limit = costs[order[0]] + settings.beam_delta
     for c in order:
-        if gen[2][c] > limit or n >= settings.beam_width:
+        if costs[c] > limit or n >= settings.beam_width:
             break
         merged = False
         for q in range(n):
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
-                    settle_one(settings, gen, h, parents, pending, model)
-            if same_state(gen, c, kept[q], settings.merge_sigma):
+                    settle_one(settings, X, P, h, parent_X, parent_P, pending, model)
+            if same_state(X, P, c, kept[q], settings.merge_sigma):
                 merged = True
                 break
         if not merged:
@@ -536,7 +538,8 @@ def settled(n, dim):
 @entry
 def prune(scene, settings, gen, n):
     """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(settings, gen, np.arange(n), gen, settled(n, gen[0].shape[1]), nothing_pending, None)
+    return prune_indices(settings, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
+                         nothing_pending, None)
 
 
 @inlined
@@ -548,15 +551,16 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
     n = root.size
     kept = np.empty(0, np.int64)
     seen = np.zeros(root.max() + 1 if n else 1, np.bool_)
+    X, P, costs, parent_X, parent_P = gen[0], gen[1], gen[2], parents[0], parents[1]
     for c in range(n):
         r = root[c]
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(settings, gen, np.flatnonzero(root == r), parents, pending,
+        kept = np.concatenate((kept, prune_indices(settings, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
                                                      settle, model)))
     if kept.size > settings.partial_budget:
-        ranked = kept[np.argsort(gen[2][kept] + rest[kept], kind="mergesort")]
+        ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
         seen[:] = False
         for q in range(ranked.size):
@@ -567,7 +571,7 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
         kept = np.concatenate((ranked[first], others))
     for c in kept:
         if pending[5][c]:
-            settle(settings, gen, c, parents, pending, model)
+            settle(settings, X, P, c, parent_X, parent_P, pending, model)
     return kept
 
 
@@ -635,10 +639,15 @@ def explain_all(scene, settings, parents, n_parents, obs):
                 c_root[at], c_rest[at], c_moved[at] = r, rest[p], moved[p]
                 at += 1
                 continue
-            i = orders[r][step]
+            i, q = orders[r][step], live[p]
             start, lm, cost, zh, Hs = options[r][:5]
-            at = branch(scene.null_cost, settings, gen, live[p], r, obs, start, lm, cost, zh, Hs, i, moved[p],
-                        orders[r][step + 1:], rest[p] - leasts[r][i], children, at, c_root, c_rest, c_moved, pending, model)
+            part = slice(start[i], start[i + 1])
+            taken = taken_by(gen[7], gen[6], q)
+            # here, not in branch: an inlined step would count the model's 16 arrays as it binds them
+            options_i = options_of(model, settings, gen[0][q], gen[1][q], taken, obs[i], lm[part], cost[part], zh[part], Hs[part],
+                                   moved[p])
+            at = branch(scene.null_cost, settings, gen, q, r, obs[i], options_i, taken, start, lm, cost, moved[p],
+                        orders[r][step + 1:], rest[p] - leasts[r][i], children, at, c_root, c_rest, c_moved, pending)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
         live = prune_partials(settings, children, c_root, c_rest, gen, pending, model)
         gen = children
@@ -745,18 +754,15 @@ def contested(start, lm, cost, later, landmarks, pairs):
 
 
 @inlined
-def branch(null_cost, settings, gen, p, r, obs, start, lm, all_cost, zh, Hs, i, moved, later, rest, children, at, c_root, c_rest,
-           c_moved, pending, model):
-    """Write the children of partial p for observation i from index ``at``: unassigned, or paired
-    with a viable landmark (its state pending); returns the next free index. Passed the arrays it
-    reads of the scene (``null_cost``) and of its root's options (``options_for``'s first five),
-    not the tuples: an inlined step counts a reference to every array of the tuples it binds, per
-    partial explanation branched."""
-    o = obs[i]
-    part = slice(start[i], start[i + 1])
-    taken = taken_by(gen[7], gen[6], p)
-    landmarks, cost, z_hat, H = options_of(model, settings, gen[0][p], gen[1][p], taken, o, lm[part], all_cost[part], zh[part],
-                                           Hs[part], moved)
+def branch(null_cost, settings, gen, p, r, o, options, taken, start, lm, all_cost, moved, later, rest, children, at, c_root,
+           c_rest, c_moved, pending):
+    """Write the children of partial p (which has taken ``taken``) for observation o from index
+    ``at``: unassigned, or paired with a viable landmark of its ``options`` (``options_of``) (its
+    state pending); returns the next free index. Passed the arrays it reads of the scene
+    (``null_cost``) and of its root's options (``options_for``'s first three), not the tuples: an
+    inlined step counts a reference to every array of the tuples it binds, per partial explanation
+    branched."""
+    landmarks, cost, z_hat, H = options
     pairs, null = viable(taken, landmarks, cost, null_cost[o] + settings.null_offset, settings.branch_delta)
     null = null or contested(start, lm, all_cost, later, landmarks, pairs)
     if null:
@@ -786,12 +792,13 @@ def branch(null_cost, settings, gen, p, r, obs, start, lm, all_cost, zh, Hs, i, 
 # The run over the poses
 
 @inlined
-def predicted(scene, beam, n, k):
-    """The beam's first n hypotheses predicted to pose k (k > 0) with its odometry: same costs,
-    each remembering which it grew from, no pairs yet."""
+def predicted(T_increment, odom_cov, beam, n, k):
+    """The beam's first n hypotheses predicted to pose k (k > 0) with its odometry (the scene's
+    ``T_increment``, ``odom_cov``: not the scene, whose 31 arrays an inlined step counts as it
+    binds them): same costs, each remembering which it grew from, no pairs yet."""
     out = new_generation(n, ONE, beam[0].shape[1])
     for h in range(n):
-        x, P = predict(beam[0][h], beam[1][h], scene.T_increment[k - 1], scene.odom_cov[k - 1])
+        x, P = predict(beam[0][h], beam[1][h], T_increment[k - 1], odom_cov[k - 1])
         put_state(out, h, x, P)
         out[2][h], out[3][h] = beam[2][h], h
     return out
@@ -866,7 +873,7 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
     children, their count)."""
     for k in range(first, last):
         counters[1] = k
-        parents = predicted(scene, beam, n, k) if k > 0 else beam
+        parents = predicted(scene.T_increment, scene.odom_cov, beam, n, k) if k > 0 else beam
         obs = scene.pose_obs[scene.pose_obs_start[k]:scene.pose_obs_start[k + 1]]
         if obs.size == 0 or scene.grid_keys.size == 0:
             children, count, kept = parents, n, np.arange(n)
