@@ -729,18 +729,6 @@ def _against_null(recheck, row: float, steal: float, rival: float) -> bool:
     return not row > recheck.margin and (not np.isfinite(row) or (steal > recheck.steal_margin and not rival <= recheck.ray_margin))
 
 
-def _rechecks(localizer: "_Localizer", obs: np.ndarray) -> bool:
-    """Whether a pose's pairs (obs (p,), p >= 1) are re-checked: two or more, or a lone ray where
-    the candidates' distance is bounded. A lone pair judged without itself is judged by the prior
-    the beam chose it under, so the rules the beam applies too (the null option, another landmark,
-    another observation) say nothing new of it; a ray's rival landmarks (``ray_rival_margins``)
-    and its landmark's distance from the updated pose (``within_reach``) are what the beam does
-    not judge. The compiled twin is ``kernels.filtering.rechecks``."""
-    if obs.size >= 2:
-        return True
-    return bool(obs.size == 1 and measurement.is_ray(localizer.dataset.obs_kind[obs])[0] and np.isfinite(localizer.scene.max_distance))
-
-
 def _rechecked(localizer: "_Localizer", k: int, obs: np.ndarray, landmarks: np.ndarray, result: ekf.UpdateResult):
     """Pose k's pairs (obs, landmarks) after the re-check and their update (result: the update
     with all of them): ``_Localizer._recheck``'s drops, then the rays it dropped against leaving
@@ -881,11 +869,11 @@ class _Localizer:
                 start = self.updated(self.x, self.P, seed_obs, seed_landmark).state
         if obs.size:
             result = self.updated(self.x, self.P, obs, landmarks, map_cost=True, start=start)  # one stacked (iterated) update
-            # A lone pair is re-checked only where it is a ray with the reach bounded (``_rechecks``);
-            # after a slip, the widened prior leaves each pair's partners too little to confirm it
-            # by (a few pairs pin the pose only together), and dropping them would leave the filter
+            # A lone pair left out leaves the prior its association was already judged by; after a
+            # slip, the widened prior leaves each pair's partners too little to confirm it by (a
+            # few pairs pin the pose only together), and dropping them would leave the filter
             # metres wide where the beam's hypothesis went on from the slip's explanation.
-            if self.config.recheck.enabled and self.config.association != "oracle" and _rechecks(self, obs) and not slipped:
+            if self.config.recheck.enabled and self.config.association != "oracle" and obs.size >= 2 and not slipped:
                 obs, landmarks, result = _rechecked(self, k, obs, landmarks, result)
             if self.tag_orientations and obs.size:
                 # the pairs final, the orientations of their tags join them (camloc.tags): after

@@ -142,21 +142,6 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
 
 
 @inlined
-def rechecks(scene, obs):
-    """Whether a pose's pairs (obs (p,), p >= 1) are re-checked: two or more, or a lone ray where
-    the candidates' distance is bounded. A lone pair judged without itself is judged by the prior
-    the beam chose it under, so the rules the beam applies too (the null option, another landmark,
-    another observation) say nothing new of it; a ray's rival landmarks and its landmark's distance
-    from the updated pose are what the beam does not judge. The numpy twin is
-    ``camloc.localizer._rechecks``."""
-    if obs.size >= 2:
-        return True
-    if obs.size == 0 or not scene.view_limits.shape[0] > 6:
-        return False
-    return scene.camera_K[scene.obs_camera[obs[0]], 4] == PIXEL and scene.view_limits[6] < np.inf
-
-
-@inlined
 def within_reach(scene, x, pair_obs, pair_landmarks, reach):
     """Which pairs' landmarks lie within ``reach`` (``recheck``'s candidates' distance; inf: every
     one) of their camera at x (a planar sensor's: every one). The numpy twin is
@@ -237,9 +222,9 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             continue
         z_hat, H = predict_pairs(scene, x, obs, landmarks)
         result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start, TRUE)
-        # A lone pair is re-checked only where it is a ray with the reach bounded (``rechecks``);
-        # after a slip, the widened prior leaves each pair's partners too little to confirm it by
-        if settings.recheck and method == GIVEN and rechecks(scene, obs) and not slipped[k]:
+        # A lone pair left out leaves the prior its association was judged by; after a slip, the
+        # widened prior leaves each pair's partners too little to confirm it by
+        if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:
             obs, landmarks, result = rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result)
         if obs.size:
             x_post, P_post, nis_k, cost_k, y = result
