@@ -235,37 +235,23 @@ def assignment_margins(cost: np.ndarray, null_cost: np.ndarray, chosen: np.ndarr
     return row, steal
 
 
-def joint_cost(residuals: np.ndarray, H: np.ndarray, P: np.ndarray, R: np.ndarray, log_det_R: np.ndarray) -> float:
-    """The cost (d^2 + ln det S - sum ln det R, the beam's units) of pairs (residuals (d, 3) and
-    Jacobians (d, 3, n) at the state whose covariance is P) taken together: their stacked
-    innovation against ``S = H P H' + blockdiag(R)`` (R (d, 3, 3)). Of a linear model, the cost of
-    updating with them one after the other, each judged by the posterior of those before it."""
-    d, n = residuals.shape[0], P.shape[0]
-    Hs = H.reshape(3 * d, n)
-    S = Hs @ P @ Hs.T
-    for i in range(d):
-        S[3 * i:3 * i + 3, 3 * i:3 * i + 3] += R[i]
-    y = residuals.reshape(-1)
-    log_det_S = np.linalg.slogdet(S)[1]
-    return float(y @ np.linalg.solve(S, y) + log_det_S - log_det_R.sum())
-
-
-def restored_pairs(residuals: np.ndarray, H: np.ndarray, P: np.ndarray, R: np.ndarray, log_det_R: np.ndarray,
-                   null_cost: np.ndarray) -> np.ndarray:
+def restored_pairs(residuals: np.ndarray, H: np.ndarray, P: np.ndarray, R: np.ndarray, null_cost: np.ndarray) -> np.ndarray:
     """Which of the pairs the re-check dropped against leaving them unassigned to take back (d,):
-    the subset whose joint cost (``joint_cost``) under the posterior of the pairs kept (residuals
-    (d, 3), Jacobians (d, 3, n) at its state, P its covariance) plus the null costs of the rest is
+    the subset whose joint cost under the posterior of the pairs kept (residuals (d, 3), Jacobians
+    (d, 3, n) at its state, P its covariance, R (d, 3, 3) the noise association judges with: the
+    stacked ``ekf.innovation_cost``, as the beam's explanations) plus the null costs of the rest is
     least (none restored on a tie). The re-check judges each pair by the others' posterior
     linearized, and its costs stop at the gate: a right pair where the prior is off, or with a
     partner as doubtful as itself (two rays, one a camera), fails it whatever leaving it costs.
     More than ``RESTORE_LIMIT`` pairs: none. The compiled twin is ``kernels.recheck.restored_pairs``."""
-    d = residuals.shape[0]
+    d, n = residuals.shape[0], P.shape[0]
     best, best_mask = float(null_cost.sum()), 0
     if d > RESTORE_LIMIT:
         return np.zeros(d, dtype=bool)
     for mask in range(1, 1 << d):            # in increasing order, as the compiled twin
         chosen = np.array([(mask >> i) & 1 == 1 for i in range(d)])
-        total = joint_cost(residuals[chosen], H[chosen], P, R[chosen], log_det_R[chosen]) + float(null_cost[~chosen].sum())
+        total = (ekf.innovation_cost(P, H[chosen].reshape(-1, n), R[chosen], residuals[chosen].reshape(-1))
+                 + float(null_cost[~chosen].sum()))
         if total < best:
             best, best_mask = total, mask
     return np.array([(best_mask >> i) & 1 == 1 for i in range(d)])

@@ -749,7 +749,7 @@ def _rechecked(localizer: "_Localizer", k: int, obs: np.ndarray, landmarks: np.n
     z_hat, H = stacked.measurement_function(obs[weighed], landmarks[weighed])[1](x_kept)
     o = obs[weighed]
     restore = association.restored_pairs(localizer.dataset.obs_z[o] - z_hat.reshape(-1, 3), H.reshape(o.size, 3, -1), P_kept,
-                                         stacked.association_cov[o], stacked.association_log_det[o], stacked.null_cost[o])
+                                         stacked.association_cov[o], stacked.null_cost[o])
     if not restore.any():
         return obs[keep], landmarks[keep], result
     keep[weighed[restore]] = True

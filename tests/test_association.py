@@ -358,33 +358,19 @@ def test_every_per_pose_method_pairs_rightly_from_the_true_state(association, se
 def _linear_pairs(rng, d):
     H = rng.normal(0, 1, (d, 3, 6))
     R = np.stack([np.diag(rng.uniform(0.01, 0.05, 3)) for _ in range(d)])
-    return H, R, np.linalg.slogdet(R)[1]
-
-
-def test_joint_cost_is_the_pairs_one_after_another(rng):
-    """Of a linear model, the joint cost of two pairs is the first's under the prior plus the
-    second's under the posterior after the first (the chain rule of the likelihood)."""
-    H, R, log_det = _linear_pairs(rng, 2)
-    P = np.diag(rng.uniform(0.01, 0.1, 6))
-    y = rng.normal(0, 0.3, (2, 3))
-    first = association.joint_cost(y[:1], H[:1], P, R[:1], log_det[:1])
-    S = H[0] @ P @ H[0].T + R[0]
-    K = P @ H[0].T @ np.linalg.inv(S)
-    P_after, y_after = P - K @ H[0] @ P, y[1] - H[1] @ (K @ y[0])
-    second = association.joint_cost(y_after[None], H[1:], P_after, R[1:], log_det[1:])
-    assert association.joint_cost(y, H, P, R, log_det) == pytest.approx(first + second, rel=1e-9)
+    return H, R
 
 
 def test_restored_pairs_takes_back_what_fits_and_leaves_what_does_not(rng):
     """Pairs whose residuals one error of the state explains together are taken back against
     their null costs; one off by far more stays out; over RESTORE_LIMIT pairs none is weighed."""
-    H, R, log_det = _linear_pairs(rng, 3)
+    H, R = _linear_pairs(rng, 3)
     P = np.diag(np.full(6, 0.05))
     error = rng.normal(0, 0.2, 6)                     # the state the pairs' posterior left off
     y = np.einsum("dij,j->di", H, error)
     y[2] += 5.0                                       # clutter: no state explains it
     null = np.full(3, 12.0)
-    np.testing.assert_array_equal(association.restored_pairs(y, H, P, R, log_det, null), [True, True, False])
+    np.testing.assert_array_equal(association.restored_pairs(y, H, P, R, null), [True, True, False])
     many = association.RESTORE_LIMIT + 1
-    H, R, log_det = _linear_pairs(rng, many)
-    assert not association.restored_pairs(np.zeros((many, 3)), H, P, R, log_det, np.full(many, 12.0)).any()
+    H, R = _linear_pairs(rng, many)
+    assert not association.restored_pairs(np.zeros((many, 3)), H, P, R, np.full(many, 12.0)).any()

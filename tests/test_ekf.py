@@ -159,6 +159,21 @@ def test_the_innovation_cost_and_correction_match_the_textbook_ones(rng):
         y[:3] @ np.linalg.solve(S[:3, :3], y[:3]) + np.linalg.slogdet(S[:3, :3])[1] - np.linalg.slogdet(blocks[0])[1], rel=1e-10)
 
 
+def test_the_innovation_cost_of_pairs_together_is_theirs_one_after_another(rng):
+    """Of a linear model, the cost of three pairs stacked (9 rows: the information form) is the
+    first's under the prior plus the other two's (6 rows: the textbook form) under the posterior
+    after the first: the chain rule of the likelihood, which the re-check's restore relies on."""
+    H = rng.normal(0, 1, (3, 3, 6))
+    R = np.stack([np.diag(rng.uniform(0.01, 0.05, 3)) for _ in range(3)])
+    P = np.diag(rng.uniform(0.01, 0.1, 6))
+    y = rng.normal(0, 0.3, (3, 3))
+    first = ekf.innovation_cost(P, H[0], R[:1], y[0])
+    K = P @ H[0].T @ np.linalg.inv(H[0] @ P @ H[0].T + R[0])
+    P_after, y_after = P - K @ H[0] @ P, y[1:] - H[1:] @ (K @ y[0])
+    rest = ekf.innovation_cost(P_after, H[1:].reshape(6, 6), R[1:], y_after.reshape(-1))
+    assert ekf.innovation_cost(P, H.reshape(9, 6), R, y.reshape(-1)) == pytest.approx(first + rest, rel=1e-9)
+
+
 def test_given_inverses_of_the_blocks_give_the_same_update(rng):
     # the localizer passes the file's information matrices instead of having the blocks inverted
     x, P, blocks, H, z = _block_system(rng)

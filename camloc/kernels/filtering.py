@@ -128,7 +128,7 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
         return kept_obs, kept_landmarks, result
     weighed_obs = obs[weighed]
     z_hat, H = predict_pairs(scene, x_kept, weighed_obs, landmarks[weighed])
-    restore = restored_pairs(scene.z[weighed_obs] - z_hat, H, P_kept, scene.R_assoc[weighed_obs], scene.log_det_R[weighed_obs],
+    restore = restored_pairs(scene.z[weighed_obs] - z_hat, H, P_kept, scene.R_assoc[weighed_obs], scene.R_assoc_inverse[weighed_obs],
                              scene.null_cost[weighed_obs])
     if not restore.any():
         return kept_obs, kept_landmarks, result

@@ -22,8 +22,9 @@ from camloc.constants import NEGLIGIBLE_MARGIN, RESTORE_LIMIT
 from camloc.kernels._jit import inlined, jit
 from camloc.kernels.camera import observe_pairs
 from camloc.kernels.planar import onto_measured_branch, wrapped_residual
-from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm, mtm, mv, solve
+from camloc.kernels.small import mm, mtm, mv, solve
 from camloc.kernels.sym3 import innovation_mahalanobis, inverse_components, mahalanobis, mahalanobis_components, spread
+from camloc.kernels.update import innovation_cost
 
 
 @inlined
@@ -147,45 +148,10 @@ def rival_margins(cost, chosen):
 
 
 @jit
-def joint_cost(residuals, H, P, R, log_det_R, chosen):
-    """``camloc.association.joint_cost`` of the pairs where chosen (d,) is true."""
-    d, n = residuals.shape[0], P.shape[0]
-    rows = np.empty(3 * d, np.int64)
-    k = 0
-    log_det_total = 0.0
-    for i in range(d):
-        if chosen[i]:
-            for a in range(3):
-                rows[k] = 3 * i + a
-                k += 1
-            log_det_total += log_det_R[i]
-    S = np.zeros((k, k))
-    y = np.empty((k, 1))
-    for r in range(k):
-        i, a = rows[r] // 3, rows[r] % 3
-        y[r, 0] = residuals[i, a]
-        for c in range(k):
-            j, b = rows[c] // 3, rows[c] % 3
-            total = 0.0                     # H_i P H_j' entry (a, b)
-            for u in range(n):
-                for v in range(n):
-                    total += H[i, a, u] * P[u, v] * H[j, b, v]
-            S[r, c] = total + (R[i, a, b] if i == j else 0.0)
-    pivots = np.empty(k, np.int64)
-    M = S.copy()
-    lu_factor(M, pivots)
-    w = y.copy()
-    lu_solve(M, pivots, w)
-    d2 = 0.0
-    for r in range(k):
-        d2 += y[r, 0] * w[r, 0]
-    return d2 + lu_log_det(M, pivots)[1] - log_det_total
-
-
-@jit
-def restored_pairs(residuals, H, P, R, log_det_R, null_cost):
+def restored_pairs(residuals, H, P, R, R_inverse, null_cost):
     """Which of the pairs the re-check dropped against leaving them unassigned to take back (d,):
-    ``camloc.association.restored_pairs``, the subsets in the same order."""
+    ``camloc.association.restored_pairs``, the subsets in the same order, each's joint cost the
+    stacked ``update.innovation_cost`` as the beam's explanations."""
     d = residuals.shape[0]
     best, best_mask = 0.0, 0
     for i in range(d):
@@ -193,14 +159,17 @@ def restored_pairs(residuals, H, P, R, log_det_R, null_cost):
     restore = np.zeros(d, np.bool_)
     if d > RESTORE_LIMIT:
         return restore
-    chosen = np.zeros(d, np.bool_)
+    chosen = np.empty(d, np.int64)
     for mask in range(1, 1 << d):
-        rest = 0.0
+        k, rest = 0, 0.0
         for i in range(d):
-            chosen[i] = (mask >> i) & 1 == 1
-            if not chosen[i]:
+            if (mask >> i) & 1 == 1:
+                chosen[k] = i
+                k += 1
+            else:
                 rest += null_cost[i]
-        total = joint_cost(residuals, H, P, R, log_det_R, chosen) + rest
+        subset = chosen[:k]
+        total = innovation_cost(P, H[subset], R[subset], R_inverse[subset], residuals[subset]) + rest
         if total < best:
             best, best_mask = total, mask
     for i in range(d):
