@@ -99,7 +99,10 @@ jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTI
 # count; ``inlined`` tiny per-candidate leaves (``as_point``, ``is_taken``) made the beam 4% slower.
 # A scratch array passed down, or a view of one, is counted as an allocated one costs (17 against
 # 14 ns): a work handed through the update's calls cut the allocations a pose 3,350 -> 1,494 and ran
-# 3-6% slower. What pays is fewer arrays passed to a non-inlined call (``types.PairModel``).
+# 3-6% slower. What pays is fewer arrays passed to a non-inlined call (``types.PairModel``), and
+# to an inlined step in a hot loop: ``explain_all``'s counts were mostly its inlined steps binding
+# whole tuples (the scene's 31 arrays, a generation's 8) per partial explanation; passed the arrays
+# they read, the 20k pixel world ran 10% faster (docs/performance.md, 2026-12-06, "The beam's bookkeeping").
 inlined = partial(numba.njit, inline="always", **OPTIONS)
 
 _FROM_PYTHON: dict = {}
