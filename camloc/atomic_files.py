@@ -69,7 +69,18 @@ def make_folder(folder: str | Path) -> None:
     try:
         Path(folder).mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise CamlocError(f"cannot create the folder {folder}: {error.strerror or error}") from None
+        blocker = _file_in_the_way(Path(folder))
+        reason = f"{blocker} is a file, not a folder" if blocker is not None else error.strerror or error
+        raise CamlocError(f"cannot create the folder {folder}: {reason}") from None
+
+
+def _file_in_the_way(folder: Path) -> Path | None:
+    """The nearest of ``folder`` and its parents that exists and is not a folder (whose "File
+    exists" or "Not a directory" alone does not say which path is in the way), or None."""
+    for candidate in (folder, *folder.parents):
+        if candidate.exists():
+            return None if candidate.is_dir() else candidate
+    return None
 
 
 def refuse_existing(path: str | Path, *, force: bool) -> None:
@@ -85,10 +96,26 @@ def refuse_existing(path: str | Path, *, force: bool) -> None:
         raise CamlocError(f"{path}: already exists; refusing to replace it without --force")
 
 
+def refuse_existing_file(path: str | Path, *, force: bool) -> None:
+    """``refuse_existing`` for an output file: a folder in its place is refused first, with
+    ``force`` or without (a file cannot replace a folder, and ``--force`` would not help).
+
+    Raises
+    ------
+    CamlocError : ``<path>: is a folder; ...``, or ``refuse_existing``'s.
+    """
+    if Path(path).is_dir():
+        raise CamlocError(f"{path}: {FOLDER_FOR_A_FILE}")
+    refuse_existing(path, force=force)
+
+
+FOLDER_FOR_A_FILE = "is a folder; expected the path of a file to write"
+
+
 def _temporary_sibling(path: Path) -> Path:
     """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
     if path.is_dir():  # a file cannot replace a folder, even with --force
-        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
+        raise CamlocError(f"{path}: {FOLDER_FOR_A_FILE}")
     make_folder(path.parent)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

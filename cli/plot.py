@@ -100,7 +100,7 @@ def plot(
 
 def _check_output(output: Optional[Path], force: bool) -> None:
     """Refuse an --output that is no figure file or exists (without --force)."""
-    from camloc.atomic_files import refuse_existing
+    from camloc.atomic_files import refuse_existing_file
     from camloc.results import FIGURE_FORMATS
 
     if output is None:
@@ -109,7 +109,7 @@ def _check_output(output: Optional[Path], force: bool) -> None:
         raise ConfigError(
             f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
         )
-    refuse_existing(output, force=force)
+    refuse_existing_file(output, force=force)
 
 
 def _map_view(result, true_map: Optional[Path]):
