@@ -267,6 +267,24 @@ def dataset_argument(text: str, *, required: bool = True) -> Any:
     return typer.Argument(... if required else None, metavar=DATASET, help=text, show_default=False)
 
 
+def read_true_map(path: Any, run: Any) -> Any:
+    """The g2o file ``path`` given as ``--true-map`` of the run ``run`` (a ``RunResult``): read
+    without its warnings (its map alone is used), and refused unless it is the run's world (its
+    poses, odometry and observations), whose map may differ from the run's: the true map of
+    another world was scored and drawn without a word, its ids meaning other landmarks."""
+    import warnings
+
+    from camloc.g2o import G2oWarning, read_g2o
+    from camloc.smoother import check_run_matches
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", G2oWarning)
+        truth = read_g2o(path)
+    check_run_matches(truth, run, with_map=False, hint="expected the true map of the world the run was made from "
+                      "('camloc simulate' writes it beside the world, <stem>.true-map.g2o)")
+    return truth
+
+
 def echo_json(obj: Any, *, enabled: bool) -> bool:
     """Print ``obj`` as strict JSON on stdout when ``enabled`` (``--json``); True when printed."""
     if enabled:
