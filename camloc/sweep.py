@@ -702,9 +702,11 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
     if not cells:
         return
     workers = min(workers or default_workers(), len(cells))
+    others = set(multiprocessing.active_children())  # a caller's own, never stopped here
     # spawn: a clean interpreter per worker, whatever threads this process runs (a progress bar).
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=warm_up)
+    started: list = []
     try:
         # The workers are spawned by the submissions, and inherit SIGINT blocked from here: a
         # Ctrl-C (which a terminal sends to every process of the group) is the parent's alone.
@@ -712,6 +714,7 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
         # and the pool's shutdown could then wait for ever (2 Ctrl-C in 10 hung, 2026-12-06).
         with _interrupts_held():
             futures = {pool.submit(run_cell, cell): cell for cell in cells}
+            started = [child for child in multiprocessing.active_children() if child not in others]
         for future in as_completed(futures):
             try:
                 result = future.result()
@@ -723,7 +726,7 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
         # Interrupted, or stopped by the caller: the running cells' rows would not be kept, so
         # their workers are stopped rather than waited for; pending cells are dropped.
         pool.shutdown(wait=False, cancel_futures=True)
-        _stop_workers()
+        _stop(started)
         raise
     pool.shutdown(wait=True)
 
@@ -742,14 +745,12 @@ def _interrupts_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
-def _stop_workers() -> None:
-    """Terminate this process's worker processes (the pool's: a sweep starts no other) and
-    wait for them."""
-    children = multiprocessing.active_children()
-    for child in children:
-        child.terminate()
-    for child in children:
-        child.join()
+def _stop(processes: list) -> None:
+    """Terminate the pool's worker ``processes`` and wait for them."""
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join()
 
 
 def dask_results(cells: list[Cell], client) -> Iterator[tuple[Cell, dict]]:
