@@ -104,9 +104,25 @@ def refuse_existing_file(path: str | Path, *, force: bool) -> None:
     ------
     CamlocError : ``<path>: is a folder; ...``, or ``refuse_existing``'s.
     """
-    if Path(path).is_dir():
-        raise CamlocError(f"{path}: {FOLDER_FOR_A_FILE}")
+    check_replaceable(path)
     refuse_existing(path, force=force)
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Refuse an output file's path where a folder, a device, a pipe or a socket is: a file renamed
+    onto it would replace it, with ``--force`` or without (run as root, ``-o /dev/null`` replaced
+    the system's null device with a regular file).
+
+    Raises
+    ------
+    CamlocError : ``<path>: is a folder; ...`` or ``<path>: is a device, a pipe or a socket; ...``.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise CamlocError(f"{path}: {FOLDER_FOR_A_FILE}")
+    if path.exists() and not path.is_file():
+        raise CamlocError(f"{path}: is a device, a pipe or a socket, which camloc never replaces; expected the path "
+                          "of a file to write")
 
 
 FOLDER_FOR_A_FILE = "is a folder; expected the path of a file to write"
@@ -114,8 +130,7 @@ FOLDER_FOR_A_FILE = "is a folder; expected the path of a file to write"
 
 def _temporary_sibling(path: Path) -> Path:
     """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
-    if path.is_dir():  # a file cannot replace a folder, even with --force
-        raise CamlocError(f"{path}: {FOLDER_FOR_A_FILE}")
+    check_replaceable(path)  # a file cannot replace a folder or a device, even with --force
     make_folder(path.parent)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

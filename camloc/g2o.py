@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import geometry, measurement, planar, sym3
-from camloc.atomic_files import make_folder
+from camloc.atomic_files import check_replaceable, make_folder
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -1035,8 +1035,7 @@ def _observation_records(dataset: Dataset) -> list[str]:
 
 def _write_atomically(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all: a temporary sibling, then ``os.replace``."""
-    if path.is_dir():  # a file cannot replace a folder
-        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
+    check_replaceable(path)  # a file cannot replace a folder or a device
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         # os.open with mode 0o666 lets the umask decide the permissions, as a plain open() would.

@@ -434,3 +434,23 @@ def test_a_folder_that_cannot_be_made_names_the_file_in_the_way(tmp_path, world)
     blocker.write_text("mine")
     assert_one_error_line(invoke("run", dataset, "-o", blocker / "deeper" / "run"),
                           f"cannot create the folder {blocker / 'deeper'}: {blocker} is a file, not a folder")
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a named pipe")
+def test_a_device_or_pipe_given_for_an_output_file_is_never_replaced(tmp_path, world):
+    """Run as root, 'camloc simulate -o /dev/null --force' replaced the system's null device with
+    a regular file (found 2026-12-06, and put back); a named pipe stands in for the device here."""
+    import stat
+
+    from camloc.errors import CamlocError
+
+    _, run_dir = world
+    for name in ("w.g2o", "report.png"):
+        os.mkfifo(tmp_path / name)
+    for args in (["simulate", "-o", tmp_path / "w.g2o", "--poses", "5"], ["plot", run_dir, "-o", tmp_path / "report.png"]):
+        for force in ([], ["--force"]):
+            assert_one_error_line(invoke(*args, *force), "is a device, a pipe or a socket, which camloc never replaces")
+    with pytest.raises(CamlocError, match="is a device, a pipe or a socket"):
+        write_g2o(simulate(SimulationConfig(poses=5), seed=1), tmp_path / "w.g2o")
+    assert all(stat.S_ISFIFO((tmp_path / name).stat().st_mode) for name in ("w.g2o", "report.png"))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["report.png", "w.g2o"]  # no temporary left
