@@ -108,10 +108,7 @@ def jcbb(
     if seed and len(seed) == n:
         nis = joint_nis(seed, y_all, H, P, R_obs, orientations)
         if nis <= bound(seed):
-            assignment = np.full(n, -1, dtype=np.int64)
-            for i, j in seed:
-                assignment[i] = j
-            return JcbbResult(assignment, nis, 1, True)
+            return JcbbResult(_assignment(n, seed), nis, 1, True)
 
     order = np.argsort(compatible.sum(axis=1), kind="stable")  # fewest options first: cheap cuts
     # Within an observation, try the individually closest landmark first: the search then meets a
@@ -147,7 +144,12 @@ def jcbb(
             search(depth + 1, pairs, used, nis)
 
     search(0, [], set(), 0.0)
+    return JcbbResult(_assignment(n, best["pairs"]), float(best["nis"]), nodes, exhausted)
+
+
+def _assignment(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(n,) the candidate of each of n observations in ``pairs``, -1 where it has none."""
     assignment = np.full(n, -1, dtype=np.int64)
-    for i, j in best["pairs"]:
+    for i, j in pairs:
         assignment[i] = j
-    return JcbbResult(assignment, float(best["nis"]), nodes, exhausted)
+    return assignment
