@@ -29,7 +29,8 @@ from camloc.constants import RESTORE_LIMIT
 # import is 0.5 s of CPU on that machine (1.5% of such a first run), stays unloaded. Past it the
 # strip holds too many points (twice the tree's time at 16,384 landmarks of the same density).
 STRIP_MAX_POINTS = 8192
-# shift_agreement compares every pair of shifts directly up to this many (an n x n table).
+# shift_agreement compares every pair of shifts directly up to this many (an n x n table), and
+# more in blocks of this many.
 SCAN_MAX_SHIFTS = 256
 
 
@@ -122,14 +123,28 @@ def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:
     shifts : (N, 3) the shift each pair implies; radius : how close two shifts must be to agree.
     Returns (N,) counts.
     """
-    if shifts.shape[0] == 0:
-        return np.zeros(0, dtype=np.int64)
     if shifts.shape[0] <= SCAN_MAX_SHIFTS:
-        offset = shifts[:, None, :] - shifts[None, :, :]
-        return np.count_nonzero(np.einsum("ijk,ijk->ij", offset, offset) <= radius * radius, axis=1).astype(np.int64)
-    from scipy.spatial import cKDTree
+        return _agreeing(shifts, shifts, radius)
+    # more: the shifts sorted along their widest axis, each block of SCAN_MAX_SHIFTS compared with
+    # the slab of that axis within the radius of it (no scipy import, as ``PointIndex``)
+    axis = int(np.argmax(np.ptp(shifts, axis=0)))
+    order = np.argsort(shifts[:, axis], kind="stable")
+    ordered = shifts[order]
+    keys = ordered[:, axis]
+    reach = radius + (float(np.abs(keys).max()) + radius) * 1e-9  # a hair wider: the distance test decides
+    counts = np.empty(shifts.shape[0], dtype=np.int64)
+    for start in range(0, shifts.shape[0], SCAN_MAX_SHIFTS):
+        block = ordered[start : start + SCAN_MAX_SHIFTS]
+        low = int(np.searchsorted(keys, block[0, axis] - reach, side="left"))
+        high = int(np.searchsorted(keys, block[-1, axis] + reach, side="right"))
+        counts[order[start : start + SCAN_MAX_SHIFTS]] = _agreeing(block, ordered[low:high], radius)
+    return counts
 
-    return np.asarray(cKDTree(shifts).query_ball_point(shifts, radius, return_length=True), dtype=np.int64)
+
+def _agreeing(shifts: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) how many of ``others`` (M, 3) lie within ``radius`` of each of ``shifts`` (N, 3)."""
+    offset = shifts[:, None, :] - others[None, :, :]
+    return np.count_nonzero(np.einsum("ijk,ijk->ij", offset, offset) <= radius * radius, axis=1).astype(np.int64)
 
 
 def view_cone_ball(apex: np.ndarray, axis: np.ndarray, depth: float, half_angle_rad: float) -> tuple[np.ndarray, float]:

@@ -55,14 +55,14 @@ def test_a_point_index_finds_exactly_the_points_within_a_ball(rng, size):
     assert association.PointIndex(np.zeros((0, 3))).within(np.zeros(3), 1.0).dtype == np.int64
 
 
-def test_shift_agreement_counts_the_same_by_scan_and_by_k_d_tree(rng):
-    shifts = rng.normal(scale=0.3, size=(association.SCAN_MAX_SHIFTS + 40, 3))
-    by_tree = association.shift_agreement(shifts, 0.2)
-    by_scan = association.shift_agreement(shifts[:association.SCAN_MAX_SHIFTS], 0.2)
+@pytest.mark.parametrize("size", [association.SCAN_MAX_SHIFTS, association.SCAN_MAX_SHIFTS + 40, 3 * association.SCAN_MAX_SHIFTS + 7],
+                         ids=["one table", "two blocks", "four blocks"])
+def test_shift_agreement_counts_every_shift_within_the_radius(rng, size):
+    shifts = rng.normal(scale=0.3, size=(size, 3)) * [0.5, 2.0, 1.0]  # widest along y: the blocks' axis
+    counts = association.shift_agreement(shifts, 0.2)
     distances = np.linalg.norm(shifts[:, None, :] - shifts[None, :, :], axis=-1)
-    np.testing.assert_array_equal(by_tree, (distances <= 0.2).sum(axis=1))
-    np.testing.assert_array_equal(by_scan, (distances[:association.SCAN_MAX_SHIFTS, :association.SCAN_MAX_SHIFTS] <= 0.2).sum(axis=1))
-    assert by_tree.min() >= 1 and by_tree.max() > 5
+    np.testing.assert_array_equal(counts, (distances <= 0.2).sum(axis=1))
+    assert counts.dtype == np.int64 and counts.min() >= 1 and counts.max() > 5
 
 
 def test_shift_agreement_counts_the_crowd_of_right_pairs(rng):
