@@ -2,8 +2,8 @@
 
 Pipeline for one camera at one pose:
 1. ``candidate_indices``: map landmarks in front of the camera within the depth range (and distance), found through
-   a ``PointIndex`` of the map (a k-d tree: cost independent of the map's size beyond the local
-   density; a scan of a small map);
+   a ``PointIndex`` of the map (the slab of a map sorted along its widest axis, a k-d tree over a
+   large map);
 2. ``pair_statistics``: for every (observation, candidate) pair, the squared Mahalanobis distance of
    the innovation and the pair's negative log-likelihood ``d^2 + ln det S``;
 3. ``best_friends``: keep a pair only when each is the other's cheapest, the pair passes the chi^2
