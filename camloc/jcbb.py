@@ -75,6 +75,7 @@ def jcbb(
     seed: list[tuple[int, int]] | None = None,
     dof: np.ndarray | None = None,
     orientations: dict | None = None,
+    landmark_of: np.ndarray | None = None,
 ) -> JcbbResult:
     """The largest jointly compatible set of pairs.
 
@@ -91,10 +92,14 @@ def jcbb(
     dof : (n,) each observation's degrees of freedom (``camloc.measurement``: its rows beyond
         them are inert); None: 3 each.
     orientations : the orientation rows of tag pairs (``joint_nis``), 3 more dof each.
+    landmark_of : (m,) the landmark each candidate is, where one landmark is several candidates
+        (a candidate of each sensor that may see it: a camera of depth and pixel records is two
+        sensors); a landmark is paired once. None: each candidate a landmark of its own.
     """
     n = compatible.shape[0]
     dof = np.full(n, 3, dtype=np.int64) if dof is None else np.asarray(dof, dtype=np.int64)
     orientations = orientations or {}
+    landmark_of = np.arange(compatible.shape[1]) if landmark_of is None else np.asarray(landmark_of)
     bounds = chi2_quantile(np.arange(1, 6 * n + 1), 1.0 - probability)  # chi^2 quantiles by total dof
 
     def bound(pairs: list) -> float:
@@ -127,7 +132,7 @@ def jcbb(
             return
         i = int(order[depth])
         for j in tries[i]:
-            if int(j) in used:
+            if int(landmark_of[j]) in used:
                 continue
             if nodes >= max_nodes:
                 exhausted = False
@@ -136,7 +141,7 @@ def jcbb(
             trial = pairs + [(i, int(j))]
             trial_nis = joint_nis(trial, y_all, H, P, R_obs, orientations)
             if trial_nis <= bound(trial):
-                search(depth + 1, trial, used | {int(j)}, trial_nis)
+                search(depth + 1, trial, used | {int(landmark_of[j])}, trial_nis)
         # leave observation i unpaired, if pairing all the rest could still beat the best set
         if len(pairs) + (n - depth - 1) > len(best["pairs"]):
             search(depth + 1, pairs, used, nis)
