@@ -343,8 +343,11 @@ def _group_lines(path: Path, text: str) -> dict[str, _Lines]:
     """Records grouped by tag, in order of first appearance; blank and ``#`` lines dropped."""
     groups: dict[str, _Lines] = {tag: _Lines() for tag in _LAYOUTS}
     has_comments = "#" in text  # a file without any skips the search on every line
-    if "\n" not in text:  # classic Mac OS line ends, a carriage return alone
-        text = text.replace("\r", "\n")
+    if "\r" in text:
+        # every line end a line end, as Python's universal newlines and editors count them: CRLF,
+        # and a carriage return alone (classic Mac OS, or one pasted into an LF file, whose two
+        # records would otherwise be read as one line of too many fields)
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
     # split("\n") rather than splitlines(): the latter also breaks at \v, \f, \x1c... and would
     # make line numbers disagree with an editor's.
     for number, line in enumerate(text.split("\n"), start=1):
