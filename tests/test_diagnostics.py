@@ -247,3 +247,24 @@ def test_a_tag_file_without_a_map_is_mapped_and_not_warned_about(tmp_path):
     summary = json.loads(result.output)
     assert summary["map"]["mode"] == "none" and summary["map"]["added"] >= 1
     assert not any("camloc maps (EKF-SLAM) only" in w or "the map may lack" in w for w in summary["warnings"])
+
+
+def test_a_lost_run_on_a_complete_clutter_free_map_is_not_blamed_on_the_map_alone(tmp_path):
+    """The audit of 2026-12-06's world: a complete map and no clutter, two detections a pose, a pixel
+    camera beside a depth one and 3x odometry noise. The beam loses the robot (1.66 m against the
+    true association's 0.11 m), and the landmarks it then rejects read as an incomplete map's; the
+    warning named only the map and clutter, neither of which this world has."""
+    path = tmp_path / "lost.g2o"
+    made = invoke("simulate", "-o", path, "-q", "--poses", 80, "--seed", 748, "--trajectory", "smooth3d", "--cameras", 2,
+                  "--measurement", "depth,pixel", "--intrinsics", "pixel", "--max-observations-per-pose", 2,
+                  "--odometry-sigma-scale", 3.0, "--observe-first-pose", "--fov-half-angle-deg", 25.0)
+    assert made.exit_code == 0, made.output
+    run_dir = tmp_path / "run"
+    outcome = invoke("run", path, "-o", run_dir, "-q")
+    assert outcome.exit_code == 0, outcome.output
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["association"]["clutter"] == 0  # every detection is of a map landmark
+    assert summary["association"]["precision"] < 0.6 and summary["estimate"]["ate"]["rmse"] > 1.0  # lost
+    (warning,) = [w for w in summary["warnings"] if "were rejected" in w]
+    assert "the map may lack landmarks" in warning and "the filter lost the robot" in warning
+    assert "compare the estimate with odometry's" in warning
