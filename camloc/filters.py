@@ -25,6 +25,20 @@ from camloc.measurement import DEPTH, PLANAR_KINDS, TAG_ROTATION
 SINGULARITY_WARNING_DEG = 80.0
 
 
+def rotation_pitch_deg(pitch: np.ndarray) -> np.ndarray:
+    """The pitch, degrees in [-90, 90], of the rotation an Euler state's pitch (radians) gives: an
+    update can carry the state's angle past +-90 deg (the same rotation as 180 deg minus it, roll and
+    yaw turned half a turn), where its own value no longer says how near the singularity it is
+    (the audit of 2026-12-06: a state's -218.9 deg, a rotation pitched 38.9 deg, was warned of)."""
+    return np.degrees(np.arcsin(np.clip(np.sin(pitch), -1.0, 1.0)))
+
+
+def near_singularity_deg(pitch: np.ndarray) -> np.ndarray:
+    """Whether each Euler state pitch (radians) puts the rotation within ``90 -
+    SINGULARITY_WARNING_DEG`` degrees of the singularity at +-90 deg."""
+    return np.abs(rotation_pitch_deg(pitch)) > SINGULARITY_WARNING_DEG
+
+
 class EulerFilter:
     """State (x, y, z, roll, pitch, yaw), ``R = Rz(yaw) Ry(pitch) Rx(roll)``; additive updates."""
 
@@ -82,9 +96,8 @@ class EulerFilter:
         return _symmetric(J @ covs @ np.swapaxes(J, 1, 2))
 
     def near_singularity(self, x: np.ndarray) -> float | None:
-        """The pitch in degrees when it is close to +-90 deg, else None."""
-        pitch = float(np.degrees(x[4]))
-        return pitch if abs(pitch) > SINGULARITY_WARNING_DEG else None
+        """The rotation's pitch in degrees (``rotation_pitch_deg``) when it is close to +-90 deg, else None."""
+        return float(rotation_pitch_deg(x[4])) if near_singularity_deg(x[4]) else None
 
 
 class SE3Filter:

@@ -27,7 +27,7 @@ from camloc.observation_space import (candidate_distance, candidate_range, detec
                                       with_map_uncertainty)
 from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
-from camloc.filters import SINGULARITY_WARNING_DEG, make_filter
+from camloc.filters import make_filter, near_singularity_deg, rotation_pitch_deg
 from camloc.dataset import Dataset, first_poses
 from camloc.constants import RESTORE_LIMIT
 from camloc.errors import ConfigError
@@ -649,10 +649,10 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
             T = T @ increments[k - 1]
         odometry[k] = T
     warnings = []
-    near = np.flatnonzero(np.degrees(np.abs(states[:, 4])) > SINGULARITY_WARNING_DEG) if model.name == "euler" else np.zeros(0, int)
+    near = np.flatnonzero(near_singularity_deg(states[:, 4])) if model.name == "euler" else np.zeros(0, int)
     if near.size:
         k = int(near[0])
-        warnings.append(f"pose {int(dataset.pose_ids[k])}: pitch {np.degrees(states[k, 4]):.1f} deg is close to the Euler filter's "
+        warnings.append(f"pose {int(dataset.pose_ids[k])}: pitch {float(rotation_pitch_deg(states[k, 4])):.1f} deg is close to the Euler filter's "
                         "singularity at +-90 deg; its estimate may degrade from here (--filter se3 has no singularity)")
     landmark = np.where(chosen >= 0, dataset.landmark_ids[np.maximum(chosen, 0)] if dataset.landmark_ids.size else UNASSOCIATED, UNASSOCIATED)
     return build_result(

@@ -178,6 +178,25 @@ def test_warns_near_the_euler_singularity():
     assert [w for w in compiled.summary["warnings"] if "singularity" in w] == [w for w in result.summary["warnings"] if "singularity" in w]
 
 
+@pytest.mark.parametrize("state_pitch_deg, warned", [(-95.0, -85.0), (95.0, 85.0), (-218.9, None), (170.0, None), (-60.0, None)])
+def test_the_singularity_is_judged_by_the_rotations_pitch_not_the_states_angle(state_pitch_deg, warned):
+    """An update can carry the Euler state's pitch past +-90 deg (the audit of 2026-12-06: a lost
+    run's -218.9 deg, warned of as near the singularity). The same rotation is pitched 180 deg
+    minus it, which is what says how near the singularity the filter is."""
+    from scipy.spatial.transform import Rotation
+
+    from camloc.filters import EulerFilter
+
+    model = EulerFilter()
+    x = np.array([0.0, 0.0, 0.0, 0.3, np.radians(state_pitch_deg), -1.2])
+    pitch = Rotation.from_matrix(model.pose(x)[:3, :3]).as_euler("ZYX", degrees=True)[1]
+    found = model.near_singularity(x)
+    if warned is None:
+        assert found is None and abs(pitch) < 80.0
+    else:
+        assert found == pytest.approx(warned) == pytest.approx(pitch)
+
+
 def test_pose_covariance_matches_euler_covariance_by_sampling(rng):
     from camloc.filters import EulerFilter
 
