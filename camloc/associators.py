@@ -100,6 +100,17 @@ class AssociationScene:
             within[n] = np.linalg.norm(self.dataset.landmark_xyz[pair_landmarks[n]] - centre) <= self.max_distance
         return within
 
+    def in_front(self, x: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray) -> np.ndarray:
+        """Which pairs' landmarks lie in front of their camera at x (depth > 0; a planar sensor's:
+        every one): (p,) bool. Behind the camera a projection's Jacobian grows as 1/depth^2, and so
+        does the S of the pair's gate, which then passes a prediction nowhere near its observation
+        (the audit of 2026-12-06). The kernels' twin is ``kernels.filtering.in_front``."""
+        front = np.ones(pair_obs.size, dtype=bool)
+        for n in np.flatnonzero(~measurement.is_planar(self.dataset.obs_kind[pair_obs])):
+            T_world_camera = self.filter.pose(x) @ self.cameras[int(self.obs_sensor[pair_obs[n]])].T_robot_camera
+            front[n] = (self.dataset.landmark_xyz[pair_landmarks[n]] - T_world_camera[:3, 3]) @ T_world_camera[:3, 2] > 0.0
+        return front
+
     def ray_rival_margins(self, obs: np.ndarray, cost: np.ndarray, chosen: np.ndarray) -> np.ndarray:
         """``association.rival_margins`` of observations ``obs`` (cost (n, m), chosen (n,)) where they
         are rays (pixels) and ``max_distance`` is bounded, inf elsewhere: a ray passes near several
@@ -171,10 +182,13 @@ Associator = Callable[[AssociationScene, np.ndarray, np.ndarray, np.ndarray], Pa
 
 
 def oracle(scene: AssociationScene, x: np.ndarray, P: np.ndarray, obs: np.ndarray) -> Pairs:
-    """The file's landmark ids, kept where the id is in the map and the pair passes the gate
-    (a gross outlier keeps its true id but is no evidence any filter should take)."""
+    """The file's landmark ids, kept where the id is in the map, x puts the landmark in front of
+    its camera (``AssociationScene.in_front``) and the pair passes the gate (a gross outlier
+    keeps its true id but is no evidence any filter should take)."""
     index = scene.true_landmark_row[obs]
     obs, index = obs[index >= 0], index[index >= 0]
+    front = scene.in_front(x, obs, index)
+    obs, index = obs[front], index[front]
     keep = np.zeros(obs.size, dtype=bool)
     for camera_id in np.unique(scene.obs_sensor[obs]):
         mine = scene.obs_sensor[obs] == camera_id

@@ -26,10 +26,13 @@ GIVEN, ORACLE = 0, 1
 
 @inlined
 def oracle_pairs(scene, settings, x, P, obs):
-    """The file's landmark of each observation (obs (m,)) where it is in the map and the pair
-    passes the gate at (x, P): a gross outlier keeps its true id but is no evidence to take."""
+    """The file's landmark of each observation (obs (m,)) where it is in the map, x puts it in
+    front of its camera (``in_front``) and the pair passes the gate at (x, P): a gross outlier
+    keeps its true id but is no evidence to take."""
     mapped = obs[scene.true_index[obs] >= 0]
     landmarks = scene.true_index[mapped]
+    front = in_front(scene, x, mapped, landmarks)
+    mapped, landmarks = mapped[front], landmarks[front]
     z_hat, H = predict_pairs(scene, x, mapped, landmarks)
     keep = np.zeros(mapped.size, np.bool_)
     for r in range(mapped.size):
@@ -161,6 +164,24 @@ def within_reach(scene, x, pair_obs, pair_landmarks, reach):
             distance2 += d * d
         within[q] = distance2 <= reach * reach
     return within
+
+
+@jit
+def in_front(scene, x, pair_obs, pair_landmarks):
+    """Which pairs' landmarks lie in front of their camera at x (depth > 0; a planar sensor's:
+    every one). The numpy twin is ``AssociationScene.in_front``, which says why."""
+    front = np.ones(pair_obs.size, np.bool_)
+    for q in range(pair_obs.size):
+        c = scene.obs_camera[pair_obs[q]]
+        kind = scene.camera_K[c, 4]
+        if kind == POINT2 or kind == MARKER:
+            continue
+        R_wc, centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])
+        depth = 0.0
+        for a in range(3):
+            depth += (scene.landmark_xyz[pair_landmarks[q], a] - centre[a]) * R_wc[a, 2]
+        front[q] = depth > 0.0
+    return front
 
 
 @jit
