@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import geometry, measurement, planar, sym3
-from camloc.atomic_files import check_replaceable, make_folder
+from camloc.atomic_files import write_text_atomic
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -932,11 +932,10 @@ def write_g2o(dataset: Dataset, path: str | os.PathLike) -> None:
     path : the destination .g2o file.
     """
     path = Path(path)
-    make_folder(path.parent)
     try:
-        _write_atomically(path, "".join(_format_dataset(dataset)))
+        write_text_atomic(path, g2o_text(dataset))
     except OSError as error:
-        raise CamlocError(f"{path}: cannot write: {error.strerror or error}") from None
+        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
 
 
 def g2o_text(dataset: Dataset) -> str:
@@ -1034,20 +1033,3 @@ def _observation_records(dataset: Dataset) -> list[str]:
         for row, partner, line in zip(position.tolist(), rotation.tolist(), _records(layout.tag, ids[position], values)):
             lines[row], lines[partner] = line, ""
     return lines
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` whole or not at all: a temporary sibling, then ``os.replace``."""
-    check_replaceable(path)  # a file cannot replace a folder or a device
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        # os.open with mode 0o666 lets the umask decide the permissions, as a plain open() would.
-        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
-        with os.fdopen(descriptor, "w", encoding="utf-8", newline="\n") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
