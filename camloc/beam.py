@@ -25,7 +25,7 @@ Keeping it fast (most poses are not ambiguous):
   only the ambiguous rest are explained one by one, each re-gated under the hypothesis conditioned
   on the pairs before it among its pool of nearby landmarks (no new search of the map);
 - after each pose the beam keeps the ``beam_width`` cheapest hypotheses within ``beam_delta`` of
-  the best, and merges hypotheses whose states coincide (within ``merge_sigma`` standard
+  the best (more, and further, at a pose of few observations: ``camloc.sparse_poses``), and merges hypotheses whose states coincide (within ``merge_sigma`` standard
   deviations on every axis), so in unambiguous stretches it collapses to one filter;
 - where every observation of a pose is ambiguous (large measurement noise in a dense map) the
   partial explanations grown from all the beam's hypotheses share a budget of ``partial_budget``
@@ -59,16 +59,18 @@ the localizer looks each pose's pairs up in its result.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import ekf
+from camloc import ekf, measurement
 from camloc.beam_expansion import PoseExpansion
 from camloc.beam_seeded import SeededSearch
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis
 from camloc.constants import SLIP_MIN_OBSERVATIONS
 from camloc.pair_options import PairGating
+from camloc.sparse_poses import pose_beam
 
 
 class BeamSearch:
@@ -174,6 +176,7 @@ class BeamSearch:
     def _explain_pose(self, k: int, beam: list[Hypothesis], obs: np.ndarray) -> list[Hypothesis]:
         if obs.size == 0 or self.ctx.map_index is None:
             return beam
+        self._use_pose_beam(obs, beam[0].x.size)
         children = self.expansion.explain_all(beam, obs)
         if not children:  # every option's cost is NaN: a covariance that is not one
             raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
@@ -198,6 +201,14 @@ class BeamSearch:
             kept = self.seeded.with_a_seeded_one(kept, group)
         self.seeded.unexplained.append((kept[0].unassigned, obs.size))
         return kept
+
+    def _use_pose_beam(self, obs: np.ndarray, state_dim: int) -> None:
+        """The pose's beam width and delta (``sparse_poses.pose_beam``: wider at a pose of few
+        measurement rows) in the settings its explanation, seeded search and pruning read."""
+        rows = int(measurement.dof_of(self.ctx.dataset.obs_kind[obs]).sum())
+        width, delta = pose_beam(rows, state_dim, self.settings.beam_width, self.settings.beam_delta)
+        pose = replace(self.settings, beam_width=width, beam_delta=delta)
+        self.expansion.settings = self.seeded.settings = pose
 
     def _backtrack(self, spread_from: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
         # each pose's beam is sorted by cost: the first is the best

@@ -34,6 +34,7 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
     the children, and the explanations grown from seeds under the beam's best prediction
     (``parents``' first), as it is and, where most were left and leaving that many unassigned is
     unusual for this data even with those, widened as after an odometry slip.
+    ``settings`` are the pose's: its beam's width and delta those of ``sparse_poses.pose_beam``.
     Returns (the generation they are in, the kept indices)."""
     origin = kb.gather(parents, np.array([0]), 1)
     plain = from_seeds(scene, settings, origin, obs, slipped=False)  # noisy odometry, not a slip
@@ -49,7 +50,7 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
         slipped[2][0] += settings.slip_cost
         groups.insert(0, from_seeds(scene, settings, slipped, obs, slipped=True))
     everything, sizes = concatenated([(children, count)] + groups)
-    kept = list(kb.prune(scene, settings, everything, sizes.sum()))
+    kept = list(kb.prune(scene, settings, everything, sizes.sum(), settings.beam_width, settings.beam_delta))
     offsets = np.cumsum(sizes)
     for g in range(len(groups)):
         kept = with_a_seeded_one(scene, settings, everything, kept, range(offsets[g], offsets[g + 1]))
@@ -120,7 +121,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     pair_obs = np.repeat(np.arange(obs.size), np.diff(start))
     gated = np.isfinite(cost)
     if not gated.any():
-        out = kb.explain_all(scene, settings, h, 1, obs)
+        out = kb.explain_all(scene, settings, h, 1, obs, settings.beam_width, settings.beam_delta)
         return _flagged(out, slipped)
     pair_obs, pair_landmark, pair_cost = pair_obs[gated], landmark[gated], cost[gated]
     candidates = np.argsort(pair_cost, kind="stable")[:SLIP_CANDIDATES]
@@ -153,14 +154,14 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1
-        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i))
+        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i), settings.beam_width, settings.beam_delta)
         for c in range(min(count, SEED_EXPLANATIONS)):
             if within_prior(children[0][c], x, P):
                 explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))
     if not explained:
-        return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
+        return _flagged(kb.explain_all(scene, settings, h, 1, obs, settings.beam_width, settings.beam_delta), slipped)
     gen, sizes = concatenated(explained)
-    kept = kb.prune(scene, settings, gen, int(sizes.sum()))
+    kept = kb.prune(scene, settings, gen, int(sizes.sum()), settings.beam_width, settings.beam_delta)
     return _flagged((kb.gather(gen, kept, gen[7].shape[1]), kept.size), slipped)
 
 

@@ -30,12 +30,14 @@ from camloc.kernels.update import innovation_cost, pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
+from camloc.sparse_poses import pose_beam
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
 
 # the miss term's charge (plain numpy, shared with the numpy beam), compiled for a scalar
 compiled_miss_charge = inlined(miss_charge)
+compiled_pose_beam = inlined(pose_beam)
 
 
 @entry
@@ -499,19 +501,19 @@ def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model):
 
 
 @inlined
-def prune_indices(settings, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
+def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
-    costs) within beam_delta of the best, at most beam_width, none within merge_sigma standard
+    costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within merge_sigma standard
     deviations of a cheaper one kept (whose states are settled by ``settle_one`` (``settle``, or
     ``nothing_pending``) as a comparison first needs them, passed ``model``)."""
     order = candidates[np.argsort(costs[candidates], kind="mergesort")]
-    kept = np.empty(min(order.size, settings.beam_width), np.int64)
+    kept = np.empty(min(order.size, width), np.int64)
     n = 0
     if order.size == 0:
         return kept
-    limit = costs[order[0]] + settings.beam_delta
+    limit = costs[order[0]] + delta
     for c in order:
-        if costs[c] > limit or n >= settings.beam_width:
+        if costs[c] > limit or n >= width:
             break
         merged = False
         for q in range(n):
@@ -536,14 +538,15 @@ def settled(n, dim):
 
 
 @entry
-def prune(scene, settings, gen, n):
-    """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(settings, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
+def prune(scene, settings, gen, n, width, delta):
+    """``prune_indices`` over the first n hypotheses of a settled generation, to the pose's width
+    and delta (``pose_beam``)."""
+    return prune_indices(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
                          nothing_pending, None)
 
 
 @inlined
-def prune_partials(settings, gen, root, rest, parents, pending, model):
+def prune_partials(settings, width, delta, gen, root, rest, parents, pending, model):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
@@ -557,7 +560,7 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(settings, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
+        kept = np.concatenate((kept, prune_indices(settings, width, delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
                                                      settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
@@ -576,8 +579,9 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
 
 
 @entry
-def explain_all(scene, settings, parents, n_parents, obs):
-    """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,).
+def explain_all(scene, settings, parents, n_parents, obs, width, delta):
+    """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,);
+    each step's partial explanations pruned to the pose's ``width`` and ``delta`` (``pose_beam``).
 
     Under each parent the clear observations are taken first (``after_clear``). Then the
     observations still ambiguous are branched on one at a time: unassigned (``null_cost``), or
@@ -649,7 +653,7 @@ def explain_all(scene, settings, parents, n_parents, obs):
             at = branch(scene.null_cost, settings, gen, q, r, obs[i], options_i, taken, start, lm, cost, moved[p],
                         orders[r][step + 1:], rest[p] - leasts[r][i], children, at, c_root, c_rest, c_moved, pending)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        live = prune_partials(settings, children, c_root, c_rest, gen, pending, model)
+        live = prune_partials(settings, width, delta, children, c_root, c_rest, gen, pending, model)
         gen = children
         root, rest, moved = c_root[live], c_rest[live], c_moved[live]
         step += 1
@@ -845,6 +849,16 @@ def binomial_upper_tail(u, n, p):
 
 
 @inlined
+def pose_widths(obs_dof, settings, obs, state_dim):
+    """The beam's (width, delta) at the pose of observations ``obs`` (``sparse_poses.pose_beam``
+    of their measurement rows)."""
+    rows = 0
+    for o in obs:
+        rows += obs_dof[o]
+    return compiled_pose_beam(rows, state_dim, settings.beam_width, settings.beam_delta)
+
+
+@inlined
 def seeds_worth_trying(unassigned, observed, unexplained, count):
     """``camloc.beam_seeded.seeds_worth_trying`` over the first ``count`` rows of ``unexplained`` (the
     poses' (unassigned, observed) so far)."""
@@ -878,7 +892,8 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
         if obs.size == 0 or scene.grid_keys.size == 0:
             children, count, kept = parents, n, np.arange(n)
         else:
-            children, count = explain_all(scene, settings, parents, n, obs)
+            width, delta = pose_widths(scene.obs_dof, settings, obs, parents[0].shape[1])
+            children, count = explain_all(scene, settings, parents, n, obs, width, delta)
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
@@ -886,7 +901,7 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
             if ((obs.size >= SLIP_MIN_OBSERVATIONS and 2 * unassigned > obs.size)
                     or seeds_worth_trying(unassigned, obs.size, unexplained, counters[2])):
                 return SLIP, k, parents, n, children, count
-            kept = prune(scene, settings, children, count)
+            kept = prune(scene, settings, children, count, width, delta)
         if not commit(history, k, children, kept):
             return GROW, k, parents, n, children, count
         if obs.size and scene.grid_keys.size:
