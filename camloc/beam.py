@@ -70,7 +70,7 @@ from camloc.beam_seeded import SeededSearch
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis
 from camloc.constants import SLIP_MIN_OBSERVATIONS
 from camloc.pair_options import PairGating
-from camloc.sparse_poses import pose_beam
+from camloc.sparse_poses import carried, is_sparse, pose_beam
 
 
 class BeamSearch:
@@ -176,7 +176,7 @@ class BeamSearch:
     def _explain_pose(self, k: int, beam: list[Hypothesis], obs: np.ndarray) -> list[Hypothesis]:
         if obs.size == 0 or self.ctx.map_index is None:
             return beam
-        self._use_pose_beam(obs, beam[0].x.size)
+        beam = self._use_pose_beam(obs, beam)
         children = self.expansion.explain_all(beam, obs)
         if not children:  # every option's cost is NaN: a covariance that is not one
             raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
@@ -202,13 +202,18 @@ class BeamSearch:
         self.seeded.unexplained.append((kept[0].unassigned, obs.size))
         return kept
 
-    def _use_pose_beam(self, obs: np.ndarray, state_dim: int) -> None:
+    def _use_pose_beam(self, obs: np.ndarray, beam: list[Hypothesis]) -> list[Hypothesis]:
         """The pose's beam width and delta (``sparse_poses.pose_beam``: wider at a pose of few
-        measurement rows) in the settings its explanation, seeded search and pruning read."""
-        rows = int(measurement.dof_of(self.ctx.dataset.obs_kind[obs]).sum())
-        width, delta = pose_beam(rows, state_dim, self.settings.beam_width, self.settings.beam_delta)
-        pose = replace(self.settings, beam_width=width, beam_delta=delta)
-        self.expansion.settings = self.seeded.settings = pose
+        measurement rows) where its explanation, seeded search and pruning read them; returns
+        the hypotheses the pose explains (``sparse_poses.carried``: a sparse pose's extra ones
+        dropped before one that is not)."""
+        sparse = is_sparse(int(measurement.dof_of(self.ctx.dataset.obs_kind[obs]).sum()), beam[0].x.size)
+        width, delta = self.settings.beam_width, self.settings.beam_delta
+        n = carried([h.cost for h in beam], len(beam), sparse, width, delta)
+        width, delta = pose_beam(sparse, width, delta)
+        self.expansion.width, self.expansion.delta = width, delta
+        self.seeded.settings = replace(self.settings, beam_width=width, beam_delta=delta)
+        return beam[:n]
 
     def _backtrack(self, spread_from: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
         # each pose's beam is sorted by cost: the first is the best

@@ -26,7 +26,7 @@ from camloc.filters import make_filter
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
-from camloc.sparse_poses import pose_beam
+from camloc.sparse_poses import is_sparse, pose_beam
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -210,7 +210,7 @@ def search_beam(scene, settings, x0, P0, progress, settle):
     n = scene.pose_obs_start.size - 1
     # a sparse pose keeps a wider beam (``sparse_poses.pose_beam``): room for the widest
     d = x0.size
-    width = pose_beam(0, d, settings.beam_width, settings.beam_delta)[0]
+    width = pose_beam(True, settings.beam_width, settings.beam_delta)[0]
     history = (np.zeros(n, np.int64), np.zeros((n, width), np.int64), np.zeros((n, width), np.bool_),
                np.zeros((n, width + 1), np.int64), np.zeros((max(4 * scene.z.shape[0], 64), 2), np.int64), np.zeros(1, np.int64),
                np.zeros((n, width, d)), np.zeros((n, width)))
@@ -227,12 +227,12 @@ def search_beam(scene, settings, x0, P0, progress, settle):
                                                                      history, unexplained, counters)
             if status in (kb.GROW, kb.SLIP):
                 obs = scene.pose_obs[scene.pose_obs_start[k]:scene.pose_obs_start[k + 1]]
-                pose_width, pose_delta = pose_beam(int(scene.obs_dof[obs].sum()), d, settings.beam_width, settings.beam_delta)
+                pose_width, pose_delta = pose_beam(is_sparse(int(scene.obs_dof[obs].sum()), d), settings.beam_width, settings.beam_delta)
                 if status == kb.SLIP:
                     from camloc.seeds import explain_with_seeds
 
-                    gen, kept = _at_pose(counters, explain_with_seeds, scene, settings._replace(beam_width=pose_width, beam_delta=pose_delta),
-                                         parents, n_parents, children, count, obs, unexplained[:counters[2]])
+                    gen, kept = _at_pose(counters, explain_with_seeds, scene, settings, parents, n_parents, children, count, obs,
+                                         unexplained[:counters[2]], pose_width, pose_delta)
                 else:  # the pose was explained, but its record did not fit
                     gen, kept = children, kb.prune(scene, settings, children, count, pose_width, pose_delta)
                 while not kb.commit(history, k, gen, kept):

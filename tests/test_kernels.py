@@ -470,7 +470,7 @@ def test_a_seeded_explanation_never_takes_its_seeds_landmark_again():
     seeded[0][0], seeded[1][0], seeded[2][0] = x, P, 0.0
     seeded[7][0, 0] = (first, lm)
     seeded[6][0] = 1
-    children, count = kb.explain_all(scene, settings, seeded, 1, np.array([second]), settings.beam_width, settings.beam_delta)
+    children, count = kb.explain_all(scene, settings, seeded, 1, np.array([second]))
     taken = [tuple(children[7][c, q]) for c in range(count) for q in range(children[6][c])]
     assert count >= 1 and (second, lm) not in taken and children[4][np.argmin(children[2][:count])] == 1
 
@@ -688,7 +688,7 @@ def test_a_clutter_detection_beside_a_landmark_s_own_does_not_take_it_first():
     scene, settings = build_scene(dataset, config), build_settings(config)
     start = kb.new_generation(1, 2, 6)
     start[0][0], start[1][0], start[2][0] = x, P, 0.0
-    children, count = kb.explain_all(scene, settings, start, 1, np.array([clutter, own]), settings.beam_width, settings.beam_delta)
+    children, count = kb.explain_all(scene, settings, start, 1, np.array([clutter, own]))
     best = int(np.argmin(children[2][:count]))
     assert [tuple(pair) for pair in children[7][best, :children[6][best]]] == [(own, lm)] and children[4][best] == 1
 

@@ -30,7 +30,7 @@ from camloc.kernels.update import innovation_cost, pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
-from camloc.sparse_poses import pose_beam
+from camloc.sparse_poses import carried, copy_sigma, is_sparse, pose_beam
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -38,6 +38,9 @@ DONE, SLIP, GROW = 0, 1, 2
 # the miss term's charge (plain numpy, shared with the numpy beam), compiled for a scalar
 compiled_miss_charge = inlined(miss_charge)
 compiled_pose_beam = inlined(pose_beam)
+compiled_carried = inlined(carried)
+compiled_is_sparse = inlined(is_sparse)
+compiled_copy_sigma = inlined(copy_sigma)
 
 
 @entry
@@ -503,25 +506,29 @@ def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model):
 @inlined
 def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
-    costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within merge_sigma standard
-    deviations of a cheaper one kept (whose states are settled by ``settle_one`` (``settle``, or
-    ``nothing_pending``) as a comparison first needs them, passed ``model``)."""
+    costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within
+    merge_sigma standard deviations of a cheaper one kept (beyond the run's width and delta,
+    ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one`` (``settle``,
+    or ``nothing_pending``) as a comparison first needs them, passed ``model``."""
     order = candidates[np.argsort(costs[candidates], kind="mergesort")]
     kept = np.empty(min(order.size, width), np.int64)
     n = 0
     if order.size == 0:
         return kept
-    limit = costs[order[0]] + delta
+    best = costs[order[0]]
+    limit = best + delta
     for c in order:
         if costs[c] > limit or n >= width:
             break
+        # the run's width and delta are settings'; beyond them only a distinct hypothesis is kept
+        sigma = compiled_copy_sigma(costs[c], best, n, settings.beam_width, settings.beam_delta, settings.merge_sigma)
         merged = False
         for q in range(n):
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
                     settle_one(settings, X, P, h, parent_X, parent_P, pending, model)
-            if same_state(X, P, c, kept[q], settings.merge_sigma):
+            if same_state(X, P, c, kept[q], sigma):
                 merged = True
                 break
         if not merged:
@@ -546,7 +553,7 @@ def prune(scene, settings, gen, n, width, delta):
 
 
 @inlined
-def prune_partials(settings, width, delta, gen, root, rest, parents, pending, model):
+def prune_partials(settings, gen, root, rest, parents, pending, model):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
@@ -560,7 +567,7 @@ def prune_partials(settings, width, delta, gen, root, rest, parents, pending, mo
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(settings, width, delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
+        kept = np.concatenate((kept, prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
                                                      settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
@@ -579,9 +586,11 @@ def prune_partials(settings, width, delta, gen, root, rest, parents, pending, mo
 
 
 @entry
-def explain_all(scene, settings, parents, n_parents, obs, width, delta):
+def explain_all(scene, settings, parents, n_parents, obs):
     """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,);
-    each step's partial explanations pruned to the pose's ``width`` and ``delta`` (``pose_beam``).
+    each step's partial explanations pruned to the run's beam (a sparse pose's wider one,
+    ``pose_beam``, is the pose's last pruning's: settling every extra partial explanation to
+    compare it would cost more than the few it keeps).
 
     Under each parent the clear observations are taken first (``after_clear``). Then the
     observations still ambiguous are branched on one at a time: unassigned (``null_cost``), or
@@ -653,7 +662,7 @@ def explain_all(scene, settings, parents, n_parents, obs, width, delta):
             at = branch(scene.null_cost, settings, gen, q, r, obs[i], options_i, taken, start, lm, cost, moved[p],
                         orders[r][step + 1:], rest[p] - leasts[r][i], children, at, c_root, c_rest, c_moved, pending)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        live = prune_partials(settings, width, delta, children, c_root, c_rest, gen, pending, model)
+        live = prune_partials(settings, children, c_root, c_rest, gen, pending, model)
         gen = children
         root, rest, moved = c_root[live], c_rest[live], c_moved[live]
         step += 1
@@ -849,13 +858,13 @@ def binomial_upper_tail(u, n, p):
 
 
 @inlined
-def pose_widths(obs_dof, settings, obs, state_dim):
-    """The beam's (width, delta) at the pose of observations ``obs`` (``sparse_poses.pose_beam``
-    of their measurement rows)."""
+def pose_rows(obs_dof, obs):
+    """The measurement rows of the pose of observations ``obs`` (the sum of their degrees of
+    freedom: what ``camloc.sparse_poses`` reads)."""
     rows = 0
     for o in obs:
         rows += obs_dof[o]
-    return compiled_pose_beam(rows, state_dim, settings.beam_width, settings.beam_delta)
+    return rows
 
 
 @inlined
@@ -892,8 +901,11 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
         if obs.size == 0 or scene.grid_keys.size == 0:
             children, count, kept = parents, n, np.arange(n)
         else:
-            width, delta = pose_widths(scene.obs_dof, settings, obs, parents[0].shape[1])
-            children, count = explain_all(scene, settings, parents, n, obs, width, delta)
+            sparse = compiled_is_sparse(pose_rows(scene.obs_dof, obs), parents[0].shape[1])
+            # the extra hypotheses of a sparse pose before are not explained at one that is not
+            n = compiled_carried(parents[2], n, sparse, settings.beam_width, settings.beam_delta)
+            width, delta = compiled_pose_beam(sparse, settings.beam_width, settings.beam_delta)
+            children, count = explain_all(scene, settings, parents, n, obs)
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
