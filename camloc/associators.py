@@ -322,10 +322,12 @@ class Jcbb:
         compatible = (d2 + more_d2 <= gate) & same_camera
         orientations = orientation_rows(scene, x, obs, candidates, compatible)
         rows, landmarks, _ = best_friends_pairs(scene, x, P, obs, taken=np.zeros(0, np.int64), cost=self.seed_cost, margin=self.seed_margin)
-        column_of = {int(l): int(np.flatnonzero((candidates == l) & same_camera[r])[0]) for r, l in zip(rows, landmarks)}
-        seed = [(int(r), column_of[int(l)]) for r, l in zip(rows, landmarks)]
+        # a landmark is a column per sensor that may see it (a camera of depth and pixel records
+        # is two sensors): the seed's pair takes its observation's sensor's column
+        seed = [(int(r), int(np.flatnonzero((candidates == l) & same_camera[r])[0])) for r, l in zip(rows, landmarks)]
         result = jcbb(y_all, H, P, scene.association_cov[obs], compatible, dof=measurement.dof_of(ds.obs_kind[obs]),
-                      probability=self.probability, max_nodes=self.max_nodes, seed=seed, orientations=orientations)
+                      probability=self.probability, max_nodes=self.max_nodes, seed=seed, orientations=orientations,
+                      landmark_of=candidates)
         if not result.exhaustive:
             self.poses_cut_short += 1
         paired = result.assignment >= 0

@@ -69,7 +69,18 @@ def make_folder(folder: str | Path) -> None:
     try:
         Path(folder).mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise CamlocError(f"cannot create the folder {folder}: {error.strerror or error}") from None
+        blocker = _file_in_the_way(Path(folder))
+        reason = f"{blocker} is a file, not a folder" if blocker is not None else error.strerror or error
+        raise CamlocError(f"cannot create the folder {folder}: {reason}") from None
+
+
+def _file_in_the_way(folder: Path) -> Path | None:
+    """The nearest of ``folder`` and its parents that exists and is not a folder (whose "File
+    exists" or "Not a directory" alone does not say which path is in the way), or None."""
+    for candidate in (folder, *folder.parents):
+        if candidate.exists():
+            return None if candidate.is_dir() else candidate
+    return None
 
 
 def refuse_existing(path: str | Path, *, force: bool) -> None:
@@ -85,10 +96,41 @@ def refuse_existing(path: str | Path, *, force: bool) -> None:
         raise CamlocError(f"{path}: already exists; refusing to replace it without --force")
 
 
+def refuse_existing_file(path: str | Path, *, force: bool) -> None:
+    """``refuse_existing`` for an output file: a folder in its place is refused first, with
+    ``force`` or without (a file cannot replace a folder, and ``--force`` would not help).
+
+    Raises
+    ------
+    CamlocError : ``<path>: is a folder; ...``, or ``refuse_existing``'s.
+    """
+    check_replaceable(path)
+    refuse_existing(path, force=force)
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Refuse an output file's path where a folder, a device, a pipe or a socket is: a file renamed
+    onto it would replace it, with ``--force`` or without (run as root, ``-o /dev/null`` replaced
+    the system's null device with a regular file).
+
+    Raises
+    ------
+    CamlocError : ``<path>: is a folder; ...`` or ``<path>: is a device, a pipe or a socket; ...``.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise CamlocError(f"{path}: {FOLDER_FOR_A_FILE}")
+    if path.exists() and not path.is_file():
+        raise CamlocError(f"{path}: is a device, a pipe or a socket, which camloc never replaces; expected the path "
+                          "of a file to write")
+
+
+FOLDER_FOR_A_FILE = "is a folder; expected the path of a file to write"
+
+
 def _temporary_sibling(path: Path) -> Path:
     """A new empty hidden file beside ``path``, readable like any output (mkstemp makes 0600)."""
-    if path.is_dir():  # a file cannot replace a folder, even with --force
-        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
+    check_replaceable(path)  # a file cannot replace a folder or a device, even with --force
     make_folder(path.parent)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

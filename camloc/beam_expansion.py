@@ -122,8 +122,8 @@ class PoseExpansion:
         """h after its stacked updates with the clear observations (see ``explain_all``), with
         the ambiguous rest in the order to branch on them (fewest gated options first)."""
         options = self.gating.options(h, obs)
-        taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)  # a seeded explanation's seed pair
-        if taken.size:
+        if h.pairs:  # a seeded explanation's seed pair
+            taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
             for o in options:
                 o.costs = np.where(member(o.landmarks, taken), np.inf, o.costs)
         child, pending = h, np.arange(obs.size)
@@ -173,17 +173,19 @@ class PoseExpansion:
         """Per observation: the index of its only viable landmark option, -1 when leaving it
         unassigned is its only viable option, None when it is ambiguous (several viable options,
         or its landmark is viable for another observation too)."""
-        viable = [self.viable(o.costs, float(c)) for o, c in zip(options, self.null_cost[obs])]
-        claims = Counter(int(lm) for o, (pairs, _) in zip(options, viable) for lm in o.landmarks[pairs])
+        # each observation's viable options (their positions) and whether its null option is viable
+        viable = [(np.flatnonzero(pairs), null) for pairs, null in
+                  (self.viable(o.costs, c) for o, c in zip(options, self.null_cost[obs].tolist()))]
+        claims = Counter(lm for o, (at, _) in zip(options, viable) for lm in o.landmarks[at].tolist())
         shared = {lm for lm, count in claims.items() if count > 1}
         choice: list[Optional[int]] = []
-        for o, (pairs, null) in zip(options, viable):
-            if int(pairs.sum()) + int(null) != 1:
+        for o, (at, null) in zip(options, viable):
+            if at.size + int(null) != 1:
                 choice.append(None)
             elif null:
                 choice.append(-1)
             else:
-                j = int(np.flatnonzero(pairs)[0])
+                j = int(at[0])
                 choice.append(None if int(o.landmarks[j]) in shared else j)
         return choice
 
@@ -213,9 +215,11 @@ class PoseExpansion:
         viable landmark. ``contested``: the landmarks of the observations still to explain after
         it that gate only one; where one of its viable landmarks is among them it may also stay
         unassigned whatever its null cost ("Contested landmarks" in docs/beam.md)."""
-        free = ~member(options.landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64))
+        costs = options.costs
+        if h.pairs:  # the landmarks h has taken are not free
+            costs = np.where(member(options.landmarks, np.array([lm for _, lm in h.pairs], dtype=np.int64)), np.inf, costs)
         null_cost = float(self.null_cost[o])
-        pairs, null = self.viable(np.where(free, options.costs, np.inf), null_cost)
+        pairs, null = self.viable(costs, null_cost)
         if not null and any(member(options.landmarks[pairs], later).any() for later in contested):
             # Another observation gates this landmark alone: branch_delta judges each observation
             # alone, but the explanation that leaves this one unassigned pairs the landmark with

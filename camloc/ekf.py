@@ -108,6 +108,8 @@ def symmetrize(P: np.ndarray) -> np.ndarray:
 def block_diagonal(blocks: np.ndarray) -> np.ndarray:
     """(p, b, b) blocks -> (p b, p b) block-diagonal matrix (stacked independent measurements)."""
     p, b, _ = blocks.shape
+    if p == 1:  # a lone pair's update, the beam's most frequent (a fifth of the fancy-indexed copy's time)
+        return blocks[0].copy()
     out = np.zeros((p, b, p, b))
     out[np.arange(p), :, np.arange(p), :] = blocks
     return out.reshape(p * b, p * b)

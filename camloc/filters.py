@@ -52,13 +52,15 @@ class EulerFilter:
     def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """``x + delta`` with roll and yaw wrapped into [-pi, pi)."""
         out = x + delta
-        out[3:6:2] = geometry.wrap_angle(out[3:6:2])  # roll and yaw in one call
+        _, _, _, roll, _, yaw = out.tolist()
+        out[3], out[5] = geometry.wrap_angle_float(roll), geometry.wrap_angle_float(yaw)
         return out
 
     def difference(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """``a - b`` with the angle differences wrapped."""
         d = a - b
-        d[3:6] = geometry.wrap_angle(d[3:6])
+        _, _, _, roll, pitch, yaw = d.tolist()
+        d[3], d[4], d[5] = geometry.wrap_angle_float(roll), geometry.wrap_angle_float(pitch), geometry.wrap_angle_float(yaw)
         return d
 
     def pose(self, x: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Reading and writing g2o camera-localization files (see FORMAT.md), and the one place where a
+"""Reading and writing g2o camera-localization files (see docs/format.md), and the one place where a
 file's information matrices become covariances.
 
 Reading is done in bulk, one tag at a time: the lines are grouped by their tag, each group is
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import geometry, measurement, planar, sym3
-from camloc.atomic_files import make_folder
+from camloc.atomic_files import check_replaceable, make_folder
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -200,7 +200,7 @@ class _Table:
 
 
 def read_g2o(path: str | os.PathLike) -> Dataset:
-    """Read a g2o camera-localization file (format in FORMAT.md) into a ``Dataset``.
+    """Read a g2o camera-localization file (format in docs/format.md) into a ``Dataset``.
 
     Parameters
     ----------
@@ -342,6 +342,7 @@ def _read_text(path: Path) -> str:
 def _group_lines(path: Path, text: str) -> dict[str, _Lines]:
     """Records grouped by tag, in order of first appearance; blank and ``#`` lines dropped."""
     groups: dict[str, _Lines] = {tag: _Lines() for tag in _LAYOUTS}
+    has_comments = "#" in text  # a file without any skips the search on every line
     if "\n" not in text:  # classic Mac OS line ends, a carriage return alone
         text = text.replace("\r", "\n")
     # split("\n") rather than splitlines(): the latter also breaks at \v, \f, \x1c... and would
@@ -357,6 +358,8 @@ def _group_lines(path: Path, text: str) -> dict[str, _Lines]:
                 continue
             tag, rest = head[0], (head[1] if len(head) == 2 else "")
             lines = groups.setdefault(tag, _Lines())
+        if has_comments and "#" in rest:
+            rest = _END_OF_LINE_COMMENT.sub("", rest)
         lines.rests.append(rest)
         lines.numbers.append(number)
     present = sorted((lines.numbers[0], tag) for tag, lines in groups.items() if lines.numbers)
@@ -365,13 +368,22 @@ def _group_lines(path: Path, text: str) -> dict[str, _Lines]:
     return {tag: groups[tag] for _, tag in present}
 
 
+# A comment after a record's fields, from a field that starts with '#' (g2o reads a record's
+# fields and ignores the rest of its line; "0.5#x" stays a bad number).
+_END_OF_LINE_COMMENT = re.compile(r"(?:^|\s)#.*")
+
+
 def _unknown_tag_warnings(groups: dict[str, _Lines]) -> list[str]:
     """One message per tag camloc does not know: such records are skipped, as g2o does."""
     return [
-        f"line {lines.numbers[0]}: skipped {len(lines.numbers)} record(s) with unknown tag {tag!r}"
+        f"line {lines.numbers[0]}: skipped {len(lines.numbers)} record(s) with unknown tag {tag!r}{_SKIPPED_G2O_TAGS.get(tag, '')}"
         for tag, lines in groups.items()
         if tag not in _LAYOUTS
     ]
+
+
+# g2o's own records that camloc skips, and why (said with the skipped tag's warning)
+_SKIPPED_G2O_TAGS = {"FIX": " (g2o's fixed vertices: camloc holds the start pose at its vertex and estimates every other pose)"}
 
 
 def _parse_tables(path: Path, groups: dict[str, _Lines], is_planar: bool = False) -> dict[str, _Table]:
@@ -459,20 +471,41 @@ def _malformed_reason(layout: _Layout, fields: list[str]) -> str | None:
     """Why one record's fields do not fit the layout, or None when they do."""
     if len(fields) != layout.n_fields:
         return (f"{layout.tag} expects {layout.n_fields} fields after the tag "
-                f"({layout.summary}), found {len(fields)}")
+                f"({layout.summary}), found {len(fields)}{_full_matrix_hint(layout, len(fields))}")
     for name, token in zip(layout.names[: layout.n_ids], fields):
         if not INTEGER.fullmatch(token):
-            return f"{layout.tag} field {name}: expected an integer id, found {token!r}"
+            return f"{layout.tag} field {name}: expected an integer id, found {_shown(token)}"
         if not INT64_RANGE[0] <= int(token) <= INT64_RANGE[1]:
-            return f"{layout.tag} field {name}: expected an id that fits in 64 bits, found {token}"
+            return f"{layout.tag} field {name}: expected an id that fits in 64 bits, found {_shown(token)}"
     for name, token in zip(layout.names[layout.n_ids:], fields[layout.n_ids:]):
         value = parse_number(token)
         if value is None:
-            return f"{layout.tag} field {name}: expected a number, found {token!r}"
+            return f"{layout.tag} field {name}: expected a number, found {_shown(token)}"
         reason = _value_reason(layout, name, value)  # as in _parse_table, so that the earliest line wins
         if reason is not None:
             return reason
     return None
+
+
+def _shown(token: str, limit: int = 40) -> str:
+    """A field as an error message quotes it: whole when short, else its start and its length (a
+    line of a megabyte must not become a message of a megabyte)."""
+    if len(token) <= limit:
+        return repr(token)
+    return f"{token[:limit]!r}... ({len(token)} characters)"
+
+
+def _full_matrix_hint(layout: _Layout, n_found: int) -> str:
+    """Where the fields after the values are a full information matrix (d * d numbers) instead
+    of its upper triangle, say so: another tool's habit, not damage."""
+    information = [name for name in layout.names if name.startswith("info")]
+    if not information:
+        return ""
+    dim = int(information[-1][-1]) + 1
+    if n_found - (layout.n_fields - len(information)) != dim * dim:
+        return ""
+    return (f": {dim * dim} information numbers, a full {dim}x{dim} matrix? expected its upper triangle, "
+            f"row by row ({len(information)} numbers)")
 
 
 def parse_number(token: str) -> float | None:
@@ -648,7 +681,7 @@ def _build_planar_odometry(path: Path, table: _Table) -> dict[str, np.ndarray]:
     """``EDGE_SE2`` records as lifted increments, with the file's (x, y, theta) information
     (g2o's SE2 error is the increment's (dx, dy, dtheta) itself: no reparametrization) and its
     inverse lifted to (translation, rotation vector) (``planar.lifted_cov``)."""
-    _check_unique(path, table.ids[:, 0], table.lines, f"{TAG_ODOMETRY_SE2} from pose (a fork in the chain)")
+    _check_one_edge_from_each_pose(path, TAG_ODOMETRY_SE2, table)
     info = _info_from_upper(table.values[:, 3:9], 3)
     _check_positive_definite(path, TAG_ODOMETRY_SE2, info, table.lines)
     cov = _covariances(path, TAG_ODOMETRY_SE2, info, table.lines, lambda i: 0.5 * (np.linalg.inv(i) + np.swapaxes(np.linalg.inv(i), -1, -2)))
@@ -663,7 +696,7 @@ def _build_planar_odometry(path: Path, table: _Table) -> dict[str, np.ndarray]:
 
 def _build_odometry(path: Path, table: _Table, messages: list[str]) -> dict[str, np.ndarray]:
     """Edges in file order: from, to, translation, quat, info (g2o parametrization), lines."""
-    _check_unique(path, table.ids[:, 0], table.lines, f"{TAG_ODOMETRY} from pose (a fork in the chain)")
+    _check_one_edge_from_each_pose(path, TAG_ODOMETRY, table)
     info = _info_from_upper(table.values[:, 7:28], 6)
     _check_positive_definite(path, TAG_ODOMETRY, info, table.lines)
     return {
@@ -699,6 +732,8 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
             what = "depth" if kind == measurement.DEPTH else "inverse depth"
             messages.append(f"line {table.lines[behind[0]]}: {behind.size} {tag} record(s) with {what} <= 0, "
                             "where only landmarks in front of the camera (depth > 0) can be seen; no landmark will fit them")
+    if kind == measurement.DISPARITY:
+        _check_inverse_depths(path, table)
     pose, landmark = table.ids[:, 0], table.ids[:, 1].copy()
     camera = table.ids[:, 2].copy() if layout.n_ids == 3 else np.full(pose.size, measurement.ROBOT_FRAME_SENSOR, np.int64)
     sorter = np.argsort(pose_ids)
@@ -724,6 +759,18 @@ def _build_observations(path: Path, table: _Table, layout: _Layout, kind: int, p
     return {"pose_index": pose_index.astype(np.int64), "camera": camera, "landmark": landmark,
             "z": z, "info": info, "cov": _covariances(path, tag, info, table.lines, observation_cov_from_info),
             "kind": np.full(table.values.shape[0], kind, dtype=np.int64), "line": table.lines}
+
+
+def _check_inverse_depths(path: Path, table: _Table) -> None:
+    """Refuse the first inverse depth whose depth is beyond ``MAX_COORDINATE`` (as a depth field
+    beyond it is): the filter squares it (1e-300 overflowed in the mapping pass). Zero and
+    negative ones are kept, with the warning of ``_build_observations``."""
+    far = np.flatnonzero((table.values[:, 2] > 0.0) & (table.values[:, 2] < 1.0 / MAX_COORDINATE))
+    if far.size:
+        row = int(far[0])
+        raise DatasetError(path, int(table.lines[row]), f"{TAG_OBSERVATION_DISPARITY} field inverse_depth: expected 1/depth "
+                           f"of a depth within {MAX_COORDINATE:.0e} m (at least {1.0 / MAX_COORDINATE:.0e}; 0 or less is "
+                           f"kept, with a warning), found {table.values[row, 2]:.6g}")
 
 
 def _build_tag_observations(path: Path, table: _Table, kind: int, pose_ids: np.ndarray, cameras: dict[int, Camera],
@@ -756,6 +803,26 @@ def _build_tag_observations(path: Path, table: _Table, kind: int, pose_ids: np.n
 
 
 # --- the pose chain -------------------------------------------------------------------------
+
+
+# What an odometry edge that leaves the chain usually is, and what to do about it.
+_LOOP_CLOSURE_HINT = ("an edge between poses that are not consecutive (a loop closure of a pose graph) is not "
+                      "odometry: camloc reads one chain of odometry edges, so remove such edges")
+
+
+def _check_one_edge_from_each_pose(path: Path, tag: str, table: _Table) -> None:
+    """Refuse the first edge that leaves a pose another edge already leaves (a fork in the chain,
+    most often a loop closure), naming both edges."""
+    starts = table.ids[:, 0]
+    order = np.argsort(starts, kind="stable")
+    repeats = np.flatnonzero(starts[order][1:] == starts[order][:-1])
+    if repeats.size:
+        row = int(order[repeats + 1].min())
+        first = int(np.flatnonzero(starts == starts[row])[0])
+        raise DatasetError(path, int(table.lines[row]),
+                           f"{tag} {starts[row]} -> {table.ids[row, 1]}: expected one edge from each pose (a chain), "
+                           f"found a second edge from pose {starts[row]} (the first, {starts[row]} -> {table.ids[first, 1]}, "
+                           f"at line {table.lines[first]}); {_LOOP_CLOSURE_HINT}")
 
 
 def _start_vertex(path: Path, vertex_ids: np.ndarray, lines: np.ndarray, odometry: dict[str, np.ndarray],
@@ -794,7 +861,7 @@ def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray],
         if edge_to[row] in seen:
             raise DatasetError(path, int(lines[row]),
                                f"{robot[1]} {edge_from[row]} -> {edge_to[row]}: expected the chain to go on "
-                               f"to a new pose, found a cycle (pose {edge_to[row]} is already on it)")
+                               f"to a new pose, found a cycle (pose {edge_to[row]} is already on it); {_LOOP_CLOSURE_HINT}")
         seen.add(edge_to[row])
         chain.append(edge_to[row])
         order.append(row)
@@ -807,6 +874,11 @@ def _follow_chain(path: Path, first_pose: int, odometry: dict[str, np.ndarray],
     return np.array(chain, dtype=np.int64), np.array(order, dtype=np.int64)
 
 
+# A pose vertex off the chain is often a landmark written as another tool writes one.
+_LANDMARK_HINT = {TAG_POSE: f" (a landmark? a point is a {TAG_LANDMARK} id x y z, a landmark with an orientation a {TAG_TAG})",
+                  TAG_POSE_SE2: f" (a landmark? a point is a {TAG_LANDMARK_XY} id x y, a marker a {TAG_MARKER} id x y psi)"}
+
+
 def _check_vertices_on_chain(path: Path, vertex_ids: np.ndarray, pose_ids: np.ndarray, lines: np.ndarray,
                              robot: tuple[str, str] = (TAG_POSE, TAG_ODOMETRY)) -> None:
     """A pose vertex no edge reaches cannot be localized: refuse it rather than drop it silently."""
@@ -815,7 +887,7 @@ def _check_vertices_on_chain(path: Path, vertex_ids: np.ndarray, pose_ids: np.nd
         row = off[0]
         raise DatasetError(path, int(lines[row]),
                            f"{robot[0]} {vertex_ids[row]}: expected a pose of the odometry chain from "
-                           f"{pose_ids[0]}, found a vertex no {robot[1]} reaches")
+                           f"{pose_ids[0]}, found a vertex no {robot[1]} reaches{_LANDMARK_HINT[robot[0]]}")
 
 
 def _ground_truth(pose_ids: np.ndarray, vertex_ids: np.ndarray, vertex_xyz: np.ndarray, vertex_quat: np.ndarray,
@@ -882,7 +954,7 @@ def _records(tag: str, ids: np.ndarray, values: np.ndarray) -> list[str]:
 
 def _format_dataset(dataset: Dataset) -> list[str]:
     """The lines of the file, in the order described in ``write_g2o``."""
-    lines = ["# camloc g2o: cameras, map, pose vertices, odometry and observations (see FORMAT.md)\n"]
+    lines = ["# camloc g2o: cameras, map, pose vertices, odometry and observations (see docs/format.md)\n"]
     cameras = list(dataset.cameras.values())
     lines += _records(TAG_CAMERA, [camera.id for camera in cameras], np.array(
         [[*camera.translation, *camera.quat_xyzw, camera.fx, camera.fy, camera.cx, camera.cy] for camera in cameras]))
@@ -963,8 +1035,7 @@ def _observation_records(dataset: Dataset) -> list[str]:
 
 def _write_atomically(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all: a temporary sibling, then ``os.replace``."""
-    if path.is_dir():  # a file cannot replace a folder
-        raise CamlocError(f"{path}: is a folder; expected the path of a file to write")
+    check_replaceable(path)  # a file cannot replace a folder or a device
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         # os.open with mode 0o666 lets the umask decide the permissions, as a plain open() would.

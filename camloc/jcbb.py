@@ -75,6 +75,7 @@ def jcbb(
     seed: list[tuple[int, int]] | None = None,
     dof: np.ndarray | None = None,
     orientations: dict | None = None,
+    landmark_of: np.ndarray | None = None,
 ) -> JcbbResult:
     """The largest jointly compatible set of pairs.
 
@@ -91,10 +92,14 @@ def jcbb(
     dof : (n,) each observation's degrees of freedom (``camloc.measurement``: its rows beyond
         them are inert); None: 3 each.
     orientations : the orientation rows of tag pairs (``joint_nis``), 3 more dof each.
+    landmark_of : (m,) the landmark each candidate is, where one landmark is several candidates
+        (a candidate of each sensor that may see it: a camera of depth and pixel records is two
+        sensors); a landmark is paired once. None: each candidate a landmark of its own.
     """
     n = compatible.shape[0]
     dof = np.full(n, 3, dtype=np.int64) if dof is None else np.asarray(dof, dtype=np.int64)
     orientations = orientations or {}
+    landmark_of = np.arange(compatible.shape[1]) if landmark_of is None else np.asarray(landmark_of)
     bounds = chi2_quantile(np.arange(1, 6 * n + 1), 1.0 - probability)  # chi^2 quantiles by total dof
 
     def bound(pairs: list) -> float:
@@ -103,10 +108,7 @@ def jcbb(
     if seed and len(seed) == n:
         nis = joint_nis(seed, y_all, H, P, R_obs, orientations)
         if nis <= bound(seed):
-            assignment = np.full(n, -1, dtype=np.int64)
-            for i, j in seed:
-                assignment[i] = j
-            return JcbbResult(assignment, nis, 1, True)
+            return JcbbResult(_assignment(n, seed), nis, 1, True)
 
     order = np.argsort(compatible.sum(axis=1), kind="stable")  # fewest options first: cheap cuts
     # Within an observation, try the individually closest landmark first: the search then meets a
@@ -127,7 +129,7 @@ def jcbb(
             return
         i = int(order[depth])
         for j in tries[i]:
-            if int(j) in used:
+            if int(landmark_of[j]) in used:
                 continue
             if nodes >= max_nodes:
                 exhausted = False
@@ -136,13 +138,18 @@ def jcbb(
             trial = pairs + [(i, int(j))]
             trial_nis = joint_nis(trial, y_all, H, P, R_obs, orientations)
             if trial_nis <= bound(trial):
-                search(depth + 1, trial, used | {int(j)}, trial_nis)
+                search(depth + 1, trial, used | {int(landmark_of[j])}, trial_nis)
         # leave observation i unpaired, if pairing all the rest could still beat the best set
         if len(pairs) + (n - depth - 1) > len(best["pairs"]):
             search(depth + 1, pairs, used, nis)
 
     search(0, [], set(), 0.0)
+    return JcbbResult(_assignment(n, best["pairs"]), float(best["nis"]), nodes, exhausted)
+
+
+def _assignment(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(n,) the candidate of each of n observations in ``pairs``, -1 where it has none."""
     assignment = np.full(n, -1, dtype=np.int64)
-    for i, j in best["pairs"]:
+    for i, j in pairs:
         assignment[i] = j
-    return JcbbResult(assignment, float(best["nis"]), nodes, exhausted)
+    return assignment

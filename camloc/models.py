@@ -141,7 +141,7 @@ def observe_rig(
     """``observe`` of landmarks seen by several cameras of one kind on the robot, in one batch:
     the first ``sizes[0]`` rows of landmark_xyz by camera ``mounts[0]``, the next ``sizes[1]``
     by ``mounts[1]``, ...; ``intrinsics`` fx, fy, cx, cy are (M,) arrays, a camera per row (or
-    scalars: one camera). Each row's arithmetic is the one ``observe`` of its camera alone does."""
+    scalars: cameras that share them). Each row's arithmetic is the one ``observe`` of its camera alone does."""
     R = geometry.euler_to_matrix(state[3:6])
     p_robot, p_camera = points_by_camera(R, state[0:3], mounts, landmark_xyz, sizes)
     E = geometry.euler_rate_matrix(state[3:6])
@@ -180,9 +180,11 @@ def projected(p_camera: np.ndarray, dprobot: np.ndarray, mounts, intrinsics, siz
         for mount, size in zip(mounts, sizes):
             dpcam[start : start + size] = mount[:3, :3].T @ dprobot[start : start + size]
             start += size
-    z_hat = measurement.project(p_camera, intrinsics, kind)
-    H = measurement.projection_jacobian(p_camera, intrinsics, kind) @ dpcam
-    return z_hat, H
+    # one point of one camera (a lone pair's update): in Python floats, the same bits
+    one = measurement.project_one(p_camera[0], intrinsics, kind) if p_camera.shape[0] == 1 and isinstance(intrinsics[0], float) else None
+    z_hat, J = one if one is not None else (measurement.project(p_camera, intrinsics, kind),
+                                            measurement.projection_jacobian(p_camera, intrinsics, kind))
+    return z_hat, J @ dpcam
 
 
 def projection_jacobian(p_camera: np.ndarray, intrinsics: tuple[float, float, float, float], kind: int = DEPTH) -> np.ndarray:

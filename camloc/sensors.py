@@ -55,10 +55,14 @@ def sensors_of(dataset: "Dataset") -> tuple[dict[int, CameraModel], np.ndarray]:
     return sensors, obs_sensor
 
 
-def intrinsics_by_row(cameras: list[CameraModel], sizes: list[int]) -> tuple[np.ndarray, ...]:
+def intrinsics_by_row(cameras: list[CameraModel], sizes: list[int]) -> tuple:
     """fx, fy, cx, cy as (M,) arrays, a camera per row: the first ``sizes[0]`` rows
     ``cameras[0]``'s, the next ``sizes[1]`` the second's, ... (the rows of a batch of several
-    cameras, ``models.observe_rig``)."""
+    cameras, ``models.observe_rig``); the four scalars where the cameras share them (a rig of one
+    model: each row's arithmetic is the same, without the arrays)."""
+    first = cameras[0].intrinsics
+    if all(c.intrinsics == first for c in cameras):
+        return first
     return tuple(np.repeat(np.array([c.intrinsics for c in cameras], dtype=float), sizes, axis=0).T)
 
 

@@ -1,7 +1,7 @@
 """Simulated camera-localization worlds: a trajectory, a landmark map, noisy odometry and detections.
 
 Pure: ``simulate(config, seed=...)`` returns a ``camloc.dataset.Dataset`` and does no I/O. The
-models are exactly those of FORMAT.md and ``camloc.models``; ground truth is exact, odometry and
+models are exactly those of docs/format.md and ``camloc.models``; ground truth is exact, odometry and
 observations are noisy.
 
 Model card

@@ -91,6 +91,8 @@ class StackedUpdate:
         cameras = self.obs_sensor[obs]
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
             groups = [(self.cameras[self.single_camera], slice(None))]
+        elif obs.size == 1:  # one pair (the beam's most frequent update): its sensor
+            groups = [(self.cameras[int(cameras[0])], slice(None))]
         else:
             groups = [(self.cameras[c], mask) for c in self.sensor_ids for mask in [cameras == c] if mask.any()]
         landmark_xyz = self.dataset.landmark_xyz[landmarks]

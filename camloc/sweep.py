@@ -26,6 +26,7 @@ Cells run in local processes (``concurrent.futures``, spawned) or on a Dask clus
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import difflib
 import glob
@@ -36,6 +37,7 @@ import json
 import math
 import multiprocessing
 import os
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -700,11 +702,19 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
     if not cells:
         return
     workers = min(workers or default_workers(), len(cells))
+    others = set(multiprocessing.active_children())  # a caller's own, never stopped here
     # spawn: a clean interpreter per worker, whatever threads this process runs (a progress bar).
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=warm_up)
+    started: list = []
     try:
-        futures = {pool.submit(run_cell, cell): cell for cell in cells}
+        # The workers are spawned by the submissions, and inherit SIGINT blocked from here: a
+        # Ctrl-C (which a terminal sends to every process of the group) is the parent's alone.
+        # Interrupted in their imports or inside the pool's queues, workers printed tracebacks,
+        # and the pool's shutdown could then wait for ever (2 Ctrl-C in 10 hung, 2026-12-06).
+        with _interrupts_held():
+            futures = {pool.submit(run_cell, cell): cell for cell in cells}
+            started = [child for child in multiprocessing.active_children() if child not in others]
         for future in as_completed(futures):
             try:
                 result = future.result()
@@ -712,9 +722,35 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
                 raise CamlocError("a worker process died (out of memory?); the finished rows are kept, "
                                   "run the same command again to go on") from None
             yield futures[future], result
+    except BaseException:
+        # Interrupted, or stopped by the caller: the running cells' rows would not be kept, so
+        # their workers are stopped rather than waited for; pending cells are dropped.
+        pool.shutdown(wait=False, cancel_futures=True)
+        _stop(started)
+        raise
+    pool.shutdown(wait=True)
+
+
+@contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """SIGINT blocked in this thread (and in the processes and threads it starts, which inherit
+    the mask), then unblocked: a Ctrl-C that came meanwhile is raised here on the way out."""
+    if os.name != "posix":
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
     finally:
-        # Pending cells are dropped; running ones finish (their rows are not kept).
-        pool.shutdown(wait=True, cancel_futures=True)
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def _stop(processes: list) -> None:
+    """Terminate the pool's worker ``processes`` and wait for them."""
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join()
 
 
 def dask_results(cells: list[Cell], client) -> Iterator[tuple[Cell, dict]]:

@@ -4,7 +4,10 @@ the one place where errors, bad options and Ctrl-C become a line on stderr and a
 from __future__ import annotations
 
 import importlib
+import io
+import os
 import re
+import sys
 from enum import Enum
 from typing import Any
 
@@ -25,6 +28,8 @@ console = Console()
 err_console = Console(stderr=True)
 
 EXIT_BAD_INPUT = 2
+# stdout's reader left before the command printed everything: rich's status then, and ours
+EXIT_STDOUT_CLOSED = 1
 
 # The placeholders of the two kinds of input, the same in every command's usage line and help.
 DATASET = "DATASET"
@@ -111,6 +116,11 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
             if isinstance(error, CamlocError):
                 print_error(str(error))
                 raise typer.Exit(EXIT_BAD_INPUT) from None
+            if isinstance(error, BrokenPipeError) and error.filename is None:
+                # stdout's reader left ('camloc info --json | head -c 1'): end as rich's tables
+                # end then, silently with status 1; the outputs were written before the printing
+                _discard_stdout()
+                raise typer.Exit(EXIT_STDOUT_CLOSED) from None
             if isinstance(error, OSError):
                 # the machine refused (a folder not writable, a file where a folder goes, a full
                 # disk): the file and the reason, as for bad input; outputs stay whole or absent
@@ -122,6 +132,18 @@ class CamlocGroup(_FlagsWithoutValueType, TyperGroup):
             if isinstance(error, UsageError):
                 _usage_error(error, ctx)
             raise
+
+
+def _discard_stdout() -> None:
+    """Point stdout at the null device, so that the interpreter's last flush of what is still
+    buffered for a reader that has left does not report another broken pipe."""
+    try:
+        descriptor = sys.stdout.fileno()
+    except (AttributeError, ValueError, io.UnsupportedOperation):  # not a file (a test's capture)
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, descriptor)
+    os.close(null)
 
 
 def say_interrupted() -> None:
@@ -243,6 +265,24 @@ def run_dir_argument(text: str = "Run folder written by 'camloc run'.", *, requi
 
 def dataset_argument(text: str, *, required: bool = True) -> Any:
     return typer.Argument(... if required else None, metavar=DATASET, help=text, show_default=False)
+
+
+def read_true_map(path: Any, run: Any) -> Any:
+    """The g2o file ``path`` given as ``--true-map`` of the run ``run`` (a ``RunResult``): read
+    without its warnings (its map alone is used), and refused unless it is the run's world (its
+    poses, odometry and observations), whose map may differ from the run's: the true map of
+    another world was scored and drawn without a word, its ids meaning other landmarks."""
+    import warnings
+
+    from camloc.g2o import G2oWarning, read_g2o
+    from camloc.smoother import check_run_matches
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", G2oWarning)
+        truth = read_g2o(path)
+    check_run_matches(truth, run, with_map=False, hint="expected the true map of the world the run was made from "
+                      "('camloc simulate' writes it beside the world, <stem>.true-map.g2o)")
+    return truth
 
 
 def echo_json(obj: Any, *, enabled: bool) -> bool:

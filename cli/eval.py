@@ -90,17 +90,13 @@ def evaluate_command(
 def _map_score(run_dir: Path, result, true_map: Path) -> dict:
     """``map_scores.map_score`` of the run's map.csv against the landmarks of the g2o file ``true_map``,
     through the run's associations (each observation's true id) and the map it was given."""
-    import warnings
-
-    from camloc.g2o import G2oWarning, read_g2o
+    from camloc.cli.common import read_true_map
     from camloc.map_scores import map_score
     from camloc.results import run_map
 
     associations = result.associations
     estimated = run_map(result)  # without a map.csv, the given map held exactly
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", G2oWarning)  # its trajectory and observations are not read here
-        truth = read_g2o(true_map)
+    truth = read_true_map(true_map, result)
     return map_score(estimated, given_ids=result.map_landmark_ids, given_xyz=result.map_landmark_xyz,
                      true_ids=truth.landmark_ids, true_xyz=truth.landmark_xyz,
                      obs_landmark=associations.landmark, obs_true=associations.true_landmark,

@@ -100,7 +100,7 @@ def plot(
 
 def _check_output(output: Optional[Path], force: bool) -> None:
     """Refuse an --output that is no figure file or exists (without --force)."""
-    from camloc.atomic_files import refuse_existing
+    from camloc.atomic_files import refuse_existing_file
     from camloc.results import FIGURE_FORMATS
 
     if output is None:
@@ -109,7 +109,7 @@ def _check_output(output: Optional[Path], force: bool) -> None:
         raise ConfigError(
             f"--output {output}: expected a file name ending in .png, .pdf or .svg, found {output.suffix or 'no suffix'!r}"
         )
-    refuse_existing(output, force=force)
+    refuse_existing_file(output, force=force)
 
 
 def _map_view(result, true_map: Optional[Path]):
@@ -122,7 +122,7 @@ def _map_view(result, true_map: Optional[Path]):
         return None
     from camloc.plotting_map import MapView
 
-    return MapView(result, run_map(result), *_true_landmarks(true_map))
+    return MapView(result, run_map(result), *_true_landmarks(true_map, result))
 
 
 def _map_layout(run_dir: Path, result, true_map: Optional[Path], suffix: str) -> dict:
@@ -148,17 +148,14 @@ def _report_layout(view) -> tuple:
     return plotting.report_size(True), lambda fig, result: plotting.draw_report(fig, result, lambda ax: plot_map(ax, view))
 
 
-def _true_landmarks(true_map: Optional[Path]) -> tuple:
-    """(ids, xyz) of the landmarks of the g2o file ``true_map``; (None, None) without one."""
+def _true_landmarks(true_map: Optional[Path], result) -> tuple:
+    """(ids, xyz) of the landmarks of the g2o file ``true_map``, the true map of the run's world;
+    (None, None) without one."""
     if true_map is None:
         return None, None
-    import warnings
+    from camloc.cli.common import read_true_map
 
-    from camloc.g2o import G2oWarning, read_g2o
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", G2oWarning)  # only its landmarks are drawn
-        truth = read_g2o(true_map)
+    truth = read_true_map(true_map, result)
     return truth.landmark_ids, truth.landmark_xyz
 
 

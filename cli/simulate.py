@@ -246,7 +246,7 @@ def simulate(
 
     Zero sigmas are simulated exactly and written as a large finite information (1e12).
     """
-    from camloc.atomic_files import refuse_existing
+    from camloc.atomic_files import refuse_existing_file
     from camloc.simulate import SimulationConfig, simulate_labelled
     from camloc.simulate_map import edits_map
 
@@ -258,7 +258,7 @@ def simulate(
     true_map = true_map_path(output) if edits_map(config) else None
     for path in (output, true_map):
         if path is not None:
-            refuse_existing(path, force=force)
+            refuse_existing_file(path, force=force)
     if tag_sigma_deg is not None:
         simulation = _tag_simulation(config, seed, tag_sigma_deg)
     else:

@@ -38,10 +38,10 @@ def test_candidates_with_a_margin_hold_every_landmark_that_close_to_the_view(rng
             assert set(seen.tolist()) <= set(wide.tolist())
 
 
-@pytest.mark.parametrize("size", [association.SCAN_MAX_POINTS, association.SCAN_MAX_POINTS + 1], ids=["scan", "k-d tree"])
+@pytest.mark.parametrize("size", [7, association.STRIP_MAX_POINTS, association.STRIP_MAX_POINTS + 1], ids=["few", "strip", "k-d tree"])
 def test_a_point_index_finds_exactly_the_points_within_a_ball(rng, size):
-    # a small map is scanned (no scipy import on a small run), a large one searched by k-d tree
-    points = rng.uniform(-10, 10, size=(size, 3))
+    # a map of the numpy engine's sizes is searched by strips (no scipy import), a larger one by k-d tree
+    points = rng.uniform(-10, 10, size=(size, 3)) * [1.0, 3.0, 0.1]  # widest along y: the strip's axis
     index = association.PointIndex(points)
     found_any = 0
     for centre, radius in zip(rng.uniform(-10, 10, size=(20, 3)), rng.uniform(0.5, 6.0, size=20)):
@@ -50,18 +50,19 @@ def test_a_point_index_finds_exactly_the_points_within_a_ball(rng, size):
         np.testing.assert_array_equal(found, expected)
         assert found.dtype == np.int64
         found_any += found.size
-    assert found_any > 100
+    assert found_any > (0 if size < 10 else 100)
     assert index.within(np.full(3, 100.0), 1.0).shape == (0,)
+    assert association.PointIndex(np.zeros((0, 3))).within(np.zeros(3), 1.0).dtype == np.int64
 
 
-def test_shift_agreement_counts_the_same_by_scan_and_by_k_d_tree(rng):
-    shifts = rng.normal(scale=0.3, size=(association.SCAN_MAX_SHIFTS + 40, 3))
-    by_tree = association.shift_agreement(shifts, 0.2)
-    by_scan = association.shift_agreement(shifts[:association.SCAN_MAX_SHIFTS], 0.2)
+@pytest.mark.parametrize("size", [association.SCAN_MAX_SHIFTS, association.SCAN_MAX_SHIFTS + 40, 3 * association.SCAN_MAX_SHIFTS + 7],
+                         ids=["one table", "two blocks", "four blocks"])
+def test_shift_agreement_counts_every_shift_within_the_radius(rng, size):
+    shifts = rng.normal(scale=0.3, size=(size, 3)) * [0.5, 2.0, 1.0]  # widest along y: the blocks' axis
+    counts = association.shift_agreement(shifts, 0.2)
     distances = np.linalg.norm(shifts[:, None, :] - shifts[None, :, :], axis=-1)
-    np.testing.assert_array_equal(by_tree, (distances <= 0.2).sum(axis=1))
-    np.testing.assert_array_equal(by_scan, (distances[:association.SCAN_MAX_SHIFTS, :association.SCAN_MAX_SHIFTS] <= 0.2).sum(axis=1))
-    assert by_tree.min() >= 1 and by_tree.max() > 5
+    np.testing.assert_array_equal(counts, (distances <= 0.2).sum(axis=1))
+    assert counts.dtype == np.int64 and counts.min() >= 1 and counts.max() > 5
 
 
 def test_shift_agreement_counts_the_crowd_of_right_pairs(rng):

@@ -3,7 +3,11 @@ files it will not overwrite."""
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import typer
@@ -396,3 +400,57 @@ def test_the_sweep_table_keeps_every_column_at_80_columns(tmp_path):
     rows = [line for line in lines if line.lstrip().startswith(("grid", "smooth3d"))]
     assert len(rows) == 8 and all(len(line.rstrip()) <= 80 for line in lines)
     assert all(line.split()[2] in ("beam", "oracle") for line in rows)  # values whole, never folded
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a pipe whose reader has left")
+@pytest.mark.parametrize("json_output", [True, False])
+def test_a_reader_that_leaves_early_ends_the_command_silently_with_status_1(world, json_output):
+    """'camloc info --json | head -c 1': no 'error: Broken pipe' (what --json printed before),
+    no traceback; status 1, as rich's tables end then."""
+    dataset, run_dir = world
+    script = Path(sys.executable).with_name("camloc")
+    command = [str(script)] if script.is_file() else [sys.executable, "-c", "from camloc.cli import main; main()"]
+    for args in (["info", dataset], ["eval", run_dir]):
+        process = subprocess.Popen([*command, *map(str, args), *(["--json"] if json_output else [])],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        process.stdout.close()  # the reader leaves before the command prints anything
+        stderr = process.stderr.read().decode()
+        process.wait(timeout=120)
+        assert process.returncode == 1 and stderr == "", (args, process.returncode, stderr)
+
+
+def test_an_output_file_where_a_folder_is_says_so_without_force_too(tmp_path, world):
+    """Not 'already exists; refusing to replace it without --force', which --force would not mend."""
+    _, run_dir = world
+    folder = tmp_path / "report.pdf"
+    folder.mkdir()
+    for args in (["simulate", "-o", folder, "--poses", "5"], ["plot", run_dir, "-o", folder]):
+        assert_one_error_line(invoke(*args), f"{folder}: is a folder; expected the path of a file to write")
+
+
+def test_a_folder_that_cannot_be_made_names_the_file_in_the_way(tmp_path, world):
+    dataset, _ = world
+    blocker = tmp_path / "a-file"
+    blocker.write_text("mine")
+    assert_one_error_line(invoke("run", dataset, "-o", blocker / "deeper" / "run"),
+                          f"cannot create the folder {blocker / 'deeper'}: {blocker} is a file, not a folder")
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a named pipe")
+def test_a_device_or_pipe_given_for_an_output_file_is_never_replaced(tmp_path, world):
+    """Run as root, 'camloc simulate -o /dev/null --force' replaced the system's null device with
+    a regular file (found 2026-12-06, and put back); a named pipe stands in for the device here."""
+    import stat
+
+    from camloc.errors import CamlocError
+
+    _, run_dir = world
+    for name in ("w.g2o", "report.png"):
+        os.mkfifo(tmp_path / name)
+    for args in (["simulate", "-o", tmp_path / "w.g2o", "--poses", "5"], ["plot", run_dir, "-o", tmp_path / "report.png"]):
+        for force in ([], ["--force"]):
+            assert_one_error_line(invoke(*args, *force), "is a device, a pipe or a socket, which camloc never replaces")
+    with pytest.raises(CamlocError, match="is a device, a pipe or a socket"):
+        write_g2o(simulate(SimulationConfig(poses=5), seed=1), tmp_path / "w.g2o")
+    assert all(stat.S_ISFIFO((tmp_path / name).stat().st_mode) for name in ("w.g2o", "report.png"))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["report.png", "w.g2o"]  # no temporary left

@@ -308,3 +308,24 @@ def test_localizer_run_evaluates_and_plots(tmp_path):
     assert invoke("plot", run, "-o", tmp_path / "report.pdf").exit_code == 0
     assert (tmp_path / "report.pdf").read_bytes()[:4] == MAGIC["pdf"]
     np.testing.assert_array_equal(load_run(run).estimate_xyz, result.estimate_xyz)
+
+
+def test_eval_and_plot_refuse_the_true_map_of_another_world(tmp_path):
+    """--true-map of another world (another seed; the same seed's pixel-only world) was scored
+    and drawn without a word, its ids meaning other landmarks; the world's own true map is used."""
+    def simulate(name, *options):
+        assert invoke("simulate", "-o", tmp_path / name, "--poses", "20", "-q", *options).exit_code == 0
+
+    simulate("w.g2o", "--withhold-map", "0.3")
+    simulate("other.g2o", "--seed", "1")
+    simulate("pixel.g2o", "--measurement", "pixel")
+    assert invoke("run", tmp_path / "w.g2o", "-o", tmp_path / "run", "-q").exit_code == 0
+    for other, difference in (("other.g2o", "odometry reaches"), ("pixel.g2o", "observation 1")):
+        for command in (["eval", tmp_path / "run"], ["plot", tmp_path / "run"]):
+            outcome = invoke(*command, "--true-map", tmp_path / other, "-q")
+            assert_bad_input(outcome, f"do not match: {difference}")
+            assert "expected the true map of the world the run was made from" in outcome.stderr
+    assert not list((tmp_path / "run").glob("fig-*"))
+    scored = invoke("eval", tmp_path / "run", "--true-map", tmp_path / "w.true-map.g2o", "--json")
+    assert scored.exit_code == 0, scored.output
+    assert json.loads(scored.stdout)["map"]["mapped"] is not None

@@ -149,6 +149,27 @@ def test_carriage_returns_alone_end_lines_as_classic_mac_os_wrote_them(tmp_path)
     assert caught.value.line == 4  # the line numbers an editor shows
 
 
+def test_comments_at_line_ends_are_skipped_as_g2o_skips_them(tmp_path):
+    """g2o reads a record's fields and ignores the rest of its line: a '# ...' after the fields is
+    a comment (it was 'expects 4 fields, found 7'); a '#' inside a field is still damage."""
+    commented = [line + ("  # surveyed 2026-03-05, Kamera ①" if not line.startswith("#") else "") for line in VALID]
+    commented[2] = VALID[2] + "\t#tab then comment"
+    dataset = read_g2o(write_file(tmp_path, commented))
+    clean = read_g2o(write_file(tmp_path, VALID, name="clean.g2o"))
+    for name in ("pose_ids", "odom_translation", "odom_info", "obs_z", "obs_info", "landmark_xyz", "landmark_ids"):
+        np.testing.assert_array_equal(getattr(dataset, name), getattr(clean, name))
+    with pytest.raises(DatasetError, match="field z: expected a number, found '3.0#x'"):
+        read_quietly(write_file(tmp_path, with_line(3, "VERTEX_TRACKXYZ 1 1.0 2.0 3.0#x")))
+    with pytest.raises(DatasetError, match="expects 4 fields after the tag"):
+        read_quietly(write_file(tmp_path, with_line(3, "VERTEX_TRACKXYZ 1 1.0 # 2.0 3.0")))
+
+
+def test_a_g2o_fix_record_is_skipped_with_a_warning_that_says_why(tmp_path):
+    with pytest.warns(G2oWarning, match="unknown tag 'FIX' .g2o's fixed vertices: camloc holds the start pose"):
+        dataset = read_g2o(write_file(tmp_path, VALID[:5] + ["FIX 10"] + VALID[5:]))
+    assert dataset.num_poses == 3
+
+
 def test_observations_behind_the_camera_are_kept_with_one_warning(tmp_path):
     lines = with_lines({9: f"EDGE_PROJECT_DEPTH 11 1 0 0.5 0.5 0 {INFO3}", 11: f"EDGE_PROJECT_DEPTH 12 2 0 0.4 0.6 -2.0 {INFO3}"})
     with pytest.warns(G2oWarning, match="depth <= 0"):
@@ -217,7 +238,23 @@ BAD_LINES = [
     ("duplicate-pose-vertex", with_line(7, "VERTEX_SE3:QUAT 10 2 0 0 0 0 0 1"), 7,
      ["duplicate pose vertex id 10", "line 5"]),
     ("two-edges-from-one-pose", with_line(10, f"EDGE_SE3:QUAT 10 12 0.9 0 0 0 0 0 1 {INFO6}"), 10,
-     ["duplicate", "from pose", "fork", "line 8"]),
+     ["EDGE_SE3:QUAT 10 -> 12", "second edge from pose 10", "10 -> 11, at line 8", "loop closure", "remove such edges"]),
+    # a pose graph's loop closure: an edge back to an earlier pose, from the middle or the end of the chain
+    ("loop-closure-from-the-middle", VALID + [f"EDGE_SE3:QUAT 11 10 0 0 0 0 0 0 1 {INFO6}"], 13,
+     ["EDGE_SE3:QUAT 11 -> 10", "second edge from pose 11", "loop closure", "remove such edges"]),
+    ("loop-closure-from-the-end", VALID + [f"EDGE_SE3:QUAT 12 10 0 0 0 0 0 0 1 {INFO6}"], 13,
+     ["12 -> 10", "cycle", "loop closure", "remove such edges"]),
+    ("full-information-matrix", with_line(8, "EDGE_SE3:QUAT 10 11 1.1 0 0 0 0 0 1 " + " ".join(
+        "100" if (i == j and i < 3) else "10000" if i == j else "0" for i in range(6) for j in range(6))), 8,
+     ["expects 30", "found 45", "full 6x6 matrix", "upper triangle"]),
+    ("full-information-matrix-of-an-observation", with_line(9, "EDGE_PROJECT_DEPTH 11 1 0 0.5 0.5 1.0 1000 0 0 0 1000 0 0 0 1000"),
+     9, ["expects 12", "found 15", "full 3x3 matrix"]),
+    ("a-megabyte-field", with_line(3, "VERTEX_TRACKXYZ 1 1.0 2.0 " + "3" * 1_000_000 + "x"), 3,
+     ["field z", "expected a number", "... (1000001 characters)"]),
+    ("inverse-depth-beyond-the-bound", VALID + [f"EDGE_PROJECT_DISPARITY 12 2 0 0.4 0.6 1e-300 {INFO3}"], 13,
+     ["EDGE_PROJECT_DISPARITY", "inverse_depth", "within 1e+09 m", "1e-300"]),
+    ("landmark-written-as-a-pose", VALID + ["VERTEX_SE3:QUAT 3 7.0 8.0 9.0 0 0 0 1"], 13,
+     ["VERTEX_SE3:QUAT 3", "no EDGE_SE3:QUAT reaches", "a landmark?", "VERTEX_TRACKXYZ"]),
     ("observation-of-unknown-pose", with_line(9, f"EDGE_PROJECT_DEPTH 99 1 0 0.5 0.5 1.0 {INFO3}"), 9,
      ["pose 99", "odometry chain"]),
     ("observation-through-unknown-camera", with_line(9, f"EDGE_PROJECT_DEPTH 11 1 3 0.5 0.5 1.0 {INFO3}"), 9,

@@ -96,6 +96,17 @@ def test_wrap_angle_stays_in_range(angle):
     assert np.isclose(np.cos(wrapped), np.cos(angle)) and np.isclose(np.sin(wrapped), np.sin(angle))
 
 
+def test_wrap_angle_of_a_float_is_numpys_to_the_bit(rng):
+    angles = np.concatenate([rng.normal(scale=s, size=2000) for s in (1e-8, 1.0, 3.2, 10.0, 1e3, 1e8)]
+                            + [[0.0, -0.0, np.pi, -np.pi, 2 * np.pi, -2 * np.pi, np.nextafter(np.pi, 0.0), np.nextafter(-np.pi, 0.0),
+                                5e-324, 1e300, np.inf, -np.inf, np.nan]])
+    with np.errstate(invalid="ignore"):
+        expected = geometry.wrap_angle(angles)
+    found = np.array([geometry.wrap_angle_float(a) for a in angles.tolist()])
+    np.testing.assert_array_equal(found.view(np.int64)[~np.isnan(expected)], expected.view(np.int64)[~np.isnan(expected)])
+    assert np.isnan(found[np.isnan(expected)]).all()
+
+
 @pytest.mark.parametrize("scale", [1e-7, 1e-3, 0.5, 3.0])
 def test_so3_exp_and_log_match_scipy(rng, scale):
     from scipy.spatial.transform import Rotation

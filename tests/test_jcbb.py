@@ -74,3 +74,15 @@ def test_result_is_jointly_compatible_and_maximal_on_random_cases(seed):
     compatible = individually_compatible(y_all, H, P, R)
     result = jcbb(y_all, H, P, R, compatible)
     assert result.assignment.tolist() == truth.tolist()
+
+
+def test_a_landmark_that_is_a_candidate_of_two_sensors_is_paired_once():
+    """One camera of depth and pixel records is two sensors, each with its own candidate column of
+    a landmark both may see: two observations, one of each sensor, may each fit their column, but
+    a landmark is one of them at most."""
+    y_all, H, P, R = shifted_world(0.0)
+    compatible = np.array([[True, False], [False, True]])  # each observation its own sensor's column
+    assert jcbb(y_all, H, P, R, compatible).assignment.tolist() == [0, 1]  # two landmarks: both paired
+    same = jcbb(y_all, H, P, R, compatible, landmark_of=np.array([7, 7]))
+    assert sorted(same.assignment.tolist()) in ([-1, 0], [-1, 1])
+    assert same.exhaustive

@@ -261,3 +261,17 @@ def test_the_solver_and_filter_agree_on_a_pixel_stack():
     assert padded.nis(y3.reshape(-1)) == pytest.approx(plain.nis(y2.reshape(-1)), rel=1e-10)
     assert padded.log_det_ratio() == pytest.approx(ekf.innovation_cost(P, H2.reshape(10, 6), R2, y2.reshape(-1))
                                                    - plain.nis(y2.reshape(-1)), rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_one_point_projected_in_floats_is_the_array_forms_to_the_bit(rng, kind):
+    """``project_one`` (the numpy beam's lone pair) gives ``project`` and ``projection_jacobian``
+    of the same point bit for bit: the numpy engine's pairs must not move with it."""
+    intrinsics = (525.0, 520.0, 319.5, 239.5)
+    for point in rng.normal(size=(200, 3)) * [2.0, 2.0, 3.0]:
+        found = measurement.project_one(point, intrinsics, kind)
+        z_hat = measurement.project(point[None], intrinsics, kind)
+        J = measurement.projection_jacobian(point[None], intrinsics, kind)
+        np.testing.assert_array_equal(found[0].view(np.int64), z_hat.view(np.int64))
+        np.testing.assert_array_equal(found[1].view(np.int64), J.view(np.int64))
+    assert measurement.project_one(np.array([1.0, 2.0, 0.0]), intrinsics, kind) is None
