@@ -60,15 +60,20 @@ class PointIndex:
         if self._tree is not None:
             return np.asarray(self._tree.query_ball_point(centre, radius, return_sorted=True), dtype=np.int64)
         middle = float(centre[self._axis])
-        # the slab a hair wider than the ball: the distance test below decides, the slab only
-        # has to hold every point it accepts whatever the rounding of the bounds
-        reach = radius + (abs(middle) + radius) * 1e-9
+        reach = _slab_reach(radius, abs(middle))  # the distance test below decides
         start = bisect_left(self._keys, middle - reach)
         stop = bisect_right(self._keys, middle + reach, lo=start)
         offset = self._sorted[start:stop] - centre
         near = self._order[start:stop][np.einsum("ij,ij->i", offset, offset) <= radius * radius]
         near.sort()
         return near
+
+
+def _slab_reach(radius: float, largest: float) -> float:
+    """How far from a centre a slab along one axis reaches to hold every point within ``radius``
+    of it, coordinates up to ``largest`` in magnitude: a hair wider than the ball, so that the
+    rounding of the slab's bounds never leaves out a point the distance test would accept."""
+    return radius + (largest + radius) * 1e-9
 
 
 def candidate_indices(
@@ -131,7 +136,7 @@ def shift_agreement(shifts: np.ndarray, radius: float) -> np.ndarray:
     order = np.argsort(shifts[:, axis], kind="stable")
     ordered = shifts[order]
     keys = ordered[:, axis]
-    reach = radius + (float(np.abs(keys).max()) + radius) * 1e-9  # a hair wider: the distance test decides
+    reach = _slab_reach(radius, float(np.abs(keys).max()))
     counts = np.empty(shifts.shape[0], dtype=np.int64)
     for start in range(0, shifts.shape[0], SCAN_MAX_SHIFTS):
         block = ordered[start : start + SCAN_MAX_SHIFTS]

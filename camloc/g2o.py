@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from camloc import geometry, measurement, planar, sym3
-from camloc.atomic_files import check_replaceable, make_folder
+from camloc.atomic_files import write_text_atomic
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, LANDMARK_POINT3, LANDMARK_TAG, Camera, Dataset
 from camloc.errors import CamlocError, DatasetError
 
@@ -343,8 +343,11 @@ def _group_lines(path: Path, text: str) -> dict[str, _Lines]:
     """Records grouped by tag, in order of first appearance; blank and ``#`` lines dropped."""
     groups: dict[str, _Lines] = {tag: _Lines() for tag in _LAYOUTS}
     has_comments = "#" in text  # a file without any skips the search on every line
-    if "\n" not in text:  # classic Mac OS line ends, a carriage return alone
-        text = text.replace("\r", "\n")
+    if "\r" in text:
+        # every line end a line end, as Python's universal newlines and editors count them: CRLF,
+        # and a carriage return alone (classic Mac OS, or one pasted into an LF file, whose two
+        # records would otherwise be read as one line of too many fields)
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
     # split("\n") rather than splitlines(): the latter also breaks at \v, \f, \x1c... and would
     # make line numbers disagree with an editor's.
     for number, line in enumerate(text.split("\n"), start=1):
@@ -929,11 +932,10 @@ def write_g2o(dataset: Dataset, path: str | os.PathLike) -> None:
     path : the destination .g2o file.
     """
     path = Path(path)
-    make_folder(path.parent)
     try:
-        _write_atomically(path, "".join(_format_dataset(dataset)))
+        write_text_atomic(path, g2o_text(dataset))
     except OSError as error:
-        raise CamlocError(f"{path}: cannot write: {error.strerror or error}") from None
+        raise CamlocError(f"cannot write {path}: {error.strerror or error}") from None
 
 
 def g2o_text(dataset: Dataset) -> str:
@@ -1031,20 +1033,3 @@ def _observation_records(dataset: Dataset) -> list[str]:
         for row, partner, line in zip(position.tolist(), rotation.tolist(), _records(layout.tag, ids[position], values)):
             lines[row], lines[partner] = line, ""
     return lines
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` whole or not at all: a temporary sibling, then ``os.replace``."""
-    check_replaceable(path)  # a file cannot replace a folder or a device
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        # os.open with mode 0o666 lets the umask decide the permissions, as a plain open() would.
-        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
-        with os.fdopen(descriptor, "w", encoding="utf-8", newline="\n") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise

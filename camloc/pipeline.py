@@ -64,6 +64,9 @@ def run_dataset(
     except FilterDivergedError as error:  # "pose N: ...": which file's pose, as a reader's error says
         raise FilterDivergedError(f"{dataset_path}: {error}") from None
     summary = dict(result.summary)
+    # The path as given is relative to where the run started: the absolute one lets `camloc smooth`
+    # find the file from any folder.
+    summary["dataset_resolved"] = str(Path(dataset_path).resolve())
     summary["timing"] = {"read_seconds": read_seconds, **summary["timing"]}
     # What the numbers do not say by themselves (odometry alone, an incomplete map): said once,
     # in the summary's warnings, which the command line prints and summary.json keeps.

@@ -362,11 +362,12 @@ def world_config(options: dict) -> sim3.SimulationConfig | PlanarSimulationConfi
     tag_sigma_deg = options.pop("tag-sigma-deg", None)
     if robot == "3d":
         if sensors is not None:
-            raise sim3.SimulationOptionError("sensors", "applies only to robot = planar")
+            raise sim3.SimulationOptionError("sensors", "applies only to a planar robot (robot planar); a 3-D robot's "
+                                             "sensors are its cameras")
         config = sim3.simulation_config(options)
         return config if tag_sigma_deg is None else tag_world_config(config, tag_sigma_deg)
     if tag_sigma_deg is not None:
-        raise sim3.SimulationOptionError("tag-sigma-deg", "applies only to robot = 3d")
+        raise sim3.SimulationOptionError("tag-sigma-deg", "applies only to a 3-D robot (robot 3d)")
     cameras = sim3.simulation_config({name: value for name, value in options.items() if name in CAMERA_OPTIONS})
     planar_options = {name: value for name, value in options.items() if name not in CAMERA_OPTIONS}
     return planar_simulation_config({**planar_options, **({"sensors": sensors} if sensors is not None else {})}, cameras)

@@ -1466,15 +1466,8 @@ def check_run_matches(dataset: Dataset, run: RunResult, *, with_map: bool = True
             k = int(np.flatnonzero(ours != theirs)[0])
             found = f"pose {k} is {ours[k]} in the run but {theirs[k]} in the dataset"
         raise CamlocError(f"run and dataset {dataset.source} do not match: {found}; {hint}")
-    run_ids, run_xyz = np.asarray(run.map_landmark_ids), np.asarray(run.map_landmark_xyz)
-    if with_map and (run_ids.shape != dataset.landmark_ids.shape or not np.array_equal(run_ids, dataset.landmark_ids)):
-        raise CamlocError(f"run and dataset {dataset.source} do not match: the run's map has {len(run_ids)} landmarks "
-                          f"({_id_range(run_ids)}), the dataset's {len(dataset.landmark_ids)} ({_id_range(dataset.landmark_ids)}); {hint}")
-    moved = ~np.all(np.isclose(run_xyz, dataset.landmark_xyz, rtol=1e-9, atol=1e-9), axis=1) if with_map else np.zeros(0, bool)
-    if np.any(moved):
-        j = int(np.flatnonzero(moved)[0])
-        raise CamlocError(f"run and dataset {dataset.source} do not match: landmark {run_ids[j]} is at {_triple(run_xyz[j])} "
-                          f"in the run but {_triple(dataset.landmark_xyz[j])} in the dataset; {hint}")
+    if with_map:
+        _check_map_matches(dataset, run, hint)
     odometry = odometry_positions(dataset)
     # composed in another order by each engine: equal to a micrometre, where an edited edge moves metres
     apart = ~np.all(np.isclose(np.asarray(run.odometry_xyz), odometry, rtol=1e-6, atol=1e-6), axis=1)
@@ -1503,6 +1496,20 @@ def check_run_matches(dataset: Dataset, run: RunResult, *, with_map: bool = True
             f"{dataset.pose_ids[dataset.obs_pose_index[o]]}, camera {dataset.obs_camera[o]}, uvd "
             f"{_triple(dataset.obs_z[o])} in the dataset; {hint}"
         )
+
+
+def _check_map_matches(dataset: Dataset, run: RunResult, hint: str) -> None:
+    """``check_run_matches``'s refusal of a run whose map is not the dataset's: the same ids in the
+    same order, each at the same place."""
+    run_ids, run_xyz = np.asarray(run.map_landmark_ids), np.asarray(run.map_landmark_xyz)
+    if run_ids.shape != dataset.landmark_ids.shape or not np.array_equal(run_ids, dataset.landmark_ids):
+        raise CamlocError(f"run and dataset {dataset.source} do not match: the run's map has {len(run_ids)} landmarks "
+                          f"({_id_range(run_ids)}), the dataset's {len(dataset.landmark_ids)} ({_id_range(dataset.landmark_ids)}); {hint}")
+    moved = ~np.all(np.isclose(run_xyz, dataset.landmark_xyz, rtol=1e-9, atol=1e-9), axis=1)
+    if np.any(moved):
+        j = int(np.flatnonzero(moved)[0])
+        raise CamlocError(f"run and dataset {dataset.source} do not match: landmark {run_ids[j]} is at {_triple(run_xyz[j])} "
+                          f"in the run but {_triple(dataset.landmark_xyz[j])} in the dataset; {hint}")
 
 
 def _id_range(ids: np.ndarray) -> str:

@@ -249,18 +249,20 @@ def simulate(
     from camloc.atomic_files import refuse_existing_file
     from camloc.simulate import SimulationConfig, simulate_labelled
     from camloc.simulate_map import edits_map
+    from camloc.simulate_planar import TagWorldConfig
 
     # The options are named after the config's fields: pass on each one given by its command-line
     # name, enums as their text; the others keep the config's defaults.
     options = {name.replace("_", "-"): value.value if isinstance(value, Enum) else value
                for name, value in locals().items() if name in SimulationConfig.__dataclass_fields__ and value is not None}
     config = _config(options, robot, sensors, tag_sigma_deg)
-    true_map = true_map_path(output) if edits_map(config) else None
+    tags = isinstance(config, TagWorldConfig)
+    true_map = true_map_path(output) if edits_map(config.world if tags else config) else None
     for path in (output, true_map):
         if path is not None:
             refuse_existing_file(path, force=force)
-    if tag_sigma_deg is not None:
-        simulation = _tag_simulation(config, seed, tag_sigma_deg)
+    if tags:
+        simulation = _tag_simulation(config.world, seed, config.sigma_deg)
     else:
         simulation = simulate_labelled(config, seed=seed) if robot != RobotChoice.planar else _planar_simulation(config, seed)
     _write(simulation, output, true_map)
@@ -279,26 +281,15 @@ def simulate(
 
 
 def _config(options: dict, robot: RobotChoice, sensors: Optional[str], tag_sigma_deg: Optional[float]):
-    """The simulation's config of the options given, a bad one refused as a bad parameter."""
-    from camloc.simulate import SimulationOptionError, simulation_config
+    """The simulation's config of the options given (``simulate_planar.world_config``: a planar
+    world's, a world of tags' or a 3-D one's), a bad one refused as a bad parameter."""
+    from camloc.simulate import SimulationOptionError
+    from camloc.simulate_planar import world_config
 
-    if sensors is not None and robot != RobotChoice.planar:  # a 3-D robot's file would silently lack them
-        raise typer.BadParameter("applies only to --robot planar (a 3-D robot's sensors are its --cameras)",
-                                 param_hint="--sensors")
     try:
-        if robot == RobotChoice.planar:
-            from camloc.simulate_planar import world_config
-
-            config = world_config({**options, "robot": "planar", "sensors": sensors})
-        else:
-            config = simulation_config(options)
+        return world_config({**options, "robot": robot.value, "sensors": sensors, "tag-sigma-deg": tag_sigma_deg})
     except SimulationOptionError as error:
         raise typer.BadParameter(error.reason, param_hint=f"--{error.field.replace('_', '-')}") from None
-    if tag_sigma_deg is not None and robot == RobotChoice.planar:
-        raise typer.BadParameter("applies only to --robot 3d", param_hint="--tag-sigma-deg")
-    if tag_sigma_deg is not None and not tag_sigma_deg > 0.0:
-        raise typer.BadParameter(f"expected a standard deviation > 0, found {tag_sigma_deg:g}", param_hint="--tag-sigma-deg")
-    return config
 
 
 # The true map's file beside a world whose map is edited: ``world.g2o`` -> ``world.true-map.g2o``.

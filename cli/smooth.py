@@ -34,7 +34,7 @@ def smooth(
     *,
     dataset: Optional[Path] = typer.Option(
         None, "--dataset", metavar="DATASET", help="The g2o file the run was made from. Default: the path "
-        "recorded in the run's summary.json (relative to where 'camloc run' was started).", show_default=False
+        "recorded in the run's summary.json (as given to 'camloc run', else its absolute path).", show_default=False
     ),
     huber: Optional[float] = library_option(
         "Huber threshold on each observation's Mahalanobis distance (whitened "
@@ -116,14 +116,14 @@ def _smoothed(data, run, config, on_iteration):
 
 
 def _recorded_dataset(run_dir: Path, summary: Mapping[str, Any], fallback: str) -> Path:
+    """The run's g2o file: its path as given to `camloc run`, else its absolute path then (a run
+    started in another folder; summaries before 2026-12-06 lack it)."""
     recorded = summary.get("dataset") or fallback
-    path = Path(str(recorded))
-    if not path.is_file():
-        raise CamlocError(
-            f"{run_dir}: the run's dataset {recorded} is not there (a relative path is relative to where "
-            "'camloc run' was started); pass the g2o file with --dataset FILE"
-        )
-    return path
+    for path in (Path(str(recorded)), Path(str(summary.get("dataset_resolved") or recorded))):
+        if path.is_file():
+            return path
+    raise CamlocError(f"{run_dir}: the run's dataset {recorded} is not there (moved or deleted since the run); "
+                      "pass the g2o file with --dataset FILE")
 
 
 @contextlib.contextmanager

@@ -69,7 +69,7 @@ def test_planar_options_that_do_not_apply_are_refused(tmp_path):
     result = invoke("simulate", "--robot", "planar", "--sensors", "", "-o", tmp_path / "x.g2o")
     assert result.exit_code == 2 and "points, markers, cameras, found ''" in result.output
     result = invoke("simulate", "--sensors", "markers", "-o", tmp_path / "x.g2o")
-    assert result.exit_code == 2 and "--sensors: applies only to --robot planar" in result.output
+    assert result.exit_code == 2 and "--sensors: applies only to a planar robot" in result.output
     assert not (tmp_path / "x.g2o").exists()
 
 
@@ -101,7 +101,7 @@ def test_sweep_of_planar_worlds(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('seeds = 1\n[simulate]\nsensors = "points"\n', encoding="utf-8")
     refused = invoke("sweep", bad, "-o", tmp_path / "sweep2")
-    assert refused.exit_code == 2 and "applies only to robot = planar" in refused.output
+    assert refused.exit_code == 2 and "applies only to a planar robot" in refused.output
 
 
 @pytest.fixture(scope="module")

@@ -149,6 +149,21 @@ def test_carriage_returns_alone_end_lines_as_classic_mac_os_wrote_them(tmp_path)
     assert caught.value.line == 4  # the line numbers an editor shows
 
 
+def test_a_carriage_return_alone_inside_an_lf_file_ends_its_line(tmp_path):
+    """A lone CR among LF line ends (a line pasted from another file) ends a line, as an editor
+    and Python's universal newlines count it: before, its two records were one line of too many
+    fields."""
+    joined = "\n".join(VALID[:3]) + "\r" + "\n".join(VALID[3:]) + "\n"
+    path = tmp_path / "mixed.g2o"
+    path.write_bytes(joined.encode())
+    np.testing.assert_array_equal(read_quietly(path).obs_z, read_quietly(write_file(tmp_path, VALID)).obs_z)
+    bad = with_line(6, "VERTEX_TRACKXYZ 2 4.0 5.0")
+    path.write_bytes(("\n".join(bad[:3]) + "\r" + "\n".join(bad[3:])).encode())
+    with pytest.raises(DatasetError) as caught:
+        read_quietly(path)
+    assert caught.value.line == 6
+
+
 def test_comments_at_line_ends_are_skipped_as_g2o_skips_them(tmp_path):
     """g2o reads a record's fields and ignores the rest of its line: a '# ...' after the fields is
     a comment (it was 'expects 4 fields, found 7'); a '#' inside a field is still damage."""

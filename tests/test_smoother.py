@@ -672,6 +672,21 @@ def test_cli_smooth_bad_inputs(tmp_path, cli_run):
     assert invoke("smooth", moved, "--dataset", dataset_path, "--json").exit_code == 0
 
 
+def test_cli_smooth_finds_a_relative_dataset_from_another_folder(tmp_path, cli_run, monkeypatch):
+    # 'camloc run world.g2o' in one folder, 'camloc smooth' from another: the path as given is
+    # relative to the first, the absolute one the run recorded beside it finds the file.
+    dataset_path, _ = cli_run
+    work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
+    work.mkdir(), elsewhere.mkdir()
+    shutil.copy(dataset_path, work / "world.g2o")
+    monkeypatch.chdir(work)
+    assert invoke("run", "world.g2o", "-o", "run", "--quiet").exit_code == 0
+    monkeypatch.chdir(elsewhere)
+    outcome = invoke("smooth", work / "run", "--json")
+    assert outcome.exit_code == 0, outcome.output
+    assert json.loads(outcome.stdout)["dataset"] == str((work / "world.g2o").resolve())
+
+
 def test_cli_smooth_of_a_corrupt_run_folder_names_the_file(tmp_path, cli_run):
     _, run_dir = cli_run
     huge_id_row = "1001,0,0.5,0.5,1,99999999999999999999999,1,1.0"

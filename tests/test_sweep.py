@@ -83,7 +83,7 @@ def test_spec_expands_to_the_product_in_cell_order(spec_file):
     ({"seeds": 2, "simulate": {"poses": 1}}, "[simulate] poses = 1: simulation option poses: expected at least 2"),
     ({"seeds": 2, "simulate": {"clutter_fraction": 0.1}}, "did you mean clutter-fraction?"),
     ({"seeds": 2, "simulate": {"tag-sigma-deg": 0.0}}, "tag-sigma-deg: expected a standard deviation > 0 degrees"),
-    ({"seeds": 2, "simulate": {"robot": "planar", "tag-sigma-deg": 1.0}}, "tag-sigma-deg: applies only to robot = 3d"),
+    ({"seeds": 2, "simulate": {"robot": "planar", "tag-sigma-deg": 1.0}}, "tag-sigma-deg: applies only to a 3-D robot"),
     ({"seeds": 2, "run": {"association": ["beam", "telepathy"]}}, "[run] association = \"telepathy\": --association must be one of"),
     ({"seeds": 2, "run": {"gate": "wide"}}, "[run] gate = \"wide\": --gate must be a number, got 'wide'"),
     ({"seeds": 2, "run": {"association": ["beam", "oracle"], "jcbb-max-nodes": 10}},

@@ -161,7 +161,7 @@ def test_tags_end_to_end(tmp_path):
     assert made.exit_code == 0 and "EDGE_PROJECT_TAG_UV " in pixel.read_text(), made.output
     assert invoke("run", pixel, "-o", tmp_path / "pixel_run").exit_code == 0
     refused = invoke("simulate", "--robot", "planar", "-o", tmp_path / "x.g2o", "--tag-sigma-deg", 1.0)
-    assert refused.exit_code == 2 and "applies only to --robot 3d" in refused.output
+    assert refused.exit_code == 2 and "applies only to a 3-D robot" in refused.output
 
 
 def test_conditional_terms_are_the_joint_innovations_less_the_positions(rng):
