@@ -26,7 +26,7 @@ from camloc.filters import make_filter
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
-from camloc.sparse_poses import is_sparse, pose_beam
+from camloc.sparse_poses import pose_beam, sparse_poses
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -211,6 +211,8 @@ def search_beam(scene, settings, x0, P0, progress, settle):
     # a sparse pose keeps a wider beam (``sparse_poses.pose_beam``): room for the widest
     d = x0.size
     width = pose_beam(True, settings.beam_width, settings.beam_delta)[0]
+    # the sensors' kinds are the camera table's fifth column
+    sparse = sparse_poses(scene.camera_K[scene.obs_camera[scene.pose_obs], 4].astype(np.int64), scene.pose_obs_start, d)
     history = (np.zeros(n, np.int64), np.zeros((n, width), np.int64), np.zeros((n, width), np.bool_),
                np.zeros((n, width + 1), np.int64), np.zeros((max(4 * scene.z.shape[0], 64), 2), np.int64), np.zeros(1, np.int64),
                np.zeros((n, width, d)), np.zeros((n, width)))
@@ -223,11 +225,11 @@ def search_beam(scene, settings, x0, P0, progress, settle):
     for first, last in progress.blocks():
         k = first
         while k < last:
-            status, k, parents, n_parents, children, count = _at_pose(counters, kb.run_poses, scene, settings, k, last, beam, size,
+            status, k, parents, n_parents, children, count = _at_pose(counters, kb.run_poses, scene, settings, sparse, k, last, beam, size,
                                                                      history, unexplained, counters)
             if status in (kb.GROW, kb.SLIP):
                 obs = scene.pose_obs[scene.pose_obs_start[k]:scene.pose_obs_start[k + 1]]
-                pose_width, pose_delta = pose_beam(is_sparse(int(scene.obs_dof[obs].sum()), d), settings.beam_width, settings.beam_delta)
+                pose_width, pose_delta = pose_beam(bool(sparse[k]), settings.beam_width, settings.beam_delta)
                 if status == kb.SLIP:
                     from camloc.seeds import explain_with_seeds
 

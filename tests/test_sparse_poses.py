@@ -1,6 +1,8 @@
-"""The beam is wider at a pose of few observations (``camloc.sparse_poses``): a hypothesis that the
-default beam drops (more than ``beam_delta`` costlier than the best) is kept at a pose whose
-observations barely over-determine the state, in both engines, and dropped at a pose of many."""
+"""The beam is wider at a pose of a few rays (``camloc.sparse_poses``): a hypothesis that the
+default beam drops (more than ``beam_delta`` costlier than the best) is kept at a pose whose pixel
+observations barely over-determine the state, in both engines, and dropped at a pose of many; a
+pose with a point-giving observation (depth, disparity, a tag, a planar point) is never sparse, so
+such files run as they did before the rule."""
 
 from __future__ import annotations
 
@@ -10,18 +12,34 @@ import pytest
 from camloc import LocalizerConfig, measurement
 from camloc.beam_types import BeamSettings
 from camloc.constants import SPARSE_DELTA_EXTRA, SPARSE_DISTINCT_SIGMA, SPARSE_ROWS_PER_DIM, SPARSE_WIDTH_FACTOR
+from camloc.dataset import observations_by_pose
 from camloc.simulate import SimulationConfig, simulate
-from camloc.sparse_poses import carried, is_sparse, pose_beam
+from camloc.sparse_poses import carried, pose_beam, sparse_poses
 
 WIDTH, DELTA = BeamSettings.beam_width, BeamSettings.beam_delta
+PIXEL, DEPTH, DISPARITY = measurement.PIXEL, measurement.DEPTH, measurement.DISPARITY
 
 
-def test_a_pose_is_sparse_by_its_measurement_rows_against_the_state_s_dimension():
-    assert is_sparse(2 * 6, 6) and not is_sparse(2 * 7, 6)    # six pixels against the 6-dof state
-    assert is_sparse(3 * 4, 6) and not is_sparse(3 * 5, 6)    # four points
-    assert is_sparse(2 * 3, 3) and not is_sparse(2 * 4, 3)    # the planar state: three 2-row observations
+def _one_pose_each(*poses, state_dim=6):
+    """sparse_poses of poses given as lists of kind codes."""
+    kinds = np.array([kind for pose in poses for kind in pose], dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum([len(pose) for pose in poses])]).astype(np.int64)
+    return sparse_poses(kinds, start, state_dim).tolist()
+
+
+def test_a_pose_is_sparse_by_its_rays_against_the_state_s_dimension():
+    assert _one_pose_each([PIXEL] * 6, [PIXEL] * 7) == [True, False]          # six rays against the 6-dof state
+    assert _one_pose_each([PIXEL] * 3, [PIXEL] * 4, state_dim=3) == [True, False]
     assert pose_beam(True, WIDTH, DELTA) == (WIDTH * SPARSE_WIDTH_FACTOR, DELTA + SPARSE_DELTA_EXTRA)
     assert pose_beam(False, WIDTH, DELTA) == (WIDTH, DELTA)
+
+
+def test_a_pose_of_a_point_giving_observation_or_of_none_is_not_sparse():
+    # four depth points (12 rows, within the 12 of six rays), one point among rays, no observation
+    assert _one_pose_each([DEPTH] * 4, [PIXEL, PIXEL, DEPTH], [], [PIXEL]) == [False, False, False, True]
+    for kind in (DISPARITY, measurement.TAG_ROTATION, measurement.POINT2, measurement.MARKER):
+        assert _one_pose_each([kind], state_dim=3) == [False]
+    assert SPARSE_ROWS_PER_DIM * 6 >= 3 * 4   # the rows alone would have made the depth pose sparse
 
 
 def test_a_sparse_pose_s_extra_hypotheses_are_not_carried_into_a_pose_that_is_not():
@@ -32,14 +50,17 @@ def test_a_sparse_pose_s_extra_hypotheses_are_not_carried_into_a_pose_that_is_no
     assert carried(costs, 3, False, WIDTH, DELTA) == 3 and carried(costs, 0, False, WIDTH, DELTA) == 0
 
 
+def _sparse_poses_of(dataset, state_dim=6):
+    order, bounds = observations_by_pose(dataset)
+    return sparse_poses(dataset.obs_kind[order], bounds, state_dim)
+
+
 def _poses_of(dataset):
-    """A pose of few observations (at most SPARSE_ROWS_PER_DIM rows per state dimension) and one of
-    many, of the world's."""
-    rows = np.bincount(dataset.obs_pose_index, weights=measurement.dof_of(dataset.obs_kind), minlength=dataset.num_poses)
-    sparse = np.flatnonzero((rows > 0) & (rows <= SPARSE_ROWS_PER_DIM * 6))
-    dense = np.flatnonzero(rows > SPARSE_ROWS_PER_DIM * 6)
-    assert sparse.size and dense.size
-    return int(sparse[0]), int(dense[0])
+    """A sparse pose (a few rays) and one of many rays, of the world's."""
+    sparse = _sparse_poses_of(dataset)
+    dense = np.bincount(dataset.obs_pose_index, minlength=dataset.num_poses) > 0
+    assert sparse.any() and (dense & ~sparse).any()
+    return int(np.flatnonzero(sparse)[0]), int(np.flatnonzero(dense & ~sparse)[0])
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +85,7 @@ def test_the_compiled_beam_keeps_more_at_a_pose_of_few_observations(world):
     gen = kb.new_generation(COSTS.size, 1, 6)
     gen[0][:], gen[1][:], gen[2][:] = STATES, COVARIANCE, COSTS
     for pose, kept in zip(_poses_of(world), (KEPT_WIDE, KEPT_DEFAULT)):
-        obs = np.flatnonzero(world.obs_pose_index == pose)
-        width, delta = pose_beam(is_sparse(int(scene.obs_dof[obs].sum()), 6), settings.beam_width, settings.beam_delta)
+        width, delta = pose_beam(bool(_sparse_poses_of(world)[pose]), settings.beam_width, settings.beam_delta)
         assert list(kb.prune(scene, settings, gen, COSTS.size, width, delta)) == list(range(kept))
 
 
@@ -77,7 +97,7 @@ def test_the_numpy_beam_keeps_more_at_a_pose_of_few_observations(world):
     search = BeamSearch(_Localizer(world, LocalizerConfig()), BeamSettings())
     hypotheses = [Hypothesis(x, COVARIANCE, float(c), 0) for x, c in zip(STATES, COSTS)]
     for pose, kept in zip(_poses_of(world), (KEPT_WIDE, KEPT_DEFAULT)):
-        explained = search._use_pose_beam(np.flatnonzero(world.obs_pose_index == pose), hypotheses)
+        explained = search._use_pose_beam(bool(_sparse_poses_of(world)[pose]), hypotheses)
         assert search.expansion.prune(hypotheses) == hypotheses[:kept]
         assert explained == hypotheses[:None if kept == KEPT_WIDE else KEPT_DEFAULT]
 
@@ -103,13 +123,11 @@ def test_a_sparse_pose_keeps_no_variant_of_a_kept_hypothesis_beyond_the_run_s_be
     scene, settings = build_scene(world, config), build_settings(config)
     gen = kb.new_generation(COSTS.size, 1, 6)
     gen[0][:], gen[1][:], gen[2][:] = VARIANTS, COVARIANCE, COSTS
-    sparse, _ = _poses_of(world)
-    obs = np.flatnonzero(world.obs_pose_index == sparse)
     width, delta = pose_beam(True, settings.beam_width, settings.beam_delta)
     assert list(kb.prune(scene, settings, gen, COSTS.size, width, delta)) == KEPT_DISTINCT
     search = BeamSearch(_Localizer(world, LocalizerConfig()), BeamSettings())
     hypotheses = [Hypothesis(x, COVARIANCE, float(c), 0) for x, c in zip(VARIANTS, COSTS)]
-    search._use_pose_beam(obs, hypotheses)
+    search._use_pose_beam(True, hypotheses)
     assert search.expansion.prune(hypotheses) == [hypotheses[i] for i in KEPT_DISTINCT]
 
 
@@ -147,3 +165,39 @@ def test_the_numpy_beam_holds_the_right_hypothesis_through_an_episode_of_few_obs
 
     dataset = _pruned_episode()   # about a minute and a half of CPU on this engine
     _assert_the_episode_is_held(localize(dataset, LocalizerConfig(), engine="numpy", parallel=False), dataset)
+
+
+def _worlds_of_points():
+    """Worlds of every point-giving sensor, many of whose poses have at most two measurement rows
+    per state dimension (what a rule of rows alone made sparse): depth (the hard_worlds kind that
+    moved), disparity, depth tags, planar points and markers; and their state's dimension."""
+    from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar, simulate_world, world_config
+
+    few = {"poses": 40, "max-observations-per-pose": 3, "clutter-fraction": 0.2}
+    yield "depth", simulate(SimulationConfig(poses=40, trajectory="smooth3d", measurement="depth", max_observations_per_pose=3,
+                                             clutter_fraction=0.2), seed=2), 6
+    yield "disparity", simulate_world(world_config({**few, "measurement": "disparity"}), seed=2), 6
+    yield "tags", simulate_world(world_config({**few, "max-observations-per-pose": 2, "tag-sigma-deg": 5.0}), seed=2), 6
+    planar = PlanarSimulationConfig(sensors="points,markers", poses=40, visible_per_pose=1.5, clutter_fraction=0.2)
+    yield "planar", simulate_planar(planar, seed=2), 3
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_no_pose_of_a_file_of_points_is_sparse_in_either_engine(engine, monkeypatch):
+    import camloc
+    import camloc.beam
+    import camloc.loop
+
+    decided = []
+
+    def spied(kinds, pose_start, state_dim):
+        decided.append(sparse_poses(kinds, pose_start, state_dim))
+        return decided[-1]
+
+    monkeypatch.setattr(camloc.beam if engine == "numpy" else camloc.loop, "sparse_poses", spied)
+    for name, dataset, state_dim in _worlds_of_points():
+        rows = np.bincount(dataset.obs_pose_index, weights=measurement.dof_of(dataset.obs_kind), minlength=dataset.num_poses)
+        assert ((rows > 0) & (rows <= SPARSE_ROWS_PER_DIM * state_dim)).sum() >= 10, name
+        decided.clear()
+        camloc.localize(dataset, LocalizerConfig(), engine=engine, parallel=False)
+        assert len(decided) == 1 and decided[0].size == dataset.num_poses and not decided[0].any(), name

@@ -30,7 +30,7 @@ from camloc.kernels.update import innovation_cost, pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
-from camloc.sparse_poses import carried, copy_sigma, is_sparse, pose_beam
+from camloc.sparse_poses import carried, copy_sigma, pose_beam
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
@@ -39,7 +39,6 @@ DONE, SLIP, GROW = 0, 1, 2
 compiled_miss_charge = inlined(miss_charge)
 compiled_pose_beam = inlined(pose_beam)
 compiled_carried = inlined(carried)
-compiled_is_sparse = inlined(is_sparse)
 compiled_copy_sigma = inlined(copy_sigma)
 
 
@@ -858,16 +857,6 @@ def binomial_upper_tail(u, n, p):
 
 
 @inlined
-def pose_rows(obs_dof, obs):
-    """The measurement rows of the pose of observations ``obs`` (the sum of their degrees of
-    freedom: what ``camloc.sparse_poses`` reads)."""
-    rows = 0
-    for o in obs:
-        rows += obs_dof[o]
-    return rows
-
-
-@inlined
 def seeds_worth_trying(unassigned, observed, unexplained, count):
     """``camloc.beam_seeded.seeds_worth_trying`` over the first ``count`` rows of ``unexplained`` (the
     poses' (unassigned, observed) so far)."""
@@ -885,9 +874,9 @@ def seeds_worth_trying(unassigned, observed, unexplained, count):
 
 
 @entry
-def run_poses(scene, settings, first, last, beam, n, history, unexplained, counters):
+def run_poses(scene, settings, sparse, first, last, beam, n, history, unexplained, counters):
     """The beam from pose first to last - 1, from ``beam`` (n hypotheses after pose first - 1, or
-    the start). Per pose: predict every hypothesis, explain the pose's observations, keep the
+    the start), ``sparse`` (N,) the run's sparse poses (``sparse_poses.sparse_poses``). Per pose: predict every hypothesis, explain the pose's observations, keep the
     cheapest (``prune``), record them. Stops early with SLIP where the best explanation leaves
     most of a pose's observations unassigned (the caller decides whether to search from seeds),
     or GROW where the history's pair buffer is full. counters[1] is the pose being explained.
@@ -901,10 +890,9 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
         if obs.size == 0 or scene.grid_keys.size == 0:
             children, count, kept = parents, n, np.arange(n)
         else:
-            sparse = compiled_is_sparse(pose_rows(scene.obs_dof, obs), parents[0].shape[1])
             # the extra hypotheses of a sparse pose before are not explained at one that is not
-            n = compiled_carried(parents[2], n, sparse, settings.beam_width, settings.beam_delta)
-            width, delta = compiled_pose_beam(sparse, settings.beam_width, settings.beam_delta)
+            n = compiled_carried(parents[2], n, sparse[k], settings.beam_width, settings.beam_delta)
+            width, delta = compiled_pose_beam(sparse[k], settings.beam_width, settings.beam_delta)
             children, count = explain_all(scene, settings, parents, n, obs)
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
