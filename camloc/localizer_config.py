@@ -56,7 +56,7 @@ class BeamOptions:
     Attributes
     ----------
     width : association hypotheses kept after each pose.
-    delta : drop hypotheses this much costlier than the best. At a pose of few observations
+    delta : drop hypotheses this much costlier than the best. At a pose of a few rays only
         (``camloc.sparse_poses``) the beam keeps ``SPARSE_WIDTH_FACTOR`` times the width and
         ``SPARSE_DELTA_EXTRA`` more delta.
     branch_delta : explore only an observation's options within this cost of its best.
