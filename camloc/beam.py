@@ -25,7 +25,7 @@ Keeping it fast (most poses are not ambiguous):
   only the ambiguous rest are explained one by one, each re-gated under the hypothesis conditioned
   on the pairs before it among its pool of nearby landmarks (no new search of the map);
 - after each pose the beam keeps the ``beam_width`` cheapest hypotheses within ``beam_delta`` of
-  the best, and merges hypotheses whose states coincide (within ``merge_sigma`` standard
+  the best (more, and further, at a pose of a few rays: ``camloc.sparse_poses``), and merges hypotheses whose states coincide (within ``merge_sigma`` standard
   deviations on every axis), so in unambiguous stretches it collapses to one filter;
 - where every observation of a pose is ambiguous (large measurement noise in a dense map) the
   partial explanations grown from all the beam's hypotheses share a budget of ``partial_budget``
@@ -59,6 +59,7 @@ the localizer looks each pose's pairs up in its result.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -68,7 +69,9 @@ from camloc.beam_expansion import PoseExpansion
 from camloc.beam_seeded import SeededSearch
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis
 from camloc.constants import SLIP_MIN_OBSERVATIONS
+from camloc.dataset import observations_by_pose
 from camloc.pair_options import PairGating
+from camloc.sparse_poses import carried, pose_beam, sparse_poses
 
 
 class BeamSearch:
@@ -108,6 +111,8 @@ class BeamSearch:
         self.association_spread = np.zeros((self.ctx.dataset.num_poses,) + P0.shape)
         decided = 0  # poses before this one have been passed to on_decided
         n = self.ctx.dataset.num_poses
+        order, bounds = observations_by_pose(self.ctx.dataset)
+        self.sparse = sparse_poses(self.ctx.dataset.obs_kind[order], bounds, x0.size)  # a few rays only
         for k in range(n):
             try:
                 if k > 0:
@@ -174,6 +179,7 @@ class BeamSearch:
     def _explain_pose(self, k: int, beam: list[Hypothesis], obs: np.ndarray) -> list[Hypothesis]:
         if obs.size == 0 or self.ctx.map_index is None:
             return beam
+        beam = self._use_pose_beam(bool(self.sparse[k]), beam)
         children = self.expansion.explain_all(beam, obs)
         if not children:  # every option's cost is NaN: a covariance that is not one
             raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
@@ -198,6 +204,18 @@ class BeamSearch:
             kept = self.seeded.with_a_seeded_one(kept, group)
         self.seeded.unexplained.append((kept[0].unassigned, obs.size))
         return kept
+
+    def _use_pose_beam(self, sparse: bool, beam: list[Hypothesis]) -> list[Hypothesis]:
+        """The pose's beam width and delta (``sparse_poses.pose_beam``: wider at a ``sparse`` pose,
+        of a few rays) where its explanation, seeded search and pruning read them; returns the
+        hypotheses the pose explains (``sparse_poses.carried``: a sparse pose's extra ones dropped
+        before one that is not)."""
+        width, delta = self.settings.beam_width, self.settings.beam_delta
+        n = carried([h.cost for h in beam], len(beam), sparse, width, delta)
+        width, delta = pose_beam(sparse, width, delta)
+        self.expansion.width, self.expansion.delta = width, delta
+        self.seeded.settings = replace(self.settings, beam_width=width, beam_delta=delta)
+        return beam[:n]
 
     def _backtrack(self, spread_from: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
         # each pose's beam is sorted by cost: the first is the best

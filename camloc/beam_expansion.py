@@ -15,6 +15,7 @@ from camloc import ekf, measurement
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
 from camloc.miss_term import miss_charge
 from camloc.pair_options import PairGating, PairOptions, member
+from camloc.sparse_poses import copy_sigma
 
 
 class PoseExpansion:
@@ -25,7 +26,9 @@ class PoseExpansion:
     def __init__(self, context: BeamContext, settings: BeamSettings, gating: PairGating, statistics: BeamStatistics,
                  history: list[list[Hypothesis]]):
         self.ctx = context
-        self.settings = settings
+        self.settings = settings     # the run's
+        # the pose's beam (``sparse_poses.pose_beam``), set per pose by the search
+        self.width, self.delta = settings.beam_width, settings.beam_delta
         self.gating = gating
         self.statistics = statistics
         self.history = history
@@ -140,14 +143,14 @@ class PoseExpansion:
         return Partial(child, order, options, child.x, least, sum(least.values()), root)
 
     def prune_partials(self, partials: list[Partial]) -> list[Partial]:
-        """Each parent's partial explanations pruned as ``prune`` does (they have explained the
-        same observations, so their costs compare); then, if together they are more than
+        """Each parent's partial explanations pruned as ``prune`` does, to the run's beam (they
+        have explained the same observations, so their costs compare); then, if together they are more than
         ``partial_budget``, the best of each parent and the rest of the budget by cost plus
         ``rest``, the least their observations still to explain can cost."""
         by_root: dict[int, list[Partial]] = {}
         for p in partials:
             by_root.setdefault(p.root, []).append(p)
-        kept = [p for group in by_root.values() for p in self.prune(group, lambda p: p.h)]
+        kept = [p for group in by_root.values() for p in self.prune(group, lambda p: p.h, self.settings.beam_width, self.settings.beam_delta)]
         if len(kept) > self.settings.partial_budget:
             kept.sort(key=lambda p: p.h.cost + p.rest)
             firsts = {}
@@ -239,19 +242,28 @@ class PoseExpansion:
                                   at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True)
         return result.state, result.cov
 
-    def prune(self, children: list, hypothesis: Callable = lambda c: c) -> list:
-        """The cheapest children within beam_delta of the best, merged, at most beam_width.
+    def prune(self, children: list, hypothesis: Callable = lambda c: c, width: Optional[int] = None,
+              delta: Optional[float] = None) -> list:
+        """The cheapest children within ``delta`` of the best, merged, at most ``width`` (by default
+        the pose's, ``sparse_poses.pose_beam``; a sparse pose's extra ones distinct: ``copy_sigma``).
         ``hypothesis(child)`` is the child's Hypothesis (children may be Partial)."""
+        width, delta = (self.width if width is None else width), (self.delta if delta is None else delta)
         children = sorted(children, key=lambda c: hypothesis(c).cost)
-        limit = hypothesis(children[0]).cost + self.settings.beam_delta
+        best = hypothesis(children[0]).cost
+        limit = best + delta
+        s = self.settings
         kept: list = []
         for c in children:
-            if hypothesis(c).cost > limit or len(kept) >= self.settings.beam_width:
+            if hypothesis(c).cost > limit or len(kept) >= width:
                 break
-            if not any(self.same_state(hypothesis(c), hypothesis(k)) for k in kept):
+            # beyond the run's width and delta (a sparse pose's extra ones) only a distinct one
+            sigma = copy_sigma(hypothesis(c).cost, best, len(kept), s.beam_width, s.beam_delta, s.merge_sigma)
+            if not any(self.same_state(hypothesis(c), hypothesis(k), sigma) for k in kept):
                 kept.append(c)
         return kept
 
-    def same_state(self, a: Hypothesis, b: Hypothesis) -> bool:
+    def same_state(self, a: Hypothesis, b: Hypothesis, sigma: Optional[float] = None) -> bool:
+        """Whether a lies within ``sigma`` (default merge_sigma) standard deviations of b on every axis."""
+        sigma = self.settings.merge_sigma if sigma is None else sigma
         d = self.ctx.filter.difference(a.x, b.x)
-        return bool(np.all(d * d <= self.settings.merge_sigma**2 * b.P.diagonal()))
+        return bool(np.all(d * d <= sigma**2 * b.P.diagonal()))

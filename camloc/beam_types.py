@@ -25,7 +25,8 @@ class BeamSettings:
     """Parameters of the beam (costs are 2 x negative log-likelihoods).
 
     beam_width : hypotheses kept after each pose.
-    beam_delta : drop hypotheses this much costlier than the best.
+    beam_delta : drop hypotheses this much costlier than the best. Both are the run's: at a pose of
+        a few rays only the beam keeps more, and further (``camloc.sparse_poses.pose_beam``).
     branch_delta : options of an observation this much costlier than its best are not explored.
     merge_sigma : hypotheses whose states differ by less than this many standard deviations on
         every axis are merged (the cheaper kept).

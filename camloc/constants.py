@@ -11,6 +11,20 @@ from camloc.tails import chi2_quantile
 MERGE_SIGMA = 0.3
 # Most partial explanations of a pose kept across all the beam's hypotheses, past each one's best.
 PARTIAL_BUDGET = 64
+# A pose whose observations are all rays (pixels; at least one) giving at most SPARSE_ROWS_PER_DIM
+# measurement rows per dimension of the state (a pixel gives 2: 6 of them for the 6-dof state) is a
+# sparse pose (``camloc.sparse_poses``; a pose with a point-giving observation, depth, disparity, a
+# tag or a planar one, never is): it barely over-determines the state, so a wrong
+# explanation of it costs little more than the right one and the ambiguity lasts over the poses
+# after it; its beam keeps up to SPARSE_WIDTH_FACTOR times the width, SPARSE_DELTA_EXTRA more cost
+# units (16: the right one kept at e^-8 of the best's likelihood), but each extra hypothesis (past
+# the run's width and delta) at least SPARSE_DISTINCT_SIGMA standard deviations from every kept one
+# on some axis, and only while the poses stay sparse. Measured: docs/performance.md, 2026-12-06
+# (eleventh session, issue35-sparse; twelfth, issue35-sparse2; thirteenth, issue35-sparse3: rays only).
+SPARSE_ROWS_PER_DIM = 2
+SPARSE_WIDTH_FACTOR = 3
+SPARSE_DELTA_EXTRA = 16.0
+SPARSE_DISTINCT_SIGMA = 2.0
 
 # A hypothesis conditioned on some of a pose's pairs re-gates each remaining observation among the
 # landmarks that were within this many gates before: its predictions moved by about H dx, with dx

@@ -33,7 +33,8 @@ MAX_MAP_SIGMA = 1e3
 # the null cost, which belong to the methods that search for the pairs. They are accepted with it
 # (a study compares each method with the oracle under the same options) and the run says so.
 IGNORED_BY_ORACLE = ("null_cost", "recheck", "view")
-# The largest beam: its history holds width hypotheses per pose.
+# The largest beam: its history holds width hypotheses per pose (three times as many: a sparse
+# pose's, ``camloc.sparse_poses``).
 MAX_BEAM_WIDTH = 1024
 # The largest covariance factor of a slip's hypothesis: sigma x 100.
 MAX_SLIP_INFLATION = 1e4
@@ -55,7 +56,9 @@ class BeamOptions:
     Attributes
     ----------
     width : association hypotheses kept after each pose.
-    delta : drop hypotheses this much costlier than the best.
+    delta : drop hypotheses this much costlier than the best. At a pose of a few rays only
+        (``camloc.sparse_poses``) the beam keeps ``SPARSE_WIDTH_FACTOR`` times the width and
+        ``SPARSE_DELTA_EXTRA`` more delta.
     branch_delta : explore only an observation's options within this cost of its best.
     slip_inflation : covariance factor of the odometry-slip hypothesis (>= 1).
     slip_cost : extra cost of the odometry-slip hypothesis.

@@ -26,6 +26,7 @@ from camloc.filters import make_filter
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
+from camloc.sparse_poses import pose_beam, sparse_poses
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -207,7 +208,11 @@ def search_beam(scene, settings, x0, P0, progress, settle):
     seed pair first at a slip; slipped (p,); spread (p, d, d), ``_backtrack``) as soon as the beam
     has settled them, and for the rest at the end."""
     n = scene.pose_obs_start.size - 1
-    width, d = settings.beam_width, x0.size
+    # a sparse pose keeps a wider beam (``sparse_poses.pose_beam``): room for the widest
+    d = x0.size
+    width = pose_beam(True, settings.beam_width, settings.beam_delta)[0]
+    # the sensors' kinds are the camera table's fifth column
+    sparse = sparse_poses(scene.camera_K[scene.obs_camera[scene.pose_obs], 4].astype(np.int64), scene.pose_obs_start, d)
     history = (np.zeros(n, np.int64), np.zeros((n, width), np.int64), np.zeros((n, width), np.bool_),
                np.zeros((n, width + 1), np.int64), np.zeros((max(4 * scene.z.shape[0], 64), 2), np.int64), np.zeros(1, np.int64),
                np.zeros((n, width, d)), np.zeros((n, width)))
@@ -220,17 +225,18 @@ def search_beam(scene, settings, x0, P0, progress, settle):
     for first, last in progress.blocks():
         k = first
         while k < last:
-            status, k, parents, n_parents, children, count = _at_pose(counters, kb.run_poses, scene, settings, k, last, beam, size,
+            status, k, parents, n_parents, children, count = _at_pose(counters, kb.run_poses, scene, settings, sparse, k, last, beam, size,
                                                                      history, unexplained, counters)
             if status in (kb.GROW, kb.SLIP):
                 obs = scene.pose_obs[scene.pose_obs_start[k]:scene.pose_obs_start[k + 1]]
+                pose_width, pose_delta = pose_beam(bool(sparse[k]), settings.beam_width, settings.beam_delta)
                 if status == kb.SLIP:
                     from camloc.seeds import explain_with_seeds
 
                     gen, kept = _at_pose(counters, explain_with_seeds, scene, settings, parents, n_parents, children, count, obs,
-                                         unexplained[:counters[2]])
+                                         unexplained[:counters[2]], pose_width, pose_delta)
                 else:  # the pose was explained, but its record did not fit
-                    gen, kept = children, kb.prune(scene, settings, children, count)
+                    gen, kept = children, kb.prune(scene, settings, children, count, pose_width, pose_delta)
                 while not kb.commit(history, k, gen, kept):
                     history = history[:4] + (np.concatenate([history[4], np.zeros_like(history[4])]),) + history[5:]
                 unexplained[counters[2]] = (gen[4][kept[0]], obs.size)

@@ -28,15 +28,16 @@ from camloc.measurement import DEPTH
 from camloc.tails import binomial_tail
 
 
-def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexplained):
+def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexplained, width, delta):
     """The kept hypotheses of a pose whose best explanation (of ``children``) left most of its
     observations unassigned, or an unusual number of them (``kernels.beam.seeds_worth_trying``):
     the children, and the explanations grown from seeds under the beam's best prediction
     (``parents``' first), as it is and, where most were left and leaving that many unassigned is
     unusual for this data even with those, widened as after an odometry slip.
+    ``settings`` are the run's; ``width`` and ``delta`` the pose's beam (``sparse_poses.pose_beam``).
     Returns (the generation they are in, the kept indices)."""
     origin = kb.gather(parents, np.array([0]), 1)
-    plain = from_seeds(scene, settings, origin, obs, slipped=False)  # noisy odometry, not a slip
+    plain = from_seeds(scene, settings, origin, obs, width, delta, slipped=False)  # noisy odometry, not a slip
     groups = [plain]
     # a slip is the explanation of last resort: its search (the costliest, under the widest prior)
     # runs only where the pose stays unusually unexplained after the plain prediction's
@@ -47,12 +48,12 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
         slipped = kb.gather(parents, np.array([0]), 1)
         slipped[1][0] *= settings.slip_inflation
         slipped[2][0] += settings.slip_cost
-        groups.insert(0, from_seeds(scene, settings, slipped, obs, slipped=True))
+        groups.insert(0, from_seeds(scene, settings, slipped, obs, width, delta, slipped=True))
     everything, sizes = concatenated([(children, count)] + groups)
-    kept = list(kb.prune(scene, settings, everything, sizes.sum()))
+    kept = list(kb.prune(scene, settings, everything, sizes.sum(), width, delta))
     offsets = np.cumsum(sizes)
     for g in range(len(groups)):
-        kept = with_a_seeded_one(scene, settings, everything, kept, range(offsets[g], offsets[g + 1]))
+        kept = with_a_seeded_one(scene, settings, everything, kept, range(offsets[g], offsets[g + 1]), width, delta)
     return everything, np.asarray(kept, dtype=np.int64)
 
 
@@ -81,16 +82,16 @@ def concatenated(generations):
     return out, sizes
 
 
-def with_a_seeded_one(scene, settings, gen, kept, seeded):
+def with_a_seeded_one(scene, settings, gen, kept, seeded, width, delta):
     """The pruned beam with its last place given to the cheapest seeded explanation, when that is
-    within beam_delta of the best and only the beam's width kept it out: a full beam of a wrong
+    within ``delta`` of the best and only the ``width`` kept it out (the pose's beam): a full beam of a wrong
     hypothesis' near copies can crowd out the right explanation of a pose of few observations,
     which the next poses confirm."""
     seeded = list(seeded)
-    if len(kept) < settings.beam_width or not seeded or any(c in kept for c in seeded):
+    if len(kept) < width or not seeded or any(c in kept for c in seeded):
         return kept
     candidate = min(seeded, key=lambda c: gen[2][c])
-    if gen[2][candidate] > gen[2][kept[0]] + settings.beam_delta or any(kb.same_state(gen[0], gen[1], candidate, k, settings.merge_sigma)
+    if gen[2][candidate] > gen[2][kept[0]] + delta or any(kb.same_state(gen[0], gen[1], candidate, k, settings.merge_sigma)
                                                                         for k in kept):
         return kept
     return sorted(kept[:-1] + [candidate], key=lambda c: gen[2][c])
@@ -110,7 +111,7 @@ def unusually_unexplained(unassigned: int, observed: int, history: np.ndarray) -
     return bool(tails.min() < UNUSUAL_PROBABILITY)
 
 
-def from_seeds(scene, settings, h, obs, *, slipped: bool):
+def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
     """Explanations of obs under hypothesis h (a generation of one), each grown from one seed pair;
     each seed gives its SEED_EXPLANATIONS cheapest. Returns (generation, count)."""
     x, P = h[0][0], h[1][0]
@@ -160,7 +161,7 @@ def from_seeds(scene, settings, h, obs, *, slipped: bool):
     if not explained:
         return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
     gen, sizes = concatenated(explained)
-    kept = kb.prune(scene, settings, gen, int(sizes.sum()))
+    kept = kb.prune(scene, settings, gen, int(sizes.sum()), width, delta)
     return _flagged((kb.gather(gen, kept, gen[7].shape[1]), kept.size), slipped)
 
 

@@ -303,7 +303,7 @@ def late_beam_kernels(dataset, config) -> list:
     one = kb.new_generation(1, 1, 6)
     one[1][0] = np.eye(6)
     P = one[1][0]
-    kb.prune(scene, settings, one, 1)
+    kb.prune(scene, settings, one, 1, settings.beam_width, settings.beam_delta)
     widened_view(P, scene.view_limits[2])
     ranking.shift_agreement(np.zeros((2, 3)), 1.0)
     ranking.seeded_explanation_costs(np.zeros((1, 3)), np.zeros((1, 3, 6)), np.eye(3)[None].copy(), P, np.zeros(1, np.int64),

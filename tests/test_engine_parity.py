@@ -57,6 +57,15 @@ def test_both_engines_give_the_same_planar_run(sensors, association):
     _assert_same_run(_planar_world(sensors, seed=11), association)
 
 
+def test_both_engines_widen_the_beam_alike_at_poses_of_few_observations():
+    # one camera from above: one to seven pixel observations a pose, most poses sparse
+    # (``camloc.sparse_poses``), their beam three times as wide; the slip's seeded search at pose 40
+    dataset = simulate(SimulationConfig(trajectory="aerial", poses=70, cameras=1, measurement="pixel", clutter_fraction=0.1), seed=11)
+    jumped = dataset.odom_translation.copy()
+    jumped[40] += np.array([0.4, -0.3, 0.0])
+    _assert_same_run(dataclasses.replace(dataset, odom_translation=jumped), "beam")
+
+
 def _assert_same_run(dataset, association: str) -> None:
     config = camloc.LocalizerConfig(association=association)
     compiled = camloc.localize(dataset, config, engine="compiled")

@@ -30,12 +30,16 @@ from camloc.kernels.update import innovation_cost, pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
+from camloc.sparse_poses import carried, copy_sigma, pose_beam
 
 AMBIGUOUS, UNASSIGNED = -2, -1
 DONE, SLIP, GROW = 0, 1, 2
 
 # the miss term's charge (plain numpy, shared with the numpy beam), compiled for a scalar
 compiled_miss_charge = inlined(miss_charge)
+compiled_pose_beam = inlined(pose_beam)
+compiled_carried = inlined(carried)
+compiled_copy_sigma = inlined(copy_sigma)
 
 
 @entry
@@ -499,27 +503,31 @@ def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model):
 
 
 @inlined
-def prune_indices(settings, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
+def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
     """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
-    costs) within beam_delta of the best, at most beam_width, none within merge_sigma standard
-    deviations of a cheaper one kept (whose states are settled by ``settle_one`` (``settle``, or
-    ``nothing_pending``) as a comparison first needs them, passed ``model``)."""
+    costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within
+    merge_sigma standard deviations of a cheaper one kept (beyond the run's width and delta,
+    ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one`` (``settle``,
+    or ``nothing_pending``) as a comparison first needs them, passed ``model``."""
     order = candidates[np.argsort(costs[candidates], kind="mergesort")]
-    kept = np.empty(min(order.size, settings.beam_width), np.int64)
+    kept = np.empty(min(order.size, width), np.int64)
     n = 0
     if order.size == 0:
         return kept
-    limit = costs[order[0]] + settings.beam_delta
+    best = costs[order[0]]
+    limit = best + delta
     for c in order:
-        if costs[c] > limit or n >= settings.beam_width:
+        if costs[c] > limit or n >= width:
             break
+        # the run's width and delta are settings'; beyond them only a distinct hypothesis is kept
+        sigma = compiled_copy_sigma(costs[c], best, n, settings.beam_width, settings.beam_delta, settings.merge_sigma)
         merged = False
         for q in range(n):
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
                     settle_one(settings, X, P, h, parent_X, parent_P, pending, model)
-            if same_state(X, P, c, kept[q], settings.merge_sigma):
+            if same_state(X, P, c, kept[q], sigma):
                 merged = True
                 break
         if not merged:
@@ -536,9 +544,10 @@ def settled(n, dim):
 
 
 @entry
-def prune(scene, settings, gen, n):
-    """``prune_indices`` over the first n hypotheses of a settled generation."""
-    return prune_indices(settings, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
+def prune(scene, settings, gen, n, width, delta):
+    """``prune_indices`` over the first n hypotheses of a settled generation, to the pose's width
+    and delta (``pose_beam``)."""
+    return prune_indices(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
                          nothing_pending, None)
 
 
@@ -557,7 +566,7 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(settings, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
+        kept = np.concatenate((kept, prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
                                                      settle, model)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
@@ -577,7 +586,10 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
 
 @entry
 def explain_all(scene, settings, parents, n_parents, obs):
-    """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,).
+    """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,);
+    each step's partial explanations pruned to the run's beam (a sparse pose's wider one,
+    ``pose_beam``, is the pose's last pruning's: settling every extra partial explanation to
+    compare it would cost more than the few it keeps).
 
     Under each parent the clear observations are taken first (``after_clear``). Then the
     observations still ambiguous are branched on one at a time: unassigned (``null_cost``), or
@@ -862,9 +874,9 @@ def seeds_worth_trying(unassigned, observed, unexplained, count):
 
 
 @entry
-def run_poses(scene, settings, first, last, beam, n, history, unexplained, counters):
+def run_poses(scene, settings, sparse, first, last, beam, n, history, unexplained, counters):
     """The beam from pose first to last - 1, from ``beam`` (n hypotheses after pose first - 1, or
-    the start). Per pose: predict every hypothesis, explain the pose's observations, keep the
+    the start), ``sparse`` (N,) the run's sparse poses (``sparse_poses.sparse_poses``). Per pose: predict every hypothesis, explain the pose's observations, keep the
     cheapest (``prune``), record them. Stops early with SLIP where the best explanation leaves
     most of a pose's observations unassigned (the caller decides whether to search from seeds),
     or GROW where the history's pair buffer is full. counters[1] is the pose being explained.
@@ -878,6 +890,9 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
         if obs.size == 0 or scene.grid_keys.size == 0:
             children, count, kept = parents, n, np.arange(n)
         else:
+            # the extra hypotheses of a sparse pose before are not explained at one that is not
+            n = compiled_carried(parents[2], n, sparse[k], settings.beam_width, settings.beam_delta)
+            width, delta = compiled_pose_beam(sparse[k], settings.beam_width, settings.beam_delta)
             children, count = explain_all(scene, settings, parents, n, obs)
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
@@ -886,7 +901,7 @@ def run_poses(scene, settings, first, last, beam, n, history, unexplained, count
             if ((obs.size >= SLIP_MIN_OBSERVATIONS and 2 * unassigned > obs.size)
                     or seeds_worth_trying(unassigned, obs.size, unexplained, counters[2])):
                 return SLIP, k, parents, n, children, count
-            kept = prune(scene, settings, children, count)
+            kept = prune(scene, settings, children, count, width, delta)
         if not commit(history, k, children, kept):
             return GROW, k, parents, n, children, count
         if obs.size and scene.grid_keys.size:

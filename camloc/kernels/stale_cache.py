@@ -17,7 +17,7 @@ SOURCE_STAMP = "camloc-kernels-source.sha256"
 # The files of the package (beside the kernels' folder) whose values the kernels read: numba
 # compiles a global as a constant, so a changed constant must clear the cache too
 # (``tests/test_structure.py`` keeps this list to what the kernels import, transitively).
-KERNEL_INPUTS = ("constants.py", "errors.py", "measurement.py", "miss_term.py", "tails.py")
+KERNEL_INPUTS = ("constants.py", "errors.py", "measurement.py", "miss_term.py", "sparse_poses.py", "tails.py")
 
 
 def source_digest(folder: Path) -> str:
