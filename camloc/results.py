@@ -987,6 +987,12 @@ _STATE_ARRAYS: dict[str, tuple[str, tuple]] = {
 }
 # The run writes symmetric covariances; this tolerance only separates rounding from damage.
 _MATRIX_TOLERANCE = 1e-9
+# A filter's covariance collapsed to nearly rank one (a lost run) keeps the update's rounding in
+# its smallest eigenvalues, which can come out slightly negative: the audit of 2026-12-06 found
+# -5.2e-10 beside a largest eigenvalue of 1.6e-3 (up to 2e-6 of the largest entry) in a run camloc
+# itself wrote, and eval refused it. Relative to the largest entry, as the symmetry's tolerance; a
+# damaged file is far past it.
+_EIGENVALUE_TOLERANCE = 1e-5
 
 
 def _check_states(path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -1100,7 +1106,7 @@ def _covariance_problem(cov: np.ndarray, where: Callable[[int], str]) -> str | N
     if np.any(asymmetric):
         return f"expected symmetric matrices, found an asymmetric one at {where(int(np.argmax(asymmetric)))}"
     lowest = np.linalg.eigvalsh(unit)[:, 0]
-    negative = lowest < -_MATRIX_TOLERANCE
+    negative = lowest < -_EIGENVALUE_TOLERANCE
     if np.any(negative):
         row = int(np.argmax(negative))
         return (f"expected positive semi-definite matrices, found eigenvalue {lowest[row] * scale[row]:.6g} "

@@ -515,6 +515,25 @@ def test_load_run_accepts_what_runs_write(tmp_path, synthetic_run):
     assert np.all(loaded.estimate_cov[0] == 0.0) and loaded.pose_ids.dtype == np.int64
 
 
+def test_load_run_accepts_a_collapsed_covariance_a_lost_run_writes(tmp_path, synthetic_run):
+    # The audit of 2026-12-06: a lost run's covariance collapsed to nearly rank one, eigenvalues
+    # 1.6e-3 and five below 2e-9, one of them -5.2e-10 (rounding of the updates): camloc wrote it
+    # and eval refused it. A covariance further below zero (1e-4 of its largest) is still damage.
+    run = synthetic_run()
+    axis = np.linspace(1.0, 2.0, 6) / np.linalg.norm(np.linspace(1.0, 2.0, 6))
+    basis = np.linalg.qr(np.column_stack([axis, np.eye(6)[:, :5]]))[0]
+    collapsed = basis @ np.diag([1.6e-3, 2e-9, 1e-9, 5e-10, 1e-10, -5.2e-10]) @ basis.T
+    cov = run.estimate_cov.copy()
+    cov[7] = (collapsed + collapsed.T) / 2
+    run_dir = save_run(tmp_path / "run", run)
+    _rewrite_states(run_dir, estimate_cov=cov)
+    assert np.allclose(load_run(run_dir).estimate_cov[7], cov[7], rtol=0.0, atol=1e-18)
+    cov[7] = basis @ np.diag([1.6e-3, 2e-9, 1e-9, 5e-10, 1e-10, -1.6e-7]) @ basis.T
+    _rewrite_states(run_dir, estimate_cov=(cov + np.swapaxes(cov, 1, 2)) / 2)
+    with pytest.raises(DatasetError, match="expected positive semi-definite matrices"):
+        load_run(run_dir)
+
+
 # --------------------------------------------------------------------------------------------
 # The TUM files are the run's trajectories
 
