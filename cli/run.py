@@ -125,8 +125,8 @@ _INITIAL_SIGMA_DEG = library_option(
     "localizer.initial_sigma_deg"
 )
 _BEAM_WIDTH = library_option(
-    "Association hypotheses kept after each pose; three times as many (and --beam-delta plus 16) at a pose of a few "
-    "pixel observations only (rays, at most two rows per state dimension: docs/beam.md).",
+    "Association hypotheses kept after each pose (more, and further in cost, at a pose of a few pixel observations "
+    "only: docs/beam.md).",
     "localizer.beam.width", rich_help_panel=BEAM
 )
 _BEAM_DELTA = library_option(

@@ -312,7 +312,8 @@ def test_help_defaults_are_the_codes_defaults():
 
     run, simulate_help, smooth = flat("run", "--help"), flat("simulate", "--help"), flat("smooth", "--help")
     defaults = LocalizerConfig()
-    assert f"kept after each pose. Default: {defaults.beam.width}." in run
+    assert f"kept after each pose (more, and further in cost, at a pose of a few pixel observations only: docs/beam.md). " \
+           f"Default: {defaults.beam.width}." in run
     assert f"iterated EKF. Default: {defaults.iterations}." in run
     assert "Default: --recheck." in run and "Default: --sequential." in run
     assert f"(at least 2). Default: {SimulationConfig().poses}." in simulate_help
