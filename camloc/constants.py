@@ -77,6 +77,12 @@ AGREEMENT_DEPTH_FRACTION = 0.1
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
 
+# The most linearizations one update may take: the --iterations setting's upper limit, and where an
+# update whose MAP cost is beyond its chi^2 bound stops iterating further (``stacked_update.iterated_on``,
+# kernels/update.py ``iterated_on``; docs/filter.md), a bound on the work, not on the estimate
+# (Gauss-Newton from a prior as wide as the landmarks' depth reaches the MAP in 4-10).
+MAX_LINEARIZATIONS = 50
+
 # What a pose's explanation pays for a landmark surely on a pixel observation's ray, surely within its
 # camera's detection range (observation_space.detection_range), that it leaves unclaimed; one less sure
 # on the ray pays less (the beam's miss term: camloc.miss_term, camloc.beam_expansion, kernels/beam.py

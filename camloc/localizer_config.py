@@ -16,6 +16,7 @@ from typing import ClassVar, Optional
 import numpy as np
 
 from camloc.beam_types import BeamSettings
+from camloc.constants import MAX_LINEARIZATIONS
 from camloc.errors import ConfigError
 from camloc.filters import FILTERS
 
@@ -250,7 +251,8 @@ class LocalizerConfig:
              f"must be in (0, {MAX_MAP_SIGMA:g}] m, got {self.map_sigma}"),
             ("association", self.association in ASSOCIATION_METHODS,
              f"must be one of {', '.join(ASSOCIATION_METHODS)}, got {self.association!r}"),
-            ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= 50, f"must be an integer in 1..50, got {self.iterations}"),
+            ("iterations", _is_integer(self.iterations) and 1 <= self.iterations <= MAX_LINEARIZATIONS,
+             f"must be an integer in 1..{MAX_LINEARIZATIONS}, got {self.iterations}"),
             ("gate", 0.0 < self.gate < 1.0, f"must be a probability in (0, 1), got {self.gate}"),
             ("null_cost", self.null_cost is None or _finite(self.null_cost) and self.null_cost > 0.0,
              f"must be a finite number > 0, got {self.null_cost}"),

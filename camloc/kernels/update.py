@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from camloc.constants import CONVERGED
+from camloc.constants import CONVERGED, MAX_LINEARIZATIONS
 from camloc.kernels._jit import TRUE, entry, inlined, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
@@ -558,7 +558,11 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
-    posterior with the lower MAP cost is kept. ``map_cost``: return the kept posterior's MAP cost
+    posterior with the lower MAP cost is kept. Where that cost is beyond the same bound, the
+    iterations go on from the kept posterior while each round lowers it (``MAX_LINEARIZATIONS`` in
+    all): Gauss-Newton from a prior as wide as the landmarks' depth needs more than ``iterations``
+    linearizations, and stopping short leaves a posterior off by its prior's spread with the
+    covariance of its pairs. ``map_cost``: return the kept posterior's MAP cost
     (the filter's statistic); without it that is NaN where no restart ran (the beam's scratch
     updates, which read only the state: a prediction and a factorization saved each).
     Returns as ``iterated_update``."""
@@ -584,14 +588,22 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
-    if iterations < 2 or not (start.size or best[2] > scene.nis_bound[dof]):
+    bound = scene.nis_bound[dof]
+    if iterations < 2 or not (start.size or best[2] > bound or best[3] > bound):   # NaN (not costed): not beyond
         return best
     if not costed:                                                   # compared below: the cost iterated_update left out
         best = (best[0], best[1], best[2], restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, best[0]), best[4])
-    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > scene.nis_bound[dof] else (start, none)
+    starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > bound else (start, none)
     for s in starts:
         if s.size:
             again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
+    for _ in range(MAX_LINEARIZATIONS // iterations - 1):            # ``stacked_update.StackedUpdate.iterated_on``
+        if not best[3] > bound:
+            break                                                    # the posterior agrees with its pairs and prior
+        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, best[0], TRUE)
+        if not again[3] < best[3]:
+            break                                                    # converged (or stalled) beyond the bound: inconsistent pairs
+        best = (again[0], again[1], best[2], again[3], best[4])
     return best
