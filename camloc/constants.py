@@ -77,11 +77,15 @@ AGREEMENT_DEPTH_FRACTION = 0.1
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
 
-# The most linearizations one update may take: the --iterations setting's upper limit, and where an
-# update whose MAP cost is beyond its chi^2 bound stops iterating further (``stacked_update.iterated_on``,
-# kernels/update.py ``iterated_on``; docs/filter.md), a bound on the work, not on the estimate
-# (Gauss-Newton from a prior as wide as the landmarks' depth reaches the MAP in 4-10).
+# The most linearizations one update may take: the --iterations setting's upper limit, and the damped
+# Gauss-Newton's of an update whose MAP cost is beyond its chi^2 bound (ekf.damped_gauss_newton,
+# kernels/update.py damped_start; docs/filter.md): a bound on the work, not on the estimate (from a
+# prior as wide as the landmarks' depth it reaches the MAP estimate in 4-10).
 MAX_LINEARIZATIONS = 50
+
+# A damped Gauss-Newton step (ekf.damped_gauss_newton, kernels/update.py damped_start) is halved at most
+# this many times (to 1/1024 of the full step) before the iterate is taken for a minimum.
+HALVINGS = 10
 
 # What a pose's explanation pays for a landmark surely on a pixel observation's ray, surely within its
 # camera's detection range (observation_space.detection_range), that it leaves unclaimed; one less sure

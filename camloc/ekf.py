@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from camloc.constants import CONVERGED, NEGLIGIBLE_MARGIN
+from camloc.constants import CONVERGED, HALVINGS, MAX_LINEARIZATIONS, NEGLIGIBLE_MARGIN
 from camloc.errors import CamlocError
 
 try:  # the gufuncs np.linalg wraps, called directly where their input is known good (``cho_solve``)
@@ -337,6 +337,38 @@ def update(
             x_i, gain, last, cost = kept
         cost = cost if map_cost else float("nan")
     return UpdateResult(state=x_i, cov=gain.posterior_cov(), innovation=y_prior, S=S, nis=nis, map_cost=cost)
+
+
+def damped_gauss_newton(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, measure: MeasurementFunction, *,
+    retract: Retraction = _add, difference: StateDifference = _subtract, R_inverse: np.ndarray | None = None,
+) -> np.ndarray:
+    """The MAP estimate of the update of prior (x, P) with measurements z, R (as ``update``'s), by
+    Gauss-Newton from x with each step halved (up to ``HALVINGS`` times) until it lowers the MAP
+    cost (``posterior_cost``): a backtracking line search, so the cost falls at every accepted
+    step and the iterate cannot run off as the plain iterations do where the model bends within
+    the prior's spread (pixels of landmarks a prior's standard deviation from the camera's plane).
+    Stops where no halving lowers the cost, where the step falls below ``CONVERGED``, or after
+    ``MAX_LINEARIZATIONS`` linearizations. Returns the state; ``update(..., start=it)`` gives its
+    posterior (the covariance at its linearization)."""
+    gain_at = _gain_for(P, R, z.size, R_inverse)
+    cost_of = lambda state: posterior_cost(state, x, P, z, R, measure, difference, R_inverse)  # noqa: E731
+    x_i, cost_i = x, cost_of(x)
+    for _ in range(MAX_LINEARIZATIONS):
+        z_hat, H = measure(x_i)
+        d = difference(retract(x, gain_at(H).correction(z - z_hat + H @ difference(x_i, x))), x_i)  # the Gauss-Newton step
+        for _ in range(HALVINGS):
+            candidate = retract(x_i, d)
+            cost = cost_of(candidate)
+            if cost < cost_i:
+                break
+            d = 0.5 * d
+        else:
+            return x_i  # no step along it lowers the cost: a minimum, to the step's resolution
+        x_i, cost_i = candidate, cost
+        if np.abs(d).max() < CONVERGED:
+            break
+    return x_i
 
 
 def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations, cost_of):

@@ -12,7 +12,6 @@ from typing import Optional
 import numpy as np
 
 from camloc import ekf, geometry, measurement, models, planar, tags
-from camloc.constants import MAX_LINEARIZATIONS
 from camloc.dataset import Dataset
 from camloc.observation_space import ObservationNoise
 from camloc.sensors import intrinsics_by_row, observed_as_rig
@@ -53,7 +52,7 @@ class StackedUpdate:
         (``association_cov``): the scratch filters that decide an association, not the estimate.
         ``start``: a state near the posterior, when the caller knows one; the iterations also run
         from it, and the posterior with the lower MAP cost is kept. A posterior whose MAP cost is
-        beyond the 99.9% chi^2 bound of its degrees of freedom is iterated further (``iterated_on``)."""
+        beyond the 99.9% chi^2 bound of its degrees of freedom is sought again from the prior (``damped``)."""
         z = self.dataset.obs_z[obs].reshape(-1)
         if for_association:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
@@ -81,27 +80,26 @@ class StackedUpdate:
             alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
             if alternative.map_cost < lowest:
                 best, lowest = alternative, alternative.map_cost
-        best, lowest = self.iterated_on(best, lowest, bound, x, P, z, R, measure, options)
+        if lowest > bound:  # the posterior disagrees with its pairs and prior: not the MAP estimate, or no MAP agrees
+            best, lowest = self.damped(best, lowest, x, P, z, R, measure, options)
         if best is result or map_cost:
             return best
         return replace(best, map_cost=float("nan"))
 
-    def iterated_on(self, best: ekf.UpdateResult, lowest: float, bound: float, x, P, z, R, measure, options: dict):
-        """``best`` (of MAP cost ``lowest``) iterated further from its state while that cost is
-        beyond ``bound`` and each round of ``iterations`` linearizations lowers it
-        (``MAX_LINEARIZATIONS`` in all); returns the posterior and its cost. Gauss-Newton from a
-        prior as wide as the landmarks' depth (odometry 2-3x noisier than the file says, pixel
-        Jacobians growing as 1/depth^2) needs 4-10 linearizations; stopped at ``iterations`` it
-        leaves the pose off by the prior's spread with the covariance of its pairs (NEES 1e4-1e9).
-        A cost that stops falling beyond the bound is the pairs' own inconsistency: kept, and
-        recorded. The compiled twin is the end of ``kernels.update.updated``."""
-        for _ in range(MAX_LINEARIZATIONS // self.iterations - 1):
-            if not lowest > bound:
-                break
-            again = ekf.update(x, P, z, R, measure, map_cost=True, start=best.state, **options)
-            if not again.map_cost < lowest:
-                break
-            best, lowest = replace(again, innovation=best.innovation, S=best.S, nis=best.nis), again.map_cost
+    def damped(self, best: ekf.UpdateResult, lowest: float, x, P, z, R, measure, options: dict):
+        """``best`` (of MAP cost ``lowest``, beyond its chi^2 bound) or the posterior at the MAP
+        estimate the damped Gauss-Newton (``ekf.damped_gauss_newton``) finds from the prior,
+        whichever costs less; returns it and its cost. Gauss-Newton from a prior as wide as the
+        landmarks' depth (odometry 2-3x noisier than the default, pixel Jacobians growing as
+        1/depth^2) needs 4-10 linearizations, or runs off; stopped at ``iterations`` it leaves the
+        pose off by the prior's spread with the millimetre covariance of its pairs (NEES 1e4-1e9).
+        A MAP cost beyond the bound at the MAP estimate is the pairs' own inconsistency: kept,
+        and recorded. The compiled twin is the end of ``kernels.update.updated``."""
+        state = ekf.damped_gauss_newton(x, P, z, R, measure, retract=options["retract"], difference=options["difference"],
+                                        R_inverse=options["R_inverse"])
+        again = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
+        if again.map_cost < lowest:
+            return again, again.map_cost
         return best, lowest
 
     def measurement_function(self, obs: np.ndarray, landmarks: np.ndarray):

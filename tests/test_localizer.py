@@ -195,20 +195,21 @@ def test_the_oracle_leaves_out_a_landmark_the_prior_puts_behind_its_camera(engin
 
 
 @pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_an_update_beyond_its_chi2_bound_iterates_on_to_the_map_estimate(engine):
+@pytest.mark.parametrize("seed, main_nees", [(2, 1.05e7), (6, 8.56e7)])
+def test_an_update_beyond_its_chi2_bound_is_sought_again_by_damped_gauss_newton(engine, seed, main_nees):
     """Odometry three times noisier than the default (its information in the file says so) leaves
-    the prior half a metre wide against landmarks one or two metres from pixel cameras: three
-    Gauss-Newton linearizations from there stop 0.1-0.8 m from the MAP estimate, with the
-    millimetre covariance of the pairs (main at 03d6ee5 on this world: mean NEES 1.05e7, NIS per
-    dof 1,987). Iterated on while the MAP cost is beyond its 99.9% bound, each such update reaches
-    the MAP estimate (4-10 linearizations) and the run is consistent."""
+    the prior half a metre wide against landmarks one or two metres from pixel cameras. Three
+    Gauss-Newton linearizations from there stop 0.1-0.8 m from the MAP estimate with the
+    millimetre covariance of the pairs (seed 2), or, with three pairs, run off 18 m (seed 6): main
+    at 03d6ee5 had mean NEES ``main_nees`` on these worlds. Where the MAP cost is beyond its 99.9%
+    bound the update is sought again from the prior with each step halved until it lowers the
+    cost, and every pose's NEES is within reason."""
     config = SimulationConfig(trajectory="smooth3d", poses=30, cameras=2, measurement="pixel", intrinsics="pixel",
                               odometry_sigma_scale=3.0)
-    result = localize(simulate(config, seed=2), LocalizerConfig(association="oracle"), engine=engine)
+    result = localize(simulate(config, seed=seed), LocalizerConfig(association="oracle"), engine=engine)
     metrics = evaluate(result)
-    assert metrics["nees"]["mean"] < 8.0 and metrics["nis"]["mean_per_dof"] < 1.2
-    nees = run_nees(result)
-    assert np.nanmax(nees) < 30.0  # every pose: no update left short of its MAP estimate (main: 3.1e8)
+    assert metrics["nees"]["mean"] < 7.0 < main_nees and metrics["nis"]["mean_per_dof"] < 1.15
+    assert np.nanmax(run_nees(result)) < 25.0  # every pose (main: up to 3.1e8 and 2.2e9)
     assert metrics["estimate"]["ate"]["rmse"] < 0.02
 
 

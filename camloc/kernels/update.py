@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from camloc.constants import CONVERGED, MAX_LINEARIZATIONS
+from camloc.constants import CONVERGED, HALVINGS, MAX_LINEARIZATIONS
 from camloc.kernels._jit import TRUE, entry, inlined, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
@@ -493,6 +493,51 @@ def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_
     return prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
 
 
+@jit
+def damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
+    """The MAP estimate (n,) of the update of (x, P) with the pairs of ``iterated_update`` (its
+    arguments of the same names) by Gauss-Newton from x, each step halved (up to ``HALVINGS``
+    times) until it lowers the MAP cost; the numpy twin is ``ekf.damped_gauss_newton``."""
+    n, p = x.shape[0], z.shape[0]
+    z_hat, H, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
+    d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    moved, M, pivots = np.empty(n), np.empty((n, n)), np.empty(n, np.int64)
+    target, d, candidate, x_i = np.empty(n), np.empty(n), np.empty(n), x.copy()
+    cams = (camera_R, camera_t, camera_K)
+    cost_i = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, z_hat, H, r, d_position, frame, moved, M, pivots)
+    for _ in range(MAX_LINEARIZATIONS):
+        observe_pairs_into(x_i, landmark_xyz, pair_camera, *cams, z_hat, H, d_position, frame)
+        difference_into(x_i, x, moved)
+        for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
+            for a in range(3):
+                s = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
+                for b in range(n):
+                    s += H[i, a, b] * moved[b]
+                r[i, a] = s
+        retract_into(x, correction(P, H, R, R_inverse, r), target)
+        difference_into(target, x_i, d)                              # the Gauss-Newton step
+        lowered = False
+        for _ in range(HALVINGS):
+            retract_into(x_i, d, candidate)
+            cost = map_cost_into(candidate, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, z_hat, H, r, d_position, frame,
+                                 moved, M, pivots)
+            if cost < cost_i:
+                lowered = True
+                break
+            for b in range(n):
+                d[b] *= 0.5
+        if not lowered:
+            break                                                    # no step along it lowers the cost: a minimum
+        step = 0.0
+        for b in range(n):
+            x_i[b] = candidate[b]
+            step = max(step, abs(d[b]))
+        cost_i = cost
+        if step < CONVERGED:
+            break
+    return x_i
+
+
 @inlined
 def restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, x_post):
     """``map_cost_into`` with scratch of its own: the cost of an update ``updated`` compares with
@@ -559,10 +604,9 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
     posterior with the lower MAP cost is kept. Where that cost is beyond the same bound, the
-    iterations go on from the kept posterior while each round lowers it (``MAX_LINEARIZATIONS`` in
-    all): Gauss-Newton from a prior as wide as the landmarks' depth needs more than ``iterations``
-    linearizations, and stopping short leaves a posterior off by its prior's spread with the
-    covariance of its pairs. ``map_cost``: return the kept posterior's MAP cost
+    iterations also run from ``damped_start`` (``stacked_update.StackedUpdate.damped``: plain
+    Gauss-Newton from a prior as wide as the landmarks' depth stops short of the MAP estimate, or
+    runs off). ``map_cost``: return the kept posterior's MAP cost
     (the filter's statistic); without it that is NaN where no restart ran (the beam's scratch
     updates, which read only the state: a prediction and a factorization saved each).
     Returns as ``iterated_update``."""
@@ -599,11 +643,9 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
             again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
-    for _ in range(MAX_LINEARIZATIONS // iterations - 1):            # ``stacked_update.StackedUpdate.iterated_on``
-        if not best[3] > bound:
-            break                                                    # the posterior agrees with its pairs and prior
-        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, best[0], TRUE)
-        if not again[3] < best[3]:
-            break                                                    # converged (or stalled) beyond the bound: inconsistent pairs
-        best = (again[0], again[1], best[2], again[3], best[4])
+    if best[3] > bound:                                              # not the MAP estimate, or no MAP agrees
+        s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
+        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
+        if again[3] < best[3]:
+            best = (again[0], again[1], best[2], again[3], best[4])
     return best
