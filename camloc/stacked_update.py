@@ -52,7 +52,8 @@ class StackedUpdate:
         (``association_cov``): the scratch filters that decide an association, not the estimate.
         ``start``: a state near the posterior, when the caller knows one; the iterations also run
         from it, and the posterior with the lower MAP cost is kept. A posterior whose MAP cost is
-        beyond the 99.9% chi^2 bound of its degrees of freedom is sought again from the prior (``damped``)."""
+        beyond the 99.9% chi^2 bound of its degrees of freedom is sought again from the prior (``damped``)
+        where ``map_cost`` is asked for (the estimate's update; the beam's scratch updates as before)."""
         z = self.dataset.obs_z[obs].reshape(-1)
         if for_association:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
@@ -80,7 +81,7 @@ class StackedUpdate:
             alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
             if alternative.map_cost < lowest:
                 best, lowest = alternative, alternative.map_cost
-        if lowest > bound:  # the posterior disagrees with its pairs and prior: not the MAP estimate, or no MAP agrees
+        if map_cost and lowest > bound:  # the estimate's posterior disagrees with its pairs and prior: not the MAP estimate, or no MAP agrees
             best, lowest = self.damped(best, lowest, x, P, z, R, measure, options)
         if best is result or map_cost:
             return best

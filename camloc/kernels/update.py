@@ -604,7 +604,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
     posterior with the lower MAP cost is kept. Where that cost is beyond the same bound, the
-    iterations also run from ``damped_start`` (``stacked_update.StackedUpdate.damped``: plain
+    estimate's update (``map_cost``) also iterates from ``damped_start`` (``stacked_update.StackedUpdate.damped``: plain
     Gauss-Newton from a prior as wide as the landmarks' depth stops short of the MAP estimate, or
     runs off). ``map_cost``: return the kept posterior's MAP cost
     (the filter's statistic); without it that is NaN where no restart ran (the beam's scratch
@@ -633,7 +633,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     for o in obs:
         dof += scene.obs_dof[o]
     bound = scene.nis_bound[dof]
-    if iterations < 2 or not (start.size or best[2] > bound or best[3] > bound):   # NaN (not costed): not beyond
+    if iterations < 2 or not (start.size or best[2] > bound or (map_cost and best[3] > bound)):
         return best
     if not costed:                                                   # compared below: the cost iterated_update left out
         best = (best[0], best[1], best[2], restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, best[0]), best[4])
@@ -643,7 +643,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
             again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
-    if best[3] > bound:                                              # not the MAP estimate, or no MAP agrees
+    if map_cost and best[3] > bound:                                 # the estimate's: not the MAP estimate, or no MAP agrees
         s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
         again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
         if again[3] < best[3]:
