@@ -81,7 +81,7 @@ class StackedUpdate:
             alternative = ekf.update(x, P, z, R, measure, map_cost=True, start=state, **options)
             if alternative.map_cost < lowest:
                 best, lowest = alternative, alternative.map_cost
-        if map_cost and lowest > bound:  # the estimate's posterior disagrees with its pairs and prior: not the MAP estimate, or no MAP agrees
+        if map_cost and lowest > bound:  # the estimate disagrees with its pairs and prior: not the MAP, or no MAP agrees
             best, lowest = self.damped(best, lowest, x, P, z, R, measure, options)
         if best is result or map_cost:
             return best
