@@ -916,7 +916,7 @@ class _Localizer:
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
         """Which of a pose's pairs hold (``_holds``), each judged by the posterior of the others
-        (``association.leave_one_out_costs``), and lie within the camera's reach at x_post: (p,)
+        (``association.leave_one_out_costs``), and lie within the camera's reach and in front of it at x_post: (p,)
         bool; and which dropped rays (reach bounded) failed only ``_against_null`` (for ``_rechecked``)."""
         ds = self.dataset
         keep, doubtful = np.ones(pair_obs.size, dtype=bool), np.zeros(pair_obs.size, dtype=bool)
@@ -949,7 +949,9 @@ class _Localizer:
                 if o in position and not _holds(self.config.recheck, r, st, rv):
                     keep[position[o]] = False
                     doubtful[position[o]] = ray and _against_null(self.config.recheck, r, st, rv)
-        within = self.scene.within_reach(x_post, pair_obs, pair_landmarks)
+        # a pair the beam judged at a state conditioned on some of the pose's pairs may lie behind
+        # its camera at the posterior of all of them (``AssociationScene.in_front_of``)
+        within = self.scene.within_reach(x_post, pair_obs, pair_landmarks) & self.scene.in_front(x_post, pair_obs, pair_landmarks)
         return keep & within, doubtful & within
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:
@@ -961,6 +963,11 @@ class _Localizer:
         """``AssociationScene.observe``: predictions (m, 3) of the landmarks by camera ``camera_id``
         from x, and their Jacobians (m, 3, n)."""
         return self.scene.observe(x, camera_id, landmarks)
+
+    def in_front_of(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> np.ndarray:
+        """``AssociationScene.in_front_of``: which of the landmarks (m,) lie in front of camera
+        ``camera_id`` at x."""
+        return self.scene.in_front_of(x, camera_id, landmarks)
 
     def conditioned(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(x, P) after the update with the given pairs, weighed as association judges them: the
