@@ -109,8 +109,13 @@ class PairGating:
 
     def in_front(self, x: np.ndarray, camera_ids: list[int], landmarks: np.ndarray, sizes: list[int]) -> np.ndarray:
         """Which landmarks (m,) x puts in front of their camera, the first ``sizes[0]`` of camera
-        ``camera_ids[0]``, ... (``AssociationScene.in_front_of``): behind it, a pair's S, formed at
-        x, grows as 1/depth^2 and its gate passes nonsense, so the pair is no option at x."""
+        ``camera_ids[0]``, ... of one kind (``AssociationScene.in_front_of``): behind it, a pair's S,
+        formed at x, grows as 1/depth^2 and its gate passes nonsense, so the pair is no option at
+        x. A sensor whose pairs may be judged as points (depth) is not judged so: a point is linear
+        in the position, its gate sound behind the camera, where a 3x-noise prior may put a landmark
+        the camera sees (docs/performance.md, 2026-12-06, fourteenth session)."""
+        if measurement.judged_as_point(self.ctx.cameras[int(camera_ids[0])].kind):
+            return np.ones(landmarks.size, dtype=bool)
         if len(camera_ids) == 1:
             return self.ctx.in_front_of(x, camera_ids[0], landmarks)
         parts = np.split(landmarks, np.cumsum(sizes)[:-1])

@@ -189,8 +189,9 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     cost, z_hat (g, 3), H (g, 3, d), y (g, 3), Hc (g, 3, d), in_point, pool_cost: the cost inside
     the gate or not, for the miss term, ``expected_landmarks``). Among the landmarks in the
     view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``): a
-    landmark x puts behind its camera (``camera.in_front_of``) stays in its pools at an infinite
-    cost and pool cost, for the states conditioned on the pose's pairs to judge again."""
+    landmark x puts behind a pixel or disparity camera (``camera.in_front_of``) stays in its pools
+    at an infinite cost and pool cost, for the states conditioned on the pose's pairs to judge
+    again (``PairGating.in_front``, the numpy twin, says why not a depth camera's)."""
     m = obs.size
     dim = x.shape[0]                            # the state's size: 6 (Euler), 3 (planar)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
@@ -214,7 +215,8 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
         predict_candidates(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f, z_hat, H, at, d_position)
         for q in range(f.size):
             cand[at], cand_camera[at] = f[q], c
-            front[at] = in_front_of(R, t, R_rc, t_rc, K[4], scene.landmark_xyz, f[q])
+            # a pair judged as a point (depth) is sound behind the camera (``PairGating.in_front``)
+            front[at] = K[4] == DEPTH or in_front_of(R, t, R_rc, t_rc, K[4], scene.landmark_xyz, f[q])
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(z_hat, at, K)
             spread_q = spread(H, at, P)
             spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
@@ -299,7 +301,7 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     for q in range(pool.size):
         r = at + q
         d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, scene.obs_gate[o])
-        front = in_front_of(R, t, R_rc, t_rc, K[4], scene.landmark_xyz, pool[q])
+        front = K[4] == DEPTH or in_front_of(R, t, R_rc, t_rc, K[4], scene.landmark_xyz, pool[q])
         cost[r] = pair_cost if d2 <= scene.obs_gate[o] and front and not is_taken(pool[q], taken) else np.inf
         in_point[r] = point
 
