@@ -795,6 +795,7 @@ class _Localizer:
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned, planar_range=planar_range(dataset),
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)
+        self.in_front_of = self.scene.in_front_of  # the beam's (``BeamContext.in_front_of``)
 
         n, k_obs = dataset.num_poses, dataset.num_observations
         self.states = np.zeros((n, self.filter.stored_size))
@@ -949,8 +950,6 @@ class _Localizer:
                 if o in position and not _holds(self.config.recheck, r, st, rv):
                     keep[position[o]] = False
                     doubtful[position[o]] = ray and _against_null(self.config.recheck, r, st, rv)
-        # a pair the beam judged at a state conditioned on some of the pose's pairs may lie behind
-        # its camera at the posterior of all of them (``AssociationScene.in_front_of``)
         within = self.scene.within_reach(x_post, pair_obs, pair_landmarks) & self.scene.in_front(x_post, pair_obs, pair_landmarks)
         return keep & within, doubtful & within
 
@@ -963,11 +962,6 @@ class _Localizer:
         """``AssociationScene.observe``: predictions (m, 3) of the landmarks by camera ``camera_id``
         from x, and their Jacobians (m, 3, n)."""
         return self.scene.observe(x, camera_id, landmarks)
-
-    def in_front_of(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> np.ndarray:
-        """``AssociationScene.in_front_of``: which of the landmarks (m,) lie in front of camera
-        ``camera_id`` at x."""
-        return self.scene.in_front_of(x, camera_id, landmarks)
 
     def conditioned(self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(x, P) after the update with the given pairs, weighed as association judges them: the
