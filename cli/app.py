@@ -3,6 +3,8 @@ lazily, so ``camloc --help`` does not pay for scipy or matplotlib."""
 
 from __future__ import annotations
 
+import inspect
+
 import typer
 
 from camloc import __version__
@@ -38,7 +40,13 @@ def _register_commands() -> None:
     from camloc.cli import commands
 
     for name, function in commands.COMMANDS:
-        app.command(name, cls=CamlocCommand)(function)
+        app.command(name, cls=CamlocCommand, short_help=_first_paragraph(function.__doc__ or ""))(function)
+
+
+def _first_paragraph(docstring: str) -> str:
+    """A docstring's first paragraph on one line: typer's rich help keeps a command's single line
+    breaks in the commands' list, which broke its lines mid-sentence at any terminal width."""
+    return " ".join(inspect.cleandoc(docstring).split("\n\n")[0].split())
 
 
 _register_commands()

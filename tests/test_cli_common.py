@@ -352,6 +352,18 @@ def test_help_shows_every_panel_title_whole_and_usage_without_braces(name, colum
     assert "{" not in usage and "}" not in usage, usage
 
 
+def test_the_commands_list_flows_each_commands_first_paragraph_at_the_terminals_width():
+    """typer's rich help kept a docstring's single line breaks in the commands' list ("trajectory
+    length and" / "extent" on two lines whatever the width)."""
+    outcome = CliRunner().invoke(app, ["--help"], env={"COLUMNS": "400"})
+    assert outcome.exit_code == 0
+    rows = [line for line in outcome.stdout.splitlines() if line.startswith("│ ")]
+    for name in ALL_COMMANDS:
+        row = next(line for line in rows if line.split()[1] == name)
+        assert row.rstrip(" │").endswith("."), row  # the whole paragraph on the command's one row
+    assert any("trajectory length and extent, odometry" in row for row in rows)
+
+
 # Placeholders that let each command reach its options' parsing.
 _POSITIONALS = {"run": [], "eval": ["RUN"], "plot": ["RUN"], "info": ["DATA.g2o"], "simulate": ["-o", "x.g2o"],
                 "smooth": ["RUN"], "sweep": ["SPEC.toml", "-o", "out"]}
