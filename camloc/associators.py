@@ -101,15 +101,28 @@ class AssociationScene:
         return within
 
     def in_front(self, x: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray) -> np.ndarray:
-        """Which pairs' landmarks lie in front of their camera at x (depth > 0; a planar sensor's:
-        every one): (p,) bool. Behind the camera a projection's Jacobian grows as 1/depth^2, and so
-        does the S of the pair's gate, which then passes a prediction nowhere near its observation
-        (the audit of 2026-12-06). The kernels' twin is ``kernels.filtering.in_front``."""
+        """Which pairs' landmarks lie in front of their camera at x (``in_front_of``): (p,) bool.
+        The kernels' twin is ``kernels.filtering.in_front``."""
         front = np.ones(pair_obs.size, dtype=bool)
-        for n in np.flatnonzero(~measurement.is_planar(self.dataset.obs_kind[pair_obs])):
-            T_world_camera = self.filter.pose(x) @ self.cameras[int(self.obs_sensor[pair_obs[n]])].T_robot_camera
-            front[n] = (self.dataset.landmark_xyz[pair_landmarks[n]] - T_world_camera[:3, 3]) @ T_world_camera[:3, 2] > 0.0
+        sensors = self.obs_sensor[pair_obs]
+        for camera_id in np.unique(sensors):
+            mine = sensors == camera_id
+            front[mine] = self.in_front_of(x, int(camera_id), pair_landmarks[mine])
         return front
+
+    def in_front_of(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> np.ndarray:
+        """Which of the landmarks (m,) lie in front of camera ``camera_id`` at x (depth > 0; a
+        planar sensor's: every one): (m,) bool. Behind the camera a projection's Jacobian grows as
+        1/depth^2, and so does the S of a pair's gate, which then passes a prediction nowhere near
+        its observation (the audit of 2026-12-06): such a pair is no option at x, for the oracle
+        (``in_front``) or the beam (``pair_options.PairGating``), though the beam takes it as a
+        candidate (its view is widened for where the camera may be) and judges it again at every
+        state. The kernels' twin is ``kernels.camera.in_front_of``."""
+        camera = self.cameras[int(camera_id)]
+        if camera.kind in measurement.PLANAR_KINDS:
+            return np.ones(landmarks.size, dtype=bool)
+        T_world_camera = self.filter.pose(x) @ camera.T_robot_camera
+        return (self.dataset.landmark_xyz[landmarks, :3] - T_world_camera[:3, 3]) @ T_world_camera[:3, 2] > 0.0
 
     def ray_rival_margins(self, obs: np.ndarray, cost: np.ndarray, chosen: np.ndarray) -> np.ndarray:
         """``association.rival_margins`` of observations ``obs`` (cost (n, m), chosen (n,)) where they

@@ -184,6 +184,9 @@ class BeamContext(Protocol):
     def observe(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictions (m, 3) of the landmarks by camera ``camera_id`` from x, and their Jacobians."""
 
+    def in_front_of(self, x: np.ndarray, camera_id: int, landmarks: np.ndarray) -> np.ndarray:
+        """Which of the landmarks (m,) lie in front of camera ``camera_id`` at x, (m,) bool."""
+
     def updated(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *,
         at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,

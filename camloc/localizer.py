@@ -795,6 +795,7 @@ class _Localizer:
             true_landmark_row=self.true_landmark_row, conditioned=self.conditioned, planar_range=planar_range(dataset),
         )
         self.associate = per_pose_associator(config)  # None for the beam (search_beam)
+        self.in_front_of = self.scene.in_front_of  # the beam's (``BeamContext.in_front_of``)
 
         n, k_obs = dataset.num_poses, dataset.num_observations
         self.states = np.zeros((n, self.filter.stored_size))
@@ -916,7 +917,7 @@ class _Localizer:
 
     def _recheck(self, obs: np.ndarray, pair_obs: np.ndarray, pair_landmarks: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray) -> np.ndarray:
         """Which of a pose's pairs hold (``_holds``), each judged by the posterior of the others
-        (``association.leave_one_out_costs``), and lie within the camera's reach at x_post: (p,)
+        (``association.leave_one_out_costs``), and lie within the camera's reach and in front of it at x_post: (p,)
         bool; and which dropped rays (reach bounded) failed only ``_against_null`` (for ``_rechecked``)."""
         ds = self.dataset
         keep, doubtful = np.ones(pair_obs.size, dtype=bool), np.zeros(pair_obs.size, dtype=bool)
@@ -949,7 +950,7 @@ class _Localizer:
                 if o in position and not _holds(self.config.recheck, r, st, rv):
                     keep[position[o]] = False
                     doubtful[position[o]] = ray and _against_null(self.config.recheck, r, st, rv)
-        within = self.scene.within_reach(x_post, pair_obs, pair_landmarks)
+        within = self.scene.within_reach(x_post, pair_obs, pair_landmarks) & self.scene.in_front(x_post, pair_obs, pair_landmarks)
         return keep & within, doubtful & within
 
     def visible(self, x: np.ndarray, camera_id: int, P: Optional[np.ndarray] = None) -> np.ndarray:

@@ -763,3 +763,70 @@ def test_an_update_without_its_map_cost_keeps_the_same_posterior():
         for a, b in zip(costed[:3] + costed[4:], costless[:3] + costless[4:]):
             assert np.array_equal(a, b)
         assert costless[3] == costed[3] if restarted else np.isnan(costless[3])
+
+
+def test_a_landmark_behind_its_camera_at_the_hypothesis_state_is_no_option_in_either_engine():
+    """The beam's candidates are the view widened by three standard deviations of the position,
+    so a landmark the state puts behind the camera is one; there its projection's Jacobian grows
+    as 1/depth^2 and so does its pair's S: on main the true landmark of a disparity observation
+    gated (cost 27) from a state 0.15 m past it. Behind the camera it stays in the observation's
+    pool, no option (infinite cost and pool cost); 0.15 m short of it, in front, it is one, at the
+    same cost in both engines."""
+    from camloc.beam import BeamSearch
+    from camloc.beam_types import Hypothesis
+    from camloc.kernels import beam as kb
+    from camloc.localizer import LocalizerConfig, _Localizer
+    from camloc.scene import build_scene, build_settings
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=20, measurement="disparity"), seed=3)
+    k = 10
+    obs = np.flatnonzero(dataset.obs_pose_index == k)
+    o = int(obs[dataset.obs_true_landmark[obs] >= 0][0])
+    lm = int(np.flatnonzero(dataset.landmark_ids == dataset.obs_true_landmark[o])[0])
+    config = LocalizerConfig()
+    localizer = _Localizer(dataset, config)
+    scene, settings = build_scene(dataset, config), build_settings(config)
+    gating = BeamSearch(localizer, localizer.beam_settings()).gating
+    R_wr = geometry.quat_to_matrix(dataset.truth_quat_xyzw[k])
+    T_wr = np.eye(4)
+    T_wr[:3, :3], T_wr[:3, 3] = R_wr, dataset.truth_xyz[k]
+    T_wc = T_wr @ localizer.scene.cameras[int(localizer.obs_sensor[o])].T_robot_camera
+    depth = (dataset.landmark_xyz[lm] - T_wc[:3, 3]) @ T_wc[:3, 2]
+    P = np.diag(np.r_[np.full(3, 0.2**2), np.full(3, np.radians(2.0) ** 2)])
+    margin, max_angle = view.widened_view(P, scene.view_limits[2])
+    for shift, in_front in ((depth + 0.15, False), (depth - 0.15, True)):
+        x = np.r_[dataset.truth_xyz[k] + shift * T_wc[:3, 2], geometry.matrix_to_euler(R_wr)]
+        numpy_options = gating.options(Hypothesis(x, P, 0.0, 0), np.array([o]), widened_view=True)[0]
+        _, landmarks, cost, *_, pool_cost = kb.options_for(scene, settings, x, P, np.array([o]), margin, max_angle)
+        assert np.array_equal(np.sort(landmarks), np.sort(numpy_options.landmarks)) and lm in landmarks
+        mine, numpy_mine = landmarks == lm, numpy_options.landmarks == lm
+        assert np.isfinite(cost[mine][0]) == np.isfinite(pool_cost[mine][0]) == in_front
+        np.testing.assert_allclose(cost[mine], numpy_options.costs[numpy_mine], rtol=1e-9)
+        np.testing.assert_allclose(pool_cost[mine], numpy_options.pool_costs[numpy_mine], rtol=1e-9)
+
+
+def test_in_front_matches_the_numpy_scene(rng):
+    """The one test of whether a pair's landmark lies in front of its camera (the oracle's, the
+    beam's and the re-check's: ``kernels.camera.in_front_of``) and its numpy twin
+    (``AssociationScene.in_front_of``) agree on random states of a two-camera rig, landmarks on
+    both sides of the cameras."""
+    from camloc.kernels import filtering
+    from camloc.localizer import LocalizerConfig, _Localizer
+    from camloc.scene import build_scene
+    from camloc.simulate import SimulationConfig, simulate
+
+    dataset = simulate(SimulationConfig(poses=10, cameras=2, measurement="pixel"), seed=5)
+    config = LocalizerConfig()
+    scene, localizer = build_scene(dataset, config), _Localizer(dataset, config)
+    compiled = _jit.FromPython(filtering)
+    seen = []
+    for _ in range(20):
+        x = np.r_[rng.uniform(dataset.landmark_xyz.min(axis=0), dataset.landmark_xyz.max(axis=0)), rng.uniform(-np.pi, np.pi),
+                  rng.uniform(-1.2, 1.2), rng.uniform(-np.pi, np.pi)]
+        pair_obs = rng.integers(0, dataset.num_observations, 30)
+        pair_landmarks = rng.integers(0, dataset.landmark_xyz.shape[0], 30)
+        front = localizer.scene.in_front(x, pair_obs, pair_landmarks)
+        assert np.array_equal(compiled.in_front(scene, x, pair_obs, pair_landmarks), front)
+        seen.extend(front.tolist())
+    assert 0.2 < np.mean(seen) < 0.8

@@ -20,7 +20,7 @@ from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
-from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, predict_candidates, robot_frame
+from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, in_front_of, predict_candidates, robot_frame
 from camloc.kernels.planar import SE2_DIM
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import wrap_angle
@@ -188,7 +188,8 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     and Jacobians in their best coordinates. CSR over the observations: (start (m + 1,), landmark,
     cost, z_hat (g, 3), H (g, 3, d), y (g, 3), Hc (g, 3, d), in_point, pool_cost: the cost inside
     the gate or not, for the miss term, ``expected_landmarks``). Among the landmarks in the
-    view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``)."""
+    view of half-angle ``max_angle``, and ``margin`` metres around it (``view.widened_view``);
+    those x puts behind a pixel or disparity camera at inf (``pair_options.PairGating.in_front``)."""
     m = obs.size
     dim = x.shape[0]                            # the state's size: 6 (Euler), 3 (planar)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
@@ -200,7 +201,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
     cand, cand_camera = np.empty(total, np.int64), np.empty(total, np.int64)
     z_hat, H = np.empty((total, 3)), np.empty((total, 3, dim))
     p_hat, diagonal_pixels, diagonal_point = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
-    spreads = np.empty((total, 6))              # the upper triangle of each H P H' (3, 3)
+    spreads, front = np.empty((total, 6)), np.empty(total, np.bool_)  # the upper triangles of each H P H' (3, 3)
     R, E, t = robot_frame(x)
     d_position = np.empty((3, 3))
     at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
@@ -211,6 +212,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
         predict_candidates(R, E, t, R_rc, t_rc, K, scene.landmark_xyz, f, z_hat, H, at, d_position)
         for q in range(f.size):
             cand[at], cand_camera[at] = f[q], c
+            front[at] = K[4] == DEPTH or in_front_of(R, t, R_rc, t_rc, K[4], scene.landmark_xyz, f[q])
             p_hat[at, 0], p_hat[at, 1], p_hat[at, 2], j00, j02, j11, j12 = as_point(z_hat, at, K)
             spread_q = spread(H, at, P)
             spreads[at, 0], spreads[at, 1], spreads[at, 2], spreads[at, 3], spreads[at, 4], spreads[at, 5] = spread_q
@@ -251,8 +253,7 @@ def options_for(scene, settings, x, P, obs, margin, max_angle):
             d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, q, spread_row(spreads, q), ys, Hcs, n, pool_gate)
             if not d2 <= pool_gate:
                 continue
-            lm[n], cost[n], in_point[n] = cand[q], pair_cost if d2 <= gate else np.inf, point
-            pool_cost[n] = pair_cost
+            lm[n], cost[n], in_point[n], pool_cost[n] = cand[q], pair_cost if d2 <= gate and front[q] else np.inf, point, pair_cost if front[q] else np.inf
             for a in range(3):
                 zh[n, a] = z_hat[q, a]
                 for b in range(6):              # unrolled, the smaller state's columns skipped (``same_state``)
@@ -295,7 +296,8 @@ def condition_into(scene, settings, x, P, o, pool, taken, cost, z_hat, H, ys, Hc
     for q in range(pool.size):
         r = at + q
         d2, pair_cost, point = pair_in_best_coordinates(scene, o, z_hat, H, r, spread(H, r, P), ys, Hcs, r, scene.obs_gate[o])
-        cost[r] = pair_cost if d2 <= scene.obs_gate[o] and not is_taken(pool[q], taken) else np.inf
+        front = K[4] == DEPTH or in_front_of(R, t, R_rc, t_rc, K[4], scene.landmark_xyz, pool[q])
+        cost[r] = pair_cost if d2 <= scene.obs_gate[o] and front and not is_taken(pool[q], taken) else np.inf
         in_point[r] = point
 
 

@@ -246,6 +246,23 @@ def back_project(z, intrinsics):
 
 
 @jit
+def in_front_of(R, t, R_rc, t_rc, kind, landmarks, j):
+    """Whether landmark landmarks[j] (x, y, z, ...) lies in front of the sensor mounted at (R_rc,
+    t_rc) with measurement ``kind`` on the robot at (R, t) (``robot_frame``): its camera-frame
+    depth is positive; a planar robot's own sensor (point2, marker) sees all around it. The one
+    test of the kernels' association (the oracle's ``filtering.in_front``, the beam's
+    ``beam.options_for`` and ``beam.condition_into``); its numpy twin is
+    ``associators.AssociationScene.in_front_of``, which says why."""
+    if kind == POINT2 or kind == MARKER:
+        return True
+    d0, d1, d2 = landmarks[j, 0] - t[0], landmarks[j, 1] - t[1], landmarks[j, 2] - t[2]
+    depth = 0.0
+    for a in range(3):                                  # R_c[:, 2]' (R' (l - t) - t_c)
+        depth += R_rc[a, 2] * (R[0, a] * d0 + R[1, a] * d1 + R[2, a] * d2 - t_rc[a])
+    return depth > 0.0
+
+
+@jit
 def camera_pose(x, R_rc, t_rc):
     """T_world_camera as (R_wc (3, 3), c (3,)) of the state x and the camera mount (a planar
     robot's own sensor, point2 or marker, is mounted at the robot: R_rc = I, t_rc = 0)."""

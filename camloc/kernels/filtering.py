@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
-from camloc.kernels.camera import camera_pose, cameras_of, observe
+from camloc.kernels.camera import camera_pose, cameras_of, in_front_of, observe, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.planar import SE2_DIM
 from camloc.constants import RESTORE_LIMIT
@@ -52,12 +52,15 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     alternative, more than ``recheck_steal_margin`` over a rival taking their landmark and, a pixel
     observation's, more than ``recheck_ray_margin`` over its nearest rival landmark, each
     observation of the pose (obs (m,)) judged by the posterior of the other pairs; and whose
-    landmark lies within the candidates' distance of its camera at x_post (``within_reach``); and
+    landmark lies within the candidates' distance of its camera at x_post (``within_reach``) and in
+    front of it (``in_front``); and
     which of those dropped are rays that failed only against leaving them unassigned (``rechecked``
     weighs them again). The numpy twin is ``camloc.localizer._Localizer._recheck``."""
     # the candidates' distance (``view_limits[6]``, a pixel-only file's learned reach; inf: none)
     reach = scene.view_limits[6] if scene.view_limits.shape[0] > 6 else np.inf
-    keep = within_reach(scene, x_post, pair_obs, pair_landmarks, reach)
+    # and in front of it there (``in_front``): a pair the beam judged at a state conditioned on some
+    # of the pose's pairs may lie behind the camera at the posterior of all of them
+    keep = within_reach(scene, x_post, pair_obs, pair_landmarks, reach) & in_front(scene, x_post, pair_obs, pair_landmarks)
     doubtful = np.zeros(pair_obs.size, np.bool_)
     cameras = cameras_of(scene.obs_camera, obs, scene.camera_R.shape[0])
     n = x_post.shape[0]                          # the state's size: 6 (Euler), 3 (planar)
@@ -169,18 +172,12 @@ def within_reach(scene, x, pair_obs, pair_landmarks, reach):
 @jit
 def in_front(scene, x, pair_obs, pair_landmarks):
     """Which pairs' landmarks lie in front of their camera at x (depth > 0; a planar sensor's:
-    every one). The numpy twin is ``AssociationScene.in_front``, which says why."""
+    every one: ``camera.in_front_of``). The numpy twin is ``AssociationScene.in_front``, which says why."""
     front = np.ones(pair_obs.size, np.bool_)
+    R, _, t = robot_frame(x)
     for q in range(pair_obs.size):
         c = scene.obs_camera[pair_obs[q]]
-        kind = scene.camera_K[c, 4]
-        if kind == POINT2 or kind == MARKER:
-            continue
-        R_wc, centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])
-        depth = 0.0
-        for a in range(3):
-            depth += (scene.landmark_xyz[pair_landmarks[q], a] - centre[a]) * R_wc[a, 2]
-        front[q] = depth > 0.0
+        front[q] = in_front_of(R, t, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c, 4], scene.landmark_xyz, pair_landmarks[q])
     return front
 
 
