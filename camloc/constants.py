@@ -83,9 +83,13 @@ CONVERGED = 1e-6
 # prior as wide as the landmarks' depth it reaches the MAP estimate in 4-10).
 MAX_LINEARIZATIONS = 50
 
-# A damped Gauss-Newton step (ekf.damped_gauss_newton, kernels/update.py damped_start) is halved at most
-# this many times (to 1/1024 of the full step) before the iterate is taken for a minimum.
-HALVINGS = 10
+# The damped Gauss-Newton of an update beyond its chi^2 bound (ekf.damped_gauss_newton, kernels/update.py
+# damped_start) is Levenberg-Marquardt's, damped in the prior's metric: a step solves
+# (P^-1 (1 + damping) + H' R^-1 H) step = gradient; the damping starts at DAMPING_START, is multiplied by 10
+# for each step that does not lower the MAP cost (at most DAMPING_RAISES times a linearization: to 1e-15
+# of the Gauss-Newton step), and divided by 10 after each that does. Marquardt's usual start and factor.
+DAMPING_START = 1e-3
+DAMPING_RAISES = 15
 
 # What a pose's explanation pays for a landmark surely on a pixel observation's ray, surely within its
 # camera's detection range (observation_space.detection_range), that it leaves unclaimed; one less sure

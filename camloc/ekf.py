@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from camloc.constants import CONVERGED, HALVINGS, MAX_LINEARIZATIONS, NEGLIGIBLE_MARGIN
+from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS, NEGLIGIBLE_MARGIN
 from camloc.errors import CamlocError
 
 try:  # the gufuncs np.linalg wraps, called directly where their input is known good (``cho_solve``)
@@ -344,29 +344,38 @@ def damped_gauss_newton(
     retract: Retraction = _add, difference: StateDifference = _subtract, R_inverse: np.ndarray | None = None,
 ) -> np.ndarray:
     """The MAP estimate of the update of prior (x, P) with measurements z, R (as ``update``'s), by
-    Gauss-Newton from x with each step halved (up to ``HALVINGS`` times) until it lowers the MAP
-    cost (``posterior_cost``): a backtracking line search, so the cost falls at every accepted
-    step and the iterate cannot run off as the plain iterations do where the model bends within
-    the prior's spread (pixels of landmarks a prior's standard deviation from the camera's plane).
-    Stops where no halving lowers the cost, where the step falls below ``CONVERGED``, or after
+    Levenberg-Marquardt from x, damped in the prior's metric: each step solves
+    ``(P^-1 (1 + damping) + H' R^-1 H) step = H' R^-1 r - P^-1 (x_i - x)``, the damping raised
+    tenfold until the step lowers the MAP cost (``posterior_cost``) and lowered tenfold after.
+    Where the model bends within the prior's spread (pixels of landmarks a prior's standard
+    deviation from the camera's plane) the plain iterations run off, and a line search along the
+    Gauss-Newton step can leap to another minimum (a pose turned half round, 31 prior sigmas away,
+    whose pixels fit: docs/filter.md); the damped steps bend toward the prior's steepest descent
+    instead. That step is the Gauss-Newton step of the prior (P / (1 + damping)) centred on x_i
+    moved toward x by 1 / (1 + damping) of their difference, so it is one gain's correction, as
+    the compiled twin (``kernels.update.damped_start``) computes it. Stops where no damping lowers
+    the cost (``DAMPING_RAISES``), where the step falls below ``CONVERGED``, or after
     ``MAX_LINEARIZATIONS`` linearizations. Returns the state; ``update(..., start=it)`` gives its
     posterior (the covariance at its linearization)."""
-    gain_at = _gain_for(P, R, z.size, R_inverse)
     cost_of = lambda state: posterior_cost(state, x, P, z, R, measure, difference, R_inverse)  # noqa: E731
-    x_i, cost_i = x, cost_of(x)
+    x_i, cost_i, damping = x, cost_of(x), DAMPING_START
     for _ in range(MAX_LINEARIZATIONS):
         z_hat, H = measure(x_i)
-        d = difference(retract(x, gain_at(H).correction(z - z_hat + H @ difference(x_i, x))), x_i)  # the Gauss-Newton step
-        for _ in range(HALVINGS):
-            candidate = retract(x_i, d)
+        for _ in range(DAMPING_RAISES):
+            shrink = 1.0 / (1.0 + damping)
+            centre = retract(x_i, shrink * difference(x, x_i))
+            gain = _gain_for(shrink * P, R, z.size, R_inverse)(H)
+            step = difference(retract(centre, gain.correction(z - z_hat + H @ difference(x_i, centre))), x_i)
+            candidate = retract(x_i, step)
             cost = cost_of(candidate)
             if cost < cost_i:
+                damping *= 0.1
                 break
-            d = 0.5 * d
+            damping *= 10.0
         else:
-            return x_i  # no step along it lowers the cost: a minimum, to the step's resolution
+            return x_i  # no damping lowers the cost: a minimum, to the step's resolution
         x_i, cost_i = candidate, cost
-        if np.abs(d).max() < CONVERGED:
+        if np.abs(step).max() < CONVERGED:
             break
     return x_i
 

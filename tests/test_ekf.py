@@ -309,8 +309,9 @@ def test_monotone_iterations_change_nothing_where_the_last_iterate_is_the_cheape
 def test_damped_gauss_newton_reaches_the_map_estimate_where_plain_iterations_run_off():
     """A depth-like model, h(x) = 1/x, prior x = 1 +- 0.5, the measurement (1e-2 noise) of x = 0.3:
     the Jacobian grows 11-fold over the prior's spread, so plain Gauss-Newton overshoots past zero
-    (the iterated update ends at x < 0, behind the camera, whatever its iterations). Each step
-    halved until it lowers the MAP cost, the iterations reach the minimum a grid finds."""
+    (the iterated update ends at x < 0, behind the camera, whatever its iterations). Damped until
+    each step lowers the MAP cost (Levenberg-Marquardt), the iterations reach the minimum a grid
+    finds."""
     def measure(x):
         return np.array([1.0 / x[0]]), np.array([[-1.0 / x[0] ** 2]])
 

@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from camloc.constants import CONVERGED, HALVINGS, MAX_LINEARIZATIONS
+from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS
 from camloc.kernels._jit import TRUE, entry, inlined, jit
 from camloc.kernels.camera import back_project, observe_pairs_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
@@ -496,38 +496,46 @@ def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_
 @jit
 def damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
     """The MAP estimate (n,) of the update of (x, P) with the pairs of ``iterated_update`` (its
-    arguments of the same names) by Gauss-Newton from x, each step halved (up to ``HALVINGS``
-    times) until it lowers the MAP cost; the numpy twin is ``ekf.damped_gauss_newton``."""
+    arguments of the same names) by Levenberg-Marquardt from x, damped in the prior's metric; the
+    numpy twin is ``ekf.damped_gauss_newton``, which says why and how."""
     n, p = x.shape[0], z.shape[0]
     z_hat, H, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
+    cost_z_hat, cost_H, cost_r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))   # map_cost_into's scratch
     d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
     moved, M, pivots = np.empty(n), np.empty((n, n)), np.empty(n, np.int64)
-    target, d, candidate, x_i = np.empty(n), np.empty(n), np.empty(n), x.copy()
+    centre, target, d, candidate, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n), x.copy()
     cams = (camera_R, camera_t, camera_K)
-    cost_i = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, z_hat, H, r, d_position, frame, moved, M, pivots)
+    cost_i = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, cost_z_hat, cost_H, cost_r, d_position, frame,
+                           moved, M, pivots)
+    damping = DAMPING_START
     for _ in range(MAX_LINEARIZATIONS):
         observe_pairs_into(x_i, landmark_xyz, pair_camera, *cams, z_hat, H, d_position, frame)
-        difference_into(x_i, x, moved)
-        for i in range(p):                                           # z - h(x_i) + H_i (x_i [-] x)
-            for a in range(3):
-                s = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
-                for b in range(n):
-                    s += H[i, a, b] * moved[b]
-                r[i, a] = s
-        retract_into(x, correction(P, H, R, R_inverse, r), target)
-        difference_into(target, x_i, d)                              # the Gauss-Newton step
         lowered = False
-        for _ in range(HALVINGS):
+        for _ in range(DAMPING_RAISES):
+            shrink = 1.0 / (1.0 + damping)
+            difference_into(x, x_i, moved)
+            for b in range(n):
+                moved[b] *= shrink
+            retract_into(x_i, moved, centre)                         # x_i moved toward x by shrink
+            difference_into(x_i, centre, moved)
+            for i in range(p):                                       # z - h(x_i) + H_i (x_i [-] centre)
+                for a in range(3):
+                    s = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
+                    for b in range(n):
+                        s += H[i, a, b] * moved[b]
+                    r[i, a] = s
+            retract_into(centre, correction(P * shrink, H, R, R_inverse, r), target)
+            difference_into(target, x_i, d)                          # the damped step
             retract_into(x_i, d, candidate)
-            cost = map_cost_into(candidate, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, z_hat, H, r, d_position, frame,
-                                 moved, M, pivots)
+            cost = map_cost_into(candidate, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, cost_z_hat, cost_H, cost_r,
+                                 d_position, frame, moved, M, pivots)
             if cost < cost_i:
                 lowered = True
+                damping *= 0.1
                 break
-            for b in range(n):
-                d[b] *= 0.5
+            damping *= 10.0
         if not lowered:
-            break                                                    # no step along it lowers the cost: a minimum
+            break                                                    # no damping lowers the cost: a minimum
         step = 0.0
         for b in range(n):
             x_i[b] = candidate[b]
