@@ -727,8 +727,25 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
         # their workers are stopped rather than waited for; pending cells are dropped.
         pool.shutdown(wait=False, cancel_futures=True)
         _stop(started)
+        _forget_manager(pool)
         raise
     pool.shutdown(wait=True)
+
+
+def _forget_manager(pool) -> None:
+    """After the workers were stopped: wait (a little) for the pool's manager thread to end, and
+    take it out of the table ``concurrent.futures`` wakes at the interpreter's exit. That wake-up
+    (Python 3.11's ``_python_exit``, outside the pool's lock) raced the manager thread closing its
+    pipe as it ended: a Ctrl-C 1.5 s into a sweep printed "Exception ignored ... OSError: Bad file
+    descriptor" with its traceback at exit (CI, 2026-12-06, once in many runs)."""
+    from concurrent.futures import process
+
+    manager = getattr(pool, "_executor_manager_thread", None)
+    if manager is None:
+        return
+    manager.join(timeout=5.0)
+    if not manager.is_alive():
+        getattr(process, "_threads_wakeups", {}).pop(manager, None)
 
 
 @contextlib.contextmanager
