@@ -65,6 +65,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from camloc import ekf
+from camloc.diagnostics import divergence_cause
 from camloc.beam_expansion import PoseExpansion
 from camloc.beam_seeded import SeededSearch
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis
@@ -119,7 +120,8 @@ class BeamSearch:
                     beam = [self._predicted(h, k - 1, parent) for parent, h in enumerate(beam)]
                 beam = self._explain_pose(k, beam, self.ctx.obs_of_pose[k])
             except ekf.NUMERICAL_FAILURES as error:
-                raise ekf.as_divergence(error).at_pose(int(self.ctx.dataset.pose_ids[k])) from None
+                raise ekf.as_divergence(error).at_pose(int(self.ctx.dataset.pose_ids[k]),
+                                                       divergence_cause(self.ctx.dataset)) from None
             self.history.append(beam)
             if on_pose is not None:
                 on_pose(k)

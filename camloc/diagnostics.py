@@ -77,6 +77,40 @@ def rejection_tail(rejected: int, observations: int, rate: float = REFERENCE_REJ
     return min(1.0, float(binomial_tail(rejected - 1, observations, rate)))  # its rounding can pass 1
 
 
+# Information matrices whose eigenvalues span this many decades leave a covariance indefinite to
+# rounding: float64 keeps about 16 digits, and an update subtracts terms of both magnitudes. Files
+# of one sensor's noise span a few decades (the real course file and the simulator's worlds: 2-6).
+INFORMATION_DECADES_APART = 10
+
+
+def information_decades(dataset) -> float:
+    """How many decades the noise of a dataset spans: the eigenvalues of the covariances the filter
+    reads (``odom_cov``, ``obs_cov``: the file's information inverted), odometry's and the
+    observations' together, each observation's own rows only (a pixel's inert padding left out, as
+    the zero rows of a planar robot's lifted odometry); 0 for a dataset with none."""
+    from camloc.measurement import dof_of
+
+    blocks = [np.linalg.eigvalsh(dataset.odom_cov).ravel()] if len(dataset.odom_cov) else []
+    kinds = dataset.obs_kind
+    for dof in np.unique(dof_of(kinds)) if len(kinds) else ():
+        blocks.append(np.linalg.eigvalsh(dataset.obs_cov[dof_of(kinds) == dof][:, :dof, :dof]).ravel())
+    values = np.concatenate(blocks) if blocks else np.zeros(0)
+    values = values[values > 0]
+    return float(np.log10(values.max() / values.min())) if values.size else 0.0
+
+
+def divergence_cause(dataset) -> str:
+    """What most likely broke a run's covariance down, for its error (``FilterDivergedError.at_pose``):
+    information matrices many orders of magnitude apart where the file's are, else an estimate that
+    lost the robot's path (a landmark near a pixel camera's plane makes its Jacobian unbounded)."""
+    decades = information_decades(dataset)
+    if decades >= INFORMATION_DECADES_APART:
+        return (f"the file's information matrices are {decades:.0f} orders of magnitude apart, which leaves a "
+                "covariance indefinite to rounding")
+    return ("the estimate had most likely lost the robot's path, from a wrong association or odometry much noisier "
+            "than its information says; '--association oracle' tells which where the file's landmark ids are true")
+
+
 # What the mapping localizer maps (``localizer.unmappable_reason`` says why a dataset is not that)
 MAPPED_LANDMARKS = "point landmarks, a planar robot's markers and tags with their orientations"
 

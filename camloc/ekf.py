@@ -47,9 +47,8 @@ def _subtract(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class FilterDivergedError(CamlocError):
     """The innovation covariance is not positive definite: the filter's covariance broke down."""
 
-    def at_pose(self, pose_id: int, cause: str = "information matrices in the file many orders of magnitude apart "
-                                                  "usually cause this") -> "FilterDivergedError":
-        """The same error, saying where, and what in a file usually causes it (or ``cause``)."""
+    def at_pose(self, pose_id: int, cause: str) -> "FilterDivergedError":
+        """The same error, saying where, and its likely ``cause`` (``diagnostics.divergence_cause``)."""
         return FilterDivergedError(f"pose {pose_id}: {self} (the filter's covariance broke down; {cause})")
 
 

@@ -29,6 +29,7 @@ from camloc.beam import BeamSearch
 from camloc.beam_types import BeamSettings, BeamStatistics
 from camloc.filters import make_filter, near_singularity_deg, rotation_pitch_deg
 from camloc.dataset import Dataset, first_poses
+from camloc.diagnostics import divergence_cause
 from camloc.constants import RESTORE_LIMIT
 from camloc.errors import ConfigError
 from camloc.localizer_config import AUTO_FILTER, AUTO_MAP, LocalizerConfig
@@ -639,7 +640,7 @@ def _localize_compiled(dataset: Dataset, config: LocalizerConfig, on_progress: O
             filter_ready=filter_ready, view_range=view_range, null_cost_offset=null_cost_offset, on_replay=on_replay)
     except PoseFailure as failure:
         detail = str(failure) if str(failure).startswith("a covariance") else f"a covariance is no longer positive definite ({failure})"
-        raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k])) from None
+        raise ekf.FilterDivergedError(detail).at_pose(int(dataset.pose_ids[failure.k]), divergence_cause(dataset)) from None
     seconds = time.perf_counter() - started
     odometry = np.empty((dataset.num_poses, 4, 4))
     T = dataset.T_world_start
@@ -852,7 +853,7 @@ class _Localizer:
         try:
             self._step(k)
         except ekf.NUMERICAL_FAILURES as error:
-            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k])) from None
+            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k]), divergence_cause(self.dataset)) from None
 
     def _step(self, k: int) -> None:
         if k > 0:

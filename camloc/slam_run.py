@@ -36,6 +36,7 @@ import numpy as np
 
 from camloc import ekf, geometry, measurement, planar, slam, slam_tags
 from camloc.association import mahalanobis_3x3
+from camloc.diagnostics import divergence_cause
 from camloc.dataset import LANDMARK_MARKER, LANDMARK_POINT2, Dataset, observations_by_pose
 from camloc.filters import make_filter
 from camloc.lacking_spread import GivenPairsDoubt
@@ -145,18 +146,19 @@ class MappingLocalizer(PoseAssociation, LandmarkAdditions, RayAnchors, TagStates
         try:
             self._step(k)
         except ekf.NUMERICAL_FAILURES as error:
-            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k]), *self._far_cause()) from None
+            raise ekf.as_divergence(error).at_pose(int(self.dataset.pose_ids[k]),
+                                                   self._far_cause() or divergence_cause(self.dataset)) from None
 
-    def _far_cause(self) -> tuple[str, ...]:
+    def _far_cause(self) -> str:
         """Where the robot or a landmark has gone far from the run's origin (the start, or the world's
         origin within ``recentre.FAR_FROM_ORIGIN_M`` of it), that as the failure's likely cause: the
         invariant error's Jacobians carry world positions, and a path of 10^8 m in one odometry step
         broke the innovation covariance as a start at 10^5 m did before the recentring."""
         far = float(np.max(np.abs(np.vstack([self.x.t.reshape(1, 3), self.x.L.reshape(-1, 3)]))))
         if far <= FAR_MAPPING_M:
-            return ()
+            return ""
         return (f"the robot or a landmark is {far:.3g} m from where the run's frame starts, where the mapping pass "
-                "loses its precision: odometry that jumps that far usually causes this",)
+                "loses its precision: odometry that jumps that far usually causes this")
 
     def _step(self, k: int) -> None:
         ds = self.dataset

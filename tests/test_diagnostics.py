@@ -14,14 +14,17 @@ from typer.testing import CliRunner
 
 from camloc.cli.app import app
 from camloc.diagnostics import (
+    INFORMATION_DECADES_APART,
     MAPPED_LANDMARKS,
     ODOMETRY_ALONE,
+    divergence_cause,
     estimate_name,
     filter_name,
+    information_decades,
     rejection_tail,
     run_warnings,
 )
-from camloc.g2o import write_g2o
+from camloc.g2o import read_g2o, write_g2o
 from camloc.localizer import localize
 from camloc.simulate import SimulationConfig, simulate
 
@@ -50,6 +53,33 @@ def _without_every_other_landmark(source, target):
 
 # --------------------------------------------------------------------------------------------
 # The pure functions
+
+
+@pytest.mark.parametrize("kind", [dict(), dict(measurement="pixel", intrinsics="pixel", cameras=2),
+                                  dict(measurement="disparity", trajectory="aerial"), "planar"])
+def test_a_breakdown_on_the_simulators_noise_is_called_a_lost_path_not_the_file_s_information(kind):
+    # Every simulated kind spans a few decades of noise (metres, radians and pixels together), so a
+    # covariance that breaks down there was not broken by rounding: the message must not blame the file.
+    if kind == "planar":
+        from camloc.simulate_planar import PlanarSimulationConfig, simulate_planar
+
+        dataset = simulate_planar(PlanarSimulationConfig(poses=20), seed=1)
+    else:
+        dataset = simulate(SimulationConfig(poses=20, **kind), seed=1)
+    assert 0 < information_decades(dataset) < INFORMATION_DECADES_APART - 2
+    assert "lost the robot's path" in divergence_cause(dataset)
+
+
+def test_observations_claiming_a_thousandth_of_a_nanometre_are_called_information_far_apart():
+    dataset = simulate(SimulationConfig(poses=20), seed=1)
+    exact = dataclasses.replace(dataset, obs_cov=dataset.obs_cov * np.where(np.arange(len(dataset.obs_cov)) % 2, 1e-12, 1.0)[:, None, None])
+    decades = information_decades(exact)
+    assert decades == pytest.approx(information_decades(dataset) + 12, abs=1.0)
+    assert f"information matrices are {decades:.0f} orders of magnitude apart" in divergence_cause(exact)
+
+
+def test_the_real_file_spans_few_decades_of_noise(real_dataset_path):
+    assert information_decades(read_g2o(real_dataset_path)) < INFORMATION_DECADES_APART - 2
 
 
 def test_the_filter_is_named_by_its_state_and_its_iterations():
