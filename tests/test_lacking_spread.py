@@ -65,9 +65,6 @@ def test_only_the_exact_map_s_given_pairs_are_doubted(mode):
     assert slam_run.MappingLocalizer(world, LocalizerConfig(map="exact"), given, compiled=False).doubt_given
 
 
-# slow (2026-12-06): a study of four 300-pose seeds (23 s of the fast tests' 640 s of CPU on the 2-core AMD EPYC);
-# the spread's formulas and the compiled spread are checked in the fast tests beside it
-@pytest.mark.slow
 def test_half_a_map_withheld_the_default_association_s_nees_is_inside_its_bound():
     """300-pose grid worlds of a depth camera with half the map withheld, the default association:
     the beam gives some observations of landmarks the map lacks to mapped neighbours (no gate tells
