@@ -11,7 +11,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from camloc import ekf, geometry, measurement
+from camloc import ekf, measurement
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
 from camloc.miss_term import miss_charge
 from camloc.pair_options import PairGating, PairOptions, member
@@ -252,7 +252,8 @@ class PoseExpansion:
         best = hypothesis(children[0]).cost
         limit = best + delta
         s = self.settings
-        kept = (_KeptEuler if self.ctx.filter.name == "euler" else _Kept)(hypothesis, self.same_state, min(width, len(children)))
+        differences = getattr(self.ctx.filter, "differences", None)  # a filter's batched ``difference``, where it has one
+        kept = _KeptAtOnce(hypothesis, differences, min(width, len(children))) if differences else _Kept(hypothesis, self.same_state)
         for c in children:
             if hypothesis(c).cost > limit or len(kept.children) >= width:
                 break
@@ -273,7 +274,7 @@ class _Kept:
     """The children a ``prune`` has kept, and whether a candidate's state is one of theirs
     (``PoseExpansion.same_state`` of each in turn)."""
 
-    def __init__(self, hypothesis: Callable, same_state: Callable, width: int):
+    def __init__(self, hypothesis: Callable, same_state: Callable):
         self.children: list = []
         self.hypothesis, self.same_state = hypothesis, same_state
 
@@ -281,33 +282,32 @@ class _Kept:
         return any(self.same_state(h, self.hypothesis(k), sigma) for k in self.children)
 
 
-class _KeptEuler(_Kept):
-    """``_Kept`` of Euler states (x, y, z, roll, pitch, yaw), a candidate tested against all of
-    them in one numpy step: on a dense pixel world a pruning compares a candidate with up to the
-    beam's width of them, and one comparison at a time (a Python call, a ``difference`` and a
-    diagonal each) held ``prune``'s own time, its children's updates aside, at 3.1 s of a 33 s
-    numpy run (2.0 s in one step; the 50-pose dense pixel world of ``tests/test_kernels.py``,
-    2026-12-06).
-    The same arithmetic element by element (numpy's float remainder is Python's,
-    ``geometry.wrap_angle_float``), so the same answers to the bit; and a state is read (a pending
-    child's update computed) only where the loop read it: a kept one once a candidate is compared
-    with it, a candidate only where one is kept before it."""
+class _KeptAtOnce(_Kept):
+    """``_Kept`` of a filter with a batched ``differences`` (the Euler filter's), a candidate tested
+    against all the kept states in one numpy step: on a dense pixel world a pruning compares a
+    candidate with up to the beam's width of them, and one comparison at a time (a Python call, a
+    ``difference`` and a diagonal each) held ``prune``'s own time, its children's updates aside, at
+    3.1 s of a 33 s numpy run (2.0 s in one step; the 50-pose dense pixel world of
+    ``tests/test_kernels.py``, 2026-12-06). The same answers to the bit as ``same_state``; and a
+    state is read (a pending child's update computed) only where the loop read it: a kept one once
+    a candidate is compared with it, a candidate only where one is kept before it."""
 
-    def __init__(self, hypothesis: Callable, same_state: Callable, width: int):
-        super().__init__(hypothesis, same_state, width)
-        self.x, self.variance = np.empty((width, 6)), np.empty((width, 6))
+    def __init__(self, hypothesis: Callable, differences: Callable, width: int):
+        super().__init__(hypothesis, same_state=None)
+        self.differences, self.width = differences, width
         self.filled = 0
 
     def any_same(self, h: Hypothesis, sigma: float) -> bool:
         """Whether h's state lies within ``sigma`` standard deviations of a kept one's on every
-        axis (``PoseExpansion.same_state`` with EulerFilter's ``difference``)."""
+        axis (``PoseExpansion.same_state`` of each)."""
         n = len(self.children)
         if not n:
             return False
+        if not self.filled:
+            self.x, self.variance = np.empty((self.width, h.x.size)), np.empty((self.width, h.x.size))
         for k in self.children[self.filled :]:
             kh = self.hypothesis(k)
             self.x[self.filled], self.variance[self.filled] = kh.x, kh.P.diagonal()
             self.filled += 1
-        d = h.x - self.x[:n]
-        d[:, 3:] = geometry.wrap_angle(d[:, 3:])
+        d = self.differences(h.x, self.x[:n])
         return bool(np.any(np.all(d * d <= sigma**2 * self.variance[:n], axis=1)))

@@ -77,6 +77,13 @@ class EulerFilter:
         d[3], d[4], d[5] = geometry.wrap_angle_float(roll), geometry.wrap_angle_float(pitch), geometry.wrap_angle_float(yaw)
         return d
 
+    def differences(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``difference`` of a (6,) from each row of b (m, 6) at once: the same numbers to the bit
+        (numpy's float remainder is Python's, ``geometry.wrap_angle_float``)."""
+        d = a - b
+        d[:, 3:] = geometry.wrap_angle(d[:, 3:])
+        return d
+
     def pose(self, x: np.ndarray) -> np.ndarray:
         return geometry.pose_from_euler(x)
 

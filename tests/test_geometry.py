@@ -159,3 +159,16 @@ def test_normalized_quaternions_of_any_representable_length(scale):
     # the squares of components beyond 1e154 overflow and those below 1e-162 underflow
     quat = np.array([[1.0, -2.0, 2.0, 4.0], [0.0, 0.0, 0.0, 3.0]]) * scale
     np.testing.assert_allclose(geometry.normalized_quaternions(quat), [[0.2, -0.4, 0.4, 0.8], [0.0, 0.0, 0.0, 1.0]], rtol=1e-15)
+
+
+def test_the_euler_filter_s_batched_differences_are_its_difference_row_by_row_to_the_bit(rng):
+    # The numpy beam's pruning compares a candidate with every kept state at once
+    # (beam_expansion._KeptAtOnce); its answers must be same_state's one at a time.
+    from camloc.filters import make_filter
+
+    euler = make_filter("euler")
+    a = rng.normal(scale=4.0, size=6)
+    b = np.vstack([rng.normal(scale=4.0, size=(200, 6)), a, a + np.array([0, 0, 0, 2 * np.pi, -np.pi, np.pi])])
+    found = euler.differences(a, b)
+    expected = np.array([euler.difference(a, row) for row in b])
+    np.testing.assert_array_equal(found.view(np.int64), expected.view(np.int64))
