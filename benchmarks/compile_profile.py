@@ -12,6 +12,11 @@ than one signature (each specialization compiles the kernel and all it calls aga
 
     NUMBA_CACHE_DIR=$(mktemp -d) CAMLOC_BACKGROUND_COMPILE=0 nice python benchmarks/compile_profile.py [--top 40]
 
+``--dataset FILE`` profiles what ``camloc run FILE`` compiles instead (with
+``CAMLOC_BACKGROUND_COMPILE=0``: the compiled engine, default options, one process), the issue's
+world's first compile; ``--signatures`` lists every kernel compiled with its signatures, not only
+those compiled more than once.
+
 ``NUMBA_CACHE_DIR`` must name an empty folder: a kernel loaded from the cache is not compiled and
 does not show. Without it, the script refuses to run where the cache is warm.
 """
@@ -95,9 +100,21 @@ def first_compile() -> None:
     warmup.late_beam_kernels(dataset, LocalizerConfig())
 
 
+def run_of(path: str) -> None:
+    """What ``camloc run PATH`` compiles with ``CAMLOC_BACKGROUND_COMPILE=0``: the compiled
+    engine over the file, its default options, in this one process."""
+    from camloc.g2o import read_g2o
+    from camloc.localizer import localize
+
+    localize(read_g2o(path), engine="compiled")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--top", type=int, default=40, help="kernels listed (default 40)")
+    parser.add_argument("--signatures", action="store_true", help="print every compiled kernel's signatures")
+    parser.add_argument("--dataset", help="profile the first compile of `camloc run DATASET` (its default options) "
+                        "instead of the background compile's steps")
     args = parser.parse_args()
     from camloc.kernels import cache_is_warm
 
@@ -108,7 +125,7 @@ def main() -> int:
     event.register("numba:compile", _Recorder(records))
     event.register("numba:llvm_lock", _Recorder(records, "llvm "))
     cpu = time.process_time()
-    first_compile()
+    run_of(args.dataset) if args.dataset else first_compile()
     cpu = time.process_time() - cpu
     own, whole, count, llvm = own_times(records)
     print(f"first compile, one process: {cpu:.1f} s CPU; {sum(own.values()):.1f} s compiling "
@@ -116,14 +133,14 @@ def main() -> int:
     print(f"{'own s':>7} {'LLVM s':>7} {'whole s':>8} {'times':>5}  kernel")
     for name, seconds in own.most_common(args.top):
         print(f"{seconds:7.2f} {llvm[name]:7.2f} {whole[name]:8.2f} {count[name]:5d}  {name}")
-    for name, signatures in specialized_twice().items():
-        print(f"compiled for {len(signatures)} signatures (each with all it calls): {name}")
+    for name, signatures in specialized_twice(1 if args.signatures else 2).items():
+        print(f"compiled for {len(signatures)} signature(s) (each with all it calls): {name}")
         for signature in signatures:
             print(f"    {str(signature)[:300]}")
     return 0
 
 
-def specialized_twice() -> dict:
+def specialized_twice(at_least: int = 2) -> dict:
     """camloc's kernels compiled for more than one signature in this process, by name: a literal
     flag or count passed at one site (numba types ``True`` or ``0`` as a type of its own), or an
     array of another layout, compiles the kernel and all it calls once more."""
@@ -138,7 +155,7 @@ def specialized_twice() -> dict:
     for info in pkgutil.iter_modules(camloc.kernels.__path__):
         module = importlib.import_module(f"camloc.kernels.{info.name}")
         for name, value in vars(module).items():
-            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__ and len(value.signatures) > 1:
+            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__ and len(value.signatures) >= at_least:
                 found[f"{module.__name__}.{name}"] = value.signatures
     return found
 

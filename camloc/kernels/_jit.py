@@ -75,7 +75,11 @@ jit = partial(numba.njit, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTI
 # A step called from several places (the beam's settle and options_of) is a plain ``jit`` again:
 # inlined, its body was copied into every site (``explain_all`` 12-13 -> 8 s of its own to compile).
 # The filter's re-check and oracle pairing, each called from one place, are inlined as well: the
-# first compile 102 -> 90.5 s. The update's steps (point_step, correction, innovation_cost) saved 3 s
+# first compile 102 -> 90.5 s (since then the re-check grew, and its judging step ``recheck``, with
+# the leave-one-out costs and margins inlined into it, is a ``jit`` of its own again: inlined into
+# ``filter_poses`` it took numba's inlining pass 6.9 s, which grows with the caller's size; on its
+# own, 1.1 s: a first compile of the world 99 -> 85 s of CPU, docs/performance.md,
+# 2026-12-06 (sixteenth session)). The update's steps (point_step, correction, innovation_cost) saved 3 s
 # more inlined but ran the beam about 2% slower, at the edge of this machine's noise: not kept; the
 # steps of a restart only (point_step, restart_cost), which most updates never reach, are inlined.
 # Small steps of one caller are inlined too (``condition``, ``settled``, ``seeds_worth_trying``), but

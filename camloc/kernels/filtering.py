@@ -46,7 +46,10 @@ def pair_distance(R, o, z, z_hat, H, i, P):
     return innovation_mahalanobis(H, i, P, R, o, z[o, 0] - z_hat[i, 0], z[o, 1] - z_hat[i, 1], z[o, 2] - z_hat[i, 2])[0]
 
 
-@inlined
+# Compiled on its own, not inlined: numba's inlining pass over ``filter_poses`` took 6.9 s with this
+# step's body (and the three it inlines) in it, 0.1 s without; compiled alone it costs 5.5 s, so the
+# first compile of the issue's world is 99 -> 85 s of CPU (``_jit``; run once a pose: no slower)
+@jit
 def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     """Which of a pose's pairs (p,) keep more than ``recheck_margin`` over their nearest
     alternative, more than ``recheck_steal_margin`` over a rival taking their landmark and, a pixel
@@ -112,7 +115,9 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     return keep, doubtful
 
 
-@jit
+# Inlined into its one caller: compiled on its own, its module generates ``updated``'s tree once more
+# (4.7 s of LLVM): the first compile of the issue's world 93.6 s of CPU against 85-87 inlined
+@inlined
 def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
     """A pose's pairs (obs, landmarks) after the re-check and their update from (x, P) (result:
     the update with all of them): ``recheck``'s drops, then the rays it dropped against leaving
