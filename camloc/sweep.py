@@ -31,6 +31,7 @@ import csv
 import difflib
 import glob
 import hashlib
+import importlib
 import io
 import itertools
 import json
@@ -688,10 +689,8 @@ def default_workers() -> int:
 
 def warm_up() -> None:
     """Import what a cell needs, once per worker, so that no cell's ``seconds`` holds the imports."""
-    import camloc.localizer  # noqa: F401
-    import camloc.metrics  # noqa: F401
-    import camloc.options  # noqa: F401
-    import camloc.simulate  # noqa: F401
+    for module in ("camloc.localizer", "camloc.metrics", "camloc.options", "camloc.simulate"):
+        importlib.import_module(module)
 
 
 def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[Cell, dict]]:
