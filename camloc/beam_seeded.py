@@ -123,7 +123,7 @@ class SeededSearch:
             i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]), for_association=True)
             seeded = Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
-            explained = self.expansion.explain(seeded, np.delete(obs, i))[: self.settings.seed_explanations]
+            explained = self.expansion.explain(seeded, np.delete(obs, i), root=h)[: self.settings.seed_explanations]
             children += [c for c in explained if self.within_prior(c, h)]
         children = self.expansion.prune(children) if children else self.expansion.explain(h, obs)
         for child in children:

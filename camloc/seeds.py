@@ -154,7 +154,7 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1
-        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i))
+        children, count = kb.explain_from(scene, settings, seeded, 1, np.delete(obs, i), h)
         for c in range(min(count, SEED_EXPLANATIONS)):
             if within_prior(children[0][c], x, P):
                 explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))
