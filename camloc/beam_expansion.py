@@ -34,12 +34,11 @@ class PoseExpansion:
         self.history = history
         self.null_cost = context.null_cost      # cost of leaving each observation unassigned
 
-    def explain(self, h: Hypothesis, obs: np.ndarray, root: Optional[Hypothesis] = None) -> list[Hypothesis]:
-        """Children of h that explain all of obs, pruned to the beam; ``root``: the pose's prior h
-        was updated from with its pairs (a seeded explanation's), h itself by default."""
-        return self.explain_all([h], obs, None if root is None else [root])
+    def explain(self, h: Hypothesis, obs: np.ndarray) -> list[Hypothesis]:
+        """Children of h that explain all of obs, pruned to the beam."""
+        return self.explain_all([h], obs)
 
-    def explain_all(self, parents: list[Hypothesis], obs: np.ndarray, roots: Optional[list[Hypothesis]] = None) -> list[Hypothesis]:
+    def explain_all(self, parents: list[Hypothesis], obs: np.ndarray, roots: Optional[list] = None) -> list[Hypothesis]:
         """Children of all parents that explain all of obs.
 
         Under each parent the clear observations are taken in one stacked update; conditioned on
@@ -52,7 +51,8 @@ class PoseExpansion:
         is beam_width^2 partial explanations per observation, mostly near copies (the parents of
         a pose differ in a pair or two); so past ``partial_budget`` the parents share one budget,
         ranked by cost plus the least the observations they have still to explain can cost.
-        Each chain of pairs is checked against its parent's prior, ``roots`` (``camloc.beam_chain``).
+        Each chain of pairs is checked against its parent's prior, the parent itself, where
+        ``roots`` is None, or its entry of ``roots``; an entry None: not checked (``camloc.beam_chain``).
         """
         roots = parents if roots is None else roots
         partials = [self.after_clear(h, obs, root, roots[root]) for root, h in enumerate(parents)]
@@ -121,16 +121,16 @@ class PoseExpansion:
         h.cost += float(miss_charge(excess[unclaimed], self.settings.miss_cost).sum())
         return h
 
-    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int, prior: Hypothesis) -> Partial:
+    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int, prior: Optional[Hypothesis]) -> Partial:
         """h after its stacked updates with the clear observations (see ``explain_all``), with
         the ambiguous rest in the order to branch on them (fewest gated options first); ``prior``:
-        the pose's prior h grew from (h, or a seeded explanation's), its chains checked against it."""
+        the pose's prior h grew from (h itself), its chains checked against it; None: not checked."""
         options = self.gating.options(h, obs)
         if h.pairs:  # a seeded explanation's seed pair
             taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
             for o in options:
                 o.costs = np.where(member(o.landmarks, taken), np.inf, o.costs)
-        chain_root = beam_chain.root_if_wide(self.ctx, prior, obs, options)
+        chain_root = None if prior is None else beam_chain.root_if_wide(self.ctx, prior, obs, options)
         child, pending = h, np.arange(obs.size)
         while pending.size:
             choice = self.clear_choices(obs[pending], [options[i] for i in pending])

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, FIRST, ONE, TRUE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
@@ -357,21 +357,21 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
 
 
 @inlined
-def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root_count):
+def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root_count, check):
     """Hypothesis h of gen after its stacked updates with the pose's clear observations, written
     into row h of ``child``: the clear ones are taken in one stacked update; conditioned on them
     the others are gated again, and those that became clear are taken in the next, until none does
     (an observation is often ambiguous only until a neighbour's pair pins the pose). Returns (its
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
     the least each can cost, whether the root's prior (root_x, root_P, with root_count pairs) is
-    wide for the rays: ``beam_chain``)."""
+    wide for the rays and its chains are to be checked, ``check``: ``beam_chain``)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     taken = taken_by(gen[7], gen[6], h)          # a seeded explanation's seed pair: its landmark is not free
     for j in range(lm.size):
         if is_taken(lm[j], taken):
             cost[j] = np.inf
-    wide = wide_for_rays(model, root_P, obs, start, cost, Hs)
+    wide = check and wide_for_rays(model, root_P, obs, start, cost, Hs)
     copy_hypothesis(gen, h, child, h)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
@@ -600,11 +600,11 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
 @entry
 def explain_all(scene, settings, parents, n_parents, obs):
     """``explain_from`` with each parent its own root (its chains checked against its own prior)."""
-    return explain_from(scene, settings, parents, n_parents, obs, parents)
+    return explain_from(scene, settings, parents, n_parents, obs, parents, TRUE)
 
 
 @entry
-def explain_from(scene, settings, parents, n_parents, obs, roots):
+def explain_from(scene, settings, parents, n_parents, obs, roots, check):
     """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,);
     each step's partial explanations pruned to the run's beam (a sparse pose's wider one,
     ``pose_beam``, is the pose's last pruning's: settling every extra partial explanation to
@@ -616,7 +616,8 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
     explanations are pruned to a beam of their own, so that a costlier parent's best explanation
     is grown to the end (where observations are few it is often the right one), and past
     ``partial_budget`` they share one budget (``prune_partials``). Each parent's chains of pairs
-    are checked against its row of ``roots`` (the pose's prior it grew from: ``beam_chain``)."""
+    are checked against its row of ``roots`` (the pose's prior it grew from: ``beam_chain``) where
+    ``check``."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
@@ -632,7 +633,8 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
     expected = []
     wide = np.zeros(n_parents, np.bool_)
     for h in range(n_parents):
-        opt, order, least, wide[h] = after_clear(scene, settings, parents, h, obs, gen, model, roots[0][h], roots[1][h], roots[6][h])
+        opt, order, least, wide[h] = after_clear(scene, settings, parents, h, obs, gen, model, roots[0][h], roots[1][h], roots[6][h],
+                                                 check)
         options.append(opt)
         expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
