@@ -75,37 +75,8 @@ class PoseExpansion:
         return [self.missed(p.h, expected[p.root], parents[p.root]) for p in partials]
 
     def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> tuple[np.ndarray, np.ndarray]:
-        """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
-        claim, and each one's least excess (its pair's cost under h over the observation's null
-        cost): those in the pool of one of its pixel observations (near the ray) whose distance
-        from that observation's camera under h lies within ``detect_range``, where a camera
-        surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
-        apart by their predicted spread, which favours a far one (its prediction is tighter);
-        but a near landmark on the ray would have been detected, and left unclaimed it is a
-        miss, charged by the chance that it is on the ray (``missed``, ``camloc.miss_term``)."""
-        low, high = self.ctx.detect_range
-        none = (np.zeros(0, np.int64), np.zeros(0))
-        if self.settings.miss_cost <= 0.0 or high <= 0.0:
-            return none
-        ds = self.ctx.dataset
-        pixel = measurement.is_ray(ds.obs_kind[obs])
-        found, excess = [], []
-        T_world_robot = self.ctx.filter.pose(h.x)
-        for i in np.flatnonzero(pixel):
-            landmarks = options[i].landmarks
-            if landmarks.size == 0:
-                continue
-            centre = T_world_robot[:3, :3] @ self.ctx.cameras[int(self.ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
-            distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
-            near = (distance >= low) & (distance <= high)
-            found.append(landmarks[near])
-            excess.append(options[i].pool_costs[near] - self.null_cost[obs[i]])
-        if not found:
-            return none
-        landmarks, which = np.unique(np.concatenate(found), return_inverse=True)
-        least = np.full(landmarks.size, np.inf)
-        np.minimum.at(least, which, np.concatenate(excess))
-        return landmarks, least
+        """The landmarks a pose's explanation grown from h is expected to claim (``expected_landmarks``)."""
+        return expected_landmarks(self.ctx, self.settings, self.null_cost, h, obs, options)
 
     def missed(self, h: Hypothesis, expected: tuple[np.ndarray, np.ndarray], parent: Hypothesis) -> Hypothesis:
         """h (an explanation grown from ``parent``) charged for each of the ``expected``
@@ -280,6 +251,41 @@ class PoseExpansion:
         sigma = self.settings.merge_sigma if sigma is None else sigma
         d = self.ctx.filter.difference(a.x, b.x)
         return bool(np.all(d * d <= sigma**2 * b.P.diagonal()))
+
+
+def expected_landmarks(ctx, settings: BeamSettings, null_cost: np.ndarray, h: Hypothesis, obs: np.ndarray,
+                       options: list[PairOptions]) -> tuple[np.ndarray, np.ndarray]:
+    """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
+    claim, and each one's least excess (its pair's cost under h over the observation's null
+    cost): those in the pool of one of its pixel observations (near the ray) whose distance
+    from that observation's camera under h lies within ``detect_range``, where a camera
+    surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
+    apart by their predicted spread, which favours a far one (its prediction is tighter);
+    but a near landmark on the ray would have been detected, and left unclaimed it is a
+    miss, charged by the chance that it is on the ray (``missed``, ``camloc.miss_term``)."""
+    low, high = ctx.detect_range
+    none = (np.zeros(0, np.int64), np.zeros(0))
+    if settings.miss_cost <= 0.0 or high <= 0.0:
+        return none
+    ds = ctx.dataset
+    pixel = measurement.is_ray(ds.obs_kind[obs])
+    found, excess = [], []
+    T_world_robot = ctx.filter.pose(h.x)
+    for i in np.flatnonzero(pixel):
+        landmarks = options[i].landmarks
+        if landmarks.size == 0:
+            continue
+        centre = T_world_robot[:3, :3] @ ctx.cameras[int(ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
+        distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
+        near = (distance >= low) & (distance <= high)
+        found.append(landmarks[near])
+        excess.append(options[i].pool_costs[near] - null_cost[obs[i]])
+    if not found:
+        return none
+    landmarks, which = np.unique(np.concatenate(found), return_inverse=True)
+    least = np.full(landmarks.size, np.inf)
+    np.minimum.at(least, which, np.concatenate(excess))
+    return landmarks, least
 
 
 class _Kept:

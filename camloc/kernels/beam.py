@@ -599,12 +599,6 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
 
 @entry
 def explain_all(scene, settings, parents, n_parents, obs):
-    """``explain_from`` with each parent its own root (its chains checked against its own prior)."""
-    return explain_from(scene, settings, parents, n_parents, obs, parents, TRUE)
-
-
-@entry
-def explain_from(scene, settings, parents, n_parents, obs, roots, check):
     """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,);
     each step's partial explanations pruned to the run's beam (a sparse pose's wider one,
     ``pose_beam``, is the pose's last pruning's: settling every extra partial explanation to
@@ -616,8 +610,14 @@ def explain_from(scene, settings, parents, n_parents, obs, roots, check):
     explanations are pruned to a beam of their own, so that a costlier parent's best explanation
     is grown to the end (where observations are few it is often the right one), and past
     ``partial_budget`` they share one budget (``prune_partials``). Each parent's chains of pairs
-    are checked against its row of ``roots`` (the pose's prior it grew from: ``beam_chain``) where
-    ``check``."""
+    are checked against its own prior (``explain_from``, ``beam_chain``)."""
+    return explain_from(scene, settings, parents, n_parents, obs, parents, TRUE)
+
+
+@entry
+def explain_from(scene, settings, parents, n_parents, obs, roots, check):
+    """``explain_all``, each parent's chains of pairs checked against its row of ``roots`` (the
+    pose's prior it grew from) where ``check`` (``beam_chain``; the seeded search's: not)."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
