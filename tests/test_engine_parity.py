@@ -68,8 +68,8 @@ def test_both_engines_widen_the_beam_alike_at_poses_of_few_observations():
 
 def test_both_engines_check_chained_pairs_alike_under_a_wide_pixel_prior(monkeypatch):
     # two pixel cameras under three times the default odometry noise: the poses' priors are wide
-    # for the rays, and the chains of pairs are checked against them (``camloc.beam_chain``; about
-    # 3,300 states replaced by the stacked update in the numpy run, 2026-12-06)
+    # for the rays, and the chains of pairs are checked against them (``camloc.beam_chain``:
+    # thousands of states replaced by the stacked update in the numpy run, 2026-12-06)
     from camloc import beam_chain
     checked, replaced = beam_chain.checked, []
 
