@@ -11,7 +11,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from camloc import ekf, measurement
+from camloc import beam_chain, ekf, measurement
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
 from camloc.miss_term import miss_charge
 from camloc.pair_options import PairGating, PairOptions, member
@@ -38,7 +38,7 @@ class PoseExpansion:
         """Children of h that explain all of obs, pruned to the beam."""
         return self.explain_all([h], obs)
 
-    def explain_all(self, parents: list[Hypothesis], obs: np.ndarray) -> list[Hypothesis]:
+    def explain_all(self, parents: list[Hypothesis], obs: np.ndarray, roots: Optional[list] = None) -> list[Hypothesis]:
         """Children of all parents that explain all of obs.
 
         Under each parent the clear observations are taken in one stacked update; conditioned on
@@ -51,8 +51,11 @@ class PoseExpansion:
         is beam_width^2 partial explanations per observation, mostly near copies (the parents of
         a pose differ in a pair or two); so past ``partial_budget`` the parents share one budget,
         ranked by cost plus the least the observations they have still to explain can cost.
+        Each chain of pairs is checked against its parent's prior, the parent itself, where
+        ``roots`` is None, or its entry of ``roots``; an entry None: not checked (``camloc.beam_chain``).
         """
-        partials = [self.after_clear(h, obs, root) for root, h in enumerate(parents)]
+        roots = parents if roots is None else roots
+        partials = [self.after_clear(h, obs, root, roots[root]) for root, h in enumerate(parents)]
         expected = [self.expected(h, obs, p.options) for h, p in zip(parents, partials)]
         while any(p.order for p in partials):
             grown: list[Partial] = []
@@ -66,43 +69,14 @@ class PoseExpansion:
                 # the landmark of each observation still to explain that gates only one
                 contested = [gated for gated in (p.options[later].landmarks[np.isfinite(p.options[later].costs)] for later in order)
                              if gated.size == 1]
-                grown += [Partial(child, order, p.options, p.base_x, p.least, rest, p.root)
-                          for child in self.branches(p.h, int(obs[i]), options, contested)]
+                grown += [Partial(child, order, p.options, p.base_x, p.least, rest, p.root, p.chain_root)
+                          for child in self.branches(p.h, int(obs[i]), options, contested, p.chain_root)]
             partials = self.prune_partials(grown)
         return [self.missed(p.h, expected[p.root], parents[p.root]) for p in partials]
 
     def expected(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions]) -> tuple[np.ndarray, np.ndarray]:
-        """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
-        claim, and each one's least excess (its pair's cost under h over the observation's null
-        cost): those in the pool of one of its pixel observations (near the ray) whose distance
-        from that observation's camera under h lies within ``detect_range``, where a camera
-        surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
-        apart by their predicted spread, which favours a far one (its prediction is tighter);
-        but a near landmark on the ray would have been detected, and left unclaimed it is a
-        miss, charged by the chance that it is on the ray (``missed``, ``camloc.miss_term``)."""
-        low, high = self.ctx.detect_range
-        none = (np.zeros(0, np.int64), np.zeros(0))
-        if self.settings.miss_cost <= 0.0 or high <= 0.0:
-            return none
-        ds = self.ctx.dataset
-        pixel = measurement.is_ray(ds.obs_kind[obs])
-        found, excess = [], []
-        T_world_robot = self.ctx.filter.pose(h.x)
-        for i in np.flatnonzero(pixel):
-            landmarks = options[i].landmarks
-            if landmarks.size == 0:
-                continue
-            centre = T_world_robot[:3, :3] @ self.ctx.cameras[int(self.ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
-            distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
-            near = (distance >= low) & (distance <= high)
-            found.append(landmarks[near])
-            excess.append(options[i].pool_costs[near] - self.null_cost[obs[i]])
-        if not found:
-            return none
-        landmarks, which = np.unique(np.concatenate(found), return_inverse=True)
-        least = np.full(landmarks.size, np.inf)
-        np.minimum.at(least, which, np.concatenate(excess))
-        return landmarks, least
+        """The landmarks a pose's explanation grown from h is expected to claim (``expected_landmarks``)."""
+        return expected_landmarks(self.ctx, self.settings, self.null_cost, h, obs, options)
 
     def missed(self, h: Hypothesis, expected: tuple[np.ndarray, np.ndarray], parent: Hypothesis) -> Hypothesis:
         """h (an explanation grown from ``parent``) charged for each of the ``expected``
@@ -118,21 +92,24 @@ class PoseExpansion:
         h.cost += float(miss_charge(excess[unclaimed], self.settings.miss_cost).sum())
         return h
 
-    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int) -> Partial:
+    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int, prior: Optional[Hypothesis]) -> Partial:
         """h after its stacked updates with the clear observations (see ``explain_all``), with
-        the ambiguous rest in the order to branch on them (fewest gated options first)."""
+        the ambiguous rest in the order to branch on them (fewest gated options first); ``prior``:
+        the pose's prior h grew from (h itself), its chains checked against it; None: not checked."""
         options = self.gating.options(h, obs)
         if h.pairs:  # a seeded explanation's seed pair
             taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
             for o in options:
                 o.costs = np.where(member(o.landmarks, taken), np.inf, o.costs)
+        chain_root = None if prior is None else beam_chain.root_if_wide(self.ctx, prior, obs, options)
         child, pending = h, np.arange(obs.size)
         while pending.size:
             choice = self.clear_choices(obs[pending], [options[i] for i in pending])
             clear = [k for k, c in enumerate(choice) if c is not None]
             if not clear:
                 break
-            child = self.stacked_child(child, obs[pending[clear]], [options[pending[k]] for k in clear], [choice[k] for k in clear])
+            child = self.stacked_child(child, obs[pending[clear]], [options[pending[k]] for k in clear], [choice[k] for k in clear],
+                                       chain_root)
             pending = pending[[k for k, c in enumerate(choice) if c is None]]
             if pending.size:
                 conditioned = self.gating.conditioned(child, obs[pending], [options[i] for i in pending])
@@ -140,7 +117,7 @@ class PoseExpansion:
                     options[i] = o
         order = tuple(sorted((int(i) for i in pending), key=lambda i: int(np.isfinite(options[i].costs).sum())))
         least = {i: min(float(self.null_cost[obs[i]]), float(options[i].costs.min(initial=np.inf))) for i in order}
-        return Partial(child, order, options, child.x, least, sum(least.values()), root)
+        return Partial(child, order, options, child.x, least, sum(least.values()), root, chain_root)
 
     def prune_partials(self, partials: list[Partial]) -> list[Partial]:
         """Each parent's partial explanations pruned as ``prune`` does, to the run's beam (they
@@ -189,9 +166,10 @@ class PoseExpansion:
                 choice.append(None if int(o.landmarks[j]) in shared else j)
         return choice
 
-    def stacked_child(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions], choice: list[int]) -> Hypothesis:
+    def stacked_child(self, h: Hypothesis, obs: np.ndarray, options: list[PairOptions], choice: list[int],
+                      chain_root: Optional[Hypothesis] = None) -> Hypothesis:
         """h updated with all chosen pairs at once; the cost of the stacked innovation is the same
-        chain-rule sum the one-by-one path computes."""
+        chain-rule sum the one-by-one path computes. ``chain_root``: ``beam_chain.checked``'s."""
         taken = [i for i, j in enumerate(choice) if j >= 0]
         unassigned = len(choice) - len(taken)
         cost = h.cost + float(sum(self.null_cost[obs[i]] for i, j in enumerate(choice) if j < 0))
@@ -208,9 +186,12 @@ class PoseExpansion:
         cost += ekf.innovation_cost(h.P, Hc, Rc, y)
         x, P = result.state, result.cov
         pairs = tuple((int(obs[i]), int(options[i].landmarks[choice[i]])) for i in taken)
+        if chain_root is not None and len(h.pairs) > len(chain_root.pairs):   # a chain: h has pairs since the prior
+            x, P = beam_chain.checked(self.ctx, x, P, chain_root, h.pairs + pairs)
         return Hypothesis(x, P, cost, h.parent, h.pairs + pairs, h.unassigned + unassigned)
 
-    def branches(self, h: Hypothesis, o: int, options: PairOptions, contested: Sequence[np.ndarray] = ()) -> list[Hypothesis]:
+    def branches(self, h: Hypothesis, o: int, options: PairOptions, contested: Sequence[np.ndarray] = (),
+                 chain_root: Optional[Hypothesis] = None) -> list[Hypothesis]:
         """Children of h for one observation (``options`` under h): unassigned, or paired with a
         viable landmark. ``contested``: the landmarks of the observations still to explain after
         it that gate only one; where one of its viable landmarks is among them it may also stay
@@ -232,15 +213,17 @@ class PoseExpansion:
         self.statistics.children_created += paired.size
         for j in paired:
             out.append(Hypothesis(None, None, h.cost + float(options.costs[j]), h.parent, h.pairs + ((o, int(options.landmarks[j])),),
-                                  h.unassigned, pending=partial(self.paired_state, h.x, h.P, o, options, int(j))))
+                                  h.unassigned, pending=partial(self.paired_state, h.x, h.P, o, options, int(j), chain_root, h.pairs)))
         return out
 
-    def paired_state(self, x: np.ndarray, P: np.ndarray, o: int, options: PairOptions, j: int) -> tuple[np.ndarray, np.ndarray]:
-        """(x, P) updated with observation o paired with its option j."""
+    def paired_state(self, x: np.ndarray, P: np.ndarray, o: int, options: PairOptions, j: int,
+                     chain_root: Optional[Hypothesis] = None, before: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
+        """(x, P) updated with observation o paired with its option j; ``before``: the pairs x has,
+        its chain checked against ``chain_root`` (``beam_chain.checked``)."""
         self.statistics.children_settled += 1
         result = self.ctx.updated(x, P, np.array([o]), options.landmarks[j : j + 1],
                                   at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True)
-        return result.state, result.cov
+        return beam_chain.checked(self.ctx, result.state, result.cov, chain_root, before + ((o, int(options.landmarks[j])),))
 
     def prune(self, children: list, hypothesis: Callable = lambda c: c, width: Optional[int] = None,
               delta: Optional[float] = None) -> list:
@@ -268,6 +251,41 @@ class PoseExpansion:
         sigma = self.settings.merge_sigma if sigma is None else sigma
         d = self.ctx.filter.difference(a.x, b.x)
         return bool(np.all(d * d <= sigma**2 * b.P.diagonal()))
+
+
+def expected_landmarks(ctx, settings: BeamSettings, null_cost: np.ndarray, h: Hypothesis, obs: np.ndarray,
+                       options: list[PairOptions]) -> tuple[np.ndarray, np.ndarray]:
+    """The landmarks (distinct, sorted) that a pose's explanation grown from h is expected to
+    claim, and each one's least excess (its pair's cost under h over the observation's null
+    cost): those in the pool of one of its pixel observations (near the ray) whose distance
+    from that observation's camera under h lies within ``detect_range``, where a camera
+    surely detects what it sees. A pixel gives a ray, and the landmarks along it are told
+    apart by their predicted spread, which favours a far one (its prediction is tighter);
+    but a near landmark on the ray would have been detected, and left unclaimed it is a
+    miss, charged by the chance that it is on the ray (``missed``, ``camloc.miss_term``)."""
+    low, high = ctx.detect_range
+    none = (np.zeros(0, np.int64), np.zeros(0))
+    if settings.miss_cost <= 0.0 or high <= 0.0:
+        return none
+    ds = ctx.dataset
+    pixel = measurement.is_ray(ds.obs_kind[obs])
+    found, excess = [], []
+    T_world_robot = ctx.filter.pose(h.x)
+    for i in np.flatnonzero(pixel):
+        landmarks = options[i].landmarks
+        if landmarks.size == 0:
+            continue
+        centre = T_world_robot[:3, :3] @ ctx.cameras[int(ctx.obs_sensor[obs[i]])].T_robot_camera[:3, 3] + T_world_robot[:3, 3]
+        distance = np.linalg.norm(ds.landmark_xyz[landmarks] - centre, axis=1)
+        near = (distance >= low) & (distance <= high)
+        found.append(landmarks[near])
+        excess.append(options[i].pool_costs[near] - null_cost[obs[i]])
+    if not found:
+        return none
+    landmarks, which = np.unique(np.concatenate(found), return_inverse=True)
+    least = np.full(landmarks.size, np.inf)
+    np.minimum.at(least, which, np.concatenate(excess))
+    return landmarks, least
 
 
 class _Kept:

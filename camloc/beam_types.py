@@ -153,6 +153,8 @@ class Partial:
     least: dict                       # position -> the least its explanation costs under base_x
     rest: float                       # sum of least over order
     root: int                         # which parent it grew from
+    # the pose's prior its chain of pairs is checked against (``camloc.beam_chain``), None where not wide
+    chain_root: Optional[Hypothesis] = None
 
 
 class BeamContext(Protocol):

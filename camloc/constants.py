@@ -32,6 +32,18 @@ SPARSE_DISTINCT_SIGMA = 2.0
 # the same probability; twice the gate (about 99.996% for the default) makes a miss negligible.
 POOL_GATE_FACTOR = 2.0
 
+# A chain of a pose's pair updates is checked against the pose's prior (``camloc.beam_chain``,
+# ``camloc.kernels.beam_chain``) only where that prior is wide for the rays: where some pixel
+# observation's cheapest option has (H P H')_aa / (f_a sigma_a) beyond this on its u or v row. That
+# ratio is a pinhole's second-order term over one standard deviation of the prior (along or across
+# the ray, or a turn: about the first-order spread squared over f) in standard deviations of the
+# noise: the error of a pair linearized that far from where the chain ends. A chain's MAP cost
+# passes its 99.9% chi^2 bound through such an error only where it passes the bound's margin over a
+# pixel pair's mean, sqrt(chi^2_2(99.9%) - 2) = 3.4 standard deviations: below it the check is
+# not run (on a default-noise pixel world the ratio's median is 0.9 and its 99th percentile 7.5; on
+# the 3x worlds of docs/performance.md its 10th percentile is 20).
+RAY_NONLINEARITY = float(chi2_quantile(2, 0.001) - 2.0) ** 0.5
+
 # The slip's search runs at a pose of at least this many observations, most of them unassigned: two
 # detections with depth pin the position and two of the three rotation axes, with the prior the third.
 SLIP_MIN_OBSERVATIONS = 2

@@ -20,6 +20,7 @@ from camloc.constants import (
 )
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
+from camloc.kernels._jit import FALSE
 from camloc.kernels.state import difference
 from camloc.kernels.types import PairModel
 from camloc.kernels.update import updated
@@ -154,7 +155,9 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1
-        children, count = kb.explain_all(scene, settings, seeded, 1, np.delete(obs, i))
+        # its chains not checked against the prior (``kernels.beam_chain``): checked, the seeded
+        # explanations lost a half-withheld aerial world (docs/performance.md, 2026-12-06, assoc-3x-port)
+        children, count = kb.explain_from(scene, settings, seeded, 1, np.delete(obs, i), seeded, FALSE)
         for c in range(min(count, SEED_EXPLANATIONS)):
             if within_prior(children[0][c], x, P):
                 explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))

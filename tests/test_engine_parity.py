@@ -66,6 +66,25 @@ def test_both_engines_widen_the_beam_alike_at_poses_of_few_observations():
     _assert_same_run(dataclasses.replace(dataset, odom_translation=jumped), "beam")
 
 
+def test_both_engines_check_chained_pairs_alike_under_a_wide_pixel_prior(monkeypatch):
+    # two pixel cameras under three times the default odometry noise: the poses' priors are wide
+    # for the rays, and the chains of pairs are checked against them (``camloc.beam_chain``:
+    # thousands of states replaced by the stacked update in the numpy run, 2026-12-06)
+    from camloc import beam_chain
+    checked, replaced = beam_chain.checked, []
+
+    def counted(ctx, x, P, root, pairs):
+        out = checked(ctx, x, P, root, pairs)
+        replaced.append(out[0] is not x)
+        return out
+
+    monkeypatch.setattr(beam_chain, "checked", counted)
+    dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=40, cameras=2, measurement="pixel", intrinsics="pixel",
+                                        odometry_sigma_scale=3.0, clutter_fraction=0.1), seed=201)
+    _assert_same_run(dataset, "beam")
+    assert sum(replaced) > 100
+
+
 def _assert_same_run(dataset, association: str) -> None:
     config = camloc.LocalizerConfig(association=association)
     compiled = camloc.localize(dataset, config, engine="compiled")

@@ -16,10 +16,11 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, FIRST, ONE, TRUE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
+from camloc.kernels.beam_chain import checked, wide_for_rays
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, in_front_of, predict_candidates, robot_frame
 from camloc.kernels.planar import SE2_DIM
 from camloc.kernels.motion import predict
@@ -356,19 +357,21 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
 
 
 @inlined
-def after_clear(scene, settings, gen, h, obs, child, model):
+def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root_count, check):
     """Hypothesis h of gen after its stacked updates with the pose's clear observations, written
     into row h of ``child``: the clear ones are taken in one stacked update; conditioned on them
     the others are gated again, and those that became clear are taken in the next, until none does
     (an observation is often ambiguous only until a neighbour's pair pins the pose). Returns (its
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
-    the least each can cost)."""
+    the least each can cost, whether the root's prior (root_x, root_P, with root_count pairs) is
+    wide for the rays and its chains are to be checked, ``check``: ``beam_chain``)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     taken = taken_by(gen[7], gen[6], h)          # a seeded explanation's seed pair: its landmark is not free
     for j in range(lm.size):
         if is_taken(lm[j], taken):
             cost[j] = np.inf
+    wide = check and wide_for_rays(model, root_P, obs, start, cost, Hs)
     copy_hypothesis(gen, h, child, h)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
@@ -400,7 +403,10 @@ def after_clear(scene, settings, gen, h, obs, child, model):
                 rest += 1
         n_pending = rest
         if n_taken:
+            before = child[6][h]
             x, P = take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model)
+            if wide and before > root_count:     # a chain: pairs since the root before this round
+                x, P = checked(model, settings.iterations, x, P, root_x, root_P, child[7][h], root_count, child[6][h])
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
@@ -409,7 +415,7 @@ def after_clear(scene, settings, gen, h, obs, child, model):
                                start[i])
     put_state(child, h, x, P)
     order, least = branch_order(scene, obs, pending[:n_pending], start, cost)
-    return opt, order, least
+    return opt, order, least, wide
 
 
 @inlined
@@ -479,38 +485,43 @@ def same_state(X, P, a, b, merge_sigma):
 
 
 @inlined
-def settle(settings, X, P, c, parent_X, parent_P, pending, model):
+def settle(settings, X, P, c, parent_X, parent_P, pending, model, chain):
     """Compute the state of child c (X[c], P[c]), whose pair (observation, landmark, prediction
     z_hat and H at its parent) was added to parent ``pending[0][c]`` (of states ``parent_X``,
     ``parent_P``) when it was branched: at an ambiguous pose many children are pruned on their cost
     alone and never need their update. ``model``: what the update reads of the scene
     (``update.pair_model``), its noise too. Passed the arrays it reads, not the generations nor the
     scene: an inlined step counts a reference to each array of every tuple it binds, and the beam
-    settles about 35 children a pose."""
+    settles about 35 children a pose. ``chain``: (the children's pairs, their counts, their roots,
+    the roots' states, covariances, pair counts and whether each is wide for the rays), against
+    which a chain of two pairs or more is checked (``beam_chain``)."""
     source, obs, landmark, z_hat, H, waiting = pending
     if not waiting[c]:
         return
     p = source[c]
     x, P_new = updated(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
                        z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE)[:2]
+    r = chain[2][c]                              # the tuple read entry by entry: bound whole, its 7 arrays counted
+    if chain[6][r] and chain[1][c] - chain[5][r] >= 2:
+        x, P_new = checked(model, settings.iterations, x, P_new, chain[3][r], chain[4][r], chain[0][c], chain[5][r], chain[1][c])
     put_state((X, P), c, x, P_new)
     waiting[c] = False
 
 
 @inlined
-def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model):
+def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model, chain):
     """``settle`` where every state is settled (``prune``'s generation): its pruning compiled
     without the update that settling calls (its ``model``: None)."""
     return
 
 
 @inlined
-def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model):
+def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model, chain):
     """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
     costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within
     merge_sigma standard deviations of a cheaper one kept (beyond the run's width and delta,
     ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one`` (``settle``,
-    or ``nothing_pending``) as a comparison first needs them, passed ``model``."""
+    or ``nothing_pending``) as a comparison first needs them, passed ``model`` and ``chain``."""
     order = candidates[np.argsort(costs[candidates], kind="mergesort")]
     kept = np.empty(min(order.size, width), np.int64)
     n = 0
@@ -528,7 +539,7 @@ def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, par
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
-                    settle_one(settings, X, P, h, parent_X, parent_P, pending, model)
+                    settle_one(settings, X, P, h, parent_X, parent_P, pending, model, chain)
             if same_state(X, P, c, kept[q], sigma):
                 merged = True
                 break
@@ -550,11 +561,11 @@ def prune(scene, settings, gen, n, width, delta):
     """``prune_indices`` over the first n hypotheses of a settled generation, to the pose's width
     and delta (``pose_beam``)."""
     return prune_indices(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
-                         nothing_pending, None)
+                         nothing_pending, None, None)
 
 
 @inlined
-def prune_partials(settings, gen, root, rest, parents, pending, model):
+def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
     """Each root's partial explanations pruned as ``prune`` does (they have explained the same
     observations, so their costs compare); past ``partial_budget`` in all, the best of each root
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
@@ -569,7 +580,7 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
             continue
         seen[r] = True
         kept = np.concatenate((kept, prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
-                                                     settle, model)))
+                                                     settle, model, chain)))
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -582,7 +593,7 @@ def prune_partials(settings, gen, root, rest, parents, pending, model):
         kept = np.concatenate((ranked[first], others))
     for c in kept:
         if pending[5][c]:
-            settle(settings, X, P, c, parent_X, parent_P, pending, model)
+            settle(settings, X, P, c, parent_X, parent_P, pending, model, chain)
     return kept
 
 
@@ -598,7 +609,15 @@ def explain_all(scene, settings, parents, n_parents, obs):
     paired with each landmark within ``branch_delta`` of its best option; each parent's partial
     explanations are pruned to a beam of their own, so that a costlier parent's best explanation
     is grown to the end (where observations are few it is often the right one), and past
-    ``partial_budget`` they share one budget (``prune_partials``)."""
+    ``partial_budget`` they share one budget (``prune_partials``). Each parent's chains of pairs
+    are checked against its own prior (``explain_from``, ``beam_chain``)."""
+    return explain_from(scene, settings, parents, n_parents, obs, parents, TRUE)
+
+
+@entry
+def explain_from(scene, settings, parents, n_parents, obs, roots, check):
+    """``explain_all``, each parent's chains of pairs checked against its row of ``roots`` (the
+    pose's prior it grew from) where ``check`` (``beam_chain``; the seeded search's: not)."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
@@ -612,8 +631,10 @@ def explain_all(scene, settings, parents, n_parents, obs):
     rest = np.zeros(n_parents)
     moved = np.zeros(n_parents, np.bool_)
     expected = []
+    wide = np.zeros(n_parents, np.bool_)
     for h in range(n_parents):
-        opt, order, least = after_clear(scene, settings, parents, h, obs, gen, model)
+        opt, order, least, wide[h] = after_clear(scene, settings, parents, h, obs, gen, model, roots[0][h], roots[1][h], roots[6][h],
+                                                 check)
         options.append(opt)
         expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
@@ -663,7 +684,8 @@ def explain_all(scene, settings, parents, n_parents, obs):
             at = branch(scene.null_cost, settings, gen, q, r, obs[i], options_i, taken, start, lm, cost, moved[p],
                         orders[r][step + 1:], rest[p] - leasts[r][i], children, at, c_root, c_rest, c_moved, pending)
         c_root, c_rest, c_moved = c_root[:at], c_rest[:at], c_moved[:at]
-        live = prune_partials(settings, children, c_root, c_rest, gen, pending, model)
+        chain = (children[7], children[6], c_root, roots[0], roots[1], roots[6], wide)
+        live = prune_partials(settings, children, c_root, c_rest, gen, pending, model, chain)
         gen = children
         root, rest, moved = c_root[live], c_rest[live], c_moved[live]
         step += 1

@@ -1,0 +1,97 @@
+"""A chain of a pose's pair updates checked against the pose's prior, compiled: the twin of
+``camloc.beam_chain`` (which says why), for ``camloc.kernels.beam``. ``model``: what the updates
+read of the scene (``update.pair_model``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from camloc.constants import RAY_NONLINEARITY
+from camloc.kernels._jit import FALSE, jit
+from camloc.kernels.camera import observe_pairs, robot_frame
+from camloc.kernels.update import map_cost_into, updated
+from camloc.measurement import PIXEL
+
+
+@jit
+def wide_for_rays(model, P, obs, start, cost, H):
+    """``beam_chain.wide_for_rays``: whether the cheapest gated option (cost finite, the first of
+    equal ones) of some pixel observation of obs, of the options ``start``, ``cost``, ``H``
+    (``beam.options_for``'s), has (H P H')_aa / (f_a sigma_a) beyond ``RAY_NONLINEARITY`` on its u
+    or v row."""
+    n = P.shape[0]
+    for i in range(obs.size):
+        o = obs[i]
+        K = model.camera_K[model.obs_camera[o]]
+        if K[4] != PIXEL:
+            continue
+        j = -1
+        for q in range(start[i], start[i + 1]):
+            if np.isfinite(cost[q]) and (j < 0 or cost[q] < cost[j]):
+                j = q
+        if j >= 0:
+            for a in range(2):
+                spread = 0.0
+                for b in range(n):
+                    s = 0.0
+                    for c in range(n):
+                        s += P[b, c] * H[j, a, c]
+                    spread += H[j, a, b] * s
+                if spread / (K[a] * math.sqrt(model.R_assoc[o, a, a])) > RAY_NONLINEARITY:
+                    return True
+    return False
+
+
+@jit
+def map_cost(model, state, x, P, obs, landmarks):
+    """``beam_chain.map_cost``: the MAP cost of ``state`` as the posterior of (x, P) with the
+    pairs (obs, landmarks), under the noise association judges them by."""
+    n, p = x.shape[0], obs.size
+    z, R_inverse = np.empty((p, 3)), np.empty((p, 3, 3))
+    landmark_xyz, pair_camera = np.empty((p, model.landmark_xyz.shape[1])), np.empty(p, np.int64)
+    for i in range(p):
+        o = obs[i]
+        for a in range(3):
+            z[i, a] = model.z[o, a]
+            for b in range(3):
+                R_inverse[i, a, b] = model.R_assoc_inverse[o, a, b]
+        pair_camera[i] = model.obs_camera[o]
+        for a in range(landmark_xyz.shape[1]):
+            landmark_xyz[i, a] = model.landmark_xyz[landmarks[i], a]
+    return map_cost_into(state, x, P, z, R_inverse, landmark_xyz, pair_camera, model.camera_R, model.camera_t, model.camera_K,
+                         np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3)), np.empty((model.camera_R.shape[0], 3, 3)),
+                         robot_frame(state), np.empty(n), np.empty((n, n)), np.empty(n, np.int64))
+
+
+@jit
+def checked(model, iterations, x, P, root_x, root_P, pairs, first, count):
+    """``beam_chain.checked``: (x, P), the end of a chain of updates from (root_x, root_P) with
+    the pairs[first:count] (rows of (observation, landmark)), or, where its MAP cost as their
+    posterior is beyond the 99.9% chi^2 quantile of their degrees of freedom, the stacked update of
+    the root with them where its MAP cost is lower. The caller checks that the root is wide and
+    that the chain has two pairs or more."""
+    p = count - first
+    obs, landmarks = np.empty(p, np.int64), np.empty(p, np.int64)
+    dof = 0
+    for i in range(p):
+        obs[i], landmarks[i] = pairs[first + i, 0], pairs[first + i, 1]
+        dof += model.obs_dof[obs[i]]
+    cost = map_cost(model, x, root_x, root_P, obs, landmarks)
+    if cost <= model.nis_bound[dof]:
+        return x, P
+    landmark_xyz, pair_camera = np.empty((p, model.landmark_xyz.shape[1])), np.empty(p, np.int64)
+    for i in range(p):
+        pair_camera[i] = model.obs_camera[obs[i]]
+        for a in range(landmark_xyz.shape[1]):
+            landmark_xyz[i, a] = model.landmark_xyz[landmarks[i], a]
+    z_hat, H = observe_pairs(root_x, landmark_xyz, pair_camera, model.camera_R, model.camera_t, model.camera_K)
+    try:
+        again = updated(model, iterations, root_x, root_P, obs, landmarks, z_hat, H, model.R_assoc, model.R_assoc_inverse,
+                        np.empty(0), FALSE)
+    except Exception:  # Gauss-Newton from a wide prior run off (behind a camera): the chain's
+        return x, P
+    if map_cost(model, again[0], root_x, root_P, obs, landmarks) < cost:
+        return again[0], again[1]
+    return x, P
