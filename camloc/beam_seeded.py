@@ -123,8 +123,9 @@ class SeededSearch:
             i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]), for_association=True)
             seeded = Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
-            # its chains not checked against the prior (``camloc.beam_chain``): checked, the seeded
-            # explanations lost a half-withheld aerial world (docs/performance.md, 2026-12-06, assoc-3x-port)
+            # its chains not checked against the prior (``camloc.beam_chain``): checked, a half-withheld aerial
+            # world learned no reach from its start run (lost either way) and was lost (docs/performance.md,
+            # 2026-12-06, seeded-chain: held to the reach learned without the check, it localizes as well)
             explained = self.expansion.explain_all([seeded], np.delete(obs, i), [None])[: self.settings.seed_explanations]
             children += [c for c in explained if self.within_prior(c, h)]
         children = self.expansion.prune(children) if children else self.expansion.explain(h, obs)

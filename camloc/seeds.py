@@ -155,8 +155,9 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1
-        # its chains not checked against the prior (``kernels.beam_chain``): checked, the seeded
-        # explanations lost a half-withheld aerial world (docs/performance.md, 2026-12-06, assoc-3x-port)
+        # its chains not checked against the prior (``kernels.beam_chain``): checked, a half-withheld aerial
+        # world learned no reach from its start run (lost either way) and was lost (docs/performance.md,
+        # 2026-12-06, seeded-chain: held to the reach learned without the check, it localizes as well)
         children, count = kb.explain_from(scene, settings, seeded, 1, np.delete(obs, i), seeded, FALSE)
         for c in range(min(count, SEED_EXPLANATIONS)):
             if within_prior(children[0][c], x, P):
