@@ -9,9 +9,9 @@ import math
 import numpy as np
 
 from camloc.constants import RAY_NONLINEARITY
-from camloc.kernels._jit import FALSE, jit
-from camloc.kernels.camera import observe_pairs, robot_frame
-from camloc.kernels.update import map_cost_into, updated
+from camloc.kernels._jit import FALSE, inlined, jit
+from camloc.kernels.camera import observe_pairs
+from camloc.kernels.update import restart_cost, updated
 from camloc.measurement import PIXEL
 
 
@@ -44,11 +44,11 @@ def wide_for_rays(model, P, obs, start, cost, H):
     return False
 
 
-@jit
-def map_cost(model, state, x, P, obs, landmarks):
-    """``beam_chain.map_cost``: the MAP cost of ``state`` as the posterior of (x, P) with the
-    pairs (obs, landmarks), under the noise association judges them by."""
-    n, p = x.shape[0], obs.size
+@inlined
+def pairs_of(model, obs, landmarks):
+    """What ``update.map_cost_into`` reads of the pairs (obs, landmarks): their measurements z (p, 3),
+    the inverse of the noise association judges them by (p, 3, 3), their landmarks and cameras."""
+    p = obs.size
     z, R_inverse = np.empty((p, 3)), np.empty((p, 3, 3))
     landmark_xyz, pair_camera = np.empty((p, model.landmark_xyz.shape[1])), np.empty(p, np.int64)
     for i in range(p):
@@ -60,9 +60,15 @@ def map_cost(model, state, x, P, obs, landmarks):
         pair_camera[i] = model.obs_camera[o]
         for a in range(landmark_xyz.shape[1]):
             landmark_xyz[i, a] = model.landmark_xyz[landmarks[i], a]
-    return map_cost_into(state, x, P, z, R_inverse, landmark_xyz, pair_camera, model.camera_R, model.camera_t, model.camera_K,
-                         np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3)), np.empty((model.camera_R.shape[0], 3, 3)),
-                         robot_frame(state), np.empty(n), np.empty((n, n)), np.empty(n, np.int64))
+    return z, R_inverse, landmark_xyz, pair_camera
+
+
+@jit
+def map_cost(model, state, x, P, obs, landmarks):
+    """``beam_chain.map_cost``: the MAP cost of ``state`` as the posterior of (x, P) with the
+    pairs (obs, landmarks), under the noise association judges them by."""
+    z, R_inverse, landmark_xyz, pair_camera = pairs_of(model, obs, landmarks)
+    return restart_cost(model, x, P, z, R_inverse, landmark_xyz, pair_camera, state)
 
 
 @jit
@@ -78,20 +84,16 @@ def checked(model, iterations, x, P, root_x, root_P, pairs, first, count):
     for i in range(p):
         obs[i], landmarks[i] = pairs[first + i, 0], pairs[first + i, 1]
         dof += model.obs_dof[obs[i]]
-    cost = map_cost(model, x, root_x, root_P, obs, landmarks)
+    z, R_inverse, landmark_xyz, pair_camera = pairs_of(model, obs, landmarks)
+    cost = restart_cost(model, root_x, root_P, z, R_inverse, landmark_xyz, pair_camera, x)
     if cost <= model.nis_bound[dof]:
         return x, P
-    landmark_xyz, pair_camera = np.empty((p, model.landmark_xyz.shape[1])), np.empty(p, np.int64)
-    for i in range(p):
-        pair_camera[i] = model.obs_camera[obs[i]]
-        for a in range(landmark_xyz.shape[1]):
-            landmark_xyz[i, a] = model.landmark_xyz[landmarks[i], a]
     z_hat, H = observe_pairs(root_x, landmark_xyz, pair_camera, model.camera_R, model.camera_t, model.camera_K)
     try:
         again = updated(model, iterations, root_x, root_P, obs, landmarks, z_hat, H, model.R_assoc, model.R_assoc_inverse,
                         np.empty(0), FALSE)
     except Exception:  # Gauss-Newton from a wide prior run off (behind a camera): the chain's
         return x, P
-    if map_cost(model, again[0], root_x, root_P, obs, landmarks) < cost:
+    if restart_cost(model, root_x, root_P, z, R_inverse, landmark_xyz, pair_camera, again[0]) < cost:
         return again[0], again[1]
     return x, P
