@@ -127,7 +127,7 @@ def after_explain_all(self, result, parents, obs):
     last_step.clear()
 
 
-def on_after_clear(self, result, h, obs, root):
+def on_after_clear(self, result, h, obs, root, prior=None):
     root_options.update(id(o) for o in result.options)
     counts["pending after clear"] += len(result.order)
     pose = len(self.history)

@@ -76,6 +76,8 @@ def compare(a, b):
 
 
 if __name__ == "__main__":
+    if len(sys.argv) < 3 or sys.argv[1] not in ("save", "compare") or (sys.argv[1] == "compare" and len(sys.argv) < 4):
+        sys.exit(__doc__)
     if "force" in sys.argv:  # the compiled mapping update on every world (auto takes it from 300 poses)
         from camloc import slam_run
         _original = slam_run.localize_mapping
