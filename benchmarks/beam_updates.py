@@ -103,7 +103,7 @@ def wrap(cls, name, before=None, after=None, set_phase=None):
     setattr(cls, name, wrapped)
 
 
-def on_explain_all(self, parents, obs):
+def on_explain_all(self, parents, obs, *rest):
     root_options.clear()
     pose = len(self.history)
     if pose < counts.where[1]:
@@ -114,7 +114,7 @@ def on_explain_all(self, parents, obs):
     counts["observations x hypotheses"] += len(parents) * obs.size
 
 
-def after_explain_all(self, result, parents, obs):
+def after_explain_all(self, result, parents, obs, *rest):
     counts["explanations left unsettled by explain_all"] += sum(1 for h in result if h._pending is not None)
     if result and last_step:
         # the pose's pruning drops what lies beam_delta above its best: a cut that left such
@@ -165,11 +165,11 @@ def settle_counted(original):
     return settle
 
 
-def on_paired_state(self, result, x, P, o, options, j):
+def on_paired_state(self, result, x, P, o, options, j, *rest, **kw):
     counts["children settled"] += 1
 
 
-def on_branches(self, result, h, o, options, contested=()):
+def on_branches(self, result, h, o, options, contested=(), *rest, **kw):
     fresh_ids.update(id(c) for c in result if c._pending is not None)
     paired = sum(1 for c in result if c._pending is not None)
     null = len(result) - paired
