@@ -198,8 +198,8 @@ def _with_learned_reach(dataset: Dataset, config: LocalizerConfig,
     start = first_poses(dataset, REACH_POSES)
     run = _localize_exact(start, replace(config, map="exact"), None, **hooks)
     rows = landmark_rows(dataset.landmark_ids, _observation_landmarks(start, run))
-    # a step whose held reach is not within the candidates' depth is where the run stopped looking
-    step = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view, below=view[1] / (1.0 + REACH_MARGIN))
+    # a step at or beyond the candidates' depth is where the run stopped looking, not where the cameras stop seeing
+    step = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view, below=view[1])
     seconds, share = time.perf_counter() - started, _paired_share(run)
     if step is None or step.ratio < MIN_RATE_RATIO:
         return config, None, seconds, share, step
