@@ -198,8 +198,7 @@ def _with_learned_reach(dataset: Dataset, config: LocalizerConfig,
     start = first_poses(dataset, REACH_POSES)
     run = _localize_exact(start, replace(config, map="exact"), None, **hooks)
     rows = landmark_rows(dataset.landmark_ids, _observation_landmarks(start, run))
-    # a step at or beyond the candidates' depth is where the run stopped looking, not where the cameras stop seeing
-    step = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view, below=view[1])
+    step = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view)
     seconds, share = time.perf_counter() - started, _paired_share(run)
     if step is None or step.ratio < MIN_RATE_RATIO:
         return config, None, seconds, share, step
@@ -213,13 +212,14 @@ def _step_summary(step: Optional[ReachStep]) -> Optional[dict]:
     """The summary's record of the step the reach was (or was not) learned from."""
     if step is None:
         return None
-    return {"reach": step.reach, "poses": step.poses, "near_rate": step.near_rate, "far_rate": step.far_rate, "ratio": step.ratio}
+    return {"reach": step.reach, "poses": step.poses, "near_rate": step.near_rate, "far_rate": step.far_rate,
+            "near_low": step.near_low, "far_high": step.far_high, "ratio": step.ratio}
 
 
 def _no_reach_warning(step: Optional[ReachStep], result: RunResult) -> str:
     """Why the candidates reach as far as the map's density guesses: the start showed no step."""
     sharpest = ("none" if step is None else
-                f"near {step.ratio:.1f} times far at {step.reach:.2f} m over its first {step.poses} poses, against {MIN_RATE_RATIO:g}")
+                f"near surely {step.ratio:.1f} times far at {step.reach:.2f} m over its first {step.poses} poses, against {MIN_RATE_RATIO:g}")
     return (f"the pixel cameras' reach was not learned: the run over the first poses showed no step in its pairing rate "
             f"(sharpest: {sharpest}); candidates within {result.summary['candidate_range']['max_depth']:.2f} m, guessed "
             f"from the map's density (--max-distance sets the reach)")

@@ -19,7 +19,7 @@ hundred poses: docs/performance.md, 2026-12-06 seventeenth session); once lost, 
 at random distances and its pairs blunt the step the poses before showed. The step is therefore read
 from the prefix of the run where it is sharpest (``camera_reach``): of the run's first
 ``PREFIX_MIN_POSES``, ``PREFIX_MIN_POSES + PREFIX_STEP``, ... poses and the whole, the one whose
-near rate is the most times its far rate. A run on track keeps its step as it grows; a lost one
+near rate is surely the most times its far rate. A run on track keeps its step as it grows; a lost one
 shows none in any prefix (no reach learned, which the caller reports).
 
 Pure: no I/O, no printing.
@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from scipy.stats import beta
 
 from camloc import geometry, measurement, models
 from camloc.dataset import Dataset, observations_by_pose
@@ -38,9 +39,11 @@ from camloc.dataset import Dataset, observations_by_pose
 # The fitted step is trusted only where the near group's pairing rate is at least this many times
 # the far group's, on at least MIN_PAIRED paired landmarks (a run that lost the robot pairs at
 # random distances: no step).
-# The rates are read as add-one estimates ((paired + 1) / (samples + 2), the mean under a uniform
-# prior): a far group of a few samples with none paired would otherwise read as an infinite ratio.
+# The ratio is read conservatively: the near rate's lower bound over the far rate's upper one, each
+# at RATE_CONFIDENCE_TAIL (Jeffreys intervals): a far group of a few samples with none paired (the
+# rim of the view cone beyond where a lost run's candidates stop) would otherwise read as infinite.
 MIN_RATE_RATIO = 4.0
+RATE_CONFIDENCE_TAIL = 0.025
 MIN_PAIRED = 30
 # The prefixes of the start run the step is read from: the first PREFIX_MIN_POSES poses (about
 # 250-1,000 view samples on the simulated worlds), then every PREFIX_STEP more, and the whole run.
@@ -50,25 +53,30 @@ PREFIX_STEP = 25
 
 @dataclass(frozen=True)
 class ReachStep:
-    """A change point of the pairing rate: ``reach`` metres, the near and far groups' add-one rates,
-    and ``poses``, the prefix of the run it was read from."""
+    """A change point of the pairing rate: ``reach`` metres, the near and far groups' rates, the
+    near rate's lower and the far rate's upper bound (``RATE_CONFIDENCE_TAIL``) and ``poses``,
+    the prefix of the run it was read from."""
 
     reach: float
     near_rate: float
     far_rate: float
+    near_low: float
+    far_high: float
     poses: int
 
     @property
     def ratio(self) -> float:
-        """How many times the near rate the far one is: the step is trusted from ``MIN_RATE_RATIO``."""
-        return self.near_rate / self.far_rate
+        """How many times the far rate's upper bound the near rate's lower bound is: the step is
+        trusted from ``MIN_RATE_RATIO``."""
+        return self.near_low / self.far_high
 
 
 def pairing_step(distance: np.ndarray, paired: np.ndarray) -> Optional[tuple[float, float, float]]:
     """The change point of the pairing rate along ``distance`` (M,): (reach, near rate, far rate),
     the reach halfway between the last near sample and the first far one, maximizing the
     Bernoulli log-likelihood of the two groups' constant rates; None where there are fewer than
-    ``MIN_PAIRED`` paired samples or the near rate is not ``MIN_RATE_RATIO`` times the far one."""
+    ``MIN_PAIRED`` paired samples or the near rate is not surely (``ReachStep.ratio``)
+    ``MIN_RATE_RATIO`` times the far one."""
     step = _sharpest_split(distance, paired, 0)
     if step is None or step.ratio < MIN_RATE_RATIO:
         return None
@@ -92,9 +100,11 @@ def _sharpest_split(distance: np.ndarray, paired: np.ndarray, poses: int) -> Opt
     if not valid.any():
         return None
     split = int(np.argmax(np.where(valid, log_likelihood, -np.inf)))
-    near_rate = (near_paired[split] + 1.0) / (near_n[split] + 2.0)
-    far_rate = (far_paired[split] + 1.0) / (far_n[split] + 2.0)
-    return ReachStep(float(0.5 * (d[split] + d[split + 1])), float(near_rate), float(far_rate), poses)
+    a, b = near_paired[split], near_n[split] - near_paired[split]
+    c, e = far_paired[split], far_n[split] - far_paired[split]
+    near_low = float(beta.ppf(RATE_CONFIDENCE_TAIL, a + 0.5, b + 0.5))
+    far_high = float(beta.ppf(1.0 - RATE_CONFIDENCE_TAIL, c + 0.5, e + 0.5))
+    return ReachStep(float(0.5 * (d[split] + d[split + 1])), float(a / near_n[split]), float(c / far_n[split]), near_low, far_high, poses)
 
 
 def _bernoulli_log_likelihood(successes: np.ndarray, trials: np.ndarray) -> np.ndarray:
@@ -141,12 +151,11 @@ def view_samples(dataset: Dataset, T_world_robot: np.ndarray, observation_landma
 
 
 def camera_reach(dataset: Dataset, estimate_xyz: np.ndarray, estimate_quat_xyzw: np.ndarray,
-                 observation_landmark: np.ndarray, view: tuple[float, float, float], below: float) -> Optional[ReachStep]:
-    """The sharpest step of the run's pixel cameras' pairing rate (``view_samples``) over the
-    run's prefixes (``PREFIX_MIN_POSES``, every ``PREFIX_STEP`` more poses, the whole run), its
-    reach under ``below`` metres, or None where no prefix shows a step down; the caller trusts it
-    from a ``ratio`` of ``MIN_RATE_RATIO``. ``below``: where the candidates stop (the run looked
-    no farther), so that a step there is the run's own limit, not the cameras'."""
+                 observation_landmark: np.ndarray, view: tuple[float, float, float]) -> Optional[ReachStep]:
+    """The sharpest step (the greatest ``ReachStep.ratio``) of the run's pixel cameras' pairing
+    rate (``view_samples``) over the run's prefixes (``PREFIX_MIN_POSES``, every ``PREFIX_STEP``
+    more poses, the whole run), or None where no prefix shows a step down; the caller trusts it
+    from a ratio of ``MIN_RATE_RATIO``."""
     T = geometry.pose_from_quat(estimate_xyz, estimate_quat_xyzw)
     distance, paired, pose = view_samples(dataset, T, observation_landmark, view)
     prefixes = sorted(set(range(PREFIX_MIN_POSES, dataset.num_poses, PREFIX_STEP)) | {dataset.num_poses})
@@ -154,6 +163,6 @@ def camera_reach(dataset: Dataset, estimate_xyz: np.ndarray, estimate_quat_xyzw:
     for poses in prefixes:
         within = pose < poses
         step = _sharpest_split(distance[within], paired[within], poses)
-        if step is not None and step.reach < below and (sharpest is None or step.ratio > sharpest.ratio):
+        if step is not None and (sharpest is None or step.ratio > sharpest.ratio):
             sharpest = step
     return sharpest

@@ -187,8 +187,8 @@ def _lost_after(dataset, on_track: int, rng):
 def test_the_reach_is_read_from_the_start_before_the_run_lost_the_robot(seed):
     """A start run on track for its first 60 of 300 poses, then lost (``_lost_after``): over the
     whole run the lost poses' pairs, at every distance alike, blunt the step below the trusted
-    ratio (main until 2026-12-06 learned no reach there); read from the prefix where it is
-    sharpest, the step is the cameras' 2 m, more than twice the ratio it needs."""
+    ratio (main until 2026-12-06 learned no reach there; surely 2.5 times at most here); read from
+    the prefix where it is sharpest, the step is the cameras' 2 m, surely over 100 times."""
     from camloc.view_reach import MIN_RATE_RATIO, PREFIX_STEP, camera_reach, view_samples
 
     dataset = simulate(SimulationConfig(poses=300, measurement="pixel", cameras=2, trajectory="smooth3d", withhold_map=0.5),
@@ -196,8 +196,8 @@ def test_the_reach_is_read_from_the_start_before_the_run_lost_the_robot(seed):
     T, rows, view = _lost_after(dataset, 60, np.random.default_rng(seed))
     distance, paired, _ = view_samples(dataset, T, rows, view)
     assert pairing_step(distance, paired) is None  # the whole run shows no step
-    step = camera_reach(dataset, T[:, :3, 3], dataset.truth_quat_xyzw, rows, view, below=view[1])  # lost in position only
+    step = camera_reach(dataset, T[:, :3, 3], dataset.truth_quat_xyzw, rows, view)  # lost in position only
     assert step.reach == pytest.approx(2.0, rel=0.05)
     assert step.poses <= 60 + PREFIX_STEP
-    assert step.ratio >= 2.0 * MIN_RATE_RATIO
+    assert step.ratio >= 25.0 * MIN_RATE_RATIO
 
