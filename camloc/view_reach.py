@@ -16,11 +16,12 @@ above the far one.
 
 A start run can lose the robot (on worlds with half the map withheld, most do within their first
 hundred poses: docs/performance.md, 2026-12-06 seventeenth session); once lost, it pairs landmarks
-at random distances and its pairs blunt the step the poses before showed. The step is therefore read
-from the prefix of the run where it is sharpest (``camera_reach``): of the run's first
-``PREFIX_MIN_POSES``, ``PREFIX_MIN_POSES + PREFIX_STEP``, ... poses and the whole, the one whose
-near rate is surely the most times its far rate. A run on track keeps its step as it grows; a lost one
-shows none in any prefix (no reach learned, which the caller reports).
+at random distances and its pairs blunt the step the poses before showed. The ratio is read surely
+(the near rate's lower bound over the far rate's upper one); where the whole run's step is not sure,
+it is read from the prefix of the run where it is sharpest (``camera_reach``): of the run's first
+``PREFIX_MIN_POSES``, ``PREFIX_MIN_POSES + PREFIX_STEP``, ... poses, the one whose near rate is
+surely the most times its far rate. A run on track keeps its step as it grows; a lost one shows
+none in any prefix (no reach learned, which the caller reports).
 
 Pure: no I/O, no printing.
 """
@@ -152,15 +153,16 @@ def view_samples(dataset: Dataset, T_world_robot: np.ndarray, observation_landma
 
 def camera_reach(dataset: Dataset, estimate_xyz: np.ndarray, estimate_quat_xyzw: np.ndarray,
                  observation_landmark: np.ndarray, view: tuple[float, float, float]) -> Optional[ReachStep]:
-    """The sharpest step (the greatest ``ReachStep.ratio``) of the run's pixel cameras' pairing
-    rate (``view_samples``) over the run's prefixes (``PREFIX_MIN_POSES``, every ``PREFIX_STEP``
-    more poses, the whole run), or None where no prefix shows a step down; the caller trusts it
-    from a ratio of ``MIN_RATE_RATIO``."""
+    """The step of the run's pixel cameras' pairing rate (``view_samples``): the whole run's where
+    it is sure (``ReachStep.ratio`` of ``MIN_RATE_RATIO``: the most samples, the nearest reach),
+    otherwise the sharpest over its prefixes (``PREFIX_MIN_POSES``, every ``PREFIX_STEP`` more
+    poses), or None where none shows a step down; the caller trusts it from ``MIN_RATE_RATIO``."""
     T = geometry.pose_from_quat(estimate_xyz, estimate_quat_xyzw)
     distance, paired, pose = view_samples(dataset, T, observation_landmark, view)
-    prefixes = sorted(set(range(PREFIX_MIN_POSES, dataset.num_poses, PREFIX_STEP)) | {dataset.num_poses})
-    sharpest = None
-    for poses in prefixes:
+    sharpest = _sharpest_split(distance, paired, dataset.num_poses)
+    if sharpest is not None and sharpest.ratio >= MIN_RATE_RATIO:
+        return sharpest
+    for poses in range(PREFIX_MIN_POSES, dataset.num_poses, PREFIX_STEP):
         within = pose < poses
         step = _sharpest_split(distance[within], paired[within], poses)
         if step is not None and (sharpest is None or step.ratio > sharpest.ratio):
