@@ -220,7 +220,7 @@ def _no_reach_warning(step: Optional[ReachStep], result: RunResult) -> str:
     """Why the candidates reach as far as the map's density guesses: the start showed no step."""
     sharpest = ("none" if step is None else
                 f"near surely {step.ratio:.1f} times far at {step.reach:.2f} m over its first {step.poses} poses, against {MIN_RATE_RATIO:g}")
-    return (f"the pixel cameras' reach was not learned: the run over the first poses showed no step in its pairing rate "
+    return (f"the pixel cameras' reach was not learned: the run over the first poses showed no sure step in its pairing rate "
             f"(sharpest: {sharpest}); candidates within {result.summary['candidate_range']['max_depth']:.2f} m, guessed "
             f"from the map's density (--max-distance sets the reach)")
 

@@ -31,8 +31,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from statistics import NormalDist
+
 import numpy as np
-from scipy.stats import beta
 
 from camloc import geometry, measurement, models
 from camloc.dataset import Dataset, observations_by_pose
@@ -41,7 +42,7 @@ from camloc.dataset import Dataset, observations_by_pose
 # the far group's, on at least MIN_PAIRED paired landmarks (a run that lost the robot pairs at
 # random distances: no step).
 # The ratio is read conservatively: the near rate's lower bound over the far rate's upper one, each
-# at RATE_CONFIDENCE_TAIL (Jeffreys intervals): a far group of a few samples with none paired (the
+# at RATE_CONFIDENCE_TAIL (Wilson score intervals; no scipy: a small run does not import it): a far group of a few samples with none paired (the
 # rim of the view cone beyond where a lost run's candidates stop) would otherwise read as infinite.
 MIN_RATE_RATIO = 4.0
 RATE_CONFIDENCE_TAIL = 0.025
@@ -101,11 +102,19 @@ def _sharpest_split(distance: np.ndarray, paired: np.ndarray, poses: int) -> Opt
     if not valid.any():
         return None
     split = int(np.argmax(np.where(valid, log_likelihood, -np.inf)))
-    a, b = near_paired[split], near_n[split] - near_paired[split]
-    c, e = far_paired[split], far_n[split] - far_paired[split]
-    near_low = float(beta.ppf(RATE_CONFIDENCE_TAIL, a + 0.5, b + 0.5))
-    far_high = float(beta.ppf(1.0 - RATE_CONFIDENCE_TAIL, c + 0.5, e + 0.5))
-    return ReachStep(float(0.5 * (d[split] + d[split + 1])), float(a / near_n[split]), float(c / far_n[split]), near_low, far_high, poses)
+    near_rate, far_rate = near_paired[split] / near_n[split], far_paired[split] / far_n[split]
+    near_low = _wilson_bound(near_rate, near_n[split], -1.0)
+    far_high = _wilson_bound(far_rate, far_n[split], 1.0)
+    return ReachStep(float(0.5 * (d[split] + d[split + 1])), float(near_rate), float(far_rate), near_low, far_high, poses)
+
+
+def _wilson_bound(rate: float, n: float, side: float) -> float:
+    """The Wilson score interval's lower (``side`` -1) or upper (+1) bound of a Bernoulli rate
+    observed as ``rate`` over ``n`` samples, each bound at ``RATE_CONFIDENCE_TAIL``."""
+    z = NormalDist().inv_cdf(1.0 - RATE_CONFIDENCE_TAIL)
+    centre = rate + z * z / (2.0 * n)
+    spread = z * np.sqrt(rate * (1.0 - rate) / n + z * z / (4.0 * n * n))
+    return float((centre + side * spread) / (1.0 + z * z / n))
 
 
 def _bernoulli_log_likelihood(successes: np.ndarray, trials: np.ndarray) -> np.ndarray:

@@ -87,7 +87,7 @@ def test_the_ray_margin_waits_for_the_learned_reach():
     The start run itself loses the robot near its pose 70 (6.3 m RMSE): over the whole of it the
     near pairing rate was 4.48 times the far one (until 2026-12-06 the reach hung on that, 12% over
     the 4 needed; read surely, its lower bound over the far one's upper, 3.6); read from the prefix
-    before it lost its way (``view_reach.camera_reach``: its first 75 poses), surely 11.5 times."""
+    before it lost its way (``view_reach.camera_reach``: its first 75 poses), surely 11.3 times."""
     from camloc.simulate import simulate_labelled
     from camloc.view_reach import MIN_RATE_RATIO
 
