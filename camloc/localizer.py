@@ -37,6 +37,7 @@ from camloc.mapping_follower import MappingFollower
 from camloc.results import UNASSOCIATED, RunResult
 from camloc.run_records import build_result, recorded_nis
 from camloc.tails import chi2_quantile
+from camloc.view_reach import MIN_RATE_RATIO, ReachStep, camera_reach
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -111,9 +112,9 @@ def _localize_in_reach(dataset: Dataset, config: LocalizerConfig, on_progress, h
     its start (``_with_learned_reach``); where that run pairs a share of its observations below
     ``REACH_LOST_SHARE`` times the start's, run again with the reach guessed from the map and keep
     the run that pairs more (a warning says so)."""
-    held, reach, reach_seconds, start_share = _with_learned_reach(dataset, config, hooks)
+    held, reach, reach_seconds, start_share, step = _with_learned_reach(dataset, config, hooks)
     result = _localize_mapped(dataset, held, on_progress, hooks)
-    warnings = []
+    warnings = [_no_reach_warning(step, result)] if reach is None and reach_seconds > 0.0 else []
     if reach is not None and _paired_share(result) < REACH_LOST_SHARE * start_share:
         again = _localize_mapped(dataset, config, on_progress, hooks)
         reach_seconds += result.summary["timing"]["filter_seconds"]
@@ -124,6 +125,7 @@ def _localize_in_reach(dataset: Dataset, config: LocalizerConfig, on_progress, h
                             f"{again.summary['candidate_range']['max_depth']:.2f} m), which paired {_paired_share(again):.0%}")
             result, reach = again, None
     result.summary["candidate_range"]["learned_reach"] = reach
+    result.summary["candidate_range"]["reach_step"] = _step_summary(step)
     result.summary["warnings"] += warnings
     timing = result.summary["timing"]
     timing["reach_seconds"] = reach_seconds  # the runs over the start that learned it (or not kept), counted in filter_seconds
@@ -179,30 +181,48 @@ REACH_MARGIN = 0.1
 REACH_LOST_SHARE = 0.8
 
 
-def _with_learned_reach(dataset: Dataset, config: LocalizerConfig, hooks: dict) -> tuple[LocalizerConfig, Optional[float], float, float]:
+def _with_learned_reach(dataset: Dataset, config: LocalizerConfig,
+                        hooks: dict) -> tuple[LocalizerConfig, Optional[float], float, float, Optional[ReachStep]]:
     """``config`` with its candidates' depth and distance held to the reach learned from the start of the run
-    (``REACH_POSES``), that reach in metres, the seconds the start's run took and the share of its
-    observations it paired; ``config``, None, 0 and 0 where the file measures range or has no map,
-    the reach is given (``config.view.max_depth`` or ``max_distance``), the association is the oracle (no candidates);
-    ``config`` and None where the start shows no reach (``view_reach.pairing_step``)."""
-    from camloc.view_reach import camera_reach
-
+    (``REACH_POSES``), that reach in metres, the seconds the start's run took, the share of its
+    observations it paired and the sharpest step of its pairing rate (``view_reach.ReachStep``);
+    ``config``, None, 0, 0 and None where the file measures range or has no map, the reach is
+    given (``config.view.max_depth`` or ``max_distance``), the association is the oracle (no
+    candidates); ``config`` and None for the reach where the start shows no step of at least
+    ``view_reach.MIN_RATE_RATIO`` (the step, if any, still returned: the warning cites it)."""
     if (config.view.max_depth is not None or config.view.max_distance is not None or config.association == "oracle"
             or dataset.landmark_ids.size == 0 or not reach_unmeasured(dataset)):
-        return config, None, 0.0, 0.0
+        return config, None, 0.0, 0.0, None
     started = time.perf_counter()
     view = candidate_range(dataset, config)
     start = first_poses(dataset, REACH_POSES)
     run = _localize_exact(start, replace(config, map="exact"), None, **hooks)
     rows = landmark_rows(dataset.landmark_ids, _observation_landmarks(start, run))
-    reach = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view)
+    step = camera_reach(start, run.estimate_xyz, run.estimate_quat_xyzw, rows, view)
     seconds, share = time.perf_counter() - started, _paired_share(run)
-    if reach is None:
-        return config, None, seconds, share
-    held = (1.0 + REACH_MARGIN) * reach
+    if step is None or step.ratio < MIN_RATE_RATIO:
+        return config, None, seconds, share, step
+    held = (1.0 + REACH_MARGIN) * step.reach
     # the reach is a distance from the camera: held as one, not only as a depth (which let
     # candidates at the cone's edge lie up to 1.7 times as far), also where the guess is the nearer depth
-    return replace(config, view=replace(config.view, max_depth=min(view[1], held), max_distance=held)), reach, seconds, share
+    return replace(config, view=replace(config.view, max_depth=min(view[1], held), max_distance=held)), step.reach, seconds, share, step
+
+
+def _step_summary(step: Optional[ReachStep]) -> Optional[dict]:
+    """The summary's record of the step the reach was (or was not) learned from."""
+    if step is None:
+        return None
+    return {"reach": step.reach, "poses": step.poses, "near_rate": step.near_rate, "far_rate": step.far_rate,
+            "near_low": step.near_low, "far_high": step.far_high, "ratio": step.ratio}
+
+
+def _no_reach_warning(step: Optional[ReachStep], result: RunResult) -> str:
+    """Why the candidates reach as far as the map's density guesses: the start showed no step."""
+    sharpest = ("none" if step is None else
+                f"near surely {step.ratio:.1f} times far at {step.reach:.2f} m over its first {step.poses} poses, against {MIN_RATE_RATIO:g}")
+    return (f"the pixel cameras' reach was not learned: the run over the first poses showed no sure step in its pairing rate "
+            f"(sharpest: {sharpest}); candidates within {result.summary['candidate_range']['max_depth']:.2f} m, guessed "
+            f"from the map's density (--max-distance sets the reach)")
 
 
 # Where the map lacks landmarks, the beam decides the map's pairs again with the null cost lowered

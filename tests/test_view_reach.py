@@ -12,7 +12,7 @@ from camloc.localizer import REACH_MARGIN, REACH_POSES, localize
 from camloc.localizer_config import LocalizerConfig, ViewOptions
 from camloc.metrics import evaluate
 from camloc.simulate import SimulationConfig, simulate
-from camloc.view_reach import MIN_PAIRED, pairing_step
+from camloc.view_reach import MIN_PAIRED, MIN_RATE_RATIO, pairing_step
 
 
 def _volume_samples(rng, count: int, outer: float) -> np.ndarray:
@@ -106,6 +106,25 @@ def test_the_reach_is_learned_only_where_nothing_else_says_it(case):
         assert result.summary["candidate_range"]["max_depth"] == 2.5
 
 
+def test_a_start_that_shows_no_step_says_so():
+    """Six poses of one camera pair fewer landmarks than it takes to show where detections stop
+    (``view_reach.MIN_PAIRED``): no reach is learned, the candidates keep the map's guess and a
+    warning says why, instead of the guess being kept silently."""
+    dataset = simulate(SimulationConfig(poses=6, measurement="pixel", cameras=1, trajectory="grid"), seed=4)
+    result = localize(dataset, engine="compiled", parallel=False)
+    assert result.summary["candidate_range"]["learned_reach"] is None
+    assert result.summary["timing"]["reach_seconds"] > 0.0
+    assert any("reach was not learned" in w for w in result.summary["warnings"])
+
+
+def test_the_learned_reach_records_its_step():
+    """The summary keeps the step the reach was read from: its prefix of the start and its ratio."""
+    dataset = simulate(SimulationConfig(poses=REACH_POSES, measurement="pixel", cameras=2, trajectory="smooth3d"), seed=3)
+    step = localize(dataset, engine="compiled", parallel=False).summary["candidate_range"]["reach_step"]
+    assert step["reach"] == pytest.approx(2.0, rel=0.04) and step["ratio"] >= MIN_RATE_RATIO
+    assert 50 <= step["poses"] <= REACH_POSES
+
+
 def test_camloc_run_reports_the_learned_reach(tmp_path):
     from typer.testing import CliRunner
 
@@ -139,3 +158,46 @@ def test_a_run_that_pairs_far_less_within_the_learned_reach_runs_again_with_the_
     assert any("run again with the reach guessed" in w for w in result.summary["warnings"])
     np.testing.assert_array_equal(result.associations.landmark, guessed.associations.landmark)
     assert result.summary["timing"]["reach_seconds"] > 0.0
+
+
+def _lost_after(dataset, on_track: int, rng):
+    """A start run built on purpose: on the true poses with the true pairs for its first
+    ``on_track`` poses, then 3 m off with each observation paired with a landmark drawn at random
+    from the mapped ones in its camera's view at the (wrong) estimate, as a run that lost the robot
+    pairs: at every distance alike. Returns the estimate (N, 4, 4) and each observation's map row."""
+    from camloc import geometry, models
+    from camloc.observation_space import candidate_range
+
+    T = geometry.pose_from_quat(dataset.truth_xyz, dataset.truth_quat_xyzw)
+    T[on_track:, :3, 3] += np.array([3.0, -1.5, 0.5])
+    rows = np.where(np.isin(dataset.obs_true_landmark, dataset.landmark_ids),
+                    np.searchsorted(dataset.landmark_ids, dataset.obs_true_landmark), -1)
+    _, max_depth, max_angle = candidate_range(dataset, LocalizerConfig())
+    for k in range(on_track, dataset.num_poses):
+        for camera_id, camera in dataset.cameras.items():
+            observed = np.flatnonzero((dataset.obs_pose_index == k) & (dataset.obs_camera == camera_id))
+            _, p = models.camera_points(T[k] @ camera.T_robot_camera, np.eye(4), dataset.landmark_xyz)
+            distance = np.linalg.norm(p, axis=1)
+            seen = np.flatnonzero((p[:, 2] > 0) & (p[:, 2] <= max_depth) & (p[:, 2] >= np.cos(max_angle) * distance))
+            rows[observed] = rng.choice(seen, observed.size) if seen.size else -1
+    return T, rows, (0.0, max_depth, max_angle)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_reach_is_read_from_the_start_before_the_run_lost_the_robot(seed):
+    """A start run on track for its first 60 of 300 poses, then lost (``_lost_after``): over the
+    whole run the lost poses' pairs, at every distance alike, blunt the step below the trusted
+    ratio (main until 2026-12-06 learned no reach there; surely 2.5 times at most here); read from
+    the prefix where it is sharpest, the step is the cameras' 2 m, surely over 100 times."""
+    from camloc.view_reach import MIN_RATE_RATIO, PREFIX_STEP, camera_reach, view_samples
+
+    dataset = simulate(SimulationConfig(poses=300, measurement="pixel", cameras=2, trajectory="smooth3d", withhold_map=0.5),
+                       seed=seed)
+    T, rows, view = _lost_after(dataset, 60, np.random.default_rng(seed))
+    distance, paired, _ = view_samples(dataset, T, rows, view)
+    assert pairing_step(distance, paired) is None  # the whole run shows no step
+    step = camera_reach(dataset, T[:, :3, 3], dataset.truth_quat_xyzw, rows, view)  # lost in position only
+    assert step.reach == pytest.approx(2.0, rel=0.05)
+    assert step.poses <= 60 + PREFIX_STEP
+    assert step.ratio >= 25.0 * MIN_RATE_RATIO
+
