@@ -12,6 +12,9 @@ than one signature (each specialization compiles the kernel and all it calls aga
 
     NUMBA_CACHE_DIR=$(mktemp -d) CAMLOC_BACKGROUND_COMPILE=0 nice python benchmarks/compile_profile.py [--top 40]
 
+``--modules`` adds each kernel's module's size in LLVM instructions (its code and every compiled
+function it calls, linked in and generated again): a figure the machine's load does not move.
+
 ``--dataset FILE`` profiles what ``camloc run FILE`` compiles instead (with
 ``CAMLOC_BACKGROUND_COMPILE=0``: the compiled engine, default options, one process), the issue's
 world's first compile; ``--signatures`` lists every kernel compiled with its signatures, not only
@@ -113,6 +116,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--top", type=int, default=40, help="kernels listed (default 40)")
     parser.add_argument("--signatures", action="store_true", help="print every compiled kernel's signatures")
+    parser.add_argument("--modules", action="store_true", help="print the size of each kernel's module (LLVM instructions)")
     parser.add_argument("--dataset", help="profile the first compile of `camloc run DATASET` (its default options) "
                         "instead of the background compile's steps")
     args = parser.parse_args()
@@ -133,11 +137,41 @@ def main() -> int:
     print(f"{'own s':>7} {'LLVM s':>7} {'whole s':>8} {'times':>5}  kernel")
     for name, seconds in own.most_common(args.top):
         print(f"{seconds:7.2f} {llvm[name]:7.2f} {whole[name]:8.2f} {count[name]:5d}  {name}")
+    if args.modules:
+        sizes = module_sizes()
+        print(f"LLVM instructions in the {len(sizes)} kernel modules: {sum(n for n, _ in sizes.values()):,}")
+        for name, (n, defined) in sorted(sizes.items(), key=lambda item: -item[1][0])[:args.top]:
+            print(f"{n:9,} {defined:5}  {name}")
     for name, signatures in specialized_twice(1 if args.signatures else 2).items():
         print(f"compiled for {len(signatures)} signature(s) (each with all it calls): {name}")
         for signature in signatures:
             print(f"    {str(signature)[:300]}")
     return 0
+
+
+def module_sizes() -> dict:
+    """Each compiled camloc kernel's final module, by name (one entry a signature): its LLVM
+    instructions and the functions it defines. The module holds the kernel's code and a copy of
+    every compiled function it calls, linked in, which LLVM optimized and generated again for it:
+    a measure of a first compile's LLVM work that the machine's load does not move."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    import camloc.kernels
+
+    sizes = {}
+    for info in pkgutil.iter_modules(camloc.kernels.__path__):
+        module = importlib.import_module(f"camloc.kernels.{info.name}")
+        for name, value in vars(module).items():
+            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__:
+                for k, signature in enumerate(value.signatures):
+                    lines = value.inspect_llvm(signature).splitlines()
+                    n = sum(1 for line in lines if line.startswith("  ") and not line.lstrip().startswith(";"))
+                    defined = sum(1 for line in lines if line.startswith("define "))
+                    sizes[f"{module.__name__}.{name}" + (f" #{k + 1}" if k else "")] = (n, defined)
+    return sizes
 
 
 def specialized_twice(at_least: int = 2) -> dict:

@@ -597,7 +597,6 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
     return kept
 
 
-@entry
 def explain_all(scene, settings, parents, n_parents, obs):
     """Children of the first n_parents hypotheses of ``parents`` that explain all of obs (m,);
     each step's partial explanations pruned to the run's beam (a sparse pose's wider one,
@@ -610,7 +609,12 @@ def explain_all(scene, settings, parents, n_parents, obs):
     explanations are pruned to a beam of their own, so that a costlier parent's best explanation
     is grown to the end (where observations are few it is often the right one), and past
     ``partial_budget`` they share one budget (``prune_partials``). Each parent's chains of pairs
-    are checked against its own prior (``explain_from``, ``beam_chain``)."""
+    are checked against its own prior (``explain_from``, ``beam_chain``).
+
+    A Python function, not a kernel: ``run_poses`` calls ``explain_from`` itself. As an ``entry``
+    of its own over ``explain_from``, its module held a copy of the whole beam's tree, which LLVM
+    optimized and generated again (6 s of a first compile's 106 s of CPU, docs/performance.md,
+    2026-12-06 (seventeenth session))."""
     return explain_from(scene, settings, parents, n_parents, obs, parents, TRUE)
 
 
@@ -917,7 +921,7 @@ def run_poses(scene, settings, sparse, first, last, beam, n, history, unexplaine
             # the extra hypotheses of a sparse pose before are not explained at one that is not
             n = compiled_carried(parents[2], n, sparse[k], settings.beam_width, settings.beam_delta)
             width, delta = compiled_pose_beam(sparse[k], settings.beam_width, settings.beam_delta)
-            children, count = explain_all(scene, settings, parents, n, obs)
+            children, count = explain_from(scene, settings, parents, n, obs, parents, TRUE)   # ``explain_all``
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
