@@ -123,10 +123,10 @@ class SeededSearch:
             i, landmark = int(pair_obs[seed]), int(pair_landmark[seed])
             result = self.ctx.updated(h.x, h.P, obs[i : i + 1], np.array([landmark]), for_association=True)
             seeded = Hypothesis(result.state, result.cov, h.cost + float(pair_cost[seed]), h.parent, ((int(obs[i]), landmark),))
-            # its chains not checked against the prior (``camloc.beam_chain``): checked, a half-withheld aerial
-            # world learned no reach from its start run (lost either way) and was lost (docs/performance.md,
-            # 2026-12-06, seeded-chain: held to the reach learned without the check, it localizes as well)
-            explained = self.expansion.explain_all([seeded], np.delete(obs, i), [None])[: self.settings.seed_explanations]
+            # its chains checked against the prior the search started from (``camloc.beam_chain``): a seed
+            # pair's state under a wide prior is as far off as a branched one's; on 3x-noise worlds it gains w9 and
+            # w11 and holds the default-noise ones (docs/performance.md, 2026-12-06 seventeenth session, seeded-chain2)
+            explained = self.expansion.explain_all([seeded], np.delete(obs, i), [h])[: self.settings.seed_explanations]
             children += [c for c in explained if self.within_prior(c, h)]
         children = self.expansion.prune(children) if children else self.expansion.explain(h, obs)
         for child in children:

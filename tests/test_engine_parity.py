@@ -69,20 +69,31 @@ def test_both_engines_widen_the_beam_alike_at_poses_of_few_observations():
 def test_both_engines_check_chained_pairs_alike_under_a_wide_pixel_prior(monkeypatch):
     # two pixel cameras under three times the default odometry noise: the poses' priors are wide
     # for the rays, and the chains of pairs are checked against them (``camloc.beam_chain``:
-    # thousands of states replaced by the stacked update in the numpy run, 2026-12-06)
-    from camloc import beam_chain
-    checked, replaced = beam_chain.checked, []
+    # thousands of states replaced by the stacked update in the numpy run, 2026-12-06), the seeded
+    # search's too, against the prior it started from (it runs at most of this world's first poses)
+    from camloc import beam_chain, beam_seeded
+    checked, replaced, seeding = beam_chain.checked, [], [False]
+    explain_from_seeds = beam_seeded.SeededSearch.explain_from_seeds
 
     def counted(ctx, x, P, root, pairs):
         out = checked(ctx, x, P, root, pairs)
-        replaced.append(out[0] is not x)
+        replaced.append((out[0] is not x, seeding[0]))
         return out
 
+    def seeded(self, *args, **kwargs):
+        seeding[0] = True
+        try:
+            return explain_from_seeds(self, *args, **kwargs)
+        finally:
+            seeding[0] = False
+
     monkeypatch.setattr(beam_chain, "checked", counted)
+    monkeypatch.setattr(beam_seeded.SeededSearch, "explain_from_seeds", seeded)
     dataset = simulate(SimulationConfig(trajectory="smooth3d", poses=40, cameras=2, measurement="pixel", intrinsics="pixel",
                                         odometry_sigma_scale=3.0, clutter_fraction=0.1), seed=201)
     _assert_same_run(dataset, "beam")
-    assert sum(replaced) > 100
+    assert sum(r for r, _ in replaced) > 100
+    assert sum(r for r, in_seeded in replaced if in_seeded) > 100
 
 
 def _assert_same_run(dataset, association: str) -> None:

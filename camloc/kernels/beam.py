@@ -621,7 +621,8 @@ def explain_all(scene, settings, parents, n_parents, obs):
 @entry
 def explain_from(scene, settings, parents, n_parents, obs, roots, check):
     """``explain_all``, each parent's chains of pairs checked against its row of ``roots`` (the
-    pose's prior it grew from) where ``check`` (``beam_chain``; the seeded search's: not)."""
+    pose's prior it grew from) where ``check`` (``beam_chain``; the beam's and the seeded search's,
+    ``seeds.from_seeds``: its root the prior the search started from)."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
