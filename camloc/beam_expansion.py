@@ -52,7 +52,8 @@ class PoseExpansion:
         a pose differ in a pair or two); so past ``partial_budget`` the parents share one budget,
         ranked by cost plus the least the observations they have still to explain can cost.
         Each chain of pairs is checked against its parent's prior, the parent itself, where
-        ``roots`` is None, or its entry of ``roots``; an entry None: not checked (``camloc.beam_chain``).
+        ``roots`` is None, or its entry of ``roots`` (the seeded search's: the prior it started
+        from; ``camloc.beam_chain``).
         """
         roots = parents if roots is None else roots
         partials = [self.after_clear(h, obs, root, roots[root]) for root, h in enumerate(parents)]
@@ -92,16 +93,17 @@ class PoseExpansion:
         h.cost += float(miss_charge(excess[unclaimed], self.settings.miss_cost).sum())
         return h
 
-    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int, prior: Optional[Hypothesis]) -> Partial:
+    def after_clear(self, h: Hypothesis, obs: np.ndarray, root: int, prior: Hypothesis) -> Partial:
         """h after its stacked updates with the clear observations (see ``explain_all``), with
         the ambiguous rest in the order to branch on them (fewest gated options first); ``prior``:
-        the pose's prior h grew from (h itself), its chains checked against it; None: not checked."""
+        the pose's prior h grew from (h itself, or the seeded search's start), its chains checked
+        against it."""
         options = self.gating.options(h, obs)
         if h.pairs:  # a seeded explanation's seed pair
             taken = np.array([lm for _, lm in h.pairs], dtype=np.int64)
             for o in options:
                 o.costs = np.where(member(o.landmarks, taken), np.inf, o.costs)
-        chain_root = None if prior is None else beam_chain.root_if_wide(self.ctx, prior, obs, options)
+        chain_root = beam_chain.root_if_wide(self.ctx, prior, obs, options)
         child, pending = h, np.arange(obs.size)
         while pending.size:
             choice = self.clear_choices(obs[pending], [options[i] for i in pending])

@@ -20,7 +20,6 @@ from camloc.constants import (
 )
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
-from camloc.kernels._jit import TRUE
 from camloc.kernels.state import difference
 from camloc.kernels.types import PairModel
 from camloc.kernels.update import updated
@@ -158,7 +157,7 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
         # its chains checked against the prior the search started from (``kernels.beam_chain``): a seed pair's
         # state under a wide prior is as far off as a branched one's; on 3x-noise worlds it gains w9 and w11 and
         # holds the default-noise ones (docs/performance.md, 2026-12-06 seventeenth session, seeded-chain2)
-        children, count = kb.explain_from(scene, settings, seeded, 1, np.delete(obs, i), h, TRUE)
+        children, count = kb.explain_from(scene, settings, seeded, 1, np.delete(obs, i), h)
         for c in range(min(count, SEED_EXPLANATIONS)):
             if within_prior(children[0][c], x, P):
                 explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FALSE, FIRST, ONE, TRUE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
@@ -357,21 +357,21 @@ def clear_choices(settings, null_cost, start, lm, cost, positions):
 
 
 @inlined
-def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root_count, check):
+def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root_count):
     """Hypothesis h of gen after its stacked updates with the pose's clear observations, written
     into row h of ``child``: the clear ones are taken in one stacked update; conditioned on them
     the others are gated again, and those that became clear are taken in the next, until none does
     (an observation is often ambiguous only until a neighbour's pair pins the pose). Returns (its
     options, the ambiguous rest in the order to branch on them: fewest gated options first, and
     the least each can cost, whether the root's prior (root_x, root_P, with root_count pairs) is
-    wide for the rays and its chains are to be checked, ``check``: ``beam_chain``)."""
+    wide for the rays: its chains are then checked, ``beam_chain``)."""
     opt = options_for(scene, settings, gen[0][h], gen[1][h], obs, 0.0, scene.view_limits[2])
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     taken = taken_by(gen[7], gen[6], h)          # a seeded explanation's seed pair: its landmark is not free
     for j in range(lm.size):
         if is_taken(lm[j], taken):
             cost[j] = np.inf
-    wide = check and wide_for_rays(model, root_P, obs, start, cost, Hs)
+    wide = wide_for_rays(model, root_P, obs, start, cost, Hs)
     copy_hypothesis(gen, h, child, h)
     x, P = gen[0][h].copy(), gen[1][h].copy()
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
@@ -615,14 +615,14 @@ def explain_all(scene, settings, parents, n_parents, obs):
     of its own over ``explain_from``, its module held a copy of the whole beam's tree, which LLVM
     optimized and generated again (6 s of a first compile's 106 s of CPU, docs/performance.md,
     2026-12-06 (seventeenth session))."""
-    return explain_from(scene, settings, parents, n_parents, obs, parents, TRUE)
+    return explain_from(scene, settings, parents, n_parents, obs, parents)
 
 
 @entry
-def explain_from(scene, settings, parents, n_parents, obs, roots, check):
+def explain_from(scene, settings, parents, n_parents, obs, roots):
     """``explain_all``, each parent's chains of pairs checked against its row of ``roots`` (the
-    pose's prior it grew from) where ``check`` (``beam_chain``; the beam's and the seeded search's,
-    ``seeds.from_seeds``: its root the prior the search started from)."""
+    pose's prior it grew from: the parent itself in the beam, the prior the search started from
+    in the seeded search, ``seeds.from_seeds``; ``beam_chain``)."""
     m = obs.size
     cap = parents[6][:n_parents].max() + m if n_parents else m
     dim = parents[0].shape[1]                   # the state's size: 6 (Euler), 3 (planar)
@@ -638,8 +638,7 @@ def explain_from(scene, settings, parents, n_parents, obs, roots, check):
     expected = []
     wide = np.zeros(n_parents, np.bool_)
     for h in range(n_parents):
-        opt, order, least, wide[h] = after_clear(scene, settings, parents, h, obs, gen, model, roots[0][h], roots[1][h], roots[6][h],
-                                                 check)
+        opt, order, least, wide[h] = after_clear(scene, settings, parents, h, obs, gen, model, roots[0][h], roots[1][h], roots[6][h])
         options.append(opt)
         expected.append(expected_landmarks(scene, parents[0][h], obs, opt))
         orders.append(order)
@@ -922,7 +921,7 @@ def run_poses(scene, settings, sparse, first, last, beam, n, history, unexplaine
             # the extra hypotheses of a sparse pose before are not explained at one that is not
             n = compiled_carried(parents[2], n, sparse[k], settings.beam_width, settings.beam_delta)
             width, delta = compiled_pose_beam(sparse[k], settings.beam_width, settings.beam_delta)
-            children, count = explain_from(scene, settings, parents, n, obs, parents, TRUE)   # ``explain_all``
+            children, count = explain_from(scene, settings, parents, n, obs, parents)   # ``explain_all``
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])
