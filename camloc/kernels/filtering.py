@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FALSE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
 from camloc.kernels.camera import camera_pose, cameras_of, in_front_of, observe, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.planar import SE2_DIM
@@ -17,7 +17,7 @@ from camloc.kernels.recheck import (add_leave_one_out_spread, assignment_margins
                                      rival_margins)
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
-from camloc.kernels.update import estimate_updated, pair_model, updated
+from camloc.kernels.update import pair_model, updated
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import MARKER, PIXEL, POINT2
 
@@ -131,8 +131,8 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
     x_kept, P_kept = x, P
     if kept_obs.size:
         z_hat, H = predict_pairs(scene, x, kept_obs, kept_landmarks)
-        result = estimate_updated(model, settings.iterations, x, P, kept_obs, kept_landmarks, z_hat, H, scene.R_file,
-                                  scene.R_file_inverse, no_start)
+        result = updated(model, settings.iterations, x, P, kept_obs, kept_landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
+                         no_start, TRUE)
         x_kept, P_kept = result[0], result[1]
     weighed = np.flatnonzero(doubtful)
     if weighed.size == 0 or weighed.size > RESTORE_LIMIT:
@@ -148,7 +148,7 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
             keep[weighed[i]] = True
     obs, landmarks = obs[keep], landmarks[keep]
     z_hat, H = predict_pairs(scene, x, obs, landmarks)
-    result = estimate_updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, no_start)
+    result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, no_start, TRUE)
     return obs, landmarks, result
 
 
@@ -244,7 +244,7 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             record_state(states, covs, k, x, P)
             continue
         z_hat, H = predict_pairs(scene, x, obs, landmarks)
-        result = estimate_updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start)
+        result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start, TRUE)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
         if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:

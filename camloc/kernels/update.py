@@ -611,11 +611,13 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
 
     Where the innovation is beyond the 99.9% chi^2 bound at the prior's linearization, the
     iterations also run from ``point_step``, and from ``start`` (n,) when given (size 0: none); the
-    posterior with the lower MAP cost is kept. ``map_cost``: return the kept posterior's MAP cost
+    posterior with the lower MAP cost is kept. Where that cost is beyond the same bound, the
+    estimate's update (``map_cost``) also iterates from ``damped_start`` (``stacked_update.StackedUpdate.damped``: plain
+    Gauss-Newton from a prior as wide as the landmarks' depth stops short of the MAP estimate, or
+    runs off). ``map_cost``: return the kept posterior's MAP cost
     (the filter's statistic); without it that is NaN where no restart ran (the beam's scratch
-    updates, which read only the state: a prediction and a factorization saved each). The
-    estimate's update is ``estimate_updated``, which also iterates from ``damped_start`` where
-    that cost is beyond the bound. Returns as ``iterated_update``."""
+    updates, which read only the state: a prediction and a factorization saved each).
+    Returns as ``iterated_update``."""
     p = obs.size
     z = np.empty((p, 3))
     R = np.empty((p, 3, 3))
@@ -649,46 +651,9 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
             again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
-    return best
-
-
-# Apart from ``updated``, which the beam's scratch updates call (each with map_cost FALSE, so never
-# reaching the damped search): numba links a callee's code into every caller's module, where LLVM
-# optimizes and generates it again, and ``damped_start``'s own code sat in every module of the beam
-# that reaches ``updated`` (``updated``, ``checked``, ``explain_from``, ``run_poses``), never run
-# there. Inlined into the filter: compiled on its own it was one more module with ``updated``'s
-# tree (docs/performance.md, 2026-12-07 (eighteenth session))
-@inlined
-def estimate_updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start):
-    """``updated`` with its MAP cost (``map_cost``), the estimate's update (the filter's): where
-    that cost is beyond the 99.9% chi^2 bound, the update also iterates from ``damped_start``
-    (``stacked_update.StackedUpdate.damped``: plain Gauss-Newton from a prior as wide as the
-    landmarks' depth stops short of the MAP estimate, or runs off), and the posterior with the
-    lower MAP cost is kept. Returns as ``iterated_update``."""
-    best = updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, TRUE)
-    dof = 0
-    for o in obs:
-        dof += scene.obs_dof[o]
-    if iterations < 2 or not best[3] > scene.nis_bound[dof]:        # the MAP estimate, and a MAP agrees
-        return best
-    p = obs.size                                                     # the pairs gathered as ``updated`` gathers them
-    z = np.empty((p, 3))
-    R = np.empty((p, 3, 3))
-    R_inverse = np.empty((p, 3, 3))
-    landmark_xyz = np.empty((p, scene.landmark_xyz.shape[1]))
-    pair_camera = np.empty(p, np.int64)
-    for i in range(p):
-        o = obs[i]
-        for a in range(3):
-            z[i, a] = scene.z[o, a]
-            for b in range(3):
-                R[i, a, b], R_inverse[i, a, b] = noise[o, a, b], noise_inverse[o, a, b]
-        pair_camera[i] = scene.obs_camera[o]
-        for a in range(landmark_xyz.shape[1]):
-            landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
-    cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
-    again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
-    if again[3] < best[3]:
-        best = (again[0], again[1], best[2], again[3], best[4])
+    if map_cost and best[3] > bound:                                 # the estimate's: not the MAP estimate, or no MAP agrees
+        s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
+        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
+        if again[3] < best[3]:
+            best = (again[0], again[1], best[2], again[3], best[4])
     return best
