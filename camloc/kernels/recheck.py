@@ -147,10 +147,7 @@ def rival_margins(cost, chosen):
     return margin
 
 
-# Inlined into the filter's one call site (``filtering.rechecked``), as ``add_leave_one_out_spread``:
-# compiled on its own, each was one more module, its code generated again inside ``filter_poses``'
-# (docs/performance.md, 2026-12-07 (eighteenth session))
-@inlined
+@jit
 def restored_pairs(residuals, H, P, R, R_inverse, null_cost):
     """Which of the pairs the re-check dropped against leaving them unassigned to take back (d,):
     ``camloc.association.restored_pairs``, the subsets in the same order, each's joint cost the
@@ -199,7 +196,7 @@ def positive_definite_3x3(B):
     return B[0, 0] > 0.0 and minor2 > 0.0 and det > 0.0
 
 
-@inlined
+@jit
 def add_leave_one_out_spread(scene, x, P, obs, landmarks, spread, k):
     """spread[k] += ``camloc.ekf.leave_one_out_spread`` of the pairs (obs, landmarks) that updated
     the pose into its posterior (x, P): what the chance that one of them is clutter adds to the
