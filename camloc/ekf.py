@@ -306,9 +306,8 @@ def update(
 
     monotone : the iterate of least MAP cost (with its gain), not the last: Gauss-Newton can
         overshoot where the prior is wide and the measurement bends (no map: ``slam_run``).
-    step_sigma : also stop once a linearization moved the state by less than this many of the
-        prior's standard deviations on every axis (``constants.RAY_STEP_SIGMA``: the beam's
-        update of one ray); 0 (default): only where the step changes by less than ``CONVERGED``.
+    step_sigma : also stop once a step moved the state by less than this many prior standard
+        deviations on every axis (``constants.RAY_STEP_SIGMA``: the beam's update of one ray).
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
@@ -331,9 +330,8 @@ def update(
     if start is not None and iterations >= 2:
         x_i, delta, last = start, difference(start, x), None
     cost_of = lambda x_k, r, g, y: _iterate_cost(x_k, r, g, y, x, P, z, R, measure, difference, R_inverse, columns)  # noqa: E731
-    negligible = step_sigma * step_sigma * np.diagonal(P)          # a squared step below it on every axis stops
     x_i, gain, last, kept = _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations,
-                                     cost_of if monotone else None, negligible)
+                                     cost_of if monotone else None, step_sigma * step_sigma * np.diagonal(P))
     cost = float("nan")
     if map_cost or monotone:
         cost = cost_of(x_i, None, gain, last)

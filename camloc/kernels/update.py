@@ -406,8 +406,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     linearize first at start (a state near the MAP estimate, where the prior is too far for
     Gauss-Newton). ``map_cost``: compute the MAP cost at x+ (one more prediction and a
     factorization of P); without it, NaN (the beam's scratch updates never read it).
-    ``step_sigma``: also stop once a linearization moved the state by less than this many of the
-    prior's standard deviations on every axis (``constants.RAY_STEP_SIGMA``; 0: never).
+    ``step_sigma``: also stop once a step moved the state by less than this many prior sigmas (``ekf.update``'s).
 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+ (or NaN), y (p, 3) the innovation
     at the prior)."""
@@ -464,10 +463,9 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         change = 0.0
         negligible = True                                            # against the prior's sigma (``ekf._iterate``)
         for b in range(n):
-            moved_b = step[b] - delta[b]
+            moved_b, delta[b] = step[b] - delta[b], step[b]
             change = max(change, abs(moved_b))
             negligible = negligible and moved_b * moved_b < step_sigma * step_sigma * P[b, b]
-            delta[b] = step[b]
         if change < CONVERGED or negligible:
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
