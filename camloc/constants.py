@@ -93,7 +93,7 @@ CONVERGED = 1e-6
 # less than this many of its prior's standard deviations on every axis, the iterated EKF's usual
 # rule in the prior's metric: Gauss-Newton there contracts about tenfold a step, so the next
 # linearization would move it by about a tenth of that (on the 20k pixel world, where the second
-# moved it less than 3e-2 prior sigma, the third moved it less than 1e-3 in 94% and never 3e-2),
+# moved it less than 3e-2 prior sigma, the third moved it less than 1e-3 in 98% and never 1e-2),
 # far below the 0.3 sigma at which the beam merges hypotheses. The filter's own update and the
 # beam's stacked and depth updates keep ``CONVERGED`` alone. Measured: docs/performance.md,
 # 2026-12-07 (eighteenth session, pixel-speed4).
