@@ -54,7 +54,10 @@ root_options: set = set()     # ids of the options after_clear left (a partial t
 
 
 def bucket(moved: float) -> str:
-    return "<1e-4" if moved < 1e-4 else "<1e-3" if moved < 1e-3 else "<1e-2" if moved < 1e-2 else ">=1e-2"
+    for bound in ("1e-4", "1e-3", "1e-2", "3e-2", "1e-1", "3e-1"):
+        if moved < float(bound):
+            return f"<{bound}"
+    return ">=3e-1"
 
 
 def counted_update(original):
@@ -75,6 +78,8 @@ def counted_update(original):
             counts[f"{who} last linearization moved {bucket(float(last.max()))} sigma"] += 1
             second = np.abs(np.angle(np.exp(1j * (seen[1] - seen[0])))) / np.sqrt(np.diagonal(P))
             counts[f"{who} second linearization moved {bucket(float(second.max()))} prior sigma"] += 1
+            third = np.abs(np.angle(np.exp(1j * (result.state - seen[1])))) / np.sqrt(np.diagonal(P))
+            counts[f"{who} second moved {bucket(float(second.max()))}, the third {bucket(float(third.max()))} prior sigma"] += 1
         linearizations = 1 + len(seen) - (1 if options.get("map_cost") else 0)
         counts[f"{who} updates"] += 1
         counts[f"{who} linearizations"] += linearizations

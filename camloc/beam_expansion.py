@@ -13,6 +13,7 @@ import numpy as np
 
 from camloc import beam_chain, ekf, measurement
 from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothesis, Partial, PartialPruning
+from camloc.constants import RAY_STEP_SIGMA
 from camloc.miss_term import miss_charge
 from camloc.pair_options import PairGating, PairOptions, member
 from camloc.sparse_poses import copy_sigma
@@ -223,8 +224,11 @@ class PoseExpansion:
         """(x, P) updated with observation o paired with its option j; ``before``: the pairs x has,
         its chain checked against ``chain_root`` (``beam_chain.checked``)."""
         self.statistics.children_settled += 1
+        # a ray's iterations also stop once a step is negligible against the prior's sigma (``RAY_STEP_SIGMA``)
+        ray = bool(measurement.is_ray(self.ctx.dataset.obs_kind[o]))
         result = self.ctx.updated(x, P, np.array([o]), options.landmarks[j : j + 1],
-                                  at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True)
+                                  at_prior=(options.z_hat[j : j + 1], options.H[j : j + 1]), for_association=True,
+                                  step_sigma=RAY_STEP_SIGMA if ray else 0.0)
         return beam_chain.checked(self.ctx, result.state, result.cov, chain_root, before + ((o, int(options.landmarks[j])),))
 
     def prune(self, children: list, hypothesis: Callable = lambda c: c, width: Optional[int] = None,

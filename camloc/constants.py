@@ -88,6 +88,16 @@ AGREEMENT_DEPTH_FRACTION = 0.1
 
 # Iterated updates stop when the correction changes by less than this (metres / radians).
 CONVERGED = 1e-6
+# The beam's update of a branched child's one ray (a pixel pair: ``kernels.beam.settle``,
+# ``beam_expansion.PoseExpansion.paired_state``) also stops once a linearization moved the state by
+# less than this many of its prior's standard deviations on every axis, the iterated EKF's usual
+# rule in the prior's metric: Gauss-Newton there contracts about tenfold a step, so the next
+# linearization would move it by about a tenth of that (on the 20k pixel world, where the second
+# moved it less than 3e-2 prior sigma, the third moved it less than 1e-3 in 98% and never 1e-2),
+# far below the 0.3 sigma at which the beam merges hypotheses. The filter's own update and the
+# beam's stacked and depth updates keep ``CONVERGED`` alone. Measured: docs/performance.md,
+# 2026-12-07 (eighteenth session, pixel-speed4).
+RAY_STEP_SIGMA = 0.03
 
 # The most linearizations one update may take: the --iterations setting's upper limit, and the damped
 # Gauss-Newton's of an update whose MAP cost is beyond its chi^2 bound (ekf.damped_gauss_newton,

@@ -276,6 +276,7 @@ def update(
     R_inverse: np.ndarray | None = None,
     columns: np.ndarray | None = None,
     monotone: bool = False,
+    step_sigma: float = 0.0,
 ) -> UpdateResult:
     """Iterated EKF update (Gauss-Newton on the MAP cost); ``iterations=1`` is the plain EKF.
 
@@ -306,6 +307,8 @@ def update(
 
     monotone : the iterate of least MAP cost (with its gain), not the last: Gauss-Newton can
         overshoot where the prior is wide and the measurement bends (no map: ``slam_run``).
+    step_sigma : also stop once a step moved the state by less than this many prior standard
+        deviations on every axis (``constants.RAY_STEP_SIGMA``: the beam's update of one ray).
 
     Each iteration ``x_{i+1} = x [+] K_i (z - h(x_i) + H_i (x_i [-] x))`` with ``K_i`` at ``x_i``
     (Bell & Cathey 1993); the covariance uses the last linearization, in Joseph form.
@@ -329,7 +332,7 @@ def update(
         x_i, delta, last = start, difference(start, x), None
     cost_of = lambda x_k, r, g, y: _iterate_cost(x_k, r, g, y, x, P, z, R, measure, difference, R_inverse, columns)  # noqa: E731
     x_i, gain, last, kept = _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations,
-                                     cost_of if monotone else None)
+                                     cost_of if monotone else None, step_sigma * step_sigma * np.diagonal(P))
     cost = float("nan")
     if map_cost or monotone:
         cost = cost_of(x_i, None, gain, last)
@@ -380,11 +383,12 @@ def damped_gauss_newton(
     return x_i
 
 
-def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations, cost_of):
+def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at, restrict, iterations, cost_of, negligible):
     """``update``'s Gauss-Newton iterations after its first step (from x_i, the correction delta
     of innovation ``last`` by ``gain``): the last iterate, its gain and innovation, and the
     cheapest iterate before it as (iterate, gain, innovation, MAP cost) where ``cost_of`` (x_k,
-    its residual, its gain and innovation -> its MAP cost: ``monotone``) is given."""
+    its residual, its gain and innovation -> its MAP cost: ``monotone``) is given. They also stop
+    where a step's change squared is below ``negligible`` (n,) on every axis (``step_sigma``)."""
     kept = (x_i, gain, last, np.inf)
     for _ in range(iterations - 1):
         z_hat_i, H_i = measure(x_i)
@@ -396,7 +400,8 @@ def _iterate(x, x_i, delta, last, gain, z, measure, retract, difference, gain_at
         last = z - z_hat_i + H_i @ restrict(difference(x_i, x))
         step = gain.correction(last)
         x_i = retract(x, step)
-        if np.abs(step - delta).max() < CONVERGED:
+        moved = step - delta
+        if np.abs(moved).max() < CONVERGED or np.all(moved * moved < negligible):
             break  # the linearization no longer moves: further iterations would repeat this one
         delta = step
     return x_i, gain, last, kept

@@ -150,7 +150,7 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
         i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
         seeded = kb.gather(h, np.array([0]), 1 + obs.size)
         seeded[0][0], seeded[1][0] = updated(model, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
-                                             pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), False)[:2]
+                                             pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), False, 0.0)[:2]
         seeded[2][0] += pair_cost[seed]
         seeded[7][0, 0] = (obs[i], lm)
         seeded[6][0] = 1

@@ -58,7 +58,7 @@ class StackedUpdate:
     def updated(
         self, x: np.ndarray, P: np.ndarray, obs: np.ndarray, landmarks: np.ndarray, *, map_cost: bool = False,
         at_prior: tuple[np.ndarray, np.ndarray] | None = None, for_association: bool = False,
-        start: Optional[np.ndarray] = None,
+        start: Optional[np.ndarray] = None, step_sigma: float = 0.0,
     ) -> ekf.UpdateResult:
         """The stacked (iterated) EKF update of (x, P) with the given pairs; ``at_prior``: their
         predictions (p, 3) and Jacobians (p, 3, n) at x, when the caller has them. With
@@ -67,7 +67,8 @@ class StackedUpdate:
         ``start``: a state near the posterior, when the caller knows one; the iterations also run
         from it, and the posterior with the lower MAP cost is kept. A posterior whose MAP cost is
         beyond the 99.9% chi^2 bound of its degrees of freedom is sought again from the prior (``damped``)
-        where ``map_cost`` is asked for (the estimate's update; the beam's scratch updates as before)."""
+        where ``map_cost`` is asked for (the estimate's update; the beam's scratch updates as before).
+        ``step_sigma``: ``ekf.update``'s (the beam's update of one ray: ``constants.RAY_STEP_SIGMA``)."""
         z = self.dataset.obs_z[obs].reshape(-1)
         if for_association:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
@@ -76,7 +77,7 @@ class StackedUpdate:
         groups, measure = self.measurement_function(obs, landmarks)
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
         options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.iterations,
-                       at_prior=prior, R_inverse=R_inverse)
+                       at_prior=prior, R_inverse=R_inverse, step_sigma=step_sigma)
         result = ekf.update(x, P, z, R, measure, map_cost=map_cost, **options)
         if self.iterations < 2:
             return result

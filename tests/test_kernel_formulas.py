@@ -606,7 +606,7 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
     ref = ekf.update(x, P, z.reshape(-1), R, measure, retract=euler.retract, difference=euler.difference, iterations=4,
                      map_cost=True, R_inverse=_inverse(R))
     x_post, P_post, nis, cost, y = update.iterated_update(x, P, z, R, _inverse(R), landmarks, pair_camera, camera_R, camera_t,
-                                                          camera_K, 4, z_hat, H, np.empty(0), True)
+                                                          camera_K, 4, z_hat, H, np.empty(0), True, 0.0)
     np.testing.assert_allclose(y.reshape(-1), ref.innovation, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(x_post, ref.state, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(P_post, ref.cov, rtol=RTOL, atol=1e-16)
@@ -614,6 +614,45 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
     assert np.max(np.abs(rotation.difference(x_post, x))) > 1e-3    # the update moved the state
     if across_the_wrap:
         assert x_post[5] < 0.0 < x[5]                                # its correction wrapped
+
+
+@pytest.mark.parametrize("step_sigma", [0.03, 1e3])
+def test_iterated_update_stops_where_a_step_is_negligible_against_the_prior_s_sigma(rng, step_sigma):
+    # the beam's update of one ray (constants.RAY_STEP_SIGMA): both engines stop once a
+    # linearization moved the state by less than step_sigma prior standard deviations on every axis;
+    # a huge one stops after the second linearization (its first step is the plain EKF's)
+    camera_R, camera_t, camera_K, mounts = _two_cameras()
+    truth = _random_state(rng)
+    x = rotation.retract(truth, rng.normal(0, 0.05, 6))
+    landmarks = geometry.transform_points(geometry.pose_from_euler(truth) @ mounts[0], np.array([[0.3, -0.2, 1.5]]))
+    pair_camera = np.zeros(1, np.int64)
+    R = _pixel_noise(rng, 1)
+    moves = []
+
+    def measure(state):
+        moves.append(state)
+        z_hat, H = models.observe(state, mounts[0], tuple(camera_K[0][:4]), landmarks)
+        return z_hat.reshape(-1), H.reshape(-1, 6)
+
+    z = measure(truth)[0].reshape(1, 3) + rng.normal(0, 1, (1, 3)) * [2.0, 2.0, 0.0]
+    P = _random_spd(rng, 6, 0.05)
+    z_hat, H = camera.observe_pairs(x, landmarks, pair_camera, camera_R, camera_t, camera_K)
+    euler = filters.EulerFilter()
+    moves.clear()
+    options = dict(retract=euler.retract, difference=euler.difference, R_inverse=_inverse(R))
+    ref = ekf.update(x, P, z.reshape(-1), R, measure, iterations=6, step_sigma=step_sigma, **options)
+    x_post, P_post = update.iterated_update(x, P, z, R, _inverse(R), landmarks, pair_camera, camera_R, camera_t, camera_K, 6,
+                                            z_hat, H, np.empty(0), False, step_sigma)[:2]
+    np.testing.assert_allclose(x_post, ref.state, rtol=RTOL, atol=1e-12)
+    np.testing.assert_allclose(P_post, ref.cov, rtol=RTOL, atol=1e-16)
+    sigma = np.sqrt(np.diagonal(P))
+    iterates = moves[1:] + [ref.state]                               # moves[0]: the prior's linearization
+    changes = [np.abs(rotation.difference(b, a)) / sigma for a, b in zip(iterates, iterates[1:])]
+    assert 2 <= len(moves) < 6                                       # linearizations: stopped before the last allowed
+    assert changes[-1].max() < step_sigma * (1 + 1e-9) and all(c.max() >= step_sigma * (1 - 1e-9) for c in changes[:-1])
+    if step_sigma > 1.0:
+        plain = ekf.update(x, P, z.reshape(-1), R, measure, iterations=2, **options)
+        np.testing.assert_array_equal(ref.state, plain.state)
 
 
 @pytest.mark.parametrize("p", [1, 4])

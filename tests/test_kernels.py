@@ -719,7 +719,7 @@ def test_the_update_reads_the_scene_through_its_pair_model():
     for offset, spread in ((0.01, 0.02), (0.5, 1.0)):   # a prior near the truth, and one far enough to restart
         prior, P = x + offset, np.eye(6) * spread**2
         z_hat, H = _jit.from_python(predict_pairs)(scene, prior, obs, landmarks)
-        args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, np.empty(0), True)
+        args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, np.empty(0), True, 0.0)
         whole, through = update.updated(scene, *args), update.updated(model, *args)
         restarted = whole[2] > scene.nis_bound[scene.obs_dof[obs].sum()]
         assert restarted == (offset > 0.1)
@@ -752,7 +752,7 @@ def test_an_update_without_its_map_cost_keeps_the_same_posterior():
         z_hat, H = _jit.from_python(predict_pairs)(scene, prior, obs, landmarks)
         given = x + 0.005 if start else np.empty(0)
         args = (settings.iterations, prior, P, obs, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse, given)
-        costed, costless = update.updated(model, *args, True), update.updated(model, *args, False)
+        costed, costless = update.updated(model, *args, True, 0.0), update.updated(model, *args, False, 0.0)
         bound = scene.nis_bound[scene.obs_dof[obs].sum()]
         restarted = start or costed[2] > bound
         assert restarted == (offset > 0.1 or start)

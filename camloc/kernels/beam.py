@@ -18,7 +18,7 @@ import numpy as np
 
 from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
 from camloc.constants import (
-    MISS_COST, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
+    MISS_COST, RAY_STEP_SIGMA, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
 from camloc.kernels.beam_chain import checked, wide_for_rays
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, in_front_of, predict_candidates, robot_frame
@@ -443,7 +443,7 @@ def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
     x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
-                           no_start, FALSE)[:2]
+                           no_start, FALSE, 0.0)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
     child[2][h] += innovation_cost(P, Hc, R, R_inverse, y)
     for t in range(n_taken):
@@ -499,8 +499,10 @@ def settle(settings, X, P, c, parent_X, parent_P, pending, model, chain):
     if not waiting[c]:
         return
     p = source[c]
+    # a ray's iterations also stop once a step is negligible against the prior's sigma (``RAY_STEP_SIGMA``)
+    step_sigma = RAY_STEP_SIGMA if model.camera_K[model.obs_camera[obs[c]], 4] == PIXEL else 0.0
     x, P_new = updated(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
-                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE)[:2]
+                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE, step_sigma)[:2]
     r = chain[2][c]                              # the tuple read entry by entry: bound whole, its 7 arrays counted
     if chain[6][r] and chain[1][c] - chain[5][r] >= 2:
         x, P_new = checked(model, settings.iterations, x, P_new, chain[3][r], chain[4][r], chain[0][c], chain[5][r], chain[1][c])

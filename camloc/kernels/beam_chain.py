@@ -91,7 +91,7 @@ def checked(model, iterations, x, P, root_x, root_P, pairs, first, count):
     z_hat, H = observe_pairs(root_x, landmark_xyz, pair_camera, model.camera_R, model.camera_t, model.camera_K)
     try:
         again = updated(model, iterations, root_x, root_P, obs, landmarks, z_hat, H, model.R_assoc, model.R_assoc_inverse,
-                        np.empty(0), FALSE)
+                        np.empty(0), FALSE, 0.0)
     except Exception:  # Gauss-Newton from a wide prior run off (behind a camera): the chain's
         return x, P
     if restart_cost(model, root_x, root_P, z, R_inverse, landmark_xyz, pair_camera, again[0]) < cost:

@@ -399,13 +399,14 @@ def prior_quadratic(P, d, M, pivots, b):
 
 @jit
 def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                    iterations, z_hat, H, start, map_cost):
+                    iterations, z_hat, H, start, map_cost, step_sigma):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
     predictions at x. With a ``start`` (n,) (none: size 0) the iterations after the first
     linearize first at start (a state near the MAP estimate, where the prior is too far for
     Gauss-Newton). ``map_cost``: compute the MAP cost at x+ (one more prediction and a
     factorization of P); without it, NaN (the beam's scratch updates never read it).
+    ``step_sigma``: also stop once a step moved the state by less than this many prior sigmas (``ekf.update``'s).
 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+ (or NaN), y (p, 3) the innovation
     at the prior)."""
@@ -460,10 +461,12 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         H_last = H_i
         retract_into(x, step, x_i)
         change = 0.0
+        negligible = True                                            # against the prior's sigma (``ekf._iterate``)
         for b in range(n):
-            change = max(change, abs(step[b] - delta[b]))
-            delta[b] = step[b]
-        if change < CONVERGED:
+            moved_b, delta[b] = step[b] - delta[b], step[b]
+            change = max(change, abs(moved_b))
+            negligible = negligible and moved_b * moved_b < step_sigma * step_sigma * P[b, b]
+        if change < CONVERGED or negligible:
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
     if few:
@@ -609,7 +612,7 @@ def point_step(scene, x, P, obs, z_hat, H):
 
 
 @entry
-def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, map_cost):
+def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, map_cost, step_sigma):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
     predictions at x are z_hat, H, each weighed by its observation's row of ``noise`` (K, 3, 3)
     and ``noise_inverse``: the file's (``scene.R_file``) for the estimate, the floored noise
@@ -624,6 +627,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     runs off). ``map_cost``: return the kept posterior's MAP cost
     (the filter's statistic); without it that is NaN where no restart ran (the beam's scratch
     updates, which read only the state: a prediction and a factorization saved each).
+    ``step_sigma``: ``iterated_update``'s (0 but for the beam's one-ray updates).
     Returns as ``iterated_update``."""
     p = obs.size
     z = np.empty((p, 3))
@@ -643,7 +647,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = np.empty(0)
     costed = map_cost or (start.size > 0 and iterations >= 2)         # a start restarts: compared below
-    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed)
+    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed, step_sigma)
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
@@ -655,12 +659,12 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > bound else (start, none)
     for s in starts:
         if s.size:
-            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE, step_sigma)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     if map_cost and best[3] > bound:                                 # the estimate's: not the MAP estimate, or no MAP agrees
         s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
-        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE)
+        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE, step_sigma)
         if again[3] < best[3]:
             best = (again[0], again[1], best[2], again[3], best[4])
     return best
