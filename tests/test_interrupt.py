@@ -58,7 +58,9 @@ def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
         interrupted += 1
         assert process.returncode == 130, stderr.decode()
         assert stderr.decode() == "interrupted\n" and stdout == b"", stderr.decode()
-        assert not run_dir.exists()
+        # whole or not at all: a Ctrl-C that lands just after the folder's rename leaves it whole
+        # (CI, 2026-12-07, once at 2.4 s on a 6,000-pose run)
+        assert not run_dir.exists() or (run_dir / "summary.json").is_file()
         assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temporary sibling
         shutil.rmtree(run_dir, ignore_errors=True)
     assert interrupted >= 3  # the delays hit the run, not only its end
