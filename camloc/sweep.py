@@ -724,10 +724,7 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
     except BaseException:
         # Interrupted, or stopped by the caller: the running cells' rows would not be kept, so
         # their workers are stopped rather than waited for; pending cells are dropped.
-        # the wake-up of a manager thread that has just ended writes to a pipe it closed
-        # ("OSError: Bad file descriptor", which then stood in for the Ctrl-C: CI, 2026-12-07)
-        with contextlib.suppress(OSError):
-            pool.shutdown(wait=False, cancel_futures=True)
+        pool.shutdown(wait=False, cancel_futures=True)
         _stop(started)
         _forget_manager(pool)
         raise
