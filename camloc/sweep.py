@@ -724,26 +724,26 @@ def local_results(cells: list[Cell], workers: Optional[int]) -> Iterator[tuple[C
     except BaseException:
         # Interrupted, or stopped by the caller: the running cells' rows would not be kept, so
         # their workers are stopped rather than waited for; pending cells are dropped.
+        _forget_manager(pool)
         pool.shutdown(wait=False, cancel_futures=True)
         _stop(started)
-        _forget_manager(pool)
         raise
     pool.shutdown(wait=True)
 
 
 def _forget_manager(pool) -> None:
-    """After the workers were stopped: wait (a little) for the pool's manager thread to end, and
-    take it out of the table ``concurrent.futures`` wakes at the interpreter's exit. That wake-up
-    (Python 3.11's ``_python_exit``, outside the pool's lock) raced the manager thread closing its
-    pipe as it ended: a Ctrl-C 1.5 s into a sweep printed "Exception ignored ... OSError: Bad file
-    descriptor" with its traceback at exit (CI, 2026-12-06, once in many runs)."""
+    """Take the pool's manager thread out of the table ``concurrent.futures`` wakes at the
+    interpreter's exit, before the pool is shut down without waiting. That wake-up (Python 3.11's
+    ``_python_exit``) writes to the thread's pipe outside the pool's lock, and raced the thread
+    closing it as it ended: a Ctrl-C 1.5 s into a sweep printed "Exception ignored ... OSError: Bad
+    file descriptor" with its traceback at exit (CI, 2 runs in 6, 2026-12-06/07). The pool's own
+    ``shutdown`` wakes the thread under the lock it closes the pipe under; the thread is not a
+    daemon, so the exit still waits for it, and it ends once the stopped workers' sentinels fire.
+    (Read before ``shutdown``: ``shutdown(wait=False)`` drops the pool's reference to it.)"""
     from concurrent.futures import process
 
     manager = getattr(pool, "_executor_manager_thread", None)
-    if manager is None:
-        return
-    manager.join(timeout=5.0)
-    if not manager.is_alive():
+    if manager is not None:
         getattr(process, "_threads_wakeups", {}).pop(manager, None)
 
 

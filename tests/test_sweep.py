@@ -19,8 +19,8 @@ from camloc.cli.app import app
 from camloc.errors import CamlocError, ConfigError
 from camloc.g2o import write_g2o
 from camloc.simulate import SimulationConfig, simulate
-from camloc.sweep import (RESULT_COLUMNS, expand, parse_spec, prepare_folder, read_spec, run_cell, run_sweep,
-                          spec_changes)
+from camloc.sweep import (RESULT_COLUMNS, expand, local_results, parse_spec, prepare_folder, read_spec, run_cell,
+                          run_sweep, spec_changes)
 
 # Tiny worlds: the point is the machinery, not the localizer.
 SPEC = """
@@ -282,6 +282,26 @@ def test_resume_after_an_interrupted_sweep_runs_only_the_missing_cells(tmp_path,
     assert (outcome.resumed, outcome.ran, outcome.cells) == (3, 5, 8)
     # the resumed folder holds the rows an uninterrupted sweep gives
     assert without_seconds(rows_of(out)) == without_seconds(rows_of(local_sweep))
+
+
+def test_a_sweep_stopped_midway_leaves_the_exit_no_pool_thread_to_wake(spec_file):
+    """The interpreter's exit hook of ``concurrent.futures`` writes to each live pool's wake-up pipe
+    outside the pool's lock; a sweep stopped midway shuts its pool down without waiting, so the
+    hook raced the manager thread closing that pipe ("OSError: Bad file descriptor" after a
+    Ctrl-C, CI 2026-12-06/07). Stopped, the pool's manager thread is out of the hook's table, and
+    it still ends."""
+    from concurrent.futures import process
+
+    cells = expand(read_spec(spec_file))
+    before = set(process._threads_wakeups)
+    results = local_results(cells, 2)
+    next(results)  # one finished cell: the pool and its manager thread are running
+    managers = [thread for thread in process._threads_wakeups if thread not in before]
+    assert len(managers) == 1
+    results.close()  # as a Ctrl-C in the caller's loop does
+    assert managers[0] not in process._threads_wakeups
+    managers[0].join(timeout=30)
+    assert not managers[0].is_alive()
 
 
 def test_a_damaged_runs_file_is_named_with_its_line(tmp_path, spec_file):
