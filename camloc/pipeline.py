@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Callable, ContextManager, Mapping, Optional
 
 from camloc.bundled import bundled_dataset
 from camloc.diagnostics import rays_only, run_warnings
@@ -32,13 +33,15 @@ def run_dataset(
     on_progress: Optional[ProgressCallback] = None,
     on_compile: Optional[Callable[[], None]] = None,
     on_background_compile: Optional[Callable[[bool], None]] = None,
+    while_saving: Callable[[], ContextManager] = contextlib.nullcontext,
 ) -> tuple[RunResult, Path | None]:
     """Read, localize, evaluate and (when ``output_dir`` is given) save atomically.
 
     This is the one place that decides what happens to an existing output folder: it is refused
     before the run starts (so that a long run is not refused at its end) unless it is empty, or
     a run folder and ``force`` (``results.check_run_folder``); ``results.save_run`` then replaces
-    it whole, keeping the files that are not camloc's.
+    it whole, keeping the files that are not camloc's. The save runs inside ``while_saving()``
+    (the command line's: a Ctrl-C there waits for the folder to be whole, then changes nothing).
 
     Returns
     -------
@@ -78,7 +81,8 @@ def run_dataset(
     result = dataclasses.replace(result, summary=run_summary(summary, evaluate(result)))
     if output_dir is None:
         return result, None
-    save_run(output_dir, result, force=force)
+    with while_saving():
+        save_run(output_dir, result, force=force)
     return result, Path(output_dir)
 
 

@@ -4,12 +4,13 @@ settled (``command_settled``)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 import threading
 import time
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional
 
 from camloc.errors import caused_by_interrupt  # noqa: F401 (the commands import it from here too)
 
@@ -37,6 +38,26 @@ def command_settled() -> None:
     the process silently (status -2) after a complete run."""
     if _console_script:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def outputs_being_saved() -> Iterator[None]:
+    """The console script saves a command's outputs (``pipeline.run_dataset``'s ``while_saving``)
+    with Ctrl-C ignored, and a save that ends settles the command (``command_settled``): a Ctrl-C
+    there lets the outputs be written whole and the command say it finished. Before, one that
+    landed just after the run folder's rename said "interrupted" over a whole folder (CI,
+    2026-12-07). A save takes about a second for 20,000 poses. A save that fails restores the
+    handler and raises its own error."""
+    if not _console_script or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    except BaseException:
+        signal.signal(signal.SIGINT, previous)
+        raise
+    command_settled()
 
 
 def run_console_script(load_app: Callable[[], Callable[[], None]]) -> None:

@@ -264,6 +264,7 @@ def run(
     dataset_path = resolve_dataset(dataset) if dataset is not None else DEFAULT_DATASET
     output_dir = output if output is not None else default_output_dir(dataset_path)
 
+    from camloc.cli.interrupts import outputs_being_saved
     from camloc.cli.progress import pose_progress
 
     import warnings
@@ -278,7 +279,8 @@ def run(
         result, written = run_dataset(dataset_path, config, output_dir, force=force, on_progress=on_progress,
                                       on_compile=None if quiet or json_output else _say_compiling,
                                       on_background_compile=_say_compiling_in_background if not (quiet or json_output)
-                                      else lambda started: None)
+                                      else lambda started: None,
+                                      while_saving=outputs_being_saved)
 
     if echo_json(result.summary, enabled=json_output):
         return  # the warnings are the object's "warnings"

@@ -58,9 +58,9 @@ def test_ctrl_c_anywhere_in_a_run_is_one_line_and_exit_130(tmp_path):
         interrupted += 1
         assert process.returncode == 130, stderr.decode()
         assert stderr.decode() == "interrupted\n" and stdout == b"", stderr.decode()
-        # whole or not at all: a Ctrl-C that lands just after the folder's rename leaves it whole
-        # (CI, 2026-12-07, once at 2.4 s on a 6,000-pose run)
-        assert not run_dir.exists() or (run_dir / "summary.json").is_file()
+        # not at all: a Ctrl-C that lands in the folder's save lets the save end and the run
+        # finish (before, one just after the rename said "interrupted" over a whole folder)
+        assert not run_dir.exists()
         assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temporary sibling
         shutil.rmtree(run_dir, ignore_errors=True)
     assert interrupted >= 3  # the delays hit the run, not only its end
@@ -122,6 +122,22 @@ def test_ctrl_c_outside_numba_is_raised_at_once(console_script_handler):
         os.kill(os.getpid(), signal.SIGINT)
         _busy(2.0)
     assert time.monotonic() - started < 0.5
+
+
+def test_ctrl_c_while_the_outputs_are_saved_lets_the_save_end_and_the_command_finish(console_script_handler, monkeypatch):
+    """A run folder is renamed into place at the end of its save: a Ctrl-C after the rename said
+    "interrupted" over a whole folder. Inside the save it changes nothing (the command then says
+    it finished); a save that fails gives its own error and the handler back."""
+    monkeypatch.setattr(console_script_handler, "_console_script", True)
+    with console_script_handler.outputs_being_saved():
+        os.kill(os.getpid(), signal.SIGINT)
+        _busy(0.2)
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # settled: the command is done
+    signal.signal(signal.SIGINT, console_script_handler._interrupt_outside_kernel_loads)
+    with pytest.raises(OSError, match="disk full"):
+        with console_script_handler.outputs_being_saved():
+            raise OSError("disk full")
+    assert signal.getsignal(signal.SIGINT) is console_script_handler._interrupt_outside_kernel_loads
 
 
 # 32 cells: about 10 s on two workers of the 12-ms EPYC, quiet, so that every delay below lands
