@@ -18,6 +18,20 @@ from camloc.sensors import intrinsics_by_row, observed_as_rig
 from camloc.tails import chi2_quantile
 
 
+class PairMeasurement:
+    """A pose's pairs' measurement function (``ekf.MeasurementFunction``: state -> (z_hat, H)) and
+    whether a state is feasible for them: every landmark in front of the camera that saw it
+    (``measurement.in_front``), without which the MAP cost is infinite (``ekf.posterior_cost``)."""
+
+    __slots__ = ("measure", "feasible")
+
+    def __init__(self, measure, feasible):
+        self.measure, self.feasible = measure, feasible
+
+    def __call__(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.measure(state)
+
+
 class StackedUpdate:
     """The update of ``dataset``'s pairs under ``filter`` (``camloc.filters``) with ``iterations``
     linearizations; ``cameras`` and ``obs_sensor`` by sensor (``sensors.sensors_of``), ``noise``
@@ -149,7 +163,12 @@ class StackedUpdate:
                 z_hat[tag_rows], H[tag_rows] = tags.aligned(z_measured[tag_rows], geometry.so3_exp(z_hat[tag_rows]), H[tag_rows])
             return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
 
-        return groups, measure
+        def feasible(state: np.ndarray) -> bool:
+            T_world_robot = self.filter.pose(state)
+            return all(bool(measurement.in_front(T_world_robot @ camera.T_robot_camera, camera.kind, landmark_xyz[mask]).all())
+                       for camera, mask in groups)
+
+        return groups, PairMeasurement(measure, feasible)
 
     def rig(self, cameras: np.ndarray, groups: list, landmark_xyz: np.ndarray) -> Optional[tuple]:
         """(order, mounts, intrinsics, landmarks, sizes, kind): the pairs of several cameras of

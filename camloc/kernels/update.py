@@ -29,7 +29,7 @@ import numpy as np
 
 from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS
 from camloc.kernels._jit import TRUE, entry, inlined, jit
-from camloc.kernels.camera import back_project, observe_pairs_into
+from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
@@ -485,10 +485,17 @@ def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_
                   z_hat, H, r, d_position, frame, moved, M, pivots):
     """The MAP cost at x_post of the update of prior (x, P) with the pairs of ``iterated_update``
     (its arguments of the same names): the prior's quadratic of x_post [-] x plus each pair's
-    y' R^-1 y at x_post. The rest is scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position,
-    frame (``observe_pairs_into``'s), moved (n,), M (n, n), pivots (n,)."""
+    y' R^-1 y at x_post; infinite where x_post puts a landmark behind the camera that saw it
+    (``camera.in_front_of``; the numpy twin: ``ekf.posterior_cost``, which says why). The rest is
+    scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position, frame (``observe_pairs_into``'s),
+    moved (n,), M (n, n), pivots (n,)."""
     n = x.shape[0]
     observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
+    R, t = frame[0], frame[2]                                        # the robot's, as observe_pairs_into left them
+    for i in range(z.shape[0]):
+        c = pair_camera[i]
+        if not in_front_of(R, t, camera_R[c], camera_t[c], camera_K[c, 4], landmark_xyz, i):
+            return np.inf
     for i in range(z.shape[0]):
         for a in range(3):
             r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
