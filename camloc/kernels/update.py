@@ -29,7 +29,7 @@ import numpy as np
 
 from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS
 from camloc.kernels._jit import TRUE, entry, inlined, jit
-from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into
+from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into, robot_frame_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
@@ -485,22 +485,33 @@ def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_
                   z_hat, H, r, d_position, frame, moved, M, pivots):
     """The MAP cost at x_post of the update of prior (x, P) with the pairs of ``iterated_update``
     (its arguments of the same names): the prior's quadratic of x_post [-] x plus each pair's
-    y' R^-1 y at x_post; infinite where x_post puts a landmark behind the camera that saw it
-    (``camera.in_front_of``; the numpy twin: ``ekf.posterior_cost``, which says why). The rest is
-    scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position, frame (``observe_pairs_into``'s),
-    moved (n,), M (n, n), pivots (n,)."""
+    y' R^-1 y at x_post; infinite where x_post puts a landmark behind the camera that saw it and
+    the prior x does not (``all_in_front``; the numpy twin: ``ekf.posterior_cost``, which says
+    why). The rest is scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position, frame
+    (``observe_pairs_into``'s), moved (n,), M (n, n), pivots (n,)."""
     n = x.shape[0]
-    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
-    R, t = frame[0], frame[2]                                        # the robot's, as observe_pairs_into left them
-    for i in range(z.shape[0]):
-        c = pair_camera[i]
-        if not in_front_of(R, t, camera_R[c], camera_t[c], camera_K[c, 4], landmark_xyz, i):
+    if not all_in_front(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
+        if all_in_front(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
             return np.inf
+    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
     for i in range(z.shape[0]):
         for a in range(3):
             r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
     difference_into(x_post, x, moved)
     return prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
+
+
+@jit
+def all_in_front(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
+    """Whether state x puts every pair's landmark in front of the camera that saw it
+    (``camera.in_front_of``); frame: ``robot_frame_into``'s scratch."""
+    robot_frame_into(x, frame)
+    R, t = frame[0], frame[2]
+    for i in range(landmark_xyz.shape[0]):
+        c = pair_camera[i]
+        if not in_front_of(R, t, camera_R[c], camera_t[c], camera_K[c, 4], landmark_xyz, i):
+            return False
+    return True
 
 
 @jit
