@@ -119,10 +119,7 @@ class AssociationScene:
         candidate (its view is widened for where the camera may be) and judges it again at every
         state. The kernels' twin is ``kernels.camera.in_front_of``."""
         camera = self.cameras[int(camera_id)]
-        if camera.kind in measurement.PLANAR_KINDS:
-            return np.ones(landmarks.size, dtype=bool)
-        T_world_camera = self.filter.pose(x) @ camera.T_robot_camera
-        return (self.dataset.landmark_xyz[landmarks, :3] - T_world_camera[:3, 3]) @ T_world_camera[:3, 2] > 0.0
+        return measurement.in_front(self.filter.pose(x) @ camera.T_robot_camera, camera.kind, self.dataset.landmark_xyz[landmarks])
 
     def ray_rival_margins(self, obs: np.ndarray, cost: np.ndarray, chosen: np.ndarray) -> np.ndarray:
         """``association.rival_margins`` of observations ``obs`` (cost (n, m), chosen (n,)) where they

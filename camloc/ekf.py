@@ -25,6 +25,7 @@ try:  # the gufuncs np.linalg wraps, called directly where their input is known 
 except (ImportError, AttributeError):  # pragma: no cover - a numpy that moved them: its public functions, slower on small matrices
     _umath_linalg = None
 
+# x -> (z_hat (m,), H (m, n)); it may also have ``feasible(x) -> bool`` (``posterior_cost``)
 MeasurementFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 StateDifference = Callable[[np.ndarray, np.ndarray], np.ndarray]
 Retraction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -605,7 +606,15 @@ def posterior_cost(
     """The MAP cost ``d' P^-1 d + r' R^-1 r`` of a posterior x_post: d its correction from the
     prior x, r its residual ``z - h(x_post)`` (see ``UpdateResult.map_cost``); R_inverse: the
     inverses of R's blocks, when known; prior_term: ``d' P^-1 d`` and residual: r, when the caller
-    has them."""
+    has them. Infinite where ``measure`` has a ``feasible(state)`` that says x_post is not while
+    the prior x is: a state that puts a landmark behind the camera that saw it has no likelihood (a
+    pinhole's mirrored projection is no measurement), and Gauss-Newton under a wide prior can reach
+    one whose mirrored pixels fit. A prior that is not feasible itself (its pairs judged at another
+    state) leaves the search no feasible start, and the cost is the plain one (docs/filter.md,
+    "Behind the camera")."""
+    feasible = getattr(measure, "feasible", None)
+    if feasible is not None and not feasible(x_post) and feasible(x):
+        return float("inf")
     if residual is None:
         residual = z - measure(x_post)[0]
     if prior_term is None:

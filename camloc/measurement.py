@@ -117,6 +117,16 @@ def is_planar(kinds: np.ndarray) -> np.ndarray:
     return np.isin(np.asarray(kinds, dtype=np.int64), PLANAR_KINDS)
 
 
+def in_front(T_world_camera: np.ndarray, kind: int, landmark_xyz: np.ndarray) -> np.ndarray:
+    """(m,) bool: which landmarks (m, 3+) lie in front of a sensor of ``kind`` at T_world_camera
+    (its camera-frame depth positive); a planar robot's own sensor sees all around it. The one
+    numpy statement of the rule (``associators.AssociationScene.in_front_of``, the filter's MAP
+    cost: ``stacked_update.PairMeasurement.feasible``); the kernels' is ``kernels.camera.in_front_of``."""
+    if kind in PLANAR_KINDS:
+        return np.ones(landmark_xyz.shape[0], dtype=bool)
+    return (landmark_xyz[:, :3] - T_world_camera[:3, 3]) @ T_world_camera[:3, 2] > 0.0
+
+
 def judged_as_point(kinds: np.ndarray) -> np.ndarray:
     """(K,) bool: which measurements association may also judge as the camera-frame point they
     back-project to (where a wide prior's linearization holds better), and the update may restart

@@ -18,6 +18,20 @@ from camloc.sensors import intrinsics_by_row, observed_as_rig
 from camloc.tails import chi2_quantile
 
 
+class PairMeasurement:
+    """A pose's pairs' measurement function (``ekf.MeasurementFunction``: state -> (z_hat, H)) and
+    whether a state is feasible for them: every landmark in front of the camera that saw it
+    (``measurement.in_front``), without which the MAP cost is infinite (``ekf.posterior_cost``)."""
+
+    __slots__ = ("measure", "feasible")
+
+    def __init__(self, measure, feasible):
+        self.measure, self.feasible = measure, feasible
+
+    def __call__(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.measure(state)
+
+
 class StackedUpdate:
     """The update of ``dataset``'s pairs under ``filter`` (``camloc.filters``) with ``iterations``
     linearizations; ``cameras`` and ``obs_sensor`` by sensor (``sensors.sensors_of``), ``noise``
@@ -60,7 +74,9 @@ class StackedUpdate:
             R, R_inverse = self.association_cov[obs], self.association_info[obs]
         else:  # the blocks of a block-diagonal covariance (ekf.update)
             R, R_inverse = self.dataset.obs_cov[obs], self.dataset.obs_info[obs]
-        groups, measure = self.measurement_function(obs, landmarks)
+        # the estimate's update only rules out states behind a camera: the beam's scratch updates
+        # and chain check read the plain cost (docs/filter.md, "Behind the camera")
+        groups, measure = self.measurement_function(obs, landmarks, in_front=map_cost and not for_association)
         prior = measure(x) if at_prior is None else (at_prior[0].reshape(-1), at_prior[1].reshape(-1, at_prior[1].shape[-1]))
         options = dict(retract=self.filter.retract, difference=self.filter.difference, iterations=self.iterations,
                        at_prior=prior, R_inverse=R_inverse, step_sigma=step_sigma)
@@ -104,11 +120,12 @@ class StackedUpdate:
             return again, again.map_cost
         return best, lowest
 
-    def measurement_function(self, obs: np.ndarray, landmarks: np.ndarray):
+    def measurement_function(self, obs: np.ndarray, landmarks: np.ndarray, in_front: bool = False):
         """(groups, measure): the pairs' sensors ((camera, mask) each) and ``measure(state) ->
         (z_hat (3p,), H (3p, n))``, the pairs' predictions in the layout ``ekf.update`` takes: an
         angle predicted on its measurement's branch, a tag's orientation as ``camloc.tags``
-        aligns it."""
+        aligns it. With ``in_front``, measure is a ``PairMeasurement`` that also says whether a
+        state puts every landmark in front of its camera (the estimate's update)."""
         z = self.dataset.obs_z[obs].reshape(-1)
         cameras = self.obs_sensor[obs]
         if self.single_camera is not None:  # nothing to group (np.unique costs more than the algebra)
@@ -149,7 +166,15 @@ class StackedUpdate:
                 z_hat[tag_rows], H[tag_rows] = tags.aligned(z_measured[tag_rows], geometry.so3_exp(z_hat[tag_rows]), H[tag_rows])
             return z_hat.reshape(-1), H.reshape(-1, H.shape[-1])
 
-        return groups, measure
+        if not in_front:
+            return groups, measure
+
+        def feasible(state: np.ndarray) -> bool:
+            T_world_robot = self.filter.pose(state)
+            return all(bool(measurement.in_front(T_world_robot @ camera.T_robot_camera, camera.kind, landmark_xyz[mask]).all())
+                       for camera, mask in groups)
+
+        return groups, PairMeasurement(measure, feasible)
 
     def rig(self, cameras: np.ndarray, groups: list, landmark_xyz: np.ndarray) -> Optional[tuple]:
         """(order, mounts, intrinsics, landmarks, sizes, kind): the pairs of several cameras of

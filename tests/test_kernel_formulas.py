@@ -606,7 +606,7 @@ def test_iterated_update_is_the_numpy_iterated_update_through_the_camera_model(r
     ref = ekf.update(x, P, z.reshape(-1), R, measure, retract=euler.retract, difference=euler.difference, iterations=4,
                      map_cost=True, R_inverse=_inverse(R))
     x_post, P_post, nis, cost, y = update.iterated_update(x, P, z, R, _inverse(R), landmarks, pair_camera, camera_R, camera_t,
-                                                          camera_K, 4, z_hat, H, np.empty(0), True, 0.0)
+                                                          camera_K, 4, z_hat, H, np.empty(0), True, 0.0, False)
     np.testing.assert_allclose(y.reshape(-1), ref.innovation, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(x_post, ref.state, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(P_post, ref.cov, rtol=RTOL, atol=1e-16)
@@ -642,7 +642,7 @@ def test_iterated_update_stops_where_a_step_is_negligible_against_the_prior_s_si
     options = dict(retract=euler.retract, difference=euler.difference, R_inverse=_inverse(R))
     ref = ekf.update(x, P, z.reshape(-1), R, measure, iterations=6, step_sigma=step_sigma, **options)
     x_post, P_post = update.iterated_update(x, P, z, R, _inverse(R), landmarks, pair_camera, camera_R, camera_t, camera_K, 6,
-                                            z_hat, H, np.empty(0), False, step_sigma)[:2]
+                                            z_hat, H, np.empty(0), False, step_sigma, False)[:2]
     np.testing.assert_allclose(x_post, ref.state, rtol=RTOL, atol=1e-12)
     np.testing.assert_allclose(P_post, ref.cov, rtol=RTOL, atol=1e-16)
     sigma = np.sqrt(np.diagonal(P))

@@ -28,8 +28,8 @@ import math
 import numpy as np
 
 from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS
-from camloc.kernels._jit import TRUE, entry, inlined, jit
-from camloc.kernels.camera import back_project, observe_pairs_into
+from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
+from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into, robot_frame_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
@@ -399,13 +399,13 @@ def prior_quadratic(P, d, M, pivots, b):
 
 @jit
 def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                    iterations, z_hat, H, start, map_cost, step_sigma):
+                    iterations, z_hat, H, start, map_cost, step_sigma, in_front):
     """The iterated EKF update of (x, P) with p pairs: measurements z (p, 3), noise information
     R_inverse (p, 3, 3), landmarks (p, 3) seen by cameras pair_camera (p,); z_hat, H: the
     predictions at x. With a ``start`` (n,) (none: size 0) the iterations after the first
     linearize first at start (a state near the MAP estimate, where the prior is too far for
     Gauss-Newton). ``map_cost``: compute the MAP cost at x+ (one more prediction and a
-    factorization of P); without it, NaN (the beam's scratch updates never read it).
+    factorization of P; ``in_front``: ``map_cost_into``'s); without it, NaN (scratch updates never read it).
     ``step_sigma``: also stop once a step moved the state by less than this many prior sigmas (``ekf.update``'s).
 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+ (or NaN), y (p, 3) the innovation
@@ -476,24 +476,42 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     cost = np.nan
     if map_cost:                                                     # into the iterations' buffers (H_last is read above)
         cost = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                             z_hat_i, H_i, r, d_position, frame, moved, M, pivots)
+                             z_hat_i, H_i, r, d_position, frame, moved, M, pivots, in_front)
     return x_i, P_post, nis, cost, y_prior
 
 
 @jit
 def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                  z_hat, H, r, d_position, frame, moved, M, pivots):
+                  z_hat, H, r, d_position, frame, moved, M, pivots, in_front):
     """The MAP cost at x_post of the update of prior (x, P) with the pairs of ``iterated_update``
     (its arguments of the same names): the prior's quadratic of x_post [-] x plus each pair's
-    y' R^-1 y at x_post. The rest is scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position,
-    frame (``observe_pairs_into``'s), moved (n,), M (n, n), pivots (n,)."""
+    y' R^-1 y at x_post; with ``in_front`` (the estimate's update), infinite where x_post puts a
+    landmark behind the camera that saw it and the prior x does not (``all_in_front``; the numpy
+    twin: ``ekf.posterior_cost``, which says why). The rest is scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position, frame
+    (``observe_pairs_into``'s), moved (n,), M (n, n), pivots (n,)."""
     n = x.shape[0]
+    if in_front and not all_in_front(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
+        if all_in_front(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
+            return np.inf
     observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
     for i in range(z.shape[0]):
         for a in range(3):
             r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
     difference_into(x_post, x, moved)
     return prior_quadratic(P, moved, M, pivots, np.empty((n, 1))) + block_quadratic(r, R_inverse)
+
+
+@jit
+def all_in_front(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
+    """Whether state x puts every pair's landmark in front of the camera that saw it
+    (``camera.in_front_of``); frame: ``robot_frame_into``'s scratch."""
+    robot_frame_into(x, frame)
+    R, t = frame[0], frame[2]
+    for i in range(landmark_xyz.shape[0]):
+        c = pair_camera[i]
+        if not in_front_of(R, t, camera_R[c], camera_t[c], camera_K[c, 4], landmark_xyz, i):
+            return False
+    return True
 
 
 @jit
@@ -509,7 +527,7 @@ def damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, cam
     centre, target, d, candidate, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n), x.copy()
     cams = (camera_R, camera_t, camera_K)
     cost_i = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, cost_z_hat, cost_H, cost_r, d_position, frame,
-                           moved, M, pivots)
+                           moved, M, pivots, TRUE)
     damping = DAMPING_START
     for _ in range(MAX_LINEARIZATIONS):
         observe_pairs_into(x_i, landmark_xyz, pair_camera, *cams, z_hat, H, d_position, frame)
@@ -531,7 +549,7 @@ def damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, cam
             difference_into(target, x_i, d)                          # the damped step
             retract_into(x_i, d, candidate)
             cost = map_cost_into(candidate, x, P, z, R_inverse, landmark_xyz, pair_camera, *cams, cost_z_hat, cost_H, cost_r,
-                                 d_position, frame, moved, M, pivots)
+                                 d_position, frame, moved, M, pivots, TRUE)
             if cost < cost_i:
                 lowered = True
                 damping *= 0.1
@@ -558,7 +576,7 @@ def restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, x_post):
     d_position, frame = np.empty((scene.camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
     moved, M, pivots = np.empty(n), np.empty((n, n)), np.empty(n, np.int64)
     return map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, scene.camera_R, scene.camera_t, scene.camera_K,
-                         z_hat, H, r, d_position, frame, moved, M, pivots)
+                         z_hat, H, r, d_position, frame, moved, M, pivots, FALSE)
 
 
 @inlined
@@ -640,7 +658,8 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = np.empty(0)
     costed = map_cost or (start.size > 0 and iterations >= 2)         # a start restarts: compared below
-    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed, step_sigma)
+    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed, step_sigma,
+                           map_cost)
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
@@ -652,12 +671,14 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > bound else (start, none)
     for s in starts:
         if s.size:
-            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE, step_sigma)
+            again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE,
+                                    step_sigma, map_cost)
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     if map_cost and best[3] > bound:                                 # the estimate's: not the MAP estimate, or no MAP agrees
         s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
-        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE, step_sigma)
+        again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE,
+                                step_sigma, map_cost)
         if again[3] < best[3]:
             best = (again[0], again[1], best[2], again[3], best[4])
     return best
