@@ -17,6 +17,7 @@ into the other for them.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -277,10 +278,7 @@ def pixel_reach(dataset: Dataset, max_angle: float, *, typical: bool = False) ->
     L = dataset.landmark_xyz.shape[0]
     if L <= DENSITY_NEIGHBOURS:
         return float(np.linalg.norm(np.ptp(dataset.landmark_xyz, axis=0))) if L else 10.0
-    from scipy.spatial import cKDTree
-
-    distance = cKDTree(dataset.landmark_xyz).query(dataset.landmark_xyz, DENSITY_NEIGHBOURS + 1)[0][:, -1]
-    radius = float(np.median(distance))
+    radius = neighbour_radius(dataset.landmark_xyz)
     density = DENSITY_NEIGHBOURS / (4.0 / 3.0 * np.pi * max(radius, 1e-9) ** 3)
     by_camera = np.isin(dataset.obs_kind, measurement.CAMERA_KINDS)  # a planar robot's own sensor has no view cone, a tag's orientation no ray
     camera, pose_index = dataset.obs_camera[by_camera], dataset.obs_pose_index[by_camera]
@@ -289,6 +287,28 @@ def pixel_reach(dataset: Dataset, max_angle: float, *, typical: bool = False) ->
     busy = float(counts.mean()) if typical else float(np.quantile(counts, 0.9))
     tan = np.tan(min(max_angle, np.radians(80.0)))
     return float((3.0 * busy / (density * np.pi * tan * tan)) ** (1.0 / 3.0))
+
+
+# The last map's ``neighbour_radius``: ((its shape, its digest), the radius), read and replaced
+# whole (threads of one process may localize different maps).
+_LAST_RADIUS: list = [None]
+
+
+def neighbour_radius(landmark_xyz: np.ndarray) -> float:
+    """The median distance from a landmark to its ``DENSITY_NEIGHBOURS``-th nearest (a k-d tree's
+    query of every landmark), remembered for the last map by its contents: a run asks five times
+    (the view's reach, the prior's depth, the detection range), and on the 20k pixel world's 32,306
+    landmarks each asking was 0.06 s, 3% of the run's CPU (docs/performance.md, 2026-12-07)."""
+    xyz = np.ascontiguousarray(landmark_xyz, dtype=float)
+    key = (xyz.shape, hashlib.blake2b(xyz.tobytes(), digest_size=16).digest())
+    last = _LAST_RADIUS[0]
+    if last is None or last[0] != key:
+        from scipy.spatial import cKDTree
+
+        distance = cKDTree(xyz).query(xyz, DENSITY_NEIGHBOURS + 1)[0][:, -1]
+        last = (key, float(np.median(distance)))
+        _LAST_RADIUS[0] = last
+    return last[1]
 
 
 # A camera surely detects a landmark it sees between these fractions of its typical reach.
