@@ -121,12 +121,16 @@ def mixture_spread(differences: np.ndarray, costs: np.ndarray) -> np.ndarray:
     normalized (costs are twice the negative log-likelihoods, as the beam's). Added to the
     estimate's own covariance it gives the mixture's second moment about that estimate (the
     spread-of-the-means term of PDA and MHT outputs): the covariance of a pose whose
-    association the data leave ambiguous, where the estimate follows one of its explanations."""
-    if differences.shape[0] < 2:
-        return np.zeros((differences.shape[1], differences.shape[1]))
-    w = np.exp(-(costs - costs.min()) / 2.0)
-    w = w / w.sum()
-    return symmetrize((differences * w[:, None]).T @ differences)
+    association the data leave ambiguous, where the estimate follows one of its explanations.
+    Leading axes are a batch (differences (..., m, S), costs (..., m): one mixture each, the same
+    numbers to the bit as one at a time)."""
+    S = differences.shape[-1]
+    if differences.shape[-2] < 2:
+        return np.zeros(differences.shape[:-2] + (S, S))
+    w = np.exp(-(costs - costs.min(axis=-1, keepdims=True)) / 2.0)
+    w = w / w.sum(axis=-1, keepdims=True)
+    second = np.swapaxes(differences * w[..., None], -1, -2) @ differences
+    return 0.5 * (second + np.swapaxes(second, -1, -2))  # ``symmetrize``, of each
 
 
 def leave_one_out_spread(

@@ -298,11 +298,7 @@ def _spreads_about(state, cost, count, path):
         ks = np.flatnonzero(count == c)
         differences = state[ks, :c] - state[ks, path[ks]][:, None, :]       # ``EulerFilter.difference``
         differences[:, :, 3:] = wrap_angle(differences[:, :, 3:])
-        costs = cost[ks, :c]
-        w = np.exp(-(costs - costs.min(axis=1)[:, None]) / 2.0)
-        w = w / w.sum(axis=1)[:, None]
-        second = np.matmul((differences * w[:, :, None]).transpose(0, 2, 1), differences)
-        spread[ks] = 0.5 * (second + second.transpose(0, 2, 1))            # ``ekf.symmetrize``
+        spread[ks] = mixture_spread(differences, cost[ks, :c])
     return spread
 
 
