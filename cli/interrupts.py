@@ -42,8 +42,9 @@ def command_settled() -> None:
 
 @contextlib.contextmanager
 def outputs_being_saved() -> Iterator[None]:
-    """The console script saves a command's outputs (``pipeline.run_dataset``'s ``while_saving``)
-    with Ctrl-C ignored, and a save that ends settles the command (``command_settled``): a Ctrl-C
+    """The console script saves a command's outputs (``pipeline.run_dataset``'s ``while_saving``,
+    ``simulate``'s world, ``smooth``'s two files) with Ctrl-C ignored, and a save that ends settles
+    the command (``command_settled``): a Ctrl-C
     there lets the outputs be written whole and the command say it finished. Before, one that
     landed just after the run folder's rename said "interrupted" over a whole folder (CI,
     2026-12-07). A save takes 1-2 s for 20,000 poses (29 MB). A save that fails restores the

@@ -304,12 +304,14 @@ def true_map_path(output: Path) -> Path:
 def _write(simulation, output: Path, true_map: Optional[Path]) -> None:
     """The world (and the whole world with its true map) written all or none."""
     from camloc.atomic_files import write_files_atomic
+    from camloc.cli.interrupts import outputs_being_saved
     from camloc.g2o import g2o_text
 
     texts = {output: g2o_text(simulation.dataset)}
     if true_map is not None:
         texts[true_map] = g2o_text(simulation.map_edits.whole)
-    write_files_atomic(list(texts), lambda path, handle: handle.write(texts[path].encode("utf-8")))
+    with outputs_being_saved():
+        write_files_atomic(list(texts), lambda path, handle: handle.write(texts[path].encode("utf-8")))
 
 
 def _map_line(report: dict, true_map: Path) -> str:

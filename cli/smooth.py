@@ -67,6 +67,7 @@ def smooth(
     import warnings
 
     from camloc import smoother
+    from camloc.cli.interrupts import outputs_being_saved
     from camloc.diagnostics import estimate_name
     from camloc.g2o import G2oWarning, read_g2o
     from camloc.results import load_run, write_map, write_smoothed
@@ -86,8 +87,10 @@ def smooth(
 
     with _iteration_status(enabled=not (json_output or quiet)) as on_iteration:
         result = _smoothed(data, run, config, on_iteration)
-    written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
-    map_file = write_map(run_dir, smoother.estimated_map(data, run, result, config))
+    landmark_map = smoother.estimated_map(data, run, result, config)
+    with outputs_being_saved():  # both files, or a Ctrl-C before them leaves neither
+        written = write_smoothed(run_dir, run.pose_ids, result.xyz, result.quat_xyzw)
+        map_file = write_map(run_dir, landmark_map)
 
     report = smoother.smoothing_report(run, result, config)
     report["dataset"] = str(dataset_path)
