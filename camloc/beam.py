@@ -193,10 +193,14 @@ class BeamSearch:
             self.statistics.seeded_search_poses.append(k)
             seeded.append(self.seeded.explain_from_seeds(origin, obs, slipped=False))  # noisy odometry, not a slip
             # a slip is the explanation of last resort: its search (the costliest, under the
-            # widest prior) runs only where the pose stays unusually unexplained after the plain one's
+            # widest prior) runs only where the pose stays unusually unexplained after the plain
+            # one's, or where a seed's explanation beat the prior's with fewer pairs (the prior's
+            # pairs cost more than leaving them unexplained: the prior is off)
             best_with_seeds = min(children + seeded[0], key=lambda c: c.cost)
-            if (most and self.seeded.unusually_unexplained(best.unassigned, obs.size)
-                    and self.seeded.unusually_unexplained(best_with_seeds.unassigned, obs.size)):
+            unusual = (most and self.seeded.unusually_unexplained(best.unassigned, obs.size)
+                       and self.seeded.unusually_unexplained(best_with_seeds.unassigned, obs.size))
+            if unusual or (obs.size >= SLIP_MIN_OBSERVATIONS and best_with_seeds.cost < best.cost
+                           and best_with_seeds.unassigned > best.unassigned):
                 slipped = Hypothesis(origin.x, origin.P * self.settings.slip_inflation,
                                      origin.cost + self.settings.slip_cost, origin.parent)
                 self.statistics.slip_search_poses.append(k)

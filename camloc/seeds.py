@@ -40,11 +40,15 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
     plain = from_seeds(scene, settings, origin, obs, width, delta, slipped=False)  # noisy odometry, not a slip
     groups = [plain]
     # a slip is the explanation of last resort: its search (the costliest, under the widest prior)
-    # runs only where the pose stays unusually unexplained after the plain prediction's
-    left = unassigned_by_best([(children, count)])
+    # runs only where the pose stays unusually unexplained after the plain prediction's, or where a
+    # seed's explanation beat the prior's with fewer pairs (the prior's pairs cost more than leaving
+    # them unexplained: the prior is off)
+    cost, left = best_of([(children, count)])
+    cost_with_seeds, left_with_seeds = best_of([(children, count), plain])
     most = obs.size >= SLIP_MIN_OBSERVATIONS and 2 * left > obs.size
-    if (most and unusually_unexplained(left, obs.size, unexplained)
-            and unusually_unexplained(unassigned_by_best([(children, count), plain]), obs.size, unexplained)):
+    unusual = (most and unusually_unexplained(left, obs.size, unexplained)
+               and unusually_unexplained(left_with_seeds, obs.size, unexplained))
+    if unusual or (obs.size >= SLIP_MIN_OBSERVATIONS and cost_with_seeds < cost and left_with_seeds > left):
         slipped = kb.gather(parents, np.array([0]), 1)
         slipped[1][0] *= settings.slip_inflation
         slipped[2][0] += settings.slip_cost
@@ -57,16 +61,16 @@ def explain_with_seeds(scene, settings, parents, n, children, count, obs, unexpl
     return everything, np.asarray(kept, dtype=np.int64)
 
 
-def unassigned_by_best(generations) -> int:
-    """How many of the pose's observations the cheapest hypothesis of [(generation, count), ...]
-    leaves unassigned (the first of equal costs)."""
+def best_of(generations) -> tuple[float, int]:
+    """The cost of the cheapest hypothesis of [(generation, count), ...] (the first of equal
+    costs), and how many of the pose's observations it leaves unassigned."""
     best_cost, unassigned = np.inf, 0
     for gen, n in generations:
         if n:
             i = int(np.argmin(gen[2][:n]))
             if gen[2][i] < best_cost:
                 best_cost, unassigned = float(gen[2][i]), int(gen[4][i])
-    return unassigned
+    return best_cost, unassigned
 
 
 def concatenated(generations):
