@@ -140,3 +140,70 @@ class FromPython:
     def __getattr__(self, name: str):
         value = getattr(self._module, name)
         return from_python(value) if isinstance(value, numba.core.registry.CPUDispatcher) else value
+
+
+def address_of(kernel, argtypes) -> int:
+    """The address of ``kernel``'s compiled code for ``argtypes`` (numba's calling convention),
+    compiled or loaded from the cache first: what a kernel compiled with ``called`` asks the first
+    time it runs in a process."""
+    kernel.compile(argtypes)
+    compiled = kernel.overloads[argtypes]
+    return compiled.library.get_pointer_to_function(compiled.fndesc.llvm_func_name)
+
+
+def called(kernel):
+    """``kernel``, called by its address, not linked: numba links every callee's compiled module
+    into each caller's, where LLVM optimizes and generates it again; a call through this compiles
+    the kernel once, in its own module (and its own cache file), and the caller's module holds a
+    slot for its address, filled the first time the call runs in a process (by ``address_of``,
+    holding the GIL), and an indirect call with numba's calling convention (exceptions propagate)."""
+    from llvmlite import ir
+    from numba.core import cgutils
+    from numba.core import types as nbtypes
+    from numba.core.extending import intrinsic
+
+    module_name, name = kernel.py_func.__module__, kernel.py_func.__name__
+
+    @intrinsic
+    def call(typingctx, *args):
+        argtypes = tuple(nbtypes.unliteral(a) for a in args)
+        kernel.compile(argtypes)
+        restype = kernel.overloads[argtypes].signature.return_type
+        # numba passes a variadic intrinsic its arguments as one tuple
+        signature = restype(nbtypes.StarArgTuple.from_types(argtypes))
+
+        def codegen(context, builder, sig, packed):
+            llargs = [builder.extract_value(packed[0], i) for i in range(len(argtypes))]
+            fnty = context.call_conv.get_function_type(restype, argtypes)
+            slot = cgutils.add_global_variable(builder.module, fnty.as_pointer(), f"camloc.address.{module_name}.{name}")
+            slot.linkage = "internal"
+            slot.initializer = ir.Constant(fnty.as_pointer(), None)
+            with builder.if_then(cgutils.is_null(builder, builder.load(slot)), likely=False):
+                pyapi = context.get_python_api(builder)
+                gil = pyapi.gil_ensure()
+                jit_module = pyapi.import_module(context.insert_const_string(builder.module, __name__))
+                find = pyapi.object_getattr_string(jit_module, "address_of")
+                home = pyapi.import_module(context.insert_const_string(builder.module, module_name))
+                callee = pyapi.object_getattr_string(home, name)
+                types_object = pyapi.unserialize(pyapi.serialize_object(argtypes))
+                address = pyapi.call_function_objargs(find, (callee, types_object))
+                with builder.if_else(cgutils.is_null(builder, address)) as (failed, found):
+                    with failed:
+                        pyapi.err_write_unraisable(find)   # printed; the call raises below
+                    with found:
+                        builder.store(builder.bitcast(pyapi.long_as_voidptr(address), fnty.as_pointer()), slot)
+                        pyapi.decref(address)
+                for obj in (types_object, callee, home, find, jit_module):
+                    pyapi.decref(obj)
+                pyapi.gil_release(gil)
+            pointer = builder.load(slot)
+            with builder.if_then(cgutils.is_null(builder, pointer), likely=False):
+                context.call_conv.return_user_exc(builder, RuntimeError, (f"no address for {module_name}.{name}",))
+            status, result = context.call_conv.call_function(builder, pointer, restype, argtypes, llargs)
+            with cgutils.if_unlikely(builder, status.is_error):
+                context.call_conv.return_status_propagate(builder, status)
+            return result
+
+        return signature, codegen
+
+    return call

@@ -16,18 +16,18 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FALSE, FIRST, ONE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, FIRST, ONE, called, entry, inlined, jit
 from camloc.constants import (
     MISS_COST, RAY_STEP_SIGMA, SEEDED_MIN_UNASSIGNED, SEEDED_UNUSUAL_PROBABILITY, SLIP_MIN_OBSERVATIONS, UNEXPLAINED_RATE_CAP, UNEXPLAINED_WINDOW,
 )
-from camloc.kernels.beam_chain import checked, wide_for_rays
+from camloc.kernels.beam_chain import checked_at, wide_for_rays
 from camloc.kernels.camera import camera_pose, camera_position_jacobian, cameras_of, in_front_of, predict_candidates, robot_frame
 from camloc.kernels.planar import SE2_DIM
 from camloc.kernels.motion import predict
 from camloc.kernels.rotation import wrap_angle
 from camloc.kernels.state import difference
 from camloc.kernels.sym3 import quadratic_and_det, spread
-from camloc.kernels.update import innovation_cost, pair_model, updated
+from camloc.kernels.update import innovation_cost, pair_model, updated_at
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import DEPTH, MARKER, PIXEL
 from camloc.miss_term import miss_charge
@@ -406,7 +406,7 @@ def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root
             before = child[6][h]
             x, P = take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model)
             if wide and before > root_count:     # a chain: pairs since the root before this round
-                x, P = checked(model, settings.iterations, x, P, root_x, root_P, child[7][h], root_count, child[6][h])
+                x, P = checked_at(model, settings.iterations, x, P, root_x, root_P, child[7][h], root_count, child[6][h])
         for k in range(n_pending):
             i = pending[k]
             if start[i + 1] > start[i]:
@@ -442,7 +442,7 @@ def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
             for b in range(3):
                 R[t, a, b] = scene.point_cov[o[t], a, b] if point else scene.R_assoc[o[t], a, b]
                 R_inverse[t, a, b] = scene.point_cov_inverse[o[t], a, b] if point else scene.R_assoc_inverse[o[t], a, b]
-    x_new, P_new = updated(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
+    x_new, P_new = updated_at(model, settings.iterations, x, P, o, landmarks, z_hat, H, scene.R_assoc, scene.R_assoc_inverse,
                            no_start, FALSE, 0.0)[:2]
     # the joint cost of the pairs, each in the coordinates its option chose, at the prior
     child[2][h] += innovation_cost(P, Hc, R, R_inverse, y)
@@ -501,11 +501,11 @@ def settle(settings, X, P, c, parent_X, parent_P, pending, model, chain):
     p = source[c]
     # a ray's iterations also stop once a step is negligible against the prior's sigma (``RAY_STEP_SIGMA``)
     step_sigma = RAY_STEP_SIGMA if model.camera_K[model.obs_camera[obs[c]], 4] == PIXEL else 0.0
-    x, P_new = updated(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
+    x, P_new = updated_at(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
                        z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE, step_sigma)[:2]
     r = chain[2][c]                              # the tuple read entry by entry: bound whole, its 7 arrays counted
     if chain[6][r] and chain[1][c] - chain[5][r] >= 2:
-        x, P_new = checked(model, settings.iterations, x, P_new, chain[3][r], chain[4][r], chain[0][c], chain[5][r], chain[1][c])
+        x, P_new = checked_at(model, settings.iterations, x, P_new, chain[3][r], chain[4][r], chain[0][c], chain[5][r], chain[1][c])
     put_state((X, P), c, x, P_new)
     waiting[c] = False
 
@@ -696,6 +696,11 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
         root, rest, moved = c_root[live], c_rest[live], c_moved[live]
         step += 1
 
+
+
+# ``explain_from`` as ``run_poses`` calls it: by its address, compiled once in its own module, where
+# linked the beam's whole tree was optimized and generated again in ``run_poses``' (``_jit.called``)
+explain_from_at = called(explain_from)
 
 @jit
 def expected_landmarks(scene, x, obs, opt):
@@ -923,7 +928,7 @@ def run_poses(scene, settings, sparse, first, last, beam, n, history, unexplaine
             # the extra hypotheses of a sparse pose before are not explained at one that is not
             n = compiled_carried(parents[2], n, sparse[k], settings.beam_width, settings.beam_delta)
             width, delta = compiled_pose_beam(sparse[k], settings.beam_width, settings.beam_delta)
-            children, count = explain_from(scene, settings, parents, n, obs, parents)   # ``explain_all``
+            children, count = explain_from_at(scene, settings, parents, n, obs, parents)   # ``explain_all``
             if count == 0:
                 raise FloatingPointError("no explanation of the pose's observations has a finite cost")
             best = np.argmin(children[2][:count])

@@ -17,7 +17,7 @@ from camloc.kernels.recheck import (add_leave_one_out_spread, assignment_margins
                                      rival_margins)
 from camloc.kernels.small import check_covariance, mm, mtm, solve
 from camloc.kernels.sym3 import innovation_mahalanobis
-from camloc.kernels.update import pair_model, updated
+from camloc.kernels.update import pair_model, updated_at
 from camloc.kernels.view import sensor_candidates
 from camloc.measurement import MARKER, PIXEL, POINT2
 
@@ -131,7 +131,7 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
     x_kept, P_kept = x, P
     if kept_obs.size:
         z_hat, H = predict_pairs(scene, x, kept_obs, kept_landmarks)
-        result = updated(model, settings.iterations, x, P, kept_obs, kept_landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
+        result = updated_at(model, settings.iterations, x, P, kept_obs, kept_landmarks, z_hat, H, scene.R_file, scene.R_file_inverse,
                          no_start, TRUE, 0.0)
         x_kept, P_kept = result[0], result[1]
     weighed = np.flatnonzero(doubtful)
@@ -148,7 +148,7 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
             keep[weighed[i]] = True
     obs, landmarks = obs[keep], landmarks[keep]
     z_hat, H = predict_pairs(scene, x, obs, landmarks)
-    result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, no_start, TRUE, 0.0)
+    result = updated_at(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, no_start, TRUE, 0.0)
     return obs, landmarks, result
 
 
@@ -238,13 +238,13 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
                 # the pose where Gauss-Newton from the slip's wide prior can settle metres away
                 seed_obs, seed_landmark = pair_obs[pair_start[k]:pair_start[k] + 1], pair_landmark[pair_start[k]:pair_start[k] + 1]
                 z_hat, H = predict_pairs(scene, x, seed_obs, seed_landmark)
-                start = updated(model, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
+                start = updated_at(model, settings.iterations, x, P, seed_obs, seed_landmark, z_hat, H, scene.R_file, scene.R_file_inverse,
                                 no_start, FALSE, 0.0)[0]
         if obs.size == 0:
             record_state(states, covs, k, x, P)
             continue
         z_hat, H = predict_pairs(scene, x, obs, landmarks)
-        result = updated(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start, TRUE, 0.0)
+        result = updated_at(model, settings.iterations, x, P, obs, landmarks, z_hat, H, scene.R_file, scene.R_file_inverse, start, TRUE, 0.0)
         # A lone pair left out leaves the prior its association was judged by; after a slip, the
         # widened prior leaves each pair's partners too little to confirm it by
         if settings.recheck and method == GIVEN and obs.size >= 2 and not slipped[k]:

@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS
-from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, TRUE, called, entry, inlined, jit
 from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into, robot_frame_into
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
@@ -682,3 +682,9 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
         if again[3] < best[3]:
             best = (again[0], again[1], best[2], again[3], best[4])
     return best
+
+
+# ``updated`` as the other kernels call it (the beam's, the chain check's, the filter's): by its
+# address, compiled once in its own module, where linked it was optimized and generated again in
+# four more (``_jit.called``)
+updated_at = called(updated)
