@@ -8,7 +8,11 @@ The numpy engine's beam (``camloc.beam``, which the compiled one equals pair for
 ``tests/test_engine_parity.py``) run with counters wrapped around its steps (nothing of the
 product changes): the compiled beam runs the same updates, so the counts are its too (where it
 settles a child the numpy beam leaves lazy, it says so: "doomed", what a cut of those would save;
-such a cut, ``doomed_above``, was tried and taken out: performance.md). Figures per pose over the run's
+such a cut, ``doomed_above``, was tried and taken out: performance.md), and what cuts of the
+partials would leave out: those a bound of the pose's best explanation puts past the pose's delta
+(with the best known, and with a bound known at the step), and those grown from a hypothesis whose
+predicted state lies within ``merge_sigma`` of a cheaper one's (docs/performance.md, 2026-12-07
+twentieth session, "The beam's partial explanations counted again"). Figures per pose over the run's
 last pass from pose ``--skip`` (a pixel-only run's first 300 poses are a pass of their own, which
 learns the reach). Numpy is slow on pixels: 1,000 poses take a few minutes.
 
@@ -25,6 +29,7 @@ import numpy as np
 
 import camloc
 import camloc.beam_types
+import camloc.miss_term
 from camloc import beam_expansion, ekf, stacked_update
 from camloc.beam_expansion import PoseExpansion
 from camloc.dataset import first_poses
@@ -51,6 +56,10 @@ settled_ids: set = set()      # ids of children whose state was computed
 fresh_ids: set = set()        # ids of the children paired at the step being pruned
 last_step: list = []          # (cost before the misses, settled) of the children paired at a pose's last step
 root_options: set = set()     # ids of the options after_clear left (a partial that has paired nothing since branches on them)
+grown_at_pose: list = []      # (cost, rest, hypothesis, kept) of every partial grown at the pose's steps before its last
+clear_at_pose: list = []      # per root: whether after_clear left it nothing ambiguous
+pose_context: list = []       # (expansion, parents, obs) of the pose being explained
+mergeable_roots: set = set()  # the pose's hypotheses within merge_sigma of a cheaper one after the prediction
 
 
 def bucket(moved: float) -> str:
@@ -117,6 +126,27 @@ def on_explain_all(self, parents, obs, *rest):
     counts["explain_all calls"] += 1
     counts["hypotheses"] += len(parents)
     counts["observations x hypotheses"] += len(parents) * obs.size
+    grown_at_pose.clear()
+    clear_at_pose.clear()
+    pose_context[:] = [self, parents, obs]
+    # the hypotheses a merge right after the prediction would drop (as ``prune`` merges: by cost,
+    # the cheaper kept, within merge_sigma of a kept one's standard deviations on every axis)
+    kept_roots: list = []
+    mergeable_roots.clear()
+    for r in sorted(range(len(parents)), key=lambda r: parents[r].cost):
+        if any(self.same_state(parents[r], parents[q]) for q in kept_roots):
+            mergeable_roots.add(r)
+        else:
+            kept_roots.append(r)
+    counts["hypotheses a merge after the prediction would drop"] += len(mergeable_roots)
+    # near duplicates among the pose's hypotheses: the largest axis difference in sigma of each pair's
+    if len(parents) > 1:
+        for a in range(len(parents)):
+            for b in range(a + 1, len(parents)):
+                d = self.ctx.filter.difference(parents[a].x, parents[b].x)
+                sigma = float(np.max(np.abs(d) / np.sqrt(np.minimum(parents[a].P.diagonal(), parents[b].P.diagonal()))))
+                near = "<0.3" if sigma < 0.3 else "<1" if sigma < 1 else "<3" if sigma < 3 else ">=3"
+                counts[f"pairs of a pose's hypotheses {near} sigma apart"] += 1
 
 
 def after_explain_all(self, result, parents, obs, *rest):
@@ -130,10 +160,32 @@ def after_explain_all(self, result, parents, obs, *rest):
         counts["last step's paired children doomed (at most)"] += len(doomed)
         counts["  of them settled by the partials' pruning"] += sum(doomed)
     last_step.clear()
+    # what a bound would prune before its update: a partial grown before the last step whose cost
+    # (a) alone, rigorous (every later pair and miss costs >= 0), (b) plus its rest (the least its
+    # observations still to explain cost under its root's state: not a bound, conditioning can
+    # lower a pair's cost), lies above the pose's best explanation plus the pose's delta
+    counts["poses explained"] += 1
+    if clear_at_pose and all(clear_at_pose):
+        counts["poses every hypothesis of which after_clear left nothing ambiguous"] += 1
+        if len(clear_at_pose) == 1:
+            counts["  of them with a single hypothesis"] += 1
+    if result:
+        limit = min(h.cost for h in result) + self.delta
+        for cost, rest, h, was_kept in grown_at_pose:
+            settled = id(h) in settled_ids
+            if cost > limit:
+                counts["partials grown before the last step, cost > best + delta (a bound would drop)"] += 1
+                counts["  of them settled"] += settled
+                counts["  of them kept by the partials' pruning (branched on next)"] += was_kept
+            if cost + rest > limit:
+                counts["partials grown before the last step, cost + rest > best + delta"] += 1
+                counts["  of them settled (cost + rest)"] += settled
+    grown_at_pose.clear()
 
 
 def on_after_clear(self, result, h, obs, root, prior=None):
     root_options.update(id(o) for o in result.options)
+    clear_at_pose.append(not result.order)
     counts["pending after clear"] += len(result.order)
     pose = len(self.history)
     pose_pairs.setdefault(pose, {})[root] = set(result.h.pairs) - set(h.pairs)
@@ -146,6 +198,29 @@ def on_prune_partials(self, kept, partials):
     counts["children settled, then pruned"] += sum(1 for p in partials if id(p.h) in settled_ids and id(p.h) not in kept_now)
     if partials and not any(p.order for p in partials):     # the pose's last step: its children, before their misses
         last_step[:] = [(p.h.cost, id(p.h) in settled_ids) for p in partials if id(p.h) in fresh_ids]
+    else:
+        kept_ids = {id(p.h) for p in kept}
+        grown_at_pose.extend((p.h.cost, p.rest, p.h, id(p.h) in kept_ids) for p in partials)
+    counts["partials grown and dropped by the same pruning"] += len(partials) - len(kept)
+    counts["  partials grown from a hypothesis a merge after the prediction would drop"] += sum(
+        1 for p in partials if p.root in mergeable_roots)
+    counts["  partials grown from a hypothesis a merge after the prediction would drop, paired (an update each)"] += sum(
+        1 for p in partials if p.root in mergeable_roots and id(p.h) in fresh_ids)
+    if kept and pose_context and any(p.order for p in kept):
+        # a bound known at this step without any update: each root's cheapest partial (always kept)
+        # completed by leaving every observation still to explain unassigned (its cheapest child is
+        # never dearer than its null child) and charged every miss it could pay
+        expansion, parents, obs = pose_context
+        s = expansion.settings
+        upper = np.inf
+        for p in kept:
+            nulls = sum(float(expansion.null_cost[obs[i]]) + max(0.0, s.null_offset - s.branch_delta) for i in p.order)
+            landmarks, excess = expansion.expected(parents[p.root], obs, p.options)
+            misses = float(camloc.miss_term.miss_charge(excess, s.miss_cost).sum()) if landmarks.size else 0.0
+            upper = min(upper, p.h.cost + nulls + misses)
+        doomed = [p for p in kept if p.h.cost > upper + expansion.delta]
+        counts["partials kept past a bound known then (best + nulls + misses + delta)"] += len(doomed)
+        counts["  of them settled (then)"] += sum(1 for p in doomed if id(p.h) in settled_ids)
     fresh_ids.clear()
 
 
