@@ -37,6 +37,8 @@ share of unassigned observations makes likely: clutter), the pose is explained a
 that hypothesis' prediction with its covariance inflated ``slip_inflation`` times, at an extra
 ``slip_cost``, grown from each of a few seed pairs in turn (one right pair pins the pose, and the
 rest follow); if the odometry really slipped, that hypothesis explains the observations and wins.
+It is searched too where the plain seeded explanation (below) beat the prediction's with fewer
+pairs: the prediction's pairs cost more than leaving them unexplained, so the prior is off.
 The same seeded explanation is tried from the prediction as it is, without the slip's inflation
 and cost: where the odometry is merely noisy and the map dense, explaining the observations one
 by one can lock onto a shifted alignment that a right seed pair avoids. Seeds are ranked by the
