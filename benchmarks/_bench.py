@@ -99,6 +99,8 @@ def simulated(cache: Path, options: Mapping[str, Any], *, seed: int, timeout: fl
     cache.mkdir(parents=True, exist_ok=True)
     command = camloc_command() + ["simulate", "-o", str(path), *flags, "--json"]
     done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    if done.returncode != 0 and path.is_file():
+        return path  # a benchmark run beside this one made it first: the same flags and simulator, the same world
     if done.returncode != 0:
         raise BenchError(f"camloc simulate {' '.join(flags)} failed: {done.stderr.strip() or done.stdout.strip()}")
     _write_atomically(path.with_suffix(".json"), json.dumps({"flags": flags, "summary": json.loads(done.stdout)}, indent=2))
