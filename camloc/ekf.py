@@ -102,7 +102,8 @@ def identity(n: int) -> np.ndarray:
 
 
 def symmetrize(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)
+    """(P + P^T) / 2 of a matrix, or of each of a batch (..., n, n)."""
+    return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 def block_diagonal(blocks: np.ndarray) -> np.ndarray:
@@ -129,8 +130,7 @@ def mixture_spread(differences: np.ndarray, costs: np.ndarray) -> np.ndarray:
         return np.zeros(differences.shape[:-2] + (S, S))
     w = np.exp(-(costs - costs.min(axis=-1, keepdims=True)) / 2.0)
     w = w / w.sum(axis=-1, keepdims=True)
-    second = np.swapaxes(differences * w[..., None], -1, -2) @ differences
-    return 0.5 * (second + np.swapaxes(second, -1, -2))  # ``symmetrize``, of each
+    return symmetrize(np.swapaxes(differences * w[..., None], -1, -2) @ differences)
 
 
 def leave_one_out_spread(

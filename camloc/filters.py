@@ -78,10 +78,11 @@ class EulerFilter:
         return d
 
     def differences(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """``difference`` of a (6,) from each row of b (m, 6) at once: the same numbers to the bit
-        (numpy's float remainder is Python's, ``geometry.wrap_angle_float``)."""
+        """``difference`` of states a (..., 6) and b (..., 6) broadcast against each other (a (6,)
+        from each row of b (m, 6), or rows of a from one row of b): the same numbers to the bit as
+        one at a time (numpy's float remainder is Python's, ``geometry.wrap_angle_float``)."""
         d = a - b
-        d[:, 3:] = geometry.wrap_angle(d[:, 3:])
+        d[..., 3:] = geometry.wrap_angle(d[..., 3:])
         return d
 
     def pose(self, x: np.ndarray) -> np.ndarray:

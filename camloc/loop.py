@@ -23,7 +23,6 @@ import numpy as np
 
 from camloc.ekf import mixture_spread
 from camloc.filters import make_filter
-from camloc.geometry import wrap_angle
 from camloc.kernels import beam as kb
 from camloc.kernels.filtering import GIVEN, ORACLE, filter_poses
 from camloc.scene import build_scene, build_settings
@@ -296,8 +295,7 @@ def _spreads_about(state, cost, count, path):
         return spread
     for c in np.unique(count[count > 1]):
         ks = np.flatnonzero(count == c)
-        differences = state[ks, :c] - state[ks, path[ks]][:, None, :]       # ``EulerFilter.difference``
-        differences[:, :, 3:] = wrap_angle(differences[:, :, 3:])
+        differences = FILTER_OF_SIZE[d].differences(state[ks, :c], state[ks, path[ks]][:, None, :])
         spread[ks] = mixture_spread(differences, cost[ks, :c])
     return spread
 
