@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from camloc import LocalizerConfig, geometry
-from camloc.beam_types import BeamSettings, Hypothesis
+from camloc.beam_types import Hypothesis
 from camloc.constants import MERGE_SIGMA, PREDICTED_MERGE_MARGIN
 from camloc.simulate import SimulationConfig, simulate
 
