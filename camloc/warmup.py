@@ -236,6 +236,9 @@ def compile_kernels() -> list[int]:
     for concurrent in (True, False):
         slip_poses = _run_compiled(dataset, LocalizerConfig(association="beam"), concurrent=concurrent)
     _run_compiled(dataset, LocalizerConfig(association="oracle"))
+    from camloc.kernels._jit import compile_deferred
+
+    compile_deferred()          # what this process's callers call only where a run reaches it
     return [int(i) for i in dataset.pose_ids[slip_poses]]
 
 
@@ -267,6 +270,7 @@ def compile_filter_kernels() -> None:
     dataset = read_g2o(bundled_dataset("smooth3d-clutter"))
     _run_compiled(dataset, LocalizerConfig(association="oracle"))
     late_beam_kernels(dataset, LocalizerConfig())
+    deferred_kernels(dataset, LocalizerConfig())
 
 
 def _run_compiled(dataset, config, *, concurrent: bool = False):
@@ -309,6 +313,30 @@ def late_beam_kernels(dataset, config) -> list:
     ranking.seeded_explanation_costs(np.zeros((1, 3)), np.zeros((1, 3, 6)), np.eye(3)[None].copy(), P, np.zeros(1, np.int64),
                                      np.zeros(1, np.int64), np.ones(1), np.zeros(1, np.int64), np.ones(1))
     return [kb.prune, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs]
+
+
+def deferred_kernels(dataset, config) -> list:
+    """Compile the kernels that their callers call by address only where a run reaches them
+    (``_jit.called(kernel, deferred=True)``: the beam's chain check, ``beam_chain.checked``, which
+    runs only where odometry is noisy enough to branch chains of rays; the re-check's
+    ``restored_pairs``), for the types their call sites pass, so that a run after a first compile
+    compiles nothing wherever it goes; then any other deferred kernel whose call site this process
+    typed (``_jit.compile_deferred``). Returns the kernels."""
+    import numpy as np
+    from numba import typeof
+
+    from camloc.kernels import _jit, update
+    from camloc.kernels.beam_chain import checked
+    from camloc.kernels.recheck import restored_pairs
+    from camloc.scene import build_scene, build_settings
+
+    scene, settings = build_scene(dataset, config), build_settings(config)
+    x, P, pairs, count = np.zeros(6), np.eye(6), np.zeros((2, 2), np.int64), np.int64(2)
+    chain = (update.pair_model(scene), settings.iterations, x, P, x, P, pairs, np.int64(0), count)
+    ray = (np.zeros((1, 3)), np.zeros((1, 3, 6)), P, np.eye(3)[None].copy(), np.eye(3)[None].copy(), np.ones(1))
+    for kernel, arguments in ((checked, chain), (restored_pairs, ray)):
+        kernel.compile(tuple(typeof(a) for a in arguments))
+    return [checked, restored_pairs] + _jit.compile_deferred()
 
 
 def lowest_priority() -> None:

@@ -101,4 +101,4 @@ def checked(model, iterations, x, P, root_x, root_P, pairs, first, count):
 
 # ``checked`` as the beam calls it: by its address, compiled once in its own module, where linked it
 # was optimized and generated again in ``explain_from``'s module and ``run_poses``' (``_jit.called``)
-checked_at = called(checked)
+checked_at = called(checked, deferred=True)
