@@ -115,6 +115,11 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     return keep, doubtful
 
 
+# The filter's big callees by their address (``_jit.called``): linked, ``recheck``'s module (20,175
+# LLVM instructions) and ``add_leave_one_out_spread``'s (7,227) were generated again in
+# ``filter_poses``'; ``restored_pairs`` runs only where the re-check doubts a ray (never on the
+# issue's 3,000-pose world), so it is compiled where a run first reaches it (``deferred``; a
+# compile's second process compiles it for the runs after: ``warmup.deferred_kernels``)
 recheck_at = called(recheck)
 restored_pairs_at = called(restored_pairs, deferred=True)
 add_leave_one_out_spread_at = called(add_leave_one_out_spread)

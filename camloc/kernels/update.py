@@ -567,6 +567,8 @@ def damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, cam
     return x_i
 
 
+# by its address (``_jit.called``): linked, its module (11,000 LLVM instructions) was generated
+# again in ``updated``'s, for a restart that few updates reach
 damped_start_at = called(damped_start)
 
 
