@@ -317,26 +317,12 @@ def late_beam_kernels(dataset, config) -> list:
 
 def deferred_kernels(dataset, config) -> list:
     """Compile the kernels that their callers call by address only where a run reaches them
-    (``_jit.called(kernel, deferred=True)``: the beam's chain check, ``beam_chain.checked``, which
-    runs only where odometry is noisy enough to branch chains of rays; the re-check's
-    ``restored_pairs``), for the types their call sites pass, so that a run after a first compile
-    compiles nothing wherever it goes; then any other deferred kernel whose call site this process
-    typed (``_jit.compile_deferred``). Returns the kernels."""
-    import numpy as np
-    from numba import typeof
-
-    from camloc.kernels import _jit, update
-    from camloc.kernels.beam_chain import checked
-    from camloc.kernels.recheck import restored_pairs
+    (``_jit.called(kernel, deferred=True)``: ``camloc.kernels.compile_deferred_kernels``), so that
+    a run after a first compile compiles nothing wherever it goes. Returns the kernels."""
+    from camloc.kernels import compile_deferred_kernels
     from camloc.scene import build_scene, build_settings
 
-    scene, settings = build_scene(dataset, config), build_settings(config)
-    x, P, pairs, count = np.zeros(6), np.eye(6), np.zeros((2, 2), np.int64), np.int64(2)
-    chain = (update.pair_model(scene), settings.iterations, x, P, x, P, pairs, np.int64(0), count)
-    ray = (np.zeros((1, 3)), np.zeros((1, 3, 6)), P, np.eye(3)[None].copy(), np.eye(3)[None].copy(), np.ones(1))
-    for kernel, arguments in ((checked, chain), (restored_pairs, ray)):
-        kernel.compile(tuple(typeof(a) for a in arguments))
-    return [checked, restored_pairs] + _jit.compile_deferred()
+    return compile_deferred_kernels(build_scene(dataset, config), build_settings(config))
 
 
 def lowest_priority() -> None:
