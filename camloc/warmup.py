@@ -262,7 +262,9 @@ def compile_filter_kernels() -> None:
     """The second process's share of a first compile, cached for the first process to load: the
     filter's kernels (a bundled world localized with the oracle association, which runs only the
     filter), then the beam's kernels that the first process, compiling the beam, reaches last
-    (``late_beam_kernels``)."""
+    (``late_beam_kernels``), then those a run compiles only where it reaches them
+    (``deferred_kernels``: about 2.5 s, which the first process, still compiling the beam, does
+    not wait for)."""
     from camloc.bundled import bundled_dataset
     from camloc.g2o import read_g2o
     from camloc.localizer_config import LocalizerConfig
