@@ -294,7 +294,7 @@ def _run_compiled(dataset, config, *, concurrent: bool = False):
 def late_beam_kernels(dataset, config) -> list:
     """Compile the beam's kernels that a first compile of the beam reaches last, each called once
     on small arguments of the types a run passes: ``prune`` (called after ``explain_all``, whose
-    tree takes most of the compile) and the slip search's ``widened_view``, ``shift_agreement``
+    tree takes most of the compile) and the slip search's ``same_state``, ``widened_view``, ``shift_agreement``
     and ``seeded_explanation_costs`` (called from Python once ``run_poses`` has compiled). About
     10 s of a first compile (``docs/performance.md``). Returns the kernels."""
     import numpy as np
@@ -310,11 +310,14 @@ def late_beam_kernels(dataset, config) -> list:
     one[1][0] = np.eye(6)
     P = one[1][0]
     kb.prune(scene, settings, one, 1, settings.beam_width, settings.beam_delta)
+    # the slip search's test of a candidate against the kept (``seeds``), which the bundled world's
+    # slip does not reach: a run after a background compile compiled it (as main 79d17ad did)
+    kb.same_state(one[0], one[1], 0, 0, settings.merge_sigma)
     widened_view(P, scene.view_limits[2])
     ranking.shift_agreement(np.zeros((2, 3)), 1.0)
     ranking.seeded_explanation_costs(np.zeros((1, 3)), np.zeros((1, 3, 6)), np.eye(3)[None].copy(), P, np.zeros(1, np.int64),
                                      np.zeros(1, np.int64), np.ones(1), np.zeros(1, np.int64), np.ones(1))
-    return [kb.prune, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs]
+    return [kb.prune, kb.same_state, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs]
 
 
 def deferred_kernels(dataset, config) -> list:
