@@ -37,6 +37,18 @@ _KERNELS = textwrap.dedent('''
     def direct(x, P, k):
         return scaled(x, P, k)
 
+    @jit
+    def rare(x, k):
+        return x * k, k + 1
+
+    rare_at = called(rare, deferred=True)
+
+    @entry
+    def sometimes(x, k):
+        if k > 100:
+            return rare_at(x, k)[0].sum()
+        return 0.0
+
     @entry
     def caught(x, P, k):
         try:
@@ -58,10 +70,14 @@ _RUN = textwrap.dedent('''
         raise AssertionError("not raised")
     except ValueError as error:
         assert "k < 0" in str(error)
+    sometimes_compiled = len(m.rare.signatures)
+    assert m.sometimes(x, np.int64(1)) == 0.0 and len(m.rare.signatures) == 0      # typed, not compiled, not reached
+    assert m.sometimes(x, np.int64(101)) == 606.0 and len(m.rare.signatures) == 1   # compiled where first reached
     sig = m.by_address.signatures[0]
     defined = [line for line in m.by_address.inspect_llvm(sig).splitlines() if line.startswith("define") and "scaled" in line]
     print(len(defined), sum(m.by_address.stats.cache_misses.values()), sum(m.scaled.stats.cache_misses.values()),
-          sum(m.by_address.stats.cache_hits.values()), sum(m.scaled.stats.cache_hits.values()))
+          sum(m.by_address.stats.cache_hits.values()), sum(m.scaled.stats.cache_hits.values()),
+          sum(m.rare.stats.cache_misses.values()), sum(m.rare.stats.cache_hits.values()), sometimes_compiled)
 ''')
 
 
@@ -72,9 +88,10 @@ def test_a_kernel_called_by_address_is_the_direct_call_compiled_once_and_cached(
             for _ in range(2)]
     for run in runs:
         assert run.returncode == 0, run.stderr
-    # first process: both compiled, the callee's code not in the caller's module; second: both loaded
-    assert runs[0].stdout.split() == ["0", "1", "1", "0", "0"]
-    assert runs[1].stdout.split()[1:] == ["0", "0", "1", "1"]
+    # first process: both compiled, the callee's code not in the caller's module, the deferred
+    # callee only once reached; second: all loaded
+    assert runs[0].stdout.split() == ["0", "1", "1", "0", "0", "1", "0", "0"]
+    assert runs[1].stdout.split()[1:] == ["0", "0", "1", "1", "0", "1", "0"]
 
 
 @_jit.entry

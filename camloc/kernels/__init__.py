@@ -39,3 +39,26 @@ def cache_is_warm() -> bool:
             raise
         return True
     return True
+
+
+def compile_deferred_kernels(scene, settings) -> list:
+    """Compile the kernels their callers call only where a run reaches them
+    (``_jit.called(kernel, deferred=True)``: the beam's chain check, ``beam_chain.checked``, which
+    runs only where odometry is noisy enough to branch chains of rays; the re-check's
+    ``restored_pairs``), for the types their call sites pass, over ``scene``'s arrays; then any
+    other deferred kernel whose call site this process typed (``_jit.compile_deferred``). What a
+    compile's second process does last (``camloc.warmup.deferred_kernels``). Returns the kernels."""
+    import numpy as np
+    from numba import typeof
+
+    from camloc.kernels import _jit, update
+    from camloc.kernels.beam_chain import checked
+    from camloc.kernels.recheck import restored_pairs
+
+    n = 6                                           # the Euler state's size (the bundled worlds')
+    x, P, pairs = np.zeros(n), np.eye(n), np.zeros((2, 2), np.int64)
+    chain = (update.pair_model(scene), settings.iterations, x, P, x, P, pairs, np.int64(0), np.int64(2))
+    rays = (np.zeros((1, 3)), np.zeros((1, 3, n)), P, np.eye(3)[None].copy(), np.eye(3)[None].copy(), np.ones(1))
+    for kernel, arguments in ((checked, chain), (restored_pairs, rays)):
+        kernel.compile(tuple(typeof(a) for a in arguments))
+    return [checked, restored_pairs] + _jit.compile_deferred()

@@ -151,12 +151,61 @@ def address_of(kernel, argtypes) -> int:
     return compiled.library.get_pointer_to_function(compiled.fndesc.llvm_func_name)
 
 
-def called(kernel):
+# The kernels a ``called(kernel, deferred=True)`` call site was typed for in this process, with the
+# argument types: compiled only where the call first runs (``compile_deferred`` compiles them all).
+DEFERRED: dict = {}
+
+
+def return_type_of(kernel, argtypes):
+    """The type ``kernel`` returns for ``argtypes``, from numba's type inference alone (its own code
+    not lowered nor given to LLVM; the kernels it calls are compiled, as typing a call compiles
+    them); from its compiled overload where it has one (compiled or loaded from the cache)."""
+    from numba.core import compiler
+    from numba.core.typed_passes import NopythonTypeInference
+
+    if argtypes in kernel.overloads:
+        return kernel.overloads[argtypes].signature.return_type
+
+    class TypesOnly(compiler.Compiler):
+        """numba's pipeline, up to its type inference; its result the return type."""
+
+        def define_pipelines(self):
+            full = compiler.DefaultPassBuilder.define_nopython_pipeline(self.state)
+            typing = compiler.PassManager("camloc types only")
+            for pass_, description in full.passes:
+                typing.add_pass(pass_, description)
+                if pass_ is NopythonTypeInference:
+                    break
+            typing.add_pass(_ReturnType, "the inferred return type, as the result")
+            typing.finalize()
+            return [typing]
+
+    front = kernel._compiler
+    flags = compiler.Flags()
+    front.targetdescr.options.parse_as_flags(flags, front.targetoptions)
+    return compiler.compile_extra(front.targetdescr.typing_context, front.targetdescr.target_context, kernel.py_func, args=argtypes,
+                                  return_type=None, flags=flags, locals=front.locals, pipeline_class=TypesOnly)
+
+
+def compile_deferred() -> list:
+    """Compile (and so cache) every kernel that a deferred call site typed in this process calls,
+    for its argument types (the background compile's last step: the runs after it then compile
+    nothing, whichever of those calls they reach). Returns the kernels."""
+    for kernel, argtypes in list(DEFERRED):
+        kernel.compile(argtypes)
+    return [kernel for kernel, _ in DEFERRED]
+
+
+def called(kernel, deferred: bool = False):
     """``kernel``, called by its address, not linked: numba links every callee's compiled module
     into each caller's, where LLVM optimizes and generates it again; a call through this compiles
     the kernel once, in its own module (and its own cache file), and the caller's module holds a
     slot for its address, filled the first time the call runs in a process (by ``address_of``,
-    holding the GIL), and an indirect call with numba's calling convention (exceptions propagate)."""
+    holding the GIL), and an indirect call with numba's calling convention (exceptions propagate).
+
+    ``deferred``: typing the caller infers the kernel's return type (``return_type_of``) but does
+    not compile it: a kernel that a run may never reach (a rare branch's) is compiled where the
+    call first runs, and ``compile_deferred`` compiles it for a background compile."""
     from llvmlite import ir
     from numba.core import cgutils
     from numba.core import types as nbtypes
@@ -167,8 +216,12 @@ def called(kernel):
     @intrinsic
     def call(typingctx, *args):
         argtypes = tuple(nbtypes.unliteral(a) for a in args)
-        kernel.compile(argtypes)
-        restype = kernel.overloads[argtypes].signature.return_type
+        if deferred:
+            restype = return_type_of(kernel, argtypes)
+            DEFERRED[(kernel, argtypes)] = restype
+        else:
+            kernel.compile(argtypes)
+            restype = kernel.overloads[argtypes].signature.return_type
         # numba passes a variadic intrinsic its arguments as one tuple
         signature = restype(nbtypes.StarArgTuple.from_types(argtypes))
 
@@ -207,3 +260,24 @@ def called(kernel):
         return signature, codegen
 
     return call
+
+
+def _define_return_type_pass():
+    """``return_type_of``'s last pass: ends numba's pipeline with the inferred return type."""
+    from numba.core.compiler import _EarlyPipelineCompletion
+    from numba.core.compiler_machinery import AnalysisPass, register_pass
+
+    @register_pass(mutates_CFG=False, analysis_only=True)
+    class ReturnType(AnalysisPass):
+        _name = "camloc_return_type"
+
+        def __init__(self):
+            AnalysisPass.__init__(self)
+
+        def run_pass(self, state):
+            raise _EarlyPipelineCompletion(state.return_type)
+
+    return ReturnType
+
+
+_ReturnType = _define_return_type_pass()

@@ -100,5 +100,8 @@ def checked(model, iterations, x, P, root_x, root_P, pairs, first, count):
 
 
 # ``checked`` as the beam calls it: by its address, compiled once in its own module, where linked it
-# was optimized and generated again in ``explain_from``'s module and ``run_poses``' (``_jit.called``)
-checked_at = called(checked)
+# was optimized and generated again in ``explain_from``'s module and ``run_poses``' (``_jit.called``);
+# and only where a run first reaches it (``deferred``): at the default noise no chain is wide enough
+# to check (none on the 3,000-pose world), so a first compile left 1.7 s of CPU to it for
+# nothing; a compile's second process compiles it for the runs after (``warmup.deferred_kernels``)
+checked_at = called(checked, deferred=True)

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import FALSE, TRUE, entry, inlined, jit
+from camloc.kernels._jit import FALSE, TRUE, called, entry, inlined, jit
 from camloc.kernels.camera import camera_pose, cameras_of, in_front_of, observe, robot_frame
 from camloc.kernels.motion import predict
 from camloc.kernels.planar import SE2_DIM
@@ -115,6 +115,16 @@ def recheck(scene, settings, obs, pair_obs, pair_landmarks, P_prior, x_post):
     return keep, doubtful
 
 
+# The filter's big callees by their address (``_jit.called``): linked, ``recheck``'s module (20,175
+# LLVM instructions) and ``add_leave_one_out_spread``'s (7,227) were generated again in
+# ``filter_poses``'; ``restored_pairs`` runs only where the re-check doubts a ray (never on the
+# issue's 3,000-pose world), so it is compiled where a run first reaches it (``deferred``; a
+# compile's second process compiles it for the runs after: ``warmup.deferred_kernels``)
+recheck_at = called(recheck)
+restored_pairs_at = called(restored_pairs, deferred=True)
+add_leave_one_out_spread_at = called(add_leave_one_out_spread)
+
+
 # Inlined into its one caller: compiled on its own, its module generates ``updated``'s tree once more
 # (4.7 s of LLVM): the first compile of the issue's world 93.6 s of CPU against 85-87 inlined
 @inlined
@@ -123,7 +133,7 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
     the update with all of them): ``recheck``'s drops, then the rays it dropped against leaving
     them unassigned alone restored where their joint cost under the kept pairs' posterior says so
     (``restored_pairs``). The numpy twin is ``camloc.localizer._rechecked``."""
-    keep, doubtful = recheck(scene, settings, obs_k, obs, landmarks, P, result[0])
+    keep, doubtful = recheck_at(scene, settings, obs_k, obs, landmarks, P, result[0])
     if keep.all():
         return obs, landmarks, result
     no_start = np.empty(0)
@@ -139,7 +149,7 @@ def rechecked(scene, settings, model, x, P, obs_k, obs, landmarks, result):
         return kept_obs, kept_landmarks, result
     weighed_obs = obs[weighed]
     z_hat, H = predict_pairs(scene, x_kept, weighed_obs, landmarks[weighed])
-    restore = restored_pairs(scene.z[weighed_obs] - z_hat, H, P_kept, scene.R_assoc[weighed_obs], scene.R_assoc_inverse[weighed_obs],
+    restore = restored_pairs_at(scene.z[weighed_obs] - z_hat, H, P_kept, scene.R_assoc[weighed_obs], scene.R_assoc_inverse[weighed_obs],
                              scene.null_cost[weighed_obs])
     if not restore.any():
         return kept_obs, kept_landmarks, result
@@ -266,6 +276,6 @@ def filter_poses(scene, settings, method, first, last, x, P, pair_start, pair_ob
             counters[0] = u + 1
             x, P = x_post, P_post
             if method == GIVEN:
-                add_leave_one_out_spread(scene, x, P, obs, landmarks, pair_spread, k)
+                add_leave_one_out_spread_at(scene, x, P, obs, landmarks, pair_spread, k)
         record_state(states, covs, k, x, P)
     return x, P

@@ -567,6 +567,11 @@ def damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, cam
     return x_i
 
 
+# by its address (``_jit.called``): linked, its module (11,000 LLVM instructions) was generated
+# again in ``updated``'s, for a restart that few updates reach
+damped_start_at = called(damped_start)
+
+
 @inlined
 def restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, x_post):
     """``map_cost_into`` with scratch of its own: the cost of an update ``updated`` compares with
@@ -676,7 +681,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
             if again[3] < best[3]:
                 best = (again[0], again[1], best[2], again[3], best[4])
     if map_cost and best[3] > bound:                                 # the estimate's: not the MAP estimate, or no MAP agrees
-        s = damped_start(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
+        s = damped_start_at(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams)
         again = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, s, TRUE,
                                 step_sigma, map_cost)
         if again[3] < best[3]:
