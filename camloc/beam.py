@@ -66,7 +66,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from camloc import ekf, measurement
+from camloc import ekf
 from camloc.diagnostics import divergence_cause
 from camloc.beam_expansion import PoseExpansion
 from camloc.beam_seeded import SeededSearch
@@ -74,7 +74,7 @@ from camloc.beam_types import BeamContext, BeamSettings, BeamStatistics, Hypothe
 from camloc.constants import SLIP_MIN_OBSERVATIONS
 from camloc.dataset import observations_by_pose
 from camloc.pair_options import PairGating
-from camloc.sparse_poses import carried, copy_sigma, pose_beam, sparse_poses
+from camloc.sparse_poses import carried, pose_beam, sparse_poses
 
 
 class BeamSearch:
@@ -184,8 +184,6 @@ class BeamSearch:
         if obs.size == 0 or self.ctx.map_index is None:
             return beam
         beam = self._use_pose_beam(bool(self.sparse[k]), beam)
-        if measurement.is_ray(self.ctx.dataset.obs_kind[obs]).all():
-            beam = self._distinct_predictions(beam)
         children = self.expansion.explain_all(beam, obs)
         if not children:  # every option's cost is NaN: a covariance that is not one
             raise ekf.FilterDivergedError("no explanation of the pose's observations has a finite cost")
@@ -226,18 +224,6 @@ class BeamSearch:
         self.expansion.width, self.expansion.delta = width, delta
         self.seeded.settings = replace(self.settings, beam_width=width, beam_delta=delta)
         return beam[:n]
-
-    def _distinct_predictions(self, beam: list[Hypothesis]) -> list[Hypothesis]:
-        """The predicted hypotheses, by cost, less each one within ``copy_sigma`` standard deviations
-        of a cheaper one kept on every axis (as ``PoseExpansion.prune`` merges) that costs at least
-        ``predicted_merge_margin`` more (a pose of rays only: docs/beam.md, "Merged once predicted")."""
-        s = self.settings
-        kept: list[Hypothesis] = []
-        for h in sorted(beam, key=lambda h: h.cost):
-            sigma = copy_sigma(h.cost, kept[0].cost if kept else h.cost, len(kept), s.beam_width, s.beam_delta, s.merge_sigma)
-            if not any(h.cost - q.cost >= s.predicted_merge_margin and self.expansion.same_state(h, q, sigma) for q in kept):
-                kept.append(h)
-        return kept if len(kept) < len(beam) else beam   # as it was where none merged (the kernel's order)
 
     def _backtrack(self, spread_from: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
         # each pose's beam is sorted by cost: the first is the best

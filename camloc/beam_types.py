@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Optional, Protocol
 import numpy as np
 
 from camloc import association, ekf
-from camloc.constants import MERGE_SIGMA, MISS_COST, PARTIAL_BUDGET, PREDICTED_MERGE_MARGIN, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE
+from camloc.constants import MERGE_SIGMA, MISS_COST, PARTIAL_BUDGET, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_SEEDS, STATE_GATE
 
 if TYPE_CHECKING:
     from camloc.associators import CameraModel
@@ -30,9 +30,6 @@ class BeamSettings:
     branch_delta : options of an observation this much costlier than its best are not explored.
     merge_sigma : hypotheses whose states differ by less than this many standard deviations on
         every axis are merged (the cheaper kept).
-    predicted_merge_margin : at a pose of rays only, a predicted hypothesis within merge_sigma of a
-        cheaper one (``copy_sigma``) is merged into it before the pose is explained where it costs
-        at least this much more (``BeamSearch._distinct_predictions``).
     slip_inflation, slip_cost : covariance factor and cost of the odometry-slip hypothesis.
     slip_candidates : how many of its individually cheapest pairs the slip hypothesis ranks as
         first pairs (by the cost of the explanation each implies).
@@ -61,7 +58,6 @@ class BeamSettings:
     beam_delta: float = 14.0
     branch_delta: float = 8.0
     merge_sigma: float = MERGE_SIGMA
-    predicted_merge_margin: float = PREDICTED_MERGE_MARGIN
     slip_inflation: float = 25.0
     slip_cost: float = 10.0
     slip_candidates: int = SLIP_CANDIDATES

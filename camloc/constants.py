@@ -9,14 +9,6 @@ from camloc.tails import chi2_quantile
 
 # Hypotheses whose states differ by less than this many standard deviations on every axis merge.
 MERGE_SIGMA = 0.3
-# At a pose of rays only, the beam's hypotheses are merged once predicted, before they explain it
-# (``kernels.beam.distinct_predictions``, ``BeamSearch._distinct_predictions``): one within the merge's sigma of
-# a cheaper one's predicted state on every axis is dropped, but only where it costs at least this
-# much more. The prediction's odometry noise widens the sigma the pose's observations then narrow,
-# so two states a quarter of a predicted sigma apart can part by a few cost units once explained,
-# and a dropped hypothesis' past pairs are lost with it (docs/beam.md; docs/performance.md,
-# 2026-12-07, twenty-first session: pix2c20 s4's right lineage merged 0.66 units dearer).
-PREDICTED_MERGE_MARGIN = 4.0
 # Most partial explanations of a pose kept across all the beam's hypotheses, past each one's best.
 PARTIAL_BUDGET = 64
 # A pose whose observations are all rays (pixels; at least one) giving at most SPARSE_ROWS_PER_DIM

@@ -111,13 +111,13 @@ def point_cov_inverse(noise: ObservationNoise, kinds: np.ndarray) -> np.ndarray:
 def build_settings(config, null_cost_offset: float = 0.0) -> Settings:
     """The kernels' settings of a ``LocalizerConfig`` (its gate is each observation's, at its
     dof: the scene's ``obs_gate``); ``null_cost_offset``: ``build_scene``'s."""
-    from camloc import constants
+    from camloc.constants import MERGE_SIGMA, PARTIAL_BUDGET, POOL_GATE_FACTOR
 
     return Settings(
         int(config.iterations), bool(config.recheck.enabled), float(config.recheck.margin),
         float(config.recheck.steal_margin), float(config.recheck.ray_margin), float(config.beam.slip_inflation), int(config.beam.width),
-        float(config.beam.delta), float(config.beam.branch_delta), constants.MERGE_SIGMA,
-        constants.PREDICTED_MERGE_MARGIN, float(config.beam.slip_cost), constants.PARTIAL_BUDGET, constants.POOL_GATE_FACTOR, float(null_cost_offset),
+        float(config.beam.delta), float(config.beam.branch_delta), MERGE_SIGMA, float(config.beam.slip_cost),
+        PARTIAL_BUDGET, POOL_GATE_FACTOR, float(null_cost_offset),
     )
 
 

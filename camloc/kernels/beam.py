@@ -851,38 +851,6 @@ def predicted(T_increment, odom_cov, beam, n, k):
     return out
 
 
-@inlined
-def rays_only(scene, obs):
-    """Whether every observation of obs is a ray (a pixel: ``measurement.is_ray``)."""
-    for o in obs:
-        if scene.camera_K[scene.obs_camera[o], 4] != PIXEL:
-            return False
-    return True
-
-
-@inlined
-def distinct_predictions(settings, X, P, costs, n):
-    """Indices (by cost) of the first n predicted hypotheses (states X, covariances P, costs) left
-    once each one within ``copy_sigma`` standard deviations (as ``prune`` merges: ``same_state``)
-    of a cheaper one kept is dropped, where it costs at least ``predicted_merge_margin`` more
-    (``BeamSearch._distinct_predictions``)."""
-    order = np.argsort(costs[:n], kind="mergesort")
-    kept = np.empty(n, np.int64)
-    m = 0
-    best = costs[order[0]]
-    for c in order:
-        sigma = compiled_copy_sigma(costs[c], best, m, settings.beam_width, settings.beam_delta, settings.merge_sigma)
-        merged = False
-        for q in range(m):
-            if costs[c] - costs[kept[q]] >= settings.predicted_merge_margin and same_state(X, P, c, kept[q], sigma):
-                merged = True
-                break
-        if not merged:
-            kept[m] = c
-            m += 1
-    return kept[:m]
-
-
 @entry
 def commit(history, k, gen, kept):
     """Record pose k's kept hypotheses (parent, slipped, pairs, state, cost) for the backtrack;
@@ -959,10 +927,6 @@ def run_poses(scene, settings, sparse, first, last, beam, n, history, unexplaine
         else:
             # the extra hypotheses of a sparse pose before are not explained at one that is not
             n = compiled_carried(parents[2], n, sparse[k], settings.beam_width, settings.beam_delta)
-            if n > 1 and rays_only(scene, obs):
-                distinct = distinct_predictions(settings, parents[0], parents[1], parents[2], n)
-                if distinct.size < n:
-                    parents, n = gather(parents, distinct, ONE), distinct.size
             width, delta = compiled_pose_beam(sparse[k], settings.beam_width, settings.beam_delta)
             children, count = explain_from_at(scene, settings, parents, n, obs, parents)   # ``explain_all``
             if count == 0:

@@ -67,7 +67,7 @@ Settings = namedtuple("Settings", [
     "recheck_margin", "recheck_steal_margin", "recheck_ray_margin",
     "slip_inflation",
     # the beam
-    "beam_width", "beam_delta", "branch_delta", "merge_sigma", "predicted_merge_margin", "slip_cost", "partial_budget",
+    "beam_width", "beam_delta", "branch_delta", "merge_sigma", "slip_cost", "partial_budget",
     "pool_gate_factor",
     "null_offset",          # how much the scene's null cost was lowered: the null option's viability is
                             # judged before it (``beam_types.BeamSettings.null_offset``)
