@@ -151,9 +151,9 @@ def address_of(kernel, argtypes) -> int:
     return compiled.library.get_pointer_to_function(compiled.fndesc.llvm_func_name)
 
 
-# The kernels a ``called(kernel, deferred=True)`` call site was typed for in this process, with the
-# argument types: compiled only where the call first runs (``compile_deferred`` compiles them all).
-DEFERRED: dict = {}
+# The (kernel, argument types) a ``called(kernel, deferred=True)`` call site was typed for in this
+# process: compiled only where the call first runs (``compile_deferred`` compiles them all).
+DEFERRED: set = set()
 
 
 def return_type_of(kernel, argtypes):
@@ -191,7 +191,7 @@ def compile_deferred() -> list:
     """Compile (and so cache) every kernel that a deferred call site typed in this process calls,
     for its argument types (the background compile's last step: the runs after it then compile
     nothing, whichever of those calls they reach). Returns the kernels."""
-    for kernel, argtypes in list(DEFERRED):
+    for kernel, argtypes in list(DEFERRED):                # a copy: a compile may type more call sites
         kernel.compile(argtypes)
     return [kernel for kernel, _ in DEFERRED]
 
@@ -218,7 +218,7 @@ def called(kernel, deferred: bool = False):
         argtypes = tuple(nbtypes.unliteral(a) for a in args)
         if deferred:
             restype = return_type_of(kernel, argtypes)
-            DEFERRED[(kernel, argtypes)] = restype
+            DEFERRED.add((kernel, argtypes))
         else:
             kernel.compile(argtypes)
             restype = kernel.overloads[argtypes].signature.return_type
