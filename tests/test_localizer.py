@@ -570,7 +570,7 @@ def test_the_slip_is_searched_only_where_the_plain_prediction_s_seeds_leave_the_
     assert localize_both(dataset).summary["slip_poses"] == result.summary["slip_poses"]
 
 
-def test_the_slip_is_searched_where_a_seed_explains_the_pose_better_with_fewer_pairs():
+def _dense_pixel_world_with_a_jump() -> Dataset:
     # A 0.78 m jump on edge 100 of a dense world of one pixel camera. At pose 101 the plain
     # prediction's explanation takes wrong landmarks for its rays and leaves only a third of them
     # unassigned, not the most the slip's first trigger waits for; the seeded search's explanation
@@ -578,16 +578,32 @@ def test_the_slip_is_searched_where_a_seed_explains_the_pose_better_with_fewer_p
     # prior is off, and the slip's search runs there. Until 2026-12-07 it did not (the numpy beam
     # never searched the slip here and stayed a metre off; the compiled run found it two poses late).
     config = SimulationConfig(trajectory="grid", cameras=1, measurement="pixel", dense=True, poses=200)
-    dataset = _with_a_jump(simulate(config, seed=1), (0.6, -0.5, 0.0))
+    return _with_a_jump(simulate(config, seed=1), (0.6, -0.5, 0.0))
+
+
+def _rmse_after_the_jump(result, dataset: Dataset) -> float:
+    after = np.arange(dataset.num_poses) >= 105  # back on the track four poses after the jump
+    return float(np.sqrt(np.mean(np.sum((result.estimate_xyz[after] - dataset.truth_xyz[after]) ** 2, axis=1))))
+
+
+def test_the_compiled_beam_searches_the_slip_where_a_seed_explains_the_pose_better_with_fewer_pairs():
+    dataset = _dense_pixel_world_with_a_jump()
+    compiled = localize(dataset, engine="compiled")  # its run learns the reach first
+    assert compiled.summary["slip_poses"][0] == int(dataset.pose_ids[101])
+    oracle = localize(dataset, LocalizerConfig(association="oracle"), engine="numpy")
+    # Measured 2026-12-07: 1.27x the oracle's 0.026 m after pose 105 (the numpy beam's 0.95x is
+    # the slow test's below); a run that missed the slip stays about a metre off.
+    assert _rmse_after_the_jump(compiled, dataset) <= 1.5 * _rmse_after_the_jump(oracle, dataset)
+
+
+@pytest.mark.slow  # the numpy beam takes about 100 s over this dense pixel world
+def test_the_numpy_beam_searches_the_slip_where_a_seed_explains_the_pose_better_with_fewer_pairs():
+    dataset = _dense_pixel_world_with_a_jump()
     result, statistics = beam_run(dataset)
     assert statistics.slip_search_poses == [101]
     assert result.summary["slip_poses"] == [int(dataset.pose_ids[101])]
     oracle = localize(dataset, LocalizerConfig(association="oracle"), engine="numpy")
-    after = np.arange(dataset.num_poses) >= 105  # back on the track four poses after the jump
-    error, oracle_error = (np.linalg.norm(r.estimate_xyz[after] - dataset.truth_xyz[after], axis=1) for r in (result, oracle))
-    assert np.sqrt(np.mean(error ** 2)) <= 1.25 * np.sqrt(np.mean(oracle_error ** 2))
-    compiled = localize(dataset, engine="compiled")  # the same rule in the compiled beam (its run learns the reach first)
-    assert compiled.summary["slip_poses"][0] == int(dataset.pose_ids[101])
+    assert _rmse_after_the_jump(result, dataset) <= 1.25 * _rmse_after_the_jump(oracle, dataset)
 
 
 @pytest.mark.parametrize("association", ["beam", "oracle"])
