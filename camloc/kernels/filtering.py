@@ -31,12 +31,13 @@ def oracle_pairs(scene, settings, x, P, obs):
     keeps its true id but is no evidence to take."""
     mapped = obs[scene.true_index[obs] >= 0]
     landmarks = scene.true_index[mapped]
+    # each pair predicted and gated on its own: the pairs behind the camera are predicted with the
+    # others and left out with the gate's, not by copies of their arrays first
     front = in_front(scene, x, mapped, landmarks)
-    mapped, landmarks = mapped[front], landmarks[front]
     z_hat, H = predict_pairs(scene, x, mapped, landmarks)
     keep = np.zeros(mapped.size, np.bool_)
     for r in range(mapped.size):
-        keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
+        keep[r] = front[r] and pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
     return mapped[keep], landmarks[keep]
 
 
