@@ -31,12 +31,13 @@ def oracle_pairs(scene, settings, x, P, obs):
     keeps its true id but is no evidence to take."""
     mapped = obs[scene.true_index[obs] >= 0]
     landmarks = scene.true_index[mapped]
+    # each pair predicted and gated on its own: the pairs behind the camera are predicted with the
+    # others and left out with the gate's, not by copies of their arrays first
     front = in_front(scene, x, mapped, landmarks)
-    mapped, landmarks = mapped[front], landmarks[front]
     z_hat, H = predict_pairs(scene, x, mapped, landmarks)
     keep = np.zeros(mapped.size, np.bool_)
     for r in range(mapped.size):
-        keep[r] = pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
+        keep[r] = front[r] and pair_distance(scene.R_assoc, mapped[r], scene.z, z_hat, H, r, P) <= scene.obs_gate[mapped[r]]
     return mapped[keep], landmarks[keep]
 
 
@@ -184,15 +185,24 @@ def within_reach(scene, x, pair_obs, pair_landmarks, reach):
     return within
 
 
-@jit
+@inlined
 def in_front(scene, x, pair_obs, pair_landmarks):
     """Which pairs' landmarks lie in front of their camera at x (depth > 0; a planar sensor's:
-    every one: ``camera.in_front_of``). The numpy twin is ``AssociationScene.in_front``, which says why."""
+    every one: ``camera.in_front_of``): ``pairs_in_front`` passed the five arrays of the scene it
+    reads (as ``recheck.predict_pairs``). The numpy twin is ``AssociationScene.in_front``, which
+    says why."""
+    return pairs_in_front(x, pair_obs, pair_landmarks, scene.obs_camera, scene.landmark_xyz, scene.camera_R, scene.camera_t,
+                          scene.camera_K)
+
+
+@jit
+def pairs_in_front(x, pair_obs, pair_landmarks, obs_camera, landmark_xyz, camera_R, camera_t, camera_K):
+    """``in_front`` of the scene's arrays it reads."""
     front = np.ones(pair_obs.size, np.bool_)
     R, _, t = robot_frame(x)
     for q in range(pair_obs.size):
-        c = scene.obs_camera[pair_obs[q]]
-        front[q] = in_front_of(R, t, scene.camera_R[c], scene.camera_t[c], scene.camera_K[c, 4], scene.landmark_xyz, pair_landmarks[q])
+        c = obs_camera[pair_obs[q]]
+        front[q] = in_front_of(R, t, camera_R[c], camera_t[c], camera_K[c, 4], landmark_xyz, pair_landmarks[q])
     return front
 
 

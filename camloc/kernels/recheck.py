@@ -177,13 +177,22 @@ def restored_pairs(residuals, H, P, R, R_inverse, null_cost):
     return restore
 
 
-@jit
+@inlined
 def predict_pairs(scene, x, obs, landmarks):
     """(z_hat (p, 3), H (p, 3, n)) of the pairs (obs (p,), landmarks (p,)) at x, each angle
-    prediction on its observation's branch (``planar.onto_measured_branch``). One compiled step
-    for the filter's five sites: each site's fancy indexing and calls were compiled again inline."""
-    z_hat, H = observe_pairs(x, scene.landmark_xyz[landmarks], scene.obs_camera[obs], scene.camera_R, scene.camera_t, scene.camera_K)
-    onto_measured_branch(scene.z, scene.obs_camera, scene.camera_K, obs, z_hat)
+    prediction on its observation's branch (``planar.onto_measured_branch``): ``pairs_predicted``
+    passed the six arrays of the scene it reads, not the scene (whose 31 arrays a compiled step
+    counts a reference to on entry and on return, at every update)."""
+    return pairs_predicted(x, obs, landmarks, scene.z, scene.obs_camera, scene.landmark_xyz, scene.camera_R, scene.camera_t,
+                           scene.camera_K)
+
+
+@jit
+def pairs_predicted(x, obs, landmarks, z, obs_camera, landmark_xyz, camera_R, camera_t, camera_K):
+    """``predict_pairs`` of the scene's arrays it reads. One compiled step for the filter's five
+    sites: each site's fancy indexing and calls were compiled again inline."""
+    z_hat, H = observe_pairs(x, landmark_xyz[landmarks], obs_camera[obs], camera_R, camera_t, camera_K)
+    onto_measured_branch(z, obs_camera, camera_K, obs, z_hat)
     return z_hat, H
 
 

@@ -490,10 +490,12 @@ def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_
     twin: ``ekf.posterior_cost``, which says why). The rest is scratch: z_hat (p, 3), H (p, 3, n), r (p, 3), d_position, frame
     (``observe_pairs_into``'s), moved (n,), M (n, n), pivots (n,)."""
     n = x.shape[0]
-    if in_front and not all_in_front(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
+    # predicted first: the prediction leaves x_post's frame in ``frame``, which the test reads
+    # (not computed again: its rotation's sines and cosines, at every update)
+    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
+    if in_front and not all_in_front_of_frame(frame, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
         if all_in_front(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, frame):
             return np.inf
-    observe_pairs_into(x_post, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame)
     for i in range(z.shape[0]):
         for a in range(3):
             r[i, a] = wrapped_residual(camera_K[pair_camera[i], 4], a, z[i, a] - z_hat[i, a])
@@ -506,6 +508,12 @@ def all_in_front(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_K, fra
     """Whether state x puts every pair's landmark in front of the camera that saw it
     (``camera.in_front_of``); frame: ``robot_frame_into``'s scratch."""
     robot_frame_into(x, frame)
+    return all_in_front_of_frame(frame, landmark_xyz, pair_camera, camera_R, camera_t, camera_K)
+
+
+@jit
+def all_in_front_of_frame(frame, landmark_xyz, pair_camera, camera_R, camera_t, camera_K):
+    """``all_in_front`` of the state whose frame (``robot_frame_into``'s) is ``frame``."""
     R, t = frame[0], frame[2]
     for i in range(landmark_xyz.shape[0]):
         c = pair_camera[i]
