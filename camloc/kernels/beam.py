@@ -573,16 +573,27 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
     can cost. Roots are taken in the order they first appear."""
     n = root.size
-    kept = np.empty(0, np.int64)
     seen = np.zeros(root.max() + 1 if n else 1, np.bool_)
     X, P, costs, parent_X, parent_P = gen[0], gen[1], gen[2], parents[0], parents[1]
+    # each root's children and those kept, in two arrays a step, not three or four arrays a root
+    # (``root == r``, its nonzero entries, a concatenation)
+    members, kept = np.empty(n, np.int64), np.empty(n, np.int64)
+    n_kept = 0
     for c in range(n):
         r = root[c]
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
-                                                     settle, model, chain)))
+        g = 0
+        for q in range(c, n):                   # the root first appears at c
+            if root[q] == r:
+                members[g] = q
+                g += 1
+        for q in prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, members[:g], parent_X, parent_P, pending,
+                               settle, model, chain):
+            kept[n_kept] = q
+            n_kept += 1
+    kept = kept[:n_kept]
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -718,11 +729,14 @@ def expected_landmarks(scene, x, obs, opt):
     n = 0
     if MISS_COST <= 0.0 or high <= 0.0:
         return found[:0], excess[:0]
+    last = -1                                   # the camera whose centre is ``centre``: a pose's are grouped
     for i in range(obs.size):
         c = scene.obs_camera[obs[i]]
         if scene.camera_K[c, 4] != PIXEL:
             continue
-        centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+        if c != last:                           # once a camera, not once an observation (four arrays each)
+            centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+            last = c
         null_cost = scene.null_cost[obs[i]]
         for j in range(start[i], start[i + 1]):
             d = 0.0
@@ -818,7 +832,9 @@ def branch(null_cost, settings, gen, p, r, o, options, taken, start, lm, all_cos
         children[4][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, moved
         at += 1
-    for j in np.flatnonzero(pairs):
+    for j in range(pairs.size):                 # not np.flatnonzero: two arrays a partial explanation
+        if not pairs[j]:
+            continue
         copy_hypothesis(gen, p, children, at)
         children[2][at] += cost[j]
         children[7][at, children[6][at], 0], children[7][at, children[6][at], 1] = o, landmarks[j]

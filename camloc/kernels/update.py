@@ -414,10 +414,13 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     p = z.shape[0]
     m = 3 * p
     few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
-    # every linearization's scratch, allocated once
-    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
-    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
-    PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
+    # every linearization's scratch, allocated once, and only its form's (a beam's one-ray update
+    # is the textbook form's: 5 arrays of 27 fewer, at 55 updates a pose, docs/performance.md)
+    M, pivots = np.empty((n, n)), np.empty(n, np.int64)               # both forms: the MAP cost's scratch
+    if few:
+        PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
+    else:
+        R_inverse_H, information, AP, g = np.empty((p, 3, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n)
     z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
     d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
     delta, step, moved, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
@@ -469,10 +472,10 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         if change < CONVERGED or negligible:
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
-    if few:
-        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((n, n)), np.empty((n, n)))
-    else:
-        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((n, n)))
+    if few:                                                          # M as scratch: map_cost_into writes it whole first
+        covariance_posterior_into(P, K, H_last, R, P_post, M, np.empty((n, n)))
+    else:                                                            # AP as scratch: read no more
+        posterior_covariance_into(P, information, M, pivots, P_post, AP)
     cost = np.nan
     if map_cost:                                                     # into the iterations' buffers (H_last is read above)
         cost = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
