@@ -657,7 +657,7 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
-    step = 0
+    step = room_even = room_odd = 0
     while True:
         growing = False
         for r in root:
@@ -668,21 +668,21 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
             for c in range(root.size):
                 gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen[7], gen[6], c))
             return gen, root.size
-        # the children of every partial explanation for its next observation
+        # the children of every partial explanation for its next observation, into one of two sets
+        # of a step's arrays in turn (gen is the other's), each grown as a step needs more room:
+        # 17 arrays allocated a step before, about 100 a pose of the 20k pixel world
         n = root.size
-        # room for every child a partial may have: one per landmark of the observation's pool and
-        # the unassigned one (counting the viable ones would make each partial's options twice)
-        total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
-        for p in range(n):
-            if step >= orders[root[p]].size:
-                total += 1
-            else:
-                i = orders[root[p]][step]
-                total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
-        children = new_generation(total, cap, dim)
-        c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
-        pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
-                   np.zeros((total, 3, dim)), np.zeros(total, np.bool_))
+        total = step_room(root, orders, options, step)
+        if step % 2 == 0:
+            if total > room_even:
+                even, room_even = step_arrays(total, cap, dim), total
+            children, c_root, c_rest, c_moved, pending = even
+        else:
+            if total > room_odd:
+                odd, room_odd = step_arrays(total, cap, dim), total
+            children, c_root, c_rest, c_moved, pending = odd
+        for c in range(total):
+            pending[5][c] = False                # a new child is settled unless branch pairs it
         at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
             r = root[p]
@@ -707,6 +707,28 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
         root, rest, moved = c_root[live], c_rest[live], c_moved[live]
         step += 1
 
+
+
+@inlined
+def step_room(root, orders, options, step):
+    """Room for every child the partial explanations (of roots ``root``) may have at ``step``: one
+    per landmark of the observation's pool and the unassigned one (counting the viable ones would
+    make each partial's options twice)."""
+    total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
+    for p in range(root.size):
+        if step >= orders[root[p]].size:
+            total += 1
+        else:
+            i = orders[root[p]][step]
+            total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
+    return total
+
+
+@inlined
+def step_arrays(n, cap, dim):
+    """A step's children (a generation), their roots, rests, whether moved, and pending record
+    (``settled``'s), room for n."""
+    return new_generation(n, cap, dim), np.empty(n, np.int64), np.empty(n), np.empty(n, np.bool_), settled(n, dim)
 
 
 # ``explain_from`` as ``run_poses`` calls it: by its address, compiled once in its own module, where
@@ -776,22 +798,34 @@ def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
     at its root's base state (``zh``, ``Hs``), under a partial at (x, P) that has taken ``taken``:
     those of the base state, or made again under the partial's own where it has paired something
     since (``model``: ``update.pair_model``). Passed the arrays it reads, not the generation and
-    the options: every array a call is passed is counted on entry and on return."""
+    the options: every array a call is passed is counted on entry and on return. The base state's
+    are the root's own arrays, not copies: ``viable`` and ``branch`` write nothing into them."""
     if not moved:
-        return lm, cost.copy(), zh, Hs
+        return lm, cost, zh, Hs
     cost, z_hat, H, _, _, _ = condition(model, settings, x, P, o, lm, taken)
     return lm, cost, z_hat, H
 
 
 @jit
 def viable(taken, landmarks, cost, null_cost, branch_delta):
-    """Which options (those of landmarks not taken) and whether the null option lie within
-    branch_delta of the best."""
+    """Which options (those of landmarks not taken: ``untaken_cost``) and whether the null option
+    lie within branch_delta of the best. Writes nothing: ``cost`` may be the root's options' own."""
+    best = null_cost                            # ``least_cost`` of the untaken costs
     for j in range(cost.size):
-        if is_taken(landmarks[j], taken):
-            cost[j] = np.inf
-    limit = least_cost(cost, null_cost) + branch_delta
-    return cost <= limit, null_cost <= limit
+        c = untaken_cost(cost, landmarks, j, taken)
+        if c < best:
+            best = c
+    limit = best + branch_delta
+    pairs = np.empty(cost.size, np.bool_)
+    for j in range(cost.size):
+        pairs[j] = untaken_cost(cost, landmarks, j, taken) <= limit
+    return pairs, null_cost <= limit
+
+
+@jit
+def untaken_cost(cost, landmarks, j, taken):
+    """Option j's cost, inf where its landmark is taken."""
+    return np.inf if is_taken(landmarks[j], taken) else cost[j]
 
 
 @jit
@@ -836,7 +870,7 @@ def branch(null_cost, settings, gen, p, r, o, options, taken, start, lm, all_cos
         if not pairs[j]:
             continue
         copy_hypothesis(gen, p, children, at)
-        children[2][at] += cost[j]
+        children[2][at] += untaken_cost(cost, landmarks, j, taken)
         children[7][at, children[6][at], 0], children[7][at, children[6][at], 1] = o, landmarks[j]
         children[6][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, True
