@@ -373,7 +373,7 @@ def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root
             cost[j] = np.inf
     wide = wide_for_rays(model, root_P, obs, start, cost, Hs)
     copy_hypothesis(gen, h, child, h)
-    x, P = gen[0][h].copy(), gen[1][h].copy()
+    x, P = gen[0][h], gen[1][h]                  # read, never written: each update returns new arrays
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
     n_pending = obs.size
     while n_pending:
@@ -425,7 +425,7 @@ def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
     pairs themselves are added to hypothesis h of ``child``. ``model``: ``update.pair_model``."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     n_taken = o.size
-    no_start = np.empty(0)                       # ``updated``'s start: none
+    no_start = x[:0]                             # ``updated``'s start: none (a view, not an array allocated)
     landmarks = np.empty(n_taken, np.int64)
     dim = x.shape[0]
     z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, dim)), np.empty((n_taken, 3)), np.empty((n_taken, 3, dim))
@@ -502,7 +502,7 @@ def settle(settings, X, P, c, parent_X, parent_P, pending, model, chain):
     # a ray's iterations also stop once a step is negligible against the prior's sigma (``RAY_STEP_SIGMA``)
     step_sigma = RAY_STEP_SIGMA if model.camera_K[model.obs_camera[obs[c]], 4] == PIXEL else 0.0
     x, P_new = updated_at(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
-                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE, step_sigma)[:2]
+                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, parent_X[p][:0], FALSE, step_sigma)[:2]
     r = chain[2][c]                              # the tuple read entry by entry: bound whole, its 7 arrays counted
     if chain[6][r] and chain[1][c] - chain[5][r] >= 2:
         x, P_new = checked_at(model, settings.iterations, x, P_new, chain[3][r], chain[4][r], chain[0][c], chain[5][r], chain[1][c])

@@ -432,7 +432,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             y_prior[i, a] = wrapped_residual(kind, a, z[i, a] - z_hat[i, a])
     if few:
         gain_into(P, H, R, PHt, S, L, K)
-        nis = stacked_quadratic(L, y_prior, np.empty(m))             # NIS = y' S^-1 y
+        nis = stacked_quadratic(L, y_prior, step[:m])                # NIS = y' S^-1 y; step (n >= m) as scratch: written below
         gain_step_into(K, y_prior, delta)
     else:
         information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
@@ -664,7 +664,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
         for a in range(landmark_xyz.shape[1]):
             landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    none = np.empty(0)
+    none = start[:0]                                                 # no start: a view, not an array allocated an update
     costed = map_cost or (start.size > 0 and iterations >= 2)         # a start restarts: compared below
     best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed, step_sigma,
                            map_cost)
