@@ -411,11 +411,9 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+ (or NaN), y (p, 3) the innovation
     at the prior)."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
-    p = z.shape[0]
-    m = 3 * p
+    p, m = z.shape[0], 3 * z.shape[0]
     few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
-    # every linearization's scratch, allocated once, and only its form's (a beam's one-ray update
-    # is the textbook form's: 5 arrays of 27 fewer, at 55 updates a pose, docs/performance.md)
+    # every linearization's scratch, allocated once, only its form's (docs/performance.md, 2026-12-07 (22nd))
     M, pivots = np.empty((n, n)), np.empty(n, np.int64)               # both forms: the MAP cost's scratch
     if few:
         PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
@@ -423,9 +421,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         R_inverse_H, information, AP, g = np.empty((p, 3, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n)
     z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
     d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
-    delta, step, moved, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-
-    y_prior = np.empty((p, 3))
+    delta, step, moved, x_i, y_prior = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((p, 3))
     for i in range(p):                                               # a marker's psi wrapped (``wrapped_residual``)
         kind = camera_K[pair_camera[i], 4]
         for a in range(3):
