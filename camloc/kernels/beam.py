@@ -373,7 +373,7 @@ def after_clear(scene, settings, gen, h, obs, child, model, root_x, root_P, root
             cost[j] = np.inf
     wide = wide_for_rays(model, root_P, obs, start, cost, Hs)
     copy_hypothesis(gen, h, child, h)
-    x, P = gen[0][h].copy(), gen[1][h].copy()
+    x, P = gen[0][h], gen[1][h]                  # read, never written: each update returns new arrays
     pending = np.arange(obs.size)                # positions still ambiguous: the first n_pending
     n_pending = obs.size
     while n_pending:
@@ -425,7 +425,7 @@ def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
     pairs themselves are added to hypothesis h of ``child``. ``model``: ``update.pair_model``."""
     start, lm, cost, zh, Hs, ys, Hcs, in_point, _ = opt
     n_taken = o.size
-    no_start = np.empty(0)                       # ``updated``'s start: none
+    no_start = x[:0]                             # ``updated``'s start: none (a view, not an array allocated)
     landmarks = np.empty(n_taken, np.int64)
     dim = x.shape[0]
     z_hat, H, y, Hc = np.empty((n_taken, 3)), np.empty((n_taken, 3, dim)), np.empty((n_taken, 3)), np.empty((n_taken, 3, dim))
@@ -502,7 +502,7 @@ def settle(settings, X, P, c, parent_X, parent_P, pending, model, chain):
     # a ray's iterations also stop once a step is negligible against the prior's sigma (``RAY_STEP_SIGMA``)
     step_sigma = RAY_STEP_SIGMA if model.camera_K[model.obs_camera[obs[c]], 4] == PIXEL else 0.0
     x, P_new = updated_at(model, settings.iterations, parent_X[p], parent_P[p], obs[c:c + 1], landmark[c:c + 1],
-                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, np.empty(0), FALSE, step_sigma)[:2]
+                       z_hat[c:c + 1], H[c:c + 1], model.R_assoc, model.R_assoc_inverse, parent_X[p][:0], FALSE, step_sigma)[:2]
     r = chain[2][c]                              # the tuple read entry by entry: bound whole, its 7 arrays counted
     if chain[6][r] and chain[1][c] - chain[5][r] >= 2:
         x, P_new = checked_at(model, settings.iterations, x, P_new, chain[3][r], chain[4][r], chain[0][c], chain[5][r], chain[1][c])
@@ -573,16 +573,27 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
     and the rest of the budget by cost plus ``rest``, the least what they still have to explain
     can cost. Roots are taken in the order they first appear."""
     n = root.size
-    kept = np.empty(0, np.int64)
     seen = np.zeros(root.max() + 1 if n else 1, np.bool_)
     X, P, costs, parent_X, parent_P = gen[0], gen[1], gen[2], parents[0], parents[1]
+    # each root's children and those kept, in two arrays a step, not three or four arrays a root
+    # (``root == r``, its nonzero entries, a concatenation)
+    members, kept = np.empty(n, np.int64), np.empty(n, np.int64)
+    n_kept = 0
     for c in range(n):
         r = root[c]
         if seen[r]:
             continue
         seen[r] = True
-        kept = np.concatenate((kept, prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, np.flatnonzero(root == r), parent_X, parent_P, pending,
-                                                     settle, model, chain)))
+        g = 0
+        for q in range(c, n):                   # the root first appears at c
+            if root[q] == r:
+                members[g] = q
+                g += 1
+        for q in prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, members[:g], parent_X, parent_P, pending,
+                               settle, model, chain):
+            kept[n_kept] = q
+            n_kept += 1
+    kept = kept[:n_kept]
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
         first = np.zeros(ranked.size, np.bool_)
@@ -646,7 +657,7 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
         orders.append(order)
         leasts.append(least)
         rest[h] = least[order].sum()
-    step = 0
+    step = room_even = room_odd = 0
     while True:
         growing = False
         for r in root:
@@ -657,21 +668,21 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
             for c in range(root.size):
                 gen[2][c] += missed(expected[root[c]][0], expected[root[c]][1], taken_by(gen[7], gen[6], c))
             return gen, root.size
-        # the children of every partial explanation for its next observation
+        # the children of every partial explanation for its next observation, into one of two sets
+        # of a step's arrays in turn (gen is the other's), each grown as a step needs more room:
+        # 17 arrays allocated a step before, about 100 a pose of the 20k pixel world
         n = root.size
-        # room for every child a partial may have: one per landmark of the observation's pool and
-        # the unassigned one (counting the viable ones would make each partial's options twice)
-        total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
-        for p in range(n):
-            if step >= orders[root[p]].size:
-                total += 1
-            else:
-                i = orders[root[p]][step]
-                total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
-        children = new_generation(total, cap, dim)
-        c_root, c_rest, c_moved = np.empty(total, np.int64), np.empty(total), np.empty(total, np.bool_)
-        pending = (np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros((total, 3)),
-                   np.zeros((total, 3, dim)), np.zeros(total, np.bool_))
+        total = step_room(root, orders, options, step)
+        if step % 2 == 0:
+            if total > room_even:
+                even, room_even = step_arrays(total, cap, dim), total
+            children, c_root, c_rest, c_moved, pending = even
+        else:
+            if total > room_odd:
+                odd, room_odd = step_arrays(total, cap, dim), total
+            children, c_root, c_rest, c_moved, pending = odd
+        for c in range(total):
+            pending[5][c] = False                # a new child is settled unless branch pairs it
         at = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
         for p in range(n):
             r = root[p]
@@ -698,6 +709,28 @@ def explain_from(scene, settings, parents, n_parents, obs, roots):
 
 
 
+@inlined
+def step_room(root, orders, options, step):
+    """Room for every child the partial explanations (of roots ``root``) may have at ``step``: one
+    per landmark of the observation's pool and the unassigned one (counting the viable ones would
+    make each partial's options twice)."""
+    total = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
+    for p in range(root.size):
+        if step >= orders[root[p]].size:
+            total += 1
+        else:
+            i = orders[root[p]][step]
+            total += options[root[p]][0][i + 1] - options[root[p]][0][i] + 1
+    return total
+
+
+@inlined
+def step_arrays(n, cap, dim):
+    """A step's children (a generation), their roots, rests, whether moved, and pending record
+    (``settled``'s), room for n."""
+    return new_generation(n, cap, dim), np.empty(n, np.int64), np.empty(n), np.empty(n, np.bool_), settled(n, dim)
+
+
 # ``explain_from`` as ``run_poses`` calls it: by its address, compiled once in its own module, where
 # linked the beam's whole tree was optimized and generated again in ``run_poses``' (``_jit.called``)
 explain_from_at = called(explain_from)
@@ -718,11 +751,14 @@ def expected_landmarks(scene, x, obs, opt):
     n = 0
     if MISS_COST <= 0.0 or high <= 0.0:
         return found[:0], excess[:0]
+    last = -1                                   # the camera whose centre is ``centre``: a pose's are grouped
     for i in range(obs.size):
         c = scene.obs_camera[obs[i]]
         if scene.camera_K[c, 4] != PIXEL:
             continue
-        centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+        if c != last:                           # once a camera, not once an observation (four arrays each)
+            centre = camera_pose(x, scene.camera_R[c], scene.camera_t[c])[1]
+            last = c
         null_cost = scene.null_cost[obs[i]]
         for j in range(start[i], start[i + 1]):
             d = 0.0
@@ -762,22 +798,34 @@ def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
     at its root's base state (``zh``, ``Hs``), under a partial at (x, P) that has taken ``taken``:
     those of the base state, or made again under the partial's own where it has paired something
     since (``model``: ``update.pair_model``). Passed the arrays it reads, not the generation and
-    the options: every array a call is passed is counted on entry and on return."""
+    the options: every array a call is passed is counted on entry and on return. The base state's
+    are the root's own arrays, not copies: ``viable`` and ``branch`` write nothing into them."""
     if not moved:
-        return lm, cost.copy(), zh, Hs
+        return lm, cost, zh, Hs
     cost, z_hat, H, _, _, _ = condition(model, settings, x, P, o, lm, taken)
     return lm, cost, z_hat, H
 
 
 @jit
 def viable(taken, landmarks, cost, null_cost, branch_delta):
-    """Which options (those of landmarks not taken) and whether the null option lie within
-    branch_delta of the best."""
+    """Which options (those of landmarks not taken: ``untaken_cost``) and whether the null option
+    lie within branch_delta of the best. Writes nothing: ``cost`` may be the root's options' own."""
+    best = null_cost                            # ``least_cost`` of the untaken costs
     for j in range(cost.size):
-        if is_taken(landmarks[j], taken):
-            cost[j] = np.inf
-    limit = least_cost(cost, null_cost) + branch_delta
-    return cost <= limit, null_cost <= limit
+        c = untaken_cost(cost, landmarks, j, taken)
+        if c < best:
+            best = c
+    limit = best + branch_delta
+    pairs = np.empty(cost.size, np.bool_)
+    for j in range(cost.size):
+        pairs[j] = untaken_cost(cost, landmarks, j, taken) <= limit
+    return pairs, null_cost <= limit
+
+
+@jit
+def untaken_cost(cost, landmarks, j, taken):
+    """Option j's cost, inf where its landmark is taken."""
+    return np.inf if is_taken(landmarks[j], taken) else cost[j]
 
 
 @jit
@@ -818,9 +866,11 @@ def branch(null_cost, settings, gen, p, r, o, options, taken, start, lm, all_cos
         children[4][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, moved
         at += 1
-    for j in np.flatnonzero(pairs):
+    for j in range(pairs.size):                 # not np.flatnonzero: two arrays a partial explanation
+        if not pairs[j]:
+            continue
         copy_hypothesis(gen, p, children, at)
-        children[2][at] += cost[j]
+        children[2][at] += untaken_cost(cost, landmarks, j, taken)
         children[7][at, children[6][at], 0], children[7][at, children[6][at], 1] = o, landmarks[j]
         children[6][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, True

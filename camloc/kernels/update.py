@@ -411,25 +411,24 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
     Returns (x+ (n,), P+ (n, n), NIS at the prior, MAP cost at x+ (or NaN), y (p, 3) the innovation
     at the prior)."""
     n = x.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
-    p = z.shape[0]
-    m = 3 * p
+    p, m = z.shape[0], 3 * z.shape[0]
     few = 3 * p <= n                                                 # S (3p x 3p) no larger than the state's information (n x n)
-    # every linearization's scratch, allocated once
-    R_inverse_H, information = np.empty((p, 3, n)), np.empty((n, n))
-    M, pivots, AP, g = np.empty((n, n)), np.empty(n, np.int64), np.empty((n, n)), np.empty(n)
-    PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
+    # every linearization's scratch, allocated once, only its form's (docs/performance.md, 2026-12-07 (22nd))
+    M, pivots = np.empty((n, n)), np.empty(n, np.int64)               # both forms: the MAP cost's scratch
+    if few:
+        PHt, S, L, K = np.empty((n, m)), np.empty((m, m)), np.empty((m, m)), np.empty((n, m))
+    else:
+        R_inverse_H, information, AP, g = np.empty((p, 3, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n)
     z_hat_i, H_i, r = np.empty((p, 3)), np.empty((p, 3, n)), np.empty((p, 3))
     d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
-    delta, step, moved, x_i = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-
-    y_prior = np.empty((p, 3))
+    delta, step, moved, x_i, y_prior = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((p, 3))
     for i in range(p):                                               # a marker's psi wrapped (``wrapped_residual``)
         kind = camera_K[pair_camera[i], 4]
         for a in range(3):
             y_prior[i, a] = wrapped_residual(kind, a, z[i, a] - z_hat[i, a])
     if few:
         gain_into(P, H, R, PHt, S, L, K)
-        nis = stacked_quadratic(L, y_prior, np.empty(m))             # NIS = y' S^-1 y
+        nis = stacked_quadratic(L, y_prior, step[:m])                # NIS = y' S^-1 y; step (n >= m) as scratch: written below
         gain_step_into(K, y_prior, delta)
     else:
         information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP)
@@ -469,10 +468,10 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         if change < CONVERGED or negligible:
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
-    if few:
-        covariance_posterior_into(P, K, H_last, R, P_post, np.empty((n, n)), np.empty((n, n)))
-    else:
-        posterior_covariance_into(P, information, M, pivots, P_post, np.empty((n, n)))
+    if few:                                                          # M as scratch: map_cost_into writes it whole first
+        covariance_posterior_into(P, K, H_last, R, P_post, M, np.empty((n, n)))
+    else:                                                            # AP as scratch: read no more
+        posterior_covariance_into(P, information, M, pivots, P_post, AP)
     cost = np.nan
     if map_cost:                                                     # into the iterations' buffers (H_last is read above)
         cost = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
@@ -669,7 +668,7 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
         for a in range(landmark_xyz.shape[1]):
             landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
-    none = np.empty(0)
+    none = start[:0]                                                 # no start: a view, not an array allocated an update
     costed = map_cost or (start.size > 0 and iterations >= 2)         # a start restarts: compared below
     best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed, step_sigma,
                            map_cost)
