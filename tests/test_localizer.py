@@ -15,7 +15,7 @@ from camloc.errors import ConfigError
 from camloc.g2o import read_g2o
 from camloc.localizer import localize
 from camloc.localizer_config import BeamOptions, BestFriendsOptions, JcbbOptions, LocalizerConfig, RecheckOptions, ViewOptions
-from camloc.metrics import evaluate, run_nees
+from camloc.metrics import evaluate, position_errors, run_nees
 from camloc.simulate import SimulationConfig, simulate
 
 
@@ -582,8 +582,8 @@ def _dense_pixel_world_with_a_jump() -> Dataset:
 
 
 def _rmse_after_the_jump(result, dataset: Dataset) -> float:
-    after = np.arange(dataset.num_poses) >= 105  # back on the track four poses after the jump
-    return float(np.sqrt(np.mean(np.sum((result.estimate_xyz[after] - dataset.truth_xyz[after]) ** 2, axis=1))))
+    # from pose 105: back on the track four poses after the jump
+    return float(np.sqrt(np.mean(position_errors(result.estimate_xyz[105:], dataset.truth_xyz[105:]) ** 2)))
 
 
 def test_the_compiled_beam_searches_the_slip_where_a_seed_explains_the_pose_better_with_fewer_pairs():
