@@ -42,7 +42,16 @@ def robot_frame_into(x, frame):
     predicts its pairs at every step, each time from a new state, into the same buffers."""
     if x.shape[0] == SE2_DIM:
         planar_frame_into(x, frame)
-        return
+    else:
+        euler_frame_into(x, frame)
+
+
+@jit
+def euler_frame_into(x, frame):
+    """``robot_frame_into`` of the Euler state (6,): small enough for LLVM to inline into
+    ``observe_pairs_into``, which picks it by the state's size (``robot_frame_into`` with the
+    planar branch in it was called there, not inlined: the filter's predictions 79 of 325 perf
+    samples slower than the filing's, docs/performance.md, 2026-12-07 (twenty-third session))."""
     R, E, t = frame
     euler_to_matrix_into(x[3], x[4], x[5], R)
     euler_rate_into(x[3], x[4], E)
@@ -179,7 +188,10 @@ def observe_pairs_into(x, landmark_xyz, pair_camera, camera_R, camera_t, camera_
     """``observe_pairs`` written into z_hat (p, 3) and H (p, 3, n), with d_position (C, 3, 3) and
     frame (``robot_frame_into``'s) as scratch: an iterated update predicts its pairs at every
     step into the same buffers."""
-    robot_frame_into(x, frame)
+    if x.shape[0] != SE2_DIM:                            # each frame step alone, inlined by LLVM (``euler_frame_into``)
+        euler_frame_into(x, frame)
+    else:
+        planar_frame_into(x, frame)
     R, E, t = frame
     for c in range(camera_R.shape[0]):
         camera_position_jacobian(R, camera_R[c], d_position[c])

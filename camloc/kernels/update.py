@@ -203,48 +203,52 @@ def covariance_posterior_of_size(P, K, H, R, out, I_KH, scratch, n):
 def information_into(P, H, R_inverse, R_inverse_H, information, M, pivots, AP):
     """Of pairs with Jacobians H (p, 3, n) and noise information R_inverse (p, 3, 3): R^-1 H
     (p, 3, n), Lambda (n, n), I + P Lambda factored into (M, pivots) by ``lu_factor``, and
-    A P = (I + P Lambda)^-1 P (n, n), symmetrized."""
-    if P.shape[0] == 6:                   # the state's size a constant: ``information_of_size``
-        information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, 6)
-    else:
-        information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, SE2_DIM)
-
-
-@inlined
-def information_of_size(P, H, R_inverse, R_inverse_H, information, M, pivots, AP, n):
-    """``information_into`` of a state of n entries, n a constant at each call: its loops unrolled."""
+    A P = (I + P Lambda)^-1 P (n, n), symmetrized. Its loops count to 6, the larger state's size
+    (unrolled), the smaller state's entries skipped (``gradient_into``), in the order of a loop to
+    n: a dispatch by size to two inlined copies counted a reference to each of its 8 arrays
+    again at each call (28 operations a call against the filing's 11, docs/performance.md,
+    2026-12-07 (twenty-third session))."""
+    n = P.shape[0]                        # the state's size: 6 (Euler), 3 (planar)
     p = H.shape[0]
-    for c in range(n):
-        for d in range(n):
-            information[c, d] = 0.0
+    for c in range(6):
+        for d in range(6):
+            if c < n and d < n:
+                information[c, d] = 0.0
     for i in range(p):
         for a in range(3):
-            for c in range(n):
-                R_inverse_H[i, a, c] = R_inverse[i, a, 0] * H[i, 0, c] + R_inverse[i, a, 1] * H[i, 1, c] + R_inverse[i, a, 2] * H[i, 2, c]
+            for c in range(6):
+                if c < n:
+                    R_inverse_H[i, a, c] = R_inverse[i, a, 0] * H[i, 0, c] + R_inverse[i, a, 1] * H[i, 1, c] + R_inverse[i, a, 2] * H[i, 2, c]
         for a in range(3):
-            for c in range(n):
-                h = H[i, a, c]
-                for d in range(c, n):
-                    information[c, d] += h * R_inverse_H[i, a, d]
-    for c in range(n):
+            for c in range(6):
+                if c < n:
+                    h = H[i, a, c]
+                    for d in range(c, 6):
+                        if d < n:
+                            information[c, d] += h * R_inverse_H[i, a, d]
+    for c in range(6):
         for d in range(c):
-            information[c, d] = information[d, c]
+            if c < n:
+                information[c, d] = information[d, c]
     finite = True
-    for c in range(n):
-        for d in range(n):
-            s = 0.0
-            for q in range(n):
-                s += P[c, q] * information[q, d]
-            M[c, d] = (1.0 if c == d else 0.0) + s
-            finite = finite and np.isfinite(M[c, d])
-            AP[c, d] = P[c, d]
+    for c in range(6):
+        for d in range(6):
+            if c < n and d < n:
+                s = 0.0
+                for q in range(6):
+                    if q < n:
+                        s += P[c, q] * information[q, d]
+                M[c, d] = (1.0 if c == d else 0.0) + s
+                finite = finite and np.isfinite(M[c, d])
+                AP[c, d] = P[c, d]
     if not finite:
         raise FloatingPointError("innovation covariance is not positive definite")
     lu_factor(M, pivots)
     lu_solve(M, pivots, AP)
-    for c in range(n):
+    for c in range(6):
         for d in range(c):
-            AP[c, d] = AP[d, c] = 0.5 * (AP[c, d] + AP[d, c])
+            if c < n:
+                AP[c, d] = AP[d, c] = 0.5 * (AP[c, d] + AP[d, c])
 
 
 @jit
@@ -474,14 +478,26 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
         posterior_covariance_into(P, information, M, pivots, P_post, AP)
     cost = np.nan
     if map_cost:                                                     # into the iterations' buffers (H_last is read above)
-        cost = map_cost_into(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
-                             z_hat_i, H_i, r, d_position, frame, moved, M, pivots, in_front)
+        cost = map_cost_of(x_i, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+                           z_hat_i, H_i, r, d_position, frame, moved, M, pivots, in_front)
     return x_i, P_post, nis, cost, y_prior
 
 
 @jit
 def map_cost_into(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
                   z_hat, H, r, d_position, frame, moved, M, pivots, in_front):
+    """``map_cost_of`` as the restarts call it (``damped_start``, ``restart_cost``): compiled once."""
+    return map_cost_of(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+                       z_hat, H, r, d_position, frame, moved, M, pivots, in_front)
+
+
+# Inlined into ``iterated_update``, its one call at every update: called, it counted a reference
+# to each of its 20 arrays on entry and on return (40 operations an update; inlined, numba prunes
+# most of them: 36 fewer a pose of the 300-pose depth world, docs/performance.md, 2026-12-07
+# (twenty-third session))
+@inlined
+def map_cost_of(x_post, x, P, z, R_inverse, landmark_xyz, pair_camera, camera_R, camera_t, camera_K,
+                z_hat, H, r, d_position, frame, moved, M, pivots, in_front):
     """The MAP cost at x_post of the update of prior (x, P) with the pairs of ``iterated_update``
     (its arguments of the same names): the prior's quadratic of x_post [-] x plus each pair's
     y' R^-1 y at x_post; with ``in_front`` (the estimate's update), infinite where x_post puts a
