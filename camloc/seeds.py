@@ -15,11 +15,12 @@ import numpy as np
 
 from camloc import geometry, planar
 from camloc.constants import (
-    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, UNEXPLAINED_RATE_CAP,
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
     UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
 )
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
+from camloc.kernels.state import difference
 from camloc.kernels.view import widened_view
 from camloc.measurement import DEPTH
 from camloc.tails import binomial_tail
@@ -114,8 +115,8 @@ def unusually_unexplained(unassigned: int, observed: int, history: np.ndarray) -
 
 def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
     """Explanations of obs under hypothesis h (a generation of one), each grown from one seed pair;
-    each seed gives its SEED_EXPLANATIONS cheapest, within the prior
-    (``kernels.seeds.seeded_explanations``, one compiled call for all the seeds). Returns (generation, count)."""
+    each seed gives its SEED_EXPLANATIONS cheapest (``kernels.seeds.seeded_explanations``, one
+    compiled call for all the seeds), of which those within the prior are kept. Returns (generation, count)."""
     x, P = h[0][0], h[1][0]
     # among the landmarks within three standard deviations of the view, not only in it
     margin, max_angle = widened_view(P, scene.view_limits[2])
@@ -145,17 +146,27 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
     ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
                                               scene.null_cost[obs], candidates.astype(np.int64), scene.obs_gate[o])
     seeds = candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]
-    explained = ranking.seeded_explanations(scene, settings, h, obs, seeds, pair_obs, pair_landmark, pair_cost, pair_z_hat, pair_H,
-                                            width, delta)
-    if not explained[1]:
+    found, n = ranking.seeded_explanations(scene, settings, h, obs, seeds, pair_obs, pair_landmark, pair_cost, pair_z_hat, pair_H)
+    within = np.array([c for c in range(n) if within_prior(found[0][c], x, P)], dtype=np.int64)
+    if not within.size:
         return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
-    return _flagged(explained, slipped)
+    gen = kb.gather(found, within, found[7].shape[1])
+    kept = kb.prune(scene, settings, gen, within.size, width, delta)
+    return _flagged((kb.gather(gen, kept, gen[7].shape[1]), kept.size), slipped)
 
 
 def _flagged(generation, slipped: bool):
     gen, n = generation
     gen[5][:n] = slipped
     return gen, n
+
+
+def within_prior(x_child, x, P) -> bool:
+    """Whether a child's state lies within the 99.9% region of its prior (x, P): under a wide
+    prior in a dense map a seed can fit a landmark metres from the right one by turning the
+    camera, every innovation looking likely while the state moved many standard deviations."""
+    d = difference(x_child, x)
+    return float(d @ np.linalg.solve(P, d)) <= STATE_GATE
 
 
 def implied_shifts(scene, x, obs, pair_obs, pair_landmark):
