@@ -15,14 +15,12 @@ import numpy as np
 
 from camloc import geometry, planar
 from camloc.constants import (
-    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SEED_EXPLANATIONS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
+    AGREEMENT_DEPTH_FRACTION, AGREEMENT_SIGMAS, SLIP_CANDIDATES, SLIP_MIN_OBSERVATIONS, SLIP_SEEDS, STATE_GATE, UNEXPLAINED_RATE_CAP,
     UNEXPLAINED_RUN, UNEXPLAINED_WINDOW, UNUSUAL_PROBABILITY,
 )
 from camloc.kernels import beam as kb
 from camloc.kernels import seeds as ranking
 from camloc.kernels.state import difference
-from camloc.kernels.types import PairModel
-from camloc.kernels.update import updated
 from camloc.kernels.view import widened_view
 from camloc.measurement import DEPTH
 from camloc.tails import binomial_tail
@@ -117,7 +115,8 @@ def unusually_unexplained(unassigned: int, observed: int, history: np.ndarray) -
 
 def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
     """Explanations of obs under hypothesis h (a generation of one), each grown from one seed pair;
-    each seed gives its SEED_EXPLANATIONS cheapest. Returns (generation, count)."""
+    each seed gives its SEED_EXPLANATIONS cheapest (``kernels.seeds.seeded_explanations``, one
+    compiled call for all the seeds), of which those within the prior are kept. Returns (generation, count)."""
     x, P = h[0][0], h[1][0]
     # among the landmarks within three standard deviations of the view, not only in it
     margin, max_angle = widened_view(P, scene.view_limits[2])
@@ -146,29 +145,13 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
     noise = np.where(pair_in_point[:, None, None], scene.point_cov[o], scene.R_assoc[o])
     ranked = ranking.seeded_explanation_costs(y[gated], Hc[gated], noise, P, pair_obs, pair_landmark,
                                               scene.null_cost[obs], candidates.astype(np.int64), scene.obs_gate[o])
-    explained = []
-    # what the update reads of the scene (``update.pair_model``), built here: that kernel called
-    # from Python would be compiled once more, with a wrapper boxing its result
-    model = PairModel(*(getattr(scene, name) for name in PairModel._fields))
-    for seed in candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]:
-        i, lm = int(pair_obs[seed]), int(pair_landmark[seed])
-        seeded = kb.gather(h, np.array([0]), 1 + obs.size)
-        seeded[0][0], seeded[1][0] = updated(model, settings.iterations, x, P, obs[i:i + 1], np.array([lm]), pair_z_hat[seed:seed + 1],
-                                             pair_H[seed:seed + 1], scene.R_assoc, scene.R_assoc_inverse, np.empty(0), False, 0.0)[:2]
-        seeded[2][0] += pair_cost[seed]
-        seeded[7][0, 0] = (obs[i], lm)
-        seeded[6][0] = 1
-        # its chains checked against the prior the search started from (``kernels.beam_chain``): a seed pair's
-        # state under a wide prior is as far off as a branched one's; on 3x-noise worlds it gains w9 and w11 and
-        # holds the default-noise ones (docs/performance.md, 2026-12-06 seventeenth session, seeded-chain2)
-        children, count = kb.explain_from(scene, settings, seeded, 1, np.delete(obs, i), h)
-        for c in range(min(count, SEED_EXPLANATIONS)):
-            if within_prior(children[0][c], x, P):
-                explained.append((kb.gather(children, np.array([c]), children[7].shape[1]), 1))
-    if not explained:
+    seeds = candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]
+    found, n = ranking.seeded_explanations(scene, settings, h, obs, seeds, pair_obs, pair_landmark, pair_cost, pair_z_hat, pair_H)
+    within = np.array([c for c in range(n) if within_prior(found[0][c], x, P)], dtype=np.int64)
+    if not within.size:
         return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
-    gen, sizes = concatenated(explained)
-    kept = kb.prune(scene, settings, gen, int(sizes.sum()), width, delta)
+    gen = kb.gather(found, within, found[7].shape[1])
+    kept = kb.prune(scene, settings, gen, within.size, width, delta)
     return _flagged((kb.gather(gen, kept, gen[7].shape[1]), kept.size), slipped)
 
 

@@ -294,8 +294,9 @@ def _run_compiled(dataset, config, *, concurrent: bool = False):
 def late_beam_kernels(dataset, config) -> list:
     """Compile the beam's kernels that a first compile of the beam reaches last, each called once
     on small arguments of the types a run passes: ``prune`` (called after ``explain_all``, whose
-    tree takes most of the compile) and the slip search's ``same_state``, ``widened_view``, ``shift_agreement``
-    and ``seeded_explanation_costs`` (called from Python once ``run_poses`` has compiled). About
+    tree takes most of the compile) and the slip search's ``same_state``, ``widened_view``, ``shift_agreement``,
+    ``seeded_explanation_costs`` and ``seeded_explanations`` (called from Python once ``run_poses`` has compiled;
+    the last with no seed, its loop not run). About
     10 s of a first compile (``docs/performance.md``). Returns the kernels."""
     import numpy as np
 
@@ -317,7 +318,10 @@ def late_beam_kernels(dataset, config) -> list:
     ranking.shift_agreement(np.zeros((2, 3)), 1.0)
     ranking.seeded_explanation_costs(np.zeros((1, 3)), np.zeros((1, 3, 6)), np.eye(3)[None].copy(), P, np.zeros(1, np.int64),
                                      np.zeros(1, np.int64), np.ones(1), np.zeros(1, np.int64), np.ones(1))
-    return [kb.prune, kb.same_state, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs]
+    none = np.zeros(0, np.int64)
+    ranking.seeded_explanations(scene, settings, one, np.zeros(1, np.int64), none, none, none, np.zeros(0), np.zeros((0, 3)),
+                                np.zeros((0, 3, 6)))
+    return [kb.prune, kb.same_state, widened_view, ranking.shift_agreement, ranking.seeded_explanation_costs, ranking.seeded_explanations]
 
 
 def deferred_kernels(dataset, config) -> list:

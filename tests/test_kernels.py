@@ -77,7 +77,7 @@ def test_what_python_calls_is_an_entry_point():
         named |= {node.attr for node in ast.walk(tree)
                   if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases}
     called = sorted(name for name in named if name in kernels)
-    assert {"run_poses", "filter_poses", "explain_from", "options_for", "updated"} <= set(called)
+    assert {"run_poses", "filter_poses", "options_for", "prune", "seeded_explanations"} <= set(called)
     for name in called:
         assert not kernels[name].targetoptions.get("no_cpython_wrapper", False), f"{name} is called from Python"
 

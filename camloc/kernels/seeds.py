@@ -5,7 +5,8 @@ is taken first (the numpy twin: ``camloc.association.seeded_explanation_costs``)
 
 with ``c_q|s`` pair q's cost conditioned on seed s (the Schur complement of the two pairs' joint
 innovation covariance), linearized at the prior. And the other way seeds are found: how many
-pairs imply nearly the same shift of the robot as each (``shift_agreement``).
+pairs imply nearly the same shift of the robot as each (``shift_agreement``). And the search's
+loop over the seeds it tries (``seeded_explanations``), one call a search.
 """
 
 from __future__ import annotations
@@ -14,8 +15,11 @@ import math
 
 import numpy as np
 
-from camloc.kernels._jit import entry, inlined, jit
+from camloc.constants import SEED_EXPLANATIONS
+from camloc.kernels._jit import FALSE, ONE, called, entry, inlined, jit
+from camloc.kernels.beam import copy_hypothesis, explain_from_at, gather, new_generation, put_state
 from camloc.kernels.sym3 import inverse_components, log_det as log_det_3x3, mahalanobis, quadratic_and_det, spread
+from camloc.kernels.update import pair_model, updated_at
 
 
 @entry
@@ -192,3 +196,50 @@ def shift_agreement(shifts, radius):
                 counts[i] += 1
                 counts[j] += 1
     return counts
+
+
+# the kernel the search calls from Python too, called by its address (``_jit.called``): linked, its
+# code was optimized and generated again in this module
+gather_at = called(gather)
+
+
+@entry
+def seeded_explanations(scene, settings, h, obs, seeds, pair_obs, pair_landmark, pair_cost, pair_z_hat, pair_H):
+    """The seeded search's explanations of obs (m,) under h (a generation of one), each grown from
+    one of the seed pairs ``seeds`` (indices of the pairs pair_obs (positions in obs),
+    pair_landmark, pair_cost, with their prediction pair_z_hat (N, 3) and pair_H (N, 3, n) at h),
+    in order: the pair's update of h, then ``explain_from`` of the other observations, its chains
+    checked against h. Returns (generation, count): each seed's SEED_EXPLANATIONS cheapest, in the
+    seeds' order (the caller keeps those within h's prior, ``camloc.seeds.within_prior``).
+
+    One call a search (``camloc.seeds.from_seeds``): from Python each seed took five compiled
+    calls, two of them passed the scene, whose unboxing cost more than the work
+    (docs/performance.md, 2026-12-07 (twenty-third session)). The update and ``explain_from`` are
+    called by their addresses (``_jit.called``), as the beam calls them: not compiled again. The
+    test against the prior stays in Python: numba's ``np.linalg.solve`` took 2.7 s of a first
+    compile, and another solve would not give LAPACK's bits."""
+    x, P = h[0][0], h[1][0]
+    m, dim = obs.size, x.shape[0]
+    model = pair_model(scene)
+    first = np.zeros(1, np.int64)
+    # a child explains each observation at most once: m pairs at most (``explain_from``'s room)
+    found = new_generation(seeds.size * SEED_EXPLANATIONS, m, dim)
+    n = 0
+    for k in range(seeds.size):
+        seed = seeds[k]
+        i = pair_obs[seed]
+        seeded = gather_at(h, first, ONE + m)
+        state = updated_at(model, settings.iterations, x, P, obs[i:i + 1], pair_landmark[seed:seed + 1], pair_z_hat[seed:seed + 1],
+                           pair_H[seed:seed + 1], model.R_assoc, model.R_assoc_inverse, x[:0], FALSE, 0.0)
+        put_state(seeded, 0, state[0], state[1])
+        seeded[2][0] += pair_cost[seed]
+        seeded[7][0, 0, 0], seeded[7][0, 0, 1] = obs[i], pair_landmark[seed]
+        seeded[6][0] = 1
+        rest = np.empty(m - 1, np.int64)        # obs without its i-th
+        for j in range(m - 1):
+            rest[j] = obs[j] if j < i else obs[j + 1]
+        children, count = explain_from_at(scene, settings, seeded, ONE, rest, h)
+        for c in range(min(count, SEED_EXPLANATIONS)):
+            copy_hypothesis(children, c, found, n)
+            n += 1
+    return found, n
