@@ -72,15 +72,18 @@ def best_of(generations) -> tuple[float, int]:
 
 
 def concatenated(generations):
-    """One generation of [(generation, count), ...], and the counts."""
+    """One generation of [(generation, count), ...], and the counts. Field by field, a slice of
+    each: a compiled ``copy_hypothesis`` per hypothesis from Python cost more (its wrapper unboxes
+    two generations) than the copy; the pairs past a hypothesis' count are never read."""
     cap = max(g[7].shape[1] for g, _ in generations)
     sizes = np.array([n for _, n in generations], dtype=np.int64)
     out = kb.new_generation(int(sizes.sum()), cap, generations[0][0][0].shape[1])
     at = 0
     for g, n in generations:
-        for i in range(n):
-            kb.copy_hypothesis(g, i, out, at)
-            at += 1
+        for field in range(7):
+            out[field][at:at + n] = g[field][:n]
+        out[7][at:at + n, :g[7].shape[1]] = g[7][:n]
+        at += n
     return out, sizes
 
 
@@ -131,15 +134,16 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
     # and the pairs whose implied shift of the robot most others share: a right pair's own cost
     # under a wide prior may rank it far down
     # (a pixel is a ray: it implies no one shift; only pairs judged as points vote)
-    as_point = scene.camera_K[scene.obs_camera[obs[pair_obs]], 4] == DEPTH
+    obs_as_point = scene.camera_K[scene.obs_camera[obs], 4] == DEPTH
+    as_point = obs_as_point[pair_obs]
     agreement = np.zeros(pair_obs.size, np.int64)
     if as_point.any():
-        pointed = obs[scene.camera_K[scene.obs_camera[obs], 4] == DEPTH]
         agreement[as_point] = ranking.shift_agreement(implied_shifts(scene, x, obs, pair_obs[as_point], pair_landmark[as_point]),
-                                                      agreement_radius(scene, pointed))
+                                                      agreement_radius(scene, obs[obs_as_point]))
     crowded = np.argsort(-agreement, kind="stable")[: SLIP_CANDIDATES // 4]
     crowded = crowded[agreement[crowded] >= 3]
-    candidates = np.concatenate([candidates, crowded[~np.isin(crowded, candidates)]])
+    # (a few dozen of each: one comparison of all with all costs less than np.isin's sort)
+    candidates = np.concatenate([candidates, crowded[~(crowded[:, None] == candidates[None, :]).any(axis=1)]])
     pair_in_point, pair_z_hat, pair_H = in_point[gated], z_hat[gated], H[gated]
     o = obs[pair_obs]
     noise = np.where(pair_in_point[:, None, None], scene.point_cov[o], scene.R_assoc[o])
@@ -147,7 +151,7 @@ def from_seeds(scene, settings, h, obs, width, delta, *, slipped: bool):
                                               scene.null_cost[obs], candidates.astype(np.int64), scene.obs_gate[o])
     seeds = candidates[np.argsort(ranked, kind="stable")[:SLIP_SEEDS]]
     found, n = ranking.seeded_explanations(scene, settings, h, obs, seeds, pair_obs, pair_landmark, pair_cost, pair_z_hat, pair_H)
-    within = np.array([c for c in range(n) if within_prior(found[0][c], x, P)], dtype=np.int64)
+    within = np.flatnonzero(within_prior(found[0][:n], x, P)).astype(np.int64)
     if not within.size:
         return _flagged(kb.explain_all(scene, settings, h, 1, obs), slipped)
     gen = kb.gather(found, within, found[7].shape[1])
@@ -161,12 +165,19 @@ def _flagged(generation, slipped: bool):
     return gen, n
 
 
-def within_prior(x_child, x, P) -> bool:
-    """Whether a child's state lies within the 99.9% region of its prior (x, P): under a wide
-    prior in a dense map a seed can fit a landmark metres from the right one by turning the
-    camera, every innovation looking likely while the state moved many standard deviations."""
-    d = difference(x_child, x)
-    return float(d @ np.linalg.solve(P, d)) <= STATE_GATE
+def within_prior(X, x, P) -> np.ndarray:
+    """(k,) whether each state of X (k, n) lies within the 99.9% region of its prior (x, P): under
+    a wide prior in a dense map a seed can fit a landmark metres from the right one by turning the
+    camera, every innovation looking likely while the state moved many standard deviations.
+    One stacked solve for all (numpy's solve calls LAPACK's gesv for each matrix of a stack as
+    it does for one, and matmul's product of a row and a column is the dot of two vectors: the
+    same bits as a solve and a dot per state, ``tests/test_seeds_within.py``), where a call
+    each was the search's costliest step in Python."""
+    if X.shape[0] == 0:
+        return np.zeros(0, np.bool_)
+    D = np.array([difference(X[c], x) for c in range(X.shape[0])])
+    solved = np.linalg.solve(np.broadcast_to(P, (D.shape[0],) + P.shape), D[:, :, None])
+    return np.matmul(D[:, None, :], solved)[:, 0, 0] <= STATE_GATE
 
 
 def implied_shifts(scene, x, obs, pair_obs, pair_landmark):
@@ -185,4 +196,12 @@ def agreement_radius(scene, obs) -> float:
     """How close two implied shifts must be to agree: three standard deviations of a measured
     point, plus a tenth of the depth for the orientation's error (about 6 deg)."""
     point_sigma = np.sqrt(np.trace(scene.point_cov[obs], axis1=1, axis2=2) / 3.0)
-    return float(AGREEMENT_SIGMAS * np.median(point_sigma) + AGREEMENT_DEPTH_FRACTION * np.median(np.abs(scene.point[obs, 2])))
+    return float(AGREEMENT_SIGMAS * median(point_sigma) + AGREEMENT_DEPTH_FRACTION * median(np.abs(scene.point[obs, 2])))
+
+
+def median(values: np.ndarray) -> float:
+    """np.median of a few finite values (the middle one, or the mean of the middle two: the same
+    bits), by a sort: np.median's checks and partition cost four times as much on a pose's few."""
+    ordered = np.sort(values)
+    half = ordered.size // 2
+    return float(ordered[half]) if ordered.size % 2 else float((ordered[half - 1] + ordered[half]) / 2.0)
