@@ -171,7 +171,7 @@ def within_prior(X, x, P) -> np.ndarray:
     camera, every innovation looking likely while the state moved many standard deviations.
     One stacked solve for all (numpy's solve calls LAPACK's gesv for each matrix of a stack as
     it does for one, and matmul's product of a row and a column is the dot of two vectors: the
-    same bits as a solve and a dot per state, ``tests/test_seeds_within.py``), where a call
+    same bits as a solve and a dot per state, ``tests/test_seeds_steps.py``), where a call
     each was the search's costliest step in Python."""
     if X.shape[0] == 0:
         return np.zeros(0, np.bool_)
