@@ -39,18 +39,19 @@ def solve3(L00, L10, L11, L20, L21, L22, b0, b1, b2):
 
 
 @inlined
-def gain3(P, H, noise, o, PHt, K):
+def gain3(P, H, noise, o, K):
     """The gain K = P H' S^-1 (n, 3) of one pair (Jacobian H[0] (3, n), noise noise[o] (3, 3)),
-    as ``update.gain_into``; PHt (n, 3) scratch. Returns S's lower Cholesky factor (6 scalars)."""
+    as ``update.gain_into``: P H' written into K, then each row solved in place. Returns S's
+    lower Cholesky factor (6 scalars)."""
     n = P.shape[0]
     for c in range(n):
         for r in range(3):
             s = 0.0
             for d in range(n):
                 s += P[c, d] * H[0, r, d]
-            PHt[c, r] = s
-    S00, S01, S02 = entry3(H, PHt, noise, o, 0, 0), entry3(H, PHt, noise, o, 0, 1), entry3(H, PHt, noise, o, 0, 2)
-    S11, S12, S22 = entry3(H, PHt, noise, o, 1, 1), entry3(H, PHt, noise, o, 1, 2), entry3(H, PHt, noise, o, 2, 2)
+            K[c, r] = s
+    S00, S01, S02 = entry3(H, K, noise, o, 0, 0), entry3(H, K, noise, o, 0, 1), entry3(H, K, noise, o, 0, 2)
+    S11, S12, S22 = entry3(H, K, noise, o, 1, 1), entry3(H, K, noise, o, 1, 2), entry3(H, K, noise, o, 2, 2)
     if not S00 > 0.0:
         raise FloatingPointError("innovation covariance is not positive definite")
     L00 = math.sqrt(S00)
@@ -65,13 +66,14 @@ def gain3(P, H, noise, o, PHt, K):
         raise FloatingPointError("innovation covariance is not positive definite")
     L22 = math.sqrt(s)
     for c in range(n):
-        K[c, 0], K[c, 1], K[c, 2] = solve3(L00, L10, L11, L20, L21, L22, PHt[c, 0], PHt[c, 1], PHt[c, 2])
+        K[c, 0], K[c, 1], K[c, 2] = solve3(L00, L10, L11, L20, L21, L22, K[c, 0], K[c, 1], K[c, 2])
     return L00, L10, L11, L20, L21, L22
 
 
 @inlined
 def entry3(H, PHt, noise, o, r, q):
-    """S[r, q] = (H P H')[r, q] + R's symmetric part, as ``update.innovation_system_into``."""
+    """S[r, q] = (H P H')[r, q] + R's symmetric part, as ``update.innovation_system_into``; PHt
+    (n, 3) = P H'."""
     s = 0.0
     for c in range(PHt.shape[0]):
         s += H[0, r, c] * PHt[c, q]
@@ -83,24 +85,24 @@ def covariance3(P, K, H, noise, o):
     """Joseph form (I - K H) P (I - K H)' + K R K' (n, n) of one pair, as
     ``update.covariance_posterior_into``."""
     n = P.shape[0]
-    I_KH, scratch, out = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+    work, out = np.empty((2, n, n)), np.empty((n, n))            # I - K H, (I - K H) P
     for c in range(n):
         for d in range(n):
             s = 0.0
             for r in range(3):
                 s += K[c, r] * H[0, r, d]
-            I_KH[c, d] = (1.0 if c == d else 0.0) - s
+            work[0, c, d] = (1.0 if c == d else 0.0) - s
     for c in range(n):
         for d in range(n):
             s = 0.0
             for q in range(n):
-                s += I_KH[c, q] * P[q, d]
-            scratch[c, d] = s
+                s += work[0, c, q] * P[q, d]
+            work[1, c, d] = s
     for c in range(n):
         for d in range(c, n):
             s = 0.0
             for q in range(n):
-                s += scratch[c, q] * I_KH[d, q]
+                s += work[1, c, q] * work[0, d, q]
             for a in range(3):
                 k_ca = K[c, a]
                 for b in range(3):
@@ -137,15 +139,15 @@ def one_pair_update(x, P, z, o, landmark_xyz, j, camera, camera_R, camera_t, cam
     (1, 3, n) its prediction at x; no start, no MAP cost. Returns as ``iterated_update``."""
     n = x.shape[0]
     kind = camera_K[camera, 4]
-    PHt, K = np.empty((n, 3)), np.empty((n, 3))
+    K = np.empty((n, 3))
     z_hat_i, H_i = np.empty((1, 3)), np.empty((1, 3, n))
     d_position, frame = np.empty((3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
-    delta, step, moved, x_i, y_prior = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((1, 3))
+    delta, moved, x_i, y_prior = np.empty(n), np.empty(n), np.empty(n), np.empty((1, 3))
     y0 = wrapped_residual(kind, 0, z[o, 0] - z_hat[0, 0])
     y1 = wrapped_residual(kind, 1, z[o, 1] - z_hat[0, 1])
     y2 = wrapped_residual(kind, 2, z[o, 2] - z_hat[0, 2])
     y_prior[0, 0], y_prior[0, 1], y_prior[0, 2] = y0, y1, y2
-    L00, L10, L11, L20, L21, L22 = gain3(P, H, noise, o, PHt, K)
+    L00, L10, L11, L20, L21, L22 = gain3(P, H, noise, o, K)
     s0, s1, s2 = solve3(L00, L10, L11, L20, L21, L22, y0, y1, y2)
     nis = 0.0 + y0 * s0 + y1 * s1 + y2 * s2                          # NIS = y' S^-1 y
     for c in range(n):
@@ -164,7 +166,8 @@ def one_pair_update(x, P, z, o, landmark_xyz, j, camera, camera_R, camera_t, cam
             r1 += H_i[0, 1, b] * moved[b]
         for b in range(n):
             r2 += H_i[0, 2, b] * moved[b]
-        gain3(P, H_i, noise, o, PHt, K)
+        gain3(P, H_i, noise, o, K)
+        step = moved                                                 # read no more: the step written into it
         for c in range(n):
             step[c] = 0.0 + K[c, 0] * r0 + K[c, 1] * r1 + K[c, 2] * r2
         H_last = H_i
