@@ -7,8 +7,8 @@ calls per linearization, each counting a reference to every array on entry and o
 
 The 3 x 3 innovation covariance S and its Cholesky factor L are scalars, a solve with L a
 function of scalars; the gain K (n, 3) and the posterior's products are local arrays, read and
-written by index only; the prediction is ``camera.observe_pairs_into``'s of the one pair, its
-steps inlined. The measurement model stays the scene's: every kind of sensor and both states.
+written by index only; the prediction is ``camera.observe_pairs_into`` of the one pair. The
+measurement model stays the scene's: every kind of sensor and both states.
 """
 
 from __future__ import annotations
@@ -19,10 +19,9 @@ import numpy as np
 
 from camloc.constants import CONVERGED
 from camloc.kernels._jit import inlined, jit
-from camloc.kernels.camera import camera_position_jacobian, euler_frame_into, observe_into
-from camloc.kernels.planar import SE2_DIM, planar_frame_into, planar_observe_into, wrapped_residual
+from camloc.kernels.camera import observe_pairs_into
+from camloc.kernels.planar import wrapped_residual
 from camloc.kernels.state import difference_into, retract_into
-from camloc.measurement import MARKER, POINT2
 
 
 @inlined
@@ -112,65 +111,55 @@ def covariance3(P, K, H, noise, o):
     return out
 
 
-@inlined
-def observe_one(x, landmark_xyz, j, camera, camera_R, camera_t, camera_K, z_hat, H, d_position, frame):
-    """``camera.observe_pairs_into`` of the one pair (landmark j seen by ``camera``) into z_hat[0],
-    H[0]: its steps, for that camera alone."""
-    if x.shape[0] != SE2_DIM:
-        euler_frame_into(x, frame)
-    else:
-        planar_frame_into(x, frame)
-    R, E, t = frame
-    camera_position_jacobian(R, camera_R[camera], d_position)
-    kind = camera_K[camera, 4]
-    if x.shape[0] != SE2_DIM:
-        observe_into(R, E, t, camera_R[camera], camera_t[camera], camera_K[camera], landmark_xyz, j, z_hat, H, 0, d_position, 6)
-    elif kind == POINT2 or kind == MARKER:
-        planar_observe_into(R, t, landmark_xyz, j, kind, z_hat, H, 0)
-    else:
-        observe_into(R, E, t, camera_R[camera], camera_t[camera], camera_K[camera], landmark_xyz, j, z_hat, H, 0, d_position,
-                     SE2_DIM)
-
-
 @jit
 def one_pair_update(x, P, z, o, landmark_xyz, j, camera, camera_R, camera_t, camera_K, noise, iterations, z_hat, H, step_sigma):
     """``update.iterated_update`` of (x, P) with one pair, observation o (measured z[o], noise
     noise[o]) of landmark j (a row of the scene's landmark_xyz) by ``camera``, z_hat (1, 3) and H
-    (1, 3, n) its prediction at x; no start, no MAP cost. Returns as ``iterated_update``."""
+    (1, 3, n) its prediction at x; no start, no MAP cost. Returns as ``iterated_update``.
+    The first linearization and the later ones share one loop, so that the gain's inlined steps
+    are compiled once (a loop of each compiled them twice: +3 s of a first compile); the
+    prediction is ``camera.observe_pairs_into``, already compiled for the general update."""
     n = x.shape[0]
     kind = camera_K[camera, 4]
     K = np.empty((n, 3))
+    pair_xyz, pair_camera = np.empty((1, landmark_xyz.shape[1])), np.full(1, camera)
+    for a in range(landmark_xyz.shape[1]):
+        pair_xyz[0, a] = landmark_xyz[j, a]
     z_hat_i, H_i = np.empty((1, 3)), np.empty((1, 3, n))
-    d_position, frame = np.empty((3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    d_position, frame = np.empty((camera_R.shape[0], 3, 3)), (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
     delta, moved, x_i, y_prior = np.empty(n), np.empty(n), np.empty(n), np.empty((1, 3))
     y0 = wrapped_residual(kind, 0, z[o, 0] - z_hat[0, 0])
     y1 = wrapped_residual(kind, 1, z[o, 1] - z_hat[0, 1])
     y2 = wrapped_residual(kind, 2, z[o, 2] - z_hat[0, 2])
     y_prior[0, 0], y_prior[0, 1], y_prior[0, 2] = y0, y1, y2
-    L00, L10, L11, L20, L21, L22 = gain3(P, H, noise, o, K)
-    s0, s1, s2 = solve3(L00, L10, L11, L20, L21, L22, y0, y1, y2)
-    nis = 0.0 + y0 * s0 + y1 * s1 + y2 * s2                          # NIS = y' S^-1 y
-    for c in range(n):
-        delta[c] = 0.0 + K[c, 0] * y0 + K[c, 1] * y1 + K[c, 2] * y2
-    retract_into(x, delta, x_i)                                      # x+ = x [+] K y
+    r0, r1, r2 = y0, y1, y2
+    nis = 0.0
     H_last = H                                                       # the linearization of the gain
-    for _ in range(iterations - 1):
-        observe_one(x_i, landmark_xyz, j, camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
-        difference_into(x_i, x, moved)
-        r0 = wrapped_residual(kind, 0, z[o, 0] - z_hat_i[0, 0])        # z - h(x_i) + H_i (x_i [-] x)
-        r1 = wrapped_residual(kind, 1, z[o, 1] - z_hat_i[0, 1])
-        r2 = wrapped_residual(kind, 2, z[o, 2] - z_hat_i[0, 2])
-        for b in range(n):
-            r0 += H_i[0, 0, b] * moved[b]
-        for b in range(n):
-            r1 += H_i[0, 1, b] * moved[b]
-        for b in range(n):
-            r2 += H_i[0, 2, b] * moved[b]
-        gain3(P, H_i, noise, o, K)
+    for step_number in range(max(iterations, 1)):                    # the first linearization always
+        if step_number > 0:
+            observe_pairs_into(x_i, pair_xyz, pair_camera, camera_R, camera_t, camera_K, z_hat_i, H_i, d_position, frame)
+            difference_into(x_i, x, moved)
+            r0 = wrapped_residual(kind, 0, z[o, 0] - z_hat_i[0, 0])    # z - h(x_i) + H_i (x_i [-] x)
+            r1 = wrapped_residual(kind, 1, z[o, 1] - z_hat_i[0, 1])
+            r2 = wrapped_residual(kind, 2, z[o, 2] - z_hat_i[0, 2])
+            for b in range(n):
+                r0 += H_i[0, 0, b] * moved[b]
+            for b in range(n):
+                r1 += H_i[0, 1, b] * moved[b]
+            for b in range(n):
+                r2 += H_i[0, 2, b] * moved[b]
+            H_last = H_i
+        L00, L10, L11, L20, L21, L22 = gain3(P, H_last, noise, o, K)
+        if step_number == 0:
+            s0, s1, s2 = solve3(L00, L10, L11, L20, L21, L22, y0, y1, y2)
+            nis = 0.0 + y0 * s0 + y1 * s1 + y2 * s2                  # NIS = y' S^-1 y
+            for c in range(n):
+                delta[c] = 0.0 + K[c, 0] * y0 + K[c, 1] * y1 + K[c, 2] * y2
+            retract_into(x, delta, x_i)                              # x+ = x [+] K y
+            continue
         step = moved                                                 # read no more: the step written into it
         for c in range(n):
             step[c] = 0.0 + K[c, 0] * r0 + K[c, 1] * r1 + K[c, 2] * r2
-        H_last = H_i
         retract_into(x, step, x_i)
         change = 0.0
         negligible = True                                            # against the prior's sigma (``ekf._iterate``)
