@@ -30,6 +30,7 @@ import numpy as np
 from camloc.constants import CONVERGED, DAMPING_RAISES, DAMPING_START, MAX_LINEARIZATIONS
 from camloc.kernels._jit import FALSE, TRUE, called, entry, inlined, jit
 from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into, robot_frame_into
+from camloc.kernels.one_pair import one_pair_update
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
 from camloc.kernels.state import difference_into, retract, retract_into
@@ -650,6 +651,29 @@ def point_step(scene, x, P, obs, z_hat, H):
     return retract(x, correction(P, Hp, R, R_inverse, y))
 
 
+@inlined
+def pair_arrays(scene, obs, landmarks, noise, noise_inverse):
+    """``iterated_update``'s pairs of observations obs (p,) and landmarks (p,) of the scene
+    (``pair_model``), weighed by their rows of noise and noise_inverse: (z (p, 3), R, R_inverse
+    (p, 3, 3), landmark_xyz (p, 3 or 4), pair_camera (p,))."""
+    p = obs.size
+    z = np.empty((p, 3))
+    R = np.empty((p, 3, 3))
+    R_inverse = np.empty((p, 3, 3))
+    landmark_xyz = np.empty((p, scene.landmark_xyz.shape[1]))   # with a marker's heading (``SceneArrays``)
+    pair_camera = np.empty(p, np.int64)
+    for i in range(p):
+        o = obs[i]
+        for a in range(3):
+            z[i, a] = scene.z[o, a]
+            for b in range(3):
+                R[i, a, b], R_inverse[i, a, b] = noise[o, a, b], noise_inverse[o, a, b]
+        pair_camera[i] = scene.obs_camera[o]
+        for a in range(landmark_xyz.shape[1]):
+            landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
+    return z, R, R_inverse, landmark_xyz, pair_camera
+
+
 @entry
 def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inverse, start, map_cost, step_sigma):
     """The stacked (iterated) update of (x, P) with pairs (obs (p,), landmarks (p,)) whose
@@ -668,32 +692,23 @@ def updated(scene, iterations, x, P, obs, landmarks, z_hat, H, noise, noise_inve
     updates, which read only the state: a prediction and a factorization saved each).
     ``step_sigma``: ``iterated_update``'s (0 but for the beam's one-ray updates).
     Returns as ``iterated_update``."""
-    p = obs.size
-    z = np.empty((p, 3))
-    R = np.empty((p, 3, 3))
-    R_inverse = np.empty((p, 3, 3))
-    landmark_xyz = np.empty((p, scene.landmark_xyz.shape[1]))   # with a marker's heading (``SceneArrays``)
-    pair_camera = np.empty(p, np.int64)
-    for i in range(p):
-        o = obs[i]
-        for a in range(3):
-            z[i, a] = scene.z[o, a]
-            for b in range(3):
-                R[i, a, b], R_inverse[i, a, b] = noise[o, a, b], noise_inverse[o, a, b]
-        pair_camera[i] = scene.obs_camera[o]
-        for a in range(landmark_xyz.shape[1]):
-            landmark_xyz[i, a] = scene.landmark_xyz[landmarks[i], a]
     cams = (scene.camera_R, scene.camera_t, scene.camera_K)
     none = start[:0]                                                 # no start: a view, not an array allocated an update
     costed = map_cost or (start.size > 0 and iterations >= 2)         # a start restarts: compared below
-    best = iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, *cams, iterations, z_hat, H, none, costed, step_sigma,
-                           map_cost)
+    if obs.size == 1 and not costed:                                 # the beam's settling of a child: in scalars, bit for bit
+        o = obs[0]
+        best = one_pair_update(x, P, scene.z, o, scene.landmark_xyz, landmarks[0], scene.obs_camera[o], *cams, noise, iterations,
+                               z_hat, H, step_sigma)
+    else:
+        best = iterated_update(x, P, *pair_arrays(scene, obs, landmarks, noise, noise_inverse), *cams, iterations, z_hat, H, none,
+                               costed, step_sigma, map_cost)
     dof = 0
     for o in obs:
         dof += scene.obs_dof[o]
     bound = scene.nis_bound[dof]
     if iterations < 2 or not (start.size or best[2] > bound or (map_cost and best[3] > bound)):
         return best
+    z, R, R_inverse, landmark_xyz, pair_camera = pair_arrays(scene, obs, landmarks, noise, noise_inverse)   # for the restarts
     if not costed:                                                   # compared below: the cost iterated_update left out
         best = (best[0], best[1], best[2], restart_cost(scene, x, P, z, R_inverse, landmark_xyz, pair_camera, best[0]), best[4])
     starts = (start, point_step(scene, x, P, obs, z_hat, H)) if best[2] > bound else (start, none)
