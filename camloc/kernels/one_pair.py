@@ -17,11 +17,10 @@ import math
 
 import numpy as np
 
-from camloc.constants import CONVERGED
 from camloc.kernels._jit import inlined, jit
 from camloc.kernels.camera import observe_pairs_into
 from camloc.kernels.planar import wrapped_residual
-from camloc.kernels.state import difference_into, retract_into
+from camloc.kernels.state import difference_into, retract_into, stepped_into
 
 
 @inlined
@@ -160,13 +159,6 @@ def one_pair_update(x, P, z, o, landmark_xyz, j, camera, camera_R, camera_t, cam
         step = moved                                                 # read no more: the step written into it
         for c in range(n):
             step[c] = 0.0 + K[c, 0] * r0 + K[c, 1] * r1 + K[c, 2] * r2
-        retract_into(x, step, x_i)
-        change = 0.0
-        negligible = True                                            # against the prior's sigma (``ekf._iterate``)
-        for b in range(n):
-            moved_b, delta[b] = step[b] - delta[b], step[b]
-            change = max(change, abs(moved_b))
-            negligible = negligible and moved_b * moved_b < step_sigma * step_sigma * P[b, b]
-        if change < CONVERGED or negligible:
+        if stepped_into(x, step, delta, x_i, P, step_sigma):
             break                                                    # the linearization no longer moves
     return x_i, covariance3(P, K, H_last, noise, o), nis, np.nan, y_prior

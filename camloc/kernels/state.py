@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from camloc.constants import CONVERGED
 from camloc.kernels._jit import entry, inlined, jit
 from camloc.kernels.planar import SE2_DIM, planar_difference_into, planar_retract_into
 from camloc.kernels.rotation import difference_into as euler_difference_into
@@ -47,3 +48,18 @@ def difference_into(a, b, d):
         planar_difference_into(a, b, d)
     else:
         euler_difference_into(a, b, d)
+
+
+@inlined
+def stepped_into(x, step, last_step, x_i, P, step_sigma):
+    """An iterated update's linearization step: x_i = x [+] step, last_step (n,) replaced by step;
+    whether the linearization no longer moves (the step changed by under ``CONVERGED``, or each
+    entry by under ``step_sigma`` of the prior's sigma, ``ekf._iterate``)."""
+    retract_into(x, step, x_i)
+    change = 0.0
+    negligible = True
+    for b in range(x.shape[0]):
+        moved_b, last_step[b] = step[b] - last_step[b], step[b]
+        change = max(change, abs(moved_b))
+        negligible = negligible and moved_b * moved_b < step_sigma * step_sigma * P[b, b]
+    return change < CONVERGED or negligible

@@ -33,7 +33,7 @@ from camloc.kernels.camera import back_project, in_front_of, observe_pairs_into,
 from camloc.kernels.one_pair import one_pair_update
 from camloc.kernels.planar import SE2_DIM, wrapped_residual
 from camloc.measurement import DEPTH
-from camloc.kernels.state import difference_into, retract, retract_into
+from camloc.kernels.state import difference_into, retract, retract_into, stepped_into
 from camloc.kernels.small import lu_factor, lu_log_det, lu_solve, mm
 from camloc.kernels.sym3 import log_det as log_det_3x3
 from camloc.kernels.types import PairModel
@@ -463,14 +463,7 @@ def iterated_update(x, P, z, R, R_inverse, landmark_xyz, pair_camera, camera_R, 
             gradient_into(R_inverse_H, r, g)
             plain_step_into(AP, g, step)
         H_last = H_i
-        retract_into(x, step, x_i)
-        change = 0.0
-        negligible = True                                            # against the prior's sigma (``ekf._iterate``)
-        for b in range(n):
-            moved_b, delta[b] = step[b] - delta[b], step[b]
-            change = max(change, abs(moved_b))
-            negligible = negligible and moved_b * moved_b < step_sigma * step_sigma * P[b, b]
-        if change < CONVERGED or negligible:
+        if stepped_into(x, step, delta, x_i, P, step_sigma):
             break                                                    # the linearization no longer moves
     P_post = np.empty((n, n))
     if few:                                                          # M as scratch: map_cost_into writes it whole first
