@@ -116,8 +116,9 @@ def one_pair_update(x, P, z, o, landmark_xyz, j, camera, camera_R, camera_t, cam
     noise[o]) of landmark j (a row of the scene's landmark_xyz) by ``camera``, z_hat (1, 3) and H
     (1, 3, n) its prediction at x; no start, no MAP cost. Returns as ``iterated_update``.
     The first linearization and the later ones share one loop, so that the gain's inlined steps
-    are compiled once (a loop of each compiled them twice: +3 s of a first compile); the
-    prediction is ``camera.observe_pairs_into``, already compiled for the general update."""
+    are compiled once, not twice; the prediction is ``camera.observe_pairs_into``, already
+    compiled for the general update (the two together: this kernel's own compile 5.96 -> 2.52 s,
+    docs/performance.md, 2026-12-07 (twenty-fourth session))."""
     n = x.shape[0]
     kind = camera_K[camera, 4]
     K = np.empty((n, 3))
