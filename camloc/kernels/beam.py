@@ -452,16 +452,42 @@ def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
     return x_new, P_new
 
 
+# numba's merge sort (``np.argsort(kind="mergesort")``) sorts this many or fewer by insertion
+# (numba.misc.mergesort.SMALL_MERGESORT)
+SMALL_MERGESORT = 20
+
+
+@jit
+def ordered_by(keys, items):
+    """``items[np.argsort(keys[items], kind="mergesort")]`` (a new array), the same order by the same
+    comparisons: up to ``SMALL_MERGESORT`` items numba's merge sort is an insertion sort, done here
+    on the items themselves, without the keys' copy, the index array, the merge's workspace and the
+    gather it allocates (four arrays a sort; the beam sorts a root's partial explanations every step)."""
+    n = items.size
+    if n > SMALL_MERGESORT:
+        return items[np.argsort(keys[items], kind="mergesort")]
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        item = items[i]
+        j = i
+        while j > 0 and keys[item] < keys[order[j - 1]]:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = item
+    return order
+
+
 @inlined
 def branch_order(scene, obs, pending, start, cost):
     """The ambiguous observations (positions ``pending``) in the order to branch on them, fewest
     gated options first, and the least each can cost (obs.size,)."""
-    counts = np.empty(pending.size)             # float: the merge sort the other kernels compile
+    counts = np.empty(obs.size)                 # by position; float: the merge sort the other kernels compile
     for k in range(pending.size):
-        counts[k] = 0.0
-        for j in range(start[pending[k]], start[pending[k] + 1]):
-            counts[k] += np.isfinite(cost[j])
-    order = pending[np.argsort(counts, kind="mergesort")]
+        i = pending[k]
+        counts[i] = 0.0
+        for j in range(start[i], start[i + 1]):
+            counts[i] += np.isfinite(cost[j])
+    order = ordered_by(counts, pending)
     least = np.zeros(obs.size)
     for i in order:
         least[i] = least_cost(cost[start[i]:start[i + 1]], scene.null_cost[obs[i]])
@@ -524,7 +550,7 @@ def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, par
     merge_sigma standard deviations of a cheaper one kept (beyond the run's width and delta,
     ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one`` (``settle``,
     or ``nothing_pending``) as a comparison first needs them, passed ``model`` and ``chain``."""
-    order = candidates[np.argsort(costs[candidates], kind="mergesort")]
+    order = ordered_by(costs, candidates)
     kept = np.empty(min(order.size, width), np.int64)
     n = 0
     if order.size == 0:
@@ -770,6 +796,40 @@ def expected_landmarks(scene, x, obs, opt):
                 found[n], excess[n] = lm[j], pool_cost[j] - null_cost
                 n += 1
     # distinct landmarks, each at its least excess (its largest chance of being on a ray)
+    return distinct_least_in_place(found, excess, n)
+
+
+@jit
+def distinct_least_in_place(found, excess, n):
+    """``distinct_least`` written over found[:n] and excess[:n]: sorted in place by a stable
+    insertion (the merge sort's order, no array allocated) up to ``SMALL_EXPECTED_SORT`` of them,
+    else by ``distinct_least``."""
+    if n > SMALL_EXPECTED_SORT:
+        return distinct_least(found, excess, n)
+    for i in range(1, n):
+        landmark, e = found[i], excess[i]
+        j = i
+        while j > 0 and landmark < found[j - 1]:
+            found[j], excess[j] = found[j - 1], excess[j - 1]
+            j -= 1
+        found[j], excess[j] = landmark, e
+    u = 0
+    for k in range(n):                          # u <= k: found[k] is read before its slot is reused
+        if u and found[u - 1] == found[k]:
+            excess[u - 1] = min(excess[u - 1], excess[k])
+        else:
+            found[u], excess[u] = found[k], excess[k]
+            u += 1
+    return found[:u], excess[:u]
+
+
+# Up to this many, ``expected_landmarks`` sorts its landmarks in place by insertion; more, by merge sort
+SMALL_EXPECTED_SORT = 64
+
+
+@jit
+def distinct_least(found, excess, n):
+    """The distinct landmarks of found[:n] (sorted) and each one's least excess, by merge sort."""
     order = np.argsort(found[:n].astype(np.float64), kind="mergesort")   # the merge sort the other kernels compile
     landmarks, least = np.empty(n, np.int64), np.empty(n)
     u = 0
@@ -807,19 +867,17 @@ def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
 
 
 @jit
-def viable(taken, landmarks, cost, null_cost, branch_delta):
-    """Which options (those of landmarks not taken: ``untaken_cost``) and whether the null option
-    lie within branch_delta of the best. Writes nothing: ``cost`` may be the root's options' own."""
+def viable_limit(taken, landmarks, cost, null_cost, branch_delta):
+    """The cost within which an option is viable: branch_delta over the best of the options (those
+    of landmarks not taken: ``untaken_cost``) and the null one. Option j is viable where
+    ``untaken_cost(cost, landmarks, j, taken) <= limit`` (a test, not an array of them: one array
+    allocated per partial explanation branched). Writes nothing: ``cost`` may be the root's options' own."""
     best = null_cost                            # ``least_cost`` of the untaken costs
     for j in range(cost.size):
         c = untaken_cost(cost, landmarks, j, taken)
         if c < best:
             best = c
-    limit = best + branch_delta
-    pairs = np.empty(cost.size, np.bool_)
-    for j in range(cost.size):
-        pairs[j] = untaken_cost(cost, landmarks, j, taken) <= limit
-    return pairs, null_cost <= limit
+    return best + branch_delta
 
 
 @jit
@@ -829,8 +887,9 @@ def untaken_cost(cost, landmarks, j, taken):
 
 
 @jit
-def contested(start, lm, cost, later, landmarks, pairs):
-    """Whether a viable landmark of an observation is the only landmark in the gate of one still
+def contested(start, lm, cost, later, landmarks, option_cost, taken, limit):
+    """Whether a viable landmark of an observation (its options ``landmarks``, ``option_cost``,
+    ``viable_limit``'s limit) is the only landmark in the gate of one still
     to explain after it (``later``): then that observation may stay unassigned whatever its null
     cost, since the explanation that leaves it gives the landmark to the other
     (``PoseExpansion.branches``). Passed the options' arrays it reads (``options_of``)."""
@@ -843,7 +902,7 @@ def contested(start, lm, cost, later, landmarks, pairs):
         if gated != 1:
             continue
         for j in range(landmarks.size):
-            if pairs[j] and landmarks[j] == only:
+            if untaken_cost(option_cost, landmarks, j, taken) <= limit and landmarks[j] == only:
                 return True
     return False
 
@@ -858,16 +917,17 @@ def branch(null_cost, settings, gen, p, r, o, options, taken, start, lm, all_cos
     inlined step counts a reference to every array of the tuples it binds, per partial explanation
     branched."""
     landmarks, cost, z_hat, H = options
-    pairs, null = viable(taken, landmarks, cost, null_cost[o] + settings.null_offset, settings.branch_delta)
-    null = null or contested(start, lm, all_cost, later, landmarks, pairs)
+    null_option = null_cost[o] + settings.null_offset
+    limit = viable_limit(taken, landmarks, cost, null_option, settings.branch_delta)
+    null = null_option <= limit or contested(start, lm, all_cost, later, landmarks, cost, taken, limit)
     if null:
         copy_hypothesis(gen, p, children, at)
         children[2][at] += null_cost[o]
         children[4][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, moved
         at += 1
-    for j in range(pairs.size):                 # not np.flatnonzero: two arrays a partial explanation
-        if not pairs[j]:
+    for j in range(landmarks.size):             # not np.flatnonzero: two arrays a partial explanation
+        if not untaken_cost(cost, landmarks, j, taken) <= limit:
             continue
         copy_hypothesis(gen, p, children, at)
         children[2][at] += untaken_cost(cost, landmarks, j, taken)
