@@ -10,7 +10,7 @@ tests (compiled localizer == numpy localizer). Not tested here, left to those pa
 loops (beam.run_poses, beam.explain_all, filtering.filter_poses, filtering.recheck, filtering.rechecked,
 filtering.oracle_pairs, update.updated; update.iterated_update is tested here, against
 camloc.ekf.update) and the beam's bookkeeping and decisions (new_generation, copy_hypothesis,
-carry, gather, commit, settled, prune, prune_indices, prune_partials, options_for, condition,
+carry, gather, commit, settled, prune, prune_indices_into, prune_partials, options_for, condition,
 condition_into, options_of, put_state, taken_by, is_taken, least_cost, clear_choices, viable_limit,
 branch, settle, same_state, after_clear, predicted; filtering.record_state), whose
 outcome is which hypotheses survive rather than a formula; also view.cone_members and view.cell_near_cone, steps of the view query, which
@@ -916,13 +916,14 @@ def test_the_seeded_search_trigger_is_the_numpy_beam_s_rule_on_every_history():
 # beam: the small sorts that allocate nothing numba's merge sort would
 
 @pytest.mark.parametrize("size", [0, 1, 2, 7, 20, 21, 60])
-def test_ordered_by_is_numpy_s_stable_argsort_ties_included(rng, size):
+def test_sort_by_is_numpy_s_stable_argsort_ties_included(rng, size):
     # keys with many ties (a few distinct costs, inf among them) over items in a scrambled order:
     # up to 20 items sorted by insertion, past it by numba's merge sort; both numpy's stable order
     keys = rng.choice([0.5, 1.5, 2.0, np.inf], size=3 * size + 2)
     items = rng.permutation(keys.size)[:size].astype(np.int64)
-    got = beam.ordered_by(keys, items)
-    np.testing.assert_array_equal(got, items[np.argsort(keys[items], kind="mergesort")])
+    expected = items[np.argsort(keys[items], kind="mergesort")]
+    beam.sort_by(keys, items)
+    np.testing.assert_array_equal(items, expected)
     if size > 2:
         assert np.unique(keys[items]).size < size      # ties were there to keep in order
 

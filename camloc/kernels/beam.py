@@ -458,36 +458,39 @@ SMALL_MERGESORT = 20
 
 
 @jit
-def ordered_by(keys, items):
-    """``items[np.argsort(keys[items], kind="mergesort")]`` (a new array), the same order by the same
-    comparisons: up to ``SMALL_MERGESORT`` items numba's merge sort is an insertion sort, done here
-    on the items themselves, without the keys' copy, the index array, the merge's workspace and the
-    gather it allocates (four arrays a sort; the beam sorts a root's partial explanations every step)."""
+def sort_by(keys, items):
+    """``items`` put in place in the order ``items[np.argsort(keys[items], kind="mergesort")]``, by the
+    same comparisons: up to ``SMALL_MERGESORT`` items numba's merge sort is an insertion sort, done
+    here on the items themselves, without the keys' copy, the index array, the merge's workspace and
+    the gather it allocates (four arrays a sort; the beam sorts each root's partial explanations
+    every step). Past it, that merge sort, copied back."""
     n = items.size
     if n > SMALL_MERGESORT:
-        return items[np.argsort(keys[items], kind="mergesort")]
-    order = np.empty(n, np.int64)
-    for i in range(n):
+        order = items[np.argsort(keys[items], kind="mergesort")]
+        for k in range(n):
+            items[k] = order[k]
+        return
+    for i in range(1, n):
         item = items[i]
         j = i
-        while j > 0 and keys[item] < keys[order[j - 1]]:
-            order[j] = order[j - 1]
+        while j > 0 and keys[item] < keys[items[j - 1]]:
+            items[j] = items[j - 1]
             j -= 1
-        order[j] = item
-    return order
+        items[j] = item
 
 
 @inlined
 def branch_order(scene, obs, pending, start, cost):
-    """The ambiguous observations (positions ``pending``) in the order to branch on them, fewest
-    gated options first, and the least each can cost (obs.size,)."""
+    """The ambiguous observations (positions ``pending``, sorted in place) in the order to branch on
+    them, fewest gated options first, and the least each can cost (obs.size,)."""
     counts = np.empty(obs.size)                 # by position; float: the merge sort the other kernels compile
     for k in range(pending.size):
         i = pending[k]
         counts[i] = 0.0
         for j in range(start[i], start[i + 1]):
             counts[i] += np.isfinite(cost[j])
-    order = ordered_by(counts, pending)
+    sort_by(counts, pending)
+    order = pending
     least = np.zeros(obs.size)
     for i in order:
         least[i] = least_cost(cost[start[i]:start[i + 1]], scene.null_cost[obs[i]])
@@ -544,26 +547,28 @@ def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model, chain
 
 
 @inlined
-def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model, chain):
-    """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
-    costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within
-    merge_sigma standard deviations of a cheaper one kept (beyond the run's width and delta,
-    ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one`` (``settle``,
-    or ``nothing_pending``) as a comparison first needs them, passed ``model`` and ``chain``."""
-    order = ordered_by(costs, candidates)
-    kept = np.empty(min(order.size, width), np.int64)
-    n = 0
-    if order.size == 0:
-        return kept
-    best = costs[order[0]]
+def prune_indices_into(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model, chain, kept,
+                       at):
+    """The cheapest of ``candidates`` (of a generation's states X, covariances P and costs; sorted
+    in place by cost) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``),
+    none within merge_sigma standard deviations of a cheaper one kept (beyond the run's width and
+    delta, ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one``
+    (``settle``, or ``nothing_pending``) as a comparison first needs them, passed ``model`` and
+    ``chain``: written into ``kept`` from index ``at``; returns the index after the last (no array
+    of their own: this runs for each root every step)."""
+    sort_by(costs, candidates)
+    if candidates.size == 0:
+        return at
+    best = costs[candidates[0]]
     limit = best + delta
-    for c in order:
+    n = 0
+    for c in candidates:
         if costs[c] > limit or n >= width:
             break
         # the run's width and delta are settings'; beyond them only a distinct hypothesis is kept
         sigma = compiled_copy_sigma(costs[c], best, n, settings.beam_width, settings.beam_delta, settings.merge_sigma)
         merged = False
-        for q in range(n):
+        for q in range(at, at + n):
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
@@ -572,9 +577,9 @@ def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, par
                 merged = True
                 break
         if not merged:
-            kept[n] = c
+            kept[at + n] = c
             n += 1
-    return kept[:n]
+    return at + n
 
 
 @inlined
@@ -586,10 +591,12 @@ def settled(n, dim):
 
 @entry
 def prune(scene, settings, gen, n, width, delta):
-    """``prune_indices`` over the first n hypotheses of a settled generation, to the pose's width
+    """``prune_indices_into`` over the first n hypotheses of a settled generation, to the pose's width
     and delta (``pose_beam``)."""
-    return prune_indices(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
-                         nothing_pending, None, None)
+    kept = np.empty(min(n, width), np.int64)
+    count = prune_indices_into(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1],
+                               settled(n, gen[0].shape[1]), nothing_pending, None, None, kept, FIRST)
+    return kept[:count]
 
 
 @inlined
@@ -615,10 +622,8 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
             if root[q] == r:
                 members[g] = q
                 g += 1
-        for q in prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, members[:g], parent_X, parent_P, pending,
-                               settle, model, chain):
-            kept[n_kept] = q
-            n_kept += 1
+        n_kept = prune_indices_into(settings, settings.beam_width, settings.beam_delta, X, P, costs, members[:g], parent_X, parent_P,
+                                    pending, settle, model, chain, kept, n_kept)
     kept = kept[:n_kept]
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
