@@ -864,7 +864,7 @@ def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
     those of the base state, or made again under the partial's own where it has paired something
     since (``model``: ``update.pair_model``). Passed the arrays it reads, not the generation and
     the options: every array a call is passed is counted on entry and on return. The base state's
-    are the root's own arrays, not copies: ``viable`` and ``branch`` write nothing into them."""
+    are the root's own arrays, not copies: ``viable_limit`` and ``branch`` write nothing into them."""
     if not moved:
         return lm, cost, zh, Hs
     cost, z_hat, H, _, _, _ = condition(model, settings, x, P, o, lm, taken)
