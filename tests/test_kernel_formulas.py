@@ -10,8 +10,8 @@ tests (compiled localizer == numpy localizer). Not tested here, left to those pa
 loops (beam.run_poses, beam.explain_all, filtering.filter_poses, filtering.recheck, filtering.rechecked,
 filtering.oracle_pairs, update.updated; update.iterated_update is tested here, against
 camloc.ekf.update) and the beam's bookkeeping and decisions (new_generation, copy_hypothesis,
-carry, gather, commit, settled, prune, prune_indices, prune_partials, options_for, condition,
-condition_into, options_of, put_state, taken_by, is_taken, least_cost, clear_choices, viable,
+carry, gather, commit, settled, prune, prune_indices_into, prune_partials, options_for, condition,
+condition_into, options_of, put_state, taken_by, is_taken, least_cost, clear_choices, viable_limit,
 branch, settle, same_state, after_clear, predicted; filtering.record_state), whose
 outcome is which hypotheses survive rather than a formula; also view.cone_members and view.cell_near_cone, steps of the view query, which
 test_kernels.py compares landmark for landmark with a k-d tree.
@@ -755,6 +755,14 @@ def test_view_cone_ball_is_the_numpy_one_and_holds_the_cone(rng, half_angle_deg)
         assert np.linalg.norm(point - centre) <= radius
 
 
+@pytest.mark.parametrize("size", [0, 1, 5, 64, 65, 300])
+def test_a_view_s_landmarks_sorted_in_place_are_numpy_s_sort(rng, size):
+    # by insertion up to SMALL_VIEW_SORT (64), by sorted_ints past it: both np.sort's order
+    values = rng.permutation(10 * size + 1)[:size].astype(np.int64)
+    got = view.sort_distinct_in_place(values.copy())
+    np.testing.assert_array_equal(got, np.sort(values))
+
+
 # ---------------------------------------------------------------------------------------------
 # filtering: a pair's distance
 
@@ -902,3 +910,34 @@ def test_the_seeded_search_trigger_is_the_numpy_beam_s_rule_on_every_history():
             for p in (0.0, 0.03, 0.3, 0.6, 1.0):
                 assert beam.binomial_upper_tail(np.int64(u), np.int64(n), p) == pytest.approx(
                     float(binomial_tail(u - 1, n, p)), rel=1e-9, abs=1e-15)
+
+
+# ---------------------------------------------------------------------------------------------
+# beam: the small sorts that allocate nothing numba's merge sort would
+
+@pytest.mark.parametrize("size", [0, 1, 2, 7, 20, 21, 60])
+def test_sort_by_is_numpy_s_stable_argsort_ties_included(rng, size):
+    # keys with many ties (a few distinct costs, inf among them) over items in a scrambled order:
+    # up to 20 items sorted by insertion, past it by numba's merge sort; both numpy's stable order
+    keys = rng.choice([0.5, 1.5, 2.0, np.inf], size=3 * size + 2)
+    items = rng.permutation(keys.size)[:size].astype(np.int64)
+    expected = items[np.argsort(keys[items], kind="mergesort")]
+    beam.sort_by(keys, items)
+    np.testing.assert_array_equal(items, expected)
+    if size > 2:
+        assert np.unique(keys[items]).size < size      # ties were there to keep in order
+
+
+@pytest.mark.parametrize("size", [0, 1, 6, 64, 65, 200])
+def test_expected_landmarks_distinct_sort_is_numpy_s_unique_and_minimum(rng, size):
+    # the landmarks claimed several times (ties) each at its least excess: in place up to
+    # SMALL_EXPECTED_SORT (64), by merge sort past it; both np.unique's landmarks and np.minimum.at's
+    found = rng.integers(0, max(size // 2, 1), size).astype(np.int64)
+    excess = rng.normal(size=size)
+    landmarks = np.unique(found)
+    least = np.full(landmarks.size, np.inf)
+    np.minimum.at(least, np.searchsorted(landmarks, found), excess)
+    for got in (beam.distinct_least(found.copy(), excess.copy(), np.int64(size)),
+                beam.distinct_least_in_place(found.copy(), excess.copy(), np.int64(size))):
+        np.testing.assert_array_equal(got[0], landmarks)
+        np.testing.assert_array_equal(got[1], least)

@@ -452,16 +452,45 @@ def take_clear_pairs(scene, settings, child, h, x, P, o, options, opt, model):
     return x_new, P_new
 
 
+# numba's merge sort (``np.argsort(kind="mergesort")``) sorts this many or fewer by insertion
+# (numba.misc.mergesort.SMALL_MERGESORT)
+SMALL_MERGESORT = 20
+
+
+@jit
+def sort_by(keys, items):
+    """``items`` put in place in the order ``items[np.argsort(keys[items], kind="mergesort")]``, by the
+    same comparisons: up to ``SMALL_MERGESORT`` items numba's merge sort is an insertion sort, done
+    here on the items themselves, without the keys' copy, the index array, the merge's workspace and
+    the gather it allocates (four arrays a sort; the beam sorts each root's partial explanations
+    every step). Past it, that merge sort, copied back."""
+    n = items.size
+    if n > SMALL_MERGESORT:
+        order = items[np.argsort(keys[items], kind="mergesort")]
+        for k in range(n):
+            items[k] = order[k]
+        return
+    for i in range(1, n):
+        item = items[i]
+        j = i
+        while j > 0 and keys[item] < keys[items[j - 1]]:
+            items[j] = items[j - 1]
+            j -= 1
+        items[j] = item
+
+
 @inlined
 def branch_order(scene, obs, pending, start, cost):
-    """The ambiguous observations (positions ``pending``) in the order to branch on them, fewest
-    gated options first, and the least each can cost (obs.size,)."""
-    counts = np.empty(pending.size)             # float: the merge sort the other kernels compile
+    """The ambiguous observations (positions ``pending``, sorted in place) in the order to branch on
+    them, fewest gated options first, and the least each can cost (obs.size,)."""
+    counts = np.empty(obs.size)                 # by position; float: the merge sort the other kernels compile
     for k in range(pending.size):
-        counts[k] = 0.0
-        for j in range(start[pending[k]], start[pending[k] + 1]):
-            counts[k] += np.isfinite(cost[j])
-    order = pending[np.argsort(counts, kind="mergesort")]
+        i = pending[k]
+        counts[i] = 0.0
+        for j in range(start[i], start[i + 1]):
+            counts[i] += np.isfinite(cost[j])
+    sort_by(counts, pending)
+    order = pending
     least = np.zeros(obs.size)
     for i in order:
         least[i] = least_cost(cost[start[i]:start[i + 1]], scene.null_cost[obs[i]])
@@ -518,26 +547,28 @@ def nothing_pending(settings, X, P, c, parent_X, parent_P, pending, model, chain
 
 
 @inlined
-def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model, chain):
-    """Indices of the cheapest of ``candidates`` (of a generation's states X, covariances P and
-    costs) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``), none within
-    merge_sigma standard deviations of a cheaper one kept (beyond the run's width and delta,
-    ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one`` (``settle``,
-    or ``nothing_pending``) as a comparison first needs them, passed ``model`` and ``chain``."""
-    order = candidates[np.argsort(costs[candidates], kind="mergesort")]
-    kept = np.empty(min(order.size, width), np.int64)
-    n = 0
-    if order.size == 0:
-        return kept
-    best = costs[order[0]]
+def prune_indices_into(settings, width, delta, X, P, costs, candidates, parent_X, parent_P, pending, settle_one, model, chain, kept,
+                       at):
+    """The cheapest of ``candidates`` (of a generation's states X, covariances P and costs; sorted
+    in place by cost) within ``delta`` of the best, at most ``width`` (the pose's: ``pose_beam``),
+    none within merge_sigma standard deviations of a cheaper one kept (beyond the run's width and
+    delta, ``settings``', within ``copy_sigma``), whose states are settled by ``settle_one``
+    (``settle``, or ``nothing_pending``) as a comparison first needs them, passed ``model`` and
+    ``chain``: written into ``kept`` from index ``at``; returns the index after the last (no array
+    of their own: this runs for each root every step)."""
+    sort_by(costs, candidates)
+    if candidates.size == 0:
+        return at
+    best = costs[candidates[0]]
     limit = best + delta
-    for c in order:
+    n = 0
+    for c in candidates:
         if costs[c] > limit or n >= width:
             break
         # the run's width and delta are settings'; beyond them only a distinct hypothesis is kept
         sigma = compiled_copy_sigma(costs[c], best, n, settings.beam_width, settings.beam_delta, settings.merge_sigma)
         merged = False
-        for q in range(n):
+        for q in range(at, at + n):
             # the two compared, c first; settle inlined at one site (each site is compiled again)
             for h in (c, kept[q]):
                 if pending[5][h]:
@@ -546,9 +577,9 @@ def prune_indices(settings, width, delta, X, P, costs, candidates, parent_X, par
                 merged = True
                 break
         if not merged:
-            kept[n] = c
+            kept[at + n] = c
             n += 1
-    return kept[:n]
+    return at + n
 
 
 @inlined
@@ -560,10 +591,12 @@ def settled(n, dim):
 
 @entry
 def prune(scene, settings, gen, n, width, delta):
-    """``prune_indices`` over the first n hypotheses of a settled generation, to the pose's width
+    """``prune_indices_into`` over the first n hypotheses of a settled generation, to the pose's width
     and delta (``pose_beam``)."""
-    return prune_indices(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1], settled(n, gen[0].shape[1]),
-                         nothing_pending, None, None)
+    kept = np.empty(min(n, width), np.int64)
+    count = prune_indices_into(settings, width, delta, gen[0], gen[1], gen[2], np.arange(n), gen[0], gen[1],
+                               settled(n, gen[0].shape[1]), nothing_pending, None, None, kept, FIRST)
+    return kept[:count]
 
 
 @inlined
@@ -589,10 +622,8 @@ def prune_partials(settings, gen, root, rest, parents, pending, model, chain):
             if root[q] == r:
                 members[g] = q
                 g += 1
-        for q in prune_indices(settings, settings.beam_width, settings.beam_delta, X, P, costs, members[:g], parent_X, parent_P, pending,
-                               settle, model, chain):
-            kept[n_kept] = q
-            n_kept += 1
+        n_kept = prune_indices_into(settings, settings.beam_width, settings.beam_delta, X, P, costs, members[:g], parent_X, parent_P,
+                                    pending, settle, model, chain, kept, n_kept)
     kept = kept[:n_kept]
     if kept.size > settings.partial_budget:
         ranked = kept[np.argsort(costs[kept] + rest[kept], kind="mergesort")]
@@ -770,6 +801,40 @@ def expected_landmarks(scene, x, obs, opt):
                 found[n], excess[n] = lm[j], pool_cost[j] - null_cost
                 n += 1
     # distinct landmarks, each at its least excess (its largest chance of being on a ray)
+    return distinct_least_in_place(found, excess, n)
+
+
+@jit
+def distinct_least_in_place(found, excess, n):
+    """``distinct_least`` written over found[:n] and excess[:n]: sorted in place by a stable
+    insertion (the merge sort's order, no array allocated) up to ``SMALL_EXPECTED_SORT`` of them,
+    else by ``distinct_least``."""
+    if n > SMALL_EXPECTED_SORT:
+        return distinct_least(found, excess, n)
+    for i in range(1, n):
+        landmark, e = found[i], excess[i]
+        j = i
+        while j > 0 and landmark < found[j - 1]:
+            found[j], excess[j] = found[j - 1], excess[j - 1]
+            j -= 1
+        found[j], excess[j] = landmark, e
+    u = 0
+    for k in range(n):                          # u <= k: found[k] is read before its slot is reused
+        if u and found[u - 1] == found[k]:
+            excess[u - 1] = min(excess[u - 1], excess[k])
+        else:
+            found[u], excess[u] = found[k], excess[k]
+            u += 1
+    return found[:u], excess[:u]
+
+
+# Up to this many, ``expected_landmarks`` sorts its landmarks in place by insertion; more, by merge sort
+SMALL_EXPECTED_SORT = 64
+
+
+@jit
+def distinct_least(found, excess, n):
+    """The distinct landmarks of found[:n] (sorted) and each one's least excess, by merge sort."""
     order = np.argsort(found[:n].astype(np.float64), kind="mergesort")   # the merge sort the other kernels compile
     landmarks, least = np.empty(n, np.int64), np.empty(n)
     u = 0
@@ -799,7 +864,7 @@ def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
     those of the base state, or made again under the partial's own where it has paired something
     since (``model``: ``update.pair_model``). Passed the arrays it reads, not the generation and
     the options: every array a call is passed is counted on entry and on return. The base state's
-    are the root's own arrays, not copies: ``viable`` and ``branch`` write nothing into them."""
+    are the root's own arrays, not copies: ``viable_limit`` and ``branch`` write nothing into them."""
     if not moved:
         return lm, cost, zh, Hs
     cost, z_hat, H, _, _, _ = condition(model, settings, x, P, o, lm, taken)
@@ -807,19 +872,17 @@ def options_of(model, settings, x, P, taken, o, lm, cost, zh, Hs, moved):
 
 
 @jit
-def viable(taken, landmarks, cost, null_cost, branch_delta):
-    """Which options (those of landmarks not taken: ``untaken_cost``) and whether the null option
-    lie within branch_delta of the best. Writes nothing: ``cost`` may be the root's options' own."""
+def viable_limit(taken, landmarks, cost, null_cost, branch_delta):
+    """The cost within which an option is viable: branch_delta over the best of the options (those
+    of landmarks not taken: ``untaken_cost``) and the null one. Option j is viable where
+    ``untaken_cost(cost, landmarks, j, taken) <= limit`` (a test, not an array of them: one array
+    allocated per partial explanation branched). Writes nothing: ``cost`` may be the root's options' own."""
     best = null_cost                            # ``least_cost`` of the untaken costs
     for j in range(cost.size):
         c = untaken_cost(cost, landmarks, j, taken)
         if c < best:
             best = c
-    limit = best + branch_delta
-    pairs = np.empty(cost.size, np.bool_)
-    for j in range(cost.size):
-        pairs[j] = untaken_cost(cost, landmarks, j, taken) <= limit
-    return pairs, null_cost <= limit
+    return best + branch_delta
 
 
 @jit
@@ -829,8 +892,9 @@ def untaken_cost(cost, landmarks, j, taken):
 
 
 @jit
-def contested(start, lm, cost, later, landmarks, pairs):
-    """Whether a viable landmark of an observation is the only landmark in the gate of one still
+def contested(start, lm, cost, later, landmarks, option_cost, taken, limit):
+    """Whether a viable landmark of an observation (its options ``landmarks``, ``option_cost``,
+    ``viable_limit``'s limit) is the only landmark in the gate of one still
     to explain after it (``later``): then that observation may stay unassigned whatever its null
     cost, since the explanation that leaves it gives the landmark to the other
     (``PoseExpansion.branches``). Passed the options' arrays it reads (``options_of``)."""
@@ -843,7 +907,7 @@ def contested(start, lm, cost, later, landmarks, pairs):
         if gated != 1:
             continue
         for j in range(landmarks.size):
-            if pairs[j] and landmarks[j] == only:
+            if untaken_cost(option_cost, landmarks, j, taken) <= limit and landmarks[j] == only:
                 return True
     return False
 
@@ -858,16 +922,17 @@ def branch(null_cost, settings, gen, p, r, o, options, taken, start, lm, all_cos
     inlined step counts a reference to every array of the tuples it binds, per partial explanation
     branched."""
     landmarks, cost, z_hat, H = options
-    pairs, null = viable(taken, landmarks, cost, null_cost[o] + settings.null_offset, settings.branch_delta)
-    null = null or contested(start, lm, all_cost, later, landmarks, pairs)
+    null_option = null_cost[o] + settings.null_offset
+    limit = viable_limit(taken, landmarks, cost, null_option, settings.branch_delta)
+    null = null_option <= limit or contested(start, lm, all_cost, later, landmarks, cost, taken, limit)
     if null:
         copy_hypothesis(gen, p, children, at)
         children[2][at] += null_cost[o]
         children[4][at] += 1
         c_root[at], c_rest[at], c_moved[at] = r, rest, moved
         at += 1
-    for j in range(pairs.size):                 # not np.flatnonzero: two arrays a partial explanation
-        if not pairs[j]:
+    for j in range(landmarks.size):             # not np.flatnonzero: two arrays a partial explanation
+        if not untaken_cost(cost, landmarks, j, taken) <= limit:
             continue
         copy_hypothesis(gen, p, children, at)
         children[2][at] += untaken_cost(cost, landmarks, j, taken)

@@ -52,6 +52,14 @@ def view_cone_ball(apex, axis, depth, half_angle):
     """The smallest ball (centre (3,), radius) holding a view cone: apex, unit axis, points up to
     ``depth`` along it within ``half_angle`` of it. Up to 45 deg it passes through the apex and
     the base's rim; wider, it is the base's rim ball."""
+    along, radius = cone_ball_along(depth, half_angle)
+    return apex + along * axis, radius
+
+
+@jit
+def cone_ball_along(depth, half_angle):
+    """``view_cone_ball``'s ball as (the distance of its centre from the apex along the axis, its
+    radius): scalars, for ``visible``, which runs per hypothesis and camera."""
     half_angle = min(half_angle, math.radians(89.9))
     cos = math.cos(half_angle)
     if cos * cos >= 0.5:
@@ -60,7 +68,7 @@ def view_cone_ball(apex, axis, depth, half_angle):
     else:
         along = depth
         radius = depth * math.tan(half_angle)
-    return apex + along * axis, radius * (1.0 + 1e-9) + 1e-9
+    return along, radius * (1.0 + 1e-9) + 1e-9
 
 
 @jit
@@ -68,26 +76,27 @@ def visible(scene, R_wc, centre, max_angle, margin):
     """Sorted indices of the landmarks in the view of a camera at (R_wc, centre): depth within
     (min_depth, max_depth) and within ``max_angle`` of the optical axis, within the candidates'
     distance of the camera (``view_limits[6]``, where given); with ``margin`` metres the camera's
-    position may be off, every landmark that close to the view too."""
+    position may be off, every landmark that close to the view too. The cone's axis, apex, ball
+    and cell range are scalars, not arrays: this runs per hypothesis and camera, and each array
+    was an allocation and its reference counts (eight a call)."""
     min_depth, max_depth = scene.view_limits[0], scene.view_limits[1]
     max_distance = scene.view_limits[6] + margin if scene.view_limits.shape[0] > 6 else np.inf
-    axis = R_wc[:, 2].copy()
+    axis = (R_wc[0, 2], R_wc[1, 2], R_wc[2, 2])
     back = margin / math.sin(max_angle) if margin > 0.0 else 0.0
-    apex = centre - back * axis
+    apex = (centre[0] - back * axis[0], centre[1] - back * axis[1], centre[2] - back * axis[2])
     reach = max_depth + margin + back
-    ball, radius = view_cone_ball(apex, axis, reach, max_angle)
+    along, radius = cone_ball_along(reach, max_angle)
+    ball = (apex[0] + along * axis[0], apex[1] + along * axis[1], apex[2] + along * axis[2])
     cone = (math.tan(max_angle), math.cos(max_angle), math.sin(max_angle))
     found = np.empty(256, np.int64)
     count = FIRST    # a counter passed to kernels: int64 from the start (see FIRST)
     cell, origin, dims = scene.grid_cell[0], scene.grid_origin, scene.grid_dims
-    lo = np.empty(3, np.int64)
-    hi = np.empty(3, np.int64)
-    for a in range(3):
-        lo[a] = max(0, int(math.floor((ball[a] - radius - origin[a]) / cell)))
-        hi[a] = min(dims[a] - 1, int(math.floor((ball[a] + radius - origin[a]) / cell)))
-        if hi[a] < lo[a]:
-            return found[:0]
-    cells = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
+    lo0, hi0 = cell_range(ball[0], radius, origin[0], cell, dims[0])
+    lo1, hi1 = cell_range(ball[1], radius, origin[1], cell, dims[1])
+    lo2, hi2 = cell_range(ball[2], radius, origin[2], cell, dims[2])
+    if hi0 < lo0 or hi1 < lo1 or hi2 < lo2:
+        return found[:0]
+    cells = (hi0 - lo0 + 1) * (hi1 - lo1 + 1) * (hi2 - lo2 + 1)
     keys = scene.grid_keys
     dense = scene.grid_dense_start.size > 0
     scan_all = cells > keys.size                       # a ball wider than the map: visit occupied cells
@@ -97,12 +106,12 @@ def visible(scene, R_wc, centre, max_angle, margin):
             key = keys[q]
             ix, rest = key % dims[0], key // dims[0]
             iy, iz = rest % dims[1], rest // dims[1]
-            if ix < lo[0] or ix > hi[0] or iy < lo[1] or iy > hi[1] or iz < lo[2] or iz > hi[2]:
+            if ix < lo0 or ix > hi0 or iy < lo1 or iy > hi1 or iz < lo2 or iz > hi2:
                 continue
             first, stop = scene.grid_start[q], scene.grid_start[q + 1]
         else:
-            nx, ny = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
-            ix, iy, iz = lo[0] + q % nx, lo[1] + (q // nx) % ny, lo[2] + q // (nx * ny)
+            nx, ny = hi0 - lo0 + 1, hi1 - lo1 + 1
+            ix, iy, iz = lo0 + q % nx, lo1 + (q // nx) % ny, lo2 + q // (nx * ny)
             key = ix + dims[0] * (iy + dims[1] * iz)
             if dense:
                 first, stop = scene.grid_dense_start[key], scene.grid_dense_start[key + 1]
@@ -120,14 +129,43 @@ def visible(scene, R_wc, centre, max_angle, margin):
             found = grown
         count = cone_members(scene.grid_xyz, scene.grid_items, first, stop, R_wc, centre, ball, radius, min_depth - margin,
                              max_depth + margin, back, cone[0], max_distance * max_distance, found, count)
-    return sorted_ints(found[:count])
+    return sort_distinct_in_place(found[:count])
+
+
+@jit
+def cell_range(ball_a, radius, origin_a, cell, dim_a):
+    """The grid cells (first, last) a ball (its centre's coordinate ``ball_a``, ``radius``) spans on
+    one axis; last < first where it misses the grid."""
+    return (max(0, int(math.floor((ball_a - radius - origin_a) / cell))),
+            min(dim_a - 1, int(math.floor((ball_a + radius - origin_a) / cell))))
+
+
+# Up to this many, a view's landmarks are sorted in place by insertion (no array allocated); more,
+# by ``small.sorted_ints``. Their indices are distinct: any sort gives the one order.
+SMALL_VIEW_SORT = 64
+
+
+@jit
+def sort_distinct_in_place(values):
+    """``values`` (distinct int64) sorted: in place by insertion up to ``SMALL_VIEW_SORT`` of them,
+    else ``sorted_ints``' (a new array)."""
+    if values.size > SMALL_VIEW_SORT:
+        return sorted_ints(values)
+    for i in range(1, values.size):
+        v = values[i]
+        j = i
+        while j > 0 and v < values[j - 1]:
+            values[j] = values[j - 1]
+            j -= 1
+        values[j] = v
+    return values
 
 
 @jit
 def cone_members(grid_xyz, grid_items, first, stop, R_wc, centre, ball, radius, min_depth, max_depth, back, tan, distance2,
                  found, count):
     """Append the landmarks first..stop-1 of the grid's order (``scene.grid_xyz``, ``grid_items``)
-    that lie in the ball and the view
+    that lie in the ball (its centre ``ball``, a tuple) and the view
     (depth within (min_depth, max_depth), within the cone widened ``back`` metres behind the
     camera, their squared distance from it at most ``distance2``) to found (room for all of them) from ``count``; returns the new count. Without
     branches: which side of each test a landmark falls on is a coin toss the CPU would guess
@@ -151,8 +189,8 @@ def cone_members(grid_xyz, grid_items, first, stop, R_wc, centre, ball, radius, 
 
 @jit
 def cell_near_cone(origin, cell, ix, iy, iz, apex, axis, depth, cos_half_angle, sin_half_angle, min_depth):
-    """Whether grid cell (ix, iy, iz) may hold a point of the view cone (apex, unit axis, points up
-    to ``depth`` along it and beyond ``min_depth``, within the half-angle of it): its ball's distance
+    """Whether grid cell (ix, iy, iz) may hold a point of the view cone (apex, unit axis (tuples),
+    points up to ``depth`` along it and beyond ``min_depth``, within the half-angle of it): its ball's distance
     to the cone is at most its radius (a conservative test: a cell it keeps may hold none)."""
     h = 0.8660254037844386 * cell                      # half the cell's diagonal
     v0 = origin[0] + (ix + 0.5) * cell - apex[0]
