@@ -806,18 +806,20 @@ def expected_landmarks(scene, x, obs, opt):
 
 @jit
 def distinct_least_in_place(found, excess, n):
-    """``distinct_least`` written over found[:n] and excess[:n]: sorted in place by a stable
-    insertion (the merge sort's order, no array allocated) up to ``SMALL_EXPECTED_SORT`` of them,
-    else by ``distinct_least``."""
+    """The distinct landmarks of found[:n] and each one's least excess, written over found and
+    excess in ascending order of landmark: sorted in place by a stable insertion (the merge sort's
+    order, no array allocated) up to ``SMALL_EXPECTED_SORT`` of them, else by the merge sort."""
     if n > SMALL_EXPECTED_SORT:
-        return distinct_least(found, excess, n)
-    for i in range(1, n):
-        landmark, e = found[i], excess[i]
-        j = i
-        while j > 0 and landmark < found[j - 1]:
-            found[j], excess[j] = found[j - 1], excess[j - 1]
-            j -= 1
-        found[j], excess[j] = landmark, e
+        order = np.argsort(found[:n].astype(np.float64), kind="mergesort")   # the merge sort the other kernels compile
+        found[:n], excess[:n] = found[order], excess[order]
+    else:
+        for i in range(1, n):
+            landmark, e = found[i], excess[i]
+            j = i
+            while j > 0 and landmark < found[j - 1]:
+                found[j], excess[j] = found[j - 1], excess[j - 1]
+                j -= 1
+            found[j], excess[j] = landmark, e
     u = 0
     for k in range(n):                          # u <= k: found[k] is read before its slot is reused
         if u and found[u - 1] == found[k]:
@@ -830,21 +832,6 @@ def distinct_least_in_place(found, excess, n):
 
 # Up to this many, ``expected_landmarks`` sorts its landmarks in place by insertion; more, by merge sort
 SMALL_EXPECTED_SORT = 64
-
-
-@jit
-def distinct_least(found, excess, n):
-    """The distinct landmarks of found[:n] (sorted) and each one's least excess, by merge sort."""
-    order = np.argsort(found[:n].astype(np.float64), kind="mergesort")   # the merge sort the other kernels compile
-    landmarks, least = np.empty(n, np.int64), np.empty(n)
-    u = 0
-    for k in order:
-        if u and landmarks[u - 1] == found[k]:
-            least[u - 1] = min(least[u - 1], excess[k])
-        else:
-            landmarks[u], least[u] = found[k], excess[k]
-            u += 1
-    return landmarks[:u], least[:u]
 
 
 @jit
