@@ -23,7 +23,8 @@ def pytest_configure(config):
     test, as a first run does on two cores (the filter's kernels in a second process: about a minute
     rather than one and a half), instead of in one process in whichever test first calls them. With
     ``-n N`` (pytest-xdist, the README's command) this runs in the controlling process before its
-    workers start, so they all find the cache warm; a worker never compiles here."""
+    workers start, so they all find the cache warm; a worker never compiles here. The mapping
+    pass's kernels likewise, in a third process beside them (``_start_mapping_compile``)."""
     if hasattr(config, "workerinput"):  # an xdist worker: its controller compiled already
         return
     from camloc import slam_compiled, warmup
@@ -43,9 +44,9 @@ def pytest_configure(config):
 
 def _start_mapping_compile():
     """The mapping pass's kernels (``camloc.slam_compiled``, which share none of the filter's),
-    compiled in a process of their own beside the kernels' compile: left to the tests, each xdist
-    worker that reached them before the other had cached them compiled them too, inside the test
-    that first called them (docs/performance.md, 2026-12-07, twenty-fifth session)."""
+    compiled in a process of their own beside the kernels' compile: left to the tests, a worker's
+    first test to map compiled them (64.7 s of a 5-s test under load; both workers, where both got
+    there before either had cached them; docs/performance.md, 2026-12-07, twenty-fifth session)."""
     import subprocess
     import sys
 
