@@ -175,16 +175,27 @@ def start_filter_compile() -> Optional[subprocess.Popen]:
     process, for a compile of the beam's kernels going on in this one; None where it cannot run
     (switched off with ``CAMLOC_BACKGROUND_COMPILE=0``, no cache folder, no process). The caller
     waits for it (``wait_for``) before it first calls the filter."""
+    return _start_share(FILTER_ONLY)
+
+
+def start_mapping_compile() -> Optional[subprocess.Popen]:
+    """``start_filter_compile`` for the mapping pass's kernels (``compile_mapping_kernels``, no
+    lock): the tests' setup compiles them beside the kernels' compile."""
+    return _start_share(MAPPING_ONLY)
+
+
+def _start_share(share: str) -> Optional[subprocess.Popen]:
+    """``python -m camloc.warmup SHARE`` as this process's child; None where it cannot run."""
     if switched_off() or cache_folder() is None:
         return None
     try:
-        return _start([sys.executable, "-m", "camloc.warmup", FILTER_ONLY], _environment())
+        return _start([sys.executable, "-m", "camloc.warmup", share], _environment())
     except OSError:
         return None
 
 
 def wait_for(process: Optional[subprocess.Popen]) -> None:
-    """Wait for a process of ``start_filter_compile``; one that has not ended after
+    """Wait for a process of ``start_filter_compile`` (or ``start_mapping_compile``); one that has not ended after
     ``FILTER_COMPILE_TIMEOUT`` seconds is stopped. Either way the caller then calls the filter,
     which loads its kernels from the cache, or compiles what is not there."""
     if process is None:
@@ -360,9 +371,12 @@ def main(argv: list[str]) -> int:
     """The background process: compile at the lowest priority, then remove the lock ``argv[1]``;
     on failure, leave the error in it (no new start until it is stale). With ``--filter``, the
     second process's share of a compile going on in the process that started this one
-    (``compile_filter_kernels``), without a lock."""
+    (``compile_filter_kernels``), without a lock; likewise ``--mapping`` alone (``compile_mapping_kernels``)."""
     if argv[1:] == [FILTER_ONLY]:
         compile_filter_kernels()
+        return 0
+    if argv[1:] == [MAPPING_ONLY]:          # a share of a compile its caller waits for: no lock
+        compile_mapping_kernels()
         return 0
     mapping = argv[1] == MAPPING_ONLY
     lock = Path(argv[-1])

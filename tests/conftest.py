@@ -24,34 +24,27 @@ def pytest_configure(config):
     rather than one and a half), instead of in one process in whichever test first calls them. With
     ``-n N`` (pytest-xdist, the README's command) this runs in the controlling process before its
     workers start, so they all find the cache warm; a worker never compiles here. The mapping
-    pass's kernels likewise, in a third process beside them (``_start_mapping_compile``)."""
+    pass's kernels (``camloc.slam_compiled``, which share none of the filter's) likewise, in a third
+    process beside them: left to the tests, a worker's first test to map compiled them (64.7 s of a
+    5-s test under load; both workers, where both got there before either had cached them;
+    docs/performance.md, 2026-12-07, twenty-fifth session)."""
     if hasattr(config, "workerinput"):  # an xdist worker: its controller compiled already
         return
     from camloc import slam_compiled, warmup
     from camloc.kernels import cache_is_warm
 
-    mapping = None if slam_compiled.cache_is_warm() else _start_mapping_compile()
+    if cache_is_warm() and slam_compiled.cache_is_warm():
+        return
+    os.environ[warmup.ENVIRONMENT_SWITCH] = "1"   # the second and third processes start only so
     try:
-        if not cache_is_warm():
-            os.environ[warmup.ENVIRONMENT_SWITCH] = "1"
-            try:
+        mapping = None if slam_compiled.cache_is_warm() else warmup.start_mapping_compile()
+        try:
+            if not cache_is_warm():
                 warmup.compile_kernels()
-            finally:
-                os.environ[warmup.ENVIRONMENT_SWITCH] = "0"
+        finally:
+            warmup.wait_for(mapping)
     finally:
-        warmup.wait_for(mapping)
-
-
-def _start_mapping_compile():
-    """The mapping pass's kernels (``camloc.slam_compiled``, which share none of the filter's),
-    compiled in a process of their own beside the kernels' compile: left to the tests, a worker's
-    first test to map compiled them (64.7 s of a 5-s test under load; both workers, where both got
-    there before either had cached them; docs/performance.md, 2026-12-07, twenty-fifth session)."""
-    import subprocess
-    import sys
-
-    command = [sys.executable, "-c", "from camloc.warmup import compile_mapping_kernels; compile_mapping_kernels()"]
-    return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        os.environ[warmup.ENVIRONMENT_SWITCH] = "0"
 
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

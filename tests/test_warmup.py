@@ -256,6 +256,7 @@ def test_where_the_second_process_cannot_run_the_filter_compiles_in_the_run(reas
             raise OSError("no such file")
         monkeypatch.setattr(warmup, "_start", refuse)
     assert warmup.start_filter_compile() is None
+    assert warmup.start_mapping_compile() is None
     warmup.wait_for(None)                                    # nothing to wait for
 
 
@@ -351,6 +352,16 @@ def test_the_mapping_background_process_compiles_the_mapping_kernels(tmp_path, m
     monkeypatch.setattr(warmup, "compile_kernels", lambda: called.append("localizer"))
     assert warmup.main(["camloc.warmup", warmup.MAPPING_ONLY, str(lock)]) == 0
     assert called == ["mapping"] and not lock.exists()
+
+
+def test_the_mapping_share_compiles_the_mapping_kernels_without_a_lock(tmp_path, monkeypatch):
+    # ``start_mapping_compile``'s process (the tests' setup): no lock argument, none written
+    monkeypatch.chdir(tmp_path)
+    called = []
+    monkeypatch.setattr(warmup, "compile_mapping_kernels", lambda: called.append("mapping"))
+    monkeypatch.setattr(warmup, "compile_kernels", lambda: called.append("localizer"))
+    assert warmup.main(["camloc.warmup", warmup.MAPPING_ONLY]) == 0
+    assert called == ["mapping"] and list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.skipif(not Path("/proc/self/autogroup").exists() or not hasattr(os, "setsid"),
